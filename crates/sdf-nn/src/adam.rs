@@ -1,0 +1,232 @@
+//! The Adam optimiser on the GPU (`shaders/adam.wgsl`), shared by every model, and its CPU
+//! reference.
+//!
+//! Models keep all their parameters in one flat `f32` buffer and their gradients in another of
+//! the same length, so one dispatch updates everything. The kernel zeroes the gradient as it
+//! consumes it, ready for the next step's accumulation.
+
+use crate::gpu::{GpuContext, GpuError};
+use crate::shaders;
+
+/// Adam hyperparameters.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct AdamConfig {
+    /// Learning rate.
+    pub lr: f32,
+    /// First-moment decay β1.
+    pub beta1: f32,
+    /// Second-moment decay β2.
+    pub beta2: f32,
+    /// ε added to the denominator.
+    pub eps: f32,
+}
+
+impl Default for AdamConfig {
+    fn default() -> Self {
+        AdamConfig {
+            lr: 1e-3,
+            beta1: 0.9,
+            beta2: 0.999,
+            eps: 1e-8,
+        }
+    }
+}
+
+#[repr(C)]
+#[derive(Clone, Copy, Debug, bytemuck::Pod, bytemuck::Zeroable)]
+struct AdamUniforms {
+    step_size: f32,
+    beta1: f32,
+    beta2: f32,
+    eps: f32,
+    inv_sqrt_bc2: f32,
+    grad_scale: f32,
+    len: u32,
+    _pad: u32,
+}
+
+const WORKGROUP: u32 = 256;
+
+/// Adam state (moments and step counter) for one flat parameter buffer.
+#[derive(Debug)]
+pub struct Adam {
+    /// Hyperparameters; the learning rate may be changed between steps (e.g. on plateaus).
+    pub config: AdamConfig,
+    len: u32,
+    step: u32,
+    m: wgpu::Buffer,
+    v: wgpu::Buffer,
+    uniforms: wgpu::Buffer,
+    bind_group: wgpu::BindGroup,
+    pipeline: wgpu::ComputePipeline,
+}
+
+impl Adam {
+    /// Adam over `len` f32 parameters in `params` with gradients in `grads` (both at least
+    /// `len` elements).
+    pub fn new(
+        gpu: &GpuContext,
+        params: &wgpu::Buffer,
+        grads: &wgpu::Buffer,
+        len: u32,
+        config: AdamConfig,
+    ) -> Result<Self, GpuError> {
+        let bytes = u64::from(len) * 4;
+        for (name, b) in [("params", params), ("grads", grads)] {
+            if b.size() < bytes {
+                return Err(GpuError::BufferTooLarge {
+                    label: format!("adam {name}"),
+                    requested: bytes,
+                    limit_name: "size of the buffer given to Adam",
+                    limit: b.size(),
+                });
+            }
+        }
+        let m = gpu.storage_zeroed("adam m", bytes)?;
+        let v = gpu.storage_zeroed("adam v", bytes)?;
+        let uniforms = gpu.uniform("adam uniforms", &AdamUniforms::zeroed_for(len));
+        let pipeline = gpu.pipeline(&shaders::ADAM, "adam_step", &[])?;
+        let bind_group = gpu.device().create_bind_group(&wgpu::BindGroupDescriptor {
+            label: Some("adam"),
+            layout: &pipeline.get_bind_group_layout(0),
+            entries: &[
+                entry(0, &uniforms),
+                entry(1, params),
+                entry(2, grads),
+                entry(3, &m),
+                entry(4, &v),
+            ],
+        });
+        Ok(Adam {
+            config,
+            len,
+            step: 0,
+            m,
+            v,
+            uniforms,
+            bind_group,
+            pipeline,
+        })
+    }
+
+    /// Steps taken so far.
+    pub fn step_count(&self) -> u32 {
+        self.step
+    }
+
+    /// Restores the step counter (when resuming from a checkpoint together with the moments).
+    pub fn set_step_count(&mut self, step: u32) {
+        self.step = step;
+    }
+
+    /// First- and second-moment buffers, for checkpoints.
+    pub fn moments(&self) -> (&wgpu::Buffer, &wgpu::Buffer) {
+        (&self.m, &self.v)
+    }
+
+    /// Records one Adam step into `encoder`. `grad_scale` multiplies the gradients first
+    /// (e.g. `1/batch` when the backward kernels accumulate sums).
+    ///
+    /// The uniforms are written through the queue, which applies them before the next
+    /// submission: submit the encoder before recording another step.
+    pub fn record_step(&mut self, gpu: &GpuContext, encoder: &mut wgpu::CommandEncoder, grad_scale: f32) {
+        self.step += 1;
+        let u = self.uniforms_for_step(grad_scale);
+        gpu.queue()
+            .write_buffer(&self.uniforms, 0, bytemuck::bytes_of(&u));
+        let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
+            label: Some("adam"),
+            timestamp_writes: None,
+        });
+        pass.set_pipeline(&self.pipeline);
+        pass.set_bind_group(0, &self.bind_group, &[]);
+        let (x, y) = gpu.dispatch_size(self.len.div_ceil(WORKGROUP));
+        pass.dispatch_workgroups(x, y, 1);
+    }
+
+    /// Records one step and submits it (does not wait).
+    pub fn step(&mut self, gpu: &GpuContext, grad_scale: f32) {
+        let mut enc = gpu.device().create_command_encoder(&Default::default());
+        self.record_step(gpu, &mut enc, grad_scale);
+        gpu.queue().submit([enc.finish()]);
+    }
+
+    fn uniforms_for_step(&self, grad_scale: f32) -> AdamUniforms {
+        let c = &self.config;
+        let t = f64::from(self.step);
+        let bc1 = 1.0 - f64::from(c.beta1).powf(t);
+        let bc2 = 1.0 - f64::from(c.beta2).powf(t);
+        AdamUniforms {
+            step_size: (f64::from(c.lr) / bc1) as f32,
+            beta1: c.beta1,
+            beta2: c.beta2,
+            eps: c.eps,
+            inv_sqrt_bc2: (1.0 / bc2.sqrt()) as f32,
+            grad_scale,
+            len: self.len,
+            _pad: 0,
+        }
+    }
+}
+
+impl AdamUniforms {
+    fn zeroed_for(len: u32) -> Self {
+        AdamUniforms {
+            len,
+            ..bytemuck::Zeroable::zeroed()
+        }
+    }
+}
+
+fn entry(binding: u32, buffer: &wgpu::Buffer) -> wgpu::BindGroupEntry<'_> {
+    wgpu::BindGroupEntry {
+        binding,
+        resource: buffer.as_entire_binding(),
+    }
+}
+
+/// CPU reference of Adam in f64: the same update as the kernel, for tests and for CPU training.
+#[derive(Clone, Debug)]
+pub struct AdamCpu {
+    /// Hyperparameters.
+    pub config: AdamConfig,
+    /// First moments.
+    pub m: Vec<f64>,
+    /// Second moments.
+    pub v: Vec<f64>,
+    /// Steps taken.
+    pub step: u32,
+}
+
+impl AdamCpu {
+    /// Zero state for `len` parameters.
+    pub fn new(len: usize, config: AdamConfig) -> Self {
+        AdamCpu {
+            config,
+            m: vec![0.0; len],
+            v: vec![0.0; len],
+            step: 0,
+        }
+    }
+
+    /// One step: updates `params` in place from `grads` scaled by `grad_scale`.
+    pub fn step(&mut self, params: &mut [f64], grads: &[f64], grad_scale: f64) {
+        self.step += 1;
+        let c = &self.config;
+        let (b1, b2) = (f64::from(c.beta1), f64::from(c.beta2));
+        let t = f64::from(self.step);
+        let step_size = f64::from(c.lr) / (1.0 - b1.powf(t));
+        let inv_sqrt_bc2 = 1.0 / (1.0 - b2.powf(t)).sqrt();
+        for (((p, &g), m), v) in params
+            .iter_mut()
+            .zip(grads)
+            .zip(&mut self.m)
+            .zip(&mut self.v)
+        {
+            let g = g * grad_scale;
+            *m = b1 * *m + (1.0 - b1) * g;
+            *v = b2 * *v + (1.0 - b2) * g * g;
+            *p -= step_size * *m / (v.sqrt() * inv_sqrt_bc2 + f64::from(c.eps));
+        }
+    }
+}

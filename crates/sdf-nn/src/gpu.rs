@@ -1,0 +1,643 @@
+//! The GPU context: adapter choice, device creation with checked limits, buffer helpers and a
+//! pipeline cache that lives as long as the device.
+//!
+//! Adapter choice honours the same environment variables as wgpu's own tools:
+//! - `WGPU_BACKEND` (e.g. `vulkan`, `metal`, `dx12`) restricts the backends;
+//! - `WGPU_ADAPTER_NAME` picks the first adapter whose name contains the value (case-insensitive),
+//!   and is an error when none does, rather than a silent fallback;
+//! - otherwise a real GPU (discrete, then integrated, then virtual) is preferred over a CPU
+//!   adapter such as lavapipe.
+
+use std::borrow::Cow;
+use std::collections::HashMap;
+use std::fmt;
+use std::sync::{Mutex, OnceLock};
+
+use bytemuck::Pod;
+use wgpu::util::DeviceExt;
+
+use crate::shaders::Shader;
+
+/// Errors from the GPU context and its helpers.
+#[derive(Debug, thiserror::Error)]
+pub enum GpuError {
+    /// No adapter at all was found.
+    #[error(
+        "no GPU adapter found (backends: {backends}). Install a Vulkan driver for your GPU, or the \
+         CPU driver on machines without one: `apt-get install mesa-vulkan-drivers libvulkan1`"
+    )]
+    NoAdapter {
+        /// The backends that were searched.
+        backends: String,
+    },
+    /// `WGPU_ADAPTER_NAME` (or [`GpuOptions::adapter_name`]) matched no adapter.
+    #[error(
+        "no adapter name contains {requested:?} (from WGPU_ADAPTER_NAME); available adapters: \
+         {available}. Unset WGPU_ADAPTER_NAME or set it to part of one of these names"
+    )]
+    AdapterNotFound {
+        /// The requested name fragment.
+        requested: String,
+        /// The adapters that exist, for the message.
+        available: String,
+    },
+    /// The adapter lacks a limit the kernels need.
+    #[error("adapter {adapter:?} is unsupported: limit `{limit}` is {has}, HW SDF needs at least {need}")]
+    UnsupportedAdapter {
+        /// Adapter name.
+        adapter: String,
+        /// Name of the wgpu limit.
+        limit: &'static str,
+        /// What the adapter offers.
+        has: u64,
+        /// What we need.
+        need: u64,
+    },
+    /// The adapter refused to create a device.
+    #[error("could not create a device on adapter {adapter:?}: {source}")]
+    RequestDevice {
+        /// Adapter name.
+        adapter: String,
+        /// The wgpu error.
+        source: wgpu::RequestDeviceError,
+    },
+    /// A buffer would exceed the device's limits.
+    #[error("buffer `{label}` needs {requested} bytes, above the device limit {limit_name} = {limit} bytes")]
+    BufferTooLarge {
+        /// Buffer label.
+        label: String,
+        /// Requested size in bytes.
+        requested: u64,
+        /// Name of the limit it exceeds.
+        limit_name: &'static str,
+        /// The limit.
+        limit: u64,
+    },
+    /// A shader needs a device feature this device does not have.
+    #[error("shader `{shader}` needs device features {missing:?}, which adapter {adapter:?} does not offer")]
+    MissingFeatures {
+        /// Shader name.
+        shader: &'static str,
+        /// The missing features.
+        missing: wgpu::Features,
+        /// Adapter name.
+        adapter: String,
+    },
+    /// wgpu reported a validation or out-of-memory error.
+    #[error("GPU error while {context}: {message}")]
+    Wgpu {
+        /// What we were doing.
+        context: String,
+        /// wgpu's message.
+        message: String,
+    },
+    /// Mapping a buffer for readback failed, or the device was lost while waiting.
+    #[error("reading back `{label}` failed: {reason}")]
+    Readback {
+        /// Buffer label.
+        label: String,
+        /// What went wrong.
+        reason: String,
+    },
+}
+
+/// How to choose the adapter. [`GpuOptions::from_env`] reads the usual wgpu variables.
+#[derive(Clone, Debug, Default)]
+pub struct GpuOptions {
+    /// Pick the first adapter whose name contains this (case-insensitive).
+    pub adapter_name: Option<String>,
+    /// Restrict to these backends; `None` means wgpu's defaults (or `WGPU_BACKEND`).
+    pub backends: Option<wgpu::Backends>,
+}
+
+impl GpuOptions {
+    /// Options from `WGPU_ADAPTER_NAME` and `WGPU_BACKEND`.
+    pub fn from_env() -> Self {
+        let adapter_name = std::env::var("WGPU_ADAPTER_NAME")
+            .ok()
+            .filter(|s| !s.trim().is_empty());
+        GpuOptions {
+            adapter_name,
+            backends: wgpu::Backends::from_env(),
+        }
+    }
+}
+
+/// Cache key of a compiled compute pipeline: shader, entry point and override constants.
+#[derive(Clone, Debug, PartialEq, Eq, Hash)]
+struct PipelineKey {
+    shader: &'static str,
+    entry: String,
+    constants: Vec<(String, u64)>,
+}
+
+/// One device and queue, the adapter they came from, and every pipeline compiled on them.
+///
+/// Create one per process (tests share one per test binary): on lavapipe each pipeline's first
+/// compilation costs seconds of LLVM time, and the cache makes that a one-off.
+pub struct GpuContext {
+    adapter_info: wgpu::AdapterInfo,
+    device: wgpu::Device,
+    queue: wgpu::Queue,
+    pipelines: Mutex<HashMap<PipelineKey, wgpu::ComputePipeline>>,
+    max_dispatch: u32,
+}
+
+impl fmt::Debug for GpuContext {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.debug_struct("GpuContext")
+            .field("adapter", &self.describe())
+            .finish_non_exhaustive()
+    }
+}
+
+/// Rank for the default choice: real GPUs first, then CPU rasterisers.
+fn device_type_rank(t: wgpu::DeviceType) -> u8 {
+    match t {
+        wgpu::DeviceType::DiscreteGpu => 0,
+        wgpu::DeviceType::IntegratedGpu => 1,
+        wgpu::DeviceType::VirtualGpu => 2,
+        wgpu::DeviceType::Other => 3,
+        wgpu::DeviceType::Cpu => 4,
+    }
+}
+
+/// Minimum limits every kernel of ours may rely on. All are within what lavapipe, NVIDIA, AMD,
+/// Intel and Apple GPUs offer.
+const NEEDED_STORAGE_BUFFERS: u32 = 8;
+const NEEDED_WORKGROUP_STORAGE: u32 = 16 * 1024;
+const NEEDED_INVOCATIONS: u32 = 256;
+
+/// Features we use when present; none is required.
+fn wanted_features() -> wgpu::Features {
+    wgpu::Features::SHADER_FLOAT32_ATOMIC | wgpu::Features::TIMESTAMP_QUERY
+}
+
+impl GpuContext {
+    /// A context on the adapter chosen by the environment (see the module docs).
+    pub fn new() -> Result<Self, GpuError> {
+        Self::with_options(&GpuOptions::from_env())
+    }
+
+    /// A context on the adapter chosen by `options`.
+    pub fn with_options(options: &GpuOptions) -> Result<Self, GpuError> {
+        let mut desc = wgpu::InstanceDescriptor::new_without_display_handle_from_env();
+        if let Some(b) = options.backends {
+            desc.backends = b;
+        }
+        let backends = desc.backends;
+        let instance = wgpu::Instance::new(desc);
+        let adapters = pollster::block_on(instance.enumerate_adapters(backends));
+        let adapter = choose_adapter(adapters, options, backends)?;
+        Self::from_adapter(adapter)
+    }
+
+    /// One context per process, created from the environment on first use and shared after.
+    ///
+    /// Tests and binaries use this so that a device, and the pipelines compiled on it, are
+    /// created once. A failure is returned to every caller until one succeeds.
+    pub fn shared() -> Result<&'static GpuContext, GpuError> {
+        static SHARED: OnceLock<GpuContext> = OnceLock::new();
+        static INIT: Mutex<()> = Mutex::new(());
+        if let Some(gpu) = SHARED.get() {
+            return Ok(gpu);
+        }
+        let _guard = INIT.lock().unwrap_or_else(|e| e.into_inner());
+        if let Some(gpu) = SHARED.get() {
+            return Ok(gpu);
+        }
+        let gpu = GpuContext::new()?;
+        Ok(SHARED.get_or_init(|| gpu))
+    }
+
+    /// A context on an adapter the caller already chose.
+    pub fn from_adapter(adapter: wgpu::Adapter) -> Result<Self, GpuError> {
+        let info = adapter.get_info();
+        let have = adapter.limits();
+        let check = |limit: &'static str, has: u32, need: u32| {
+            if has < need {
+                Err(GpuError::UnsupportedAdapter {
+                    adapter: info.name.clone(),
+                    limit,
+                    has: has.into(),
+                    need: need.into(),
+                })
+            } else {
+                Ok(())
+            }
+        };
+        check(
+            "max_storage_buffers_per_shader_stage",
+            have.max_storage_buffers_per_shader_stage,
+            NEEDED_STORAGE_BUFFERS,
+        )?;
+        check(
+            "max_compute_workgroup_storage_size",
+            have.max_compute_workgroup_storage_size,
+            NEEDED_WORKGROUP_STORAGE,
+        )?;
+        check(
+            "max_compute_invocations_per_workgroup",
+            have.max_compute_invocations_per_workgroup,
+            NEEDED_INVOCATIONS,
+        )?;
+
+        // Ask for what the adapter has where bigger is better for us (buffer sizes, workgroup
+        // memory, bindings), so large batches and grids are limited by the hardware, not by
+        // wgpu's conservative defaults.
+        let limits = wgpu::Limits {
+            max_storage_buffers_per_shader_stage: have.max_storage_buffers_per_shader_stage,
+            max_storage_buffer_binding_size: have.max_storage_buffer_binding_size,
+            max_buffer_size: have.max_buffer_size,
+            max_compute_workgroup_storage_size: have.max_compute_workgroup_storage_size,
+            max_compute_invocations_per_workgroup: have.max_compute_invocations_per_workgroup,
+            max_compute_workgroup_size_x: have.max_compute_workgroup_size_x,
+            max_compute_workgroup_size_y: have.max_compute_workgroup_size_y,
+            max_compute_workgroup_size_z: have.max_compute_workgroup_size_z,
+            max_compute_workgroups_per_dimension: have.max_compute_workgroups_per_dimension,
+            ..wgpu::Limits::downlevel_defaults()
+        };
+        let features = adapter.features() & wanted_features();
+        let (device, queue) = pollster::block_on(adapter.request_device(&wgpu::DeviceDescriptor {
+            label: Some("hwsdf"),
+            required_features: features,
+            required_limits: limits,
+            ..Default::default()
+        }))
+        .map_err(|source| GpuError::RequestDevice {
+            adapter: info.name.clone(),
+            source,
+        })?;
+        let max_dispatch = device.limits().max_compute_workgroups_per_dimension;
+        Ok(GpuContext {
+            adapter_info: info,
+            device,
+            queue,
+            pipelines: Mutex::new(HashMap::new()),
+            max_dispatch,
+        })
+    }
+
+    /// The wgpu device.
+    pub fn device(&self) -> &wgpu::Device {
+        &self.device
+    }
+
+    /// The wgpu queue.
+    pub fn queue(&self) -> &wgpu::Queue {
+        &self.queue
+    }
+
+    /// Adapter name, type, backend and driver, as wgpu reports them.
+    pub fn adapter_info(&self) -> &wgpu::AdapterInfo {
+        &self.adapter_info
+    }
+
+    /// One line naming the adapter, for reports: `"llvmpipe (LLVM 15.0.6, 256 bits) (Cpu, Vulkan, llvmpipe Mesa 22.3.6)"`.
+    pub fn describe(&self) -> String {
+        describe_info(&self.adapter_info)
+    }
+
+    /// Whether this is a CPU adapter (lavapipe, WARP, SwiftShader).
+    pub fn is_cpu(&self) -> bool {
+        self.adapter_info.device_type == wgpu::DeviceType::Cpu
+    }
+
+    /// Whether `atomicAdd` on `atomic<f32>` in storage buffers is available.
+    pub fn has_float_atomics(&self) -> bool {
+        self.device
+            .features()
+            .contains(wgpu::Features::SHADER_FLOAT32_ATOMIC)
+    }
+
+    /// Whether GPU timestamp queries are available.
+    pub fn has_timestamps(&self) -> bool {
+        self.device
+            .features()
+            .contains(wgpu::Features::TIMESTAMP_QUERY)
+    }
+
+    /// The limits the device was created with.
+    pub fn limits(&self) -> wgpu::Limits {
+        self.device.limits()
+    }
+
+    /// Checks a buffer size against the device limits for a buffer bound as storage.
+    pub fn check_storage_size(&self, label: &str, bytes: u64) -> Result<(), GpuError> {
+        let limits = self.device.limits();
+        if bytes > limits.max_buffer_size {
+            return Err(GpuError::BufferTooLarge {
+                label: label.to_owned(),
+                requested: bytes,
+                limit_name: "max_buffer_size",
+                limit: limits.max_buffer_size,
+            });
+        }
+        if bytes > limits.max_storage_buffer_binding_size {
+            return Err(GpuError::BufferTooLarge {
+                label: label.to_owned(),
+                requested: bytes,
+                limit_name: "max_storage_buffer_binding_size",
+                limit: limits.max_storage_buffer_binding_size,
+            });
+        }
+        Ok(())
+    }
+
+    /// A storage buffer (also a copy source and destination) holding `data`.
+    pub fn storage_from_slice<T: Pod>(&self, label: &str, data: &[T]) -> Result<wgpu::Buffer, GpuError> {
+        let bytes: &[u8] = bytemuck::cast_slice(data);
+        // wgpu rejects zero-sized bindings; keep one element so empty inputs still bind.
+        if bytes.is_empty() {
+            return self.storage_zeroed(label, 4);
+        }
+        self.check_storage_size(label, bytes.len() as u64)?;
+        Ok(self.device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+            label: Some(label),
+            contents: bytes,
+            usage: storage_usage(),
+        }))
+    }
+
+    /// A zero-filled storage buffer of `bytes` bytes (rounded up to a multiple of 4).
+    pub fn storage_zeroed(&self, label: &str, bytes: u64) -> Result<wgpu::Buffer, GpuError> {
+        let bytes = bytes.max(4).next_multiple_of(4);
+        self.check_storage_size(label, bytes)?;
+        // wgpu zero-initialises new buffers, so no clear pass is needed.
+        Ok(self.device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some(label),
+            size: bytes,
+            usage: storage_usage(),
+            mapped_at_creation: false,
+        }))
+    }
+
+    /// A uniform buffer holding `value`, writable later with [`GpuContext::write`].
+    pub fn uniform<T: Pod>(&self, label: &str, value: &T) -> wgpu::Buffer {
+        self.device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+            label: Some(label),
+            contents: bytemuck::bytes_of(value),
+            usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
+        })
+    }
+
+    /// Writes `data` at the start of `buffer`; it takes effect before the next submission.
+    pub fn write<T: Pod>(&self, buffer: &wgpu::Buffer, data: &[T]) -> Result<(), GpuError> {
+        let bytes: &[u8] = bytemuck::cast_slice(data);
+        if bytes.len() as u64 > buffer.size() {
+            return Err(GpuError::BufferTooLarge {
+                label: "write".into(),
+                requested: bytes.len() as u64,
+                limit_name: "destination buffer size",
+                limit: buffer.size(),
+            });
+        }
+        self.queue.write_buffer(buffer, 0, bytes);
+        Ok(())
+    }
+
+    /// Fills `buffer` with zeros (submitted at once, not waited on).
+    pub fn zero(&self, buffer: &wgpu::Buffer) {
+        let mut enc = self.device.create_command_encoder(&Default::default());
+        enc.clear_buffer(buffer, 0, None);
+        self.queue.submit([enc.finish()]);
+    }
+
+    /// Copies the whole of `buffer` back to the host and waits for it.
+    pub fn read_back<T: Pod>(&self, buffer: &wgpu::Buffer) -> Result<Vec<T>, GpuError> {
+        self.read_back_range(buffer, 0, buffer.size() / std::mem::size_of::<T>() as u64)
+    }
+
+    /// Copies `count` elements of type `T` starting at element `first` back to the host.
+    pub fn read_back_range<T: Pod>(
+        &self,
+        buffer: &wgpu::Buffer,
+        first: u64,
+        count: u64,
+    ) -> Result<Vec<T>, GpuError> {
+        let size = std::mem::size_of::<T>() as u64;
+        let offset = first * size;
+        let bytes = count * size;
+        let label = format!("{:?}", buffer);
+        if offset + bytes > buffer.size() || bytes % 4 != 0 || offset % 4 != 0 {
+            return Err(GpuError::Readback {
+                label,
+                reason: format!(
+                    "range {offset}..{} is outside the {}-byte buffer or not 4-byte aligned",
+                    offset + bytes,
+                    buffer.size()
+                ),
+            });
+        }
+        if bytes == 0 {
+            return Ok(Vec::new());
+        }
+        let staging = self.device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("readback staging"),
+            size: bytes,
+            usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+            mapped_at_creation: false,
+        });
+        let mut enc = self.device.create_command_encoder(&Default::default());
+        enc.copy_buffer_to_buffer(buffer, offset, &staging, 0, bytes);
+        self.queue.submit([enc.finish()]);
+        let slice = staging.slice(..);
+        let (tx, rx) = std::sync::mpsc::channel();
+        slice.map_async(wgpu::MapMode::Read, move |r| {
+            let _ = tx.send(r);
+        });
+        self.wait()?;
+        let mapped = rx
+            .recv()
+            .map_err(|e| GpuError::Readback {
+                label: label.clone(),
+                reason: e.to_string(),
+            })?
+            .map_err(|e| GpuError::Readback {
+                label: label.clone(),
+                reason: e.to_string(),
+            })?;
+        let () = mapped;
+        let view = slice.get_mapped_range().map_err(|e| GpuError::Readback {
+            label: label.clone(),
+            reason: e.to_string(),
+        })?;
+        // The staging bytes need not be aligned for T; copy through pod_collect.
+        let out: Vec<T> = bytemuck::pod_collect_to_vec(&view);
+        drop(view);
+        staging.unmap();
+        Ok(out)
+    }
+
+    /// Blocks until all submitted work has finished.
+    pub fn wait(&self) -> Result<(), GpuError> {
+        self.device
+            .poll(wgpu::PollType::wait_indefinitely())
+            .map(|_| ())
+            .map_err(|e| GpuError::Readback {
+                label: "device".into(),
+                reason: e.to_string(),
+            })
+    }
+
+    /// The compute pipeline for `entry` in `shader` with the given override constants,
+    /// compiled on first use and cached for the device's lifetime. Bind group layouts are
+    /// derived from the shader (`pipeline.get_bind_group_layout(i)`).
+    pub fn pipeline(
+        &self,
+        shader: &Shader,
+        entry: &str,
+        constants: &[(&str, f64)],
+    ) -> Result<wgpu::ComputePipeline, GpuError> {
+        let missing = shader.required_features - self.device.features();
+        if !missing.is_empty() {
+            return Err(GpuError::MissingFeatures {
+                shader: shader.name,
+                missing,
+                adapter: self.adapter_info.name.clone(),
+            });
+        }
+        let key = PipelineKey {
+            shader: shader.name,
+            entry: entry.to_owned(),
+            constants: constants.iter().map(|(k, v)| ((*k).to_owned(), v.to_bits())).collect(),
+        };
+        let mut cache = self.pipelines.lock().unwrap_or_else(|e| e.into_inner());
+        if let Some(p) = cache.get(&key) {
+            return Ok(p.clone());
+        }
+        let scope = self.device.push_error_scope(wgpu::ErrorFilter::Validation);
+        // SAFETY: our shaders index only within the bounds they check themselves (every kernel
+        // guards its global index against the element count); naga's inserted bounds checks
+        // cost measurably on lavapipe. `shaders::tests` validates every shader with naga.
+        let module = unsafe {
+            self.device.create_shader_module_trusted(
+                wgpu::ShaderModuleDescriptor {
+                    label: Some(shader.name),
+                    source: wgpu::ShaderSource::Wgsl(Cow::Borrowed(shader.source)),
+                },
+                wgpu::ShaderRuntimeChecks::unchecked(),
+            )
+        };
+        let pipeline = self
+            .device
+            .create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+                label: Some(&format!("{}::{entry}", shader.name)),
+                layout: None,
+                module: &module,
+                entry_point: Some(entry),
+                compilation_options: wgpu::PipelineCompilationOptions {
+                    constants,
+                    zero_initialize_workgroup_memory: false,
+                },
+                cache: None,
+            });
+        if let Some(err) = pollster::block_on(scope.pop()) {
+            return Err(GpuError::Wgpu {
+                context: format!("compiling {}::{entry}", shader.name),
+                message: err.to_string(),
+            });
+        }
+        cache.insert(key, pipeline.clone());
+        Ok(pipeline)
+    }
+
+    /// Workgroup counts `(x, y)` covering `workgroups` groups, folding into the second dimension
+    /// when one dimension is not enough. Kernels recover the flat group index as
+    /// `wid.y * num_workgroups.x + wid.x` and must bounds-check it.
+    pub fn dispatch_size(&self, workgroups: u32) -> (u32, u32) {
+        split_dispatch(workgroups, self.max_dispatch)
+    }
+}
+
+/// See [`GpuContext::dispatch_size`]; `max` is the per-dimension limit.
+pub fn split_dispatch(workgroups: u32, max: u32) -> (u32, u32) {
+    let workgroups = workgroups.max(1);
+    if workgroups <= max {
+        (workgroups, 1)
+    } else {
+        let y = workgroups.div_ceil(max);
+        (workgroups.div_ceil(y), y)
+    }
+}
+
+fn storage_usage() -> wgpu::BufferUsages {
+    wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC | wgpu::BufferUsages::COPY_DST
+}
+
+fn describe_info(info: &wgpu::AdapterInfo) -> String {
+    let driver = [info.driver.as_str(), info.driver_info.as_str()]
+        .iter()
+        .filter(|s| !s.is_empty())
+        .copied()
+        .collect::<Vec<_>>()
+        .join(" ");
+    format!(
+        "{} ({:?}, {:?}{}{})",
+        info.name,
+        info.device_type,
+        info.backend,
+        if driver.is_empty() { "" } else { ", " },
+        driver
+    )
+}
+
+fn choose_adapter(
+    adapters: Vec<wgpu::Adapter>,
+    options: &GpuOptions,
+    backends: wgpu::Backends,
+) -> Result<wgpu::Adapter, GpuError> {
+    if let Some(wanted) = &options.adapter_name {
+        let needle = wanted.to_lowercase();
+        let available = adapters
+            .iter()
+            .map(|a| describe_info(&a.get_info()))
+            .collect::<Vec<_>>();
+        return adapters
+            .into_iter()
+            .find(|a| a.get_info().name.to_lowercase().contains(&needle))
+            .ok_or_else(|| GpuError::AdapterNotFound {
+                requested: wanted.clone(),
+                available: if available.is_empty() {
+                    "none".into()
+                } else {
+                    available.join("; ")
+                },
+            });
+    }
+    adapters
+        .into_iter()
+        .min_by_key(|a| device_type_rank(a.get_info().device_type))
+        .ok_or_else(|| GpuError::NoAdapter {
+            backends: format!("{backends:?}"),
+        })
+}
+
+/// Names and types of every adapter wgpu can see, for diagnostics.
+pub fn list_adapters() -> Vec<String> {
+    let desc = wgpu::InstanceDescriptor::new_without_display_handle_from_env();
+    let backends = desc.backends;
+    let instance = wgpu::Instance::new(desc);
+    pollster::block_on(instance.enumerate_adapters(backends))
+        .iter()
+        .map(|a| describe_info(&a.get_info()))
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::split_dispatch;
+
+    #[test]
+    fn dispatch_folds_into_second_dimension() {
+        assert_eq!(split_dispatch(0, 65535), (1, 1));
+        assert_eq!(split_dispatch(10, 65535), (10, 1));
+        assert_eq!(split_dispatch(65535, 65535), (65535, 1));
+        let (x, y) = split_dispatch(65536, 65535);
+        assert!(x <= 65535 && x * y >= 65536);
+        for n in [1u32, 7, 8, 9, 100, 1000] {
+            let (x, y) = split_dispatch(n, 7);
+            assert!(x <= 7 && x * y >= n && x * (y - 1) < n, "{n} -> {x}x{y}");
+        }
+    }
+}

@@ -1,0 +1,31 @@
+//! GPU side of HW SDF: the wgpu context, the WGSL kernels' host code, the optimiser, and (in
+//! later modules) the SIREN and NGLOD models, their trainers and model files.
+//!
+//! Every kernel lives in the top-level `shaders/` folder and is embedded with `include_str!`;
+//! each has a CPU reference that the tests compare it with.
+//!
+//! ```no_run
+//! use sdf_nn::{Adam, AdamConfig, GpuContext};
+//!
+//! # fn main() -> Result<(), sdf_nn::GpuError> {
+//! // Picks the adapter from WGPU_ADAPTER_NAME / WGPU_BACKEND, preferring a real GPU.
+//! let gpu = GpuContext::new()?;
+//! println!("running on {}", gpu.describe());
+//!
+//! let params = gpu.storage_from_slice("params", &[1.0f32, -2.0, 0.5])?;
+//! let grads = gpu.storage_from_slice("grads", &[0.1f32, 0.2, -0.3])?;
+//! let mut adam = Adam::new(&gpu, &params, &grads, 3, AdamConfig::default())?;
+//! adam.step(&gpu, 1.0);
+//! let updated: Vec<f32> = gpu.read_back(&params)?;
+//! assert!(updated[0] < 1.0);
+//! # Ok(())
+//! # }
+//! ```
+#![warn(missing_docs)]
+
+pub mod adam;
+pub mod gpu;
+pub mod shaders;
+
+pub use adam::{Adam, AdamConfig, AdamCpu};
+pub use gpu::{GpuContext, GpuError, GpuOptions};

@@ -1,0 +1,12 @@
+//! HW SDF: neural signed distance functions fitted to triangle meshes, trained on the GPU by
+//! hand-written WGSL kernels.
+//!
+//! This facade re-exports the workspace crates:
+//! - [`geom`]: meshes, exact BVH distance, winding-number sign, samplers;
+//! - [`nn`]: the GPU context, kernels, models, trainers and model files;
+//! - [`eval`]: metrics, timing and corpus runs.
+#![warn(missing_docs)]
+
+pub use sdf_eval as eval;
+pub use sdf_geom as geom;
+pub use sdf_nn as nn;
