@@ -1,0 +1,68 @@
+//! Meshes in, exact signed distance out, and the point samplers: the ground truth every HW SDF model
+//! is trained and judged against.
+//!
+//! ```
+//! use sdf_geom::{Mesh, SignedDistance, sample};
+//! use glam::Vec3;
+//!
+//! // A unit cube [0, 1]^3 (in practice: `let (mesh, report) = sdf_geom::load_mesh("bunny.obj")?;`).
+//! let vertices = (0..8)
+//!     .map(|i| Vec3::new((i & 1) as f32, ((i >> 1) & 1) as f32, ((i >> 2) & 1) as f32))
+//!     .collect();
+//! let triangles = vec![
+//!     [0, 2, 1], [1, 2, 3], [4, 5, 6], [5, 7, 6], [0, 1, 4], [1, 5, 4],
+//!     [2, 6, 3], [3, 6, 7], [0, 4, 2], [2, 4, 6], [1, 3, 5], [3, 7, 5],
+//! ];
+//! let (mesh, report) = Mesh::from_raw(vertices, triangles)?;
+//! assert_eq!(report.triangles, 12);
+//!
+//! // Work in the normalised box [-1, 1]^3, keeping the transform to map results back.
+//! let (unit, norm) = mesh.normalized();
+//! let sdf = SignedDistance::new(&unit)?;
+//! assert!((sdf.signed_distance(Vec3::ZERO) + 1.0).abs() < 1e-6); // centre: 1 inside
+//! assert!((sdf.signed_distance(Vec3::new(3.0, 0.0, 0.0)) - 2.0).abs() < 1e-6);
+//! assert!((norm.distance_to_original(-1.0) + 0.5).abs() < 1e-6); // 0.5 in cube units
+//!
+//! // The NGLOD mix: uniform in the box, near the surface, on the surface; signed in parallel.
+//! let mut points = sample::uniform_box(1000, 1);
+//! points.extend(sample::near_surface(&unit, 2000, sample::DEFAULT_SIGMA, 2));
+//! points.extend(sample::surface(&unit, 2000, 3).points);
+//! let d = sdf.signed_distance_batch(&points);
+//! assert_eq!(d.len(), 5000);
+//! # Ok::<(), sdf_geom::GeomError>(())
+//! ```
+//!
+//! # What is where
+//! - [`load_mesh`]: OBJ (via `tobj`), glTF and GLB (via `gltf`, buffers only, never images); all
+//!   objects / instances merged, validated and cleaned, with a [`LoadReport`].
+//! - [`Mesh`], [`Aabb`], [`Normalization`]: the data and the map to the normalised box.
+//! - [`SignedDistance`]: exact closest point on an `obvhs` BVH, sign from the fast generalised winding
+//!   number (see its documentation for the method and its accuracy).
+//! - [`sample`]: seeded samplers (box, surface, Poisson-disk, near-surface).
+//! - [`npy`]: `.npy` input and output for the `sdf` binary.
+//! - [`reference`]: brute-force f64 versions for tests.
+//!
+//! # Accuracy of the sign
+//! The fast winding number (β = 2, first-order dipole terms far away, exact solid angles near the
+//! query, re-evaluated with β = 8 within 0.1 of the threshold) is compared in this crate's tests
+//! with the exact O(n) sum on real meshes: on watertight meshes the inside/outside decision agrees with
+//! exact ray parity at every test point away from the surface, and on open meshes (teapot, suzanne,
+//! lilium) and meshes with many components or flipped/duplicate faces it agrees with the exact winding
+//! number at every test point whose exact value is not within 0.02 of 1/2. The measured absolute error
+//! of the β = 2 value is a few 10⁻³ at most on those meshes.
+
+#![warn(missing_docs)]
+
+mod distance;
+mod error;
+mod load;
+mod mesh;
+pub mod npy;
+pub mod reference;
+pub mod sample;
+
+pub use distance::{ClosestPoint, SignedDistance, SignedDistanceOptions};
+pub use error::GeomError;
+pub use load::load_mesh;
+pub use mesh::{Aabb, LoadReport, Mesh, Normalization};
+pub use sample::{PoissonSamples, SurfaceSamples};

@@ -1,0 +1,348 @@
+//! The triangle mesh type, its bounding box, normalisation and clean-up.
+
+use std::collections::{HashMap, HashSet};
+
+use glam::{DVec3, Vec3};
+
+use crate::GeomError;
+
+/// An indexed triangle mesh.
+///
+/// Meshes returned by [`crate::load_mesh`] and [`Mesh::from_raw`] are valid: at least one triangle, all
+/// coordinates finite, all indices in range, no degenerate (zero-area) or duplicate triangles, and no
+/// unreferenced vertices. The fields are public, so a hand-built mesh may break those rules; the
+/// functions of this crate never panic on such a mesh (they return an error, or skip bad triangles),
+/// and [`Mesh::validate`] checks it.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Mesh {
+    /// Vertex positions.
+    pub vertices: Vec<Vec3>,
+    /// Triangles as indices into `vertices`, counter-clockwise seen from outside.
+    pub triangles: Vec<[u32; 3]>,
+}
+
+/// An axis-aligned bounding box.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Aabb {
+    /// Minimum corner.
+    pub min: Vec3,
+    /// Maximum corner.
+    pub max: Vec3,
+}
+
+impl Aabb {
+    /// The empty box (min = +inf, max = -inf); extending it with a point gives that point.
+    pub const EMPTY: Aabb = Aabb {
+        min: Vec3::INFINITY,
+        max: Vec3::NEG_INFINITY,
+    };
+
+    /// Grows the box to contain `p`.
+    pub fn extend(&mut self, p: Vec3) {
+        self.min = self.min.min(p);
+        self.max = self.max.max(p);
+    }
+
+    /// Box centre.
+    pub fn center(&self) -> Vec3 {
+        (self.min + self.max) * 0.5
+    }
+
+    /// Half of the box's size along each axis.
+    pub fn half_extent(&self) -> Vec3 {
+        (self.max - self.min) * 0.5
+    }
+
+    /// Length of the diagonal.
+    pub fn diagonal(&self) -> f32 {
+        (self.max - self.min).length()
+    }
+
+    /// True if no point was added (min > max on some axis).
+    pub fn is_empty(&self) -> bool {
+        !(self.min.cmple(self.max).all())
+    }
+}
+
+/// The uniform similarity that maps a mesh into the normalised box `[-1, 1]^3`:
+/// `normalized = (p - center) * scale`, with the longest half-extent of the bounding box mapped to 1.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Normalization {
+    /// Bounding-box centre in the original coordinates.
+    pub center: Vec3,
+    /// Uniform scale factor (1 / longest half-extent).
+    pub scale: f32,
+}
+
+impl Normalization {
+    /// The identity transform.
+    pub fn identity() -> Self {
+        Normalization {
+            center: Vec3::ZERO,
+            scale: 1.0,
+        }
+    }
+
+    /// The normalisation of a bounding box. A box that is empty or has zero extent gets scale 1.
+    pub fn from_bounds(bounds: &Aabb) -> Self {
+        if bounds.is_empty() {
+            return Self::identity();
+        }
+        let half = bounds.half_extent().max_element();
+        let scale = if half > 0.0 && half.is_finite() {
+            1.0 / half
+        } else {
+            1.0
+        };
+        Normalization {
+            center: bounds.center(),
+            scale,
+        }
+    }
+
+    /// Maps a point from the original coordinates to the normalised ones.
+    pub fn to_normalized(&self, p: Vec3) -> Vec3 {
+        (p - self.center) * self.scale
+    }
+
+    /// Maps a point from normalised coordinates back to the original ones.
+    pub fn to_original(&self, p: Vec3) -> Vec3 {
+        p / self.scale + self.center
+    }
+
+    /// Maps a (signed) distance measured in normalised coordinates to original units.
+    pub fn distance_to_original(&self, d: f32) -> f32 {
+        d / self.scale
+    }
+
+    /// Maps a (signed) distance measured in original units to normalised units.
+    pub fn distance_to_normalized(&self, d: f32) -> f32 {
+        d * self.scale
+    }
+}
+
+/// What a loader found and what it did about it. Nothing is dropped silently: every dropped face is
+/// counted here.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct LoadReport {
+    /// Source format: `"obj"`, `"gltf"`, `"glb"`, or `"raw"` for [`Mesh::from_raw`].
+    pub format: &'static str,
+    /// Triangles in the input after triangulation / strip and fan conversion, before clean-up.
+    pub input_triangles: usize,
+    /// Vertices in the input (all objects / instanced primitives merged).
+    pub input_vertices: usize,
+    /// Triangles kept.
+    pub triangles: usize,
+    /// Vertices kept (unreferenced vertices are removed).
+    pub vertices: usize,
+    /// Zero-area triangles dropped (repeated vertex, coincident positions, or collinear corners).
+    pub degenerate_faces: usize,
+    /// Exact duplicates dropped: a triangle with the same three positions in the same orientation as
+    /// an earlier one. Copies with the opposite orientation are kept (they cancel in the winding number)
+    /// and counted in [`LoadReport::opposite_duplicate_faces`].
+    pub duplicate_faces: usize,
+    /// Triangles whose three positions equal an earlier triangle's but with the opposite orientation.
+    pub opposite_duplicate_faces: usize,
+    /// Polygons with more than three corners that were fan-triangulated (OBJ).
+    pub polygons_triangulated: usize,
+    /// glTF triangle strips and fans converted to triangle lists.
+    pub strips_fans_converted: usize,
+    /// glTF mesh instances (node → mesh references) in the scene; 0 for OBJ.
+    pub instances: usize,
+    /// Non-fatal oddities, e.g. a missing material library or texture, a primitive without positions.
+    pub warnings: Vec<String>,
+}
+
+impl Mesh {
+    /// Builds a clean mesh from raw data: validates it, then drops degenerate and duplicate triangles
+    /// and unreferenced vertices, counting them in the returned report.
+    ///
+    /// # Errors
+    /// [`GeomError::NonFiniteVertex`], [`GeomError::IndexOutOfRange`], or [`GeomError::NoTriangles`] if
+    /// nothing is left.
+    pub fn from_raw(
+        vertices: Vec<Vec3>,
+        triangles: Vec<[u32; 3]>,
+    ) -> Result<(Mesh, LoadReport), GeomError> {
+        let mut report = LoadReport {
+            format: "raw",
+            ..Default::default()
+        };
+        let mesh = clean(vertices, triangles, &mut report)?;
+        Ok((mesh, report))
+    }
+
+    /// Checks the invariants listed on [`Mesh`] that matter for correctness (finite coordinates,
+    /// indices in range, at least one triangle). Degenerate and duplicate triangles are allowed here.
+    pub fn validate(&self) -> Result<(), GeomError> {
+        check_finite(&self.vertices)?;
+        check_indices(&self.triangles, self.vertices.len())?;
+        if self.triangles.is_empty() {
+            return Err(GeomError::NoTriangles { dropped: 0 });
+        }
+        Ok(())
+    }
+
+    /// Bounding box of the vertices referenced by triangles (all vertices for a clean mesh).
+    /// Out-of-range indices are ignored.
+    pub fn bounds(&self) -> Aabb {
+        let mut b = Aabb::EMPTY;
+        for t in &self.triangles {
+            for &i in t {
+                if let Some(&v) = self.vertices.get(i as usize) {
+                    b.extend(v);
+                }
+            }
+        }
+        b
+    }
+
+    /// The normalisation for this mesh (see [`Normalization`]).
+    pub fn normalization(&self) -> Normalization {
+        Normalization::from_bounds(&self.bounds())
+    }
+
+    /// A copy of the mesh centred on its bounding-box centre and scaled uniformly so that the longest
+    /// half-extent is 1, with the transform that did it.
+    pub fn normalized(&self) -> (Mesh, Normalization) {
+        let n = self.normalization();
+        (self.transformed(&n), n)
+    }
+
+    /// A copy with every vertex mapped through `n.to_normalized`.
+    pub fn transformed(&self, n: &Normalization) -> Mesh {
+        Mesh {
+            vertices: self.vertices.iter().map(|&v| n.to_normalized(v)).collect(),
+            triangles: self.triangles.clone(),
+        }
+    }
+
+    /// Total surface area.
+    pub fn area(&self) -> f64 {
+        self.triangles
+            .iter()
+            .filter_map(|t| self.corners(t))
+            .map(|[a, b, c]| 0.5 * (b - a).as_dvec3().cross((c - a).as_dvec3()).length())
+            .sum()
+    }
+
+    /// The three corners of a triangle, or `None` if an index is out of range.
+    pub fn corners(&self, t: &[u32; 3]) -> Option<[Vec3; 3]> {
+        Some([
+            *self.vertices.get(t[0] as usize)?,
+            *self.vertices.get(t[1] as usize)?,
+            *self.vertices.get(t[2] as usize)?,
+        ])
+    }
+}
+
+pub(crate) fn check_finite(vertices: &[Vec3]) -> Result<(), GeomError> {
+    match vertices.iter().position(|v| !v.is_finite()) {
+        Some(i) => Err(GeomError::NonFiniteVertex {
+            vertex: i,
+            position: vertices[i].to_array(),
+        }),
+        None => Ok(()),
+    }
+}
+
+pub(crate) fn check_indices(triangles: &[[u32; 3]], vertex_count: usize) -> Result<(), GeomError> {
+    for (ti, t) in triangles.iter().enumerate() {
+        for &i in t {
+            if i as usize >= vertex_count {
+                return Err(GeomError::IndexOutOfRange {
+                    triangle: ti,
+                    index: i as u64,
+                    vertex_count,
+                });
+            }
+        }
+    }
+    Ok(())
+}
+
+/// Validates, drops degenerate and duplicate triangles and unreferenced vertices, and fills the report.
+pub(crate) fn clean(
+    vertices: Vec<Vec3>,
+    triangles: Vec<[u32; 3]>,
+    report: &mut LoadReport,
+) -> Result<Mesh, GeomError> {
+    report.input_triangles = triangles.len();
+    report.input_vertices = vertices.len();
+    check_finite(&vertices)?;
+    check_indices(&triangles, vertices.len())?;
+
+    // Weld by exact position so that unwelded copies are recognised as duplicates / degenerates.
+    let mut canon: HashMap<[u32; 3], u32> = HashMap::with_capacity(vertices.len());
+    let weld: Vec<u32> = vertices
+        .iter()
+        .enumerate()
+        .map(|(i, v)| {
+            // +0.0 and -0.0 are the same position.
+            let key = (*v + Vec3::ZERO).to_array().map(f32::to_bits);
+            *canon.entry(key).or_insert(i as u32)
+        })
+        .collect();
+
+    let mut seen: HashSet<[u32; 3]> = HashSet::with_capacity(triangles.len());
+    let mut kept = Vec::with_capacity(triangles.len());
+    for t in triangles {
+        let w = t.map(|i| weld[i as usize]);
+        if w[0] == w[1] || w[1] == w[2] || w[0] == w[2] {
+            report.degenerate_faces += 1;
+            continue;
+        }
+        let [a, b, c] = t.map(|i| vertices[i as usize].as_dvec3());
+        if (b - a).cross(c - a) == DVec3::ZERO {
+            report.degenerate_faces += 1;
+            continue;
+        }
+        // Rotate so the smallest index comes first: same key <=> same oriented triangle.
+        let r = rotate_min_first(w);
+        let opposite = rotate_min_first([w[0], w[2], w[1]]);
+        if seen.contains(&r) {
+            report.duplicate_faces += 1;
+            continue;
+        }
+        if seen.contains(&opposite) {
+            report.opposite_duplicate_faces += 1;
+        }
+        seen.insert(r);
+        kept.push(t);
+    }
+    if kept.is_empty() {
+        return Err(GeomError::NoTriangles {
+            dropped: report.degenerate_faces + report.duplicate_faces,
+        });
+    }
+
+    // Compact the vertices.
+    let mut remap = vec![u32::MAX; vertices.len()];
+    let mut out_vertices = Vec::with_capacity(vertices.len());
+    for t in kept.iter_mut() {
+        for i in t.iter_mut() {
+            let slot = &mut remap[*i as usize];
+            if *slot == u32::MAX {
+                *slot = out_vertices.len() as u32;
+                out_vertices.push(vertices[*i as usize]);
+            }
+            *i = *slot;
+        }
+    }
+    report.triangles = kept.len();
+    report.vertices = out_vertices.len();
+    Ok(Mesh {
+        vertices: out_vertices,
+        triangles: kept,
+    })
+}
+
+fn rotate_min_first(t: [u32; 3]) -> [u32; 3] {
+    if t[0] <= t[1] && t[0] <= t[2] {
+        t
+    } else if t[1] <= t[0] && t[1] <= t[2] {
+        [t[1], t[2], t[0]]
+    } else {
+        [t[2], t[0], t[1]]
+    }
+}

@@ -1,0 +1,279 @@
+//! A minimal NumPy `.npy` reader and writer for point sets and distance arrays.
+//!
+//! Reads version 1, 2 and 3 files holding a C- or Fortran-ordered `(N, 3)` array of little- or
+//! big-endian float32 or float64. Writes version 1 little-endian float32 files, atomically (a temporary
+//! file in the same directory, then a rename).
+
+use std::io::Write;
+use std::path::{Path, PathBuf};
+
+use glam::Vec3;
+
+use crate::GeomError;
+
+const MAGIC: &[u8] = b"\x93NUMPY";
+
+fn bad(path: &Path, message: impl Into<String>) -> GeomError {
+    GeomError::Npy {
+        path: path.to_path_buf(),
+        message: message.into(),
+    }
+}
+
+/// The parsed header of a `.npy` file.
+#[derive(Clone, Debug, PartialEq)]
+struct Header {
+    descr: String,
+    fortran: bool,
+    shape: Vec<usize>,
+}
+
+/// Finds the value text after `'key':` in a Python dict literal.
+fn dict_value<'a>(h: &'a str, key: &str) -> Option<&'a str> {
+    let pat1 = format!("'{key}'");
+    let pat2 = format!("\"{key}\"");
+    let pos = h
+        .find(&pat1)
+        .map(|p| p + pat1.len())
+        .or_else(|| h.find(&pat2).map(|p| p + pat2.len()))?;
+    let rest = h[pos..].trim_start();
+    Some(rest.strip_prefix(':')?.trim_start())
+}
+
+fn parse_header(path: &Path, h: &str) -> Result<Header, GeomError> {
+    let descr_v = dict_value(h, "descr").ok_or_else(|| bad(path, "header has no 'descr'"))?;
+    let q = descr_v.chars().next().unwrap_or(' ');
+    if q != '\'' && q != '"' {
+        return Err(bad(
+            path,
+            "unsupported dtype description (structured dtype?)",
+        ));
+    }
+    let descr: String = descr_v[1..].chars().take_while(|&c| c != q).collect();
+    let fortran_v =
+        dict_value(h, "fortran_order").ok_or_else(|| bad(path, "header has no 'fortran_order'"))?;
+    let fortran = if fortran_v.starts_with("True") {
+        true
+    } else if fortran_v.starts_with("False") {
+        false
+    } else {
+        return Err(bad(path, "bad 'fortran_order' value"));
+    };
+    let shape_v = dict_value(h, "shape").ok_or_else(|| bad(path, "header has no 'shape'"))?;
+    let inner = shape_v
+        .strip_prefix('(')
+        .and_then(|s| s.split_once(')'))
+        .map(|(s, _)| s)
+        .ok_or_else(|| bad(path, "bad 'shape' value"))?;
+    let mut shape = Vec::new();
+    for part in inner.split(',') {
+        let part = part.trim().trim_end_matches('L');
+        if part.is_empty() {
+            continue;
+        }
+        shape.push(
+            part.parse::<usize>()
+                .map_err(|_| bad(path, format!("bad shape entry {part:?}")))?,
+        );
+    }
+    Ok(Header {
+        descr,
+        fortran,
+        shape,
+    })
+}
+
+/// Reads an `(N, 3)` float32 or float64 array of points. float64 values are rounded to float32.
+///
+/// # Errors
+/// [`GeomError::Io`] if the file cannot be read, [`GeomError::Npy`] for a bad magic string, an
+/// unsupported version, dtype or shape, or truncated data.
+pub fn read_points(path: impl AsRef<Path>) -> Result<Vec<Vec3>, GeomError> {
+    let path = path.as_ref();
+    let bytes = std::fs::read(path).map_err(|source| GeomError::Io {
+        path: path.to_path_buf(),
+        source,
+    })?;
+    parse_points(path, &bytes)
+}
+
+/// Parses `.npy` bytes (see [`read_points`]); `path` is only used in error messages.
+pub fn parse_points(path: &Path, bytes: &[u8]) -> Result<Vec<Vec3>, GeomError> {
+    if bytes.len() < 10 || &bytes[..6] != MAGIC {
+        return Err(bad(path, "not a .npy file (missing \\x93NUMPY magic)"));
+    }
+    let major = bytes[6];
+    let (hlen, hstart) = match major {
+        1 => (u16::from_le_bytes([bytes[8], bytes[9]]) as usize, 10usize),
+        2 | 3 => {
+            if bytes.len() < 12 {
+                return Err(bad(path, "truncated header"));
+            }
+            (
+                u32::from_le_bytes([bytes[8], bytes[9], bytes[10], bytes[11]]) as usize,
+                12,
+            )
+        }
+        v => return Err(bad(path, format!("unsupported .npy version {v}"))),
+    };
+    let data_start = hstart
+        .checked_add(hlen)
+        .filter(|&e| e <= bytes.len())
+        .ok_or_else(|| bad(path, "truncated header"))?;
+    let h = std::str::from_utf8(&bytes[hstart..data_start])
+        .map_err(|_| bad(path, "header is not text"))?;
+    let header = parse_header(path, h)?;
+    let (size, big, is64) = match header.descr.as_str() {
+        "<f4" | "=f4" | "f4" => (4, false, false),
+        ">f4" => (4, true, false),
+        "<f8" | "=f8" | "f8" => (8, false, true),
+        ">f8" => (8, true, true),
+        d => {
+            return Err(bad(
+                path,
+                format!("dtype {d:?} is not supported (expected float32 '<f4' or float64 '<f8')"),
+            ));
+        }
+    };
+    let n = match header.shape.as_slice() {
+        [n, 3] => *n,
+        s => {
+            return Err(bad(
+                path,
+                format!("shape {s:?} is not supported (expected (N, 3))"),
+            ));
+        }
+    };
+    let count = n
+        .checked_mul(3)
+        .ok_or_else(|| bad(path, "shape too large"))?;
+    let need = count
+        .checked_mul(size)
+        .ok_or_else(|| bad(path, "shape too large"))?;
+    let data = &bytes[data_start..];
+    if data.len() < need {
+        return Err(bad(
+            path,
+            format!(
+                "truncated data: {} bytes for {n}×3 values of {size} bytes ({need} needed)",
+                data.len()
+            ),
+        ));
+    }
+    let value = |k: usize| -> f32 {
+        let b = &data[k * size..(k + 1) * size];
+        if is64 {
+            let a: [u8; 8] = b.try_into().unwrap_or([0; 8]);
+            (if big {
+                f64::from_be_bytes(a)
+            } else {
+                f64::from_le_bytes(a)
+            }) as f32
+        } else {
+            let a: [u8; 4] = b.try_into().unwrap_or([0; 4]);
+            if big {
+                f32::from_be_bytes(a)
+            } else {
+                f32::from_le_bytes(a)
+            }
+        }
+    };
+    Ok((0..n)
+        .map(|i| {
+            if header.fortran {
+                Vec3::new(value(i), value(n + i), value(2 * n + i))
+            } else {
+                Vec3::new(value(3 * i), value(3 * i + 1), value(3 * i + 2))
+            }
+        })
+        .collect())
+}
+
+fn npy_bytes(descr: &str, shape: &str, data: &[u8]) -> Vec<u8> {
+    let mut header = format!("{{'descr': '{descr}', 'fortran_order': False, 'shape': {shape}, }}");
+    // Pad so that magic + version + len + header + '\n' is a multiple of 64.
+    let unpadded = MAGIC.len() + 2 + 2 + header.len() + 1;
+    header.push_str(&" ".repeat((64 - unpadded % 64) % 64));
+    header.push('\n');
+    let mut out = Vec::with_capacity(10 + header.len() + data.len());
+    out.extend_from_slice(MAGIC);
+    out.extend_from_slice(&[1, 0]);
+    out.extend_from_slice(&(header.len() as u16).to_le_bytes());
+    out.extend_from_slice(header.as_bytes());
+    out.extend_from_slice(data);
+    out
+}
+
+/// Writes bytes atomically: to a temporary file next to `path`, flushed to disk, then renamed over it.
+fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), GeomError> {
+    let werr = |source| GeomError::Write {
+        path: path.to_path_buf(),
+        source,
+    };
+    let name = path
+        .file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_else(|| "out.npy".into());
+    let tmp: PathBuf = path.with_file_name(format!(".{name}.tmp-{}", std::process::id()));
+    let result = (|| {
+        let mut f = std::fs::File::create(&tmp)?;
+        f.write_all(bytes)?;
+        f.sync_all()?;
+        std::fs::rename(&tmp, path)
+    })();
+    if let Err(e) = result {
+        let _ = std::fs::remove_file(&tmp);
+        return Err(werr(e));
+    }
+    Ok(())
+}
+
+/// Writes a 1-D float32 array (shape `(N,)`), atomically.
+pub fn write_f32(path: impl AsRef<Path>, values: &[f32]) -> Result<(), GeomError> {
+    let data: Vec<u8> = values.iter().flat_map(|v| v.to_le_bytes()).collect();
+    write_atomic(
+        path.as_ref(),
+        &npy_bytes("<f4", &format!("({},)", values.len()), &data),
+    )
+}
+
+/// Writes an `(N, 3)` float32 array of points, atomically.
+pub fn write_points(path: impl AsRef<Path>, points: &[Vec3]) -> Result<(), GeomError> {
+    let data: Vec<u8> = points
+        .iter()
+        .flat_map(|p| p.to_array())
+        .flat_map(|v| v.to_le_bytes())
+        .collect();
+    write_atomic(
+        path.as_ref(),
+        &npy_bytes("<f4", &format!("({}, 3)", points.len()), &data),
+    )
+}
+
+/// Reads a 1-D float32 array (as written by [`write_f32`]).
+pub fn read_f32(path: impl AsRef<Path>) -> Result<Vec<f32>, GeomError> {
+    let path = path.as_ref();
+    let bytes = std::fs::read(path).map_err(|source| GeomError::Io {
+        path: path.to_path_buf(),
+        source,
+    })?;
+    if bytes.len() < 10 || &bytes[..6] != MAGIC || bytes[6] != 1 {
+        return Err(bad(path, "not a version-1 .npy file"));
+    }
+    let hlen = u16::from_le_bytes([bytes[8], bytes[9]]) as usize;
+    let end = (10 + hlen).min(bytes.len());
+    let h = std::str::from_utf8(&bytes[10..end]).map_err(|_| bad(path, "header is not text"))?;
+    let header = parse_header(path, h)?;
+    if header.descr != "<f4" || header.shape.len() != 1 {
+        return Err(bad(path, "expected a 1-D '<f4' array"));
+    }
+    let n = header.shape[0];
+    let data = &bytes[end..];
+    if data.len() < n * 4 {
+        return Err(bad(path, "truncated data"));
+    }
+    Ok(data[..n * 4]
+        .chunks_exact(4)
+        .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]))
+        .collect())
+}
