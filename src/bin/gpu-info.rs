@@ -6,7 +6,14 @@ use std::process::ExitCode;
 
 fn main() -> ExitCode {
     let all = hwsdf::nn::gpu::list_adapters();
-    eprintln!("adapters wgpu can see: {}", if all.is_empty() { "none".into() } else { all.join("; ") });
+    eprintln!(
+        "adapters wgpu can see: {}",
+        if all.is_empty() {
+            "none".into()
+        } else {
+            all.join("; ")
+        }
+    );
     match hwsdf::nn::GpuContext::new() {
         Ok(gpu) => {
             println!("{}", gpu.describe());

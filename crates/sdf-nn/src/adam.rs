@@ -129,7 +129,12 @@ impl Adam {
     ///
     /// The uniforms are written through the queue, which applies them before the next
     /// submission: submit the encoder before recording another step.
-    pub fn record_step(&mut self, gpu: &GpuContext, encoder: &mut wgpu::CommandEncoder, grad_scale: f32) {
+    pub fn record_step(
+        &mut self,
+        gpu: &GpuContext,
+        encoder: &mut wgpu::CommandEncoder,
+        grad_scale: f32,
+    ) {
         self.step += 1;
         let u = self.uniforms_for_step(grad_scale);
         gpu.queue()

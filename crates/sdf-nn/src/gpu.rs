@@ -42,7 +42,9 @@ pub enum GpuError {
         available: String,
     },
     /// The adapter lacks a limit the kernels need.
-    #[error("adapter {adapter:?} is unsupported: limit `{limit}` is {has}, HW SDF needs at least {need}")]
+    #[error(
+        "adapter {adapter:?} is unsupported: limit `{limit}` is {has}, HW SDF needs at least {need}"
+    )]
     UnsupportedAdapter {
         /// Adapter name.
         adapter: String,
@@ -62,7 +64,9 @@ pub enum GpuError {
         source: wgpu::RequestDeviceError,
     },
     /// A buffer would exceed the device's limits.
-    #[error("buffer `{label}` needs {requested} bytes, above the device limit {limit_name} = {limit} bytes")]
+    #[error(
+        "buffer `{label}` needs {requested} bytes, above the device limit {limit_name} = {limit} bytes"
+    )]
     BufferTooLarge {
         /// Buffer label.
         label: String,
@@ -74,7 +78,9 @@ pub enum GpuError {
         limit: u64,
     },
     /// A shader needs a device feature this device does not have.
-    #[error("shader `{shader}` needs device features {missing:?}, which adapter {adapter:?} does not offer")]
+    #[error(
+        "shader `{shader}` needs device features {missing:?}, which adapter {adapter:?} does not offer"
+    )]
     MissingFeatures {
         /// Shader name.
         shader: &'static str,
@@ -345,18 +351,24 @@ impl GpuContext {
     }
 
     /// A storage buffer (also a copy source and destination) holding `data`.
-    pub fn storage_from_slice<T: Pod>(&self, label: &str, data: &[T]) -> Result<wgpu::Buffer, GpuError> {
+    pub fn storage_from_slice<T: Pod>(
+        &self,
+        label: &str,
+        data: &[T],
+    ) -> Result<wgpu::Buffer, GpuError> {
         let bytes: &[u8] = bytemuck::cast_slice(data);
         // wgpu rejects zero-sized bindings; keep one element so empty inputs still bind.
         if bytes.is_empty() {
             return self.storage_zeroed(label, 4);
         }
         self.check_storage_size(label, bytes.len() as u64)?;
-        Ok(self.device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
-            label: Some(label),
-            contents: bytes,
-            usage: storage_usage(),
-        }))
+        Ok(self
+            .device
+            .create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                label: Some(label),
+                contents: bytes,
+                usage: storage_usage(),
+            }))
     }
 
     /// A zero-filled storage buffer of `bytes` bytes (rounded up to a multiple of 4).
@@ -374,11 +386,12 @@ impl GpuContext {
 
     /// A uniform buffer holding `value`, writable later with [`GpuContext::write`].
     pub fn uniform<T: Pod>(&self, label: &str, value: &T) -> wgpu::Buffer {
-        self.device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
-            label: Some(label),
-            contents: bytemuck::bytes_of(value),
-            usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
-        })
+        self.device
+            .create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                label: Some(label),
+                contents: bytemuck::bytes_of(value),
+                usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
+            })
     }
 
     /// Writes `data` at the start of `buffer`; it takes effect before the next submission.
@@ -500,7 +513,10 @@ impl GpuContext {
         let key = PipelineKey {
             shader: shader.name,
             entry: entry.to_owned(),
-            constants: constants.iter().map(|(k, v)| ((*k).to_owned(), v.to_bits())).collect(),
+            constants: constants
+                .iter()
+                .map(|(k, v)| ((*k).to_owned(), v.to_bits()))
+                .collect(),
         };
         let mut cache = self.pipelines.lock().unwrap_or_else(|e| e.into_inner());
         if let Some(p) = cache.get(&key) {

@@ -59,9 +59,7 @@ mod tests {
                 capabilities_for(shader.required_features),
             )
             .validate(&module)
-            .unwrap_or_else(|e| {
-                panic!("{}: {}", shader.name, e.emit_to_string(shader.source))
-            });
+            .unwrap_or_else(|e| panic!("{}: {}", shader.name, e.emit_to_string(shader.source)));
         }
     }
 

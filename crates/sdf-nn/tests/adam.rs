@@ -55,9 +55,15 @@ fn compare(len: usize, steps: usize, config: AdamConfig, grad_scale: f32, seed: 
         ("m", max_rel_err(&m, &cpu.m, 0.1)),
         ("v", max_rel_err(&v, &cpu.v, 1e-3)),
     ] {
-        assert!(err < 1e-6, "{name}: max relative error {err:e} over {len} elements");
+        assert!(
+            err < 1e-6,
+            "{name}: max relative error {err:e} over {len} elements"
+        );
     }
-    assert!(g_left.iter().all(|&g| g == 0.0), "the kernel zeroes consumed gradients");
+    assert!(
+        g_left.iter().all(|&g| g == 0.0),
+        "the kernel zeroes consumed gradients"
+    );
 }
 
 #[test]
@@ -106,7 +112,10 @@ fn buffers_round_trip_and_zero() {
     let data: Vec<u32> = (0..1001).collect();
     let b = gpu.storage_from_slice("roundtrip", &data).unwrap();
     assert_eq!(gpu.read_back::<u32>(&b).unwrap(), data);
-    assert_eq!(gpu.read_back_range::<u32>(&b, 10, 3).unwrap(), vec![10, 11, 12]);
+    assert_eq!(
+        gpu.read_back_range::<u32>(&b, 10, 3).unwrap(),
+        vec![10, 11, 12]
+    );
     gpu.zero(&b);
     assert!(gpu.read_back::<u32>(&b).unwrap().iter().all(|&x| x == 0));
     assert!(gpu.read_back_range::<u32>(&b, 1000, 2).is_err());
@@ -130,7 +139,10 @@ fn unknown_adapter_name_is_a_clear_error() {
     let err = GpuContext::with_options(&options).unwrap_err();
     let msg = err.to_string();
     assert!(matches!(err, GpuError::AdapterNotFound { .. }), "{msg}");
-    assert!(msg.contains("no-such-adapter-hwsdf") && msg.contains("WGPU_ADAPTER_NAME"), "{msg}");
+    assert!(
+        msg.contains("no-such-adapter-hwsdf") && msg.contains("WGPU_ADAPTER_NAME"),
+        "{msg}"
+    );
     // The message lists what does exist, so the user can correct the name.
     assert!(msg.contains(&gpu().adapter_info().name), "{msg}");
 }

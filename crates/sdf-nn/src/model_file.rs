@@ -1,0 +1,476 @@
+//! Model files: safetensors with named f32 tensors and JSON metadata, shared by SIREN and NGLOD.
+//!
+//! A PyTorch user loads one with `safetensors.torch.load_file(path)` and gets tensors named and
+//! shaped like an `nn.Module`'s state dict (`net.0.weight` as `[out, in]`, row-major); the
+//! metadata (`safetensors.safe_open(path, "pt").metadata()`) holds, as strings:
+//!
+//! | key | value |
+//! | --- | --- |
+//! | `format` | `"hwsdf"` |
+//! | `architecture` | `"siren"` or `"nglod"` |
+//! | `config` | JSON of the architecture's hyperparameters |
+//! | `training` | JSON of the training run (loss weights, steps, seed, ...) |
+//! | `normalization` | JSON `{"center": [x, y, z], "scale": s}`: `normalized = (p - center) * scale` |
+//! | `hwsdf_version` | the crate version that wrote it |
+//!
+//! Writes are atomic (temporary file in the same directory, then rename), so an interrupted
+//! save never leaves a truncated model behind.
+
+use std::path::{Path, PathBuf};
+
+use safetensors::{Dtype, SafeTensors};
+use serde::{Deserialize, Serialize};
+
+/// Errors reading or writing model files.
+#[derive(Debug, thiserror::Error)]
+pub enum ModelFileError {
+    /// The file could not be read or written.
+    #[error("{path}: {source}")]
+    Io {
+        /// The file.
+        path: PathBuf,
+        /// The OS error.
+        source: std::io::Error,
+    },
+    /// Not a valid safetensors file.
+    #[error("{path}: not a valid safetensors model file: {reason}")]
+    Corrupt {
+        /// The file.
+        path: PathBuf,
+        /// What is wrong.
+        reason: String,
+    },
+    /// A metadata key is missing or malformed.
+    #[error("{path}: metadata `{key}` is missing or invalid{detail}")]
+    Metadata {
+        /// The file.
+        path: PathBuf,
+        /// The key.
+        key: &'static str,
+        /// Extra detail, starting with ": " when present.
+        detail: String,
+    },
+    /// A tensor the model needs is absent.
+    #[error("model file has no tensor `{name}` (it has: {available})")]
+    MissingTensor {
+        /// Tensor name.
+        name: String,
+        /// The names present.
+        available: String,
+    },
+    /// A tensor has the wrong shape or type.
+    #[error("tensor `{name}` has shape {found:?}, expected {expected:?}")]
+    ShapeMismatch {
+        /// Tensor name.
+        name: String,
+        /// Shape in the file.
+        found: Vec<usize>,
+        /// Shape the model needs.
+        expected: Vec<usize>,
+    },
+    /// The file holds another architecture than the one asked for.
+    #[error("model file holds a `{found}` model, expected `{expected}`")]
+    WrongArchitecture {
+        /// Architecture in the file.
+        found: String,
+        /// Architecture asked for.
+        expected: String,
+    },
+    /// A tensor's data length does not match its shape (only when building a file in memory).
+    #[error("tensor `{name}` has {len} values but shape {shape:?}")]
+    BadTensor {
+        /// Tensor name.
+        name: String,
+        /// Number of values.
+        len: usize,
+        /// Declared shape.
+        shape: Vec<usize>,
+    },
+}
+
+/// The transform from the mesh's own coordinates into the normalised cube `[-1, 1]³`:
+/// `normalized = (p - center) * scale`. Distances scale by `1 / scale` on the way back.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Normalization {
+    /// Centre of the mesh's bounding box, in mesh units.
+    pub center: [f32; 3],
+    /// Uniform scale mapping the longest half-extent to 1.
+    pub scale: f32,
+}
+
+impl Default for Normalization {
+    fn default() -> Self {
+        Normalization {
+            center: [0.0; 3],
+            scale: 1.0,
+        }
+    }
+}
+
+/// Everything in a model file besides the tensors.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ModelMetadata {
+    /// `"siren"` or `"nglod"`.
+    pub architecture: String,
+    /// Architecture hyperparameters.
+    pub config: serde_json::Value,
+    /// Training settings and summary.
+    pub training: serde_json::Value,
+    /// Mesh-to-model transform.
+    pub normalization: Normalization,
+    /// Version of hwsdf that wrote the file.
+    pub hwsdf_version: String,
+}
+
+/// One named f32 tensor, row-major.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Tensor {
+    /// Name, PyTorch state-dict style (`net.0.weight`).
+    pub name: String,
+    /// Shape, outermost first.
+    pub shape: Vec<usize>,
+    /// Values, row-major.
+    pub data: Vec<f32>,
+}
+
+/// A model file in memory.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ModelFile {
+    /// Metadata.
+    pub metadata: ModelMetadata,
+    /// Tensors; [`ModelFile::load`] returns them sorted by name.
+    pub tensors: Vec<Tensor>,
+}
+
+/// The crate version written into new files.
+pub const HWSDF_VERSION: &str = env!("CARGO_PKG_VERSION");
+
+impl ModelFile {
+    /// The file's bytes in safetensors format.
+    ///
+    /// The header is written here rather than by `safetensors::serialize`, whose metadata map
+    /// has no fixed order: the same model always gives the same bytes. Tensors are laid out in
+    /// name order; keys in the JSON header are sorted.
+    pub fn to_bytes(&self) -> Result<Vec<u8>, ModelFileError> {
+        let mut tensors: Vec<&Tensor> = self.tensors.iter().collect();
+        tensors.sort_by(|a, b| a.name.cmp(&b.name));
+        let m = &self.metadata;
+        let mut header = serde_json::Map::new();
+        header.insert(
+            "__metadata__".into(),
+            serde_json::json!({
+                "format": "hwsdf",
+                "architecture": m.architecture,
+                "config": m.config.to_string(),
+                "training": m.training.to_string(),
+                "normalization": serde_json::to_string(&m.normalization)
+                    .expect("plain struct serialises"),
+                "hwsdf_version": m.hwsdf_version,
+            }),
+        );
+        let mut offset = 0usize;
+        for t in &tensors {
+            if t.shape.iter().product::<usize>() != t.data.len() || t.name == "__metadata__" {
+                return Err(ModelFileError::BadTensor {
+                    name: t.name.clone(),
+                    len: t.data.len(),
+                    shape: t.shape.clone(),
+                });
+            }
+            let end = offset + 4 * t.data.len();
+            header.insert(
+                t.name.clone(),
+                serde_json::json!({"dtype": "F32", "shape": t.shape, "data_offsets": [offset, end]}),
+            );
+            offset = end;
+        }
+        let mut json = serde_json::Value::Object(header).to_string().into_bytes();
+        // The format pads the header with spaces so the data starts 8-byte aligned.
+        json.resize(json.len().next_multiple_of(8), b' ');
+        let mut out = Vec::with_capacity(8 + json.len() + offset);
+        out.extend_from_slice(&(json.len() as u64).to_le_bytes());
+        out.extend_from_slice(&json);
+        for t in tensors {
+            for v in &t.data {
+                out.extend_from_slice(&v.to_le_bytes());
+            }
+        }
+        Ok(out)
+    }
+
+    /// Writes the file atomically.
+    pub fn save(&self, path: &Path) -> Result<(), ModelFileError> {
+        let bytes = self.to_bytes()?;
+        write_atomic(path, &bytes).map_err(|source| ModelFileError::Io {
+            path: path.to_owned(),
+            source,
+        })
+    }
+
+    /// Reads and checks a file: safetensors structure, f32 tensors, and the metadata keys.
+    pub fn load(path: &Path) -> Result<Self, ModelFileError> {
+        let bytes = std::fs::read(path).map_err(|source| ModelFileError::Io {
+            path: path.to_owned(),
+            source,
+        })?;
+        Self::from_bytes(&bytes, path)
+    }
+
+    /// Parses a file's bytes; `path` is only used in error messages.
+    pub fn from_bytes(bytes: &[u8], path: &Path) -> Result<Self, ModelFileError> {
+        let corrupt = |reason: String| ModelFileError::Corrupt {
+            path: path.to_owned(),
+            reason,
+        };
+        let (_, header) = SafeTensors::read_metadata(bytes).map_err(|e| corrupt(e.to_string()))?;
+        let st = SafeTensors::deserialize(bytes).map_err(|e| corrupt(e.to_string()))?;
+        let meta = header.metadata().clone().unwrap_or_default();
+        let get = |key: &'static str| {
+            meta.get(key).ok_or_else(|| ModelFileError::Metadata {
+                path: path.to_owned(),
+                key,
+                detail: String::new(),
+            })
+        };
+        let parse = |key: &'static str| -> Result<serde_json::Value, ModelFileError> {
+            serde_json::from_str(get(key)?).map_err(|e| ModelFileError::Metadata {
+                path: path.to_owned(),
+                key,
+                detail: format!(": {e}"),
+            })
+        };
+        if get("format")? != "hwsdf" {
+            return Err(ModelFileError::Metadata {
+                path: path.to_owned(),
+                key: "format",
+                detail: ": not written by hwsdf".into(),
+            });
+        }
+        let normalization: Normalization = serde_json::from_value(parse("normalization")?)
+            .map_err(|e| ModelFileError::Metadata {
+                path: path.to_owned(),
+                key: "normalization",
+                detail: format!(": {e}"),
+            })?;
+        if !(normalization.scale.is_finite() && normalization.scale > 0.0)
+            || normalization.center.iter().any(|c| !c.is_finite())
+        {
+            return Err(ModelFileError::Metadata {
+                path: path.to_owned(),
+                key: "normalization",
+                detail: ": center must be finite and scale finite and positive".into(),
+            });
+        }
+        let metadata = ModelMetadata {
+            architecture: get("architecture")?.clone(),
+            config: parse("config")?,
+            training: parse("training")?,
+            normalization,
+            hwsdf_version: get("hwsdf_version")?.clone(),
+        };
+        let mut tensors = Vec::new();
+        for (name, view) in st.tensors() {
+            if view.dtype() != Dtype::F32 {
+                return Err(corrupt(format!(
+                    "tensor `{name}` is {:?}; hwsdf models are f32",
+                    view.dtype()
+                )));
+            }
+            tensors.push(Tensor {
+                shape: view.shape().to_vec(),
+                data: bytemuck::pod_collect_to_vec(view.data()),
+                name,
+            });
+        }
+        tensors.sort_by(|a, b| a.name.cmp(&b.name));
+        Ok(ModelFile { metadata, tensors })
+    }
+
+    /// The values of tensor `name`, checked to have exactly `shape`.
+    pub fn tensor(&self, name: &str, shape: &[usize]) -> Result<&[f32], ModelFileError> {
+        let t = self
+            .tensors
+            .iter()
+            .find(|t| t.name == name)
+            .ok_or_else(|| ModelFileError::MissingTensor {
+                name: name.to_owned(),
+                available: self
+                    .tensors
+                    .iter()
+                    .map(|t| t.name.as_str())
+                    .collect::<Vec<_>>()
+                    .join(", "),
+            })?;
+        if t.shape != shape {
+            return Err(ModelFileError::ShapeMismatch {
+                name: name.to_owned(),
+                found: t.shape.clone(),
+                expected: shape.to_vec(),
+            });
+        }
+        Ok(&t.data)
+    }
+
+    /// Errors unless the file holds `architecture`.
+    pub fn expect_architecture(&self, architecture: &str) -> Result<(), ModelFileError> {
+        if self.metadata.architecture == architecture {
+            Ok(())
+        } else {
+            Err(ModelFileError::WrongArchitecture {
+                found: self.metadata.architecture.clone(),
+                expected: architecture.to_owned(),
+            })
+        }
+    }
+
+    /// Total number of parameters (values in all tensors).
+    pub fn param_count(&self) -> usize {
+        self.tensors.iter().map(|t| t.data.len()).sum()
+    }
+}
+
+/// Writes `bytes` to `path` atomically: a temporary file in the same directory, synced, then
+/// renamed over `path`. Readers see the old file or the new one, never a partial write.
+pub fn write_atomic(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
+    use std::io::Write;
+    let dir = match path.parent() {
+        Some(d) if !d.as_os_str().is_empty() => d.to_owned(),
+        _ => PathBuf::from("."),
+    };
+    let name = path.file_name().ok_or_else(|| {
+        std::io::Error::new(std::io::ErrorKind::InvalidInput, "path has no file name")
+    })?;
+    let mut tmp_name = std::ffi::OsString::from(".");
+    tmp_name.push(name);
+    tmp_name.push(format!(".{}.tmp", std::process::id()));
+    let tmp = dir.join(tmp_name);
+    let result = (|| {
+        let mut f = std::fs::File::create(&tmp)?;
+        f.write_all(bytes)?;
+        f.sync_all()?;
+        std::fs::rename(&tmp, path)
+    })();
+    if result.is_err() {
+        let _ = std::fs::remove_file(&tmp);
+    }
+    result
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn sample() -> ModelFile {
+        ModelFile {
+            metadata: ModelMetadata {
+                architecture: "siren".into(),
+                config: serde_json::json!({"hidden": [4, 4], "omega0": 30.0}),
+                training: serde_json::json!({"steps": 3}),
+                normalization: Normalization {
+                    center: [0.5, -1.0, 2.0],
+                    scale: 0.25,
+                },
+                hwsdf_version: HWSDF_VERSION.into(),
+            },
+            tensors: vec![
+                Tensor {
+                    name: "net.0.bias".into(),
+                    shape: vec![4],
+                    data: vec![0.1, -0.2, f32::MIN_POSITIVE, -0.0],
+                },
+                Tensor {
+                    name: "net.0.weight".into(),
+                    shape: vec![4, 3],
+                    data: (0..12).map(|i| i as f32 * 0.37 - 1.0).collect(),
+                },
+            ],
+        }
+    }
+
+    #[test]
+    fn round_trips_bit_for_bit() {
+        let dir = std::env::temp_dir().join(format!("hwsdf-mf-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("m.safetensors");
+        let file = sample();
+        file.save(&path).unwrap();
+        let back = ModelFile::load(&path).unwrap();
+        assert_eq!(back, file);
+        for (a, b) in back.tensors.iter().zip(&file.tensors) {
+            let (a, b): (Vec<u32>, Vec<u32>) = (
+                a.data.iter().map(|x| x.to_bits()).collect(),
+                b.data.iter().map(|x| x.to_bits()).collect(),
+            );
+            assert_eq!(a, b);
+        }
+        // Deterministic bytes: saving what was loaded gives the same file.
+        assert_eq!(std::fs::read(&path).unwrap(), back.to_bytes().unwrap());
+        // No temporary file is left behind.
+        assert_eq!(std::fs::read_dir(&dir).unwrap().count(), 1);
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn tensor_lookup_checks_name_and_shape() {
+        let f = sample();
+        assert_eq!(f.tensor("net.0.bias", &[4]).unwrap().len(), 4);
+        assert!(matches!(
+            f.tensor("net.0.bias", &[5]),
+            Err(ModelFileError::ShapeMismatch { .. })
+        ));
+        let err = f.tensor("net.9.weight", &[1]).unwrap_err();
+        assert!(err.to_string().contains("net.0.weight"), "{err}");
+        assert!(f.expect_architecture("nglod").is_err());
+        assert_eq!(f.param_count(), 16);
+    }
+
+    #[test]
+    fn corrupt_files_are_typed_errors() {
+        let p = Path::new("x.safetensors");
+        let good = sample().to_bytes().unwrap();
+        for bad in [
+            &b""[..],
+            &b"garbage"[..],
+            &good[..good.len() - 3],
+            &good[..20],
+        ] {
+            assert!(
+                matches!(
+                    ModelFile::from_bytes(bad, p),
+                    Err(ModelFileError::Corrupt { .. })
+                ),
+                "{} bytes",
+                bad.len()
+            );
+        }
+        // A valid safetensors file that hwsdf did not write.
+        let view = safetensors::tensor::TensorView::new(Dtype::F32, vec![1], &[0u8; 4]).unwrap();
+        let foreign = safetensors::serialize([("w", view)], None).unwrap();
+        assert!(matches!(
+            ModelFile::from_bytes(&foreign, p),
+            Err(ModelFileError::Metadata { key: "format", .. })
+        ));
+        // Bad normalisation.
+        let mut f = sample();
+        f.metadata.normalization.scale = 0.0;
+        assert!(matches!(
+            ModelFile::from_bytes(&f.to_bytes().unwrap(), p),
+            Err(ModelFileError::Metadata {
+                key: "normalization",
+                ..
+            })
+        ));
+        let missing = ModelFile::load(Path::new("/nonexistent/model.safetensors")).unwrap_err();
+        assert!(matches!(missing, ModelFileError::Io { .. }));
+    }
+
+    #[test]
+    fn inconsistent_tensor_is_rejected_before_writing() {
+        let mut f = sample();
+        f.tensors[0].data.pop();
+        assert!(matches!(
+            f.to_bytes(),
+            Err(ModelFileError::BadTensor { .. })
+        ));
+    }
+}
