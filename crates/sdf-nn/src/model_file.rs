@@ -19,7 +19,6 @@
 use std::path::{Path, PathBuf};
 
 use safetensors::{Dtype, SafeTensors};
-use serde::{Deserialize, Serialize};
 
 /// Errors reading or writing model files.
 #[derive(Debug, thiserror::Error)]
@@ -88,23 +87,26 @@ pub enum ModelFileError {
     },
 }
 
-/// The transform from the mesh's own coordinates into the normalised cube `[-1, 1]³`:
-/// `normalized = (p - center) * scale`. Distances scale by `1 / scale` on the way back.
-#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
-pub struct Normalization {
-    /// Centre of the mesh's bounding box, in mesh units.
-    pub center: [f32; 3],
-    /// Uniform scale mapping the longest half-extent to 1.
-    pub scale: f32,
+pub use sdf_geom::Normalization;
+
+/// The JSON form of a normalisation in the file's metadata.
+fn normalization_json(n: &Normalization) -> String {
+    serde_json::json!({"center": n.center.to_array(), "scale": n.scale}).to_string()
 }
 
-impl Default for Normalization {
-    fn default() -> Self {
-        Normalization {
-            center: [0.0; 3],
-            scale: 1.0,
-        }
+fn normalization_from_json(v: &serde_json::Value) -> Option<Normalization> {
+    let c = v.get("center")?.as_array()?;
+    if c.len() != 3 {
+        return None;
     }
+    let mut center = [0.0f32; 3];
+    for (dst, src) in center.iter_mut().zip(c) {
+        *dst = src.as_f64()? as f32;
+    }
+    Some(Normalization {
+        center: glam::Vec3::from_array(center),
+        scale: v.get("scale")?.as_f64()? as f32,
+    })
 }
 
 /// Everything in a model file besides the tensors.
@@ -163,8 +165,7 @@ impl ModelFile {
                 "architecture": m.architecture,
                 "config": m.config.to_string(),
                 "training": m.training.to_string(),
-                "normalization": serde_json::to_string(&m.normalization)
-                    .expect("plain struct serialises"),
+                "normalization": normalization_json(&m.normalization),
                 "hwsdf_version": m.hwsdf_version,
             }),
         );
@@ -246,14 +247,15 @@ impl ModelFile {
                 detail: ": not written by hwsdf".into(),
             });
         }
-        let normalization: Normalization = serde_json::from_value(parse("normalization")?)
-            .map_err(|e| ModelFileError::Metadata {
+        let normalization = normalization_from_json(&parse("normalization")?).ok_or_else(|| {
+            ModelFileError::Metadata {
                 path: path.to_owned(),
                 key: "normalization",
-                detail: format!(": {e}"),
-            })?;
+                detail: ": expected {\"center\": [x, y, z], \"scale\": s}".into(),
+            }
+        })?;
         if !(normalization.scale.is_finite() && normalization.scale > 0.0)
-            || normalization.center.iter().any(|c| !c.is_finite())
+            || !normalization.center.is_finite()
         {
             return Err(ModelFileError::Metadata {
                 path: path.to_owned(),
@@ -367,7 +369,7 @@ mod tests {
                 config: serde_json::json!({"hidden": [4, 4], "omega0": 30.0}),
                 training: serde_json::json!({"steps": 3}),
                 normalization: Normalization {
-                    center: [0.5, -1.0, 2.0],
+                    center: glam::Vec3::new(0.5, -1.0, 2.0),
                     scale: 0.25,
                 },
                 hwsdf_version: HWSDF_VERSION.into(),
