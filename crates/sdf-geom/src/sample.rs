@@ -5,8 +5,8 @@
 //! (the random stream is `rand_pcg::Pcg64Mcg`, and all sampling is sequential, so the thread count does
 //! not matter).
 
-use std::cmp::Ordering;
-use std::collections::{BinaryHeap, HashMap};
+use std::collections::HashMap;
+use std::hash::{BuildHasherDefault, Hasher};
 
 use glam::Vec3;
 use rand::{Rng, SeedableRng};
@@ -155,6 +155,16 @@ fn gaussian(r: &mut Pcg64Mcg) -> f32 {
     }
 }
 
+/// Each point moved by isotropic Gaussian noise N(0, σ²) per coordinate, seeded. The
+/// evaluation's near-surface set is Poisson-disk samples perturbed this way.
+pub fn perturb(points: &[Vec3], sigma: f32, seed: u64) -> Vec<Vec3> {
+    let mut r = rng(seed);
+    points
+        .iter()
+        .map(|&p| p + Vec3::new(gaussian(&mut r), gaussian(&mut r), gaussian(&mut r)) * sigma)
+        .collect()
+}
+
 /// Default σ for [`near_surface`], in normalised units (the design document's 0.01).
 pub const DEFAULT_SIGMA: f32 = 0.01;
 
@@ -186,14 +196,14 @@ pub fn poisson_disk(mesh: &Mesh, n: usize, seed: u64) -> PoissonSamples {
         };
     }
     let m = n.saturating_mul(5);
+    let t0 = std::time::Instant::now();
     let cand = surface(mesh, m, seed);
     let m = cand.len();
     let r_max = (area / (2.0 * 3f64.sqrt() * n as f64)).sqrt() as f32;
     let r_min = r_max * 0.65 * (1.0 - (n as f32 / m as f32).powf(1.5));
     let two_r_max = 2.0 * r_max;
-    let t0 = std::time::Instant::now();
+    eprintln!("let grid  ridnewcand  {:?}", t0.elapsed());
     let grid = Grid::new(&cand.points, two_r_max);
-    eprintln!("grid {:?}", t0.elapsed());
 
     // Neighbour lists (CSR) with the weight each neighbour contributes.
     let lists: Vec<Vec<(u32, f32)>> = (0..m)
@@ -215,47 +225,30 @@ pub fn poisson_disk(mesh: &Mesh, n: usize, seed: u64) -> PoissonSamples {
             v
         })
         .collect();
-    eprintln!("lists {:?}", t0.elapsed());
+    eprintln!("let mut weight ecf  {:?}", t0.elapsed());
+    eprintln!("avg neighbours {}", lists.iter().map(|l| l.len()).sum::<usize>() as f64 / m as f64);
     let mut weight: Vec<f32> = lists.iter().map(|l| l.iter().map(|x| x.1).sum()).collect();
 
-    #[derive(PartialEq)]
-    struct Entry(f32, u32);
-    impl Eq for Entry {}
-    impl PartialOrd for Entry {
-        fn partial_cmp(&self, o: &Self) -> Option<Ordering> {
-            Some(self.cmp(o))
-        }
-    }
-    impl Ord for Entry {
-        fn cmp(&self, o: &Self) -> Ordering {
-            self.0.total_cmp(&o.0).then(o.1.cmp(&self.1))
-        }
-    }
-    let mut heap: BinaryHeap<Entry> = weight
-        .iter()
-        .enumerate()
-        .map(|(i, &w)| Entry(w, i as u32))
-        .collect();
+    // Indexed binary max-heap on the weights; weights only ever decrease (sift down).
+    eprintln!("let mut heap  ndexedaxeap  {:?}", t0.elapsed());
+    let mut heap = IndexedMaxHeap::new(weight.clone());
     let mut removed = vec![false; m];
     let mut remaining = m;
     while remaining > n {
-        let Some(Entry(w, i)) = heap.pop() else { break };
+        let Some(i) = heap.pop() else { break };
         let iu = i as usize;
-        if removed[iu] || w != weight[iu] {
-            continue; // stale entry
-        }
         removed[iu] = true;
         remaining -= 1;
         for &(j, wj) in &lists[iu] {
             let ju = j as usize;
             if !removed[ju] {
                 weight[ju] -= wj;
-                heap.push(Entry(weight[ju], j));
+                heap.decrease(j, weight[ju]);
             }
         }
     }
 
-    eprintln!("heap {:?}", t0.elapsed());
+    eprintln!("let mut samples  urfaceamplesdefault  {:?}", t0.elapsed());
     let mut samples = SurfaceSamples::default();
     for i in 0..m {
         if !removed[i] {
@@ -264,6 +257,7 @@ pub fn poisson_disk(mesh: &Mesh, n: usize, seed: u64) -> PoissonSamples {
             samples.triangles.push(cand.triangles[i]);
         }
     }
+    eprintln!("let mindistance  minpair  {:?}", t0.elapsed());
     let min_distance = min_pair_distance(&samples.points, two_r_max);
     PoissonSamples {
         samples,
@@ -300,7 +294,7 @@ struct Grid {
     cell: f32,
     origin: Vec3,
     /// cell key → range into `items`.
-    cells: HashMap<(i32, i32, i32), (u32, u32)>,
+    cells: HashMap<(i32, i32, i32), (u32, u32), BuildHasherDefault<CellHasher>>,
     items: Vec<u32>,
 }
 
@@ -325,7 +319,7 @@ impl Grid {
         let mut g = Grid {
             cell,
             origin: b.min,
-            cells: HashMap::new(),
+            cells: HashMap::default(),
             items: Vec::with_capacity(points.len()),
         };
         let mut keyed: Vec<((i32, i32, i32), u32)> = points
@@ -361,6 +355,101 @@ impl Grid {
                     }
                 }
             }
+        }
+    }
+}
+
+/// A small multiplicative hasher for grid cell keys (the std SipHash is needlessly slow here).
+#[derive(Default)]
+struct CellHasher(u64);
+
+impl Hasher for CellHasher {
+    fn finish(&self) -> u64 {
+        let x = self.0;
+        x ^ (x >> 29) ^ (x >> 47)
+    }
+    fn write(&mut self, bytes: &[u8]) {
+        for &b in bytes {
+            self.write_u64(b as u64);
+        }
+    }
+    fn write_i32(&mut self, i: i32) {
+        self.write_u64(i as u32 as u64);
+    }
+    fn write_u64(&mut self, v: u64) {
+        self.0 = (self.0.rotate_left(5) ^ v).wrapping_mul(0x51_7c_c1_b7_27_22_0a_95);
+    }
+}
+
+/// A binary max-heap over items `0..n` keyed by a weight that can only decrease.
+struct IndexedMaxHeap {
+    key: Vec<f32>,
+    heap: Vec<u32>,
+    /// Position of each item in `heap`, `u32::MAX` once popped.
+    pos: Vec<u32>,
+}
+
+impl IndexedMaxHeap {
+    fn new(key: Vec<f32>) -> Self {
+        let n = key.len();
+        let mut h = IndexedMaxHeap {
+            key,
+            heap: (0..n as u32).collect(),
+            pos: (0..n as u32).collect(),
+        };
+        for i in (0..n / 2).rev() {
+            h.sift_down(i);
+        }
+        h
+    }
+
+    /// Strict order: larger weight first, ties broken by smaller index (deterministic).
+    #[inline]
+    fn above(&self, a: u32, b: u32) -> bool {
+        let (ka, kb) = (self.key[a as usize], self.key[b as usize]);
+        ka > kb || (ka == kb && a < b)
+    }
+
+    fn sift_down(&mut self, mut i: usize) {
+        let n = self.heap.len();
+        loop {
+            let l = 2 * i + 1;
+            if l >= n {
+                break;
+            }
+            let r = l + 1;
+            let mut c = l;
+            if r < n && self.above(self.heap[r], self.heap[l]) {
+                c = r;
+            }
+            if self.above(self.heap[c], self.heap[i]) {
+                self.heap.swap(i, c);
+                self.pos[self.heap[i] as usize] = i as u32;
+                self.pos[self.heap[c] as usize] = c as u32;
+                i = c;
+            } else {
+                break;
+            }
+        }
+    }
+
+    fn pop(&mut self) -> Option<u32> {
+        let top = *self.heap.first()?;
+        let last = self.heap.pop()?;
+        self.pos[top as usize] = u32::MAX;
+        if !self.heap.is_empty() {
+            self.heap[0] = last;
+            self.pos[last as usize] = 0;
+            self.sift_down(0);
+        }
+        Some(top)
+    }
+
+    fn decrease(&mut self, item: u32, key: f32) {
+        let p = self.pos[item as usize];
+        self.key[item as usize] = key;
+        if p != u32::MAX {
+            self.sift_down(p as usize);
         }
     }
 }

@@ -1,0 +1,306 @@
+//! Inside/outside F1 and distance errors, the way the design document scores a model.
+//!
+//! The positive class is *inside* (signed distance < 0). F1 is computed from the confusion
+//! counts of predicted against exact signs; where neither the truth nor the prediction has any
+//! inside point there is nothing to get wrong, and F1 is 1.
+
+use glam::Vec3;
+use sdf_geom::{Mesh, SignedDistance, sample};
+use serde::{Deserialize, Serialize};
+
+/// Default number of points in each evaluation set (the design document's 10^5).
+pub const DEFAULT_EVAL_POINTS: usize = 100_000;
+/// Seed of the evaluation sets. Training seeds are small integers; this one never collides.
+pub const EVAL_SEED: u64 = 0x5EED_E7A1_0000_0001;
+/// σ of the near-surface perturbation, as in the design document.
+pub const NEAR_SURFACE_SIGMA: f32 = 0.01;
+
+/// Confusion counts of the inside class.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Confusion {
+    /// Inside, predicted inside.
+    pub true_pos: u64,
+    /// Outside, predicted inside.
+    pub false_pos: u64,
+    /// Inside, predicted outside.
+    pub false_neg: u64,
+    /// Outside, predicted outside.
+    pub true_neg: u64,
+}
+
+impl Confusion {
+    /// Counts from predicted and exact signed distances (same length).
+    pub fn from_distances(predicted: &[f32], truth: &[f32]) -> Self {
+        assert_eq!(predicted.len(), truth.len(), "one prediction per point");
+        let mut c = Confusion::default();
+        for (&p, &t) in predicted.iter().zip(truth) {
+            // NaN predictions count as outside: never as a correct inside.
+            match (t < 0.0, p < 0.0) {
+                (true, true) => c.true_pos += 1,
+                (false, true) => c.false_pos += 1,
+                (true, false) => c.false_neg += 1,
+                (false, false) => c.true_neg += 1,
+            }
+        }
+        c
+    }
+
+    /// F1 of the inside class; 1 when there is no inside point in truth or prediction.
+    pub fn f1(&self) -> f64 {
+        let denom = 2 * self.true_pos + self.false_pos + self.false_neg;
+        if denom == 0 {
+            1.0
+        } else {
+            (2 * self.true_pos) as f64 / denom as f64
+        }
+    }
+
+    /// Fraction of points whose sign is right.
+    pub fn accuracy(&self) -> f64 {
+        let n = self.true_pos + self.false_pos + self.false_neg + self.true_neg;
+        if n == 0 {
+            1.0
+        } else {
+            (self.true_pos + self.true_neg) as f64 / n as f64
+        }
+    }
+}
+
+/// Mean and max of |predicted − exact|.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct DistanceError {
+    /// Mean absolute error.
+    pub mean_abs: f64,
+    /// Largest absolute error.
+    pub max_abs: f64,
+}
+
+impl DistanceError {
+    /// Errors of `predicted` against `truth`. A non-finite prediction makes both infinite.
+    pub fn between(predicted: &[f32], truth: &[f32]) -> Self {
+        assert_eq!(predicted.len(), truth.len(), "one prediction per point");
+        if predicted.is_empty() {
+            return DistanceError::default();
+        }
+        let (mut sum, mut max) = (0.0f64, 0.0f64);
+        for (&p, &t) in predicted.iter().zip(truth) {
+            let e = if p.is_finite() {
+                (f64::from(p) - f64::from(t)).abs()
+            } else {
+                f64::INFINITY
+            };
+            sum += e;
+            max = max.max(e);
+        }
+        DistanceError {
+            mean_abs: sum / predicted.len() as f64,
+            max_abs: max,
+        }
+    }
+}
+
+/// Points with their exact signed distances.
+#[derive(Clone, Debug)]
+pub struct EvalSet {
+    /// Points in the normalised cube.
+    pub points: Vec<Vec3>,
+    /// Exact signed distances at `points`.
+    pub truth: Vec<f32>,
+}
+
+/// The two evaluation sets of the design document, on a normalised mesh.
+#[derive(Clone, Debug)]
+pub struct EvalSets {
+    /// Uniform in the bounding box `[-1, 1]³`.
+    pub bbox: EvalSet,
+    /// Poisson-disk surface samples perturbed by N(0, σ²), σ = 0.01.
+    pub near_surface: EvalSet,
+}
+
+impl EvalSets {
+    /// `n` points in each set, drawn with `seed`, labelled by `sdf` (built on the same
+    /// normalised `mesh`).
+    pub fn new(mesh: &Mesh, sdf: &SignedDistance, n: usize, seed: u64) -> Self {
+        let bbox = sample::uniform_box(n, seed);
+        let near = sample::perturb(
+            &sample::poisson_disk(mesh, n, seed ^ 0x9E37_79B9)
+                .samples
+                .points,
+            NEAR_SURFACE_SIGMA,
+            seed ^ 0x7F4A_7C15,
+        );
+        EvalSets {
+            bbox: EvalSet {
+                truth: sdf.signed_distance_batch(&bbox),
+                points: bbox,
+            },
+            near_surface: EvalSet {
+                truth: sdf.signed_distance_batch(&near),
+                points: near,
+            },
+        }
+    }
+
+    /// Scores a model given as a batch prediction function (normalised coordinates in,
+    /// normalised signed distances out).
+    pub fn score<E>(
+        &self,
+        mut predict: impl FnMut(&[Vec3]) -> Result<Vec<f32>, E>,
+    ) -> Result<Scores, E> {
+        let pb = predict(&self.bbox.points)?;
+        let pn = predict(&self.near_surface.points)?;
+        Ok(Scores::from_predictions(
+            &pb,
+            &self.bbox.truth,
+            &pn,
+            &self.near_surface.truth,
+        ))
+    }
+}
+
+/// What [`EvalSets::score`] reports.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Scores {
+    /// F1 of the inside class on the box set.
+    pub f1_bbox: f64,
+    /// F1 of the inside class on the near-surface set.
+    pub f1_near_surface: f64,
+    /// Mean of the two, the design document's per-mesh figure.
+    pub f1_mean: f64,
+    /// Sign accuracy on the box set.
+    pub sign_accuracy_bbox: f64,
+    /// Sign accuracy on the near-surface set.
+    pub sign_accuracy_near_surface: f64,
+    /// |Φ − SDF| near the surface, in normalised units.
+    pub near_surface_error: DistanceError,
+}
+
+impl Scores {
+    /// Scores from predictions and truths of both sets.
+    pub fn from_predictions(
+        pred_bbox: &[f32],
+        truth_bbox: &[f32],
+        pred_near: &[f32],
+        truth_near: &[f32],
+    ) -> Self {
+        let cb = Confusion::from_distances(pred_bbox, truth_bbox);
+        let cn = Confusion::from_distances(pred_near, truth_near);
+        Scores {
+            f1_bbox: cb.f1(),
+            f1_near_surface: cn.f1(),
+            f1_mean: 0.5 * (cb.f1() + cn.f1()),
+            sign_accuracy_bbox: cb.accuracy(),
+            sign_accuracy_near_surface: cn.accuracy(),
+            near_surface_error: DistanceError::between(pred_near, truth_near),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn f1_on_hand_made_cases() {
+        // truth: 3 inside, 3 outside. prediction: 2 of the insides right, 1 outside wrong.
+        let truth = [-1.0, -0.5, -0.1, 0.2, 0.3, 1.0];
+        let pred = [-0.9, -0.4, 0.05, -0.1, 0.3, 0.8];
+        let c = Confusion::from_distances(&pred, &truth);
+        assert_eq!(
+            c,
+            Confusion {
+                true_pos: 2,
+                false_pos: 1,
+                false_neg: 1,
+                true_neg: 2
+            }
+        );
+        // precision 2/3, recall 2/3 -> F1 2/3
+        assert!((c.f1() - 2.0 / 3.0).abs() < 1e-12);
+        assert!((c.accuracy() - 4.0 / 6.0).abs() < 1e-12);
+
+        let perfect = Confusion::from_distances(&truth, &truth);
+        assert_eq!(perfect.f1(), 1.0);
+        // Everything predicted outside: no true positives.
+        assert_eq!(Confusion::from_distances(&[1.0; 6], &truth).f1(), 0.0);
+        // Nothing inside anywhere: nothing to get wrong.
+        assert_eq!(
+            Confusion::from_distances(&[1.0, 2.0], &[0.5, 0.1]).f1(),
+            1.0
+        );
+        // Zero is the surface: counted outside, as the "< 0 is inside" rule says.
+        assert_eq!(Confusion::from_distances(&[0.0], &[-1.0]).false_neg, 1);
+        // NaN is never a correct inside.
+        assert_eq!(Confusion::from_distances(&[f32::NAN], &[-1.0]).false_neg, 1);
+    }
+
+    #[test]
+    fn f1_is_asymmetric_in_the_inside_class() {
+        // Same sign accuracy, different F1: F1 only looks at the inside class.
+        let truth = [-1.0, 1.0, 1.0, 1.0];
+        let a = Confusion::from_distances(&[1.0, 1.0, 1.0, 1.0], &truth);
+        let b = Confusion::from_distances(&[-1.0, -1.0, 1.0, 1.0], &truth);
+        assert_eq!(a.accuracy(), 0.75);
+        assert_eq!(b.accuracy(), 0.75);
+        assert_eq!(a.f1(), 0.0);
+        assert!((b.f1() - 2.0 / 3.0).abs() < 1e-12);
+    }
+
+    #[test]
+    fn distance_error() {
+        let e = DistanceError::between(&[0.1, -0.2, 0.5], &[0.0, 0.0, 0.5]);
+        assert!((e.mean_abs - 0.1).abs() < 1e-7 && (e.max_abs - 0.2).abs() < 1e-7);
+        assert!(
+            DistanceError::between(&[f32::NAN], &[0.0])
+                .max_abs
+                .is_infinite()
+        );
+    }
+
+    #[test]
+    fn eval_sets_on_a_cube_score_the_exact_sdf_perfectly() {
+        let (mesh, _) = sdf_geom::Mesh::from_raw(
+            (0..8)
+                .map(|i| Vec3::new((i & 1) as f32, ((i >> 1) & 1) as f32, ((i >> 2) & 1) as f32))
+                .collect(),
+            vec![
+                [0, 2, 1],
+                [1, 2, 3],
+                [4, 5, 6],
+                [5, 7, 6],
+                [0, 1, 4],
+                [1, 5, 4],
+                [2, 6, 3],
+                [3, 6, 7],
+                [0, 4, 2],
+                [2, 4, 6],
+                [1, 3, 5],
+                [3, 7, 5],
+            ],
+        )
+        .unwrap();
+        let (unit, _) = mesh.normalized();
+        let sdf = SignedDistance::new(&unit).unwrap();
+        let sets = EvalSets::new(&unit, &sdf, 2000, EVAL_SEED);
+        assert_eq!(sets.bbox.points.len(), 2000);
+        // The normalised cube fills the box: almost every box point is inside.
+        let inside = sets.bbox.truth.iter().filter(|&&d| d < 0.0).count();
+        assert!(inside > 1900, "{inside}");
+        // Near-surface points straddle the surface.
+        let near_inside = sets.near_surface.truth.iter().filter(|&&d| d < 0.0).count();
+        assert!((600..1400).contains(&near_inside), "{near_inside}");
+        // The exact SDF scores 1; a constant "outside" model scores 0.
+        let exact = sets
+            .score(|p| Ok::<_, ()>(sdf.signed_distance_batch(p)))
+            .unwrap();
+        assert_eq!(exact.f1_mean, 1.0);
+        assert_eq!(exact.near_surface_error.max_abs, 0.0);
+        let outside = sets.score(|p| Ok::<_, ()>(vec![1.0; p.len()])).unwrap();
+        assert_eq!(outside.f1_bbox, 0.0);
+        // Deterministic for a seed, different for another.
+        let again = EvalSets::new(&unit, &sdf, 2000, EVAL_SEED);
+        assert_eq!(again.near_surface.points, sets.near_surface.points);
+        let other = EvalSets::new(&unit, &sdf, 2000, EVAL_SEED + 1);
+        assert_ne!(other.bbox.points, sets.bbox.points);
+    }
+}
