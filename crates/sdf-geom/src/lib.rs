@@ -55,6 +55,7 @@
 
 mod distance;
 mod error;
+pub mod extract;
 mod load;
 mod mesh;
 pub mod npy;

@@ -1,0 +1,388 @@
+//! Sparse isosurface extraction from any signed distance function: coarse-to-fine pruning with
+//! the distance bound, then surface nets on the cells that can hold the surface.
+//!
+//! A dense `N³` grid is never allocated. Blocks of cells are evaluated at their centres, and a
+//! block is kept only if `|Φ(centre)| ≤ lipschitz · half_diagonal + cell`: for a true SDF
+//! (1-Lipschitz) a block farther from the surface than its half-diagonal cannot contain it. A
+//! fitted network is only approximately 1-Lipschitz, hence the factor (default 1.5). Kept blocks
+//! are split in eight until they are single cells; memory and evaluations then grow with the
+//! surface area (∝ N²), not the volume.
+//!
+//! On the surviving cells, surface nets (Gibson 1998): one vertex per cell whose corners change
+//! sign, at the mean of its edges' zero crossings; one quad, split in two triangles, per lattice
+//! edge with a sign change, joining the four cells around it. Vertices are shared, and triangles
+//! are wound so their normals point outwards (towards positive distance).
+
+use glam::{IVec3, Vec3};
+use rayon::prelude::*;
+
+use crate::Mesh;
+
+/// Largest accepted resolution: 4096³ cells is far beyond what any network here resolves.
+pub const MAX_RESOLUTION: u32 = 4096;
+
+/// Settings of [`extract_surface`].
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ExtractOptions {
+    /// Cells per axis over the domain.
+    pub resolution: u32,
+    /// Half-size of the cubic domain centred at the origin; slightly more than 1 so that a
+    /// surface touching the normalised box is closed.
+    pub half_size: f32,
+    /// Safety factor on the distance bound used to prune blocks.
+    pub lipschitz: f32,
+}
+
+impl ExtractOptions {
+    /// Defaults for `resolution`: domain `[-1.05, 1.05]³`, bound factor 1.5.
+    pub fn new(resolution: u32) -> Self {
+        ExtractOptions {
+            resolution,
+            half_size: 1.05,
+            lipschitz: 1.5,
+        }
+    }
+}
+
+/// Errors of [`extract_surface`]: bad options, or the evaluation's own error.
+#[derive(Debug, thiserror::Error)]
+pub enum ExtractError<E: std::error::Error + 'static> {
+    /// Resolution outside `2..=MAX_RESOLUTION`.
+    #[error("resolution {0} is out of range: use 2 to {MAX_RESOLUTION} cells per axis")]
+    Resolution(u32),
+    /// A non-positive or non-finite domain size or bound factor.
+    #[error("invalid extraction option: {0}")]
+    Options(&'static str),
+    /// The distance evaluation failed.
+    #[error(transparent)]
+    Eval(E),
+    /// The evaluation returned a different number of values than points.
+    #[error("the distance function returned {got} values for {expected} points")]
+    EvalLength {
+        /// Points asked.
+        expected: usize,
+        /// Values returned.
+        got: usize,
+    },
+}
+
+/// What the extraction did, for reports and benchmarks.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct ExtractStats {
+    /// Distance evaluations made in total.
+    pub evaluations: u64,
+    /// `(block size in cells, blocks kept)` per level, coarse to fine.
+    pub levels: Vec<(u32, usize)>,
+    /// Cells kept at the finest level.
+    pub cells: usize,
+}
+
+/// Extracts the zero level set of `eval` (points in, signed distances out, negative inside)
+/// over the cube `[-half_size, half_size]³`. `eval` is called with batches (one per level, then
+/// one for the cell corners); it should split them to fit its device itself.
+pub fn extract_surface<E: std::error::Error + 'static>(
+    mut eval: impl FnMut(&[Vec3]) -> Result<Vec<f32>, E>,
+    options: &ExtractOptions,
+) -> Result<(Mesh, ExtractStats), ExtractError<E>> {
+    let n = options.resolution;
+    if !(2..=MAX_RESOLUTION).contains(&n) {
+        return Err(ExtractError::Resolution(n));
+    }
+    if !(options.half_size.is_finite() && options.half_size > 0.0) {
+        return Err(ExtractError::Options(
+            "half_size must be finite and positive",
+        ));
+    }
+    if !(options.lipschitz.is_finite() && options.lipschitz > 0.0) {
+        return Err(ExtractError::Options(
+            "lipschitz must be finite and positive",
+        ));
+    }
+    let h = 2.0 * options.half_size / n as f32;
+    let origin = Vec3::splat(-options.half_size);
+    let lattice = |p: IVec3| origin + p.as_vec3() * h;
+    let mut stats = ExtractStats::default();
+    let mut call =
+        |points: &[Vec3], stats: &mut ExtractStats| -> Result<Vec<f32>, ExtractError<E>> {
+            stats.evaluations += points.len() as u64;
+            let v = eval(points).map_err(ExtractError::Eval)?;
+            if v.len() != points.len() {
+                return Err(ExtractError::EvalLength {
+                    expected: points.len(),
+                    got: v.len(),
+                });
+            }
+            Ok(v)
+        };
+
+    // Top blocks of 2^k cells, about 8 per axis.
+    let mut size = (n / 8).max(1).next_power_of_two();
+    let per_axis = n.div_ceil(size) as i32;
+    let mut blocks: Vec<IVec3> = (0..per_axis)
+        .flat_map(|z| {
+            (0..per_axis).flat_map(move |y| (0..per_axis).map(move |x| IVec3::new(x, y, z)))
+        })
+        .map(|b| b * size as i32)
+        .collect();
+    loop {
+        let centers: Vec<Vec3> = blocks
+            .iter()
+            .map(|&b| lattice(b) + Vec3::splat(0.5 * size as f32 * h))
+            .collect();
+        let values = call(&centers, &mut stats)?;
+        let half_diag = 0.5 * 3f32.sqrt() * size as f32 * h;
+        let bound = options.lipschitz * half_diag + h;
+        // NaN values are kept (`v.abs() > bound` is false for NaN), so a broken region is
+        // refined rather than silently cut.
+        let kept: Vec<IVec3> = blocks
+            .iter()
+            .zip(&values)
+            .filter(|&(_, v)| v.is_nan() || v.abs() <= bound)
+            .map(|(b, _)| *b)
+            .collect();
+        stats.levels.push((size, kept.len()));
+        if size == 1 {
+            blocks = kept;
+            break;
+        }
+        let child = size / 2;
+        blocks = kept
+            .par_iter()
+            .flat_map_iter(|&b| {
+                (0..8).filter_map(move |c| {
+                    let o = IVec3::new(c & 1, (c >> 1) & 1, (c >> 2) & 1) * child as i32;
+                    let p = b + o;
+                    (p.max_element() < n as i32).then_some(p)
+                })
+            })
+            .collect();
+        size = child;
+    }
+    let mut cells = blocks;
+    cells.par_sort_unstable_by_key(|&c| key(c));
+    stats.cells = cells.len();
+
+    // Distances at every corner of every kept cell, each lattice point once.
+    let mut corners: Vec<u64> = cells
+        .par_iter()
+        .flat_map_iter(|&c| (0..8).map(move |i| key(c + corner(i))))
+        .collect();
+    corners.par_sort_unstable();
+    corners.dedup();
+    let corner_points: Vec<Vec3> = corners.iter().map(|&k| lattice(unkey(k))).collect();
+    let corner_values = call(&corner_points, &mut stats)?;
+    drop(corner_points);
+    let value_at = |p: IVec3| -> f32 {
+        let i = corners
+            .binary_search(&key(p))
+            .expect("every corner of a kept cell was evaluated");
+        corner_values[i]
+    };
+
+    // One vertex per cell with a sign change.
+    let cell_vertices: Vec<Option<Vec3>> = cells
+        .par_iter()
+        .map(|&c| {
+            let v: [f32; 8] = std::array::from_fn(|i| value_at(c + corner(i)));
+            let inside = v.iter().filter(|&&x| x < 0.0).count();
+            if inside == 0 || inside == 8 {
+                return None;
+            }
+            let mut sum = Vec3::ZERO;
+            let mut count = 0;
+            for (a, b) in CUBE_EDGES {
+                let (va, vb) = (v[a], v[b]);
+                if (va < 0.0) != (vb < 0.0) {
+                    let t = va / (va - vb);
+                    let pa = corner(a).as_vec3();
+                    let pb = corner(b).as_vec3();
+                    sum += pa + (pb - pa) * t.clamp(0.0, 1.0);
+                    count += 1;
+                }
+            }
+            Some(lattice(c) + sum / count as f32 * h)
+        })
+        .collect();
+    let mut vertex_index = vec![u32::MAX; cells.len()];
+    let mut vertices = Vec::new();
+    for (i, v) in cell_vertices.iter().enumerate() {
+        if let Some(p) = v {
+            vertex_index[i] = vertices.len() as u32;
+            vertices.push(*p);
+        }
+    }
+    let cell_vertex = |c: IVec3| -> Option<u32> {
+        let i = cells.binary_search_by_key(&key(c), |&x| key(x)).ok()?;
+        (vertex_index[i] != u32::MAX).then_some(vertex_index[i])
+    };
+
+    // One quad per lattice edge with a sign change, handled by the cell at the edge's start.
+    let triangles: Vec<[u32; 3]> = cells
+        .par_iter()
+        .enumerate()
+        .filter(|&(i, _)| vertex_index[i] != u32::MAX)
+        .flat_map_iter(|(_, &c)| {
+            let v0 = value_at(c);
+            let mut out = Vec::new();
+            for axis in 0..3 {
+                let e = IVec3::AXES[axis];
+                let v1 = value_at(c + e);
+                if (v0 < 0.0) == (v1 < 0.0) {
+                    continue;
+                }
+                let (u, w) = (IVec3::AXES[(axis + 1) % 3], IVec3::AXES[(axis + 2) % 3]);
+                if (c - u).min_element() < 0 || (c - w).min_element() < 0 {
+                    continue;
+                }
+                let ring = [c, c - u, c - u - w, c - w].map(cell_vertex);
+                let [Some(a), Some(b), Some(cc), Some(d)] = ring else {
+                    continue;
+                };
+                // (c, c-u, c-u-w, c-w) turns counter-clockwise seen from +axis (u, w, axis is
+                // right-handed), so its normal is +axis: right when the edge runs from inside
+                // to outside, reversed otherwise, so normals point towards positive distance.
+                let quad = if v0 < 0.0 {
+                    [a, b, cc, d]
+                } else {
+                    [a, d, cc, b]
+                };
+                out.extend(split_quad(quad, &vertices));
+            }
+            out
+        })
+        .collect();
+    Ok((
+        Mesh {
+            vertices,
+            triangles,
+        },
+        stats,
+    ))
+}
+
+/// Splits a quad along its shorter diagonal.
+fn split_quad([a, b, c, d]: [u32; 4], vertices: &[Vec3]) -> [[u32; 3]; 2] {
+    let p = |i: u32| vertices[i as usize];
+    if p(a).distance_squared(p(c)) <= p(b).distance_squared(p(d)) {
+        [[a, b, c], [a, c, d]]
+    } else {
+        [[a, b, d], [b, c, d]]
+    }
+}
+
+/// Offset of corner `i` (bit 0: x, bit 1: y, bit 2: z).
+fn corner(i: usize) -> IVec3 {
+    IVec3::new((i & 1) as i32, ((i >> 1) & 1) as i32, ((i >> 2) & 1) as i32)
+}
+
+/// The 12 edges of a cell as corner pairs.
+const CUBE_EDGES: [(usize, usize); 12] = [
+    (0, 1),
+    (2, 3),
+    (4, 5),
+    (6, 7),
+    (0, 2),
+    (1, 3),
+    (4, 6),
+    (5, 7),
+    (0, 4),
+    (1, 5),
+    (2, 6),
+    (3, 7),
+];
+
+/// Lattice coordinates (each in `0..=MAX_RESOLUTION`) packed in 21 bits each; the order is z, y, x.
+fn key(p: IVec3) -> u64 {
+    ((p.z as u64) << 42) | ((p.y as u64) << 21) | p.x as u64
+}
+
+fn unkey(k: u64) -> IVec3 {
+    let m = (1u64 << 21) - 1;
+    IVec3::new((k & m) as i32, ((k >> 21) & m) as i32, (k >> 42) as i32)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::convert::Infallible;
+
+    fn sphere(r: f32) -> impl FnMut(&[Vec3]) -> Result<Vec<f32>, Infallible> {
+        move |p| Ok(p.iter().map(|p| p.length() - r).collect())
+    }
+
+    #[test]
+    fn sphere_vertices_lie_on_the_sphere() {
+        let r = 0.7;
+        let (mesh, stats) = extract_surface(sphere(r), &ExtractOptions::new(64)).unwrap();
+        assert!(!mesh.triangles.is_empty());
+        let h = 2.1 / 64.0;
+        for v in &mesh.vertices {
+            assert!((v.length() - r).abs() < 0.1 * h, "{v} at {}", v.length());
+        }
+        // Sparse: far fewer evaluations than the dense 65³ corner grid.
+        assert!(stats.evaluations < 65u64.pow(3) / 2, "{stats:?}");
+        // Closed and consistently wound: every edge is shared by exactly two triangles, in
+        // opposite directions, and the enclosed volume is the sphere's, positive (outward normals).
+        let mut edges = std::collections::HashMap::new();
+        for t in &mesh.triangles {
+            for k in 0..3 {
+                *edges.entry((t[k], t[(k + 1) % 3])).or_insert(0) += 1;
+            }
+        }
+        for (&(a, b), &count) in &edges {
+            assert_eq!(count, 1, "directed edge {a}->{b} used {count} times");
+            assert!(edges.contains_key(&(b, a)), "edge {a}->{b} has no twin");
+        }
+        let volume: f32 = mesh
+            .triangles
+            .iter()
+            .map(|t| {
+                let [a, b, c] = t.map(|i| mesh.vertices[i as usize]);
+                a.dot(b.cross(c)) / 6.0
+            })
+            .sum();
+        let exact = 4.0 / 3.0 * std::f32::consts::PI * r * r * r;
+        assert!((volume - exact).abs() < 0.02 * exact, "{volume} vs {exact}");
+    }
+
+    #[test]
+    fn pruning_keeps_surface_cells_only() {
+        let (_, coarse) = extract_surface(sphere(0.5), &ExtractOptions::new(32)).unwrap();
+        let (_, fine) = extract_surface(sphere(0.5), &ExtractOptions::new(128)).unwrap();
+        // Cells grow with area: 4x per doubling, so 16x from 32 to 128 (volume would be 64x).
+        let ratio = fine.cells as f64 / coarse.cells as f64;
+        assert!((10.0..24.0).contains(&ratio), "{ratio}");
+    }
+
+    #[test]
+    fn bad_options_are_errors() {
+        for n in [0, 1, MAX_RESOLUTION + 1] {
+            assert!(matches!(
+                extract_surface(sphere(0.5), &ExtractOptions::new(n)),
+                Err(ExtractError::Resolution(_))
+            ));
+        }
+        let mut o = ExtractOptions::new(16);
+        o.lipschitz = f32::NAN;
+        assert!(matches!(
+            extract_surface(sphere(0.5), &o),
+            Err(ExtractError::Options(_))
+        ));
+        let short = |_: &[Vec3]| Ok::<_, Infallible>(vec![0.0]);
+        assert!(matches!(
+            extract_surface(short, &ExtractOptions::new(16)),
+            Err(ExtractError::EvalLength { .. })
+        ));
+    }
+
+    #[test]
+    fn keys_round_trip() {
+        for p in [
+            IVec3::ZERO,
+            IVec3::new(4096, 17, 3),
+            IVec3::new(1, 4096, 4096),
+        ] {
+            assert_eq!(unkey(key(p)), p);
+        }
+    }
+}
