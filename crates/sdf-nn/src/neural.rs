@@ -1,0 +1,294 @@
+//! [`NeuralSdf`]: one type over both architectures for people who use a trained model: query it
+//! on the GPU or the CPU, get normals, embed it in a renderer's WGSL.
+//!
+//! Points are in the original mesh's coordinates and distances in its units, unless a method
+//! says `normalized`. Outside the normalised box `[-1, 1]³`, which is all a model was trained
+//! on, the distance is extended as `Φ(clamp(x)) + |x − clamp(x)|` (the distance to the box plus
+//! the model's value at the nearest box point): a sphere tracer coming from far away then steps
+//! safely up to the box instead of trusting an extrapolating network. Every path (GPU, CPU,
+//! WGSL) applies the same rule, so they agree.
+
+use std::path::Path;
+use std::sync::Mutex;
+
+use glam::Vec3;
+use rayon::prelude::*;
+
+use crate::gpu::{GpuContext, GpuError};
+use crate::model_file::{ModelFile, ModelFileError, Normalization};
+use crate::nglod::{Nglod, NglodError, NglodGpu, ScatterMode};
+use crate::siren::{self, Siren, SirenGpu, SirenGpuError};
+
+/// Architecture name of NGLOD model files.
+const NGLOD_ARCHITECTURE: &str = "nglod";
+
+/// Errors of [`NeuralSdf`].
+#[derive(Debug, thiserror::Error)]
+pub enum NeuralSdfError {
+    /// The model file could not be read or is not a valid model.
+    #[error(transparent)]
+    ModelFile(#[from] ModelFileError),
+    /// The file's architecture is not one we know.
+    #[error("unknown architecture `{0}` in the model file (expected `siren` or `nglod`)")]
+    UnknownArchitecture(String),
+    /// The file holds an NGLOD model that does not validate.
+    #[error(transparent)]
+    Nglod(#[from] NglodError),
+    /// A SIREN GPU error.
+    #[error(transparent)]
+    Siren(#[from] SirenGpuError),
+    /// A GPU error.
+    #[error(transparent)]
+    Gpu(#[from] GpuError),
+    /// A level of detail was asked of a model without levels.
+    #[error("levels of detail exist only for NGLOD models; this is a {0} model")]
+    NoLevels(&'static str),
+}
+
+/// The network inside a [`NeuralSdf`].
+#[derive(Clone, Debug)]
+pub enum Network {
+    /// A SIREN.
+    Siren(Siren),
+    /// An NGLOD model.
+    Nglod(Nglod),
+}
+
+/// The network's GPU side, created on first GPU use and kept with the device it lives on.
+enum GpuNetwork {
+    Siren(SirenGpu),
+    Nglod(NglodGpu),
+}
+
+/// A trained neural SDF, either architecture.
+pub struct NeuralSdf {
+    network: Network,
+    normalization: Normalization,
+    file: ModelFile,
+    lod: Option<usize>,
+    gpu: Mutex<Option<(wgpu::Device, GpuNetwork)>>,
+}
+
+impl std::fmt::Debug for NeuralSdf {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("NeuralSdf")
+            .field("architecture", &self.architecture())
+            .field("params", &self.param_count())
+            .field("normalization", &self.normalization)
+            .field("lod", &self.lod)
+            .finish_non_exhaustive()
+    }
+}
+
+impl NeuralSdf {
+    /// Loads a model file written by `train`.
+    pub fn load(path: impl AsRef<Path>) -> Result<Self, NeuralSdfError> {
+        Self::from_model_file(ModelFile::load(path.as_ref())?)
+    }
+
+    /// A model from a model file in memory.
+    pub fn from_model_file(file: ModelFile) -> Result<Self, NeuralSdfError> {
+        let network = match file.metadata.architecture.as_str() {
+            siren::ARCHITECTURE => Network::Siren(Siren::from_model_file(&file)?),
+            NGLOD_ARCHITECTURE => Network::Nglod(Nglod::from_model_file(&file)?),
+            other => return Err(NeuralSdfError::UnknownArchitecture(other.to_owned())),
+        };
+        Ok(NeuralSdf {
+            network,
+            normalization: file.metadata.normalization,
+            file,
+            lod: None,
+            gpu: Mutex::new(None),
+        })
+    }
+
+    /// `"siren"` or `"nglod"`.
+    pub fn architecture(&self) -> &'static str {
+        match self.network {
+            Network::Siren(_) => siren::ARCHITECTURE,
+            Network::Nglod(_) => NGLOD_ARCHITECTURE,
+        }
+    }
+
+    /// The network.
+    pub fn network(&self) -> &Network {
+        &self.network
+    }
+
+    /// The model file it came from (metadata included).
+    pub fn model_file(&self) -> &ModelFile {
+        &self.file
+    }
+
+    /// The map from mesh coordinates to the model's normalised cube.
+    pub fn normalization(&self) -> Normalization {
+        self.normalization
+    }
+
+    /// Number of parameters.
+    pub fn param_count(&self) -> usize {
+        self.file.param_count()
+    }
+
+    /// Evaluates NGLOD models with only their first `lod` levels (`None`: all). An error for
+    /// SIREN, or for a level the model does not have.
+    pub fn set_lod(&mut self, lod: Option<usize>) -> Result<(), NeuralSdfError> {
+        match (&self.network, lod) {
+            (_, None) => {}
+            (Network::Siren(_), Some(_)) => return Err(NeuralSdfError::NoLevels("siren")),
+            (Network::Nglod(m), Some(k)) => {
+                m.config().lod(Some(k))?;
+            }
+        }
+        self.lod = lod;
+        Ok(())
+    }
+
+    /// The level of detail in use (`None`: all levels).
+    pub fn lod(&self) -> Option<usize> {
+        self.lod
+    }
+
+    /// Signed distances at `points` (mesh coordinates, mesh units), on the GPU. Any number of
+    /// points: the kernels split the work to fit the device.
+    pub fn eval(&self, gpu: &GpuContext, points: &[Vec3]) -> Result<Vec<f32>, NeuralSdfError> {
+        let n = self.normalization;
+        let local: Vec<Vec3> = points.iter().map(|&p| n.to_normalized(p)).collect();
+        let d = self.eval_normalized(gpu, &local)?;
+        Ok(d.into_iter().map(|d| n.distance_to_original(d)).collect())
+    }
+
+    /// Signed distances at `points` in the normalised cube, in normalised units, on the GPU.
+    pub fn eval_normalized(
+        &self,
+        gpu: &GpuContext,
+        points: &[Vec3],
+    ) -> Result<Vec<f32>, NeuralSdfError> {
+        let (clamped, outside) = clamp_to_box(points);
+        let mut d = self.with_gpu(gpu, |net| match net {
+            GpuNetwork::Siren(s) => Ok(s.eval(gpu, &clamped)?),
+            GpuNetwork::Nglod(m) => Ok(m.eval(gpu, &clamped, self.lod)?),
+        })?;
+        for (d, o) in d.iter_mut().zip(outside) {
+            *d += o;
+        }
+        Ok(d)
+    }
+
+    /// Signed distances and unit normals (the normalised analytic gradient) at `points` in
+    /// mesh coordinates. SIREN's gradient comes from the GPU's forward-mode kernel; NGLOD's from
+    /// its analytic gradient on CPU threads (its GPU kernels compute values only).
+    pub fn eval_with_normals(
+        &self,
+        gpu: &GpuContext,
+        points: &[Vec3],
+    ) -> Result<Vec<(f32, Vec3)>, NeuralSdfError> {
+        let n = self.normalization;
+        let local: Vec<Vec3> = points.iter().map(|&p| n.to_normalized(p)).collect();
+        let (clamped, outside) = clamp_to_box(&local);
+        let raw: Vec<(f32, Vec3)> = match &self.network {
+            Network::Siren(_) => self.with_gpu(gpu, |net| match net {
+                GpuNetwork::Siren(s) => Ok(s.eval_with_gradient(gpu, &clamped)?),
+                GpuNetwork::Nglod(_) => unreachable!("the GPU network matches the host network"),
+            })?,
+            Network::Nglod(m) => {
+                let d = self.eval_normalized(gpu, &clamped)?;
+                let g = m.gradient_cpu(&clamped, self.lod)?;
+                d.into_iter().zip(g).collect()
+            }
+        };
+        Ok(raw
+            .into_iter()
+            .zip(local.iter().zip(&clamped).zip(outside))
+            .map(|((d, g), ((p, c), o))| {
+                (n.distance_to_original(d + o), outward_normal(g, *p, *c))
+            })
+            .collect())
+    }
+
+    /// Signed distances at `points` (mesh coordinates, mesh units) on CPU threads, for machines
+    /// without a GPU and for physics or path-planning code. Agrees with [`NeuralSdf::eval`].
+    pub fn eval_cpu(&self, points: &[Vec3]) -> Vec<f32> {
+        let n = self.normalization;
+        let local: Vec<Vec3> = points.par_iter().map(|&p| n.to_normalized(p)).collect();
+        self.eval_cpu_normalized(&local)
+            .into_iter()
+            .map(|d| n.distance_to_original(d))
+            .collect()
+    }
+
+    /// Signed distances at normalised `points` on CPU threads, in normalised units.
+    pub fn eval_cpu_normalized(&self, points: &[Vec3]) -> Vec<f32> {
+        let (clamped, outside) = clamp_to_box(points);
+        let d = match &self.network {
+            Network::Siren(s) => s.eval_cpu(&clamped),
+            Network::Nglod(m) => m
+                .eval_cpu(&clamped, self.lod)
+                .expect("lod was validated by set_lod"),
+        };
+        d.into_iter().zip(outside).map(|(d, o)| d + o).collect()
+    }
+
+    /// Distances and unit normals on CPU threads (mesh coordinates and units).
+    pub fn eval_with_normals_cpu(&self, points: &[Vec3]) -> Vec<(f32, Vec3)> {
+        let n = self.normalization;
+        let local: Vec<Vec3> = points.par_iter().map(|&p| n.to_normalized(p)).collect();
+        let (clamped, outside) = clamp_to_box(&local);
+        let raw: Vec<(f32, Vec3)> = match &self.network {
+            Network::Siren(s) => s.eval_with_gradient_cpu(&clamped),
+            Network::Nglod(m) => {
+                let d = m.eval_cpu(&clamped, self.lod).expect("lod was validated");
+                let g = m.gradient_cpu(&clamped, self.lod).expect("lod was validated");
+                d.into_iter().zip(g).collect()
+            }
+        };
+        raw.into_iter()
+            .zip(local.iter().zip(&clamped).zip(outside))
+            .map(|((d, g), ((p, c), o))| {
+                (n.distance_to_original(d + o), outward_normal(g, *p, *c))
+            })
+            .collect()
+    }
+
+    /// Runs `f` on this model's GPU network for `gpu`'s device, creating it on first use (or
+    /// when called with another device).
+    fn with_gpu<T>(
+        &self,
+        gpu: &GpuContext,
+        f: impl FnOnce(&mut GpuNetwork) -> Result<T, NeuralSdfError>,
+    ) -> Result<T, NeuralSdfError> {
+        let mut slot = self.gpu.lock().unwrap_or_else(|e| e.into_inner());
+        let stale = !matches!(&*slot, Some((device, _)) if device == gpu.device());
+        if stale {
+            let net = match &self.network {
+                Network::Siren(s) => GpuNetwork::Siren(SirenGpu::new(gpu, s)?),
+                Network::Nglod(m) => GpuNetwork::Nglod(NglodGpu::new(gpu, m, ScatterMode::Auto)?),
+            };
+            *slot = Some((gpu.device().clone(), net));
+        }
+        let (_, net) = slot.as_mut().expect("filled above");
+        f(net)
+    }
+}
+
+/// Points clamped to `[-1, 1]³`, and each point's distance to its clamped copy.
+fn clamp_to_box(points: &[Vec3]) -> (Vec<Vec3>, Vec<f32>) {
+    points
+        .par_iter()
+        .map(|&p| {
+            let c = p.clamp(Vec3::NEG_ONE, Vec3::ONE);
+            (c, p.distance(c))
+        })
+        .unzip()
+}
+
+/// The unit normal for the extended distance: the model's gradient inside the box, and outside
+/// it the direction away from the box (the gradient of the distance-to-box term dominates there).
+fn outward_normal(gradient: Vec3, p: Vec3, clamped: Vec3) -> Vec3 {
+    let away = p - clamped;
+    if away != Vec3::ZERO {
+        away.normalize()
+    } else {
+        gradient.normalize_or_zero()
+    }
+}
