@@ -3,7 +3,7 @@
 use std::f32::consts::PI;
 use std::time::Duration;
 
-use glam::{DVec3, Vec3, Vec3A};
+use glam::{DMat3, DVec3, Vec3, Vec3A};
 use obvhs::BvhBuildParams;
 use obvhs::bvh2::builder::build_bvh2_from_tris;
 use obvhs::triangle::Triangle;
@@ -12,7 +12,7 @@ use rayon::prelude::*;
 use crate::{GeomError, Mesh};
 
 /// The result of a closest-point query.
-#[derive(Clone, Copy, Debug, PartialEq)]
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct ClosestPoint {
     /// Euclidean distance from the query to `point` (unsigned).
     pub distance: f32,
@@ -74,7 +74,14 @@ struct WindingNode {
     radius2: f32,
     /// Sum of the node's area vectors (area × unit normal).
     area_normal: Vec3,
-    _pad: f32,
+    /// Trace of the first-order moment C = Σ a_t n_t (x̄_t − c)ᵀ.
+    trace: f32,
+    /// Diagonal of the symmetric part of C.
+    sym_diag: Vec3,
+    _pad0: f32,
+    /// Off-diagonal (xy, xz, yz) of the symmetric part of C.
+    sym_off: Vec3,
+    _pad1: f32,
 }
 
 /// Exact unsigned distance plus a robust sign, for one mesh.
@@ -268,36 +275,47 @@ impl SignedDistance {
             }
         }
         let mut wnodes = vec![WindingNode::default(); nodes.len()];
-        let mut areas = vec![0.0f64; nodes.len()];
+        // f64 moments: area, centroid, area vector, first-order moment C_ij = Σ a n_i (x̄ − c)_j.
+        let mut moments = vec![(0.0f64, DVec3::ZERO, DVec3::ZERO, DMat3::ZERO); nodes.len()];
+        let outer = |n: DVec3, d: DVec3| DMat3::from_cols(n * d.x, n * d.y, n * d.z);
         for &i in order.iter().rev() {
             let n = nodes[i as usize];
-            let (area, center, area_normal) = if n.count > 0 {
-                let mut area = 0.0f64;
-                let mut weighted = DVec3::ZERO;
-                let mut an = DVec3::ZERO;
-                for t in &tris[n.first as usize..(n.first + n.count) as usize] {
-                    let [a, b, c] = t.map(|v| Vec3::from(v).as_dvec3());
-                    let cr = 0.5 * (b - a).cross(c - a);
-                    let ar = cr.length();
-                    area += ar;
-                    weighted += ar * (a + b + c) / 3.0;
-                    an += cr;
-                }
-                (area, weighted, an)
+            let (area, center, area_normal, moment) = if n.count > 0 {
+                let leaf = &tris[n.first as usize..(n.first + n.count) as usize];
+                let parts: Vec<(f64, DVec3, DVec3)> = leaf
+                    .iter()
+                    .map(|t| {
+                        let [a, b, c] = t.map(|v| Vec3::from(v).as_dvec3());
+                        let cr = 0.5 * (b - a).cross(c - a);
+                        (cr.length(), (a + b + c) / 3.0, cr)
+                    })
+                    .collect();
+                let area: f64 = parts.iter().map(|x| x.0).sum();
+                let an: DVec3 = parts.iter().map(|x| x.2).sum();
+                let center = if area > 0.0 {
+                    parts.iter().map(|x| x.0 * x.1).sum::<DVec3>() / area
+                } else {
+                    Vec3::from((n.min + n.max) * 0.5).as_dvec3()
+                };
+                let moment = parts
+                    .iter()
+                    .fold(DMat3::ZERO, |m, x| m + outer(x.2, x.1 - center));
+                (area, center, an, moment)
             } else {
                 let (l, r) = (n.first as usize, n.first as usize + 1);
-                let (wl, wr) = (wnodes[l], wnodes[r]);
-                (
-                    areas[l] + areas[r],
-                    areas[l] * wl.center.as_dvec3() + areas[r] * wr.center.as_dvec3(),
-                    wl.area_normal.as_dvec3() + wr.area_normal.as_dvec3(),
-                )
+                let (ml, mr) = (moments[l], moments[r]);
+                let area = ml.0 + mr.0;
+                let center = if area > 0.0 {
+                    (ml.0 * ml.1 + mr.0 * mr.1) / area
+                } else {
+                    Vec3::from((n.min + n.max) * 0.5).as_dvec3()
+                };
+                let an = ml.2 + mr.2;
+                let moment = ml.3 + mr.3 + outer(ml.2, ml.1 - center) + outer(mr.2, mr.1 - center);
+                (area, center, an, moment)
             };
-            let center = if area > 0.0 {
-                (center / area).as_vec3()
-            } else {
-                (n.min + n.max) * 0.5
-            };
+            moments[i as usize] = (area, center, area_normal, moment);
+            let center = center.as_vec3();
             // Radius: farthest box corner (always valid), tightened by the children's spheres or the
             // leaf's vertices.
             let half = (n.max - n.min) * 0.5;
@@ -319,12 +337,16 @@ impl SignedDistance {
             }
             // Guard against rounding: a tiny relative margin.
             radius *= 1.0 + 1e-5;
-            areas[i as usize] = area;
+            let sym = (moment + moment.transpose()) * 0.5;
             wnodes[i as usize] = WindingNode {
                 center,
                 radius2: radius * radius,
                 area_normal: area_normal.as_vec3(),
-                _pad: 0.0,
+                trace: (sym.x_axis.x + sym.y_axis.y + sym.z_axis.z) as f32,
+                sym_diag: DVec3::new(sym.x_axis.x, sym.y_axis.y, sym.z_axis.z).as_vec3(),
+                _pad0: 0.0,
+                sym_off: DVec3::new(sym.y_axis.x, sym.z_axis.x, sym.z_axis.y).as_vec3(),
+                _pad1: 0.0,
             };
         }
         let diag = mesh.bounds().diagonal();
@@ -460,7 +482,14 @@ impl SignedDistance {
             let d = Vec3A::from(w.center) - p;
             let d2 = d.length_squared();
             if d2 > beta2 * w.radius2 {
-                sum += Vec3A::from(w.area_normal).dot(d) / (d2 * d2.sqrt());
+                // Dipole plus first-order term of the Taylor expansion of the area integral
+                // (Barill et al. 2018): (N·r + tr C) / |r|^3 - 3 rᵀ S r / |r|^5.
+                let inv_d = 1.0 / d2.sqrt();
+                let inv3 = inv_d / d2;
+                let sd = Vec3A::from(w.sym_diag) * d * d;
+                let so = Vec3A::from(w.sym_off) * Vec3A::new(d.x * d.y, d.x * d.z, d.y * d.z);
+                let rsr = sd.x + sd.y + sd.z + 2.0 * (so.x + so.y + so.z);
+                sum += (Vec3A::from(w.area_normal).dot(d) + w.trace) * inv3 - 3.0 * rsr * inv3 / d2;
             } else {
                 let n = &self.nodes[ni as usize];
                 if n.count > 0 {
@@ -539,39 +568,84 @@ impl SignedDistance {
         }
     }
 
-    /// [`signed_distance`](Self::signed_distance) for many points, in parallel with rayon.
-    pub fn signed_distance_batch(&self, points: &[Vec3]) -> Vec<f32> {
-        points
+    /// Runs `f` over all points in parallel. Large batches are processed in Morton (Z-curve) order
+    /// of the points so that consecutive queries touch the same BVH nodes (much better cache use for
+    /// random point sets); results are returned in input order.
+    fn batch<T, F>(&self, points: &[Vec3], f: F) -> Vec<T>
+    where
+        T: Send + Copy + Default,
+        F: Fn(&Self, Vec3, &mut Scratch) -> T + Sync,
+    {
+        if points.len() < 4096 {
+            return points
+                .par_iter()
+                .with_min_len(256)
+                .map_init(|| self.scratch(), |s, &p| f(self, p, s))
+                .collect();
+        }
+        let mut b = crate::Aabb::EMPTY;
+        for p in points.iter().filter(|p| p.is_finite()) {
+            b.extend(*p);
+        }
+        let lo = b.min;
+        let inv = 1023.0 / (b.max - b.min).max(Vec3::splat(1e-30));
+        let mut keys: Vec<u64> = points
             .par_iter()
-            .with_min_len(256)
-            .map_init(|| self.scratch(), |s, &p| self.signed_distance_with(p, s))
-            .collect()
-    }
-
-    /// [`closest_point`](Self::closest_point) for many points, in parallel with rayon.
-    pub fn closest_point_batch(&self, points: &[Vec3]) -> Vec<ClosestPoint> {
-        points
-            .par_iter()
-            .with_min_len(256)
-            .map_init(|| self.scratch(), |s, &p| self.closest_point_with(p, s))
-            .collect()
-    }
-
-    /// [`winding_number`](Self::winding_number) for many points, in parallel with rayon.
-    pub fn winding_number_batch(&self, points: &[Vec3]) -> Vec<f32> {
-        points
+            .enumerate()
+            .map(|(i, p)| {
+                let code = if p.is_finite() {
+                    let c = ((*p - lo) * inv).clamp(Vec3::ZERO, Vec3::splat(1023.0));
+                    (spread10(c.x as u32) << 2) | (spread10(c.y as u32) << 1) | spread10(c.z as u32)
+                } else {
+                    u32::MAX
+                };
+                ((code as u64) << 32) | i as u64
+            })
+            .collect();
+        keys.par_sort_unstable();
+        let sorted: Vec<T> = keys
             .par_iter()
             .with_min_len(256)
             .map_init(
                 || self.scratch(),
-                |s, &p| {
-                    if p.is_finite() {
-                        self.winding_with(p.into(), s)
-                    } else {
-                        f32::NAN
-                    }
-                },
+                |s, &k| f(self, points[k as u32 as usize], s),
             )
-            .collect()
+            .collect();
+        let mut out = vec![T::default(); points.len()];
+        for (k, v) in keys.iter().zip(sorted) {
+            out[*k as u32 as usize] = v;
+        }
+        out
     }
+
+    /// [`signed_distance`](Self::signed_distance) for many points, in parallel with rayon.
+    pub fn signed_distance_batch(&self, points: &[Vec3]) -> Vec<f32> {
+        self.batch(points, |sd, p, s| sd.signed_distance_with(p, s))
+    }
+
+    /// [`closest_point`](Self::closest_point) for many points, in parallel with rayon.
+    pub fn closest_point_batch(&self, points: &[Vec3]) -> Vec<ClosestPoint> {
+        self.batch(points, |sd, p, s| sd.closest_point_with(p, s))
+    }
+
+    /// [`winding_number`](Self::winding_number) for many points, in parallel with rayon.
+    pub fn winding_number_batch(&self, points: &[Vec3]) -> Vec<f32> {
+        self.batch(points, |sd, p, s| {
+            if p.is_finite() {
+                sd.winding_with(p.into(), s)
+            } else {
+                f32::NAN
+            }
+        })
+    }
+}
+
+/// Spreads the low 10 bits of `v` so that there are two zero bits between each (for Morton codes).
+fn spread10(v: u32) -> u32 {
+    let mut x = v & 0x3ff;
+    x = (x | (x << 16)) & 0x0300_00ff;
+    x = (x | (x << 8)) & 0x0300_f00f;
+    x = (x | (x << 4)) & 0x030c_30c3;
+    x = (x | (x << 2)) & 0x0924_9249;
+    x
 }

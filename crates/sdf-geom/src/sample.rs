@@ -196,25 +196,26 @@ pub fn poisson_disk(mesh: &Mesh, n: usize, seed: u64) -> PoissonSamples {
         };
     }
     let m = n.saturating_mul(5);
-    let t0 = std::time::Instant::now();
     let cand = surface(mesh, m, seed);
     let m = cand.len();
     let r_max = (area / (2.0 * 3f64.sqrt() * n as f64)).sqrt() as f32;
     let r_min = r_max * 0.65 * (1.0 - (n as f32 / m as f32).powf(1.5));
     let two_r_max = 2.0 * r_max;
-    eprintln!("let grid  ridnewcand  {:?}", t0.elapsed());
+    // The grid stores the candidates sorted by cell, so neighbour scans read contiguous memory;
+    // all indices below are positions in that order.
     let grid = Grid::new(&cand.points, two_r_max);
+    let pts = &grid.points;
 
-    // Neighbour lists (CSR) with the weight each neighbour contributes.
+    // Neighbour lists with the weight each neighbour contributes.
     let lists: Vec<Vec<(u32, f32)>> = (0..m)
         .into_par_iter()
         .with_min_len(1024)
         .map(|i| {
-            let p = cand.points[i];
-            let mut v = Vec::new();
+            let p = pts[i];
+            let mut v = Vec::with_capacity(32);
             grid.for_each_near(p, |j| {
                 if j as usize != i {
-                    let d = p.distance(cand.points[j as usize]);
+                    let d = p.distance(pts[j as usize]);
                     if d < two_r_max {
                         let dh = d.max(2.0 * r_min);
                         let w = (1.0 - dh / two_r_max).powi(8);
@@ -225,12 +226,9 @@ pub fn poisson_disk(mesh: &Mesh, n: usize, seed: u64) -> PoissonSamples {
             v
         })
         .collect();
-    eprintln!("let mut weight ecf  {:?}", t0.elapsed());
-    eprintln!("avg neighbours {}", lists.iter().map(|l| l.len()).sum::<usize>() as f64 / m as f64);
     let mut weight: Vec<f32> = lists.iter().map(|l| l.iter().map(|x| x.1).sum()).collect();
 
     // Indexed binary max-heap on the weights; weights only ever decrease (sift down).
-    eprintln!("let mut heap  ndexedaxeap  {:?}", t0.elapsed());
     let mut heap = IndexedMaxHeap::new(weight.clone());
     let mut removed = vec![false; m];
     let mut remaining = m;
@@ -248,16 +246,19 @@ pub fn poisson_disk(mesh: &Mesh, n: usize, seed: u64) -> PoissonSamples {
         }
     }
 
-    eprintln!("let mut samples  urfaceamplesdefault  {:?}", t0.elapsed());
+    // Kept samples, back in candidate order.
+    let mut kept: Vec<u32> = (0..m)
+        .filter(|&i| !removed[i])
+        .map(|i| grid.order[i])
+        .collect();
+    kept.sort_unstable();
     let mut samples = SurfaceSamples::default();
-    for i in 0..m {
-        if !removed[i] {
-            samples.points.push(cand.points[i]);
-            samples.normals.push(cand.normals[i]);
-            samples.triangles.push(cand.triangles[i]);
-        }
+    for &i in &kept {
+        let i = i as usize;
+        samples.points.push(cand.points[i]);
+        samples.normals.push(cand.normals[i]);
+        samples.triangles.push(cand.triangles[i]);
     }
-    eprintln!("let mindistance  minpair  {:?}", t0.elapsed());
     let min_distance = min_pair_distance(&samples.points, two_r_max);
     PoissonSamples {
         samples,
@@ -277,11 +278,11 @@ pub fn min_pair_distance(points: &[Vec3], radius: f32) -> f32 {
         .into_par_iter()
         .with_min_len(1024)
         .map(|i| {
-            let p = points[i];
+            let p = grid.points[i];
             let mut best = radius;
             grid.for_each_near(p, |j| {
                 if j as usize != i {
-                    best = best.min(p.distance(points[j as usize]));
+                    best = best.min(p.distance(grid.points[j as usize]));
                 }
             });
             best
@@ -295,7 +296,10 @@ struct Grid {
     origin: Vec3,
     /// cell key → range into `items`.
     cells: HashMap<(i32, i32, i32), (u32, u32), BuildHasherDefault<CellHasher>>,
-    items: Vec<u32>,
+    /// The points, sorted by cell.
+    points: Vec<Vec3>,
+    /// Original index of each entry of `points`.
+    order: Vec<u32>,
 }
 
 impl Grid {
@@ -320,7 +324,8 @@ impl Grid {
             cell,
             origin: b.min,
             cells: HashMap::default(),
-            items: Vec::with_capacity(points.len()),
+            points: Vec::with_capacity(points.len()),
+            order: Vec::with_capacity(points.len()),
         };
         let mut keyed: Vec<((i32, i32, i32), u32)> = points
             .iter()
@@ -333,7 +338,8 @@ impl Grid {
             let k = keyed[start].0;
             let mut end = start;
             while end < keyed.len() && keyed[end].0 == k {
-                g.items.push(keyed[end].1);
+                g.order.push(keyed[end].1);
+                g.points.push(points[keyed[end].1 as usize]);
                 end += 1;
             }
             g.cells.insert(k, (start as u32, end as u32));
@@ -342,14 +348,15 @@ impl Grid {
         g
     }
 
-    /// Calls `f` for every point in the 27 cells around `p` (a superset of those within `cell`).
+    /// Calls `f` with the (sorted) position of every point in the 27 cells around `p` (a superset of
+    /// those within `cell`).
     fn for_each_near(&self, p: Vec3, mut f: impl FnMut(u32)) {
         let (x, y, z) = self.key(p);
         for dx in -1..=1 {
             for dy in -1..=1 {
                 for dz in -1..=1 {
                     if let Some(&(s, e)) = self.cells.get(&(x + dx, y + dy, z + dz)) {
-                        for &j in &self.items[s as usize..e as usize] {
+                        for j in s..e {
                             f(j);
                         }
                     }
