@@ -25,8 +25,15 @@ macro_rules! shader {
 /// The shared Adam optimiser step.
 pub const ADAM: Shader = shader!("adam.wgsl", wgpu::Features::empty());
 
+/// SIREN's tiled GEMM with the sine forward / backward epilogues.
+pub const SIREN_GEMM: Shader = shader!("siren_gemm.wgsl", wgpu::Features::empty());
+/// SIREN's output layer, loss and its derivative.
+pub const SIREN_HEAD: Shader = shader!("siren_head.wgsl", wgpu::Features::empty());
+/// SIREN's batch sampling and reductions.
+pub const SIREN_TRAIN: Shader = shader!("siren_train.wgsl", wgpu::Features::empty());
+
 /// Every shader, for validation.
-pub const ALL: &[Shader] = &[ADAM];
+pub const ALL: &[Shader] = &[ADAM, SIREN_GEMM, SIREN_HEAD, SIREN_TRAIN];
 
 #[cfg(test)]
 mod tests {

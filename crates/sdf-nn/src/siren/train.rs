@@ -1,0 +1,503 @@
+//! Training a SIREN on the GPU: the dataset (Poisson-disk surface samples with normals) is
+//! uploaded once; every step samples its batch on the GPU, runs forward, loss and double
+//! backward, then Adam, all in one command buffer. The loss goes into a small history buffer
+//! that the host reads only every [`SirenTrainConfig::loss_every`] steps.
+
+use std::time::{Duration, Instant};
+
+use glam::Vec3;
+use serde::{Deserialize, Serialize};
+
+use super::gpu::{Launch, SirenGpu, SirenGpuError, TrainPasses};
+use super::{Siren, SirenConfigError};
+use crate::adam::{Adam, AdamConfig};
+use crate::gpu::{GpuContext, GpuError};
+use crate::model_file::{self, ModelFile};
+use crate::shaders;
+
+/// Weights of the four loss terms and the off-surface sharpness α.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct LossWeights {
+    /// On-surface |Φ| (3000).
+    pub surface: f32,
+    /// Off-surface exp(−α|Φ|) (100).
+    pub off_surface: f32,
+    /// On-surface 1 − cos(∇Φ, n) (100).
+    pub normal: f32,
+    /// Eikonal |‖∇Φ‖ − 1| on all points (5; the SIREN reference code uses 50).
+    pub eikonal: f32,
+    /// α of the off-surface term (100).
+    pub alpha: f32,
+}
+
+impl Default for LossWeights {
+    fn default() -> Self {
+        LossWeights {
+            surface: 3000.0,
+            off_surface: 100.0,
+            normal: 100.0,
+            eikonal: 5.0,
+            alpha: 100.0,
+        }
+    }
+}
+
+/// The four weighted loss terms of a step (each a mean over the batch).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct LossTerms {
+    /// On-surface |Φ| term.
+    pub surface: f32,
+    /// Off-surface exp(−α|Φ|) term.
+    pub off_surface: f32,
+    /// Normal-alignment term.
+    pub normal: f32,
+    /// Eikonal term.
+    pub eikonal: f32,
+}
+
+impl LossTerms {
+    /// Sum of the four terms.
+    pub fn total(&self) -> f32 {
+        self.surface + self.off_surface + self.normal + self.eikonal
+    }
+
+    fn from_slice(v: &[f32]) -> Self {
+        LossTerms {
+            surface: v[0],
+            off_surface: v[1],
+            normal: v[2],
+            eikonal: v[3],
+        }
+    }
+}
+
+/// Hyperparameters of SIREN training.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct SirenTrainConfig {
+    /// Steps to run in [`SirenTrainer::train`]. The default, 10 000, is the order the SIREN
+    /// reference code runs for a shape (its 10k epochs of one batch each); on a GPU that
+    /// converges the reference network.
+    pub steps: usize,
+    /// Surface points per step (5000).
+    pub surface_per_step: usize,
+    /// Uniform box points per step (5000).
+    pub box_per_step: usize,
+    /// Poisson-disk surface samples in the dataset (10^5).
+    pub dataset_size: usize,
+    /// Loss weights.
+    pub weights: LossWeights,
+    /// Initial Adam learning rate (1e-4).
+    pub lr: f32,
+    /// Steps without a relative improvement of [`Self::plateau_threshold`] in the (windowed)
+    /// loss before the learning rate is divided by 10.
+    pub plateau_patience: usize,
+    /// Relative improvement that counts as progress (1e-3).
+    pub plateau_threshold: f32,
+    /// The learning rate is never reduced below this.
+    pub min_lr: f32,
+    /// Steps between loss readbacks (the GPU queue drains only then).
+    pub loss_every: usize,
+    /// Seed of the dataset sampling and of the per-step batches.
+    pub seed: u64,
+}
+
+impl Default for SirenTrainConfig {
+    fn default() -> Self {
+        SirenTrainConfig {
+            steps: 10_000,
+            surface_per_step: 5000,
+            box_per_step: 5000,
+            dataset_size: 100_000,
+            weights: LossWeights::default(),
+            lr: 1e-4,
+            plateau_patience: 500,
+            plateau_threshold: 1e-3,
+            min_lr: 1e-7,
+            loss_every: 25,
+            seed: 0,
+        }
+    }
+}
+
+/// Training failures.
+#[derive(Debug, thiserror::Error)]
+pub enum TrainError {
+    /// The device failed.
+    #[error(transparent)]
+    Gpu(#[from] GpuError),
+    /// The network configuration is unusable.
+    #[error(transparent)]
+    Config(#[from] SirenConfigError),
+    /// The training configuration is unusable.
+    #[error("invalid SIREN training configuration: {0}")]
+    BadTrainConfig(String),
+    /// No surface samples (a mesh without area, or an empty dataset).
+    #[error("the training dataset has no surface points (does the mesh have any area?)")]
+    EmptyDataset,
+    /// The loss became NaN or infinite.
+    #[error(
+        "training diverged at step {step}: loss is {loss} (try a lower learning rate or other loss weights)"
+    )]
+    Diverged {
+        /// The step whose loss was not finite.
+        step: usize,
+        /// That loss.
+        loss: f32,
+    },
+}
+
+impl From<SirenGpuError> for TrainError {
+    fn from(e: SirenGpuError) -> Self {
+        match e {
+            SirenGpuError::Gpu(g) => TrainError::Gpu(g),
+            SirenGpuError::Config(c) => TrainError::Config(c),
+        }
+    }
+}
+
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, bytemuck::Pod, bytemuck::Zeroable)]
+struct SampleUniforms {
+    n_points: u32,
+    n_surface: u32,
+    n_data: u32,
+    seed: u32,
+}
+
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, bytemuck::Pod, bytemuck::Zeroable)]
+struct LossReduceUniforms {
+    n_partials: u32,
+    slot: u32,
+    _pad: [u32; 2],
+}
+
+/// What [`SirenTrainer::train`] did.
+#[derive(Clone, Debug, PartialEq)]
+pub struct TrainSummary {
+    /// Steps run.
+    pub steps: usize,
+    /// Mean loss over the last readback window.
+    pub final_loss: LossTerms,
+    /// Learning rate at the end.
+    pub final_lr: f32,
+    /// Wall time.
+    pub elapsed: Duration,
+}
+
+/// Trains a SIREN on the GPU.
+#[derive(Debug)]
+pub struct SirenTrainer {
+    config: SirenTrainConfig,
+    net: SirenGpu,
+    adam: Adam,
+    passes: TrainPasses,
+    sample: Launch,
+    sample_uniforms: wgpu::Buffer,
+    loss_reduce: Launch,
+    loss_uniforms: wgpu::Buffer,
+    history: wgpu::Buffer,
+    _dataset: [wgpu::Buffer; 2],
+    normalization: model_file::Normalization,
+    step: usize,
+    best: f32,
+    since_best: usize,
+    last_loss: Option<LossTerms>,
+}
+
+fn entry(binding: u32, buffer: &wgpu::Buffer) -> wgpu::BindGroupEntry<'_> {
+    wgpu::BindGroupEntry {
+        binding,
+        resource: buffer.as_entire_binding(),
+    }
+}
+
+/// Mixes a seed and a step into a 32-bit kernel seed.
+fn step_seed(seed: u64, step: usize) -> u32 {
+    let mut x = seed ^ (step as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15);
+    x ^= x >> 33;
+    x = x.wrapping_mul(0xff51_afd7_ed55_8ccd);
+    x ^= x >> 33;
+    x as u32
+}
+
+impl SirenTrainer {
+    /// A trainer for `siren` on a normalised mesh (see `sdf_geom::Mesh::normalized`), whose
+    /// normalisation is recorded for the model file: samples the Poisson-disk dataset.
+    pub fn from_mesh(
+        gpu: &GpuContext,
+        siren: &Siren,
+        mesh: &sdf_geom::Mesh,
+        config: SirenTrainConfig,
+    ) -> Result<Self, TrainError> {
+        let (normalized, norm) = mesh.normalized();
+        let samples =
+            sdf_geom::sample::poisson_disk(&normalized, config.dataset_size, config.seed).samples;
+        Self::new(gpu, siren, &samples.points, &samples.normals, norm, config)
+    }
+
+    /// A trainer for `siren` on a dataset of surface points and unit normals, already in the
+    /// normalised cube (the box points are drawn from `[-1, 1]³`).
+    pub fn new(
+        gpu: &GpuContext,
+        siren: &Siren,
+        points: &[Vec3],
+        normals: &[Vec3],
+        normalization: model_file::Normalization,
+        config: SirenTrainConfig,
+    ) -> Result<Self, TrainError> {
+        if points.is_empty() {
+            return Err(TrainError::EmptyDataset);
+        }
+        if points.len() != normals.len() {
+            return Err(TrainError::BadTrainConfig(format!(
+                "{} points but {} normals",
+                points.len(),
+                normals.len()
+            )));
+        }
+        let n = config.surface_per_step + config.box_per_step;
+        if n == 0 || n > (1 << 22) {
+            return Err(TrainError::BadTrainConfig(format!(
+                "batch of {n} points; it must be between 1 and 4194304"
+            )));
+        }
+        if config.loss_every == 0 || config.loss_every > 4096 {
+            return Err(TrainError::BadTrainConfig(
+                "loss_every must be in 1..=4096".into(),
+            ));
+        }
+        if !(config.lr.is_finite() && config.lr > 0.0) {
+            return Err(TrainError::BadTrainConfig(format!(
+                "learning rate {}",
+                config.lr
+            )));
+        }
+        let net = SirenGpu::new(gpu, siren)?;
+        let passes = TrainPasses::new(
+            gpu,
+            &net,
+            n as u32,
+            config.surface_per_step as u32,
+            &config.weights,
+        )?;
+        let adam = Adam::new(
+            gpu,
+            net.params_buffer(),
+            net.grads_buffer(),
+            siren.params().len() as u32,
+            AdamConfig {
+                lr: config.lr,
+                ..AdamConfig::default()
+            },
+        )?;
+        let flat_p: Vec<f32> = points.iter().flat_map(|p| p.to_array()).collect();
+        let flat_n: Vec<f32> = normals.iter().flat_map(|p| p.to_array()).collect();
+        let data_p = gpu.storage_from_slice("siren dataset points", &flat_p)?;
+        let data_n = gpu.storage_from_slice("siren dataset normals", &flat_n)?;
+        let sample_uniforms = gpu.uniform(
+            "siren sample",
+            &SampleUniforms {
+                n_points: n as u32,
+                n_surface: config.surface_per_step as u32,
+                n_data: points.len() as u32,
+                seed: 0,
+            },
+        );
+        let sample_pipeline = gpu.pipeline(&shaders::SIREN_TRAIN, "sample", &[])?;
+        let sample = Launch::flat(
+            gpu,
+            &sample_pipeline,
+            "siren sample",
+            &[
+                entry(0, &sample_uniforms),
+                entry(1, &data_p),
+                entry(2, &data_n),
+                entry(3, &passes.x_streams),
+                entry(4, &passes.normals),
+            ],
+            n as u32,
+        );
+        let loss_uniforms = gpu.uniform("siren loss reduce", &LossReduceUniforms::default());
+        let history = gpu.storage_zeroed("siren loss history", config.loss_every as u64 * 16)?;
+        let reduce_pipeline = gpu.pipeline(&shaders::SIREN_TRAIN, "reduce_loss", &[])?;
+        let loss_reduce = Launch::new(
+            gpu,
+            &reduce_pipeline,
+            "siren loss reduce",
+            &[
+                entry(8, &loss_uniforms),
+                entry(9, &passes.loss_partial),
+                entry(10, &history),
+            ],
+            (1, 1, 1),
+        );
+        Ok(SirenTrainer {
+            config,
+            net,
+            adam,
+            passes,
+            sample,
+            sample_uniforms,
+            loss_reduce,
+            loss_uniforms,
+            history,
+            _dataset: [data_p, data_n],
+            normalization,
+            step: 0,
+            best: f32::INFINITY,
+            since_best: 0,
+            last_loss: None,
+        })
+    }
+
+    /// The training configuration.
+    pub fn config(&self) -> &SirenTrainConfig {
+        &self.config
+    }
+
+    /// Steps taken so far.
+    pub fn steps_done(&self) -> usize {
+        self.step
+    }
+
+    /// The current learning rate.
+    pub fn lr(&self) -> f32 {
+        self.adam.config.lr
+    }
+
+    /// The most recent loss read back (mean over the last window).
+    pub fn last_loss(&self) -> Option<LossTerms> {
+        self.last_loss
+    }
+
+    /// The network on the GPU (e.g. for evaluation between steps).
+    pub fn net(&mut self) -> &mut SirenGpu {
+        &mut self.net
+    }
+
+    /// The normalisation of the mesh the dataset came from.
+    pub fn normalization(&self) -> model_file::Normalization {
+        self.normalization
+    }
+
+    /// The trained network on the host.
+    pub fn siren(&self, gpu: &GpuContext) -> Result<Siren, TrainError> {
+        Ok(self.net.download(gpu)?)
+    }
+
+    /// The model file of the network as trained so far, with the training configuration in its
+    /// metadata.
+    pub fn model_file(&self, gpu: &GpuContext) -> Result<ModelFile, TrainError> {
+        let siren = self.siren(gpu)?;
+        let training = serde_json::json!({
+            "config": self.config,
+            "steps_done": self.step,
+            "final_lr": self.lr(),
+            "last_loss": self.last_loss,
+        });
+        Ok(siren.to_model_file(self.normalization, training))
+    }
+
+    /// Records forward, loss, backward and Adam for one step and submits them. Every
+    /// `loss_every` steps it reads the loss history back, checks for divergence, applies the
+    /// plateau schedule and returns the window's mean loss.
+    pub fn step(&mut self, gpu: &GpuContext) -> Result<Option<LossTerms>, TrainError> {
+        let k = self.config.loss_every;
+        let slot = self.step % k;
+        gpu.write(
+            &self.sample_uniforms,
+            &[SampleUniforms {
+                n_points: self.passes.n,
+                n_surface: self.config.surface_per_step as u32,
+                n_data: (self._dataset[0].size() / 12) as u32,
+                seed: step_seed(self.config.seed, self.step),
+            }],
+        )?;
+        gpu.write(
+            &self.loss_uniforms,
+            &[LossReduceUniforms {
+                n_partials: self.passes.loss_groups,
+                slot: slot as u32,
+                _pad: [0; 2],
+            }],
+        )?;
+        let mut enc = gpu.device().create_command_encoder(&Default::default());
+        {
+            let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                label: Some("siren step"),
+                timestamp_writes: None,
+            });
+            self.sample.record(&mut pass);
+            self.passes.record(&mut pass);
+            self.loss_reduce.record(&mut pass);
+        }
+        // The backward kernels accumulate the gradient of the mean loss already.
+        self.adam.record_step(gpu, &mut enc, 1.0);
+        gpu.queue().submit([enc.finish()]);
+        self.step += 1;
+        if slot + 1 < k {
+            return Ok(None);
+        }
+        let hist: Vec<f32> = gpu.read_back_range(&self.history, 0, k as u64 * 4)?;
+        let mut mean = [0.0f32; 4];
+        for (i, row) in hist.chunks_exact(4).enumerate() {
+            let total: f32 = row.iter().sum();
+            if !total.is_finite() {
+                return Err(TrainError::Diverged {
+                    step: self.step - k + i,
+                    loss: total,
+                });
+            }
+            for t in 0..4 {
+                mean[t] += row[t] / k as f32;
+            }
+        }
+        let terms = LossTerms::from_slice(&mean);
+        self.plateau(terms.total());
+        self.last_loss = Some(terms);
+        Ok(Some(terms))
+    }
+
+    /// Reduce-on-plateau: divides the learning rate by 10 after `plateau_patience` steps
+    /// without a relative improvement of `plateau_threshold`.
+    fn plateau(&mut self, loss: f32) {
+        if loss < self.best * (1.0 - self.config.plateau_threshold) {
+            self.best = loss;
+            self.since_best = 0;
+            return;
+        }
+        self.since_best += self.config.loss_every;
+        if self.since_best >= self.config.plateau_patience {
+            let c = &mut self.adam.config;
+            c.lr = (c.lr / 10.0).max(self.config.min_lr);
+            self.since_best = 0;
+            self.best = loss;
+        }
+    }
+
+    /// Runs `steps` steps (rounded up to whole readback windows), calling `progress` with the
+    /// step count and the loss at every readback.
+    pub fn train(
+        &mut self,
+        gpu: &GpuContext,
+        steps: usize,
+        mut progress: impl FnMut(usize, &LossTerms),
+    ) -> Result<TrainSummary, TrainError> {
+        let start = Instant::now();
+        let k = self.config.loss_every;
+        let target = self.step + steps.div_ceil(k) * k;
+        // Align to the readback window so the final loss is read.
+        while self.step < target || !self.step.is_multiple_of(k) {
+            if let Some(l) = self.step(gpu)? {
+                progress(self.step, &l);
+            }
+        }
+        Ok(TrainSummary {
+            steps: self.step,
+            final_loss: self.last_loss.unwrap_or_default(),
+            final_lr: self.lr(),
+            elapsed: start.elapsed(),
+        })
+    }
+}
