@@ -1,0 +1,491 @@
+//! Loading real meshes, and every error case of the loaders.
+
+mod common;
+
+use common::{Gltf, IDENTITY, cube, data, temp_dir, write, write_gltf};
+use glam::Vec3;
+use sdf_geom::{GeomError, Mesh, SignedDistance, load_mesh};
+
+#[test]
+fn loads_obj_meshes_with_reports() {
+    let (m, r) = load_mesh(data("spot.obj")).unwrap();
+    assert_eq!((r.format, r.triangles, r.vertices), ("obj", 5856, 2930));
+    assert_eq!(m.triangles.len(), 5856);
+    assert!(r.warnings.is_empty());
+
+    // Quads are fan-triangulated and counted; the one face repeated with the opposite
+    // orientation is kept and reported.
+    let (m, r) = load_mesh(data("suzanne.obj")).unwrap();
+    assert_eq!(r.polygons_triangulated, 468);
+    assert_eq!(m.triangles.len(), 968);
+    assert_eq!(r.opposite_duplicate_faces, 1);
+
+    // spider: 56 zero-area faces dropped and counted; its missing spider.mtl is only a warning.
+    let (m, r) = load_mesh(data("spider.obj")).unwrap();
+    assert_eq!(r.input_triangles, 1368);
+    assert_eq!(r.degenerate_faces, 56);
+    assert_eq!(m.triangles.len(), 1368 - 56);
+    assert_eq!(
+        r.triangles + r.degenerate_faces + r.duplicate_faces,
+        r.input_triangles
+    );
+    assert!(r.warnings.iter().any(|w| w.contains("spider.mtl")), "{r:?}");
+    m.validate().unwrap();
+}
+
+#[test]
+fn loads_glb_with_instances() {
+    let (m, r) = load_mesh(data("duck.glb")).unwrap();
+    assert_eq!((r.format, r.triangles, r.instances), ("glb", 4212, 1));
+    m.validate().unwrap();
+
+    // pins.glb: 2 meshes instanced by 7 mesh nodes; every instance counts.
+    let (m, r) = load_mesh(data("pins.glb")).unwrap();
+    assert_eq!(r.instances, 7);
+    assert_eq!(m.triangles.len(), 3408);
+}
+
+#[test]
+fn extension_dispatch_is_case_insensitive() {
+    let dir = temp_dir("case");
+    let src = std::fs::read(data("suzanne.obj")).unwrap();
+    let p = write(&dir, "SUZANNE.OBJ", src);
+    assert_eq!(load_mesh(p).unwrap().0.triangles.len(), 968);
+}
+
+#[test]
+fn gltf_node_transforms_instances_strips_fans_and_mirroring() {
+    let (v, t) = cube();
+    let dir = temp_dir("gltf");
+    // Two instances: identity, and translated by +3 in x.
+    let mut shifted = IDENTITY;
+    shifted[12] = 3.0;
+    let p = write_gltf(
+        &dir,
+        "two.gltf",
+        &Gltf {
+            positions: &v,
+            indices: Some(&t),
+            matrices: vec![IDENTITY, shifted],
+            ..Default::default()
+        },
+    );
+    let (m, r) = load_mesh(&p).unwrap();
+    assert_eq!((r.instances, r.triangles), (2, 24));
+    let b = m.bounds();
+    assert_eq!((b.min, b.max), (Vec3::ZERO, Vec3::new(4.0, 1.0, 1.0)));
+    let sdf = SignedDistance::new(&m).unwrap();
+    assert!(sdf.signed_distance(Vec3::new(3.5, 0.5, 0.5)) < 0.0);
+    assert!(sdf.signed_distance(Vec3::new(2.0, 0.5, 0.5)) > 0.0);
+
+    // A mirroring transform (negative determinant) flips the winding back: inside stays inside.
+    let mut mirror = IDENTITY;
+    mirror[0] = -1.0;
+    let p = write_gltf(
+        &dir,
+        "mirror.gltf",
+        &Gltf {
+            positions: &v,
+            indices: Some(&t),
+            matrices: vec![mirror],
+            ..Default::default()
+        },
+    );
+    let (m, _) = load_mesh(&p).unwrap();
+    let sdf = SignedDistance::new(&m).unwrap();
+    assert!((sdf.signed_distance(Vec3::new(-0.5, 0.5, 0.5)) + 0.5).abs() < 1e-6);
+
+    // A strip and a fan covering the unit square in the z = 0 plane, normals +z.
+    let quad = [
+        [0.0, 0.0, 0.0],
+        [1.0, 0.0, 0.0],
+        [0.0, 1.0, 0.0],
+        [1.0, 1.0, 0.0],
+    ];
+    let p = write_gltf(
+        &dir,
+        "strip.gltf",
+        &Gltf {
+            positions: &quad,
+            mode: 5,
+            ..Default::default()
+        },
+    );
+    let (m, r) = load_mesh(&p).unwrap();
+    assert_eq!((r.strips_fans_converted, m.triangles.len()), (1, 2));
+    for t in &m.triangles {
+        let [a, b, c] = m.corners(t).unwrap();
+        assert!(
+            (b - a).cross(c - a).z > 0.0,
+            "strip winding must alternate correctly"
+        );
+    }
+    let fan = [
+        [0.0, 0.0, 0.0],
+        [1.0, 0.0, 0.0],
+        [1.0, 1.0, 0.0],
+        [0.0, 1.0, 0.0],
+    ];
+    let p = write_gltf(
+        &dir,
+        "fan.gltf",
+        &Gltf {
+            positions: &fan,
+            indices: Some(&[0, 1, 2, 3]),
+            mode: 6,
+            ..Default::default()
+        },
+    );
+    let (m, r) = load_mesh(&p).unwrap();
+    assert_eq!((r.strips_fans_converted, m.triangles.len()), (1, 2));
+    assert!((m.area() - 1.0).abs() < 1e-9);
+    for t in &m.triangles {
+        let [a, b, c] = m.corners(t).unwrap();
+        assert!((b - a).cross(c - a).z > 0.0);
+    }
+}
+
+#[test]
+fn gltf_external_bin_and_missing_bin_is_named() {
+    let (v, t) = cube();
+    let dir = temp_dir("bin");
+    let g = Gltf {
+        positions: &v,
+        indices: Some(&t),
+        external: Some("cube%20data.bin"),
+        ..Default::default()
+    };
+    // The URI is percent-encoded; the file on disk has a space.
+    let (json, buf) = common::gltf_json(&g);
+    write(&dir, "cube data.bin", &buf);
+    let p = write(&dir, "cube.gltf", json);
+    assert_eq!(load_mesh(&p).unwrap().0.triangles.len(), 12);
+
+    std::fs::remove_file(dir.join("cube data.bin")).unwrap();
+    let err = load_mesh(&p).unwrap_err();
+    match &err {
+        GeomError::MissingBuffer { buffer, .. } => {
+            assert!(buffer.ends_with("cube data.bin"), "{buffer:?}")
+        }
+        e => panic!("expected MissingBuffer, got {e:?}"),
+    }
+    assert!(err.to_string().contains("cube data.bin"), "{err}");
+}
+
+#[test]
+fn gltf_missing_texture_does_not_matter() {
+    let (v, t) = cube();
+    let dir = temp_dir("tex");
+    let p = write_gltf(
+        &dir,
+        "textured.gltf",
+        &Gltf {
+            positions: &v,
+            indices: Some(&t),
+            image_uri: Some("does-not-exist.png"),
+            ..Default::default()
+        },
+    );
+    let (m, _) = load_mesh(&p).unwrap();
+    assert_eq!(m.triangles.len(), 12);
+}
+
+#[test]
+fn gltf_points_and_lines_are_rejected() {
+    let (v, _) = cube();
+    let dir = temp_dir("modes");
+    for (mode, name) in [
+        (0, "POINTS"),
+        (1, "LINES"),
+        (2, "LINE_LOOP"),
+        (3, "LINE_STRIP"),
+    ] {
+        let p = write_gltf(
+            &dir,
+            &format!("m{mode}.gltf"),
+            &Gltf {
+                positions: &v,
+                mode,
+                ..Default::default()
+            },
+        );
+        match load_mesh(&p) {
+            Err(GeomError::UnsupportedPrimitiveMode { mode: m, .. }) => assert_eq!(m, name),
+            other => panic!("mode {mode}: expected UnsupportedPrimitiveMode, got {other:?}"),
+        }
+    }
+}
+
+#[test]
+fn gltf_draco_and_meshopt_are_rejected() {
+    let (v, t) = cube();
+    let dir = temp_dir("compressed");
+    for ext in ["KHR_draco_mesh_compression", "EXT_meshopt_compression"] {
+        let p = write_gltf(
+            &dir,
+            &format!("{ext}.gltf"),
+            &Gltf {
+                positions: &v,
+                indices: Some(&t),
+                extensions_used: &[ext],
+                ..Default::default()
+            },
+        );
+        let err = load_mesh(&p).unwrap_err();
+        assert!(
+            matches!(&err, GeomError::Unsupported { feature, .. } if feature.contains(ext)),
+            "{err:?}"
+        );
+        assert!(err.to_string().contains("not supported"), "{err}");
+    }
+}
+
+#[test]
+fn gltf_index_out_of_range() {
+    let (v, _) = cube();
+    let dir = temp_dir("gidx");
+    let p = write_gltf(
+        &dir,
+        "idx.gltf",
+        &Gltf {
+            positions: &v,
+            indices: Some(&[0, 1, 2, 0, 1, 8]),
+            ..Default::default()
+        },
+    );
+    match load_mesh(&p) {
+        Err(GeomError::IndexOutOfRange {
+            index: 8,
+            vertex_count: 8,
+            triangle: 1,
+        }) => {}
+        other => panic!("expected IndexOutOfRange, got {other:?}"),
+    }
+}
+
+#[test]
+fn gltf_parse_errors() {
+    let dir = temp_dir("gparse");
+    let p = write(&dir, "bad.gltf", "{ this is not json");
+    assert!(matches!(load_mesh(&p), Err(GeomError::Parse { .. })));
+    let p = write(&dir, "bad.glb", b"glTF\x02\x00\x00\x00garbage");
+    assert!(matches!(load_mesh(&p), Err(GeomError::Parse { .. })));
+}
+
+#[test]
+fn missing_file_and_unknown_extension() {
+    let err = load_mesh(data("no-such-mesh.obj")).unwrap_err();
+    assert!(matches!(err, GeomError::Io { .. }), "{err:?}");
+    assert!(err.to_string().contains("no-such-mesh.obj"));
+    // A directory is unreadable as a file.
+    let dir = temp_dir("dir").join("folder.obj");
+    std::fs::create_dir_all(&dir).unwrap();
+    assert!(matches!(load_mesh(&dir), Err(GeomError::Io { .. })));
+
+    for name in ["mesh.stl", "mesh", "mesh.obj.bak"] {
+        match load_mesh(name) {
+            Err(GeomError::UnknownExtension { .. }) => {}
+            other => panic!("{name}: expected UnknownExtension, got {other:?}"),
+        }
+    }
+}
+
+const TRI_OBJ: &str = "v 0 0 0\nv 1 0 0\nv 0 1 0\n";
+
+#[test]
+fn obj_parse_error_has_line() {
+    let dir = temp_dir("oparse");
+    let p = write(
+        &dir,
+        "bad.obj",
+        format!("# header\n{TRI_OBJ}v 1.0 oops 2.0\nf 1 2 3\n"),
+    );
+    match load_mesh(&p) {
+        Err(GeomError::Parse { line: Some(5), .. }) => {}
+        other => panic!("expected a parse error at line 5, got {other:?}"),
+    }
+    let p = write(&dir, "badface.obj", format!("{TRI_OBJ}f 1 2 x\n"));
+    let err = load_mesh(&p).unwrap_err();
+    assert!(
+        matches!(err, GeomError::Parse { line: Some(4), .. }),
+        "{err:?}"
+    );
+    assert!(err.to_string().contains("line 4"), "{err}");
+}
+
+#[test]
+fn obj_without_triangles() {
+    let dir = temp_dir("notri");
+    let p = write(&dir, "points.obj", TRI_OBJ);
+    assert!(matches!(
+        load_mesh(&p),
+        Err(GeomError::NoTriangles { dropped: 0 })
+    ));
+    let p = write(&dir, "empty.obj", "");
+    assert!(matches!(load_mesh(&p), Err(GeomError::NoTriangles { .. })));
+    // Only a degenerate triangle (collinear corners): dropped, then nothing is left.
+    let p = write(
+        &dir,
+        "degenerate.obj",
+        "v 0 0 0\nv 1 0 0\nv 2 0 0\nf 1 2 3\n",
+    );
+    assert!(matches!(
+        load_mesh(&p),
+        Err(GeomError::NoTriangles { dropped: 1 })
+    ));
+    // Lines only.
+    let p = write(&dir, "lines.obj", format!("{TRI_OBJ}l 1 2\nl 2 3\n"));
+    assert!(matches!(load_mesh(&p), Err(GeomError::NoTriangles { .. })));
+}
+
+#[test]
+fn obj_non_finite_coordinates() {
+    let dir = temp_dir("nan");
+    for (i, bad) in ["nan", "inf", "-inf", "NaN"].iter().enumerate() {
+        let p = write(
+            &dir,
+            &format!("nan{i}.obj"),
+            format!("v 0 0 0\nv 1 {bad} 0\nv 0 1 0\nf 1 2 3\n"),
+        );
+        match load_mesh(&p) {
+            Err(GeomError::NonFiniteVertex { vertex: 1, .. }) => {}
+            other => panic!("{bad}: expected NonFiniteVertex, got {other:?}"),
+        }
+    }
+}
+
+#[test]
+fn obj_index_out_of_range() {
+    let dir = temp_dir("oidx");
+    let p = write(&dir, "idx.obj", format!("{TRI_OBJ}f 1 2 3\nf 1 2 7\n"));
+    match load_mesh(&p) {
+        Err(GeomError::IndexOutOfRange {
+            index: 7,
+            vertex_count: 3,
+            triangle: 1,
+        }) => {}
+        other => panic!("expected IndexOutOfRange, got {other:?}"),
+    }
+    let p = write(&dir, "neg.obj", format!("{TRI_OBJ}f -1 -2 -4\n"));
+    assert!(matches!(
+        load_mesh(&p),
+        Err(GeomError::IndexOutOfRange { index: 4, .. })
+    ));
+}
+
+#[test]
+fn obj_negative_indices_and_polygons() {
+    let dir = temp_dir("neg");
+    let p = write(
+        &dir,
+        "quad.obj",
+        "v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nf -4 -3 -2 -1\n",
+    );
+    let (m, r) = load_mesh(&p).unwrap();
+    assert_eq!((m.triangles.len(), r.polygons_triangulated), (2, 1));
+    assert!((m.area() - 1.0).abs() < 1e-9);
+}
+
+#[test]
+fn broken_or_missing_mtl_does_not_matter() {
+    let dir = temp_dir("mtl");
+    let p = write(
+        &dir,
+        "missing.obj",
+        format!("mtllib nowhere.mtl\nusemtl red\n{TRI_OBJ}f 1 2 3\n"),
+    );
+    let (m, r) = load_mesh(&p).unwrap();
+    assert_eq!(m.triangles.len(), 1);
+    assert!(
+        r.warnings.iter().any(|w| w.contains("nowhere.mtl")),
+        "{r:?}"
+    );
+
+    write(
+        &dir,
+        "broken.mtl",
+        "newmtl\nKd what is this\n\u{0}\u{1}garbage map_Kd\n",
+    );
+    let p = write(
+        &dir,
+        "broken.obj",
+        format!("mtllib broken.mtl\nusemtl x\n{TRI_OBJ}f 1 2 3\n"),
+    );
+    let (m, _) = load_mesh(&p).unwrap();
+    assert_eq!(m.triangles.len(), 1);
+}
+
+#[test]
+fn raw_meshes_are_validated_and_cleaned() {
+    let tri = vec![Vec3::ZERO, Vec3::X, Vec3::Y];
+    assert!(matches!(
+        Mesh::from_raw(tri.clone(), vec![[0, 1, 3]]),
+        Err(GeomError::IndexOutOfRange { index: 3, .. })
+    ));
+    assert!(matches!(
+        Mesh::from_raw(vec![Vec3::ZERO, Vec3::X, Vec3::NAN], vec![[0, 1, 2]]),
+        Err(GeomError::NonFiniteVertex { vertex: 2, .. })
+    ));
+    assert!(matches!(
+        Mesh::from_raw(tri.clone(), vec![]),
+        Err(GeomError::NoTriangles { dropped: 0 })
+    ));
+    // Exact duplicate dropped, opposite copy kept, degenerate dropped, unreferenced vertex removed.
+    let mut verts = tri.clone();
+    verts.push(Vec3::X); // an unwelded copy of vertex 1
+    verts.push(Vec3::splat(9.0)); // unreferenced
+    let (m, r) = Mesh::from_raw(
+        verts,
+        vec![[0, 1, 2], [1, 2, 0], [0, 3, 2], [0, 2, 1], [0, 1, 3]],
+    )
+    .unwrap();
+    assert_eq!(r.duplicate_faces, 2, "{r:?}");
+    assert_eq!(r.opposite_duplicate_faces, 1);
+    assert_eq!(r.degenerate_faces, 1);
+    assert_eq!(m.triangles, vec![[0, 1, 2], [0, 2, 1]]);
+    assert_eq!(m.vertices.len(), 3);
+
+    // Hand-built meshes that break the rules are caught by validate and SignedDistance::new.
+    let bad = Mesh {
+        vertices: tri.clone(),
+        triangles: vec![[0, 1, 5]],
+    };
+    assert!(matches!(
+        bad.validate(),
+        Err(GeomError::IndexOutOfRange { .. })
+    ));
+    assert!(matches!(
+        SignedDistance::new(&bad),
+        Err(GeomError::IndexOutOfRange { .. })
+    ));
+    assert!(matches!(
+        SignedDistance::new(&Mesh::default()),
+        Err(GeomError::NoTriangles { .. })
+    ));
+    let flat = Mesh {
+        vertices: vec![Vec3::ZERO, Vec3::X, Vec3::X * 2.0],
+        triangles: vec![[0, 1, 2]],
+    };
+    assert!(matches!(
+        SignedDistance::new(&flat),
+        Err(GeomError::NoTriangles { .. })
+    ));
+}
+
+#[test]
+fn normalization_round_trips() {
+    let (m, _) = load_mesh(data("teapot.obj")).unwrap();
+    let (u, n) = m.normalized();
+    let b = u.bounds();
+    assert!((b.half_extent().max_element() - 1.0).abs() < 1e-6);
+    assert!(b.center().length() < 1e-6);
+    // Aspect ratio kept.
+    let (bo, bn) = (m.bounds().half_extent(), b.half_extent());
+    assert!(((bo.y / bo.x) - (bn.y / bn.x)).abs() < 1e-5);
+    for &v in m.vertices.iter().take(50) {
+        assert!((n.to_original(n.to_normalized(v)) - v).length() < 1e-5);
+    }
+    assert!((n.distance_to_original(n.distance_to_normalized(0.25)) - 0.25).abs() < 1e-6);
+    let id = sdf_geom::Normalization::identity();
+    assert_eq!(id.to_normalized(Vec3::ONE), Vec3::ONE);
+}

@@ -1,0 +1,84 @@
+//! `sdf`: exact signed distances from a mesh, for users who just want ground truth.
+//!
+//! ```text
+//! sdf MESH --points IN.npy --out OUT.npy [--normalized]
+//! ```
+//!
+//! Reads an `(N, 3)` float32 or float64 `.npy` of query points and writes `N` float32 signed
+//! distances (negative inside) to `OUT.npy`, atomically. Points and distances are in the mesh's own
+//! coordinates, or with `--normalized` in the normalised box (mesh centred on its bounding-box centre,
+//! longest half-extent scaled to 1).
+
+use std::path::PathBuf;
+use std::process::ExitCode;
+use std::time::Instant;
+
+use clap::Parser;
+use hwsdf::geom::{GeomError, SignedDistance, load_mesh, npy};
+
+/// Exact signed distance from a triangle mesh (OBJ, glTF, GLB) to query points in a .npy file.
+#[derive(Parser, Debug)]
+#[command(version, about)]
+struct Args {
+    /// The mesh: .obj, .gltf or .glb.
+    mesh: PathBuf,
+    /// Query points: an (N, 3) float32 or float64 .npy file.
+    #[arg(long)]
+    points: PathBuf,
+    /// Output: N float32 signed distances (negative inside), written atomically.
+    #[arg(long)]
+    out: PathBuf,
+    /// Points (and the distances written) are in the normalised box [-1, 1]^3 instead of the
+    /// mesh's own coordinates.
+    #[arg(long)]
+    normalized: bool,
+    /// Print the load report and timings to stderr.
+    #[arg(long, short)]
+    verbose: bool,
+}
+
+fn run(args: &Args) -> Result<(), GeomError> {
+    let t = Instant::now();
+    let (mesh, report) = load_mesh(&args.mesh)?;
+    for w in &report.warnings {
+        eprintln!("warning: {}: {w}", args.mesh.display());
+    }
+    if args.verbose {
+        eprintln!("{report:#?}");
+    }
+    let mesh = if args.normalized {
+        mesh.normalized().0
+    } else {
+        mesh
+    };
+    let points = npy::read_points(&args.points)?;
+    if let Some(i) = points.iter().position(|p| !p.is_finite()) {
+        return Err(GeomError::Npy {
+            path: args.points.clone(),
+            message: format!("point {i} is not finite: {:?}", points[i]),
+        });
+    }
+    let sdf = SignedDistance::new(&mesh)?;
+    let t_build = t.elapsed();
+    let d = sdf.signed_distance_batch(&points);
+    if args.verbose {
+        eprintln!(
+            "load + build {:.1} ms, {} points in {:.1} ms",
+            t_build.as_secs_f64() * 1e3,
+            points.len(),
+            (t.elapsed() - t_build).as_secs_f64() * 1e3
+        );
+    }
+    npy::write_f32(&args.out, &d)
+}
+
+fn main() -> ExitCode {
+    let args = Args::parse();
+    match run(&args) {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("error: {e}");
+            ExitCode::FAILURE
+        }
+    }
+}
