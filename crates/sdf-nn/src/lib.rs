@@ -26,10 +26,12 @@
 pub mod adam;
 pub mod gpu;
 pub mod model_file;
+pub mod nglod;
 pub mod shaders;
 pub mod siren;
 
 pub use adam::{Adam, AdamConfig, AdamCpu};
 pub use gpu::{GpuContext, GpuError, GpuOptions};
 pub use model_file::{ModelFile, ModelFileError, Normalization};
+pub use nglod::{Nglod, NglodConfig, NglodError, NglodGpu, NglodTrainConfig, NglodTrainer};
 pub use siren::{Siren, SirenConfig, SirenGpu, SirenTrainConfig, SirenTrainer};

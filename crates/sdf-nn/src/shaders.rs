@@ -32,8 +32,29 @@ pub const SIREN_HEAD: Shader = shader!("siren_head.wgsl", wgpu::Features::empty(
 /// SIREN's batch sampling and reductions.
 pub const SIREN_TRAIN: Shader = shader!("siren_train.wgsl", wgpu::Features::empty());
 
+/// NGLOD inference (grid interpolation + MLP).
+pub const NGLOD_FORWARD: Shader = shader!("nglod_forward.wgsl", wgpu::Features::empty());
+/// NGLOD forward + backward per row, grid scatter with native float atomics.
+pub const NGLOD_TRAIN_ATOMIC: Shader = shader!(
+    "nglod_train_atomic.wgsl",
+    wgpu::Features::SHADER_FLOAT32_ATOMIC
+);
+/// NGLOD forward + backward per row, grid scatter by compare-exchange (any adapter).
+pub const NGLOD_TRAIN_CAS: Shader = shader!("nglod_train_cas.wgsl", wgpu::Features::empty());
+/// NGLOD MLP-gradient and loss reduction.
+pub const NGLOD_REDUCE: Shader = shader!("nglod_reduce.wgsl", wgpu::Features::empty());
+
 /// Every shader, for validation.
-pub const ALL: &[Shader] = &[ADAM, SIREN_GEMM, SIREN_HEAD, SIREN_TRAIN];
+pub const ALL: &[Shader] = &[
+    ADAM,
+    SIREN_GEMM,
+    SIREN_HEAD,
+    SIREN_TRAIN,
+    NGLOD_FORWARD,
+    NGLOD_TRAIN_ATOMIC,
+    NGLOD_TRAIN_CAS,
+    NGLOD_REDUCE,
+];
 
 #[cfg(test)]
 mod tests {

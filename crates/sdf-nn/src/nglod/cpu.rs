@@ -1,0 +1,131 @@
+//! f64 reference of the NGLOD forward pass, the MSE loss and its gradient with respect to every
+//! parameter (grid features and MLP), for the level-of-detail prefixes of an [`Objective`].
+//!
+//! Straightforward loops, no shortcuts: the GPU kernels and the f32 CPU paths are tested
+//! against this, and this is tested against finite differences.
+
+use glam::Vec3;
+
+use super::{NglodConfig, NglodError, Objective, cell};
+
+/// Per-point trace of one forward pass, kept for the backward pass.
+struct Trace {
+    /// (param index of a corner's first feature, trilinear weight) for every level and corner.
+    corners: Vec<(usize, f64)>,
+    z: Vec<f64>,
+    h: Vec<f64>,
+    out: f64,
+}
+
+fn forward_trace(config: &NglodConfig, params: &[f64], p: Vec3, lod: usize) -> Trace {
+    let layout = config.layout();
+    let f = config.feature_dim as usize;
+    let hd = config.hidden as usize;
+    let pd = [f64::from(p.x), f64::from(p.y), f64::from(p.z)];
+    let mut z = vec![0.0; f];
+    let mut corners = Vec::with_capacity(8 * lod);
+    for (l, &res) in config.resolutions[..lod].iter().enumerate() {
+        let s = res as usize + 1;
+        let (i0, t) = cell(pd, res);
+        for c in 0..8 {
+            let d = [(c >> 2) & 1, (c >> 1) & 1, c & 1];
+            let mut w = 1.0;
+            for a in 0..3 {
+                w *= if d[a] == 1 { t[a] } else { 1.0 - t[a] };
+            }
+            let v = [i0[0] + d[0], i0[1] + d[1], i0[2] + d[2]];
+            let base = layout.grid_offsets[l] + ((v[0] * s + v[1]) * s + v[2]) * f;
+            for (k, zk) in z.iter_mut().enumerate() {
+                *zk += w * params[base + k];
+            }
+            corners.push((base, w));
+        }
+    }
+    let mut h = vec![0.0; hd];
+    let mut out = params[layout.b1];
+    for (j, hj) in h.iter_mut().enumerate() {
+        let mut s = params[layout.b0 + j];
+        for (k, zk) in z.iter().enumerate() {
+            s += params[layout.w0 + j * f + k] * zk;
+        }
+        *hj = s;
+        out += params[layout.w1 + j] * s.max(0.0);
+    }
+    Trace { corners, z, h, out }
+}
+
+/// The model's output at `p` with the first `lod` levels, in f64.
+pub fn forward(
+    config: &NglodConfig,
+    params: &[f64],
+    p: Vec3,
+    lod: usize,
+) -> Result<f64, NglodError> {
+    check(config, params, lod)?;
+    Ok(forward_trace(config, params, p, lod).out)
+}
+
+fn check(config: &NglodConfig, params: &[f64], lod: usize) -> Result<(), NglodError> {
+    config.validate()?;
+    config.lod(Some(lod))?;
+    if params.len() != config.param_count() {
+        return Err(NglodError::LengthMismatch {
+            what: "NGLOD parameters",
+            expected: config.param_count(),
+            got: params.len(),
+        });
+    }
+    Ok(())
+}
+
+/// The loss `L = (1/N) Σ_i Σ_k (sdf_k(x_i) - y_i)²` over the prefixes `k` of `objective`, and
+/// its gradient dL/dparams.
+pub fn loss_and_gradient(
+    config: &NglodConfig,
+    params: &[f64],
+    points: &[Vec3],
+    targets: &[f32],
+    objective: Objective,
+) -> Result<(f64, Vec<f64>), NglodError> {
+    check(config, params, config.levels())?;
+    if points.len() != targets.len() {
+        return Err(NglodError::LengthMismatch {
+            what: "targets (one per point)",
+            expected: points.len(),
+            got: targets.len(),
+        });
+    }
+    let layout = config.layout();
+    let f = config.feature_dim as usize;
+    let (first, count) = objective.prefixes(config.levels());
+    let n = points.len().max(1) as f64;
+    let mut loss = 0.0;
+    let mut grad = vec![0.0; params.len()];
+    for (&p, &y) in points.iter().zip(targets) {
+        for lod in first..first + count {
+            let t = forward_trace(config, params, p, lod);
+            let r = t.out - f64::from(y);
+            loss += r * r / n;
+            let g = 2.0 * r / n;
+            grad[layout.b1] += g;
+            let mut dz = vec![0.0; f];
+            for (j, &hj) in t.h.iter().enumerate() {
+                grad[layout.w1 + j] += g * hj.max(0.0);
+                if hj > 0.0 {
+                    let dh = g * params[layout.w1 + j];
+                    grad[layout.b0 + j] += dh;
+                    for k in 0..f {
+                        grad[layout.w0 + j * f + k] += dh * t.z[k];
+                        dz[k] += dh * params[layout.w0 + j * f + k];
+                    }
+                }
+            }
+            for &(base, w) in &t.corners {
+                for k in 0..f {
+                    grad[base + k] += w * dz[k];
+                }
+            }
+        }
+    }
+    Ok((loss, grad))
+}

@@ -1,0 +1,479 @@
+//! Host side of the NGLOD kernels: `shaders/nglod_forward.wgsl` (inference),
+//! `shaders/nglod_train_{atomic,cas}.wgsl` (forward + backward per row, grid scatter) and
+//! `shaders/nglod_reduce.wgsl` (MLP gradients and loss).
+
+use std::sync::Mutex;
+
+use glam::Vec3;
+
+use super::{MAX_LEVELS, Nglod, NglodConfig, NglodError, Objective, ParamLayout};
+use crate::gpu::{GpuContext, GpuError};
+use crate::shaders;
+
+/// Invocations per workgroup of every NGLOD kernel (the `WG` constant of the shaders).
+const WG: u32 = 64;
+/// Rows summed by one `mlp_partial` workgroup row.
+const CHUNK: u32 = 256;
+/// Points per inference dispatch: bounds the staging buffers (12 MiB of points).
+const EVAL_CHUNK: usize = 1 << 20;
+
+/// How the backward kernel adds into the grid gradients.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum ScatterMode {
+    /// Native float atomics when the device has `SHADER_FLOAT32_ATOMIC`, else compare-exchange.
+    #[default]
+    Auto,
+    /// `atomicAdd` on `atomic<f32>`; an error on devices without float atomics.
+    FloatAtomics,
+    /// A compare-exchange loop on `atomic<u32>`: works on every adapter.
+    CompareExchange,
+}
+
+#[repr(C)]
+#[derive(Clone, Copy, Debug, bytemuck::Pod, bytemuck::Zeroable)]
+struct EvalUniforms {
+    n_points: u32,
+    lod: u32,
+    mlp_offset: u32,
+    _pad: u32,
+    levels: [[u32; 4]; MAX_LEVELS],
+}
+
+#[repr(C)]
+#[derive(Clone, Copy, Debug, bytemuck::Pod, bytemuck::Zeroable)]
+struct TrainUniforms {
+    n_rows: u32,
+    first: u32,
+    n_prefix: u32,
+    lod_base: u32,
+    mlp_offset: u32,
+    chunk: u32,
+    n_chunks: u32,
+    _pad: u32,
+    levels: [[u32; 4]; MAX_LEVELS],
+}
+
+/// Buffers of the inference path, grown on demand and reused between calls.
+struct EvalScratch {
+    capacity: usize,
+    points: wgpu::Buffer,
+    out: wgpu::Buffer,
+    uniforms: wgpu::Buffer,
+    bind_group: wgpu::BindGroup,
+}
+
+/// An NGLOD model on the GPU: the flat parameter buffer, its gradient buffer (the layout of
+/// [`NglodConfig::layout`], shared with [`crate::Adam`]) and the pipelines.
+pub struct NglodGpu {
+    config: NglodConfig,
+    layout: ParamLayout,
+    params: wgpu::Buffer,
+    grads: wgpu::Buffer,
+    float_atomics: bool,
+    constants: [(&'static str, f64); 2],
+    eval: Mutex<Option<EvalScratch>>,
+}
+
+impl std::fmt::Debug for NglodGpu {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("NglodGpu")
+            .field("config", &self.config)
+            .field("float_atomics", &self.float_atomics)
+            .finish_non_exhaustive()
+    }
+}
+
+pub(crate) fn entry(binding: u32, buffer: &wgpu::Buffer) -> wgpu::BindGroupEntry<'_> {
+    wgpu::BindGroupEntry {
+        binding,
+        resource: buffer.as_entire_binding(),
+    }
+}
+
+fn level_table(config: &NglodConfig, layout: &ParamLayout) -> [[u32; 4]; MAX_LEVELS] {
+    let mut t = [[0u32; 4]; MAX_LEVELS];
+    for (l, &r) in config.resolutions.iter().enumerate() {
+        // validate() bounds the parameter count well below u32::MAX.
+        t[l] = [r, layout.grid_offsets[l] as u32, 0, 0];
+    }
+    t
+}
+
+impl NglodGpu {
+    /// Uploads `model` to the GPU. `scatter` picks the grid-gradient kernel.
+    pub fn new(gpu: &GpuContext, model: &Nglod, scatter: ScatterMode) -> Result<Self, NglodError> {
+        let config = model.config().clone();
+        config.validate()?;
+        let float_atomics = match scatter {
+            ScatterMode::Auto => gpu.has_float_atomics(),
+            ScatterMode::FloatAtomics => {
+                if !gpu.has_float_atomics() {
+                    return Err(GpuError::MissingFeatures {
+                        shader: shaders::NGLOD_TRAIN_ATOMIC.name,
+                        missing: wgpu::Features::SHADER_FLOAT32_ATOMIC,
+                        adapter: gpu.adapter_info().name.clone(),
+                    }
+                    .into());
+                }
+                true
+            }
+            ScatterMode::CompareExchange => false,
+        };
+        let layout = config.layout();
+        let params = gpu.storage_from_slice("nglod params", model.params())?;
+        let grads = gpu.storage_zeroed("nglod grads", layout.len as u64 * 4)?;
+        let constants = [
+            ("F", f64::from(config.feature_dim)),
+            ("H", f64::from(config.hidden)),
+        ];
+        Ok(NglodGpu {
+            config,
+            layout,
+            params,
+            grads,
+            float_atomics,
+            constants,
+            eval: Mutex::new(None),
+        })
+    }
+
+    /// The configuration.
+    pub fn config(&self) -> &NglodConfig {
+        &self.config
+    }
+
+    /// Whether the backward kernel uses native float atomics (else compare-exchange).
+    pub fn uses_float_atomics(&self) -> bool {
+        self.float_atomics
+    }
+
+    /// The flat parameter buffer.
+    pub fn params_buffer(&self) -> &wgpu::Buffer {
+        &self.params
+    }
+
+    /// The flat gradient buffer (same layout as the parameters).
+    pub fn grads_buffer(&self) -> &wgpu::Buffer {
+        &self.grads
+    }
+
+    /// Number of parameters.
+    pub fn param_count(&self) -> usize {
+        self.layout.len
+    }
+
+    /// Replaces the parameters on the GPU with `model`'s (same configuration).
+    pub fn upload(&self, gpu: &GpuContext, model: &Nglod) -> Result<(), NglodError> {
+        if model.config() != &self.config {
+            return Err(NglodError::InvalidConfig(
+                "upload: the model's configuration differs from the GPU model's".into(),
+            ));
+        }
+        gpu.write(&self.params, model.params())?;
+        Ok(())
+    }
+
+    /// Reads the parameters back into a host model.
+    pub fn to_model(&self, gpu: &GpuContext) -> Result<Nglod, NglodError> {
+        let params: Vec<f32> = gpu.read_back_range(&self.params, 0, self.layout.len as u64)?;
+        Nglod::from_params(self.config.clone(), params)
+    }
+
+    /// Signed distances at `points` (normalised coordinates) with the first `lod` levels
+    /// (`None`: all). Any number of points: large inputs are split into dispatches that fit the
+    /// device's limits.
+    pub fn eval(
+        &self,
+        gpu: &GpuContext,
+        points: &[Vec3],
+        lod: Option<usize>,
+    ) -> Result<Vec<f32>, NglodError> {
+        let k = self.config.lod(lod)?;
+        if points.is_empty() {
+            return Ok(Vec::new());
+        }
+        let pipeline = gpu.pipeline(&shaders::NGLOD_FORWARD, "forward", &self.constants)?;
+        let mut guard = self.eval.lock().unwrap_or_else(|e| e.into_inner());
+        let want = points.len().min(EVAL_CHUNK);
+        if guard.as_ref().is_none_or(|s| s.capacity < want) {
+            // Grow to at least 4096 points so small calls do not reallocate each time.
+            let capacity = want.max(4096).next_power_of_two().min(EVAL_CHUNK);
+            let pts = gpu.storage_zeroed("nglod eval points", capacity as u64 * 12)?;
+            let out = gpu.storage_zeroed("nglod eval out", capacity as u64 * 4)?;
+            let uniforms = gpu.uniform("nglod eval uniforms", &self.eval_uniforms(0, k));
+            let bind_group = gpu.device().create_bind_group(&wgpu::BindGroupDescriptor {
+                label: Some("nglod eval"),
+                layout: &pipeline.get_bind_group_layout(0),
+                entries: &[
+                    entry(0, &uniforms),
+                    entry(1, &self.params),
+                    entry(2, &pts),
+                    entry(3, &out),
+                ],
+            });
+            *guard = Some(EvalScratch {
+                capacity,
+                points: pts,
+                out,
+                uniforms,
+                bind_group,
+            });
+        }
+        let Some(s) = guard.as_ref() else {
+            unreachable!("scratch was just created")
+        };
+        let mut result = Vec::with_capacity(points.len());
+        for chunk in points.chunks(s.capacity) {
+            let n = chunk.len() as u32;
+            gpu.write(&s.points, bytemuck::cast_slice::<Vec3, f32>(chunk))?;
+            gpu.write(&s.uniforms, &[self.eval_uniforms(n, k)])?;
+            let mut enc = gpu.device().create_command_encoder(&Default::default());
+            {
+                let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                    label: Some("nglod forward"),
+                    timestamp_writes: None,
+                });
+                pass.set_pipeline(&pipeline);
+                pass.set_bind_group(0, &s.bind_group, &[]);
+                let (x, y) = gpu.dispatch_size(n.div_ceil(WG));
+                pass.dispatch_workgroups(x, y, 1);
+            }
+            gpu.queue().submit([enc.finish()]);
+            result.extend(gpu.read_back_range::<f32>(&s.out, 0, u64::from(n))?);
+        }
+        Ok(result)
+    }
+
+    fn eval_uniforms(&self, n: u32, lod: usize) -> EvalUniforms {
+        EvalUniforms {
+            n_points: n,
+            lod: lod as u32,
+            mlp_offset: self.layout.w0 as u32,
+            _pad: 0,
+            levels: level_table(&self.config, &self.layout),
+        }
+    }
+
+    /// The loss and its gradient for one batch, computed by the training kernels, as
+    /// [`super::cpu::loss_and_gradient`] defines them (`L = (1/N) Σ_i Σ_k (sdf_k - y)²`). Leaves
+    /// the gradient buffer zeroed. For tests and diagnostics: training keeps everything on the GPU.
+    pub fn loss_and_gradient(
+        &self,
+        gpu: &GpuContext,
+        points: &[Vec3],
+        targets: &[f32],
+        objective: Objective,
+    ) -> Result<(f64, Vec<f32>), NglodError> {
+        if points.len() != targets.len() {
+            return Err(NglodError::LengthMismatch {
+                what: "targets (one per point)",
+                expected: points.len(),
+                got: targets.len(),
+            });
+        }
+        if points.is_empty() {
+            return Ok((0.0, vec![0.0; self.layout.len]));
+        }
+        let pts =
+            gpu.storage_from_slice("nglod points", bytemuck::cast_slice::<Vec3, f32>(points))?;
+        let tgt = gpu.storage_from_slice("nglod targets", targets)?;
+        let n = u32::try_from(points.len()).map_err(|_| NglodError::LengthMismatch {
+            what: "points per gradient batch",
+            expected: u32::MAX as usize,
+            got: points.len(),
+        })?;
+        let kernels = TrainKernels::new(gpu, self, &pts, &tgt, n, objective)?;
+        gpu.zero(&self.grads);
+        gpu.zero(&kernels.stats);
+        let mut enc = gpu.device().create_command_encoder(&Default::default());
+        kernels.record(gpu, &mut enc, 0, n)?;
+        gpu.queue().submit([enc.finish()]);
+        let mut grads: Vec<f32> = gpu.read_back_range(&self.grads, 0, self.layout.len as u64)?;
+        let stats: Vec<f32> = gpu.read_back_range(&kernels.stats, 0, 1)?;
+        gpu.zero(&self.grads);
+        let inv = 1.0 / points.len() as f32;
+        for g in &mut grads {
+            *g *= inv;
+        }
+        Ok((f64::from(stats[0]) / points.len() as f64, grads))
+    }
+}
+
+/// The training kernels bound to one set of point and target buffers.
+pub(crate) struct TrainKernels {
+    uniforms: wgpu::Buffer,
+    /// `stats[0]`: Σ r² accumulated over recorded steps until cleared.
+    pub(crate) stats: wgpu::Buffer,
+    _rows: wgpu::Buffer,
+    _partials: wgpu::Buffer,
+    train: wgpu::ComputePipeline,
+    partial: wgpu::ComputePipeline,
+    reduce: wgpu::ComputePipeline,
+    bg_train: wgpu::BindGroup,
+    bg_partial: wgpu::BindGroup,
+    bg_reduce: wgpu::BindGroup,
+    base: TrainUniforms,
+    max_points: u32,
+    n_out: u32,
+}
+
+impl TrainKernels {
+    /// Kernels for batches of at most `max_points` points from `points` (3 f32 each) and
+    /// `targets`.
+    pub(crate) fn new(
+        gpu: &GpuContext,
+        model: &NglodGpu,
+        points: &wgpu::Buffer,
+        targets: &wgpu::Buffer,
+        max_points: u32,
+        objective: Objective,
+    ) -> Result<Self, NglodError> {
+        let c = &model.config;
+        let (lod_base, n_prefix) = objective.prefixes(c.levels());
+        let max_rows = u64::from(max_points) * n_prefix as u64;
+        let max_chunks = max_rows.div_ceil(u64::from(CHUNK));
+        if max_chunks > u64::from(gpu.limits().max_compute_workgroups_per_dimension) {
+            return Err(NglodError::InvalidConfig(format!(
+                "a batch of {max_points} points × {n_prefix} prefixes is too large for one step"
+            )));
+        }
+        let stride = 2 + u64::from(c.feature_dim) + u64::from(c.hidden);
+        let n_out = c.hidden * c.feature_dim + 2 * c.hidden + 2;
+        let rows = gpu.storage_zeroed("nglod rows", max_rows * stride * 4)?;
+        let partials = gpu.storage_zeroed("nglod partials", max_chunks * u64::from(n_out) * 4)?;
+        let stats = gpu.storage_zeroed("nglod stats", 4)?;
+        let base = TrainUniforms {
+            n_rows: 0,
+            first: 0,
+            n_prefix: n_prefix as u32,
+            lod_base: lod_base as u32,
+            mlp_offset: model.layout.w0 as u32,
+            chunk: CHUNK,
+            n_chunks: 0,
+            _pad: 0,
+            levels: level_table(c, &model.layout),
+        };
+        let uniforms = gpu.uniform("nglod train uniforms", &base);
+        let train_shader = if model.float_atomics {
+            &shaders::NGLOD_TRAIN_ATOMIC
+        } else {
+            &shaders::NGLOD_TRAIN_CAS
+        };
+        let train = gpu.pipeline(train_shader, "train_rows", &model.constants)?;
+        let partial = gpu.pipeline(&shaders::NGLOD_REDUCE, "mlp_partial", &model.constants)?;
+        let reduce = gpu.pipeline(&shaders::NGLOD_REDUCE, "mlp_reduce", &model.constants)?;
+        let dev = gpu.device();
+        let bg_train = dev.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: Some("nglod train"),
+            layout: &train.get_bind_group_layout(0),
+            entries: &[
+                entry(0, &uniforms),
+                entry(1, &model.params),
+                entry(2, points),
+                entry(3, targets),
+                entry(4, &rows),
+                entry(5, &model.grads),
+            ],
+        });
+        let bg_partial = dev.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: Some("nglod mlp partial"),
+            layout: &partial.get_bind_group_layout(0),
+            entries: &[
+                entry(0, &uniforms),
+                entry(1, &model.params),
+                entry(2, &rows),
+                entry(3, &partials),
+            ],
+        });
+        let bg_reduce = dev.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: Some("nglod mlp reduce"),
+            layout: &reduce.get_bind_group_layout(0),
+            entries: &[
+                entry(0, &uniforms),
+                entry(4, &model.grads),
+                entry(5, &stats),
+                entry(6, &partials),
+            ],
+        });
+        Ok(TrainKernels {
+            uniforms,
+            stats,
+            _rows: rows,
+            _partials: partials,
+            train,
+            partial,
+            reduce,
+            bg_train,
+            bg_partial,
+            bg_reduce,
+            base,
+            max_points,
+            n_out,
+        })
+    }
+
+    /// Records forward, backward and the MLP reduction for points `first..first + n` into
+    /// `enc`, accumulating gradient sums into the model's gradient buffer. The uniforms go through
+    /// the queue: submit before recording the next step.
+    pub(crate) fn record(
+        &self,
+        gpu: &GpuContext,
+        enc: &mut wgpu::CommandEncoder,
+        first: u32,
+        n: u32,
+    ) -> Result<(), NglodError> {
+        if n > self.max_points {
+            return Err(NglodError::LengthMismatch {
+                what: "points in one step (at most the batch size)",
+                expected: self.max_points as usize,
+                got: n as usize,
+            });
+        }
+        let n_rows = n * self.base.n_prefix;
+        let n_chunks = n_rows.div_ceil(CHUNK);
+        let u = TrainUniforms {
+            n_rows,
+            first,
+            n_chunks,
+            ..self.base
+        };
+        gpu.write(&self.uniforms, &[u])?;
+        let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
+            label: Some("nglod train step"),
+            timestamp_writes: None,
+        });
+        pass.set_pipeline(&self.train);
+        pass.set_bind_group(0, &self.bg_train, &[]);
+        let (x, y) = gpu.dispatch_size(n_rows.div_ceil(WG));
+        pass.dispatch_workgroups(x, y, 1);
+        pass.set_pipeline(&self.partial);
+        pass.set_bind_group(0, &self.bg_partial, &[]);
+        pass.dispatch_workgroups(self.n_out.div_ceil(WG), n_chunks, 1);
+        pass.set_pipeline(&self.reduce);
+        pass.set_bind_group(0, &self.bg_reduce, &[]);
+        pass.dispatch_workgroups(self.n_out.div_ceil(WG), 1, 1);
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use crate::shaders;
+
+    /// The part of a train shader outside the SCATTER markers.
+    fn outside_scatter(src: &str) -> (String, String) {
+        let b = src.find("// SCATTER BEGIN").expect("SCATTER BEGIN marker");
+        let e = src.find("// SCATTER END").expect("SCATTER END marker");
+        (src[..b].to_owned(), src[e..].to_owned())
+    }
+
+    /// The two grid-scatter variants must differ only in how they add, or one path would test
+    /// something other than what the other runs.
+    #[test]
+    fn train_shaders_differ_only_in_scatter() {
+        assert_eq!(
+            outside_scatter(shaders::NGLOD_TRAIN_ATOMIC.source),
+            outside_scatter(shaders::NGLOD_TRAIN_CAS.source)
+        );
+    }
+}

@@ -1,0 +1,89 @@
+// NGLOD inference: for each point, trilinearly interpolate the first `lod` levels' dense feature
+// grids, sum them, and run the MLP  out = W1 · relu(W0 · z + b0) + b1.
+//
+// Parameter layout (one flat f32 buffer, shared with Adam):
+//   grid l: (r_l+1)^3 vertices × F features, vertex (ix, iy, iz) at ((ix·(r+1) + iy)·(r+1) + iz)·F
+//   then W0 (H×F row-major), b0 (H), W1 (H), b1 (1) starting at `mlp_offset`.
+//
+// One invocation per point; the workgroup first copies the MLP into workgroup memory, since every
+// point reads all of it.
+
+struct Uniforms {
+    n_points: u32,
+    lod: u32,
+    mlp_offset: u32,
+    _pad: u32,
+    // Per level: (resolution r, offset of the grid in params, unused, unused).
+    levels: array<vec4<u32>, 8>,
+}
+
+const WG: u32 = 64u;
+const MAX_F: u32 = 32u;
+// W0 + b0 + W1 + b1 must fit: 15 KiB, under the 16 KiB every adapter we accept offers.
+const MAX_MLP: u32 = 3840u;
+
+override F: u32 = 8u;
+override H: u32 = 128u;
+
+@group(0) @binding(0) var<uniform> u: Uniforms;
+@group(0) @binding(1) var<storage, read> params: array<f32>;
+@group(0) @binding(2) var<storage, read> points: array<f32>;
+@group(0) @binding(3) var<storage, read_write> out: array<f32>;
+
+var<workgroup> mlp: array<f32, MAX_MLP>;
+
+@compute @workgroup_size(WG)
+fn forward(
+    @builtin(workgroup_id) wid: vec3<u32>,
+    @builtin(num_workgroups) nwg: vec3<u32>,
+    @builtin(local_invocation_index) lid: u32,
+) {
+    let n_mlp = H * F + 2u * H + 1u;
+    for (var i = lid; i < n_mlp; i += WG) {
+        mlp[i] = params[u.mlp_offset + i];
+    }
+    workgroupBarrier();
+
+    let idx = (wid.y * nwg.x + wid.x) * WG + lid;
+    if idx >= u.n_points {
+        return;
+    }
+    let p = vec3<f32>(points[3u * idx], points[3u * idx + 1u], points[3u * idx + 2u]);
+
+    var z: array<f32, MAX_F>;
+    for (var f = 0u; f < F; f++) {
+        z[f] = 0.0;
+    }
+    for (var l = 0u; l < u.lod; l++) {
+        let lv = u.levels[l];
+        let res = lv.x;
+        let s = res + 1u;
+        let r = f32(res);
+        let uvw = clamp((p + 1.0) * 0.5 * r, vec3<f32>(0.0), vec3<f32>(r));
+        // min() keeps the index in range even for NaN input (the shader runs without bounds checks).
+        let i0 = min(vec3<u32>(floor(uvw)), vec3<u32>(res - 1u));
+        let t = uvw - vec3<f32>(i0);
+        for (var c = 0u; c < 8u; c++) {
+            let d = vec3<u32>((c >> 2u) & 1u, (c >> 1u) & 1u, c & 1u);
+            let wv = select(1.0 - t, t, d == vec3<u32>(1u));
+            let w = wv.x * wv.y * wv.z;
+            let v = i0 + d;
+            let base = lv.y + ((v.x * s + v.y) * s + v.z) * F;
+            for (var f = 0u; f < F; f++) {
+                z[f] += w * params[base + f];
+            }
+        }
+    }
+
+    let b0 = H * F;
+    let w1 = b0 + H;
+    var o = mlp[w1 + H];
+    for (var j = 0u; j < H; j++) {
+        var h = mlp[b0 + j];
+        for (var f = 0u; f < F; f++) {
+            h += mlp[j * F + f] * z[f];
+        }
+        o += mlp[w1 + j] * max(h, 0.0);
+    }
+    out[idx] = o;
+}

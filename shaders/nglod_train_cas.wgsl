@@ -1,0 +1,167 @@
+// NGLOD training step, part 1: forward and backward for one (point, level prefix) pair per
+// invocation.
+//
+// Each invocation ("row") evaluates the model with the first `lod` levels, then
+//   - writes its row of the scratch buffer: [g, r², z (F), a (H)] with r = out - target,
+//     g = dL/dout = 2r and a = relu(W0 z + b0); nglod_reduce.wgsl turns the rows into the MLP
+//     gradients (a deterministic reduction, no atomics);
+//   - scatters dL/dz times the trilinear weights into the grid gradients: many rows touch the same
+//     grid vertex, so this is an atomic add.
+//
+// This file and nglod_train_cas.wgsl are identical except between the SCATTER markers: here the
+// add is a native atomicAdd on atomic<f32> (SHADER_FLOAT32_ATOMIC); there it is a
+// compare-exchange loop on atomic<u32> for adapters without float atomics. A unit test checks
+// that the rest stays identical.
+//
+// Gradients are sums over rows; Adam's grad_scale applies 1/batch.
+
+struct Uniforms {
+    // Rows in this step: batch points × prefixes per point.
+    n_rows: u32,
+    // First point of the batch in `points` / `targets`.
+    first: u32,
+    // Prefixes per point: 1 (only the full model) or K (NGLOD's sum over every prefix).
+    n_prefix: u32,
+    // Levels used by the first prefix; row i uses lod_base + i % n_prefix levels.
+    lod_base: u32,
+    mlp_offset: u32,
+    // Rows per partial sum, and number of partial sums (used by nglod_reduce.wgsl).
+    chunk: u32,
+    n_chunks: u32,
+    _pad: u32,
+    // Per level: (resolution r, offset of the grid in params, unused, unused).
+    levels: array<vec4<u32>, 8>,
+}
+
+const WG: u32 = 64u;
+const MAX_F: u32 = 32u;
+const MAX_MLP: u32 = 3840u;
+
+override F: u32 = 8u;
+override H: u32 = 128u;
+
+@group(0) @binding(0) var<uniform> u: Uniforms;
+@group(0) @binding(1) var<storage, read> params: array<f32>;
+@group(0) @binding(2) var<storage, read> points: array<f32>;
+@group(0) @binding(3) var<storage, read> targets: array<f32>;
+@group(0) @binding(4) var<storage, read_write> rows: array<f32>;
+// SCATTER BEGIN
+@group(0) @binding(5) var<storage, read_write> grads: array<atomic<u32>>;
+
+// Float add without float atomics: retry a compare-exchange on the bit pattern until no other
+// invocation changed the value in between.
+fn grad_add(i: u32, x: f32) {
+    var old = atomicLoad(&grads[i]);
+    loop {
+        let r = atomicCompareExchangeWeak(&grads[i], old, bitcast<u32>(bitcast<f32>(old) + x));
+        if r.exchanged {
+            break;
+        }
+        old = r.old_value;
+    }
+}
+// SCATTER END
+
+var<workgroup> mlp: array<f32, MAX_MLP>;
+
+@compute @workgroup_size(WG)
+fn train_rows(
+    @builtin(workgroup_id) wid: vec3<u32>,
+    @builtin(num_workgroups) nwg: vec3<u32>,
+    @builtin(local_invocation_index) lid: u32,
+) {
+    let n_mlp = H * F + 2u * H + 1u;
+    for (var i = lid; i < n_mlp; i += WG) {
+        mlp[i] = params[u.mlp_offset + i];
+    }
+    workgroupBarrier();
+
+    let row_idx = (wid.y * nwg.x + wid.x) * WG + lid;
+    if row_idx >= u.n_rows {
+        return;
+    }
+    let pi = u.first + row_idx / u.n_prefix;
+    let lod = u.lod_base + row_idx % u.n_prefix;
+    let p = vec3<f32>(points[3u * pi], points[3u * pi + 1u], points[3u * pi + 2u]);
+
+    var z: array<f32, MAX_F>;
+    for (var f = 0u; f < F; f++) {
+        z[f] = 0.0;
+    }
+    for (var l = 0u; l < lod; l++) {
+        let lv = u.levels[l];
+        let res = lv.x;
+        let s = res + 1u;
+        let r = f32(res);
+        let uvw = clamp((p + 1.0) * 0.5 * r, vec3<f32>(0.0), vec3<f32>(r));
+        let i0 = min(vec3<u32>(floor(uvw)), vec3<u32>(res - 1u));
+        let t = uvw - vec3<f32>(i0);
+        for (var c = 0u; c < 8u; c++) {
+            let d = vec3<u32>((c >> 2u) & 1u, (c >> 1u) & 1u, c & 1u);
+            let wv = select(1.0 - t, t, d == vec3<u32>(1u));
+            let w = wv.x * wv.y * wv.z;
+            let v = i0 + d;
+            let base = lv.y + ((v.x * s + v.y) * s + v.z) * F;
+            for (var f = 0u; f < F; f++) {
+                z[f] += w * params[base + f];
+            }
+        }
+    }
+
+    let stride = 2u + F + H;
+    let row = row_idx * stride;
+    let b0 = H * F;
+    let w1 = b0 + H;
+    var o = mlp[w1 + H];
+    for (var j = 0u; j < H; j++) {
+        var h = mlp[b0 + j];
+        for (var f = 0u; f < F; f++) {
+            h += mlp[j * F + f] * z[f];
+        }
+        let a = max(h, 0.0);
+        rows[row + 2u + F + j] = a;
+        o += mlp[w1 + j] * a;
+    }
+    let res = o - targets[pi];
+    let g = 2.0 * res;
+    rows[row] = g;
+    rows[row + 1u] = res * res;
+    for (var f = 0u; f < F; f++) {
+        rows[row + 2u + f] = z[f];
+    }
+
+    // dL/dz = Σ_j g W1[j] [h_j > 0] W0[j, :]; a_j is re-read from this invocation's own row
+    // rather than kept in a 128-wide private array.
+    var dz: array<f32, MAX_F>;
+    for (var f = 0u; f < F; f++) {
+        dz[f] = 0.0;
+    }
+    for (var j = 0u; j < H; j++) {
+        if rows[row + 2u + F + j] > 0.0 {
+            let c = g * mlp[w1 + j];
+            for (var f = 0u; f < F; f++) {
+                dz[f] += c * mlp[j * F + f];
+            }
+        }
+    }
+
+    for (var l = 0u; l < lod; l++) {
+        let lv = u.levels[l];
+        let res = lv.x;
+        let s = res + 1u;
+        let r = f32(res);
+        let uvw = clamp((p + 1.0) * 0.5 * r, vec3<f32>(0.0), vec3<f32>(r));
+        let i0 = min(vec3<u32>(floor(uvw)), vec3<u32>(res - 1u));
+        let t = uvw - vec3<f32>(i0);
+        for (var c = 0u; c < 8u; c++) {
+            let d = vec3<u32>((c >> 2u) & 1u, (c >> 1u) & 1u, c & 1u);
+            let wv = select(1.0 - t, t, d == vec3<u32>(1u));
+            let w = wv.x * wv.y * wv.z;
+            let v = i0 + d;
+            let base = lv.y + ((v.x * s + v.y) * s + v.z) * F;
+            for (var f = 0u; f < F; f++) {
+                grad_add(base + f, w * dz[f]);
+            }
+        }
+    }
+}
