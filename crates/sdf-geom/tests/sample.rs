@@ -1,0 +1,153 @@
+//! Samplers: determinism per seed, distributions, Poisson-disk spacing.
+
+mod common;
+
+use common::data;
+use glam::Vec3;
+use sdf_geom::sample::{self, min_pair_distance};
+use sdf_geom::{Aabb, Mesh, SignedDistance, load_mesh};
+
+fn unit(name: &str) -> Mesh {
+    load_mesh(data(name)).unwrap().0.normalized().0
+}
+
+#[test]
+fn samplers_are_deterministic_per_seed() {
+    let mesh = unit("suzanne.obj");
+    assert_eq!(sample::uniform_box(100, 1), sample::uniform_box(100, 1));
+    assert_ne!(sample::uniform_box(100, 1), sample::uniform_box(100, 2));
+    assert_eq!(
+        sample::surface(&mesh, 100, 1),
+        sample::surface(&mesh, 100, 1)
+    );
+    assert_ne!(
+        sample::surface(&mesh, 100, 1).points,
+        sample::surface(&mesh, 100, 2).points
+    );
+    assert_eq!(
+        sample::near_surface(&mesh, 100, 0.01, 1),
+        sample::near_surface(&mesh, 100, 0.01, 1)
+    );
+    assert_ne!(
+        sample::near_surface(&mesh, 100, 0.01, 1),
+        sample::near_surface(&mesh, 100, 0.01, 2)
+    );
+    let a = sample::poisson_disk(&mesh, 500, 3);
+    let b = sample::poisson_disk(&mesh, 500, 3);
+    assert_eq!(a, b);
+    assert_ne!(
+        a.samples.points,
+        sample::poisson_disk(&mesh, 500, 4).samples.points
+    );
+    // Same result whatever the thread count.
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(1)
+        .build()
+        .unwrap();
+    let c = pool.install(|| sample::poisson_disk(&mesh, 500, 3));
+    assert_eq!(a, c);
+}
+
+#[test]
+fn uniform_box_covers_the_box() {
+    let p = sample::uniform_box(20_000, 5);
+    assert_eq!(p.len(), 20_000);
+    assert!(p.iter().all(|p| p.abs().max_element() <= 1.0));
+    let mean = p.iter().copied().sum::<Vec3>() / p.len() as f32;
+    assert!(mean.length() < 0.03, "{mean}");
+    // Each octant gets about 1/8.
+    let octant0 = p.iter().filter(|p| p.cmpgt(Vec3::ZERO).all()).count();
+    assert!((octant0 as f32 / 20_000.0 - 0.125).abs() < 0.01);
+
+    let b = Aabb {
+        min: Vec3::new(2.0, 3.0, 4.0),
+        max: Vec3::new(2.5, 3.1, 6.0),
+    };
+    let q = sample::uniform_in(&b, 1000, 1);
+    assert!(
+        q.iter()
+            .all(|p| p.cmpge(b.min).all() && p.cmple(b.max).all())
+    );
+}
+
+#[test]
+fn surface_samples_lie_on_the_surface_with_face_normals() {
+    let mesh = unit("teapot.obj");
+    let sdf = SignedDistance::new(&mesh).unwrap();
+    let s = sample::surface(&mesh, 5000, 8);
+    assert_eq!(
+        (s.points.len(), s.normals.len(), s.triangles.len()),
+        (5000, 5000, 5000)
+    );
+    for ((p, n), t) in s.points.iter().zip(&s.normals).zip(&s.triangles) {
+        assert!(sdf.unsigned_distance(*p) < 1e-5);
+        assert!((n.length() - 1.0).abs() < 1e-5);
+        let [a, b, c] = mesh.corners(&mesh.triangles[*t as usize]).unwrap();
+        assert!((b - a).cross(c - a).normalize().dot(*n) > 0.9999);
+    }
+    // Area weighting: the share of samples on a set of triangles matches its share of area.
+    let half = mesh.triangles.len() / 2;
+    let area_first: f64 = Mesh {
+        vertices: mesh.vertices.clone(),
+        triangles: mesh.triangles[..half].to_vec(),
+    }
+    .area();
+    let share = s.triangles.iter().filter(|&&t| (t as usize) < half).count() as f64 / 5000.0;
+    assert!((share - area_first / mesh.area()).abs() < 0.03, "{share}");
+    assert!(sample::surface(&Mesh::default(), 10, 1).is_empty());
+}
+
+#[test]
+fn near_surface_offsets_have_sigma() {
+    let mesh = unit("spot.obj");
+    let sdf = SignedDistance::new(&mesh).unwrap();
+    let sigma = 0.01;
+    let p = sample::near_surface(&mesh, 4000, sigma, 2);
+    assert_eq!(p.len(), 4000);
+    // The offsets from the underlying surface points have per-axis std σ.
+    let s = sample::surface(&mesh, 4000, 2);
+    let offsets: Vec<Vec3> = p.iter().zip(&s.points).map(|(a, b)| *a - *b).collect();
+    let var = offsets.iter().map(|o| o.length_squared()).sum::<f32>() / (3.0 * 4000.0);
+    assert!(
+        (var.sqrt() - sigma).abs() < 0.1 * sigma,
+        "std {}",
+        var.sqrt()
+    );
+    // And the points are within a few σ of the surface.
+    assert!(p.iter().all(|q| sdf.unsigned_distance(*q) < 6.0 * sigma));
+}
+
+#[test]
+fn poisson_disk_keeps_its_minimum_distance() {
+    for name in ["suzanne.obj", "spot.obj"] {
+        let mesh = unit(name);
+        let n = 2000;
+        let pd = sample::poisson_disk(&mesh, n, 11);
+        let pts = &pd.samples.points;
+        assert_eq!(pts.len(), n);
+        assert_eq!(pd.samples.normals.len(), n);
+        // The reported minimum distance is the true one (brute force over all pairs)...
+        let mut brute = f32::INFINITY;
+        for i in 0..pts.len() {
+            for j in i + 1..pts.len() {
+                brute = brute.min(pts[i].distance(pts[j]));
+            }
+        }
+        assert_eq!(pd.min_distance, brute.min(2.0 * pd.target_radius), "{name}");
+        // ...and sample elimination keeps it a good fraction of the packing radius, far above what
+        // independent uniform samples give.
+        assert!(
+            pd.min_distance > 0.4 * pd.target_radius,
+            "{name}: min distance {} vs r_max {}",
+            pd.min_distance,
+            pd.target_radius
+        );
+        let uniform = sample::surface(&mesh, n, 11).points;
+        assert!(min_pair_distance(&uniform, 2.0 * pd.target_radius) < 0.2 * pd.min_distance);
+        // Points lie on the surface.
+        let sdf = SignedDistance::new(&mesh).unwrap();
+        assert!(pts.iter().all(|p| sdf.unsigned_distance(*p) < 1e-5));
+    }
+    let empty = sample::poisson_disk(&Mesh::default(), 10, 1);
+    assert!(empty.samples.is_empty());
+}
