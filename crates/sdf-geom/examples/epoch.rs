@@ -84,7 +84,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         ("near", 100_000..300_000),
         ("surface", 300_000..500_000),
     ];
-    for (name, r) in parts.iter().cloned() {
+    for (name, r) in parts {
         let t = Instant::now();
         let d = sdf.signed_distance_batch(&points[r.clone()]);
         let inside = d.iter().filter(|&&x| x < 0.0).count();

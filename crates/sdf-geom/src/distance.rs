@@ -29,7 +29,7 @@ pub struct ClosestPoint {
 pub struct SignedDistanceOptions {
     /// Accuracy parameter β of the fast winding number: a BVH node whose bounding sphere (radius r,
     /// around its area-weighted centroid) is farther than β·r from the query is replaced by its dipole
-    /// (first-order) term. Larger is more accurate and slower. Default 2.
+    /// and first-order terms. Larger is more accurate and slower. Default 2.
     pub beta: f32,
     /// If the fast winding number lands within this distance of 1/2, it is recomputed with β × 4
     /// before thresholding. Default 0.1.
@@ -100,15 +100,16 @@ struct WindingNode {
 /// The sign comes from the generalised winding number w(p) = Σ Ω_t(p) / 4π (Jacobson et al. 2013),
 /// thresholded at 1/2 (inside if w ≥ 1/2), which is well defined for open meshes, several components,
 /// self-intersections and flipped or duplicated faces. It is evaluated with the fast hierarchical
-/// method of Barill et al. 2018: a node farther than β·r from the query contributes its dipole term
-/// `A·(c − p) / (4π |c − p|³)` (A = summed area vectors, c = area-weighted centroid, r = bounding-sphere
-/// radius), every other node is opened, and leaves near the query use the exact van Oosterom–Strackee
-/// solid angle. The far-field error of a node is bounded by O(|A| r / d³) relative to the node's
-/// solid angle |A|/d², i.e. by about (r/d) ≤ 1/β of that node's contribution, and in practice is far
-/// smaller because the dipole term is exact for the node's mean orientation; the measured error is
-/// given in the crate documentation and tested. Values within [`SignedDistanceOptions::refine_band`]
-/// of 1/2 are recomputed with 4β. On watertight, consistently oriented meshes w is 1 inside and 0
-/// outside, so the threshold agrees with ray parity away from the surface (tested).
+/// method of Barill et al. 2018: a node farther than β·r from the query (r = radius of a sphere
+/// around the node's area-weighted centroid c holding all its triangles) contributes the first two
+/// terms of the Taylor expansion of its area integral, `[(N·d + tr C)/|d|³ − 3 dᵀ S d/|d|⁵] / 4π`
+/// with d = c − p, N the summed area vectors, C = Σ a_t n_t (x̄_t − c)ᵀ and S its symmetric part;
+/// every other node is opened, and leaves near the query use the exact van Oosterom–Strackee solid
+/// angle. The neglected terms are O((r/|d|)²) relative to a node's solid angle, so the error does not
+/// grow as the query approaches the surface; values within
+/// [`SignedDistanceOptions::refine_band`] of 1/2 are recomputed with 4β. Measured errors are in the
+/// crate documentation. On watertight, consistently oriented meshes w is 1 inside and 0 outside, so
+/// the threshold agrees with ray parity away from the surface (tested).
 #[derive(Clone, Debug)]
 pub struct SignedDistance {
     nodes: Vec<Node>,
@@ -295,7 +296,7 @@ impl SignedDistance {
                 let center = if area > 0.0 {
                     parts.iter().map(|x| x.0 * x.1).sum::<DVec3>() / area
                 } else {
-                    Vec3::from((n.min + n.max) * 0.5).as_dvec3()
+                    ((n.min + n.max) * 0.5).as_dvec3()
                 };
                 let moment = parts
                     .iter()
@@ -308,7 +309,7 @@ impl SignedDistance {
                 let center = if area > 0.0 {
                     (ml.0 * ml.1 + mr.0 * mr.1) / area
                 } else {
-                    Vec3::from((n.min + n.max) * 0.5).as_dvec3()
+                    ((n.min + n.max) * 0.5).as_dvec3()
                 };
                 let an = ml.2 + mr.2;
                 let moment = ml.3 + mr.3 + outer(ml.2, ml.1 - center) + outer(mr.2, mr.1 - center);

@@ -64,7 +64,6 @@ fn load_obj(path: &Path) -> Result<(Mesh, LoadReport), GeomError> {
         triangulate: false,
         ignore_points: true,
         ignore_lines: true,
-        ..Default::default()
     };
     // Materials are never needed: the loader only records which libraries were named.
     let mtllibs: RefCell<Vec<PathBuf>> = RefCell::new(Vec::new());

@@ -1,0 +1,156 @@
+//! The `sdf` binary: reads N×3 float32/float64 .npy points, writes N float32 signed distances.
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+use glam::Vec3;
+use hwsdf::geom::{SignedDistance, load_mesh, npy, sample};
+
+fn data(name: &str) -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("tests/data")
+        .join(name)
+}
+
+fn temp_dir(tag: &str) -> PathBuf {
+    let d = std::env::temp_dir().join(format!("hwsdf-cli-{}-{tag}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&d);
+    std::fs::create_dir_all(&d).unwrap();
+    d
+}
+
+fn sdf(args: &[&std::ffi::OsStr]) -> std::process::Output {
+    Command::new(env!("CARGO_BIN_EXE_sdf"))
+        .args(args)
+        .output()
+        .expect("run sdf")
+}
+
+#[test]
+fn writes_signed_distances_in_mesh_and_normalised_coordinates() {
+    let dir = temp_dir("ok");
+    let mesh_path = data("spot.obj");
+    let (mesh, _) = load_mesh(&mesh_path).unwrap();
+    let (unit, norm) = mesh.normalized();
+    let unit_pts: Vec<Vec3> = sample::uniform_box(500, 1);
+    let mesh_pts: Vec<Vec3> = unit_pts.iter().map(|&p| norm.to_original(p)).collect();
+
+    // float32 input, mesh coordinates.
+    let inp = dir.join("pts.npy");
+    npy::write_points(&inp, &mesh_pts).unwrap();
+    let out = dir.join("d.npy");
+    let o = sdf(&[
+        mesh_path.as_os_str(),
+        "--points".as_ref(),
+        inp.as_os_str(),
+        "--out".as_ref(),
+        out.as_os_str(),
+    ]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let d = npy::read_f32(&out).unwrap();
+    let expect = SignedDistance::new(&mesh)
+        .unwrap()
+        .signed_distance_batch(&mesh_pts);
+    assert_eq!(d, expect);
+    assert!(d.iter().any(|&x| x < 0.0) && d.iter().any(|&x| x > 0.0));
+
+    // float64 input, normalised coordinates.
+    let mut bytes = npy_header("<f8", unit_pts.len());
+    bytes.extend(
+        unit_pts
+            .iter()
+            .flat_map(|p| p.to_array())
+            .flat_map(|v| (v as f64).to_le_bytes()),
+    );
+    let inp64 = dir.join("pts64.npy");
+    std::fs::write(&inp64, bytes).unwrap();
+    let out2 = dir.join("d2.npy");
+    let o = sdf(&[
+        mesh_path.as_os_str(),
+        "--points".as_ref(),
+        inp64.as_os_str(),
+        "--out".as_ref(),
+        out2.as_os_str(),
+        "--normalized".as_ref(),
+    ]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let d2 = npy::read_f32(&out2).unwrap();
+    let expect = SignedDistance::new(&unit)
+        .unwrap()
+        .signed_distance_batch(&unit_pts);
+    assert_eq!(d2, expect);
+    // The two runs agree up to the scale.
+    for (a, b) in d.iter().zip(&d2) {
+        assert!((norm.distance_to_original(*b) - a).abs() < 1e-4);
+    }
+}
+
+fn npy_header(descr: &str, n: usize) -> Vec<u8> {
+    let mut h = format!("{{'descr': '{descr}', 'fortran_order': False, 'shape': ({n}, 3), }}");
+    while (10 + h.len() + 1) % 64 != 0 {
+        h.push(' ');
+    }
+    h.push('\n');
+    let mut out = b"\x93NUMPY\x01\x00".to_vec();
+    out.extend((h.len() as u16).to_le_bytes());
+    out.extend(h.as_bytes());
+    out
+}
+
+#[test]
+fn clear_errors_and_no_partial_output() {
+    let dir = temp_dir("err");
+    let mesh_path = data("suzanne.obj");
+    let out = dir.join("d.npy");
+    let run = |points: &Path, mesh: &Path| {
+        sdf(&[
+            mesh.as_os_str(),
+            "--points".as_ref(),
+            points.as_os_str(),
+            "--out".as_ref(),
+            out.as_os_str(),
+        ])
+    };
+    let cases: Vec<(&str, Vec<u8>, &str)> = vec![
+        ("garbage.npy", b"not an npy file".to_vec(), "magic"),
+        (
+            "int.npy",
+            [npy_header("<i4", 1), vec![0; 12]].concat(),
+            "dtype",
+        ),
+        (
+            "short.npy",
+            [npy_header("<f4", 4), vec![0; 8]].concat(),
+            "truncated",
+        ),
+        (
+            "nan.npy",
+            [
+                npy_header("<f4", 1),
+                [f32::NAN, 0.0, 0.0]
+                    .iter()
+                    .flat_map(|v| v.to_le_bytes())
+                    .collect(),
+            ]
+            .concat(),
+            "not finite",
+        ),
+    ];
+    for (name, bytes, needle) in cases {
+        let p = dir.join(name);
+        std::fs::write(&p, bytes).unwrap();
+        let o = run(&p, &mesh_path);
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert!(!o.status.success(), "{name} should fail");
+        assert!(err.contains(needle) && err.contains(name), "{name}: {err}");
+        assert!(!out.exists(), "{name}: no output on error");
+    }
+    let good = dir.join("good.npy");
+    npy::write_points(&good, &[Vec3::ZERO]).unwrap();
+    let o = run(&good, &dir.join("missing.obj"));
+    assert!(!o.status.success());
+    assert!(String::from_utf8_lossy(&o.stderr).contains("missing.obj"));
+    let o = run(&dir.join("nope.npy"), &mesh_path);
+    assert!(String::from_utf8_lossy(&o.stderr).contains("nope.npy"));
+    assert!(!out.exists());
+}
