@@ -24,14 +24,20 @@
 #![warn(missing_docs)]
 
 pub mod adam;
+pub mod embed;
 pub mod gpu;
 pub mod model_file;
+pub mod neural;
 pub mod nglod;
+pub mod render;
 pub mod shaders;
 pub mod siren;
 
 pub use adam::{Adam, AdamConfig, AdamCpu};
+pub use embed::{EmbedError, SdfBindGroup};
 pub use gpu::{GpuContext, GpuError, GpuOptions};
 pub use model_file::{ModelFile, ModelFileError, Normalization};
+pub use neural::{NeuralSdf, NeuralSdfError};
 pub use nglod::{Nglod, NglodConfig, NglodError, NglodGpu, NglodTrainConfig, NglodTrainer};
+pub use render::{RenderError, RenderOptions, Renderer, RgbaImage, render};
 pub use siren::{Siren, SirenConfig, SirenGpu, SirenTrainConfig, SirenTrainer};

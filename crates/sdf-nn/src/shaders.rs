@@ -44,8 +44,16 @@ pub const NGLOD_TRAIN_CAS: Shader = shader!("nglod_train_cas.wgsl", wgpu::Featur
 /// NGLOD MLP-gradient and loss reduction.
 pub const NGLOD_REDUCE: Shader = shader!("nglod_reduce.wgsl", wgpu::Features::empty());
 
+/// The sphere tracer of [`crate::render`]. It calls `hwsdf_distance` / `hwsdf_normal`, so it
+/// compiles only after a model's [`crate::NeuralSdf::wgsl`] snippet (listed in [`NEEDS_MODEL`]).
+pub const SPHERE_TRACE: Shader = shader!("sphere_trace.wgsl", wgpu::Features::empty());
+
+/// Shaders that are completed by a model's WGSL snippet (prepended at group 1).
+pub const NEEDS_MODEL: &[&str] = &[SPHERE_TRACE.name];
+
 /// Every shader, for validation.
 pub const ALL: &[Shader] = &[
+    SPHERE_TRACE,
     ADAM,
     SIREN_GEMM,
     SIREN_HEAD,
@@ -80,15 +88,53 @@ mod tests {
     #[test]
     fn compile_shaders() {
         for shader in ALL {
-            let module = naga::front::wgsl::parse_str(shader.source)
-                .unwrap_or_else(|e| panic!("{}: {}", shader.name, e.emit_to_string(shader.source)));
-            naga::valid::Validator::new(
-                naga::valid::ValidationFlags::all(),
-                capabilities_for(shader.required_features),
-            )
-            .validate(&module)
-            .unwrap_or_else(|e| panic!("{}: {}", shader.name, e.emit_to_string(shader.source)));
+            // A shader completed by a model's snippet is validated with the snippet of a small
+            // model of each architecture; every other one on its own.
+            let sources: Vec<String> = if NEEDS_MODEL.contains(&shader.name) {
+                small_models()
+                    .iter()
+                    .map(|m| format!("{}\n{}", m.wgsl(1), shader.source))
+                    .collect()
+            } else {
+                vec![shader.source.to_owned()]
+            };
+            for source in &sources {
+                validate(shader, source);
+            }
         }
+    }
+
+    /// A tiny SIREN and a tiny NGLOD model.
+    fn small_models() -> Vec<crate::NeuralSdf> {
+        let n = crate::Normalization::identity();
+        let siren = crate::Siren::new(
+            crate::SirenConfig {
+                width: 8,
+                hidden_layers: 2,
+                omega0: 30.0,
+            },
+            1,
+        )
+        .expect("valid config");
+        let nglod = crate::Nglod::new(crate::NglodConfig::small()).expect("valid config");
+        [
+            siren.to_model_file(n, serde_json::Value::Null),
+            nglod.to_model_file(n, serde_json::Value::Null),
+        ]
+        .into_iter()
+        .map(|f| crate::NeuralSdf::from_model_file(f).expect("a model we just made"))
+        .collect()
+    }
+
+    fn validate(shader: &Shader, source: &str) {
+        let module = naga::front::wgsl::parse_str(source)
+            .unwrap_or_else(|e| panic!("{}: {}", shader.name, e.emit_to_string(source)));
+        naga::valid::Validator::new(
+            naga::valid::ValidationFlags::all(),
+            capabilities_for(shader.required_features),
+        )
+        .validate(&module)
+        .unwrap_or_else(|e| panic!("{}: {}", shader.name, e.emit_to_string(source)));
     }
 
     /// A shader file that is not in [`ALL`] would escape validation.

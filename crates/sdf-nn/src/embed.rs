@@ -1,0 +1,430 @@
+//! WGSL for renderers: a trained model as a self-contained snippet that any wgpu shader can
+//! concatenate with its own source, and the bind group that feeds it the weights.
+//!
+//! The snippet defines, in the original mesh's coordinates and units:
+//! - `fn hwsdf_distance(p: vec3<f32>) -> f32`: the signed distance;
+//! - `fn hwsdf_normal(p: vec3<f32>) -> vec3<f32>`: the unit normal (the normalised analytic
+//!   gradient, or the direction away from the model's box outside it);
+//!
+//! and in the model's normalised cube `[-1, 1]³`: `hwsdf_distance_normalized` and
+//! `hwsdf_normal_normalized`. The normalisation (centre and scale) and the architecture (widths,
+//! offsets, ω0, the level of detail in use) are baked in as constants; the weights are read from
+//! one read-only storage buffer:
+//!
+//! ```wgsl
+//! @group(G) @binding(0) var<storage, read> hwsdf_params: array<f32>;
+//! ```
+//!
+//! with `G` the group index the caller passes to [`NeuralSdf::wgsl`]. Every global the snippet
+//! declares starts with `hwsdf_` / `HWSDF_`, so it cannot clash with the caller's names.
+//!
+//! Outside the normalised box the distance is `Φ(clamp(x)) + |x − clamp(x)|`, exactly as every
+//! other evaluation path of [`NeuralSdf`] computes it.
+//!
+//! ```no_run
+//! # fn demo(sdf: &sdf_nn::NeuralSdf, device: &wgpu::Device) -> Result<(), sdf_nn::embed::EmbedError> {
+//! // The caller's shader uses group 0 for its own resources and gives the model group 1.
+//! let source = format!("{}\n{}", sdf.wgsl(1), "/* shader calling hwsdf_distance(p) */");
+//! let sdf_group = sdf.bind_group(device)?;
+//! // Pipeline layout: [caller's layout, &sdf_group.layout]; at draw/dispatch time:
+//! // pass.set_bind_group(1, &sdf_group.bind_group, &[]);
+//! # let _ = (source, sdf_group); Ok(()) }
+//! ```
+
+use std::fmt::Write;
+
+use glam::Vec3;
+
+use crate::model_file::Normalization;
+use crate::neural::{Network, NeuralSdf};
+use crate::nglod::Nglod;
+use crate::siren::Siren;
+
+/// Errors of [`NeuralSdf::bind_group`].
+#[derive(Debug, thiserror::Error)]
+pub enum EmbedError {
+    /// The weights do not fit one storage binding on this device.
+    #[error(
+        "the model's {bytes}-byte weight buffer exceeds this device's \
+         max_storage_buffer_binding_size ({limit} bytes)"
+    )]
+    TooLarge {
+        /// Size of the weights in bytes.
+        bytes: u64,
+        /// The device's binding limit.
+        limit: u64,
+    },
+}
+
+/// The model's weights on a caller's device, bound for the snippet of [`NeuralSdf::wgsl`].
+#[derive(Debug)]
+pub struct SdfBindGroup {
+    /// Layout: binding 0, a read-only storage buffer visible to compute and fragment shaders.
+    /// Put it at the group index passed to [`NeuralSdf::wgsl`] in the pipeline layout.
+    pub layout: wgpu::BindGroupLayout,
+    /// The bind group to set at that index.
+    pub bind_group: wgpu::BindGroup,
+    /// The weights (flat `f32`, the layout of the model's `params()`).
+    pub buffer: wgpu::Buffer,
+}
+
+impl NeuralSdf {
+    /// Self-contained WGSL defining `hwsdf_distance`, `hwsdf_normal` (mesh coordinates) and
+    /// their `_normalized` variants, reading the weights from `@group(group) @binding(0)`. See
+    /// the [`embed`](crate::embed) module. The current level of detail ([`NeuralSdf::set_lod`])
+    /// is baked in.
+    pub fn wgsl(&self, group: u32) -> String {
+        let lod = self.lod();
+        generate(self.network(), self.normalization(), lod, group)
+    }
+
+    /// Uploads the weights to `device` and creates the bind group (and its layout) that the
+    /// snippet of [`NeuralSdf::wgsl`] reads, visible to compute and fragment stages.
+    pub fn bind_group(&self, device: &wgpu::Device) -> Result<SdfBindGroup, EmbedError> {
+        let params: &[f32] = match self.network() {
+            Network::Siren(s) => s.params(),
+            Network::Nglod(m) => m.params(),
+        };
+        let bytes = std::mem::size_of_val(params) as u64;
+        let limits = device.limits();
+        let limit = limits
+            .max_storage_buffer_binding_size
+            .min(limits.max_buffer_size);
+        if bytes > limit {
+            return Err(EmbedError::TooLarge { bytes, limit });
+        }
+        use wgpu::util::DeviceExt;
+        let buffer = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+            label: Some("hwsdf_params"),
+            contents: bytemuck::cast_slice(params),
+            usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST,
+        });
+        let layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+            label: Some("hwsdf_params layout"),
+            entries: &[wgpu::BindGroupLayoutEntry {
+                binding: 0,
+                visibility: wgpu::ShaderStages::COMPUTE | wgpu::ShaderStages::FRAGMENT,
+                ty: wgpu::BindingType::Buffer {
+                    ty: wgpu::BufferBindingType::Storage { read_only: true },
+                    has_dynamic_offset: false,
+                    min_binding_size: None,
+                },
+                count: None,
+            }],
+        });
+        let bind_group = device.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: Some("hwsdf_params"),
+            layout: &layout,
+            entries: &[wgpu::BindGroupEntry {
+                binding: 0,
+                resource: buffer.as_entire_binding(),
+            }],
+        });
+        Ok(SdfBindGroup {
+            layout,
+            bind_group,
+            buffer,
+        })
+    }
+}
+
+/// A WGSL `f32` literal that parses back to exactly `x` (Rust's shortest round-trip form).
+fn lit(x: f32) -> String {
+    // Normalisations and weights are finite (model files are checked); keep the output valid
+    // WGSL regardless.
+    let x = if x.is_finite() { x } else { 0.0 };
+    let s = format!("{x:?}");
+    // `{:?}` may give `1e-7`, which WGSL accepts with the suffix too.
+    format!("{s}f")
+}
+
+fn vec3_lit(v: Vec3) -> String {
+    format!("vec3<f32>({}, {}, {})", lit(v.x), lit(v.y), lit(v.z))
+}
+
+/// The whole snippet.
+fn generate(network: &Network, n: Normalization, lod: Option<usize>, group: u32) -> String {
+    let mut s = String::new();
+    let arch = match network {
+        Network::Siren(_) => "SIREN",
+        Network::Nglod(_) => "NGLOD",
+    };
+    let _ = write!(
+        s,
+        "// ---- HW SDF model ({arch}), generated by sdf_nn::NeuralSdf::wgsl. ----\n\
+         // Weights: a read-only storage buffer at @group({group}) @binding(0) (NeuralSdf::bind_group).\n\
+         @group({group}) @binding(0) var<storage, read> hwsdf_params: array<f32>;\n\n\
+         // Mesh coordinates -> normalised cube: (p - HWSDF_CENTER) * HWSDF_SCALE.\n\
+         const HWSDF_CENTER: vec3<f32> = {center};\n\
+         const HWSDF_SCALE: f32 = {scale};\n\n",
+        center = vec3_lit(n.center),
+        scale = lit(n.scale),
+    );
+    match network {
+        Network::Siren(m) => siren(&mut s, m),
+        Network::Nglod(m) => {
+            let k = m
+                .config()
+                .lod(lod)
+                .expect("NeuralSdf::set_lod validated the level of detail");
+            nglod(&mut s, m, k);
+        }
+    }
+    s.push_str(COMMON);
+    s
+}
+
+/// The box rule and the mesh-coordinate wrappers, shared by both architectures. They call
+/// `hwsdf_phi(x) -> f32` and `hwsdf_phi_grad(x) -> vec4<f32>` (value, gradient) defined per
+/// architecture for `x` inside the box.
+const COMMON: &str = r#"
+// Signed distance in the normalised cube's units at a normalised point. Outside [-1, 1]^3 the
+// network (trained only inside) is evaluated at the nearest box point and the distance to the
+// box added, so sphere tracers step safely up to the box.
+fn hwsdf_distance_normalized(x: vec3<f32>) -> f32 {
+    let c = clamp(x, vec3<f32>(-1.0), vec3<f32>(1.0));
+    return hwsdf_phi(c) + length(x - c);
+}
+
+// Unit normal at a normalised point: the network's normalised gradient inside the box, the
+// direction away from the box outside it (zero where the gradient vanishes).
+fn hwsdf_normal_normalized(x: vec3<f32>) -> vec3<f32> {
+    let c = clamp(x, vec3<f32>(-1.0), vec3<f32>(1.0));
+    let away = x - c;
+    if any(away != vec3<f32>(0.0)) {
+        return normalize(away);
+    }
+    let g = hwsdf_phi_grad(c).yzw;
+    let len = length(g);
+    if len > 0.0 {
+        return g / len;
+    }
+    return vec3<f32>(0.0);
+}
+
+// Signed distance at a point in the original mesh's coordinates, in mesh units.
+fn hwsdf_distance(p: vec3<f32>) -> f32 {
+    return hwsdf_distance_normalized((p - HWSDF_CENTER) * HWSDF_SCALE) / HWSDF_SCALE;
+}
+
+// Unit outward normal at a point in mesh coordinates (a uniform scale keeps directions).
+fn hwsdf_normal(p: vec3<f32>) -> vec3<f32> {
+    return hwsdf_normal_normalized((p - HWSDF_CENTER) * HWSDF_SCALE);
+}
+// ---- end of HW SDF model ----
+"#;
+
+/// SIREN: `sin(ω0·(W x + b))` layers with loops over the flat parameters (layout in
+/// [`crate::siren`]); the gradient is carried forward as three tangents next to each value.
+fn siren(s: &mut String, m: &Siren) {
+    let c = m.config();
+    let layers = c.layers();
+    let w = c.width;
+    let last = layers.last().expect("at least one layer");
+    let _ = write!(
+        s,
+        "// SIREN 3 -> {w} x {hl} -> 1, omega0 = {omega}.\n\
+         const HWSDF_WIDTH: u32 = {w}u;\n\
+         const HWSDF_HIDDEN_LAYERS: u32 = {hl}u;\n\
+         const HWSDF_OMEGA0: f32 = {omega_lit};\n\
+         // Offsets of the second hidden layer and of the linear output layer in hwsdf_params.\n\
+         const HWSDF_HIDDEN_START: u32 = {hidden_start}u;\n\
+         const HWSDF_OUT_START: u32 = {out_start}u;\n",
+        hl = c.hidden_layers,
+        omega = c.omega0,
+        omega_lit = lit(c.omega0),
+        hidden_start = 3 * w + w,
+        out_start = last.weight,
+    );
+    s.push_str(SIREN_BODY);
+}
+
+/// Layer l ≥ 1 of the hidden stack starts at `HWSDF_HIDDEN_START + (l - 1)·(W² + W)`. Sums
+/// start from zero and add the bias last, in the CPU's order, so the two paths agree closely.
+const SIREN_BODY: &str = r#"
+// The network's value at a point inside the box.
+fn hwsdf_phi(x: vec3<f32>) -> f32 {
+    var a: array<f32, HWSDF_WIDTH>;
+    var b: array<f32, HWSDF_WIDTH>;
+    for (var o = 0u; o < HWSDF_WIDTH; o++) {
+        let row = 3u * o;
+        let z = hwsdf_params[row] * x.x + hwsdf_params[row + 1u] * x.y + hwsdf_params[row + 2u] * x.z;
+        a[o] = sin(HWSDF_OMEGA0 * (z + hwsdf_params[3u * HWSDF_WIDTH + o]));
+    }
+    var off = HWSDF_HIDDEN_START;
+    for (var l = 1u; l < HWSDF_HIDDEN_LAYERS; l++) {
+        let bias = off + HWSDF_WIDTH * HWSDF_WIDTH;
+        for (var o = 0u; o < HWSDF_WIDTH; o++) {
+            let row = off + o * HWSDF_WIDTH;
+            var z = 0.0;
+            for (var i = 0u; i < HWSDF_WIDTH; i++) {
+                z += hwsdf_params[row + i] * a[i];
+            }
+            b[o] = sin(HWSDF_OMEGA0 * (z + hwsdf_params[bias + o]));
+        }
+        a = b;
+        off = bias + HWSDF_WIDTH;
+    }
+    var out = 0.0;
+    for (var i = 0u; i < HWSDF_WIDTH; i++) {
+        out += hwsdf_params[HWSDF_OUT_START + i] * a[i];
+    }
+    return out + hwsdf_params[HWSDF_OUT_START + HWSDF_WIDTH];
+}
+
+// The value and the gradient (x: value, yzw: d/dx, d/dy, d/dz) at a point inside the box, by
+// forward-mode differentiation: each unit carries (h, dh/dx, dh/dy, dh/dz).
+fn hwsdf_phi_grad(x: vec3<f32>) -> vec4<f32> {
+    var a: array<vec4<f32>, HWSDF_WIDTH>;
+    var b: array<vec4<f32>, HWSDF_WIDTH>;
+    for (var o = 0u; o < HWSDF_WIDTH; o++) {
+        let row = 3u * o;
+        let wr = vec3<f32>(hwsdf_params[row], hwsdf_params[row + 1u], hwsdf_params[row + 2u]);
+        let z = wr.x * x.x + wr.y * x.y + wr.z * x.z + hwsdf_params[3u * HWSDF_WIDTH + o];
+        let arg = HWSDF_OMEGA0 * z;
+        a[o] = vec4<f32>(sin(arg), HWSDF_OMEGA0 * cos(arg) * wr);
+    }
+    var off = HWSDF_HIDDEN_START;
+    for (var l = 1u; l < HWSDF_HIDDEN_LAYERS; l++) {
+        let bias = off + HWSDF_WIDTH * HWSDF_WIDTH;
+        for (var o = 0u; o < HWSDF_WIDTH; o++) {
+            let row = off + o * HWSDF_WIDTH;
+            var z = vec4<f32>(0.0);
+            for (var i = 0u; i < HWSDF_WIDTH; i++) {
+                z += hwsdf_params[row + i] * a[i];
+            }
+            let arg = HWSDF_OMEGA0 * (z.x + hwsdf_params[bias + o]);
+            b[o] = vec4<f32>(sin(arg), HWSDF_OMEGA0 * cos(arg) * z.yzw);
+        }
+        a = b;
+        off = bias + HWSDF_WIDTH;
+    }
+    var out = vec4<f32>(0.0);
+    for (var i = 0u; i < HWSDF_WIDTH; i++) {
+        out += hwsdf_params[HWSDF_OUT_START + i] * a[i];
+    }
+    return out + vec4<f32>(hwsdf_params[HWSDF_OUT_START + HWSDF_WIDTH], 0.0, 0.0, 0.0);
+}
+"#;
+
+/// NGLOD: one unrolled block per level in use (resolution and grid offset as literals), the
+/// summed features decoded by the ReLU MLP. The gradient differentiates the trilinear weights
+/// (zero along an axis where the point is clamped, as on the CPU) and the active ReLUs.
+fn nglod(s: &mut String, m: &Nglod, lod: usize) {
+    let c = m.config();
+    let layout = c.layout();
+    let _ = write!(
+        s,
+        "// NGLOD: {k} of {levels} levels (cells per axis {res:?}), F = {f}, H = {h}.\n\
+         const HWSDF_F: u32 = {f}u;\n\
+         const HWSDF_H: u32 = {h}u;\n\
+         const HWSDF_W0: u32 = {w0}u;\n\
+         const HWSDF_B0: u32 = {b0}u;\n\
+         const HWSDF_W1: u32 = {w1}u;\n\
+         const HWSDF_B1: u32 = {b1}u;\n",
+        k = lod,
+        levels = c.levels(),
+        res = &c.resolutions[..lod],
+        f = c.feature_dim,
+        h = c.hidden,
+        w0 = layout.w0,
+        b0 = layout.b0,
+        w1 = layout.w1,
+        b1 = layout.b1,
+    );
+    for grad in [false, true] {
+        nglod_fn(s, &c.resolutions[..lod], &layout.grid_offsets, grad);
+    }
+}
+
+fn nglod_fn(s: &mut String, resolutions: &[u32], offsets: &[usize], grad: bool) {
+    if grad {
+        s.push_str(
+            "\n// The value and the gradient (x: value, yzw: gradient) at a point inside the box.\n\
+             fn hwsdf_phi_grad(x: vec3<f32>) -> vec4<f32> {\n\
+             \x20   var dz: array<vec3<f32>, HWSDF_F>;\n",
+        );
+    } else {
+        s.push_str(
+            "\n// The network's value at a point inside the box.\n\
+             fn hwsdf_phi(x: vec3<f32>) -> f32 {\n",
+        );
+    }
+    s.push_str("    var z: array<f32, HWSDF_F>;\n");
+    for (l, (&res, &off)) in resolutions.iter().zip(offsets).enumerate() {
+        let _ = write!(
+            s,
+            "    // Level {l}: {res} cells per axis.\n\
+             \x20   {{\n\
+             \x20       let r = {rf};\n\
+             \x20       let u = (x + 1.0) * 0.5 * r;\n\
+             \x20       let uvw = clamp(u, vec3<f32>(0.0), vec3<f32>(r));\n\
+             \x20       let i0 = min(vec3<u32>(floor(uvw)), vec3<u32>({rm1}u));\n\
+             \x20       let t = uvw - vec3<f32>(i0);\n",
+            rf = lit(res as f32),
+            rm1 = res - 1,
+        );
+        if grad {
+            s.push_str(
+                "        // du/dx = r/2 inside the box, 0 on an axis where the point is clamped.\n\
+                 \x20       let du = select(vec3<f32>(0.0), vec3<f32>(0.5 * r), (u > vec3<f32>(0.0)) & (u < vec3<f32>(r)));\n",
+            );
+        }
+        let _ = write!(
+            s,
+            "        for (var c = 0u; c < 8u; c++) {{\n\
+             \x20           let d = vec3<u32>((c >> 2u) & 1u, (c >> 1u) & 1u, c & 1u);\n\
+             \x20           let hi = d == vec3<u32>(1u);\n\
+             \x20           let wv = select(1.0 - t, t, hi);\n\
+             \x20           let w = wv.x * wv.y * wv.z;\n\
+             \x20           let v = i0 + d;\n\
+             \x20           let base = {off}u + ((v.x * {s}u + v.y) * {s}u + v.z) * HWSDF_F;\n",
+            s = res + 1,
+        );
+        if grad {
+            s.push_str(
+                "            let dw = select(vec3<f32>(-1.0), vec3<f32>(1.0), hi)\n\
+                 \x20               * vec3<f32>(wv.y * wv.z, wv.x * wv.z, wv.x * wv.y) * du;\n",
+            );
+        }
+        s.push_str(
+            "            for (var f = 0u; f < HWSDF_F; f++) {\n\
+             \x20               let g = hwsdf_params[base + f];\n\
+             \x20               z[f] += w * g;\n",
+        );
+        if grad {
+            s.push_str("                dz[f] += dw * g;\n");
+        }
+        s.push_str("            }\n        }\n    }\n");
+    }
+    // The MLP: sums from zero, bias added last, as on the CPU.
+    s.push_str("    var out = hwsdf_params[HWSDF_B1];\n");
+    if grad {
+        s.push_str("    var g = vec3<f32>(0.0);\n");
+    }
+    s.push_str(
+        "    for (var j = 0u; j < HWSDF_H; j++) {\n\
+         \x20       let row = HWSDF_W0 + j * HWSDF_F;\n\
+         \x20       var acc = 0.0;\n\
+         \x20       for (var f = 0u; f < HWSDF_F; f++) {\n\
+         \x20           acc += hwsdf_params[row + f] * z[f];\n\
+         \x20       }\n\
+         \x20       let hj = hwsdf_params[HWSDF_B0 + j] + acc;\n\
+         \x20       if hj > 0.0 {\n\
+         \x20           let w1 = hwsdf_params[HWSDF_W1 + j];\n\
+         \x20           out += w1 * hj;\n",
+    );
+    if grad {
+        s.push_str(
+            "            for (var f = 0u; f < HWSDF_F; f++) {\n\
+             \x20               g += w1 * hwsdf_params[row + f] * dz[f];\n\
+             \x20           }\n",
+        );
+    }
+    s.push_str("        }\n    }\n");
+    if grad {
+        s.push_str("    return vec4<f32>(out, g);\n}\n");
+    } else {
+        s.push_str("    return out;\n}\n");
+    }
+}

@@ -1,0 +1,469 @@
+//! Sphere-traced images of a [`NeuralSdf`]: the embedding of [`crate::embed`] used for real.
+//!
+//! `shaders/sphere_trace.wgsl` is a compute shader with one invocation per pixel. It is compiled
+//! concatenated after the model's snippet ([`NeuralSdf::wgsl`] at group 1), traces a ray from
+//! an orbit camera through the model's box, shades hits by Lambert's law from `hwsdf_normal`
+//! and writes packed RGBA8 pixels to a storage buffer, which is read back into an [`RgbaImage`].
+//!
+//! ```no_run
+//! # fn demo() -> Result<(), Box<dyn std::error::Error>> {
+//! use sdf_nn::{GpuContext, NeuralSdf, RenderOptions, render};
+//! let gpu = GpuContext::new()?;
+//! let sdf = NeuralSdf::load("model.safetensors")?;
+//! let image = render(&gpu, &sdf, &RenderOptions::default())?;
+//! image.save_png("model.png")?;
+//! # Ok(()) }
+//! ```
+
+use std::borrow::Cow;
+use std::path::{Path, PathBuf};
+
+use glam::{Vec3, Vec4};
+
+use crate::embed::{EmbedError, SdfBindGroup};
+use crate::gpu::{GpuContext, GpuError};
+use crate::model_file::{Normalization, write_atomic};
+use crate::neural::NeuralSdf;
+use crate::shaders::SPHERE_TRACE;
+
+/// Largest image side we accept (keeps the pixel buffer and the dispatch within every device's
+/// limits).
+pub const MAX_IMAGE_SIDE: u32 = 16384;
+
+/// The group index the sphere tracer gives the model's bind group (its own resources use 0).
+const SDF_GROUP: u32 = 1;
+/// Workgroup side of `sphere_trace` (8×8 invocations).
+const TILE: u32 = 8;
+
+/// Errors of rendering and of writing images.
+#[derive(Debug, thiserror::Error)]
+pub enum RenderError {
+    /// Width or height is zero or above [`MAX_IMAGE_SIDE`].
+    #[error(
+        "image size {width}x{height} is out of range: each side must be in 1..={MAX_IMAGE_SIDE}"
+    )]
+    BadSize {
+        /// Requested width.
+        width: u32,
+        /// Requested height.
+        height: u32,
+    },
+    /// A rendering option is out of range.
+    #[error("invalid render option: {0}")]
+    BadOption(String),
+    /// The model's weights cannot be bound on this device.
+    #[error(transparent)]
+    Embed(#[from] EmbedError),
+    /// A GPU error (buffer limits, shader compilation, readback).
+    #[error(transparent)]
+    Gpu(#[from] GpuError),
+    /// PNG encoding failed.
+    #[error("encoding the PNG failed: {0}")]
+    Png(String),
+    /// Writing the image file failed.
+    #[error("writing {path}: {source}")]
+    Io {
+        /// The output path.
+        path: PathBuf,
+        /// The I/O error.
+        source: std::io::Error,
+    },
+}
+
+/// What to render and how. Angles are in degrees; the camera orbits the centre of the model's
+/// normalised box (see [`Camera::orbit`]).
+#[derive(Clone, Debug, PartialEq)]
+pub struct RenderOptions {
+    /// Image width in pixels.
+    pub width: u32,
+    /// Image height in pixels.
+    pub height: u32,
+    /// Camera azimuth around the vertical (+y) axis; 0 looks along −z.
+    pub yaw_degrees: f32,
+    /// Camera elevation above the horizontal plane.
+    pub pitch_degrees: f32,
+    /// Vertical field of view.
+    pub fov_y_degrees: f32,
+    /// Radius, in the model's normalised units, of the sphere around the box centre that just
+    /// fits the frame. The mesh's longest axis spans `[-1, 1]`, so 1.0 frames it tightly; √3
+    /// shows the whole box from any angle.
+    pub frame_radius: f32,
+    /// Steps per ray before giving up (a miss).
+    pub max_steps: u32,
+    /// Fraction of the distance bound taken per step: below 1 because a network is only
+    /// approximately a distance.
+    pub step_scale: f32,
+    /// A ray hits when the distance falls below this fraction of one pixel's footprint.
+    pub hit_tolerance_px: f32,
+    /// Direction towards the light in the camera's frame (x right, y up, z towards the viewer).
+    pub light: Vec3,
+    /// Ambient fraction of the shading, in `[0, 1]`.
+    pub ambient: f32,
+    /// Surface colour (linear RGB).
+    pub albedo: Vec3,
+    /// Colour of pixels whose ray misses (RGBA, written as is; alpha 0 for a transparent PNG).
+    pub background: Vec4,
+}
+
+impl Default for RenderOptions {
+    fn default() -> Self {
+        RenderOptions {
+            width: 512,
+            height: 512,
+            yaw_degrees: 35.0,
+            pitch_degrees: 20.0,
+            fov_y_degrees: 35.0,
+            frame_radius: 1.05,
+            max_steps: 160,
+            step_scale: 0.9,
+            hit_tolerance_px: 0.25,
+            light: Vec3::new(-0.5, 0.8, 0.6),
+            ambient: 0.15,
+            albedo: Vec3::new(0.85, 0.72, 0.55),
+            background: Vec4::new(0.12, 0.13, 0.16, 1.0),
+        }
+    }
+}
+
+impl RenderOptions {
+    /// Checks sizes and ranges.
+    pub fn validate(&self) -> Result<(), RenderError> {
+        let side = 1..=MAX_IMAGE_SIDE;
+        if !side.contains(&self.width) || !side.contains(&self.height) {
+            return Err(RenderError::BadSize {
+                width: self.width,
+                height: self.height,
+            });
+        }
+        let bad = |m: String| Err(RenderError::BadOption(m));
+        if !(self.fov_y_degrees > 0.0 && self.fov_y_degrees < 170.0) {
+            return bad(format!(
+                "fov_y_degrees {} is not in (0, 170)",
+                self.fov_y_degrees
+            ));
+        }
+        if !(self.frame_radius.is_finite() && self.frame_radius > 0.0) {
+            return bad(format!(
+                "frame_radius {} is not positive",
+                self.frame_radius
+            ));
+        }
+        if !(self.step_scale > 0.0 && self.step_scale <= 1.0) {
+            return bad(format!("step_scale {} is not in (0, 1]", self.step_scale));
+        }
+        if !(self.hit_tolerance_px.is_finite() && self.hit_tolerance_px > 0.0) {
+            return bad(format!(
+                "hit_tolerance_px {} is not positive",
+                self.hit_tolerance_px
+            ));
+        }
+        if self.max_steps == 0 || self.max_steps > 100_000 {
+            return bad(format!("max_steps {} is not in 1..=100000", self.max_steps));
+        }
+        if !self.pitch_degrees.is_finite() || self.pitch_degrees.abs() >= 89.9 {
+            return bad(format!(
+                "pitch_degrees {} is not in (-89.9, 89.9)",
+                self.pitch_degrees
+            ));
+        }
+        if !self.yaw_degrees.is_finite() {
+            return bad("yaw_degrees is not finite".into());
+        }
+        if !self.light.is_finite() || self.light.length() == 0.0 {
+            return bad("light must be a non-zero finite direction".into());
+        }
+        Ok(())
+    }
+}
+
+/// A pinhole camera in the mesh's coordinates.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Camera {
+    /// Camera position.
+    pub eye: Vec3,
+    /// Unit view direction.
+    pub forward: Vec3,
+    /// Unit right vector.
+    pub right: Vec3,
+    /// Unit up vector.
+    pub up: Vec3,
+    /// `tan(fov_y / 2)`.
+    pub tan_half_fov_y: f32,
+    /// Width / height.
+    pub aspect: f32,
+}
+
+impl Camera {
+    /// The orbit camera of `options` around the model's box: it looks at the box centre from
+    /// the direction given by yaw and pitch, at the distance where a sphere of radius
+    /// `frame_radius` (normalised units) is tangent to the narrower side of the frustum. Derived
+    /// from the normalisation alone, so any model fills the frame the same way.
+    pub fn orbit(normalization: Normalization, options: &RenderOptions) -> Camera {
+        let target = normalization.center;
+        let radius = options.frame_radius / normalization.scale;
+        let aspect = options.width as f32 / options.height as f32;
+        let tan_half_y = (options.fov_y_degrees.to_radians() * 0.5).tan();
+        // The narrower half-angle bounds what fits.
+        let tan_half = tan_half_y * aspect.min(1.0);
+        let sin_half = tan_half / (1.0 + tan_half * tan_half).sqrt();
+        let distance = radius / sin_half;
+        let (yaw, pitch) = (
+            options.yaw_degrees.to_radians(),
+            options.pitch_degrees.to_radians(),
+        );
+        let from_target = Vec3::new(
+            pitch.cos() * yaw.sin(),
+            pitch.sin(),
+            pitch.cos() * yaw.cos(),
+        );
+        let eye = target + distance * from_target;
+        let forward = -from_target;
+        let right = forward.cross(Vec3::Y).normalize();
+        let up = right.cross(forward);
+        Camera {
+            eye,
+            forward,
+            right,
+            up,
+            tan_half_fov_y: tan_half_y,
+            aspect,
+        }
+    }
+}
+
+/// The uniforms of `sphere_trace.wgsl` (its `TraceUniforms`, field for field).
+#[repr(C)]
+#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+struct TraceUniforms {
+    eye: [f32; 4],
+    forward: [f32; 4],
+    right: [f32; 4],
+    up: [f32; 4],
+    light: [f32; 4],
+    albedo: [f32; 4],
+    background: [f32; 4],
+    box_min: [f32; 4],
+    box_max: [f32; 4],
+    size: [u32; 4],
+}
+
+/// An 8-bit RGBA image, rows top to bottom.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct RgbaImage {
+    /// Width in pixels.
+    pub width: u32,
+    /// Height in pixels.
+    pub height: u32,
+    /// `width · height · 4` bytes, R G B A per pixel.
+    pub pixels: Vec<u8>,
+}
+
+impl RgbaImage {
+    /// The pixel at column `x`, row `y` (0 is the top row).
+    pub fn pixel(&self, x: u32, y: u32) -> [u8; 4] {
+        let i = ((y * self.width + x) * 4) as usize;
+        [
+            self.pixels[i],
+            self.pixels[i + 1],
+            self.pixels[i + 2],
+            self.pixels[i + 3],
+        ]
+    }
+
+    /// The image as PNG bytes.
+    pub fn to_png(&self) -> Result<Vec<u8>, RenderError> {
+        let png_err = |e: png::EncodingError| RenderError::Png(e.to_string());
+        let mut out = Vec::new();
+        let mut encoder = png::Encoder::new(&mut out, self.width, self.height);
+        encoder.set_color(png::ColorType::Rgba);
+        encoder.set_depth(png::BitDepth::Eight);
+        // Renders are mostly flat background: the best compression keeps committed images small.
+        encoder.set_compression(png::Compression::High);
+        let mut writer = encoder.write_header().map_err(png_err)?;
+        writer.write_image_data(&self.pixels).map_err(png_err)?;
+        writer.finish().map_err(png_err)?;
+        Ok(out)
+    }
+
+    /// Writes the image as a PNG file, atomically (readers never see a partial file).
+    pub fn save_png(&self, path: impl AsRef<Path>) -> Result<(), RenderError> {
+        let path = path.as_ref();
+        let bytes = self.to_png()?;
+        write_atomic(path, &bytes).map_err(|source| RenderError::Io {
+            path: path.to_owned(),
+            source,
+        })
+    }
+}
+
+/// A model's sphere-tracing pipeline and weights on one device, for rendering many images.
+#[derive(Debug)]
+pub struct Renderer {
+    pipeline: wgpu::ComputePipeline,
+    frame_layout: wgpu::BindGroupLayout,
+    sdf: SdfBindGroup,
+    normalization: Normalization,
+}
+
+impl Renderer {
+    /// Compiles the sphere tracer for `sdf` (its current level of detail) and uploads its
+    /// weights. Compilation is the slow part (seconds on lavapipe): keep the renderer.
+    pub fn new(gpu: &GpuContext, sdf: &NeuralSdf) -> Result<Self, RenderError> {
+        let device = gpu.device();
+        let sdf_group = sdf.bind_group(device)?;
+        let source = sphere_trace_source(sdf);
+        let frame_layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+            label: Some("sphere_trace frame"),
+            entries: &[
+                wgpu::BindGroupLayoutEntry {
+                    binding: 0,
+                    visibility: wgpu::ShaderStages::COMPUTE,
+                    ty: wgpu::BindingType::Buffer {
+                        ty: wgpu::BufferBindingType::Uniform,
+                        has_dynamic_offset: false,
+                        min_binding_size: None,
+                    },
+                    count: None,
+                },
+                wgpu::BindGroupLayoutEntry {
+                    binding: 1,
+                    visibility: wgpu::ShaderStages::COMPUTE,
+                    ty: wgpu::BindingType::Buffer {
+                        ty: wgpu::BufferBindingType::Storage { read_only: false },
+                        has_dynamic_offset: false,
+                        min_binding_size: None,
+                    },
+                    count: None,
+                },
+            ],
+        });
+        let scope = device.push_error_scope(wgpu::ErrorFilter::Validation);
+        let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
+            label: Some(SPHERE_TRACE.name),
+            source: wgpu::ShaderSource::Wgsl(Cow::Owned(source)),
+        });
+        // An explicit layout: the model's group is created from its own layout (by
+        // `NeuralSdf::bind_group`), which a derived layout would not accept.
+        let layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
+            label: Some("sphere_trace"),
+            bind_group_layouts: &[Some(&frame_layout), Some(&sdf_group.layout)],
+            immediate_size: 0,
+        });
+        let pipeline = device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+            label: Some("sphere_trace"),
+            layout: Some(&layout),
+            module: &module,
+            entry_point: Some("sphere_trace"),
+            compilation_options: Default::default(),
+            cache: None,
+        });
+        if let Some(err) = pollster::block_on(scope.pop()) {
+            return Err(GpuError::Wgpu {
+                context: "compiling sphere_trace.wgsl with the model's snippet".into(),
+                message: err.to_string(),
+            }
+            .into());
+        }
+        Ok(Renderer {
+            pipeline,
+            frame_layout,
+            sdf: sdf_group,
+            normalization: sdf.normalization(),
+        })
+    }
+
+    /// Renders one image.
+    pub fn render(
+        &self,
+        gpu: &GpuContext,
+        options: &RenderOptions,
+    ) -> Result<RgbaImage, RenderError> {
+        options.validate()?;
+        let (w, h) = (options.width, options.height);
+        let n = self.normalization;
+        let cam = Camera::orbit(n, options);
+        // The light is given in the camera's frame so that it follows the orbit.
+        let l = options.light.normalize();
+        let light = (l.x * cam.right + l.y * cam.up - l.z * cam.forward).normalize();
+        let half = 1.0 / n.scale;
+        let pixel_angle = 2.0 * cam.tan_half_fov_y / h as f32;
+        let uniforms = TraceUniforms {
+            eye: cam.eye.extend(cam.tan_half_fov_y).to_array(),
+            forward: cam.forward.extend(cam.aspect).to_array(),
+            right: cam
+                .right
+                .extend(options.hit_tolerance_px * pixel_angle)
+                .to_array(),
+            up: cam.up.extend(options.step_scale).to_array(),
+            light: light.extend(options.ambient.clamp(0.0, 1.0)).to_array(),
+            albedo: options.albedo.extend(1.0).to_array(),
+            background: options.background.to_array(),
+            // A floor on the tolerance for rays that start at the camera's own position.
+            box_min: (n.center - Vec3::splat(half))
+                .extend(1e-5 * half)
+                .to_array(),
+            box_max: (n.center + Vec3::splat(half)).extend(0.0).to_array(),
+            size: [w, h, options.max_steps, 0],
+        };
+        let pixels_bytes = u64::from(w) * u64::from(h) * 4;
+        let image = gpu.storage_zeroed("sphere_trace image", pixels_bytes)?;
+        let uniform = gpu.uniform("sphere_trace uniforms", &uniforms);
+        let device = gpu.device();
+        let frame = device.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: Some("sphere_trace frame"),
+            layout: &self.frame_layout,
+            entries: &[
+                wgpu::BindGroupEntry {
+                    binding: 0,
+                    resource: uniform.as_entire_binding(),
+                },
+                wgpu::BindGroupEntry {
+                    binding: 1,
+                    resource: image.as_entire_binding(),
+                },
+            ],
+        });
+        let scope = device.push_error_scope(wgpu::ErrorFilter::Validation);
+        let mut enc = device.create_command_encoder(&Default::default());
+        {
+            let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                label: Some("sphere_trace"),
+                timestamp_writes: None,
+            });
+            pass.set_pipeline(&self.pipeline);
+            pass.set_bind_group(0, &frame, &[]);
+            pass.set_bind_group(SDF_GROUP, &self.sdf.bind_group, &[]);
+            pass.dispatch_workgroups(w.div_ceil(TILE), h.div_ceil(TILE), 1);
+        }
+        gpu.queue().submit([enc.finish()]);
+        if let Some(err) = pollster::block_on(scope.pop()) {
+            return Err(GpuError::Wgpu {
+                context: "dispatching sphere_trace".into(),
+                message: err.to_string(),
+            }
+            .into());
+        }
+        let pixels: Vec<u8> = gpu.read_back(&image)?;
+        Ok(RgbaImage {
+            width: w,
+            height: h,
+            pixels,
+        })
+    }
+}
+
+/// The sphere tracer's full source for `sdf`: the model's snippet at group 1, then
+/// `shaders/sphere_trace.wgsl`.
+pub fn sphere_trace_source(sdf: &NeuralSdf) -> String {
+    format!("{}\n{}", sdf.wgsl(SDF_GROUP), SPHERE_TRACE.source)
+}
+
+/// Renders `sdf` with `options` on `gpu` (compiles a [`Renderer`] for this one image).
+pub fn render(
+    gpu: &GpuContext,
+    sdf: &NeuralSdf,
+    options: &RenderOptions,
+) -> Result<RgbaImage, RenderError> {
+    options.validate()?;
+    Renderer::new(gpu, sdf)?.render(gpu, options)
+}

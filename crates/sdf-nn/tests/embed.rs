@@ -1,0 +1,376 @@
+//! The WGSL embedding of `NeuralSdf`: the snippet plus a caller's shader validates with naga for
+//! both architectures and several shapes (levels of detail included), declares only `hwsdf_`
+//! names, and, run on the device through `NeuralSdf::bind_group`, matches the CPU's distances
+//! and normals at points inside and outside the box. One test binary, one shared device.
+
+use glam::Vec3;
+use rand::{Rng, SeedableRng};
+use rand_pcg::Pcg64;
+use sdf_nn::{
+    GpuContext, NeuralSdf, Nglod, NglodConfig, Normalization, Siren, SirenConfig, neural::Network,
+};
+
+fn gpu() -> &'static GpuContext {
+    let gpu = GpuContext::shared().expect("a GPU adapter (lavapipe in CI)");
+    eprintln!("adapter: {}", gpu.describe());
+    gpu
+}
+
+/// A normalisation that is not the identity, so the baked constants are exercised.
+fn normalization() -> Normalization {
+    Normalization {
+        center: Vec3::new(0.3, -1.25, 2.0),
+        scale: 0.4,
+    }
+}
+
+fn siren(config: SirenConfig, seed: u64) -> NeuralSdf {
+    let m = Siren::new(config, seed).unwrap();
+    NeuralSdf::from_model_file(m.to_model_file(normalization(), serde_json::Value::Null)).unwrap()
+}
+
+/// An NGLOD model whose grid features are large enough that the grids, not the biases, decide
+/// the output and many ReLUs are active.
+fn nglod(config: NglodConfig, seed: u64, lod: Option<usize>) -> NeuralSdf {
+    let mut m = Nglod::new(config).unwrap();
+    let w0 = m.config().layout().w0;
+    let mut rng = Pcg64::seed_from_u64(seed);
+    for p in &mut m.params_mut()[..w0] {
+        *p = rng.random_range(-0.5..0.5);
+    }
+    let mut sdf =
+        NeuralSdf::from_model_file(m.to_model_file(normalization(), serde_json::Value::Null))
+            .unwrap();
+    sdf.set_lod(lod).unwrap();
+    sdf
+}
+
+/// A caller's shader: its own resources at group `user`, a compute entry point and a fragment
+/// entry point, both calling the two functions.
+fn user_shader(user: u32) -> String {
+    format!(
+        r#"
+@group({user}) @binding(0) var<storage, read> points: array<vec4<f32>>;
+@group({user}) @binding(1) var<storage, read_write> results: array<vec4<f32>>;
+
+@compute @workgroup_size(64)
+fn eval_points(@builtin(global_invocation_id) gid: vec3<u32>) {{
+    let i = gid.x;
+    if i >= arrayLength(&points) {{
+        return;
+    }}
+    let p = points[i].xyz;
+    results[i] = vec4<f32>(hwsdf_distance(p), hwsdf_normal(p));
+}}
+
+@fragment
+fn shade(@builtin(position) frag: vec4<f32>) -> @location(0) vec4<f32> {{
+    let p = vec3<f32>(frag.xy * 0.01, 0.5);
+    let n = hwsdf_normal(p);
+    let d = hwsdf_distance(p) + hwsdf_distance_normalized(p);
+    return vec4<f32>(n * 0.5 + 0.5, select(0.0, 1.0, d < 0.0));
+}}
+"#
+    )
+}
+
+fn validate(source: &str) -> naga::Module {
+    let module = naga::front::wgsl::parse_str(source)
+        .unwrap_or_else(|e| panic!("parse: {}\n{source}", e.emit_to_string(source)));
+    naga::valid::Validator::new(
+        naga::valid::ValidationFlags::all(),
+        naga::valid::Capabilities::empty(),
+    )
+    .validate(&module)
+    .unwrap_or_else(|e| panic!("validate: {}\n{source}", e.emit_to_string(source)));
+    module
+}
+
+fn shapes() -> Vec<(&'static str, NeuralSdf)> {
+    let one_level = NglodConfig {
+        resolutions: vec![3],
+        feature_dim: 1,
+        hidden: 1,
+        seed: 3,
+    };
+    vec![
+        (
+            "siren 8x1",
+            siren(
+                SirenConfig {
+                    width: 8,
+                    hidden_layers: 1,
+                    omega0: 30.0,
+                },
+                1,
+            ),
+        ),
+        ("siren small 64x3", siren(SirenConfig::small(), 2)),
+        ("siren reference 256x4", siren(SirenConfig::reference(), 3)),
+        ("nglod small", nglod(NglodConfig::small(), 1, None)),
+        ("nglod small lod 1", nglod(NglodConfig::small(), 1, Some(1))),
+        ("nglod small lod 2", nglod(NglodConfig::small(), 1, Some(2))),
+        (
+            "nglod default preset",
+            nglod(NglodConfig::default_preset(), 2, None),
+        ),
+        ("nglod 1 level F=1 H=1", nglod(one_level, 3, None)),
+    ]
+}
+
+#[test]
+fn snippet_with_user_shader_validates_with_naga() {
+    for (name, sdf) in shapes() {
+        for (model_group, user_group) in [(1, 0), (0, 2), (3, 1)] {
+            let source = format!("{}\n{}", sdf.wgsl(model_group), user_shader(user_group));
+            eprintln!("{name}: group {model_group}, {} bytes", source.len());
+            let module = validate(&source);
+            let binding = module
+                .global_variables
+                .iter()
+                .find(|(_, v)| v.name.as_deref() == Some("hwsdf_params"))
+                .and_then(|(_, v)| v.binding)
+                .expect("hwsdf_params is bound");
+            assert_eq!((binding.group, binding.binding), (model_group, 0), "{name}");
+        }
+        // The snippet alone is valid too (nothing it needs is left to the caller).
+        validate(&sdf.wgsl(0));
+    }
+}
+
+/// Every name the snippet puts in the caller's module carries the prefix.
+#[test]
+fn snippet_declares_only_prefixed_names() {
+    for (name, sdf) in shapes() {
+        let module = validate(&sdf.wgsl(0));
+        let mut names: Vec<String> = Vec::new();
+        names.extend(
+            module
+                .global_variables
+                .iter()
+                .filter_map(|(_, v)| v.name.clone()),
+        );
+        names.extend(module.constants.iter().filter_map(|(_, c)| c.name.clone()));
+        names.extend(module.functions.iter().filter_map(|(_, f)| f.name.clone()));
+        names.extend(module.types.iter().filter_map(|(_, t)| t.name.clone()));
+        assert!(!names.is_empty());
+        for n in names {
+            assert!(
+                n.starts_with("hwsdf_") || n.starts_with("HWSDF_"),
+                "{name}: `{n}` is not prefixed"
+            );
+        }
+        for f in [
+            "hwsdf_distance",
+            "hwsdf_normal",
+            "hwsdf_distance_normalized",
+        ] {
+            assert!(
+                module
+                    .functions
+                    .iter()
+                    .any(|(_, g)| g.name.as_deref() == Some(f)),
+                "{name}: {f} missing"
+            );
+        }
+    }
+}
+
+/// Points in mesh coordinates whose normalised images fill `[-1.4, 1.4]³` (a fifth of them
+/// outside the box) with a few exactly on the box's faces.
+fn points(n: usize, seed: u64) -> Vec<Vec3> {
+    let norm = normalization();
+    let mut rng = Pcg64::seed_from_u64(seed);
+    (0..n)
+        .map(|i| {
+            let mut q = Vec3::new(
+                rng.random_range(-1.4..1.4),
+                rng.random_range(-1.4..1.4),
+                rng.random_range(-1.4..1.4),
+            );
+            if i % 5 != 0 {
+                q = q.clamp(Vec3::splat(-0.999), Vec3::splat(0.999));
+            }
+            norm.to_original(q)
+        })
+        .collect()
+}
+
+/// Runs `user_shader`'s compute entry point with the model at group 1 on the shared device,
+/// the way a renderer would: its own bind group at 0, `NeuralSdf::bind_group` at 1.
+fn eval_on_gpu(sdf: &NeuralSdf, pts: &[Vec3]) -> Vec<[f32; 4]> {
+    let gpu = gpu();
+    let device = gpu.device();
+    let source = format!("{}\n{}", sdf.wgsl(1), user_shader(0));
+    let sdf_group = sdf.bind_group(device).expect("weights fit");
+    let input: Vec<[f32; 4]> = pts.iter().map(|p| p.extend(0.0).to_array()).collect();
+    let points = gpu.storage_from_slice("points", &input).unwrap();
+    let results = gpu
+        .storage_zeroed("results", (pts.len() * 16) as u64)
+        .unwrap();
+    let storage = |binding, read_only| wgpu::BindGroupLayoutEntry {
+        binding,
+        visibility: wgpu::ShaderStages::COMPUTE,
+        ty: wgpu::BindingType::Buffer {
+            ty: wgpu::BufferBindingType::Storage { read_only },
+            has_dynamic_offset: false,
+            min_binding_size: None,
+        },
+        count: None,
+    };
+    let user_layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+        label: Some("user"),
+        entries: &[storage(0, true), storage(1, false)],
+    });
+    let layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
+        label: Some("user"),
+        bind_group_layouts: &[Some(&user_layout), Some(&sdf_group.layout)],
+        immediate_size: 0,
+    });
+    let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
+        label: Some("user + hwsdf"),
+        source: wgpu::ShaderSource::Wgsl(source.into()),
+    });
+    let pipeline = device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+        label: Some("eval_points"),
+        layout: Some(&layout),
+        module: &module,
+        entry_point: Some("eval_points"),
+        compilation_options: Default::default(),
+        cache: None,
+    });
+    let user_group = device.create_bind_group(&wgpu::BindGroupDescriptor {
+        label: Some("user"),
+        layout: &user_layout,
+        entries: &[
+            wgpu::BindGroupEntry {
+                binding: 0,
+                resource: points.as_entire_binding(),
+            },
+            wgpu::BindGroupEntry {
+                binding: 1,
+                resource: results.as_entire_binding(),
+            },
+        ],
+    });
+    let mut enc = device.create_command_encoder(&Default::default());
+    {
+        let mut pass = enc.begin_compute_pass(&Default::default());
+        pass.set_pipeline(&pipeline);
+        pass.set_bind_group(0, &user_group, &[]);
+        pass.set_bind_group(1, &sdf_group.bind_group, &[]);
+        pass.dispatch_workgroups((pts.len() as u32).div_ceil(64), 1, 1);
+    }
+    gpu.queue().submit([enc.finish()]);
+    gpu.read_back(&results).unwrap()
+}
+
+/// The network's raw gradient magnitude at each point's clamped normalised image: where it is
+/// tiny the normal's direction is ill-conditioned and is not compared.
+fn gradient_norms(sdf: &NeuralSdf, pts: &[Vec3]) -> Vec<f32> {
+    let n = sdf.normalization();
+    let local: Vec<Vec3> = pts
+        .iter()
+        .map(|&p| n.to_normalized(p).clamp(Vec3::NEG_ONE, Vec3::ONE))
+        .collect();
+    let g = match sdf.network() {
+        Network::Siren(s) => s.gradient_cpu(&local),
+        Network::Nglod(m) => m.gradient_cpu(&local, sdf.lod()).unwrap(),
+    };
+    g.iter().map(|g| g.length()).collect()
+}
+
+/// GPU snippet vs `eval_cpu` / `eval_with_normals_cpu`, distances relative to the model's
+/// scale. `max_normal_outliers` allows for ReLU and cell boundaries that f32 rounding puts on
+/// different sides on the two paths (NGLOD's gradient is discontinuous there).
+fn check_against_cpu(
+    name: &str,
+    sdf: &NeuralSdf,
+    dist_tol: f32,
+    normal_tol: f32,
+    max_normal_outliers: usize,
+) {
+    let pts = points(777, 11);
+    let t = std::time::Instant::now();
+    let gpu_out = eval_on_gpu(sdf, &pts);
+    eprintln!(
+        "{name}: {} points on the GPU in {:.2?} (JIT included)",
+        pts.len(),
+        t.elapsed()
+    );
+    let cpu_d = sdf.eval_cpu(&pts);
+    let cpu_n = sdf.eval_with_normals_cpu(&pts);
+    let norms = gradient_norms(sdf, &pts);
+    let unit = 1.0 / sdf.normalization().scale;
+    let mut worst_d = 0f32;
+    let mut worst_n = 0f32;
+    let mut outliers = 0;
+    for (i, ((g, &d), (_, n))) in gpu_out.iter().zip(&cpu_d).zip(&cpu_n).enumerate() {
+        let err = (g[0] - d).abs() / (unit * (1.0 + (d / unit).abs()));
+        worst_d = worst_d.max(err);
+        assert!(
+            err <= dist_tol,
+            "{name}: point {i} {:?}: GPU {} vs CPU {d} (rel err {err})",
+            pts[i],
+            g[0]
+        );
+        let gn = Vec3::new(g[1], g[2], g[3]);
+        let inside = sdf
+            .normalization()
+            .to_normalized(pts[i])
+            .abs()
+            .max_element()
+            <= 1.0;
+        if inside && norms[i] < 1e-3 {
+            continue;
+        }
+        let e = (gn - *n).length();
+        worst_n = worst_n.max(if e > normal_tol { 0.0 } else { e });
+        if e > normal_tol {
+            outliers += 1;
+            eprintln!("{name}: normal outlier at {i}: GPU {gn} vs CPU {n}");
+        }
+        assert!(
+            (gn.length() - 1.0).abs() < 1e-4,
+            "{name}: GPU normal {gn} not unit"
+        );
+    }
+    eprintln!(
+        "{name}: worst rel distance error {worst_d:.2e}, worst normal error {worst_n:.2e}, {outliers} outliers"
+    );
+    assert!(
+        outliers <= max_normal_outliers,
+        "{name}: {outliers} normals differ by more than {normal_tol}"
+    );
+}
+
+#[test]
+fn siren_snippet_matches_cpu_on_gpu() {
+    let sdf = siren(
+        SirenConfig {
+            width: 32,
+            hidden_layers: 3,
+            omega0: 30.0,
+        },
+        7,
+    );
+    check_against_cpu("siren 32x3", &sdf, 2e-5, 1e-3, 0);
+}
+
+#[test]
+fn nglod_snippet_matches_cpu_on_gpu() {
+    check_against_cpu(
+        "nglod small",
+        &nglod(NglodConfig::small(), 5, None),
+        2e-5,
+        1e-3,
+        3,
+    );
+    check_against_cpu(
+        "nglod small lod 2",
+        &nglod(NglodConfig::small(), 5, Some(2)),
+        2e-5,
+        1e-3,
+        3,
+    );
+}
