@@ -12,6 +12,7 @@
 #![warn(missing_docs)]
 
 pub mod metrics;
+pub mod run;
 pub mod timing;
 
 pub use metrics::{Confusion, DistanceError, EvalSets, Scores};

@@ -61,6 +61,7 @@
 mod distance;
 mod error;
 pub mod extract;
+pub mod io;
 mod load;
 mod mesh;
 pub mod npy;

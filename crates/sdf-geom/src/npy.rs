@@ -4,8 +4,7 @@
 //! big-endian float32 or float64. Writes version 1 little-endian float32 files, atomically (a temporary
 //! file in the same directory, then a rename).
 
-use std::io::Write;
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
 use glam::Vec3;
 
@@ -204,28 +203,12 @@ fn npy_bytes(descr: &str, shape: &str, data: &[u8]) -> Vec<u8> {
     out
 }
 
-/// Writes bytes atomically: to a temporary file next to `path`, flushed to disk, then renamed over it.
+/// [`crate::io::write_atomic`] with the error typed for this module.
 fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), GeomError> {
-    let werr = |source| GeomError::Write {
+    crate::io::write_atomic(path, bytes).map_err(|source| GeomError::Write {
         path: path.to_path_buf(),
         source,
-    };
-    let name = path
-        .file_name()
-        .map(|n| n.to_string_lossy().into_owned())
-        .unwrap_or_else(|| "out.npy".into());
-    let tmp: PathBuf = path.with_file_name(format!(".{name}.tmp-{}", std::process::id()));
-    let result = (|| {
-        let mut f = std::fs::File::create(&tmp)?;
-        f.write_all(bytes)?;
-        f.sync_all()?;
-        std::fs::rename(&tmp, path)
-    })();
-    if let Err(e) = result {
-        let _ = std::fs::remove_file(&tmp);
-        return Err(werr(e));
-    }
-    Ok(())
+    })
 }
 
 /// Writes a 1-D float32 array (shape `(N,)`), atomically.

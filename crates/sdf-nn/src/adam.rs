@@ -47,6 +47,17 @@ struct AdamUniforms {
 
 const WORKGROUP: u32 = 256;
 
+/// Adam's moments and step counter on the host, as checkpoints store them.
+#[derive(Clone, Debug, PartialEq)]
+pub struct AdamState {
+    /// First moments.
+    pub m: Vec<f32>,
+    /// Second moments.
+    pub v: Vec<f32>,
+    /// Steps taken.
+    pub step: u32,
+}
+
 /// Adam state (moments and step counter) for one flat parameter buffer.
 #[derive(Debug)]
 pub struct Adam {
@@ -117,6 +128,34 @@ impl Adam {
     /// Restores the step counter (when resuming from a checkpoint together with the moments).
     pub fn set_step_count(&mut self, step: u32) {
         self.step = step;
+    }
+
+    /// Reads the moments and step counter back, for checkpoints.
+    pub fn export_state(&self, gpu: &GpuContext) -> Result<AdamState, GpuError> {
+        let n = u64::from(self.len);
+        Ok(AdamState {
+            m: gpu.read_back_range(&self.m, 0, n)?,
+            v: gpu.read_back_range(&self.v, 0, n)?,
+            step: self.step,
+        })
+    }
+
+    /// Restores moments and step counter saved by [`Adam::export_state`].
+    pub fn import_state(&mut self, gpu: &GpuContext, state: &AdamState) -> Result<(), GpuError> {
+        for (name, data) in [("m", &state.m), ("v", &state.v)] {
+            if data.len() != self.len as usize {
+                return Err(GpuError::BufferTooLarge {
+                    label: format!("adam {name} from checkpoint"),
+                    requested: data.len() as u64 * 4,
+                    limit_name: "optimiser state size",
+                    limit: u64::from(self.len) * 4,
+                });
+            }
+        }
+        gpu.write(&self.m, &state.m)?;
+        gpu.write(&self.v, &state.v)?;
+        self.step = state.step;
+        Ok(())
     }
 
     /// First- and second-moment buffers, for checkpoints.

@@ -1,0 +1,578 @@
+//! One experiment, as `train` and `corpus` run it: load and normalise a mesh, train a model on
+//! the GPU, save it, evaluate it (F1, distance error, latency, storage) and write a JSON report.
+
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::Instant;
+
+use glam::Vec3;
+use sdf_geom::{Mesh, SignedDistance};
+use sdf_nn::model_file::write_atomic;
+use sdf_nn::{
+    AdamState, GpuContext, ModelFile, NeuralSdf, Nglod, NglodConfig, NglodTrainConfig, NglodTrainer, Siren,
+    SirenConfig, SirenTrainConfig, SirenTrainer,
+};
+use serde::{Deserialize, Serialize};
+
+use crate::metrics::{EVAL_SEED, EvalSets, Scores};
+use crate::timing::{Latency, measure_latency};
+
+/// Errors of a run. Each names what failed so a corpus run can record it and go on.
+#[derive(Debug, thiserror::Error)]
+pub enum RunError {
+    /// The mesh could not be loaded or used.
+    #[error("mesh {path}: {source}")]
+    Mesh {
+        /// The mesh file.
+        path: PathBuf,
+        /// Why.
+        source: sdf_geom::GeomError,
+    },
+    /// SIREN training failed.
+    #[error("SIREN training: {0}")]
+    Siren(#[from] sdf_nn::siren::TrainError),
+    /// NGLOD training failed.
+    #[error("NGLOD: {0}")]
+    Nglod(#[from] sdf_nn::NglodError),
+    /// Building or evaluating the trained model failed.
+    #[error(transparent)]
+    Model(#[from] sdf_nn::NeuralSdfError),
+    /// A model file could not be written or read.
+    #[error(transparent)]
+    ModelFile(#[from] sdf_nn::ModelFileError),
+    /// The report could not be written.
+    #[error("writing {path}: {source}")]
+    Write {
+        /// The file.
+        path: PathBuf,
+        /// The OS error.
+        source: std::io::Error,
+    },
+    /// Options that cannot work together.
+    #[error("{0}")]
+    Options(String),
+}
+
+/// Which architecture to train.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum ModelKind {
+    /// SIREN.
+    Siren,
+    /// NGLOD.
+    Nglod,
+}
+
+impl ModelKind {
+    /// `"siren"` or `"nglod"`.
+    pub fn name(self) -> &'static str {
+        match self {
+            ModelKind::Siren => "siren",
+            ModelKind::Nglod => "nglod",
+        }
+    }
+}
+
+/// Size preset.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Preset {
+    /// The design document's architecture.
+    Default,
+    /// A small network for CPU-only machines and tests.
+    Small,
+}
+
+impl Preset {
+    /// `"default"` or `"small"`.
+    pub fn name(self) -> &'static str {
+        match self {
+            Preset::Default => "default",
+            Preset::Small => "small",
+        }
+    }
+}
+
+/// What to train and for how long.
+#[derive(Clone, Debug)]
+pub struct TrainOptions {
+    /// Architecture.
+    pub model: ModelKind,
+    /// Size preset.
+    pub preset: Preset,
+    /// SIREN steps (`None`: the preset's default for the adapter).
+    pub steps: Option<usize>,
+    /// NGLOD epochs (`None`: the preset's default for the adapter).
+    pub epochs: Option<usize>,
+    /// Seed of initialisation and sampling.
+    pub seed: u64,
+}
+
+/// Progress of a training run, for progress bars and logs.
+#[derive(Clone, Copy, Debug)]
+pub struct Progress {
+    /// Steps (SIREN) or epochs (NGLOD) done.
+    pub done: usize,
+    /// Total planned.
+    pub total: usize,
+    /// `"step"` or `"epoch"`.
+    pub unit: &'static str,
+    /// Latest loss.
+    pub loss: f32,
+    /// Current learning rate.
+    pub lr: f32,
+    /// Training points processed per second so far.
+    pub points_per_second: f64,
+}
+
+/// What an interrupted run saves: the model so far, the optimiser's moments and the progress
+/// counters, in one model file (extra tensors `optimizer.m` and `optimizer.v`; metadata
+/// `training.checkpoint = true`). `train --resume` continues from it.
+#[derive(Clone, Debug)]
+pub struct Checkpoint {
+    file: ModelFile,
+}
+
+impl Checkpoint {
+    /// Reads a checkpoint, rejecting plain model files.
+    pub fn load(path: &Path) -> Result<Self, RunError> {
+        let file = ModelFile::load(path)?;
+        if file.metadata.training.get("checkpoint") != Some(&serde_json::Value::Bool(true)) {
+            return Err(RunError::Options(format!(
+                "{} is a model file, not a checkpoint of an interrupted run",
+                path.display()
+            )));
+        }
+        let c = Checkpoint { file };
+        c.optimizer()?;
+        Ok(c)
+    }
+
+    /// Writes the checkpoint atomically.
+    pub fn save(&self, path: &Path) -> Result<(), RunError> {
+        Ok(self.file.save(path)?)
+    }
+
+    /// The model part, as a plain model file.
+    pub fn model_file(&self) -> ModelFile {
+        let mut f = self.file.clone();
+        f.tensors.retain(|t| !t.name.starts_with(OPTIMIZER_PREFIX));
+        f
+    }
+
+    /// Steps or epochs done when it was written.
+    pub fn done(&self) -> usize {
+        self.file.metadata.training["done"].as_u64().unwrap_or(0) as usize
+    }
+
+    /// The optimiser's moments and step counter.
+    pub fn optimizer(&self) -> Result<AdamState, RunError> {
+        let n = self.model_file().param_count();
+        let m = self.file.tensor("optimizer.m", &[n])?.to_vec();
+        let v = self.file.tensor("optimizer.v", &[n])?.to_vec();
+        let step = self.file.metadata.training["adam_step"]
+            .as_u64()
+            .and_then(|s| u32::try_from(s).ok())
+            .ok_or_else(|| RunError::Options("checkpoint has no optimiser step count".into()))?;
+        Ok(AdamState { m, v, step })
+    }
+
+    /// The learning rate when it was written.
+    pub fn lr(&self) -> Option<f32> {
+        self.file.metadata.training["lr"].as_f64().map(|x| x as f32)
+    }
+
+    /// Which architecture and preset it was trained with.
+    pub fn options(&self) -> (Option<String>, Option<String>) {
+        let t = &self.file.metadata.training;
+        (
+            t["model"].as_str().map(str::to_owned),
+            t["preset"].as_str().map(str::to_owned),
+        )
+    }
+}
+
+const OPTIMIZER_PREFIX: &str = "optimizer.";
+
+/// A trained model and what training cost.
+#[derive(Clone, Debug)]
+pub struct Trained {
+    /// The model file contents.
+    pub file: ModelFile,
+    /// Wall time of training.
+    pub train_seconds: f64,
+    /// Steps or epochs done.
+    pub done: usize,
+    /// Final loss.
+    pub final_loss: f32,
+    /// Whether training stopped early (Ctrl-C).
+    pub interrupted: bool,
+    /// Extra training figures (NGLOD's GPU/sampling split).
+    pub details: serde_json::Value,
+    /// Optimiser state at the end, for checkpoints.
+    pub optimizer: AdamState,
+    /// Learning rate at the end.
+    pub lr: f32,
+}
+
+impl Trained {
+    /// The checkpoint of this (interrupted) run.
+    pub fn checkpoint(&self) -> Checkpoint {
+        let mut file = self.file.clone();
+        let n = self.optimizer.m.len();
+        for (name, data) in [("optimizer.m", &self.optimizer.m), ("optimizer.v", &self.optimizer.v)] {
+            file.tensors.push(sdf_nn::model_file::Tensor {
+                name: name.into(),
+                shape: vec![n],
+                data: data.clone(),
+            });
+        }
+        let t = &mut file.metadata.training;
+        t["checkpoint"] = true.into();
+        t["adam_step"] = self.optimizer.step.into();
+        t["lr"] = f64::from(self.lr).into();
+        t["done"] = self.done.into();
+        Checkpoint { file }
+    }
+}
+
+/// Default SIREN steps and NGLOD epochs: what converges on a GPU for the design document's
+/// presets, and a budget of a few minutes on a CPU adapter (lavapipe).
+pub fn default_length(model: ModelKind, preset: Preset, cpu_adapter: bool) -> usize {
+    match (model, preset, cpu_adapter) {
+        (ModelKind::Siren, _, false) => SirenTrainConfig::default().steps,
+        (ModelKind::Siren, Preset::Small, true) => 300,
+        (ModelKind::Siren, Preset::Default, true) => 100,
+        (ModelKind::Nglod, _, false) => NglodTrainConfig::default().epochs,
+        (ModelKind::Nglod, Preset::Small, true) => 4,
+        (ModelKind::Nglod, Preset::Default, true) => 2,
+    }
+}
+
+/// Loads a mesh and normalises it into `[-1, 1]³`.
+pub fn load_normalized(path: &Path) -> Result<(Mesh, sdf_geom::Normalization), RunError> {
+    let (mesh, _report) = sdf_geom::load_mesh(path).map_err(|source| RunError::Mesh {
+        path: path.to_owned(),
+        source,
+    })?;
+    Ok(mesh.normalized())
+}
+
+/// Trains `options.model` on a normalised mesh. `stop` is polled between steps or epochs: when
+/// it is set the run ends early and what was learnt so far is returned.
+pub fn train(
+    gpu: &GpuContext,
+    mesh: &Mesh,
+    normalization: sdf_geom::Normalization,
+    options: &TrainOptions,
+    resume: Option<&Checkpoint>,
+    stop: &Arc<AtomicBool>,
+    mut progress: impl FnMut(&Progress),
+) -> Result<Trained, RunError> {
+    if let Some(c) = resume {
+        let (model, preset) = c.options();
+        if model.as_deref() != Some(options.model.name()) {
+            return Err(RunError::Options(format!(
+                "the checkpoint is of a {} model, not {}",
+                model.as_deref().unwrap_or("unknown"),
+                options.model.name()
+            )));
+        }
+        if preset.as_deref() != Some(options.preset.name()) {
+            return Err(RunError::Options(format!(
+                "the checkpoint uses the {} preset, not {}",
+                preset.as_deref().unwrap_or("unknown"),
+                options.preset.name()
+            )));
+        }
+    }
+    let start = Instant::now();
+    let total = match options.model {
+        ModelKind::Siren => options.steps,
+        ModelKind::Nglod => options.epochs,
+    }
+    .unwrap_or_else(|| default_length(options.model, options.preset, gpu.is_cpu()));
+    let training_json = |done: usize, loss: f32| {
+        serde_json::json!({
+            "model": options.model.name(),
+            "preset": options.preset.name(),
+            "seed": options.seed,
+            "done": done,
+            "final_loss": loss,
+        })
+    };
+    match options.model {
+        ModelKind::Siren => {
+            let config = match options.preset {
+                Preset::Default => SirenConfig::default(),
+                Preset::Small => SirenConfig::small(),
+            };
+            let siren = match resume {
+                Some(c) => Siren::from_model_file(&c.model_file())?,
+                None => Siren::new(config, options.seed).map_err(sdf_nn::siren::TrainError::from)?,
+            };
+            let train_config = SirenTrainConfig {
+                steps: total,
+                seed: options.seed,
+                ..Default::default()
+            };
+            let per_step = (train_config.surface_per_step + train_config.box_per_step) as f64;
+            let mut trainer = SirenTrainer::from_mesh(gpu, &siren, mesh, train_config)?;
+            if let Some(c) = resume {
+                let lr = c.lr().unwrap_or(trainer.lr());
+                trainer.resume(gpu, &c.optimizer()?, c.done(), lr)?;
+            }
+            let first = trainer.steps_done();
+            let mut loss = f32::NAN;
+            let mut interrupted = false;
+            while trainer.steps_done() < total {
+                if stop.load(Ordering::Relaxed) {
+                    interrupted = true;
+                    break;
+                }
+                if let Some(l) = trainer.step(gpu)? {
+                    loss = l.total();
+                    let done = trainer.steps_done();
+                    progress(&Progress {
+                        done,
+                        total,
+                        unit: "step",
+                        loss,
+                        lr: trainer.lr(),
+                        points_per_second: (done - first) as f64 * per_step
+                            / start.elapsed().as_secs_f64().max(1e-9),
+                    });
+                }
+            }
+            let done = trainer.steps_done();
+            let optimizer = trainer.optimizer_state(gpu)?;
+            let lr = trainer.lr();
+            let mut file = trainer.model_file(gpu)?;
+            file.metadata.training = training_json(done, loss);
+            file.metadata.normalization = normalization;
+            Ok(Trained {
+                file,
+                train_seconds: start.elapsed().as_secs_f64(),
+                done,
+                final_loss: loss,
+                interrupted,
+                details: serde_json::Value::Null,
+                optimizer,
+                lr,
+            })
+        }
+        ModelKind::Nglod => {
+            let mut config = match options.preset {
+                Preset::Default => NglodConfig::default_preset(),
+                Preset::Small => NglodConfig::small(),
+            };
+            config.seed = options.seed;
+            let model = match resume {
+                Some(c) => Nglod::from_model_file(&c.model_file())?,
+                None => Nglod::new(config)?,
+            };
+            let first = resume.map_or(0, Checkpoint::done).min(total);
+            let train_config = NglodTrainConfig {
+                epochs: total - first,
+                seed: options.seed,
+                ..Default::default()
+            };
+            let per_epoch = (train_config.uniform_points
+                + train_config.near_points
+                + train_config.surface_points) as f64;
+            let mut trainer = NglodTrainer::new(gpu, &model, mesh, train_config)?;
+            if let Some(c) = resume {
+                trainer.resume(&c.optimizer()?, first)?;
+            }
+            let report = trainer.train_with(|e| {
+                let done = e.epoch + 1;
+                progress(&Progress {
+                    done,
+                    total,
+                    unit: "epoch",
+                    loss: e.loss,
+                    lr: trainer_lr(),
+                    points_per_second: (done - first) as f64 * per_epoch
+                        / start.elapsed().as_secs_f64().max(1e-9),
+                });
+            })?;
+            let trained = trainer.model()?;
+            let optimizer = trainer.optimizer_state()?;
+            let done = trainer.epochs_done();
+            let mut training = training_json(done, report.final_loss);
+            training["gpu_seconds"] = report.gpu_seconds.into();
+            training["sampling_seconds"] = report.sampling_seconds.into();
+            training["stall_seconds"] = report.stall_seconds.into();
+            let file = trained.to_model_file(normalization, training.clone());
+            Ok(Trained {
+                file,
+                train_seconds: start.elapsed().as_secs_f64(),
+                done,
+                final_loss: report.final_loss,
+                interrupted: report.stopped_early && stop.load(Ordering::Relaxed),
+                details: training,
+                optimizer,
+                lr: trainer_lr(),
+            })
+        }
+    }
+}
+
+/// NGLOD trains at a fixed learning rate.
+fn trainer_lr() -> f32 {
+    NglodTrainConfig::default().adam.lr
+}
+
+/// Evaluation results of one model on one mesh.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct Evaluation {
+    /// F1 and distance errors.
+    pub scores: Scores,
+    /// Latency.
+    pub latency: Latency,
+    /// Points in each evaluation set.
+    pub eval_points: usize,
+}
+
+/// Scores and times `model` against the exact SDF of the normalised `mesh`.
+pub fn evaluate(
+    gpu: &GpuContext,
+    model: &NeuralSdf,
+    mesh: &Mesh,
+    points: usize,
+) -> Result<Evaluation, RunError> {
+    let sdf = SignedDistance::new(mesh).map_err(|source| RunError::Mesh {
+        path: PathBuf::from("<normalised mesh>"),
+        source,
+    })?;
+    let sets = EvalSets::new(mesh, &sdf, points, EVAL_SEED);
+    let scores = sets.score(|p: &[Vec3]| model.eval_normalized(gpu, p))?;
+    let latency = measure_latency(&sets.bbox.points, 10, |p| model.eval_normalized(gpu, p))?;
+    Ok(Evaluation {
+        scores,
+        latency,
+        eval_points: points,
+    })
+}
+
+/// The JSON report of `train` (and of each `corpus` entry).
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct Report {
+    /// Mesh file.
+    pub mesh: String,
+    /// `"siren"` or `"nglod"`.
+    pub model: String,
+    /// `"default"` or `"small"`.
+    pub preset: String,
+    /// Parameter count.
+    pub params: usize,
+    /// Model file size in bytes.
+    pub file_bytes: u64,
+    /// F1 of the inside class, uniform box points.
+    pub f1_bbox: f64,
+    /// F1 of the inside class, near-surface points.
+    pub f1_near_surface: f64,
+    /// Mean of the two.
+    pub f1_mean: f64,
+    /// Sign accuracy, box points.
+    pub sign_accuracy_bbox: f64,
+    /// Sign accuracy, near-surface points.
+    pub sign_accuracy_near_surface: f64,
+    /// Mean |Φ − SDF| near the surface, normalised units.
+    pub near_surface_mean_abs_error: f64,
+    /// Max |Φ − SDF| near the surface, normalised units.
+    pub near_surface_max_abs_error: f64,
+    /// Median wall time per point of a 50000-point batch, ns.
+    pub per_point_ns: f64,
+    /// Median wall time of a 3000-point batch (upload, dispatch, readback), µs.
+    pub batch3000_us: f64,
+    /// Pure GPU time per point from timestamp queries, where measured.
+    pub gpu_per_point_ns: Option<f64>,
+    /// Training wall time, s.
+    pub train_seconds: f64,
+    /// Steps (SIREN) or epochs (NGLOD) run.
+    pub trained: usize,
+    /// Final training loss.
+    pub final_loss: f32,
+    /// Points per evaluation set.
+    pub eval_points: usize,
+    /// Adapter the run used.
+    pub adapter: String,
+    /// hwsdf version.
+    pub hwsdf_version: String,
+    /// Training details (e.g. NGLOD's GPU/sampling time split).
+    pub training: serde_json::Value,
+}
+
+impl Report {
+    /// Assembles a report.
+    pub fn new(
+        mesh: &Path,
+        options: &TrainOptions,
+        trained: &Trained,
+        file_bytes: u64,
+        eval: &Evaluation,
+        adapter: String,
+    ) -> Self {
+        let s = &eval.scores;
+        Report {
+            mesh: mesh.display().to_string(),
+            model: options.model.name().into(),
+            preset: options.preset.name().into(),
+            params: trained.file.param_count(),
+            file_bytes,
+            f1_bbox: s.f1_bbox,
+            f1_near_surface: s.f1_near_surface,
+            f1_mean: s.f1_mean,
+            sign_accuracy_bbox: s.sign_accuracy_bbox,
+            sign_accuracy_near_surface: s.sign_accuracy_near_surface,
+            near_surface_mean_abs_error: s.near_surface_error.mean_abs,
+            near_surface_max_abs_error: s.near_surface_error.max_abs,
+            per_point_ns: eval.latency.per_point_ns,
+            batch3000_us: eval.latency.batch3000_us,
+            gpu_per_point_ns: eval.latency.gpu_per_point_ns,
+            train_seconds: trained.train_seconds,
+            trained: trained.done,
+            final_loss: trained.final_loss,
+            eval_points: eval.eval_points,
+            adapter,
+            hwsdf_version: sdf_nn::model_file::HWSDF_VERSION.into(),
+            training: trained.details.clone(),
+        }
+    }
+
+    /// Writes the report as pretty JSON, atomically.
+    pub fn write(&self, path: &Path) -> Result<(), RunError> {
+        let json = serde_json::to_vec_pretty(self).expect("report serialises");
+        write_atomic(path, &json).map_err(|source| RunError::Write {
+            path: path.to_owned(),
+            source,
+        })
+    }
+}
+
+/// The whole experiment for one mesh: train, save to `out`, evaluate, report.
+pub fn run(
+    gpu: &GpuContext,
+    mesh_path: &Path,
+    options: &TrainOptions,
+    out: &Path,
+    eval_points: usize,
+    stop: &Arc<AtomicBool>,
+    progress: impl FnMut(&Progress),
+) -> Result<(Report, Trained), RunError> {
+    let (mesh, normalization) = load_normalized(mesh_path)?;
+    let trained = train(gpu, &mesh, normalization, options, None, stop, progress)?;
+    trained.file.save(out)?;
+    let file_bytes = std::fs::metadata(out)
+        .map_err(|source| RunError::Write {
+            path: out.to_owned(),
+            source,
+        })?
+        .len();
+    let model = NeuralSdf::from_model_file(trained.file.clone())?;
+    let eval = evaluate(gpu, &model, &mesh, eval_points)?;
+    let report = Report::new(mesh_path, options, &trained, file_bytes, &eval, gpu.describe());
+    Ok((report, trained))
+}

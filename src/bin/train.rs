@@ -1,0 +1,249 @@
+//! Trains a neural SDF on a mesh on the GPU, saves it, evaluates it and writes a JSON report.
+//!
+//! ```sh
+//! cargo run --release --bin train -- tests/data/spot.obj --model nglod
+//! ```
+//!
+//! Ctrl-C stops after the current step (SIREN) or epoch (NGLOD) and saves what was learnt as a
+//! checkpoint next to the output; `--resume CHECKPOINT` continues from it.
+
+use std::io::IsTerminal;
+use std::path::{Path, PathBuf};
+use std::process::ExitCode;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
+
+use clap::{Parser, ValueEnum};
+use hwsdf::eval::metrics::DEFAULT_EVAL_POINTS;
+use hwsdf::eval::run::{self, ModelKind, Preset, Progress, TrainOptions};
+use hwsdf::nn::{GpuContext, NeuralSdf};
+use indicatif::{ProgressBar, ProgressStyle};
+
+#[derive(Clone, Copy, Debug, ValueEnum)]
+enum Model {
+    Siren,
+    Nglod,
+}
+
+#[derive(Clone, Copy, Debug, ValueEnum)]
+enum PresetArg {
+    Default,
+    Small,
+}
+
+/// Fit a neural signed distance function to a mesh on the GPU.
+#[derive(Parser, Debug)]
+#[command(version, about)]
+struct Args {
+    /// Mesh to fit (OBJ, glTF or GLB).
+    mesh: PathBuf,
+    /// Architecture.
+    #[arg(long, value_enum, default_value = "nglod")]
+    model: Model,
+    /// Size preset. Defaults to `default` on a GPU and `small` on a CPU adapter (lavapipe).
+    #[arg(long, value_enum)]
+    preset: Option<PresetArg>,
+    /// SIREN training steps (default: 10000 on a GPU, a few hundred on a CPU adapter).
+    #[arg(long, conflicts_with = "epochs")]
+    steps: Option<usize>,
+    /// NGLOD epochs of 5·10^5 points (default: 20 on a GPU, a few on a CPU adapter).
+    #[arg(long)]
+    epochs: Option<usize>,
+    /// Seed of initialisation and sampling.
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// Output model file (default: MESH's name with `.<model>.safetensors`).
+    #[arg(long)]
+    out: Option<PathBuf>,
+    /// JSON report (default: the output's name with `.json`).
+    #[arg(long)]
+    report: Option<PathBuf>,
+    /// Continue from a checkpoint written by an interrupted run.
+    #[arg(long)]
+    resume: Option<PathBuf>,
+    /// Points in each evaluation set.
+    #[arg(long, default_value_t = DEFAULT_EVAL_POINTS)]
+    eval_points: usize,
+}
+
+fn main() -> ExitCode {
+    let args = Args::parse();
+    match train(&args) {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("error: {e}");
+            ExitCode::FAILURE
+        }
+    }
+}
+
+fn train(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
+    if args.eval_points == 0 {
+        return Err("--eval-points must be at least 1".into());
+    }
+    if args.steps == Some(0) || args.epochs == Some(0) {
+        return Err("--steps and --epochs must be at least 1".into());
+    }
+    let model = match args.model {
+        Model::Siren => ModelKind::Siren,
+        Model::Nglod => ModelKind::Nglod,
+    };
+    if model == ModelKind::Siren && args.epochs.is_some() {
+        return Err("--epochs applies to NGLOD; SIREN trains for --steps".into());
+    }
+    if model == ModelKind::Nglod && args.steps.is_some() {
+        return Err("--steps applies to SIREN; NGLOD trains for --epochs".into());
+    }
+    // Load the mesh before the GPU: a bad mesh is reported at once.
+    let (mesh, normalization) = run::load_normalized(&args.mesh)?;
+    let gpu = GpuContext::new()?;
+    let preset = match args.preset {
+        Some(PresetArg::Default) => Preset::Default,
+        Some(PresetArg::Small) => Preset::Small,
+        None if gpu.is_cpu() => {
+            eprintln!("note: CPU adapter; using the `small` preset (pass --preset default to override)");
+            Preset::Small
+        }
+        None => Preset::Default,
+    };
+    let out = args.out.clone().unwrap_or_else(|| default_out(&args.mesh, model));
+    let report_path = args
+        .report
+        .clone()
+        .unwrap_or_else(|| out.with_extension("json"));
+    let options = TrainOptions {
+        model,
+        preset,
+        steps: args.steps,
+        epochs: args.epochs,
+        seed: args.seed,
+    };
+    eprintln!(
+        "training {} ({}) on {} with {}",
+        model.name(),
+        preset.name(),
+        args.mesh.display(),
+        gpu.describe()
+    );
+
+    let stop = Arc::new(AtomicBool::new(false));
+    {
+        let stop = stop.clone();
+        ctrlc::set_handler(move || {
+            if stop.swap(true, Ordering::Relaxed) {
+                // A second Ctrl-C means now.
+                std::process::exit(130);
+            }
+            eprintln!("\nstopping after the current step; Ctrl-C again to abort without saving");
+        })?;
+    }
+
+    let resume = match &args.resume {
+        Some(path) => Some(run::Checkpoint::load(path)?),
+        None => None,
+    };
+    let mut reporter = Reporter::new();
+    let trained = run::train(
+        &gpu,
+        &mesh,
+        normalization,
+        &options,
+        resume.as_ref(),
+        &stop,
+        |p| reporter.update(p),
+    )?;
+    reporter.finish();
+
+    if trained.interrupted {
+        let checkpoint = checkpoint_path(&out);
+        trained.checkpoint().save(&checkpoint)?;
+        eprintln!(
+            "interrupted after {} {}s; checkpoint written to {}. Continue with:\n  train {} --model {} --resume {}",
+            trained.done,
+            if model == ModelKind::Siren { "step" } else { "epoch" },
+            checkpoint.display(),
+            args.mesh.display(),
+            model.name(),
+            checkpoint.display()
+        );
+        return Ok(());
+    }
+
+    trained.file.save(&out)?;
+    let file_bytes = std::fs::metadata(&out)?.len();
+    eprintln!("saved {} ({} bytes); evaluating", out.display(), file_bytes);
+    let sdf = NeuralSdf::from_model_file(trained.file.clone())?;
+    let eval = run::evaluate(&gpu, &sdf, &mesh, args.eval_points)?;
+    let report = run::Report::new(&args.mesh, &options, &trained, file_bytes, &eval, gpu.describe());
+    report.write(&report_path)?;
+    println!(
+        "{} {}: F1 box {:.4}, near surface {:.4}, mean {:.4}; {:.1} ns/point, {:.0} µs per 3000; {} params, {} bytes; trained in {:.1} s",
+        args.mesh.display(),
+        model.name(),
+        report.f1_bbox,
+        report.f1_near_surface,
+        report.f1_mean,
+        report.per_point_ns,
+        report.batch3000_us,
+        report.params,
+        report.file_bytes,
+        report.train_seconds
+    );
+    eprintln!("report written to {}", report_path.display());
+    Ok(())
+}
+
+fn default_out(mesh: &Path, model: ModelKind) -> PathBuf {
+    let stem = mesh.file_stem().map(|s| s.to_string_lossy().into_owned());
+    PathBuf::from(format!("{}.{}.safetensors", stem.as_deref().unwrap_or("model"), model.name()))
+}
+
+fn checkpoint_path(out: &Path) -> PathBuf {
+    out.with_extension("checkpoint.safetensors")
+}
+
+/// A progress bar on a terminal, plain log lines otherwise.
+struct Reporter {
+    bar: Option<ProgressBar>,
+    last_line: std::time::Instant,
+}
+
+impl Reporter {
+    fn new() -> Self {
+        Reporter {
+            bar: None,
+            last_line: std::time::Instant::now(),
+        }
+    }
+
+    fn update(&mut self, p: &Progress) {
+        let msg = format!(
+            "loss {:.5}  lr {:.1e}  {:.0} points/s",
+            p.loss, p.lr, p.points_per_second
+        );
+        if std::io::stderr().is_terminal() {
+            let bar = self.bar.get_or_insert_with(|| {
+                let bar = ProgressBar::new(p.total as u64);
+                bar.set_style(
+                    ProgressStyle::with_template(
+                        "{prefix} {bar:30} {pos}/{len} {msg}  [{elapsed_precise}, ETA {eta}]",
+                    )
+                    .expect("static template"),
+                );
+                bar.set_prefix(format!("{}s", p.unit));
+                bar
+            });
+            bar.set_position(p.done as u64);
+            bar.set_message(msg);
+        } else if self.last_line.elapsed().as_secs_f64() >= 5.0 || p.done == p.total {
+            self.last_line = std::time::Instant::now();
+            eprintln!("{} {}/{}  {msg}", p.unit, p.done, p.total);
+        }
+    }
+
+    fn finish(&mut self) {
+        if let Some(bar) = self.bar.take() {
+            bar.finish();
+        }
+    }
+}
