@@ -8,8 +8,11 @@
 //   m == H·F + 2H    b1       = Σ g
 //   m == H·F + 2H+1  loss     = Σ r²
 //
-// `mlp_partial` sums one chunk of rows per workgroup row (y) into `partials`; `mlp_reduce` sums the
-// chunks in a fixed order and adds the result to the gradient buffer, so the MLP gradients are
+// `mlp_partial` sums one chunk of rows per workgroup row (y) into `partials`: invocation j < H
+// produces every output of hidden unit j (W0[j, :], b0[j], W1[j]), invocation H produces b1 and
+// the loss. Each row's g and z are then the same for all invocations of a workgroup (uniform
+// loads) and a_j is read once per row, rather than once per output. `mlp_reduce` sums the chunks
+// in a fixed order and adds the result to the gradient buffer, so the MLP gradients are
 // deterministic.
 
 struct Uniforms {
@@ -34,57 +37,59 @@ override H: u32 = 128u;
 @group(0) @binding(2) var<storage, read> rows: array<f32>;
 @group(0) @binding(3) var<storage, read_write> partials: array<f32>;
 
+const MAX_F: u32 = 32u;
+
 @compute @workgroup_size(WG)
 fn mlp_partial(
     @builtin(workgroup_id) wid: vec3<u32>,
     @builtin(local_invocation_index) lid: u32,
 ) {
     let n_out = H * F + 2u * H + 2u;
-    let m = wid.x * WG + lid;
+    let j = wid.x * WG + lid;
     let chunk = wid.y;
-    if m >= n_out || chunk >= u.n_chunks {
+    if j > H || chunk >= u.n_chunks {
         return;
     }
     let stride = 2u + F + H;
     let start = chunk * u.chunk;
     let end = min(start + u.chunk, u.n_rows);
-    let w1 = u.mlp_offset + H * F + H;
-    var s = 0.0;
-    if m < H * F {
-        let j = m / F;
-        let f = m % F;
+    let out = chunk * n_out;
+    if j == H {
+        var sg = 0.0;
+        var sl = 0.0;
         for (var i = start; i < end; i++) {
-            let row = i * stride;
-            if rows[row + 2u + F + j] > 0.0 {
-                s += rows[row] * rows[row + 2u + f];
+            sg += rows[i * stride];
+            sl += rows[i * stride + 1u];
+        }
+        partials[out + H * F + 2u * H] = sg;
+        partials[out + H * F + 2u * H + 1u] = sl;
+        return;
+    }
+    var sw0: array<f32, MAX_F>;
+    for (var f = 0u; f < F; f++) {
+        sw0[f] = 0.0;
+    }
+    var sb0 = 0.0;
+    var sw1 = 0.0;
+    for (var i = start; i < end; i++) {
+        let row = i * stride;
+        let g = rows[row];
+        let a = rows[row + 2u + F + j];
+        sw1 += g * a;
+        if a > 0.0 {
+            sb0 += g;
+            for (var f = 0u; f < F; f++) {
+                sw0[f] += g * rows[row + 2u + f];
             }
-        }
-        s *= params[w1 + j];
-    } else if m < H * F + H {
-        let j = m - H * F;
-        for (var i = start; i < end; i++) {
-            let row = i * stride;
-            if rows[row + 2u + F + j] > 0.0 {
-                s += rows[row];
-            }
-        }
-        s *= params[w1 + j];
-    } else if m < H * F + 2u * H {
-        let j = m - H * F - H;
-        for (var i = start; i < end; i++) {
-            let row = i * stride;
-            s += rows[row] * rows[row + 2u + F + j];
-        }
-    } else if m == H * F + 2u * H {
-        for (var i = start; i < end; i++) {
-            s += rows[i * stride];
-        }
-    } else {
-        for (var i = start; i < end; i++) {
-            s += rows[i * stride + 1u];
         }
     }
-    partials[chunk * n_out + m] = s;
+    // dL/dh_j = g W1[j] [a_j > 0]: W1[j] is common to every row, so it is applied once here.
+    let w1 = params[u.mlp_offset + H * F + H + j];
+    for (var f = 0u; f < F; f++) {
+        partials[out + j * F + f] = sw0[f] * w1;
+    }
+    partials[out + H * F + j] = sb0 * w1;
+    partials[out + H * F + H + j] = sw1;
 }
 
 @group(0) @binding(4) var<storage, read_write> grads: array<f32>;

@@ -35,7 +35,7 @@ struct Uniforms {
 
 const WG: u32 = 64u;
 const MAX_F: u32 = 32u;
-const MAX_MLP: u32 = 3840u;
+const MAX_MLP_VEC4: u32 = 960u;
 
 override F: u32 = 8u;
 override H: u32 = 128u;
@@ -45,6 +45,12 @@ override H: u32 = 128u;
 @group(0) @binding(2) var<storage, read> points: array<f32>;
 @group(0) @binding(3) var<storage, read> targets: array<f32>;
 @group(0) @binding(4) var<storage, read_write> rows: array<f32>;
+// The MLP block of params (W0, b0, W1, b1), copied here before each step (see nglod_forward.wgsl).
+@group(0) @binding(6) var<uniform> mlp: array<vec4<f32>, MAX_MLP_VEC4>;
+
+fn mlp_at(i: u32) -> f32 {
+    return mlp[i / 4u][i % 4u];
+}
 // SCATTER BEGIN
 @group(0) @binding(5) var<storage, read_write> grads: array<atomic<f32>>;
 
@@ -53,7 +59,6 @@ fn grad_add(i: u32, x: f32) {
 }
 // SCATTER END
 
-var<workgroup> mlp: array<f32, MAX_MLP>;
 
 @compute @workgroup_size(WG)
 fn train_rows(
@@ -61,12 +66,6 @@ fn train_rows(
     @builtin(num_workgroups) nwg: vec3<u32>,
     @builtin(local_invocation_index) lid: u32,
 ) {
-    let n_mlp = H * F + 2u * H + 1u;
-    for (var i = lid; i < n_mlp; i += WG) {
-        mlp[i] = params[u.mlp_offset + i];
-    }
-    workgroupBarrier();
-
     let row_idx = (wid.y * nwg.x + wid.x) * WG + lid;
     if row_idx >= u.n_rows {
         return;
@@ -103,15 +102,15 @@ fn train_rows(
     let row = row_idx * stride;
     let b0 = H * F;
     let w1 = b0 + H;
-    var o = mlp[w1 + H];
+    var o = mlp_at(w1 + H);
     for (var j = 0u; j < H; j++) {
-        var h = mlp[b0 + j];
+        var h = mlp_at(b0 + j);
         for (var f = 0u; f < F; f++) {
-            h += mlp[j * F + f] * z[f];
+            h += mlp_at(j * F + f) * z[f];
         }
         let a = max(h, 0.0);
         rows[row + 2u + F + j] = a;
-        o += mlp[w1 + j] * a;
+        o += mlp_at(w1 + j) * a;
     }
     let res = o - targets[pi];
     let g = 2.0 * res;
@@ -129,9 +128,9 @@ fn train_rows(
     }
     for (var j = 0u; j < H; j++) {
         if rows[row + 2u + F + j] > 0.0 {
-            let c = g * mlp[w1 + j];
+            let c = g * mlp_at(w1 + j);
             for (var f = 0u; f < F; f++) {
-                dz[f] += c * mlp[j * F + f];
+                dz[f] += c * mlp_at(j * F + f);
             }
         }
     }

@@ -6,14 +6,15 @@ use std::sync::Mutex;
 
 use glam::Vec3;
 
-use super::{MAX_LEVELS, Nglod, NglodConfig, NglodError, Objective, ParamLayout};
+use super::{MAX_LEVELS, MAX_MLP_FLOATS, Nglod, NglodConfig, NglodError, Objective, ParamLayout};
 use crate::gpu::{GpuContext, GpuError};
 use crate::shaders;
 
 /// Invocations per workgroup of every NGLOD kernel (the `WG` constant of the shaders).
 const WG: u32 = 64;
-/// Rows summed by one `mlp_partial` workgroup row.
-const CHUNK: u32 = 256;
+/// Rows summed by one `mlp_partial` workgroup row: small enough that a 512-point batch still
+/// spreads over several workgroups.
+const CHUNK: u32 = 64;
 /// Points per inference dispatch: bounds the staging buffers (12 MiB of points).
 const EVAL_CHUNK: usize = 1 << 20;
 
@@ -69,6 +70,8 @@ pub struct NglodGpu {
     layout: ParamLayout,
     params: wgpu::Buffer,
     grads: wgpu::Buffer,
+    /// Uniform copy of the MLP block of `params`, refreshed before every dispatch that reads it.
+    mlp: wgpu::Buffer,
     float_atomics: bool,
     constants: [(&'static str, f64); 2],
     eval: Mutex<Option<EvalScratch>>,
@@ -122,6 +125,12 @@ impl NglodGpu {
         let layout = config.layout();
         let params = gpu.storage_from_slice("nglod params", model.params())?;
         let grads = gpu.storage_zeroed("nglod grads", layout.len as u64 * 4)?;
+        let mlp = gpu.device().create_buffer(&wgpu::BufferDescriptor {
+            label: Some("nglod mlp uniform"),
+            size: u64::from(MAX_MLP_FLOATS) * 4,
+            usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
+            mapped_at_creation: false,
+        });
         let constants = [
             ("F", f64::from(config.feature_dim)),
             ("H", f64::from(config.hidden)),
@@ -131,6 +140,7 @@ impl NglodGpu {
             layout,
             params,
             grads,
+            mlp,
             float_atomics,
             constants,
             eval: Mutex::new(None),
@@ -209,6 +219,7 @@ impl NglodGpu {
                     entry(1, &self.params),
                     entry(2, &pts),
                     entry(3, &out),
+                    entry(4, &self.mlp),
                 ],
             });
             *guard = Some(EvalScratch {
@@ -228,6 +239,7 @@ impl NglodGpu {
             gpu.write(&s.points, bytemuck::cast_slice::<Vec3, f32>(chunk))?;
             gpu.write(&s.uniforms, &[self.eval_uniforms(n, k)])?;
             let mut enc = gpu.device().create_command_encoder(&Default::default());
+            self.record_mlp_copy(&mut enc);
             {
                 let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
                     label: Some("nglod forward"),
@@ -242,6 +254,13 @@ impl NglodGpu {
             result.extend(gpu.read_back_range::<f32>(&s.out, 0, u64::from(n))?);
         }
         Ok(result)
+    }
+
+    /// Copies the MLP block of the parameters into the uniform buffer the kernels read it from.
+    fn record_mlp_copy(&self, enc: &mut wgpu::CommandEncoder) {
+        let start = self.layout.w0 as u64 * 4;
+        let bytes = (self.layout.len - self.layout.w0) as u64 * 4;
+        enc.copy_buffer_to_buffer(&self.params, start, &self.mlp, 0, bytes);
     }
 
     fn eval_uniforms(&self, n: u32, lod: usize) -> EvalUniforms {
@@ -301,6 +320,10 @@ impl NglodGpu {
 
 /// The training kernels bound to one set of point and target buffers.
 pub(crate) struct TrainKernels {
+    /// The model's parameter buffer and its MLP uniform copy (wgpu handles are shared).
+    params: wgpu::Buffer,
+    mlp: wgpu::Buffer,
+    mlp_range: (u64, u64),
     uniforms: wgpu::Buffer,
     /// `stats[0]`: Σ r² accumulated over recorded steps until cleared.
     pub(crate) stats: wgpu::Buffer,
@@ -315,6 +338,7 @@ pub(crate) struct TrainKernels {
     base: TrainUniforms,
     max_points: u32,
     n_out: u32,
+    hidden: u32,
 }
 
 impl TrainKernels {
@@ -373,6 +397,7 @@ impl TrainKernels {
                 entry(3, targets),
                 entry(4, &rows),
                 entry(5, &model.grads),
+                entry(6, &model.mlp),
             ],
         });
         let bg_partial = dev.create_bind_group(&wgpu::BindGroupDescriptor {
@@ -396,6 +421,12 @@ impl TrainKernels {
             ],
         });
         Ok(TrainKernels {
+            params: model.params.clone(),
+            mlp: model.mlp.clone(),
+            mlp_range: (
+                model.layout.w0 as u64 * 4,
+                (model.layout.len - model.layout.w0) as u64 * 4,
+            ),
             uniforms,
             stats,
             _rows: rows,
@@ -409,6 +440,7 @@ impl TrainKernels {
             base,
             max_points,
             n_out,
+            hidden: c.hidden,
         })
     }
 
@@ -438,6 +470,8 @@ impl TrainKernels {
             ..self.base
         };
         gpu.write(&self.uniforms, &[u])?;
+        let (start, bytes) = self.mlp_range;
+        enc.copy_buffer_to_buffer(&self.params, start, &self.mlp, 0, bytes);
         let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
             label: Some("nglod train step"),
             timestamp_writes: None,
@@ -448,7 +482,8 @@ impl TrainKernels {
         pass.dispatch_workgroups(x, y, 1);
         pass.set_pipeline(&self.partial);
         pass.set_bind_group(0, &self.bg_partial, &[]);
-        pass.dispatch_workgroups(self.n_out.div_ceil(WG), n_chunks, 1);
+        // One invocation per hidden unit plus one for b1 and the loss.
+        pass.dispatch_workgroups((self.hidden + 1).div_ceil(WG), n_chunks, 1);
         pass.set_pipeline(&self.reduce);
         pass.set_bind_group(0, &self.bg_reduce, &[]);
         pass.dispatch_workgroups(self.n_out.div_ceil(WG), 1, 1);

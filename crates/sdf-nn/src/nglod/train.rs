@@ -378,7 +378,11 @@ impl NglodTrainer<'_> {
 
     /// Continues a run: restores the optimiser state and the epoch count (which also seeds each
     /// epoch's samples). The weights come with the [`Nglod`] the trainer was built from.
-    pub fn resume(&mut self, state: &crate::AdamState, epochs_done: usize) -> Result<(), NglodError> {
+    pub fn resume(
+        &mut self,
+        state: &crate::AdamState,
+        epochs_done: usize,
+    ) -> Result<(), NglodError> {
         self.adam.import_state(self.gpu, state)?;
         self.epochs_done = epochs_done;
         Ok(())
