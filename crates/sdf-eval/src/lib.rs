@@ -15,5 +15,5 @@ pub mod metrics;
 pub mod run;
 pub mod timing;
 
-pub use metrics::{Confusion, DistanceError, EvalSets, Scores};
+pub use metrics::{Confusion, DistanceError, EvalSets, Scores, SurfaceMetrics};
 pub use timing::Latency;

@@ -196,6 +196,65 @@ impl Scores {
     }
 }
 
+/// How close an extracted mesh is to the original: symmetric Chamfer-L1 distance and normal
+/// consistency, from area-uniform samples on each surface matched to the closest point of the
+/// other (exact BVH queries, not nearest samples).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct SurfaceMetrics {
+    /// ½ (mean distance from extracted to original + mean distance from original to
+    /// extracted), in the units of the meshes given.
+    pub chamfer_l1: f64,
+    /// Mean |n_a · n_b| over both directions, where n_b is the normal of the other mesh's
+    /// triangle at the closest point; 1 for identical surfaces. Orientation-insensitive.
+    pub normal_consistency: f64,
+    /// Samples on each surface.
+    pub samples: usize,
+}
+
+impl SurfaceMetrics {
+    /// Compares `extracted` with `original` using `samples` points on each.
+    pub fn between(
+        extracted: &Mesh,
+        original: &Mesh,
+        samples: usize,
+        seed: u64,
+    ) -> Result<Self, sdf_geom::GeomError> {
+        let to_original = SignedDistance::new(original)?;
+        let to_extracted = SignedDistance::new(extracted)?;
+        let (d_ab, n_ab) = one_way(extracted, original, &to_original, samples, seed);
+        let (d_ba, n_ba) = one_way(original, extracted, &to_extracted, samples, seed ^ 0xA5A5);
+        Ok(SurfaceMetrics {
+            chamfer_l1: 0.5 * (d_ab + d_ba),
+            normal_consistency: 0.5 * (n_ab + n_ba),
+            samples,
+        })
+    }
+}
+
+/// Mean distance and mean |normal dot| from samples on `from` to the closest points on `to`.
+fn one_way(from: &Mesh, to: &Mesh, to_sdf: &SignedDistance, n: usize, seed: u64) -> (f64, f64) {
+    use rayon::prelude::*;
+    let s = sample::surface(from, n, seed);
+    if s.points.is_empty() {
+        return (f64::INFINITY, 0.0);
+    }
+    let (dist, dot): (f64, f64) = s
+        .points
+        .par_iter()
+        .zip(&s.normals)
+        .map(|(&p, &n)| {
+            let c = to_sdf.closest_point(p);
+            let tn = to
+                .corners(&to.triangles[c.triangle as usize])
+                .map(|[a, b, c]| (b - a).cross(c - a).normalize_or_zero())
+                .unwrap_or(Vec3::ZERO);
+            (f64::from(c.distance), f64::from(n.dot(tn).abs()))
+        })
+        .reduce(|| (0.0, 0.0), |a, b| (a.0 + b.0, a.1 + b.1));
+    let k = s.points.len() as f64;
+    (dist / k, dot / k)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -257,9 +316,8 @@ mod tests {
         );
     }
 
-    #[test]
-    fn eval_sets_on_a_cube_score_the_exact_sdf_perfectly() {
-        let (mesh, _) = sdf_geom::Mesh::from_raw(
+    fn unit_cube() -> Mesh {
+        sdf_geom::Mesh::from_raw(
             (0..8)
                 .map(|i| Vec3::new((i & 1) as f32, ((i >> 1) & 1) as f32, ((i >> 2) & 1) as f32))
                 .collect(),
@@ -278,8 +336,36 @@ mod tests {
                 [3, 7, 5],
             ],
         )
-        .unwrap();
-        let (unit, _) = mesh.normalized();
+        .unwrap()
+        .0
+    }
+
+    #[test]
+    fn surface_metrics_of_identical_and_shifted_meshes() {
+        let cube = unit_cube();
+        let same = SurfaceMetrics::between(&cube, &cube, 2000, 1).unwrap();
+        assert!(same.chamfer_l1 < 1e-6, "{same:?}");
+        assert!((same.normal_consistency - 1.0).abs() < 1e-6, "{same:?}");
+        // A copy shifted by 0.1 along x: the x faces are 0.1 apart; other faces mostly overlap.
+        let shifted = sdf_geom::Mesh {
+            vertices: cube.vertices.iter().map(|v| *v + Vec3::X * 0.1).collect(),
+            triangles: cube.triangles.clone(),
+        };
+        let m = SurfaceMetrics::between(&shifted, &cube, 4000, 2).unwrap();
+        // Each direction: the 2 x faces (1/3 of the area) are 0.1 away, the rest 0 (overlap)
+        // except the 0.1-wide strip that sticks out: expected about 0.1/3 + small.
+        assert!(m.chamfer_l1 > 0.03 && m.chamfer_l1 < 0.05, "{m:?}");
+        // Near the edges of the inner x face the closest point is on a perpendicular face
+        // (|n·n'| = 0): about 0.36 of that face, a sixth of the area, so roughly 0.9, not 1.
+        assert!(
+            m.normal_consistency > 0.8 && m.normal_consistency < 0.95,
+            "{m:?}"
+        );
+    }
+
+    #[test]
+    fn eval_sets_on_a_cube_score_the_exact_sdf_perfectly() {
+        let (unit, _) = unit_cube().normalized();
         let sdf = SignedDistance::new(&unit).unwrap();
         let sets = EvalSets::new(&unit, &sdf, 2000, EVAL_SEED);
         assert_eq!(sets.bbox.points.len(), 2000);

@@ -7,11 +7,12 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Instant;
 
 use glam::Vec3;
+use sdf_geom::extract::{ExtractError, ExtractOptions, ExtractStats, extract_surface};
 use sdf_geom::{Mesh, SignedDistance};
 use sdf_nn::model_file::write_atomic;
 use sdf_nn::{
-    AdamState, GpuContext, ModelFile, NeuralSdf, Nglod, NglodConfig, NglodTrainConfig, NglodTrainer, Siren,
-    SirenConfig, SirenTrainConfig, SirenTrainer,
+    AdamState, GpuContext, ModelFile, NeuralSdf, Nglod, NglodConfig, NglodTrainConfig,
+    NglodTrainer, Siren, SirenConfig, SirenTrainConfig, SirenTrainer,
 };
 use serde::{Deserialize, Serialize};
 
@@ -221,7 +222,10 @@ impl Trained {
     pub fn checkpoint(&self) -> Checkpoint {
         let mut file = self.file.clone();
         let n = self.optimizer.m.len();
-        for (name, data) in [("optimizer.m", &self.optimizer.m), ("optimizer.v", &self.optimizer.v)] {
+        for (name, data) in [
+            ("optimizer.m", &self.optimizer.m),
+            ("optimizer.v", &self.optimizer.v),
+        ] {
             file.tensors.push(sdf_nn::model_file::Tensor {
                 name: name.into(),
                 shape: vec![n],
@@ -310,7 +314,9 @@ pub fn train(
             };
             let siren = match resume {
                 Some(c) => Siren::from_model_file(&c.model_file())?,
-                None => Siren::new(config, options.seed).map_err(sdf_nn::siren::TrainError::from)?,
+                None => {
+                    Siren::new(config, options.seed).map_err(sdf_nn::siren::TrainError::from)?
+                }
             };
             let train_config = SirenTrainConfig {
                 steps: total,
@@ -456,6 +462,28 @@ pub fn evaluate(
     })
 }
 
+/// Extracts the model's zero level set at `resolution` cells per axis, evaluating on the GPU,
+/// and returns it in the original mesh's coordinates.
+pub fn extract_mesh(
+    gpu: &GpuContext,
+    model: &NeuralSdf,
+    resolution: u32,
+) -> Result<(Mesh, ExtractStats), RunError> {
+    let (mut mesh, stats) = extract_surface(
+        |p: &[Vec3]| model.eval_normalized(gpu, p),
+        &ExtractOptions::new(resolution),
+    )
+    .map_err(|e| match e {
+        ExtractError::Eval(e) => RunError::Model(e),
+        other => RunError::Options(other.to_string()),
+    })?;
+    let n = model.normalization();
+    for v in &mut mesh.vertices {
+        *v = n.to_original(*v);
+    }
+    Ok((mesh, stats))
+}
+
 /// The JSON report of `train` (and of each `corpus` entry).
 #[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct Report {
@@ -573,6 +601,13 @@ pub fn run(
         .len();
     let model = NeuralSdf::from_model_file(trained.file.clone())?;
     let eval = evaluate(gpu, &model, &mesh, eval_points)?;
-    let report = Report::new(mesh_path, options, &trained, file_bytes, &eval, gpu.describe());
+    let report = Report::new(
+        mesh_path,
+        options,
+        &trained,
+        file_bytes,
+        &eval,
+        gpu.describe(),
+    );
     Ok((report, trained))
 }
