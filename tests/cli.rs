@@ -1,0 +1,212 @@
+//! The binaries as a user runs them: `train` end to end with its report, `eval` and `extract`
+//! on the result, `corpus` resuming, and clear errors with non-zero exits on bad input.
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+use std::sync::OnceLock;
+
+fn bin(name: &str) -> Command {
+    let path = match name {
+        "train" => env!("CARGO_BIN_EXE_train"),
+        "eval" => env!("CARGO_BIN_EXE_eval"),
+        "extract" => env!("CARGO_BIN_EXE_extract"),
+        "corpus" => env!("CARGO_BIN_EXE_corpus"),
+        "gpu-info" => env!("CARGO_BIN_EXE_gpu-info"),
+        other => panic!("no binary {other}"),
+    };
+    Command::new(path)
+}
+
+fn data(name: &str) -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data").join(name)
+}
+
+fn scratch(name: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("hwsdf-cli-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    dir.join(name)
+}
+
+fn stderr(o: &Output) -> String {
+    String::from_utf8_lossy(&o.stderr).into_owned()
+}
+
+/// Fails with a clear message, no panic, non-zero exit.
+fn assert_clean_failure(o: &Output, needle: &str) {
+    let err = stderr(o);
+    assert!(!o.status.success(), "expected failure, got success; stderr: {err}");
+    assert!(!err.contains("panicked"), "panicked: {err}");
+    assert!(err.to_lowercase().contains(&needle.to_lowercase()), "{needle:?} not in: {err}");
+}
+
+/// One small NGLOD trained by the `train` binary, shared by the tests that need a model.
+fn trained() -> &'static (PathBuf, serde_json::Value) {
+    static TRAINED: OnceLock<(PathBuf, serde_json::Value)> = OnceLock::new();
+    TRAINED.get_or_init(|| {
+        let out = scratch("suzanne.nglod.safetensors");
+        let report = scratch("suzanne.nglod.json");
+        let o = bin("train")
+            .arg(data("suzanne.obj"))
+            .args(["--model", "nglod", "--preset", "small", "--epochs", "2"])
+            .args(["--eval-points", "3000", "--out"])
+            .arg(&out)
+            .arg("--report")
+            .arg(&report)
+            .output()
+            .unwrap();
+        assert!(o.status.success(), "train failed: {}", stderr(&o));
+        let json: serde_json::Value =
+            serde_json::from_slice(&std::fs::read(&report).unwrap()).unwrap();
+        (out, json)
+    })
+}
+
+#[test]
+fn train_writes_a_model_and_a_complete_report() {
+    let (model, report) = trained();
+    assert!(model.exists());
+    for key in [
+        "mesh",
+        "model",
+        "preset",
+        "params",
+        "file_bytes",
+        "f1_bbox",
+        "f1_near_surface",
+        "f1_mean",
+        "per_point_ns",
+        "batch3000_us",
+        "train_seconds",
+        "adapter",
+    ] {
+        assert!(report.get(key).is_some(), "report lacks {key}: {report}");
+    }
+    assert_eq!(report["model"], "nglod");
+    assert_eq!(report["preset"], "small");
+    assert_eq!(
+        report["file_bytes"].as_u64().unwrap(),
+        std::fs::metadata(model).unwrap().len()
+    );
+    // Two epochs of the small NGLOD already get most of the box right.
+    let f1 = report["f1_bbox"].as_f64().unwrap();
+    assert!(f1 > 0.8 && f1 <= 1.0, "{report}");
+    let mean = report["f1_mean"].as_f64().unwrap();
+    let expect = 0.5 * (f1 + report["f1_near_surface"].as_f64().unwrap());
+    assert!((mean - expect).abs() < 1e-9);
+}
+
+#[test]
+fn eval_and_extract_use_the_trained_model() {
+    let (model, report) = trained();
+    let o = bin("eval")
+        .arg(model)
+        .arg(data("suzanne.obj"))
+        .args(["--points", "3000", "--surface-resolution", "48", "--json"])
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", stderr(&o));
+    let json: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    // Same model, same evaluation sets: the same F1.
+    assert_eq!(json["f1_bbox"], report["f1_bbox"]);
+    let chamfer = json["chamfer_l1"].as_f64().unwrap();
+    assert!(chamfer > 0.0 && chamfer < 0.1, "{json}");
+
+    let obj = scratch("suzanne.extracted.obj");
+    let o = bin("extract")
+        .arg(model)
+        .args(["--resolution", "48", "--out"])
+        .arg(&obj)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", stderr(&o));
+    let (mesh, _) = hwsdf::geom::load_mesh(&obj).unwrap();
+    assert!(mesh.triangles.len() > 100);
+    // Written in the original mesh's coordinates: its bounds match the source mesh's.
+    let (source, _) = hwsdf::geom::load_mesh(data("suzanne.obj")).unwrap();
+    let (a, b) = (mesh.bounds(), source.bounds());
+    let diag = b.diagonal();
+    assert!((a.min - b.min).length() < 0.1 * diag && (a.max - b.max).length() < 0.1 * diag);
+}
+
+#[test]
+fn corpus_records_failures_and_skips_finished_meshes() {
+    let dir = scratch("corpus-in");
+    std::fs::create_dir_all(&dir).unwrap();
+    std::fs::copy(data("suzanne.obj"), dir.join("suzanne.obj")).unwrap();
+    std::fs::write(dir.join("broken.obj"), "v 0 0 0\nf 1 2 3\n").unwrap();
+    let out = scratch("corpus.md");
+    let run = || {
+        bin("corpus")
+            .arg(&dir)
+            .args(["--model", "nglod", "--epochs", "1", "--eval-points", "2000", "--out"])
+            .arg(&out)
+            .output()
+            .unwrap()
+    };
+    let first = run();
+    assert!(first.status.success(), "{}", stderr(&first));
+    let table = std::fs::read_to_string(&out).unwrap();
+    assert!(table.contains("| suzanne.obj | 0."), "{table}");
+    assert!(table.contains("| broken.obj | failed:"), "{table}");
+    assert!(table.contains("design document"), "{table}");
+    let second = run();
+    assert!(second.status.success());
+    assert!(stderr(&second).contains("suzanne.obj nglod: done earlier, skipped"));
+}
+
+#[test]
+fn bad_input_gives_clear_errors() {
+    let missing = bin("train").arg("/nonexistent/mesh.obj").output().unwrap();
+    assert_clean_failure(&missing, "/nonexistent/mesh.obj");
+
+    let unknown = scratch("mesh.xyz");
+    std::fs::write(&unknown, "hello").unwrap();
+    assert_clean_failure(&bin("train").arg(&unknown).output().unwrap(), "xyz");
+
+    let bad_model = bin("train")
+        .arg(data("suzanne.obj"))
+        .args(["--model", "resnet"])
+        .output()
+        .unwrap();
+    assert_clean_failure(&bad_model, "resnet");
+
+    let wrong_length = bin("train")
+        .arg(data("suzanne.obj"))
+        .args(["--model", "nglod", "--steps", "10"])
+        .output()
+        .unwrap();
+    assert_clean_failure(&wrong_length, "--epochs");
+
+    let corrupt = scratch("corrupt.safetensors");
+    std::fs::write(&corrupt, b"\x10\0\0\0\0\0\0\0{not json}").unwrap();
+    let o = bin("eval").arg(&corrupt).arg(data("suzanne.obj")).output().unwrap();
+    assert_clean_failure(&o, "corrupt.safetensors");
+
+    let (model, _) = trained();
+    let o = bin("extract")
+        .arg(model)
+        .args(["--resolution", "100000", "--out"])
+        .arg(scratch("never.obj"))
+        .output()
+        .unwrap();
+    assert_clean_failure(&o, "resolution");
+    assert!(!scratch("never.obj").exists());
+
+    let o = bin("eval")
+        .arg(model)
+        .arg(data("suzanne.obj"))
+        .args(["--lod", "9"])
+        .output()
+        .unwrap();
+    assert_clean_failure(&o, "level");
+}
+
+#[test]
+fn unknown_adapter_name_is_a_clear_error_not_a_panic() {
+    let o = bin("gpu-info")
+        .env("WGPU_ADAPTER_NAME", "no-such-adapter-hwsdf")
+        .output()
+        .unwrap();
+    assert_clean_failure(&o, "no-such-adapter-hwsdf");
+    assert!(stderr(&o).contains("WGPU_ADAPTER_NAME"));
+}
