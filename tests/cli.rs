@@ -18,7 +18,9 @@ fn bin(name: &str) -> Command {
 }
 
 fn data(name: &str) -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data").join(name)
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("tests/data")
+        .join(name)
 }
 
 fn scratch(name: &str) -> PathBuf {
@@ -34,9 +36,15 @@ fn stderr(o: &Output) -> String {
 /// Fails with a clear message, no panic, non-zero exit.
 fn assert_clean_failure(o: &Output, needle: &str) {
     let err = stderr(o);
-    assert!(!o.status.success(), "expected failure, got success; stderr: {err}");
+    assert!(
+        !o.status.success(),
+        "expected failure, got success; stderr: {err}"
+    );
     assert!(!err.contains("panicked"), "panicked: {err}");
-    assert!(err.to_lowercase().contains(&needle.to_lowercase()), "{needle:?} not in: {err}");
+    assert!(
+        err.to_lowercase().contains(&needle.to_lowercase()),
+        "{needle:?} not in: {err}"
+    );
 }
 
 /// One small NGLOD trained by the `train` binary, shared by the tests that need a model.
@@ -138,7 +146,15 @@ fn corpus_records_failures_and_skips_finished_meshes() {
     let run = || {
         bin("corpus")
             .arg(&dir)
-            .args(["--model", "nglod", "--epochs", "1", "--eval-points", "2000", "--out"])
+            .args([
+                "--model",
+                "nglod",
+                "--epochs",
+                "1",
+                "--eval-points",
+                "2000",
+                "--out",
+            ])
             .arg(&out)
             .output()
             .unwrap()
@@ -179,7 +195,11 @@ fn bad_input_gives_clear_errors() {
 
     let corrupt = scratch("corrupt.safetensors");
     std::fs::write(&corrupt, b"\x10\0\0\0\0\0\0\0{not json}").unwrap();
-    let o = bin("eval").arg(&corrupt).arg(data("suzanne.obj")).output().unwrap();
+    let o = bin("eval")
+        .arg(&corrupt)
+        .arg(data("suzanne.obj"))
+        .output()
+        .unwrap();
     assert_clean_failure(&o, "corrupt.safetensors");
 
     let (model, _) = trained();

@@ -101,12 +101,17 @@ fn train(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
         Some(PresetArg::Default) => Preset::Default,
         Some(PresetArg::Small) => Preset::Small,
         None if gpu.is_cpu() => {
-            eprintln!("note: CPU adapter; using the `small` preset (pass --preset default to override)");
+            eprintln!(
+                "note: CPU adapter; using the `small` preset (pass --preset default to override)"
+            );
             Preset::Small
         }
         None => Preset::Default,
     };
-    let out = args.out.clone().unwrap_or_else(|| default_out(&args.mesh, model));
+    let out = args
+        .out
+        .clone()
+        .unwrap_or_else(|| default_out(&args.mesh, model));
     let report_path = args
         .report
         .clone()
@@ -160,7 +165,11 @@ fn train(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
         eprintln!(
             "interrupted after {} {}s; checkpoint written to {}. Continue with:\n  train {} --model {} --resume {}",
             trained.done,
-            if model == ModelKind::Siren { "step" } else { "epoch" },
+            if model == ModelKind::Siren {
+                "step"
+            } else {
+                "epoch"
+            },
             checkpoint.display(),
             args.mesh.display(),
             model.name(),
@@ -174,7 +183,14 @@ fn train(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
     eprintln!("saved {} ({} bytes); evaluating", out.display(), file_bytes);
     let sdf = NeuralSdf::from_model_file(trained.file.clone())?;
     let eval = run::evaluate(&gpu, &sdf, &mesh, args.eval_points)?;
-    let report = run::Report::new(&args.mesh, &options, &trained, file_bytes, &eval, gpu.describe());
+    let report = run::Report::new(
+        &args.mesh,
+        &options,
+        &trained,
+        file_bytes,
+        &eval,
+        gpu.describe(),
+    );
     report.write(&report_path)?;
     println!(
         "{} {}: F1 box {:.4}, near surface {:.4}, mean {:.4}; {:.1} ns/point, {:.0} µs per 3000; {} params, {} bytes; trained in {:.1} s",
@@ -195,7 +211,11 @@ fn train(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
 
 fn default_out(mesh: &Path, model: ModelKind) -> PathBuf {
     let stem = mesh.file_stem().map(|s| s.to_string_lossy().into_owned());
-    PathBuf::from(format!("{}.{}.safetensors", stem.as_deref().unwrap_or("model"), model.name()))
+    PathBuf::from(format!(
+        "{}.{}.safetensors",
+        stem.as_deref().unwrap_or("model"),
+        model.name()
+    ))
 }
 
 fn checkpoint_path(out: &Path) -> PathBuf {

@@ -33,7 +33,7 @@ pub mod render;
 pub mod shaders;
 pub mod siren;
 
-pub use adam::{Adam, AdamConfig, AdamCpu};
+pub use adam::{Adam, AdamConfig, AdamCpu, AdamState};
 pub use embed::{EmbedError, SdfBindGroup};
 pub use gpu::{GpuContext, GpuError, GpuOptions};
 pub use model_file::{ModelFile, ModelFileError, Normalization};
