@@ -1,0 +1,65 @@
+"""Loads an hwsdf model file the way a PyTorch user would, and evaluates it with numpy.
+
+    python scripts/load_model.py MODEL.safetensors [x y z ...]
+
+Needs `pip install safetensors numpy` (`safetensors.torch.load_file` gives the same tensors as
+torch tensors). Prints the metadata and tensor shapes, then the signed distance at the given
+points (mesh coordinates), computed here from the tensors alone: a check that the file is
+self-describing.
+"""
+import json
+import sys
+
+import numpy as np
+from safetensors import safe_open
+from safetensors.numpy import load_file
+
+
+def siren(t, cfg, x):
+    w0 = cfg["omega0"]
+    h = x
+    for i in range(cfg["hidden_layers"]):
+        h = np.sin(w0 * (h @ t[f"net.{i}.weight"].T + t[f"net.{i}.bias"]))
+    i = cfg["hidden_layers"]
+    return (h @ t[f"net.{i}.weight"].T + t[f"net.{i}.bias"])[:, 0]
+
+
+def nglod(t, cfg, x):
+    x = np.clip(x, -1.0, 1.0)
+    z = 0.0
+    for level, r in enumerate(cfg["resolutions"]):
+        g = t[f"grids.{level}"]  # [r+1, r+1, r+1, F], indexed [ix, iy, iz, f]
+        u = (x + 1.0) * 0.5 * r
+        i0 = np.clip(np.floor(u).astype(int), 0, r - 1)
+        f = u - i0
+        for c in range(8):
+            d = np.array([(c >> 2) & 1, (c >> 1) & 1, c & 1])
+            w = np.prod(np.where(d == 1, f, 1.0 - f), axis=1)
+            i = i0 + d
+            z = z + w[:, None] * g[i[:, 0], i[:, 1], i[:, 2]]
+    h = np.maximum(z @ t["mlp.0.weight"].T + t["mlp.0.bias"], 0.0)
+    return (h @ t["mlp.2.weight"].T + t["mlp.2.bias"])[:, 0]
+
+
+def main():
+    path = sys.argv[1]
+    with safe_open(path, "np") as f:
+        meta = f.metadata()
+    tensors = load_file(path)
+    print("metadata:", json.dumps(meta, indent=1))
+    for name, value in sorted(tensors.items()):
+        print(f"{name:16s} {value.dtype} {list(value.shape)}")
+    cfg = json.loads(meta["config"])
+    norm = json.loads(meta["normalization"])
+    pts = np.array([float(v) for v in sys.argv[2:]] or [0.0, 0.0, 0.0], dtype=np.float32)
+    pts = pts.reshape(-1, 3)
+    local = (pts - np.array(norm["center"], dtype=np.float32)) * norm["scale"]
+    inside = np.clip(local, -1.0, 1.0)
+    net = siren if meta["architecture"] == "siren" else nglod
+    d = net(tensors, cfg, inside) + np.linalg.norm(local - inside, axis=1)
+    for p, v in zip(pts, d / norm["scale"]):
+        print(f"sdf({p[0]:g}, {p[1]:g}, {p[2]:g}) = {v:.6f}")
+
+
+if __name__ == "__main__":
+    main()
