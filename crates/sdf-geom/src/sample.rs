@@ -228,20 +228,22 @@ pub fn poisson_disk(mesh: &Mesh, n: usize, seed: u64) -> PoissonSamples {
         .collect();
     let mut weight: Vec<f32> = lists.iter().map(|l| l.iter().map(|x| x.1).sum()).collect();
 
-    // Indexed binary max-heap on the weights; weights only ever decrease (sift down).
+    // Max-heap with lazy updates: weights only ever decrease, so a stored key is an upper bound of
+    // the current weight. When the top's key is stale it is refreshed and sifted down; a top whose
+    // key is current is the true maximum.
     let mut heap = IndexedMaxHeap::new(weight.clone());
     let mut removed = vec![false; m];
     let mut remaining = m;
     while remaining > n {
-        let Some(i) = heap.pop() else { break };
+        let Some(i) = heap.pop_current(&weight) else {
+            break;
+        };
         let iu = i as usize;
         removed[iu] = true;
         remaining -= 1;
         for &(j, wj) in &lists[iu] {
-            let ju = j as usize;
-            if !removed[ju] {
-                weight[ju] -= wj;
-                heap.decrease(j, weight[ju]);
+            if !removed[j as usize] {
+                weight[j as usize] -= wj;
             }
         }
     }
@@ -452,11 +454,17 @@ impl IndexedMaxHeap {
         Some(top)
     }
 
-    fn decrease(&mut self, item: u32, key: f32) {
-        let p = self.pos[item as usize];
-        self.key[item as usize] = key;
-        if p != u32::MAX {
-            self.sift_down(p as usize);
+    /// Pops the item with the largest current weight, refreshing stale keys (`current[i]` is never
+    /// above the stored key of `i`).
+    fn pop_current(&mut self, current: &[f32]) -> Option<u32> {
+        loop {
+            let top = *self.heap.first()?;
+            let w = current[top as usize];
+            if w == self.key[top as usize] {
+                return self.pop();
+            }
+            self.key[top as usize] = w;
+            self.sift_down(0);
         }
     }
 }
