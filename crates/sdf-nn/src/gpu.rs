@@ -432,7 +432,7 @@ impl GpuContext {
         let offset = first * size;
         let bytes = count * size;
         let label = format!("{:?}", buffer);
-        if offset + bytes > buffer.size() || bytes % 4 != 0 || offset % 4 != 0 {
+        if offset + bytes > buffer.size() || !bytes.is_multiple_of(4) || !offset.is_multiple_of(4) {
             return Err(GpuError::Readback {
                 label,
                 reason: format!(
@@ -460,8 +460,7 @@ impl GpuContext {
             let _ = tx.send(r);
         });
         self.wait()?;
-        let mapped = rx
-            .recv()
+        rx.recv()
             .map_err(|e| GpuError::Readback {
                 label: label.clone(),
                 reason: e.to_string(),
@@ -470,7 +469,6 @@ impl GpuContext {
                 label: label.clone(),
                 reason: e.to_string(),
             })?;
-        let () = mapped;
         let view = slice.get_mapped_range().map_err(|e| GpuError::Readback {
             label: label.clone(),
             reason: e.to_string(),

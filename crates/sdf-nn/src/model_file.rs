@@ -254,7 +254,8 @@ impl ModelFile {
                 detail: ": expected {\"center\": [x, y, z], \"scale\": s}".into(),
             }
         })?;
-        if !(normalization.scale.is_finite() && normalization.scale > 0.0)
+        if !normalization.scale.is_finite()
+            || normalization.scale <= 0.0
             || !normalization.center.is_finite()
         {
             return Err(ModelFileError::Metadata {

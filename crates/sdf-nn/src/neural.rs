@@ -56,7 +56,8 @@ pub enum Network {
 
 /// The network's GPU side, created on first GPU use and kept with the device it lives on.
 enum GpuNetwork {
-    Siren(SirenGpu),
+    // Boxed: the SIREN side holds its workspaces inline and dwarfs the NGLOD one.
+    Siren(Box<SirenGpu>),
     Nglod(NglodGpu),
 }
 
@@ -200,9 +201,7 @@ impl NeuralSdf {
         Ok(raw
             .into_iter()
             .zip(local.iter().zip(&clamped).zip(outside))
-            .map(|((d, g), ((p, c), o))| {
-                (n.distance_to_original(d + o), outward_normal(g, *p, *c))
-            })
+            .map(|((d, g), ((p, c), o))| (n.distance_to_original(d + o), outward_normal(g, *p, *c)))
             .collect())
     }
 
@@ -238,15 +237,15 @@ impl NeuralSdf {
             Network::Siren(s) => s.eval_with_gradient_cpu(&clamped),
             Network::Nglod(m) => {
                 let d = m.eval_cpu(&clamped, self.lod).expect("lod was validated");
-                let g = m.gradient_cpu(&clamped, self.lod).expect("lod was validated");
+                let g = m
+                    .gradient_cpu(&clamped, self.lod)
+                    .expect("lod was validated");
                 d.into_iter().zip(g).collect()
             }
         };
         raw.into_iter()
             .zip(local.iter().zip(&clamped).zip(outside))
-            .map(|((d, g), ((p, c), o))| {
-                (n.distance_to_original(d + o), outward_normal(g, *p, *c))
-            })
+            .map(|((d, g), ((p, c), o))| (n.distance_to_original(d + o), outward_normal(g, *p, *c)))
             .collect()
     }
 
@@ -261,7 +260,7 @@ impl NeuralSdf {
         let stale = !matches!(&*slot, Some((device, _)) if device == gpu.device());
         if stale {
             let net = match &self.network {
-                Network::Siren(s) => GpuNetwork::Siren(SirenGpu::new(gpu, s)?),
+                Network::Siren(s) => GpuNetwork::Siren(Box::new(SirenGpu::new(gpu, s)?)),
                 Network::Nglod(m) => GpuNetwork::Nglod(NglodGpu::new(gpu, m, ScatterMode::Auto)?),
             };
             *slot = Some((gpu.device().clone(), net));
