@@ -206,32 +206,60 @@ pub fn poisson_disk(mesh: &Mesh, n: usize, seed: u64) -> PoissonSamples {
     let grid = Grid::new(&cand.points, two_r_max);
     let pts = &grid.points;
 
-    // Neighbour lists with the weight each neighbour contributes.
-    let lists: Vec<Vec<(u32, f32)>> = (0..m)
-        .into_par_iter()
-        .with_min_len(1024)
-        .map(|i| {
-            let p = pts[i];
-            let mut v = Vec::with_capacity(32);
-            grid.for_each_near(p, |j| {
-                if j as usize != i {
-                    let d = p.distance(pts[j as usize]);
-                    if d < two_r_max {
-                        let dh = d.max(2.0 * r_min);
-                        let w = (1.0 - dh / two_r_max).powi(8);
-                        v.push((j, w));
+    // Neighbour lists (CSR) with the weight each neighbour contributes, built cell by cell: the
+    // 27 neighbouring cell ranges are looked up once per cell, not once per point.
+    let per_cell: Vec<(Vec<u32>, Vec<(u32, f32)>)> = grid
+        .cell_ranges
+        .par_iter()
+        .with_min_len(64)
+        .map(|&(s, e)| {
+            let near = grid.ranges_near(pts[s as usize]);
+            let mut counts = Vec::with_capacity((e - s) as usize);
+            let mut flat = Vec::with_capacity((e - s) as usize * 24);
+            for i in s..e {
+                let p = pts[i as usize];
+                let before = flat.len();
+                for &(a, b) in &near {
+                    for j in a..b {
+                        if j != i {
+                            let d = p.distance(pts[j as usize]);
+                            if d < two_r_max {
+                                let dh = d.max(2.0 * r_min);
+                                flat.push((j, (1.0 - dh / two_r_max).powi(8)));
+                            }
+                        }
                     }
                 }
-            });
-            v
+                counts.push((flat.len() - before) as u32);
+            }
+            (counts, flat)
         })
         .collect();
-    let mut weight: Vec<f32> = lists.iter().map(|l| l.iter().map(|x| x.1).sum()).collect();
+    let mut offsets = Vec::with_capacity(m + 1);
+    offsets.push(0usize);
+    let mut neighbours: Vec<(u32, f32)> =
+        Vec::with_capacity(per_cell.iter().map(|c| c.1.len()).sum());
+    for (counts, flat) in per_cell {
+        for c in counts {
+            offsets.push(offsets.last().copied().unwrap_or(0) + c as usize);
+        }
+        neighbours.extend(flat);
+    }
+    let mut weight: Vec<f32> = (0..m)
+        .into_par_iter()
+        .with_min_len(4096)
+        .map(|i| {
+            neighbours[offsets[i]..offsets[i + 1]]
+                .iter()
+                .map(|x| x.1)
+                .sum()
+        })
+        .collect();
 
     // Max-heap with lazy updates: weights only ever decrease, so a stored key is an upper bound of
     // the current weight. When the top's key is stale it is refreshed and sifted down; a top whose
     // key is current is the true maximum.
-    let mut heap = IndexedMaxHeap::new(weight.clone());
+    let mut heap = LazyMaxHeap::new(&weight);
     let mut removed = vec![false; m];
     let mut remaining = m;
     while remaining > n {
@@ -241,7 +269,7 @@ pub fn poisson_disk(mesh: &Mesh, n: usize, seed: u64) -> PoissonSamples {
         let iu = i as usize;
         removed[iu] = true;
         remaining -= 1;
-        for &(j, wj) in &lists[iu] {
+        for &(j, wj) in &neighbours[offsets[iu]..offsets[iu + 1]] {
             if !removed[j as usize] {
                 weight[j as usize] -= wj;
             }
@@ -298,7 +326,9 @@ struct Grid {
     origin: Vec3,
     /// cell key → range into `items`.
     cells: HashMap<(i32, i32, i32), (u32, u32), BuildHasherDefault<CellHasher>>,
-    /// The points, sorted by cell.
+    /// `points` ranges of the occupied cells, in storage order.
+    cell_ranges: Vec<(u32, u32)>,
+    /// The points, sorted by cell (cells in Morton order).
     points: Vec<Vec3>,
     /// Original index of each entry of `points`.
     order: Vec<u32>,
@@ -326,28 +356,51 @@ impl Grid {
             cell,
             origin: b.min,
             cells: HashMap::default(),
+            cell_ranges: Vec::new(),
             points: Vec::with_capacity(points.len()),
             order: Vec::with_capacity(points.len()),
         };
-        let mut keyed: Vec<((i32, i32, i32), u32)> = points
-            .iter()
+        let mut keyed: Vec<(u64, (i32, i32, i32), u32)> = points
+            .par_iter()
             .enumerate()
-            .map(|(i, &p)| (g.key(p), i as u32))
+            .map(|(i, &p)| {
+                let k = g.key(p);
+                let m =
+                    spread21(k.0 as u32) << 2 | spread21(k.1 as u32) << 1 | spread21(k.2 as u32);
+                (m, k, i as u32)
+            })
             .collect();
-        keyed.sort_unstable();
+        keyed.par_sort_unstable();
         let mut start = 0usize;
         while start < keyed.len() {
-            let k = keyed[start].0;
+            let k = keyed[start].1;
             let mut end = start;
-            while end < keyed.len() && keyed[end].0 == k {
-                g.order.push(keyed[end].1);
-                g.points.push(points[keyed[end].1 as usize]);
+            while end < keyed.len() && keyed[end].1 == k {
+                g.order.push(keyed[end].2);
+                g.points.push(points[keyed[end].2 as usize]);
                 end += 1;
             }
             g.cells.insert(k, (start as u32, end as u32));
+            g.cell_ranges.push((start as u32, end as u32));
             start = end;
         }
         g
+    }
+
+    /// The `points` ranges of the 27 cells around `p`'s cell that are occupied.
+    fn ranges_near(&self, p: Vec3) -> Vec<(u32, u32)> {
+        let (x, y, z) = self.key(p);
+        let mut out = Vec::with_capacity(27);
+        for dx in -1..=1 {
+            for dy in -1..=1 {
+                for dz in -1..=1 {
+                    if let Some(&r) = self.cells.get(&(x + dx, y + dy, z + dz)) {
+                        out.push(r);
+                    }
+                }
+            }
+        }
+        out
     }
 
     /// Calls `f` with the (sorted) position of every point in the 27 cells around `p` (a superset of
@@ -390,80 +443,83 @@ impl Hasher for CellHasher {
     }
 }
 
-/// A binary max-heap over items `0..n` keyed by a weight that can only decrease.
-struct IndexedMaxHeap {
-    key: Vec<f32>,
-    heap: Vec<u32>,
-    /// Position of each item in `heap`, `u32::MAX` once popped.
-    pos: Vec<u32>,
+/// Spreads the low 21 bits of `v` two bits apart (for 63-bit Morton codes).
+fn spread21(v: u32) -> u64 {
+    let mut x = (v & 0x1f_ffff) as u64;
+    x = (x | (x << 32)) & 0x001f_0000_0000_ffff;
+    x = (x | (x << 16)) & 0x001f_0000_ff00_00ff;
+    x = (x | (x << 8)) & 0x100f_00f0_0f00_f00f;
+    x = (x | (x << 4)) & 0x10c3_0c30_c30c_30c3;
+    x = (x | (x << 2)) & 0x1249_2492_4924_9249;
+    x
 }
 
-impl IndexedMaxHeap {
-    fn new(key: Vec<f32>) -> Self {
-        let n = key.len();
-        let mut h = IndexedMaxHeap {
-            key,
-            heap: (0..n as u32).collect(),
-            pos: (0..n as u32).collect(),
+/// A 4-ary max-heap of (key, item) pairs stored inline (children share a cache line), with lazy
+/// updates: keys are upper bounds of the items' current weights and are refreshed when they reach
+/// the top. Ties are broken by the smaller item index, so the order is deterministic.
+struct LazyMaxHeap {
+    heap: Vec<(f32, u32)>,
+}
+
+impl LazyMaxHeap {
+    fn new(weights: &[f32]) -> Self {
+        let mut h = LazyMaxHeap {
+            heap: weights
+                .iter()
+                .enumerate()
+                .map(|(i, &w)| (w, i as u32))
+                .collect(),
         };
-        for i in (0..n / 2).rev() {
+        let n = h.heap.len();
+        for i in (0..n.div_ceil(4)).rev() {
             h.sift_down(i);
         }
         h
     }
 
-    /// Strict order: larger weight first, ties broken by smaller index (deterministic).
     #[inline]
-    fn above(&self, a: u32, b: u32) -> bool {
-        let (ka, kb) = (self.key[a as usize], self.key[b as usize]);
-        ka > kb || (ka == kb && a < b)
+    fn above(a: (f32, u32), b: (f32, u32)) -> bool {
+        a.0 > b.0 || (a.0 == b.0 && a.1 < b.1)
     }
 
     fn sift_down(&mut self, mut i: usize) {
         let n = self.heap.len();
+        let x = self.heap[i];
         loop {
-            let l = 2 * i + 1;
-            if l >= n {
+            let first = 4 * i + 1;
+            if first >= n {
                 break;
             }
-            let r = l + 1;
-            let mut c = l;
-            if r < n && self.above(self.heap[r], self.heap[l]) {
-                c = r;
+            let mut c = first;
+            for k in first + 1..(first + 4).min(n) {
+                if Self::above(self.heap[k], self.heap[c]) {
+                    c = k;
+                }
             }
-            if self.above(self.heap[c], self.heap[i]) {
-                self.heap.swap(i, c);
-                self.pos[self.heap[i] as usize] = i as u32;
-                self.pos[self.heap[c] as usize] = c as u32;
+            if Self::above(self.heap[c], x) {
+                self.heap[i] = self.heap[c];
                 i = c;
             } else {
                 break;
             }
         }
+        self.heap[i] = x;
     }
 
-    fn pop(&mut self) -> Option<u32> {
-        let top = *self.heap.first()?;
-        let last = self.heap.pop()?;
-        self.pos[top as usize] = u32::MAX;
-        if !self.heap.is_empty() {
-            self.heap[0] = last;
-            self.pos[last as usize] = 0;
-            self.sift_down(0);
-        }
-        Some(top)
-    }
-
-    /// Pops the item with the largest current weight, refreshing stale keys (`current[i]` is never
-    /// above the stored key of `i`).
+    /// Pops the item with the largest current weight (`current[i]` never exceeds `i`'s key).
     fn pop_current(&mut self, current: &[f32]) -> Option<u32> {
         loop {
-            let top = *self.heap.first()?;
+            let (key, top) = *self.heap.first()?;
             let w = current[top as usize];
-            if w == self.key[top as usize] {
-                return self.pop();
+            if w == key {
+                let last = self.heap.pop()?;
+                if !self.heap.is_empty() {
+                    self.heap[0] = last;
+                    self.sift_down(0);
+                }
+                return Some(top);
             }
-            self.key[top as usize] = w;
+            self.heap[0].0 = w;
             self.sift_down(0);
         }
     }
