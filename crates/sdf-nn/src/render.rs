@@ -85,8 +85,9 @@ pub struct RenderOptions {
     /// Vertical field of view.
     pub fov_y_degrees: f32,
     /// Radius, in the model's normalised units, of the sphere around the box centre that just
-    /// fits the frame. The mesh's longest axis spans `[-1, 1]`, so 1.0 frames it tightly; √3
-    /// shows the whole box from any angle.
+    /// fits the frame. The mesh's longest axis spans `[-1, 1]`: 1.0 frames a round object
+    /// tightly, the default 1.3 keeps the corners of elongated ones, √3 shows the whole box
+    /// from any angle.
     pub frame_radius: f32,
     /// Steps per ray before giving up (a miss).
     pub max_steps: u32,
@@ -113,7 +114,7 @@ impl Default for RenderOptions {
             yaw_degrees: 35.0,
             pitch_degrees: 20.0,
             fov_y_degrees: 35.0,
-            frame_radius: 1.05,
+            frame_radius: 1.3,
             max_steps: 160,
             step_scale: 0.9,
             hit_tolerance_px: 0.25,

@@ -1,0 +1,124 @@
+//! Sphere-traces a trained model on the GPU and writes a PNG.
+//!
+//! ```sh
+//! cargo run --release --bin render -- model.safetensors --out image.png --size 512x512 --lod 2
+//! ```
+//!
+//! The camera orbits the model's normalised box (`--yaw`, `--pitch`), framed from the model's
+//! normalisation so any model fills the image the same way. The image is written atomically.
+
+use std::path::PathBuf;
+use std::process::ExitCode;
+
+use clap::Parser;
+use hwsdf::nn::{GpuContext, NeuralSdf, RenderOptions, Renderer};
+
+/// Render a neural SDF model (SIREN or NGLOD) to a PNG by sphere tracing on the GPU.
+#[derive(Parser, Debug)]
+#[command(version, about)]
+struct Args {
+    /// Model file written by `train` (.safetensors).
+    model: PathBuf,
+    /// Output PNG.
+    #[arg(long)]
+    out: PathBuf,
+    /// Image size, `WIDTHxHEIGHT` or one number for a square.
+    #[arg(long, default_value = "512x512", value_parser = parse_size)]
+    size: (u32, u32),
+    /// Level of detail for NGLOD models: evaluate only the first K levels (default: all).
+    #[arg(long, value_name = "K")]
+    lod: Option<usize>,
+    /// Camera azimuth in degrees around the vertical axis.
+    #[arg(long, default_value_t = RenderOptions::default().yaw_degrees, allow_negative_numbers = true)]
+    yaw: f32,
+    /// Camera elevation in degrees.
+    #[arg(long, default_value_t = RenderOptions::default().pitch_degrees, allow_negative_numbers = true)]
+    pitch: f32,
+    /// Radius (normalised units, the mesh's longest half-axis is 1) that fits the frame.
+    #[arg(long, default_value_t = RenderOptions::default().frame_radius)]
+    frame_radius: f32,
+    /// Transparent background instead of a dark grey one.
+    #[arg(long)]
+    transparent: bool,
+}
+
+/// `512x512`, `640X480` or `256`.
+fn parse_size(s: &str) -> Result<(u32, u32), String> {
+    let parse = |v: &str| {
+        v.trim()
+            .parse::<u32>()
+            .map_err(|_| format!("`{s}` is not a size: expected WIDTHxHEIGHT, e.g. 512x512"))
+    };
+    let (w, h) = match s.split_once(['x', 'X']) {
+        Some((w, h)) => (parse(w)?, parse(h)?),
+        None => {
+            let n = parse(s)?;
+            (n, n)
+        }
+    };
+    let max = hwsdf::nn::render::MAX_IMAGE_SIDE;
+    if w == 0 || h == 0 || w > max || h > max {
+        return Err(format!("size {w}x{h}: each side must be in 1..={max}"));
+    }
+    Ok((w, h))
+}
+
+fn main() -> ExitCode {
+    let args = Args::parse();
+    match run(&args) {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("error: {e}");
+            ExitCode::FAILURE
+        }
+    }
+}
+
+fn run(args: &Args) -> Result<(), String> {
+    // Fail before the slow GPU work if the image could not be written anyway.
+    let dir = args.out.parent().filter(|d| !d.as_os_str().is_empty());
+    if let Some(dir) = dir.filter(|d| !d.is_dir()) {
+        return Err(format!(
+            "cannot write {}: directory {} does not exist",
+            args.out.display(),
+            dir.display()
+        ));
+    }
+    let mut sdf =
+        NeuralSdf::load(&args.model).map_err(|e| format!("cannot load the model: {e}"))?;
+    sdf.set_lod(args.lod).map_err(|e| e.to_string())?;
+    let mut options = RenderOptions {
+        width: args.size.0,
+        height: args.size.1,
+        yaw_degrees: args.yaw,
+        pitch_degrees: args.pitch,
+        frame_radius: args.frame_radius,
+        ..RenderOptions::default()
+    };
+    if args.transparent {
+        options.background = glam::Vec4::ZERO;
+    }
+    // Check the options before the (slow) device and shader setup.
+    options.validate().map_err(|e| e.to_string())?;
+
+    let gpu = GpuContext::new().map_err(|e| e.to_string())?;
+    let start = std::time::Instant::now();
+    let renderer = Renderer::new(&gpu, &sdf).map_err(|e| e.to_string())?;
+    let image = renderer.render(&gpu, &options).map_err(|e| e.to_string())?;
+    image.save_png(&args.out).map_err(|e| e.to_string())?;
+    eprintln!(
+        "{} model ({} parameters{}) rendered at {}x{} on {} in {:.2?}: {}",
+        sdf.architecture(),
+        sdf.param_count(),
+        match sdf.lod() {
+            Some(k) => format!(", LOD {k}"),
+            None => String::new(),
+        },
+        options.width,
+        options.height,
+        gpu.describe(),
+        start.elapsed(),
+        args.out.display()
+    );
+    Ok(())
+}
