@@ -191,6 +191,11 @@ fn gpu_forward_matches_cpu_at_every_lod() {
         g.eval(gpu, &pts[..5], Some(3)).unwrap()
     );
     assert!(g.eval(gpu, &[], None).unwrap().is_empty());
+    // Inputs larger than one dispatch are split, with the same results.
+    let whole = g.eval(gpu, &pts, None).unwrap();
+    let mut split = NglodGpu::new(gpu, &model, ScatterMode::Auto).unwrap();
+    split.set_max_points_per_dispatch(100);
+    assert_eq!(split.eval(gpu, &pts, None).unwrap(), whole);
     assert!(matches!(
         g.eval(gpu, &pts, Some(0)),
         Err(NglodError::InvalidLod { .. })

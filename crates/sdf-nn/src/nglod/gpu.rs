@@ -75,6 +75,7 @@ pub struct NglodGpu {
     float_atomics: bool,
     constants: [(&'static str, f64); 2],
     eval: Mutex<Option<EvalScratch>>,
+    eval_chunk: usize,
 }
 
 impl std::fmt::Debug for NglodGpu {
@@ -144,6 +145,7 @@ impl NglodGpu {
             float_atomics,
             constants,
             eval: Mutex::new(None),
+            eval_chunk: EVAL_CHUNK,
         })
     }
 
@@ -165,6 +167,11 @@ impl NglodGpu {
     /// The flat gradient buffer (same layout as the parameters).
     pub fn grads_buffer(&self) -> &wgpu::Buffer {
         &self.grads
+    }
+
+    /// Caps the points per inference dispatch (default 2^20; at least 1). Larger inputs are split.
+    pub fn set_max_points_per_dispatch(&mut self, n: usize) {
+        self.eval_chunk = n.clamp(1, EVAL_CHUNK);
     }
 
     /// Number of parameters.
@@ -204,7 +211,7 @@ impl NglodGpu {
         }
         let pipeline = gpu.pipeline(&shaders::NGLOD_FORWARD, "forward", &self.constants)?;
         let mut guard = self.eval.lock().unwrap_or_else(|e| e.into_inner());
-        let want = points.len().min(EVAL_CHUNK);
+        let want = points.len().min(self.eval_chunk);
         if guard.as_ref().is_none_or(|s| s.capacity < want) {
             // Grow to at least 4096 points so small calls do not reallocate each time.
             let capacity = want.max(4096).next_power_of_two().min(EVAL_CHUNK);
@@ -234,7 +241,7 @@ impl NglodGpu {
             unreachable!("scratch was just created")
         };
         let mut result = Vec::with_capacity(points.len());
-        for chunk in points.chunks(s.capacity) {
+        for chunk in points.chunks(s.capacity.min(self.eval_chunk)) {
             let n = chunk.len() as u32;
             gpu.write(&s.points, bytemuck::cast_slice::<Vec3, f32>(chunk))?;
             gpu.write(&s.uniforms, &[self.eval_uniforms(n, k)])?;

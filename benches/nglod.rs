@@ -1,0 +1,86 @@
+//! NGLOD on the GPU (lavapipe on the development machine): inference per point at a batch of
+//! 50 000 and the latency of a batch of 3000 (criterion), for the `default` and `small` presets;
+//! then two real training epochs of the design document's 5·10⁵ points on the bunny (or on
+//! `tests/data/spot.obj` when `../shared/meshes` is absent), printing how each epoch's time splits
+//! between the GPU loop and the CPU sampling that overlaps it.
+//!
+//! Run: `cargo bench --bench nglod`. `NGLOD_BENCH_EPOCHS=0` skips the training epochs.
+
+use std::time::Duration;
+
+use criterion::{BenchmarkId, Criterion, Throughput};
+use sdf_nn::nglod::ScatterMode;
+use sdf_nn::{GpuContext, Nglod, NglodConfig, NglodGpu, NglodTrainConfig, NglodTrainer};
+
+fn inference(c: &mut Criterion, gpu: &GpuContext) {
+    for (name, cfg) in [
+        ("default", NglodConfig::default_preset()),
+        ("small", NglodConfig::small()),
+    ] {
+        let model = Nglod::new(cfg).unwrap();
+        let net = NglodGpu::new(gpu, &model, ScatterMode::Auto).unwrap();
+        let mut g = c.benchmark_group(format!("nglod_{name}"));
+        g.sample_size(10)
+            .warm_up_time(Duration::from_secs(1))
+            .measurement_time(Duration::from_secs(5));
+        for n in [50_000usize, 3000] {
+            let pts = sdf_geom::sample::uniform_box(n, 42);
+            net.eval(gpu, &pts, None).unwrap(); // compile and allocate outside the timing
+            g.throughput(Throughput::Elements(n as u64));
+            g.bench_with_input(BenchmarkId::new("eval", n), &pts, |b, pts| {
+                b.iter(|| net.eval(gpu, pts, None).unwrap())
+            });
+        }
+        g.finish();
+    }
+}
+
+fn epoch_split(gpu: &GpuContext) {
+    let epochs: usize = std::env::var("NGLOD_BENCH_EPOCHS")
+        .ok()
+        .and_then(|s| s.parse().ok())
+        .unwrap_or(2);
+    if epochs == 0 {
+        return;
+    }
+    let bunny = "../shared/meshes/stanford-bunny.obj";
+    let path = if std::path::Path::new(bunny).exists() {
+        bunny
+    } else {
+        "tests/data/spot.obj"
+    };
+    let (mesh, _) = sdf_geom::load_mesh(path).expect("bench mesh");
+    let (unit, _) = mesh.normalized();
+    let model = Nglod::new(NglodConfig::default_preset()).unwrap();
+    let config = NglodTrainConfig {
+        epochs,
+        ..Default::default()
+    };
+    let mut trainer = NglodTrainer::new(gpu, &model, &unit, config).unwrap();
+    println!(
+        "nglod_default epoch split on {path} ({} faces), 5e5 points/epoch, batch {}:",
+        unit.triangles.len(),
+        trainer.config().batch_size
+    );
+    let report = trainer
+        .train_with(|e| {
+            println!(
+                "  epoch {}: {} steps, GPU loop {:.2} s, sampling {:.2} s (overlapped), stall {:.2} s, loss {:.3e}",
+                e.epoch, e.steps, e.gpu_seconds, e.sampling_seconds, e.stall_seconds, e.loss
+            )
+        })
+        .unwrap();
+    println!(
+        "  total {:.2} s: GPU {:.2} s, sampling {:.2} s, stalls {:.2} s",
+        report.total_seconds, report.gpu_seconds, report.sampling_seconds, report.stall_seconds
+    );
+}
+
+fn main() {
+    let gpu = GpuContext::shared().expect("a GPU adapter");
+    eprintln!("adapter: {}", gpu.describe());
+    let mut c = Criterion::default().configure_from_args();
+    inference(&mut c, gpu);
+    epoch_split(gpu);
+    c.final_summary();
+}
