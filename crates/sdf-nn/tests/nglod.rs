@@ -355,6 +355,9 @@ fn trains_a_sphere_with_correct_signs_at_every_lod() {
         let bar = if lod == 3 { 0.99 } else { 0.97 };
         assert!(frac >= bar, "lod {lod}: {frac}");
     }
+    let training = trainer.training_json(Some(&report));
+    assert_eq!(training["epochs_done"], 3);
+    assert_eq!(training["objective"], "AllPrefixes");
     // The host model read back evaluates like the GPU one.
     let host = trainer.model().unwrap();
     let a = host.eval_cpu(&test[..500], None).unwrap();

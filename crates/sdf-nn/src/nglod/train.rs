@@ -245,6 +245,35 @@ impl<'g> NglodTrainer<'g> {
         self.model.to_model(self.gpu)
     }
 
+    /// The settings and, given a report, its summary, as JSON for a model file's `training`
+    /// metadata ([`Nglod::to_model_file`]).
+    pub fn training_json(&self, report: Option<&TrainReport>) -> serde_json::Value {
+        let c = &self.config;
+        let mut v = serde_json::json!({
+            "epochs_done": self.epochs_done,
+            "steps_done": self.steps_done,
+            "batch_size": c.batch_size,
+            "lr": c.adam.lr,
+            "beta1": c.adam.beta1,
+            "beta2": c.adam.beta2,
+            "eps": c.adam.eps,
+            "objective": c.objective,
+            "uniform_points": c.uniform_points,
+            "near_points": c.near_points,
+            "sigma": c.sigma,
+            "surface_points": c.surface_points,
+            "seed": c.seed,
+            "loss": "mse",
+        });
+        if let Some(r) = report {
+            v["final_loss"] = serde_json::json!(r.final_loss);
+            v["seconds"] = serde_json::json!(r.total_seconds);
+            v["gpu_seconds"] = serde_json::json!(r.gpu_seconds);
+            v["sampling_seconds"] = serde_json::json!(r.sampling_seconds);
+        }
+        v
+    }
+
     /// Runs `config.epochs` epochs (or until `max_seconds`).
     pub fn train(&mut self) -> Result<TrainReport, NglodError> {
         self.train_with(|_| {})
