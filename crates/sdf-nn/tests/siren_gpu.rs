@@ -6,7 +6,7 @@ use glam::Vec3;
 use rand::{Rng, SeedableRng};
 use rand_pcg::Pcg64;
 use sdf_nn::siren::{LossWeights, cpu};
-use sdf_nn::{GpuContext, Siren, SirenConfig, SirenGpu};
+use sdf_nn::{GpuContext, Siren, SirenConfig, SirenGpu, SirenTrainConfig, SirenTrainer};
 
 fn gpu() -> &'static GpuContext {
     let gpu = GpuContext::shared().expect("a GPU adapter (lavapipe in CI)");
@@ -95,7 +95,12 @@ fn gradients_match(cfg: SirenConfig, n: usize, n_surface: usize, seed: u64) {
     let p_64: Vec<[f64; 3]> = pts.iter().map(|&p| to64(p)).collect();
     let n_64: Vec<[f64; 3]> = normals.iter().map(|&p| to64(p)).collect();
     let (rterms, rgrad) = cpu::loss_and_gradient(&cfg, &p64, &p_64, &n_64, &weights);
-    let got = [terms.surface, terms.off_surface, terms.normal, terms.eikonal];
+    let got = [
+        terms.surface,
+        terms.off_surface,
+        terms.normal,
+        terms.eikonal,
+    ];
     for t in 0..4 {
         let err = (f64::from(got[t]) - rterms[t]).abs() / rterms[t].abs().max(1e-3);
         assert!(err < 1e-4, "loss term {t}: {} vs {}", got[t], rterms[t]);
@@ -104,15 +109,24 @@ fn gradients_match(cfg: SirenConfig, n: usize, n_surface: usize, seed: u64) {
     let mut worst = 0.0f64;
     for lay in cfg.layers() {
         for range in [lay.weight..lay.bias, lay.bias..lay.bias + lay.fan_out] {
-            let scale = rgrad[range.clone()].iter().fold(0.0f64, |m, x| m.max(x.abs()));
+            let scale = rgrad[range.clone()]
+                .iter()
+                .fold(0.0f64, |m, x| m.max(x.abs()));
             for i in range {
                 let err = (f64::from(grads[i]) - rgrad[i]).abs() / scale.max(1e-12);
                 worst = worst.max(err);
-                assert!(err < 2e-4, "param {i}: gpu {} vs cpu {} (scale {scale:e})", grads[i], rgrad[i]);
+                assert!(
+                    err < 2e-4,
+                    "param {i}: gpu {} vs cpu {} (scale {scale:e})",
+                    grads[i],
+                    rgrad[i]
+                );
             }
         }
     }
-    eprintln!("{cfg:?} n={n}: loss {rterms:?}, worst gradient error {worst:e} (relative to tensor max)");
+    eprintln!(
+        "{cfg:?} n={n}: loss {rterms:?}, worst gradient error {worst:e} (relative to tensor max)"
+    );
 }
 
 #[test]
@@ -137,4 +151,166 @@ fn loss_and_every_parameter_gradient_match_cpu_reference() {
         150,
         4,
     );
+}
+
+/// A unit icosphere (`subdivisions` times subdivided icosahedron), outward-wound.
+fn icosphere(subdivisions: u32) -> sdf_geom::Mesh {
+    let t = (1.0 + 5f32.sqrt()) / 2.0;
+    let mut v: Vec<Vec3> = [
+        (-1.0, t, 0.0),
+        (1.0, t, 0.0),
+        (-1.0, -t, 0.0),
+        (1.0, -t, 0.0),
+        (0.0, -1.0, t),
+        (0.0, 1.0, t),
+        (0.0, -1.0, -t),
+        (0.0, 1.0, -t),
+        (t, 0.0, -1.0),
+        (t, 0.0, 1.0),
+        (-t, 0.0, -1.0),
+        (-t, 0.0, 1.0),
+    ]
+    .iter()
+    .map(|&(x, y, z)| Vec3::new(x, y, z).normalize())
+    .collect();
+    let mut f: Vec<[u32; 3]> = vec![
+        [0, 11, 5],
+        [0, 5, 1],
+        [0, 1, 7],
+        [0, 7, 10],
+        [0, 10, 11],
+        [1, 5, 9],
+        [5, 11, 4],
+        [11, 10, 2],
+        [10, 7, 6],
+        [7, 1, 8],
+        [3, 9, 4],
+        [3, 4, 2],
+        [3, 2, 6],
+        [3, 6, 8],
+        [3, 8, 9],
+        [4, 9, 5],
+        [2, 4, 11],
+        [6, 2, 10],
+        [8, 6, 7],
+        [9, 8, 1],
+    ];
+    for _ in 0..subdivisions {
+        let mut cache = std::collections::HashMap::new();
+        let mut mid = |a: u32, b: u32, v: &mut Vec<Vec3>| {
+            *cache.entry((a.min(b), a.max(b))).or_insert_with(|| {
+                v.push(((v[a as usize] + v[b as usize]) * 0.5).normalize());
+                v.len() as u32 - 1
+            })
+        };
+        let mut next = Vec::with_capacity(f.len() * 4);
+        for [a, b, c] in f {
+            let ab = mid(a, b, &mut v);
+            let bc = mid(b, c, &mut v);
+            let ca = mid(c, a, &mut v);
+            next.extend([[a, ab, ca], [b, bc, ab], [c, ca, bc], [ab, bc, ca]]);
+        }
+        f = next;
+    }
+    sdf_geom::Mesh {
+        vertices: v,
+        triangles: f,
+    }
+}
+
+/// Trains the `small` preset on `mesh` and returns the fraction of uniform box points whose
+/// sign (Φ < 0 inside) agrees with the mesh's exact sign.
+fn train_sign_accuracy(
+    name: &str,
+    mesh: &sdf_geom::Mesh,
+    train: SirenTrainConfig,
+    seed: u64,
+) -> f64 {
+    let gpu = gpu();
+    let t0 = std::time::Instant::now();
+    let siren = Siren::new(SirenConfig::small(), seed).unwrap();
+    let mut trainer = SirenTrainer::from_mesh(gpu, &siren, mesh, train.clone()).unwrap();
+    let t_setup = t0.elapsed();
+    let summary = trainer
+        .train(gpu, train.steps, |step, l| {
+            if step % 100 == 0 {
+                eprintln!("{name} step {step}: loss {:.3} {l:?}", l.total());
+            }
+        })
+        .unwrap();
+    let (normalized, _) = mesh.normalized();
+    let truth = sdf_geom::SignedDistance::new(&normalized).unwrap();
+    let pts = sdf_geom::sample::uniform_box(20_000, seed + 7);
+    let vals = trainer.net().eval(gpu, &pts).unwrap();
+    let correct = pts
+        .iter()
+        .zip(&vals)
+        .filter(|(p, v)| (**v < 0.0) == truth.is_inside(**p))
+        .count();
+    let acc = correct as f64 / pts.len() as f64;
+    eprintln!(
+        "{name}: {} steps in {:.1?} (setup {t_setup:.1?}), final loss {:?}, lr {:e}, sign accuracy {:.4}",
+        summary.steps, summary.elapsed, summary.final_loss, summary.final_lr, acc
+    );
+    acc
+}
+
+fn env_or<T: std::str::FromStr>(k: &str, d: T) -> T {
+    std::env::var(k)
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(d)
+}
+
+#[test]
+#[ignore = "manual experiment: SIREN_STEPS, SIREN_LR, SIREN_BATCH, SIREN_EIK, SIREN_MESH"]
+fn experiment() {
+    let mesh = match std::env::var("SIREN_MESH") {
+        Ok(p) => sdf_geom::load_mesh(p).unwrap().0,
+        Err(_) => icosphere(3),
+    };
+    let batch: usize = env_or("SIREN_BATCH", 5000);
+    let cfg = SirenTrainConfig {
+        steps: env_or("SIREN_STEPS", 200),
+        lr: env_or("SIREN_LR", 1e-4),
+        surface_per_step: batch,
+        box_per_step: batch,
+        dataset_size: env_or("SIREN_DATA", 20_000),
+        weights: LossWeights {
+            eikonal: env_or("SIREN_EIK", 5.0),
+            ..LossWeights::default()
+        },
+        ..SirenTrainConfig::default()
+    };
+    train_sign_accuracy("experiment", &mesh, cfg, 1);
+}
+
+#[test]
+#[ignore = "manual profile"]
+fn profile() {
+    let gpu = gpu();
+    let cfg = SirenConfig::small();
+    let net = Siren::new(cfg, 1).unwrap();
+    let mut g = SirenGpu::new(gpu, &net).unwrap();
+    let n: usize = env_or("SIREN_N", 10_000);
+    let pts = sdf_geom::sample::uniform_box(n, 3);
+    let nrm: Vec<Vec3> = pts[..n / 2].iter().map(|p| p.normalize()).collect();
+    for rep in 0..3 {
+        let t = std::time::Instant::now();
+        g.eval(gpu, &pts).unwrap();
+        let a = t.elapsed();
+        let t = std::time::Instant::now();
+        g.eval_with_gradient(gpu, &pts).unwrap();
+        let b = t.elapsed();
+        let t = std::time::Instant::now();
+        g.loss_and_gradient(gpu, &pts, &nrm, &LossWeights::default())
+            .unwrap();
+        let c = t.elapsed();
+        let flop = 2.0 * cfg.forward_macs() as f64 * n as f64;
+        eprintln!(
+            "rep {rep}: eval {a:.2?} ({:.2} GFLOP/s), eval+grad {b:.2?} ({:.2} GFLOP/s), loss+grad {c:.2?}",
+            flop / a.as_secs_f64() / 1e9,
+            4.0 * flop / b.as_secs_f64() / 1e9
+        );
+    }
 }

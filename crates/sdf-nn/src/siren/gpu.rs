@@ -35,19 +35,48 @@ pub(crate) struct GemmUniforms {
     a_off: u32,
     a_rs: u32,
     a_cs: u32,
-    a_kcontig: u32,
     b_off: u32,
     b_rs: u32,
     b_cs: u32,
-    b_kcontig: u32,
     ldc: u32,
     bias_off: u32,
-    tangents: u32,
-    store_z: u32,
     k_chunk: u32,
     pbias_off: u32,
     omega: f32,
-    _pad: u32,
+    b_style: u32,
+    a_vec4: u32,
+    _pad: [u32; 3],
+}
+
+impl GemmUniforms {
+    /// Picks vec4 loads where the operands' layout allows them (16-byte aligned runs).
+    fn with_load_styles(mut self) -> Self {
+        let a4 = |x: u32| x.is_multiple_of(4);
+        self.a_vec4 = (self.a_cs == 1
+            && a4(self.a_off)
+            && a4(self.a_rs)
+            && a4(self.k)
+            && a4(self.k_chunk.max(4))) as u32;
+        self.b_style = if self.b_rs == 1 && a4(self.b_off) && a4(self.b_cs) && a4(self.k) {
+            1
+        } else if self.b_cs == 1 && a4(self.b_off) && a4(self.b_rs) && a4(self.k) {
+            2
+        } else {
+            0
+        };
+        self
+    }
+}
+
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, bytemuck::Pod, bytemuck::Zeroable)]
+struct ElementwiseUniforms {
+    n_points: u32,
+    width: u32,
+    bias_off: u32,
+    _pad0: u32,
+    omega: f32,
+    _pad1: [f32; 3],
 }
 
 #[repr(C)]
@@ -84,9 +113,10 @@ struct ReduceUniforms {
     _pad1: u32,
 }
 
-const TILE: u32 = 64;
+/// Rows per GEMM workgroup (see `siren_gemm.wgsl`).
+const GEMM_ROWS: u32 = 64;
 const WG: u32 = 256;
-/// Rows of the batch per split of a weight-gradient GEMM (a multiple of 16 and of 4).
+/// Batch rows per split of a weight-gradient GEMM (a multiple of 4).
 const K_CHUNK: u32 = 1024;
 
 /// Rows of a K chunk → number of splits.
@@ -94,52 +124,39 @@ fn splits_for(rows: u32) -> u32 {
     rows.div_ceil(K_CHUNK).max(1)
 }
 
-fn gemm_forward(
-    lay: &LayerLayout,
-    rows: u32,
-    tangents: bool,
-    store_z: bool,
-    omega: f32,
-) -> GemmUniforms {
+/// Z = A_prev · Wᵀ (mode 0), or with `fused_sine` the inference activations sin(ω0 (Z + b)).
+fn gemm_forward(lay: &LayerLayout, rows: u32, fused_sine: bool, omega: f32) -> GemmUniforms {
     GemmUniforms {
-        mode: 0,
+        mode: fused_sine as u32,
         m: rows,
         n: lay.fan_out as u32,
         k: lay.fan_in as u32,
         a_rs: lay.fan_in as u32,
         a_cs: 1,
-        a_kcontig: 1,
         b_off: lay.weight as u32,
         // B(k = i, n = o) = W[o, i].
         b_rs: 1,
         b_cs: lay.fan_in as u32,
-        b_kcontig: 1,
         ldc: lay.fan_out as u32,
         bias_off: lay.bias as u32,
-        tangents: tangents as u32,
-        store_z: store_z as u32,
         omega,
         ..Default::default()
     }
 }
 
-/// Ā_{l-1} = Z̄_l · W_l, epilogue to Z̄_{l-1}.
-fn gemm_backward(lay: &LayerLayout, rows: u32, omega: f32) -> GemmUniforms {
+/// Ā_{l-1} = Z̄_l · W_l.
+fn gemm_backward(lay: &LayerLayout, rows: u32) -> GemmUniforms {
     GemmUniforms {
-        mode: 1,
+        mode: 0,
         m: rows,
         n: lay.fan_in as u32,
         k: lay.fan_out as u32,
         a_rs: lay.fan_out as u32,
         a_cs: 1,
-        a_kcontig: 1,
         b_off: lay.weight as u32,
         b_rs: lay.fan_in as u32,
         b_cs: 1,
-        b_kcontig: 0,
         ldc: lay.fan_in as u32,
-        tangents: 1,
-        omega,
         ..Default::default()
     }
 }
@@ -155,12 +172,9 @@ fn gemm_wgrad(lay: &LayerLayout, rows: u32) -> GemmUniforms {
         k: rows,
         a_rs: 1,
         a_cs: m,
-        a_kcontig: (m == 1) as u32,
         b_rs: n,
         b_cs: 1,
-        b_kcontig: (n == 1) as u32,
         ldc: n,
-        tangents: 1,
         k_chunk: K_CHUNK,
         pbias_off: splits * m * n,
         ..Default::default()
@@ -177,6 +191,7 @@ fn entry(binding: u32, buffer: &wgpu::Buffer) -> wgpu::BindGroupEntry<'_> {
 /// One recorded kernel launch: its pipeline, bind group and workgroup grid.
 #[derive(Debug)]
 pub(crate) struct Launch {
+    label: String,
     pipeline: wgpu::ComputePipeline,
     bind_group: wgpu::BindGroup,
     groups: (u32, u32, u32),
@@ -196,6 +211,7 @@ impl Launch {
             entries,
         });
         Launch {
+            label: label.to_owned(),
             pipeline: pipeline.clone(),
             bind_group,
             groups,
@@ -221,41 +237,48 @@ impl Launch {
     }
 }
 
-fn gemm_groups(u: &GemmUniforms) -> (u32, u32, u32) {
+fn gemm_groups(gpu: &GpuContext, u: &GemmUniforms) -> (u32, u32, u32) {
     let z = if u.mode == 2 { splits_for(u.k) } else { 1 };
-    (u.n.div_ceil(TILE), u.m.div_ceil(TILE), z)
+    let (x, y) = gpu.dispatch_size(u.m.div_ceil(GEMM_ROWS));
+    (x, y, z)
 }
 
 /// The compiled pipelines SIREN uses.
 #[derive(Debug, Clone)]
 pub(crate) struct Pipelines {
-    pub(crate) gemm: wgpu::ComputePipeline,
-    pub(crate) head_forward: wgpu::ComputePipeline,
-    pub(crate) head_backward: wgpu::ComputePipeline,
+    gemm: wgpu::ComputePipeline,
+    sine_forward: wgpu::ComputePipeline,
+    sine_backward: wgpu::ComputePipeline,
+    head_forward: wgpu::ComputePipeline,
+    head_backward: wgpu::ComputePipeline,
 }
 
 impl Pipelines {
     fn new(gpu: &GpuContext) -> Result<Self, GpuError> {
         Ok(Pipelines {
             gemm: gpu.pipeline(&shaders::SIREN_GEMM, "gemm", &[])?,
+            sine_forward: gpu.pipeline(&shaders::SIREN_GEMM, "sine_forward", &[])?,
+            sine_backward: gpu.pipeline(&shaders::SIREN_GEMM, "sine_backward", &[])?,
             head_forward: gpu.pipeline(&shaders::SIREN_HEAD, "head_forward", &[])?,
             head_backward: gpu.pipeline(&shaders::SIREN_HEAD, "head_backward", &[])?,
         })
     }
 }
 
-/// Buffers and launches of the forward pass for a fixed capacity of points.
+/// Buffers of the forward pass for a fixed capacity of points, and the launches for the
+/// batch size they were last built for.
 #[derive(Debug)]
 struct EvalWorkspace {
     capacity: u32,
     tangents: bool,
     input: wgpu::Buffer,
+    act: [wgpu::Buffer; 2],
+    /// Pre-activations (tangent mode only).
+    z: wgpu::Buffer,
     values: wgpu::Buffer,
-    uniforms: Vec<wgpu::Buffer>,
-    head_uniforms: wgpu::Buffer,
     launches: Vec<Launch>,
-    /// The uniforms were last written for this many points.
-    written_for: Option<u32>,
+    /// The launches were built for this many points.
+    built_for: Option<u32>,
 }
 
 /// A SIREN's parameters (and gradients) on the GPU, with its kernels.
@@ -269,6 +292,7 @@ pub struct SirenGpu {
     eval: Option<EvalWorkspace>,
     eval_grad: Option<EvalWorkspace>,
     dummy: wgpu::Buffer,
+    dummy_rw: wgpu::Buffer,
 }
 
 impl SirenGpu {
@@ -277,8 +301,11 @@ impl SirenGpu {
     pub fn new(gpu: &GpuContext, siren: &Siren) -> Result<Self, SirenGpuError> {
         let config = *siren.config();
         config.validate()?;
-        let params = gpu.storage_from_slice("siren params", siren.params())?;
-        let grads = gpu.storage_zeroed("siren grads", siren.params().len() as u64 * 4)?;
+        // Padded to 16 bytes: the GEMM also reads it as vec4.
+        let mut padded = siren.params().to_vec();
+        padded.resize(padded.len().next_multiple_of(4), 0.0);
+        let params = gpu.storage_from_slice("siren params", &padded)?;
+        let grads = gpu.storage_zeroed("siren grads", padded.len() as u64 * 4)?;
         Ok(SirenGpu {
             config,
             layers: config.layers(),
@@ -288,6 +315,7 @@ impl SirenGpu {
             eval: None,
             eval_grad: None,
             dummy: gpu.storage_zeroed("siren dummy", 4)?,
+            dummy_rw: gpu.storage_zeroed("siren dummy rw", 4)?,
         })
     }
 
@@ -344,8 +372,7 @@ impl SirenGpu {
     /// Φ at each point (normalised coordinates), any number of points, split into launches that
     /// fit the device limits.
     pub fn eval(&mut self, gpu: &GpuContext, points: &[Vec3]) -> Result<Vec<f32>, SirenGpuError> {
-        let vals = self.run_eval(gpu, points, false)?;
-        Ok(vals)
+        self.run_eval(gpu, points, false)
     }
 
     /// Φ and ∇Φ at each point.
@@ -372,55 +399,52 @@ impl SirenGpu {
         if points.is_empty() {
             return Ok(out);
         }
-        let slot_missing = if tangents {
-            self.eval_grad.is_none()
+        let mut ws = match if tangents {
+            self.eval_grad.take()
         } else {
-            self.eval.is_none()
+            self.eval.take()
+        } {
+            Some(ws) => ws,
+            None => self.alloc_eval(gpu, self.chunk_capacity(gpu, tangents), tangents)?,
         };
-        if slot_missing {
-            let cap = self.chunk_capacity(gpu, tangents);
-            let ws = self.build_eval(gpu, cap, tangents)?;
-            if tangents {
-                self.eval_grad = Some(ws);
-            } else {
-                self.eval = Some(ws);
-            }
-        }
-        let ws = if tangents {
-            self.eval_grad.as_mut()
-        } else {
-            self.eval.as_mut()
-        }
-        .expect("built above");
-        for chunk in points.chunks(ws.capacity as usize) {
-            let n = chunk.len() as u32;
-            write_eval_uniforms(gpu, &self.config, &self.layers, ws, n)?;
-            let input: Vec<f32> = if tangents {
-                chunk
-                    .iter()
-                    .flat_map(|p| [p.x, p.y, p.z, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0])
-                    .collect()
-            } else {
-                chunk.iter().flat_map(|p| p.to_array()).collect()
-            };
-            gpu.write(&ws.input, &input)?;
-            let mut enc = gpu.device().create_command_encoder(&Default::default());
-            {
-                let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
-                    label: Some("siren eval"),
-                    timestamp_writes: None,
-                });
-                for l in &ws.launches {
-                    l.record(&mut pass);
+        let result = (|| {
+            for chunk in points.chunks(ws.capacity as usize) {
+                let n = chunk.len() as u32;
+                if ws.built_for != Some(n) {
+                    ws.launches = self.eval_launches(gpu, &ws, n);
+                    ws.built_for = Some(n);
                 }
+                let input: Vec<f32> = if tangents {
+                    chunk.iter().flat_map(|p| stream_rows(*p)).collect()
+                } else {
+                    chunk.iter().flat_map(|p| p.to_array()).collect()
+                };
+                gpu.write(&ws.input, &input)?;
+                let mut enc = gpu.device().create_command_encoder(&Default::default());
+                {
+                    let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                        label: Some("siren eval"),
+                        timestamp_writes: None,
+                    });
+                    for l in &ws.launches {
+                        l.record(&mut pass);
+                    }
+                }
+                gpu.queue().submit([enc.finish()]);
+                out.extend(gpu.read_back_range::<f32>(&ws.values, 0, u64::from(n) * per as u64)?);
             }
-            gpu.queue().submit([enc.finish()]);
-            out.extend(gpu.read_back_range::<f32>(&ws.values, 0, u64::from(n) * per as u64)?);
+            Ok::<(), GpuError>(())
+        })();
+        if tangents {
+            self.eval_grad = Some(ws);
+        } else {
+            self.eval = Some(ws);
         }
+        result?;
         Ok(out)
     }
 
-    fn build_eval(
+    fn alloc_eval(
         &self,
         gpu: &GpuContext,
         capacity: u32,
@@ -429,71 +453,151 @@ impl SirenGpu {
         let per = if tangents { 4u64 } else { 1 };
         let rows = u64::from(capacity) * per;
         let width = self.config.width as u64;
-        let input = gpu.storage_zeroed("siren eval input", rows * 3 * 4)?;
-        let act = [
-            gpu.storage_zeroed("siren eval act 0", rows * width * 4)?,
-            gpu.storage_zeroed("siren eval act 1", rows * width * 4)?,
-        ];
-        let values = gpu.storage_zeroed("siren eval values", u64::from(capacity) * per * 4)?;
-        let n_hidden = self.config.hidden_layers;
-        let mut uniforms = Vec::new();
-        let mut launches = Vec::new();
-        for l in 0..n_hidden {
-            let u = gpu.uniform("siren gemm uniforms", &GemmUniforms::default());
-            let src = if l == 0 { &input } else { &act[(l - 1) % 2] };
-            let u_val = gemm_forward(
-                &self.layers[l],
-                rows as u32,
-                tangents,
-                false,
-                self.config.omega0,
-            );
-            launches.push(Launch::new(
-                gpu,
-                &self.pipelines.gemm,
-                "siren eval gemm",
-                &[
-                    entry(0, &u),
-                    entry(1, src),
-                    entry(2, &self.params),
-                    entry(3, &self.params),
-                    entry(4, &self.dummy),
-                    entry(5, &act[l % 2]),
-                ],
-                gemm_groups(&u_val),
-            ));
-            uniforms.push(u);
-        }
-        let head_uniforms = gpu.uniform("siren head uniforms", &HeadUniforms::default());
-        launches.push(Launch::flat(
-            gpu,
-            &self.pipelines.head_forward,
-            "siren eval head",
-            &[
-                entry(0, &head_uniforms),
-                entry(1, &act[(n_hidden - 1) % 2]),
-                entry(2, &self.params),
-                entry(3, &self.dummy),
-                entry(4, &values),
-                entry(5, &self.grads_dummy(gpu)?),
-                entry(6, &self.grads_dummy(gpu)?),
-            ],
-            capacity,
-        ));
         Ok(EvalWorkspace {
             capacity,
             tangents,
-            input,
-            values,
-            uniforms,
-            head_uniforms,
-            launches,
-            written_for: None,
+            input: gpu.storage_zeroed("siren eval input", rows * 3 * 4)?,
+            act: [
+                gpu.storage_zeroed("siren eval act 0", rows * width * 4)?,
+                gpu.storage_zeroed("siren eval act 1", rows * width * 4)?,
+            ],
+            z: gpu.storage_zeroed("siren eval z", if tangents { rows * width * 4 } else { 4 })?,
+            values: gpu.storage_zeroed("siren eval values", rows * 4)?,
+            launches: Vec::new(),
+            built_for: None,
         })
     }
 
-    fn grads_dummy(&self, gpu: &GpuContext) -> Result<wgpu::Buffer, GpuError> {
-        gpu.storage_zeroed("siren dummy rw", 4)
+    /// The launches of a forward pass over `n` points of `ws`.
+    fn eval_launches(&self, gpu: &GpuContext, ws: &EvalWorkspace, n: u32) -> Vec<Launch> {
+        let cfg = &self.config;
+        let rows = if ws.tangents { 4 * n } else { n };
+        let p = &self.pipelines;
+        let mut launches = Vec::new();
+        for l in 0..cfg.hidden_layers {
+            let src = if l == 0 {
+                &ws.input
+            } else {
+                &ws.act[(l - 1) % 2]
+            };
+            let dst = &ws.act[l % 2];
+            if ws.tangents {
+                let u = gemm_forward(&self.layers[l], rows, false, cfg.omega0);
+                launches.push(self.gemm_launch(gpu, &u, src, &self.params, &ws.z));
+                launches.push(self.sine_forward_launch(gpu, l, n, &ws.z, dst));
+            } else {
+                let u = gemm_forward(&self.layers[l], rows, true, cfg.omega0);
+                launches.push(self.gemm_launch(gpu, &u, src, &self.params, dst));
+            }
+        }
+        let last = self.layers.last().expect("at least one layer");
+        let head = HeadUniforms {
+            mode: ws.tangents as u32,
+            n_points: n,
+            width: cfg.width as u32,
+            w_off: last.weight as u32,
+            b_off: last.bias as u32,
+            omega: cfg.omega0,
+            ..Default::default()
+        };
+        let hu = gpu.uniform("siren head uniforms", &head);
+        launches.push(Launch::flat(
+            gpu,
+            &p.head_forward,
+            "siren eval head",
+            &[
+                entry(0, &hu),
+                entry(1, &ws.act[(cfg.hidden_layers - 1) % 2]),
+                entry(2, &self.params),
+                entry(3, &self.dummy),
+                entry(4, &ws.values),
+                entry(5, &self.dummy_rw),
+                entry(6, &self.dummy_rw),
+            ],
+            n,
+        ));
+        launches
+    }
+
+    fn gemm_launch(
+        &self,
+        gpu: &GpuContext,
+        u: &GemmUniforms,
+        a: &wgpu::Buffer,
+        b: &wgpu::Buffer,
+        out: &wgpu::Buffer,
+    ) -> Launch {
+        let u = &u.with_load_styles();
+        let ub = gpu.uniform("siren gemm uniforms", u);
+        Launch::new(
+            gpu,
+            &self.pipelines.gemm,
+            "siren gemm",
+            &[
+                entry(0, &ub),
+                entry(1, a),
+                entry(2, b),
+                entry(3, &self.params),
+                entry(4, out),
+                entry(5, a),
+                entry(6, b),
+            ],
+            gemm_groups(gpu, u),
+        )
+    }
+
+    fn elementwise_uniforms(&self, gpu: &GpuContext, l: usize, n: u32) -> wgpu::Buffer {
+        gpu.uniform(
+            "siren elementwise uniforms",
+            &ElementwiseUniforms {
+                n_points: n,
+                width: self.config.width as u32,
+                bias_off: self.layers[l].bias as u32,
+                omega: self.config.omega0,
+                ..Default::default()
+            },
+        )
+    }
+
+    fn sine_forward_launch(
+        &self,
+        gpu: &GpuContext,
+        l: usize,
+        n: u32,
+        z: &wgpu::Buffer,
+        act: &wgpu::Buffer,
+    ) -> Launch {
+        let u = self.elementwise_uniforms(gpu, l, n);
+        Launch::flat(
+            gpu,
+            &self.pipelines.sine_forward,
+            "siren sine forward",
+            &[
+                entry(10, &u),
+                entry(11, &self.params),
+                entry(12, z),
+                entry(13, act),
+            ],
+            n * self.config.width as u32,
+        )
+    }
+
+    fn sine_backward_launch(
+        &self,
+        gpu: &GpuContext,
+        l: usize,
+        n: u32,
+        grad: &wgpu::Buffer,
+        z: &wgpu::Buffer,
+    ) -> Launch {
+        let u = self.elementwise_uniforms(gpu, l, n);
+        Launch::flat(
+            gpu,
+            &self.pipelines.sine_backward,
+            "siren sine backward",
+            &[entry(10, &u), entry(14, grad), entry(15, z)],
+            n * self.config.width as u32,
+        )
     }
 
     /// The loss of one batch (the first `normals.len()` points on the surface with those
@@ -510,10 +614,7 @@ impl SirenGpu {
         let n = points.len().max(1) as u32;
         let n_surface = normals.len().min(points.len()) as u32;
         let passes = TrainPasses::new(gpu, self, n, n_surface, weights)?;
-        let streams: Vec<f32> = points
-            .iter()
-            .flat_map(|p| [p.x, p.y, p.z, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0])
-            .collect();
+        let streams: Vec<f32> = points.iter().flat_map(|p| stream_rows(*p)).collect();
         gpu.write(&passes.x_streams, &streams)?;
         let flat_n: Vec<f32> = normals.iter().flat_map(|v| v.to_array()).collect();
         gpu.write(&passes.normals, &flat_n)?;
@@ -527,6 +628,21 @@ impl SirenGpu {
             passes.record(&mut pass);
         }
         gpu.queue().submit([enc.finish()]);
+        if std::env::var_os("SIREN_PROFILE").is_some() {
+            // Diagnostics: time every launch on its own.
+            gpu.wait()?;
+            for (i, l) in passes.launches.iter().enumerate() {
+                let t = std::time::Instant::now();
+                let mut enc = gpu.device().create_command_encoder(&Default::default());
+                {
+                    let mut pass = enc.begin_compute_pass(&Default::default());
+                    l.record(&mut pass);
+                }
+                gpu.queue().submit([enc.finish()]);
+                gpu.wait()?;
+                eprintln!("launch {i} {} {:?}: {:?}", l.label, l.groups, t.elapsed());
+            }
+        }
         let partial: Vec<f32> =
             gpu.read_back_range(&passes.loss_partial, 0, u64::from(passes.loss_groups) * 4)?;
         let mut t = [0.0f32; 4];
@@ -545,34 +661,9 @@ impl SirenGpu {
     }
 }
 
-fn write_eval_uniforms(
-    gpu: &GpuContext,
-    config: &SirenConfig,
-    layers: &[LayerLayout],
-    ws: &mut EvalWorkspace,
-    n: u32,
-) -> Result<(), GpuError> {
-    if ws.written_for == Some(n) {
-        return Ok(());
-    }
-    let rows = if ws.tangents { 4 * n } else { n };
-    for (l, u) in ws.uniforms.iter().enumerate() {
-        let val = gemm_forward(&layers[l], rows, ws.tangents, false, config.omega0);
-        gpu.write(u, &[val])?;
-    }
-    let last = layers.last().expect("at least one layer");
-    let head = HeadUniforms {
-        mode: ws.tangents as u32,
-        n_points: n,
-        width: config.width as u32,
-        w_off: last.weight as u32,
-        b_off: last.bias as u32,
-        omega: config.omega0,
-        ..Default::default()
-    };
-    gpu.write(&ws.head_uniforms, &[head])?;
-    ws.written_for = Some(n);
-    Ok(())
+/// A point's four input rows: the point, then the unit tangents e_x, e_y, e_z.
+fn stream_rows(p: Vec3) -> [f32; 12] {
+    [p.x, p.y, p.z, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]
 }
 
 /// The buffers and recorded launches of one training step's forward and backward passes for a
@@ -598,8 +689,8 @@ impl TrainPasses {
         weights: &super::LossWeights,
     ) -> Result<Self, SirenGpuError> {
         let cfg = net.config;
-        let layers = net.layers.clone();
-        let p = net.pipelines.clone();
+        let layers = &net.layers;
+        let p = &net.pipelines;
         let rows = 4 * n;
         let width = cfg.width as u64;
         let l_hidden = cfg.hidden_layers;
@@ -628,31 +719,16 @@ impl TrainPasses {
             .max()
             .unwrap_or(1);
         let partial = gpu.storage_zeroed("siren wgrad partial", partial_len * 4)?;
-        let dummy_rw = gpu.storage_zeroed("siren dummy rw", 4)?;
         let reduce = gpu.pipeline(&shaders::SIREN_TRAIN, "reduce_wgrad", &[])?;
 
         let mut launches = Vec::new();
         let mut keep = Vec::new();
-        // Forward.
+        // Forward: Z_l = A_{l-1} W_lᵀ, then bias, sine and tangents.
         for l in 0..l_hidden {
-            let val = gemm_forward(&layers[l], rows, true, true, cfg.omega0);
-            let u = gpu.uniform("siren gemm fwd", &val);
             let src = if l == 0 { &x_streams } else { &act[l - 1] };
-            launches.push(Launch::new(
-                gpu,
-                &p.gemm,
-                "siren fwd",
-                &[
-                    entry(0, &u),
-                    entry(1, src),
-                    entry(2, &net.params),
-                    entry(3, &net.params),
-                    entry(4, &z[l]),
-                    entry(5, &act[l]),
-                ],
-                gemm_groups(&val),
-            ));
-            keep.push(u);
+            let u = gemm_forward(&layers[l], rows, false, cfg.omega0);
+            launches.push(net.gemm_launch(gpu, &u, src, &net.params, &z[l]));
+            launches.push(net.sine_forward_launch(gpu, l, n, &z[l], &act[l]));
         }
         let last = layers.last().expect("at least one layer");
         let head = HeadUniforms {
@@ -687,7 +763,7 @@ impl TrainPasses {
             ],
             n,
         ));
-        // Backward: output layer.
+        // Backward: the output layer gives Z̄ of the last sine layer.
         launches.push(Launch::flat(
             gpu,
             &p.head_backward,
@@ -707,21 +783,7 @@ impl TrainPasses {
                           a: &wgpu::Buffer,
                           b: &wgpu::Buffer| {
             let val = wgrads[l];
-            let u = gpu.uniform("siren gemm wgrad", &val);
-            launches.push(Launch::new(
-                gpu,
-                &p.gemm,
-                "siren wgrad",
-                &[
-                    entry(0, &u),
-                    entry(1, a),
-                    entry(2, b),
-                    entry(3, &net.params),
-                    entry(4, &partial),
-                    entry(5, &dummy_rw),
-                ],
-                gemm_groups(&val),
-            ));
+            launches.push(net.gemm_launch(gpu, &val, a, b, &partial));
             let ru = ReduceUniforms {
                 m: val.m,
                 n: val.n,
@@ -739,7 +801,6 @@ impl TrainPasses {
                 &[entry(5, &rub), entry(6, &partial), entry(7, &net.grads)],
                 val.m * val.n + val.m,
             ));
-            keep.push(u);
             keep.push(rub);
         };
         push_wgrad(
@@ -753,23 +814,21 @@ impl TrainPasses {
             let src = if l == 0 { &x_streams } else { &act[l - 1] };
             push_wgrad(&mut launches, &mut keep, l, &zbar[l % 2], src);
             if l > 0 {
-                let val = gemm_backward(&layers[l], rows, cfg.omega0);
-                let u = gpu.uniform("siren gemm bwd", &val);
-                launches.push(Launch::new(
+                let u = gemm_backward(&layers[l], rows);
+                launches.push(net.gemm_launch(
                     gpu,
-                    &p.gemm,
-                    "siren bwd",
-                    &[
-                        entry(0, &u),
-                        entry(1, &zbar[l % 2]),
-                        entry(2, &net.params),
-                        entry(3, &z[l - 1]),
-                        entry(4, &zbar[(l - 1) % 2]),
-                        entry(5, &dummy_rw),
-                    ],
-                    gemm_groups(&val),
+                    &u,
+                    &zbar[l % 2],
+                    &net.params,
+                    &zbar[(l - 1) % 2],
                 ));
-                keep.push(u);
+                launches.push(net.sine_backward_launch(
+                    gpu,
+                    l - 1,
+                    n,
+                    &zbar[(l - 1) % 2],
+                    &z[l - 1],
+                ));
             }
         }
         keep.push(hu);
@@ -779,7 +838,6 @@ impl TrainPasses {
         keep.push(dout);
         keep.push(values);
         keep.push(partial);
-        keep.push(dummy_rw);
         Ok(TrainPasses {
             n,
             x_streams,

@@ -501,3 +501,27 @@ impl SirenTrainer {
         })
     }
 }
+
+/// Checkpoints: what an interrupted run saves besides the weights, and how it resumes.
+impl SirenTrainer {
+    /// The optimiser's moments and step counter.
+    pub fn optimizer_state(&self, gpu: &GpuContext) -> Result<crate::AdamState, TrainError> {
+        Ok(self.adam.export_state(gpu)?)
+    }
+
+    /// Continues a run: restores the optimiser state, the step count (which also seeds the
+    /// per-step batches) and the learning rate. The weights come with the [`Siren`] the trainer
+    /// was built from.
+    pub fn resume(
+        &mut self,
+        gpu: &GpuContext,
+        state: &crate::AdamState,
+        steps_done: usize,
+        lr: f32,
+    ) -> Result<(), TrainError> {
+        self.adam.import_state(gpu, state)?;
+        self.adam.config.lr = lr;
+        self.step = steps_done;
+        Ok(())
+    }
+}
