@@ -78,10 +78,12 @@ struct WindingNode {
     trace: f32,
     /// Diagonal of the symmetric part of C.
     sym_diag: Vec3,
-    _pad0: f32,
+    /// Copy of [`Node::first`], so the winding traversal reads one cache line per node.
+    first: u32,
     /// Off-diagonal (xy, xz, yz) of the symmetric part of C.
     sym_off: Vec3,
-    _pad1: f32,
+    /// Copy of [`Node::count`].
+    count: u32,
 }
 
 /// Exact unsigned distance plus a robust sign, for one mesh.
@@ -345,9 +347,9 @@ impl SignedDistance {
                 area_normal: area_normal.as_vec3(),
                 trace: (sym.x_axis.x + sym.y_axis.y + sym.z_axis.z) as f32,
                 sym_diag: DVec3::new(sym.x_axis.x, sym.y_axis.y, sym.z_axis.z).as_vec3(),
-                _pad0: 0.0,
+                first: n.first,
                 sym_off: DVec3::new(sym.y_axis.x, sym.z_axis.x, sym.z_axis.y).as_vec3(),
-                _pad1: 0.0,
+                count: n.count,
             };
         }
         let diag = mesh.bounds().diagonal();
@@ -491,18 +493,15 @@ impl SignedDistance {
                 let so = Vec3A::from(w.sym_off) * Vec3A::new(d.x * d.y, d.x * d.z, d.y * d.z);
                 let rsr = sd.x + sd.y + sd.z + 2.0 * (so.x + so.y + so.z);
                 sum += (Vec3A::from(w.area_normal).dot(d) + w.trace) * inv3 - 3.0 * rsr * inv3 / d2;
-            } else {
-                let n = &self.nodes[ni as usize];
-                if n.count > 0 {
-                    let start = n.first as usize;
-                    for t in &self.tris[start..start + n.count as usize] {
-                        sum += solid_angle(t[0] - p, t[1] - p, t[2] - p);
-                    }
-                } else {
-                    stack.push(n.first + 1);
-                    ni = n.first;
-                    continue;
+            } else if w.count > 0 {
+                let start = w.first as usize;
+                for t in &self.tris[start..start + w.count as usize] {
+                    sum += solid_angle(t[0] - p, t[1] - p, t[2] - p);
                 }
+            } else {
+                stack.push(w.first + 1);
+                ni = w.first;
+                continue;
             }
             match stack.pop() {
                 Some(i) => ni = i,
