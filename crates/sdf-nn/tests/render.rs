@@ -203,3 +203,32 @@ fn bad_options_are_errors() {
     assert!(matches!(err, RenderError::BadOption(_)), "{err}");
     assert!(err.to_string().contains("fov_y_degrees"));
 }
+
+/// The tracer also compiles and runs with a SIREN snippet on the device (naga validation alone
+/// does not exercise the driver's compiler).
+#[test]
+fn siren_model_renders() {
+    let gpu = gpu();
+    let siren = sdf_nn::Siren::new(
+        sdf_nn::SirenConfig {
+            width: 16,
+            hidden_layers: 2,
+            omega0: 30.0,
+        },
+        4,
+    )
+    .unwrap();
+    let sdf =
+        NeuralSdf::from_model_file(siren.to_model_file(normalization(), serde_json::Value::Null))
+            .unwrap();
+    let options = RenderOptions {
+        width: 24,
+        height: 24,
+        ..RenderOptions::default()
+    };
+    let t = std::time::Instant::now();
+    let image = sdf_nn::render(gpu, &sdf, &options).unwrap();
+    eprintln!("siren 24x24 in {:.2?} (JIT included)", t.elapsed());
+    assert_eq!(image.pixels.len(), 24 * 24 * 4);
+    assert!(image.pixels.chunks(4).all(|p| p[3] == 255));
+}
