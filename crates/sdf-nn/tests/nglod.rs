@@ -327,6 +327,8 @@ fn trains_a_sphere_with_correct_signs_at_every_lod() {
         near_points: 20_000,
         surface_points: 20_000,
         objective: Objective::AllPrefixes,
+        // Small epochs need small batches to take enough steps.
+        batch_size: 512,
         seed: 3,
         ..Default::default()
     };
