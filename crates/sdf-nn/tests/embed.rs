@@ -200,14 +200,38 @@ fn points(n: usize, seed: u64) -> Vec<Vec3> {
 /// the way a renderer would: its own bind group at 0, `NeuralSdf::bind_group` at 1.
 fn eval_on_gpu(sdf: &NeuralSdf, pts: &[Vec3]) -> Vec<[f32; 4]> {
     let gpu = gpu();
-    let device = gpu.device();
+    eval_on_device(gpu.device(), gpu.queue(), sdf, pts)
+}
+
+/// [`eval_on_gpu`] on any device, with nothing of HW SDF's GPU context.
+fn eval_on_device(
+    device: &wgpu::Device,
+    queue: &wgpu::Queue,
+    sdf: &NeuralSdf,
+    pts: &[Vec3],
+) -> Vec<[f32; 4]> {
+    use wgpu::util::DeviceExt;
     let source = format!("{}\n{}", sdf.wgsl(1), user_shader(0));
     let sdf_group = sdf.bind_group(device).expect("weights fit");
-    let input: Vec<[f32; 4]> = pts.iter().map(|p| p.extend(0.0).to_array()).collect();
-    let points = gpu.storage_from_slice("points", &input).unwrap();
-    let results = gpu
-        .storage_zeroed("results", (pts.len() * 16) as u64)
-        .unwrap();
+    let input: Vec<f32> = pts.iter().flat_map(|p| p.extend(0.0).to_array()).collect();
+    let points = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+        label: Some("points"),
+        contents: bytemuck::cast_slice(&input),
+        usage: wgpu::BufferUsages::STORAGE,
+    });
+    let bytes = (pts.len() * 16) as u64;
+    let results = device.create_buffer(&wgpu::BufferDescriptor {
+        label: Some("results"),
+        size: bytes,
+        usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC,
+        mapped_at_creation: false,
+    });
+    let readback = device.create_buffer(&wgpu::BufferDescriptor {
+        label: Some("readback"),
+        size: bytes,
+        usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+        mapped_at_creation: false,
+    });
     let storage = |binding, read_only| wgpu::BindGroupLayoutEntry {
         binding,
         visibility: wgpu::ShaderStages::COMPUTE,
@@ -261,8 +285,16 @@ fn eval_on_gpu(sdf: &NeuralSdf, pts: &[Vec3]) -> Vec<[f32; 4]> {
         pass.set_bind_group(1, &sdf_group.bind_group, &[]);
         pass.dispatch_workgroups((pts.len() as u32).div_ceil(64), 1, 1);
     }
-    gpu.queue().submit([enc.finish()]);
-    gpu.read_back(&results).unwrap()
+    enc.copy_buffer_to_buffer(&results, 0, &readback, 0, bytes);
+    queue.submit([enc.finish()]);
+    readback
+        .slice(..)
+        .map_async(wgpu::MapMode::Read, |r| r.expect("mapping the results"));
+    device
+        .poll(wgpu::PollType::wait_indefinitely())
+        .expect("device alive");
+    let view = readback.slice(..).get_mapped_range().expect("mapped");
+    bytemuck::pod_collect_to_vec(&view)
 }
 
 /// The network's raw gradient magnitude at each point's clamped normalised image: where it is
@@ -373,4 +405,39 @@ fn nglod_snippet_matches_cpu_on_gpu() {
         1e-3,
         3,
     );
+}
+
+/// `bind_group` on a device the caller created with plain wgpu and default limits, not through
+/// HW SDF's context: the snippet evaluates the same there.
+#[test]
+fn bind_group_works_on_a_callers_own_device() {
+    let instance =
+        wgpu::Instance::new(wgpu::InstanceDescriptor::new_without_display_handle_from_env());
+    let adapter = pollster::block_on(wgpu::util::initialize_adapter_from_env_or_default(
+        &instance, None,
+    ))
+    .expect("an adapter (lavapipe in CI)");
+    let (device, queue) =
+        pollster::block_on(adapter.request_device(&wgpu::DeviceDescriptor::default())).unwrap();
+    let sdf = nglod(
+        NglodConfig {
+            resolutions: vec![2, 5],
+            feature_dim: 2,
+            hidden: 4,
+            seed: 9,
+        },
+        9,
+        None,
+    );
+    let pts = points(130, 4);
+    let out = eval_on_device(&device, &queue, &sdf, &pts);
+    let cpu = sdf.eval_with_normals_cpu(&pts);
+    let unit = 1.0 / sdf.normalization().scale;
+    for (g, (d, _)) in out.iter().zip(&cpu) {
+        assert!(
+            (g[0] - d).abs() <= 2e-5 * unit * (1.0 + (d / unit).abs()),
+            "{} vs {d}",
+            g[0]
+        );
+    }
 }
