@@ -208,7 +208,7 @@ pub fn poisson_disk(mesh: &Mesh, n: usize, seed: u64) -> PoissonSamples {
 
     // Neighbour lists (CSR) with the weight each neighbour contributes, built cell by cell: the
     // 27 neighbouring cell ranges are looked up once per cell, not once per point.
-    let per_cell: Vec<(Vec<u32>, Vec<(u32, f32)>)> = grid
+    let per_cell: Vec<CellLists> = grid
         .cell_ranges
         .par_iter()
         .with_min_len(64)
@@ -296,6 +296,9 @@ pub fn poisson_disk(mesh: &Mesh, n: usize, seed: u64) -> PoissonSamples {
         target_radius: r_max,
     }
 }
+
+/// Per cell: neighbour counts of its points, and their (neighbour, weight) pairs back to back.
+type CellLists = (Vec<u32>, Vec<(u32, f32)>);
 
 /// Smallest distance between two points, looking only within `radius`; `radius` if no pair is
 /// closer, `INFINITY` for fewer than two points.
