@@ -48,8 +48,8 @@ fn forward_matches(cfg: SirenConfig, n: usize, seed: u64) {
         let gs = rg.iter().fold(1.0f64, |m, x| m.max(x.abs()));
         worst_v = worst_v.max((f64::from(vals[i]) - rv).abs());
         worst_v = worst_v.max((f64::from(with_grad[i].0) - rv).abs());
-        for j in 0..3 {
-            worst_g = worst_g.max((f64::from(with_grad[i].1[j]) - rg[j]).abs() / gs);
+        for (j, r) in rg.iter().enumerate() {
+            worst_g = worst_g.max((f64::from(with_grad[i].1[j]) - r).abs() / gs);
         }
     }
     eprintln!("{cfg:?} n={n}: |ΔΦ| ≤ {worst_v:e}, |Δ∇Φ|/scale ≤ {worst_g:e}");
