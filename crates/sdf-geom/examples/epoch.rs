@@ -123,7 +123,9 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     }
 
     let t = Instant::now();
+    let c = cpu_time();
     let pd = sample::poisson_disk(&unit, 100_000, 4);
+    println!("poisson CPU time: {:.2} s (all threads)", cpu_time() - c);
     println!(
         "poisson 1e5: {:.1} ms, kept {}, min distance {:.5}, r_max {:.5}",
         t.elapsed().as_secs_f64() * 1e3,

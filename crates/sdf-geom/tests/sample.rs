@@ -148,6 +148,17 @@ fn poisson_disk_keeps_its_minimum_distance() {
         let sdf = SignedDistance::new(&mesh).unwrap();
         assert!(pts.iter().all(|p| sdf.unsigned_distance(*p) < 1e-5));
     }
+    // Yuksel's 5 candidates per sample keep at least as much spacing as the default 3.
+    let mesh = unit("suzanne.obj");
+    let k3 = sample::poisson_disk(&mesh, 1000, 5);
+    let k5 = sample::poisson_disk_with(&mesh, 1000, 5, 5);
+    assert_eq!(k5.samples.len(), 1000);
+    assert!(
+        k5.min_distance >= 0.9 * k3.min_distance,
+        "{} vs {}",
+        k5.min_distance,
+        k3.min_distance
+    );
     let empty = sample::poisson_disk(&Mesh::default(), 10, 1);
     assert!(empty.samples.is_empty());
 }
