@@ -434,3 +434,26 @@ fn model_file_round_trips_bit_for_bit() {
     other.metadata.architecture = "siren".into();
     assert!(Nglod::from_model_file(&other).is_err());
 }
+
+#[test]
+fn trains_with_the_compare_exchange_fallback() {
+    let gpu = gpu();
+    let mesh = icosphere(0.5, 2);
+    let model = Nglod::new(NglodConfig::small()).unwrap();
+    let config = NglodTrainConfig {
+        epochs: 2,
+        uniform_points: 4_000,
+        near_points: 8_000,
+        surface_points: 8_000,
+        batch_size: 512,
+        scatter: ScatterMode::CompareExchange,
+        ..Default::default()
+    };
+    let mut trainer = NglodTrainer::new(gpu, &model, &mesh, config).unwrap();
+    assert!(!trainer.gpu_model().uses_float_atomics());
+    let report = trainer.train().unwrap();
+    assert!(
+        report.epochs[1].loss < 0.5 * report.epochs[0].loss,
+        "{report:#?}"
+    );
+}
