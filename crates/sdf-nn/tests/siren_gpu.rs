@@ -30,11 +30,14 @@ fn to64(v: Vec3) -> [f64; 3] {
     [v.x.into(), v.y.into(), v.z.into()]
 }
 
-fn forward_matches(cfg: SirenConfig, n: usize, seed: u64) {
+fn forward_matches(cfg: SirenConfig, n: usize, seed: u64, max_per_launch: Option<u32>) {
     let gpu = gpu();
     let net = Siren::new(cfg, seed).unwrap();
     let p64: Vec<f64> = net.params().iter().map(|&p| f64::from(p)).collect();
     let mut g = SirenGpu::new(gpu, &net).unwrap();
+    if let Some(m) = max_per_launch {
+        g.set_max_points_per_launch(m);
+    }
     let mut rng = Pcg64::seed_from_u64(seed);
     let pts = random_points(&mut rng, n);
     let vals = g.eval(gpu, &pts).unwrap();
@@ -67,6 +70,7 @@ fn forward_and_input_gradient_match_cpu_reference() {
         },
         37,
         1,
+        None,
     );
     forward_matches(
         SirenConfig {
@@ -76,6 +80,18 @@ fn forward_and_input_gradient_match_cpu_reference() {
         },
         300,
         2,
+        None,
+    );
+    // Split into launches of 64 points: 300 = 4 × 64 + 44.
+    forward_matches(
+        SirenConfig {
+            width: 16,
+            hidden_layers: 2,
+            omega0: 30.0,
+        },
+        300,
+        3,
+        Some(64),
     );
 }
 

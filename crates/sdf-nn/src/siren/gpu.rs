@@ -293,6 +293,7 @@ pub struct SirenGpu {
     eval_grad: Option<EvalWorkspace>,
     dummy: wgpu::Buffer,
     dummy_rw: wgpu::Buffer,
+    max_chunk: u32,
 }
 
 impl SirenGpu {
@@ -316,6 +317,7 @@ impl SirenGpu {
             eval_grad: None,
             dummy: gpu.storage_zeroed("siren dummy", 4)?,
             dummy_rw: gpu.storage_zeroed("siren dummy rw", 4)?,
+            max_chunk: 65536,
         })
     }
 
@@ -365,8 +367,16 @@ impl SirenGpu {
     fn chunk_capacity(&self, gpu: &GpuContext, tangents: bool) -> u32 {
         let limit = gpu.limits().max_storage_buffer_binding_size;
         let per_point = self.config.width as u64 * 4 * if tangents { 4 } else { 1 };
-        let cap = (limit / per_point).clamp(64, 65536);
+        let cap = (limit / per_point).clamp(64, u64::from(self.max_chunk));
         (cap as u32 / 64) * 64
+    }
+
+    /// Caps the points per launch (default 65536; at least 64; the device limits may lower it
+    /// further). Smaller launches use less memory; larger ones amortise launch overhead.
+    pub fn set_max_points_per_launch(&mut self, points: u32) {
+        self.max_chunk = points.clamp(64, 1 << 22);
+        self.eval = None;
+        self.eval_grad = None;
     }
 
     /// Φ at each point (normalised coordinates), any number of points, split into launches that
