@@ -230,3 +230,84 @@ fn unknown_adapter_name_is_a_clear_error_not_a_panic() {
     assert_clean_failure(&o, "no-such-adapter-hwsdf");
     assert!(stderr(&o).contains("WGPU_ADAPTER_NAME"));
 }
+
+#[test]
+fn ctrl_c_writes_a_checkpoint_that_resume_continues() {
+    use std::io::{BufRead, BufReader};
+    let out = scratch("interrupted.nglod.safetensors");
+    let report = scratch("interrupted.nglod.json");
+    let mut child = bin("train")
+        .arg(data("suzanne.obj"))
+        .args(["--model", "nglod", "--preset", "small", "--epochs", "200"])
+        .args(["--eval-points", "2000", "--out"])
+        .arg(&out)
+        .arg("--report")
+        .arg(&report)
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let mut lines = BufReader::new(child.stderr.take().unwrap()).lines();
+    let mut log = String::new();
+    // Wait for the first epoch, then press Ctrl-C.
+    for line in lines.by_ref() {
+        let line = line.unwrap();
+        log.push_str(&line);
+        log.push('\n');
+        if line.starts_with("epoch ") {
+            break;
+        }
+    }
+    let pid = child.id().to_string();
+    assert!(
+        Command::new("kill")
+            .args(["-INT", &pid])
+            .status()
+            .unwrap()
+            .success()
+    );
+    for line in lines {
+        log.push_str(&line.unwrap());
+        log.push('\n');
+    }
+    let status = child.wait().unwrap();
+    assert!(status.success(), "{log}");
+    let checkpoint = out.with_extension("checkpoint.safetensors");
+    assert!(log.contains("checkpoint written to"), "{log}");
+    assert!(checkpoint.exists(), "{log}");
+    assert!(
+        !out.exists(),
+        "an interrupted run writes a checkpoint, not a model"
+    );
+    // `--resume` continues to the requested total.
+    let o = bin("train")
+        .arg(data("suzanne.obj"))
+        .args(["--model", "nglod", "--preset", "small", "--epochs", "4"])
+        .args(["--eval-points", "2000", "--out"])
+        .arg(&out)
+        .arg("--report")
+        .arg(&report)
+        .arg("--resume")
+        .arg(&checkpoint)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", stderr(&o));
+    let json: serde_json::Value = serde_json::from_slice(&std::fs::read(&report).unwrap()).unwrap();
+    assert_eq!(json["trained"], 4, "{json}");
+    // Resuming with another architecture is refused.
+    let o = bin("train")
+        .arg(data("suzanne.obj"))
+        .args(["--model", "siren", "--preset", "small", "--resume"])
+        .arg(&checkpoint)
+        .output()
+        .unwrap();
+    assert_clean_failure(&o, "checkpoint");
+    // A plain model file is not a checkpoint.
+    let (model, _) = trained();
+    let o = bin("train")
+        .arg(data("suzanne.obj"))
+        .args(["--model", "nglod", "--preset", "small", "--resume"])
+        .arg(model)
+        .output()
+        .unwrap();
+    assert_clean_failure(&o, "not a checkpoint");
+}

@@ -388,6 +388,7 @@ pub fn train(
                 + train_config.near_points
                 + train_config.surface_points) as f64;
             let mut trainer = NglodTrainer::new(gpu, &model, mesh, train_config)?;
+            trainer.set_stop_flag(stop.clone());
             if let Some(c) = resume {
                 trainer.resume(&c.optimizer()?, first)?;
             }

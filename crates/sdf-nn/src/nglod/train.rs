@@ -1,6 +1,8 @@
 //! The NGLOD training loop: fresh samples every epoch, computed on CPU threads for epoch `e+1`
 //! while the GPU trains on epoch `e`; MSE; the shared Adam kernel.
 
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Instant;
 
 use glam::Vec3;
@@ -170,6 +172,7 @@ pub struct NglodTrainer<'g> {
     kernels: TrainKernels,
     epochs_done: usize,
     steps_done: usize,
+    stop: Option<Arc<AtomicBool>>,
 }
 
 impl std::fmt::Debug for NglodTrainer<'_> {
@@ -230,6 +233,7 @@ impl<'g> NglodTrainer<'g> {
             kernels,
             epochs_done: 0,
             steps_done: 0,
+            stop: None,
         })
     }
 
@@ -305,6 +309,7 @@ impl<'g> NglodTrainer<'g> {
             kernels,
             epochs_done,
             steps_done,
+            stop: stop_flag,
         } = self;
         let gpu: &GpuContext = gpu;
         let (mesh, sdf, config) = (&*mesh, &*sdf, &*config);
@@ -364,6 +369,9 @@ impl<'g> NglodTrainer<'g> {
                         if config
                             .max_seconds
                             .is_some_and(|m| start.elapsed().as_secs_f64() >= m)
+                            || stop_flag
+                                .as_ref()
+                                .is_some_and(|f| f.load(Ordering::Relaxed))
                         {
                             stop = true;
                             break;
@@ -417,6 +425,12 @@ impl NglodTrainer<'_> {
         self.adam.import_state(self.gpu, state)?;
         self.epochs_done = epochs_done;
         Ok(())
+    }
+
+    /// A flag polled at every loss read-back: once set, training stops as `max_seconds` does
+    /// (the epoch in progress counts as done), e.g. on Ctrl-C.
+    pub fn set_stop_flag(&mut self, flag: Arc<AtomicBool>) {
+        self.stop = Some(flag);
     }
 
     /// Epochs done so far.
