@@ -133,7 +133,7 @@ pub struct LoadReport {
     pub input_vertices: usize,
     /// Triangles kept.
     pub triangles: usize,
-    /// Vertices kept (unreferenced vertices are removed).
+    /// Vertices kept (unreferenced vertices are removed; the others keep their order).
     pub vertices: usize,
     /// Zero-area triangles dropped (repeated vertex, coincident positions, or collinear corners).
     pub degenerate_faces: usize,
@@ -316,17 +316,23 @@ pub(crate) fn clean(
         });
     }
 
-    // Compact the vertices.
+    // Drop unreferenced vertices, keeping the others in their original order.
     let mut remap = vec![u32::MAX; vertices.len()];
+    for t in &kept {
+        for &i in t {
+            remap[i as usize] = 0;
+        }
+    }
     let mut out_vertices = Vec::with_capacity(vertices.len());
+    for (i, slot) in remap.iter_mut().enumerate() {
+        if *slot == 0 {
+            *slot = out_vertices.len() as u32;
+            out_vertices.push(vertices[i]);
+        }
+    }
     for t in kept.iter_mut() {
         for i in t.iter_mut() {
-            let slot = &mut remap[*i as usize];
-            if *slot == u32::MAX {
-                *slot = out_vertices.len() as u32;
-                out_vertices.push(vertices[*i as usize]);
-            }
-            *i = *slot;
+            *i = remap[*i as usize];
         }
     }
     report.triangles = kept.len();
