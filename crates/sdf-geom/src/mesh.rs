@@ -217,6 +217,73 @@ impl Mesh {
         }
     }
 
+    /// An icosphere of radius `r` centred at the origin: an icosahedron subdivided `levels`
+    /// times (20·4^levels triangles), outward winding, shared vertices. A watertight test shape
+    /// with a known signed distance (`|p| − r`, up to the facets).
+    pub fn icosphere(r: f32, levels: u32) -> Mesh {
+        let t = (1.0 + 5f32.sqrt()) / 2.0;
+        let mut v: Vec<Vec3> = [
+            (-1.0, t, 0.0),
+            (1.0, t, 0.0),
+            (-1.0, -t, 0.0),
+            (1.0, -t, 0.0),
+            (0.0, -1.0, t),
+            (0.0, 1.0, t),
+            (0.0, -1.0, -t),
+            (0.0, 1.0, -t),
+            (t, 0.0, -1.0),
+            (t, 0.0, 1.0),
+            (-t, 0.0, -1.0),
+            (-t, 0.0, 1.0),
+        ]
+        .iter()
+        .map(|&(x, y, z)| Vec3::new(x, y, z).normalize())
+        .collect();
+        let mut f: Vec<[u32; 3]> = vec![
+            [0, 11, 5],
+            [0, 5, 1],
+            [0, 1, 7],
+            [0, 7, 10],
+            [0, 10, 11],
+            [1, 5, 9],
+            [5, 11, 4],
+            [11, 10, 2],
+            [10, 7, 6],
+            [7, 1, 8],
+            [3, 9, 4],
+            [3, 4, 2],
+            [3, 2, 6],
+            [3, 6, 8],
+            [3, 8, 9],
+            [4, 9, 5],
+            [2, 4, 11],
+            [6, 2, 10],
+            [8, 6, 7],
+            [9, 8, 1],
+        ];
+        for _ in 0..levels {
+            let mut cache = std::collections::HashMap::new();
+            let mut mid = |a: u32, b: u32, v: &mut Vec<Vec3>| {
+                *cache.entry((a.min(b), a.max(b))).or_insert_with(|| {
+                    v.push(((v[a as usize] + v[b as usize]) * 0.5).normalize());
+                    (v.len() - 1) as u32
+                })
+            };
+            let mut nf = Vec::with_capacity(f.len() * 4);
+            for [a, b, c] in f {
+                let ab = mid(a, b, &mut v);
+                let bc = mid(b, c, &mut v);
+                let ca = mid(c, a, &mut v);
+                nf.extend([[a, ab, ca], [b, bc, ab], [c, ca, bc], [ab, bc, ca]]);
+            }
+            f = nf;
+        }
+        Mesh {
+            vertices: v.into_iter().map(|p| p * r).collect(),
+            triangles: f,
+        }
+    }
+
     /// Total surface area.
     pub fn area(&self) -> f64 {
         self.triangles
@@ -350,5 +417,32 @@ fn rotate_min_first(t: [u32; 3]) -> [u32; 3] {
         [t[1], t[2], t[0]]
     } else {
         [t[2], t[0], t[1]]
+    }
+}
+
+#[cfg(test)]
+mod icosphere_tests {
+    use super::*;
+
+    #[test]
+    fn icosphere_is_a_closed_outward_sphere() {
+        let r = 0.7;
+        let m = Mesh::icosphere(r, 3);
+        assert_eq!(m.triangles.len(), 20 * 64);
+        assert!(m.validate().is_ok());
+        assert!(m.vertices.iter().all(|v| (v.length() - r).abs() < 1e-6));
+        let area = m.area();
+        let exact = 4.0 * std::f64::consts::PI * f64::from(r * r);
+        assert!(area < exact && area > 0.98 * exact, "{area} vs {exact}");
+        // Outward winding: positive enclosed volume.
+        let volume: f32 = m
+            .triangles
+            .iter()
+            .map(|t| {
+                let [a, b, c] = t.map(|i| m.vertices[i as usize]);
+                a.dot(b.cross(c)) / 6.0
+            })
+            .sum();
+        assert!(volume > 0.0);
     }
 }
