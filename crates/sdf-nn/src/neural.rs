@@ -55,10 +55,10 @@ pub enum Network {
 }
 
 /// The network's GPU side, created on first GPU use and kept with the device it lives on.
+// Boxed: both hold several buffers and pipelines inline, of very different sizes.
 enum GpuNetwork {
-    // Boxed: the SIREN side holds its workspaces inline and dwarfs the NGLOD one.
     Siren(Box<SirenGpu>),
-    Nglod(NglodGpu),
+    Nglod(Box<NglodGpu>),
 }
 
 /// A trained neural SDF, either architecture.
@@ -261,7 +261,9 @@ impl NeuralSdf {
         if stale {
             let net = match &self.network {
                 Network::Siren(s) => GpuNetwork::Siren(Box::new(SirenGpu::new(gpu, s)?)),
-                Network::Nglod(m) => GpuNetwork::Nglod(NglodGpu::new(gpu, m, ScatterMode::Auto)?),
+                Network::Nglod(m) => {
+                    GpuNetwork::Nglod(Box::new(NglodGpu::new(gpu, m, ScatterMode::Auto)?))
+                }
             };
             *slot = Some((gpu.device().clone(), net));
         }
