@@ -4,7 +4,7 @@
 
 use glam::{Vec3, Vec4};
 use sdf_nn::{
-    GpuContext, NeuralSdf, Nglod, NglodConfig, Normalization, RenderError, RenderOptions, Renderer,
+    GpuContext, NeuralSdf, Nglod, Normalization, RenderError, RenderOptions, Renderer,
     render::Camera,
 };
 
@@ -21,32 +21,9 @@ const RADIUS: f32 = 0.6;
 const RES: u32 = 32;
 
 /// An NGLOD model that is exactly (up to trilinear interpolation) the SDF of a sphere of
-/// radius `RADIUS` (normalised units) about the box centre, with no training: one level whose
-/// single feature holds the sphere's SDF at the grid vertices, and an MLP that passes it through
-/// (`h = relu(z + 10)`, output `h − 10`, exact wherever `z > −10`, i.e. everywhere in the box).
+/// radius `RADIUS` (normalised units) about the box centre, with no training.
 fn sphere_model(normalization: Normalization) -> NeuralSdf {
-    let config = NglodConfig {
-        resolutions: vec![RES],
-        feature_dim: 1,
-        hidden: 1,
-        seed: 0,
-    };
-    let layout = config.layout();
-    let s = RES as usize + 1;
-    let mut params = vec![0f32; layout.len];
-    for ix in 0..s {
-        for iy in 0..s {
-            for iz in 0..s {
-                let v = Vec3::new(ix as f32, iy as f32, iz as f32) * (2.0 / RES as f32) - 1.0;
-                params[(ix * s + iy) * s + iz] = v.length() - RADIUS;
-            }
-        }
-    }
-    params[layout.w0] = 1.0;
-    params[layout.b0] = 10.0;
-    params[layout.w1] = 1.0;
-    params[layout.b1] = -10.0;
-    let model = Nglod::from_params(config, params).unwrap();
+    let model = Nglod::from_sdf(RES, |p| p.length() - RADIUS).unwrap();
     NeuralSdf::from_model_file(model.to_model_file(normalization, serde_json::Value::Null)).unwrap()
 }
 

@@ -322,6 +322,40 @@ impl Nglod {
         Ok(Nglod { config, params })
     }
 
+    /// A model that reproduces `sdf` without training: one level of `resolution` cells whose
+    /// single feature holds `sdf` at the grid vertices, and an MLP that passes it through
+    /// (`h = relu(z + 10)`, output `h − 10`: exact wherever `z > −10`, i.e. for any distance in
+    /// the box). Trilinear interpolation of a true SDF is within about `h²/(8ρ)` of it near a
+    /// surface of curvature radius ρ (h = 2/resolution). For tests, and for seeding a model
+    /// with an analytic shape.
+    pub fn from_sdf(resolution: u32, sdf: impl Fn(Vec3) -> f32 + Sync) -> Result<Self, NglodError> {
+        const OFFSET: f32 = 10.0;
+        let config = NglodConfig {
+            resolutions: vec![resolution],
+            feature_dim: 1,
+            hidden: 1,
+            seed: 0,
+        };
+        config.validate()?;
+        let layout = config.layout();
+        let s = resolution as usize + 1;
+        let mut params = vec![0f32; layout.len];
+        params[..s * s * s]
+            .par_iter_mut()
+            .enumerate()
+            .for_each(|(i, v)| {
+                let (ix, iy, iz) = (i / (s * s), (i / s) % s, i % s);
+                let p =
+                    Vec3::new(ix as f32, iy as f32, iz as f32) * (2.0 / resolution as f32) - 1.0;
+                *v = sdf(p);
+            });
+        params[layout.w0] = 1.0;
+        params[layout.b0] = OFFSET;
+        params[layout.w1] = 1.0;
+        params[layout.b1] = -OFFSET;
+        Nglod::from_params(config, params)
+    }
+
     /// A model from explicit parameters (in the layout of [`NglodConfig::layout`]).
     pub fn from_params(config: NglodConfig, params: Vec<f32>) -> Result<Self, NglodError> {
         config.validate()?;
