@@ -333,14 +333,7 @@ mod tests {
             assert_eq!(count, 1, "directed edge {a}->{b} used {count} times");
             assert!(edges.contains_key(&(b, a)), "edge {a}->{b} has no twin");
         }
-        let volume: f32 = mesh
-            .triangles
-            .iter()
-            .map(|t| {
-                let [a, b, c] = t.map(|i| mesh.vertices[i as usize]);
-                a.dot(b.cross(c)) / 6.0
-            })
-            .sum();
+        let volume = mesh.signed_volume() as f32;
         let exact = 4.0 / 3.0 * std::f32::consts::PI * r * r * r;
         assert!((volume - exact).abs() < 0.02 * exact, "{volume} vs {exact}");
     }

@@ -284,6 +284,16 @@ impl Mesh {
         }
     }
 
+    /// Signed enclosed volume (divergence theorem): positive for a closed mesh whose triangles
+    /// wind outwards, negative if they wind inwards; only meaningful for closed meshes.
+    pub fn signed_volume(&self) -> f64 {
+        self.triangles
+            .iter()
+            .filter_map(|t| self.corners(t))
+            .map(|[a, b, c]| f64::from(a.dot(b.cross(c))) / 6.0)
+            .sum()
+    }
+
     /// Total surface area.
     pub fn area(&self) -> f64 {
         self.triangles
@@ -434,15 +444,12 @@ mod icosphere_tests {
         let area = m.area();
         let exact = 4.0 * std::f64::consts::PI * f64::from(r * r);
         assert!(area < exact && area > 0.98 * exact, "{area} vs {exact}");
-        // Outward winding: positive enclosed volume.
-        let volume: f32 = m
-            .triangles
-            .iter()
-            .map(|t| {
-                let [a, b, c] = t.map(|i| m.vertices[i as usize]);
-                a.dot(b.cross(c)) / 6.0
-            })
-            .sum();
-        assert!(volume > 0.0);
+        // Outward winding: positive enclosed volume, just under the sphere's.
+        let volume = m.signed_volume();
+        let sphere = 4.0 / 3.0 * std::f64::consts::PI * f64::from(r).powi(3);
+        assert!(
+            volume < sphere && volume > 0.97 * sphere,
+            "{volume} vs {sphere}"
+        );
     }
 }
