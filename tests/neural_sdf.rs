@@ -66,7 +66,10 @@ fn gpu_and_cpu_agree_for_both_architectures() {
         let gn = model.eval_with_normals(gpu, &pts).unwrap();
         let cn = model.eval_with_normals_cpu(&pts);
         for (i, ((da, na), (db, nb))) in gn.iter().zip(&cn).enumerate() {
-            assert!((da - db).abs() <= 1e-4 * db.abs().max(1.0), "{i}: {da} vs {db}");
+            assert!(
+                (da - db).abs() <= 1e-4 * db.abs().max(1.0),
+                "{i}: {da} vs {db}"
+            );
             assert!((*na - *nb).length() < 1e-3, "{i}: normal {na} vs {nb}");
             assert!(na.length() < 1.0 + 1e-4);
         }
@@ -91,7 +94,10 @@ fn levels_of_detail_apply_to_nglod_only() {
     for (a, b) in coarse_gpu.iter().zip(&coarse) {
         assert!((a - b).abs() <= 1e-4 * b.abs().max(1.0));
     }
-    assert!(m[1].set_lod(Some(4)).is_err(), "the small preset has 3 levels");
+    assert!(
+        m[1].set_lod(Some(4)).is_err(),
+        "the small preset has 3 levels"
+    );
 }
 
 #[test]
@@ -109,6 +115,9 @@ fn a_sphere_model_extracts_to_the_sphere() {
     let cell = 2.1 / 64.0 / norm.scale;
     for v in &mesh.vertices {
         let r = (*v - norm.center).length();
-        assert!((r - radius / norm.scale).abs() < 0.2 * cell, "vertex at radius {r}");
+        assert!(
+            (r - radius / norm.scale).abs() < 0.2 * cell,
+            "vertex at radius {r}"
+        );
     }
 }

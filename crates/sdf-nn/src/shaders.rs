@@ -25,13 +25,6 @@ macro_rules! shader {
 /// The shared Adam optimiser step.
 pub const ADAM: Shader = shader!("adam.wgsl", wgpu::Features::empty());
 
-/// SIREN's tiled GEMM with the sine forward / backward epilogues.
-pub const SIREN_GEMM: Shader = shader!("siren_gemm.wgsl", wgpu::Features::empty());
-/// SIREN's output layer, loss and its derivative.
-pub const SIREN_HEAD: Shader = shader!("siren_head.wgsl", wgpu::Features::empty());
-/// SIREN's batch sampling and reductions.
-pub const SIREN_TRAIN: Shader = shader!("siren_train.wgsl", wgpu::Features::empty());
-
 /// NGLOD inference (grid interpolation + MLP).
 pub const NGLOD_FORWARD: Shader = shader!("nglod_forward.wgsl", wgpu::Features::empty());
 /// NGLOD forward + backward per row, grid scatter with native float atomics.
@@ -43,6 +36,13 @@ pub const NGLOD_TRAIN_ATOMIC: Shader = shader!(
 pub const NGLOD_TRAIN_CAS: Shader = shader!("nglod_train_cas.wgsl", wgpu::Features::empty());
 /// NGLOD MLP-gradient and loss reduction.
 pub const NGLOD_REDUCE: Shader = shader!("nglod_reduce.wgsl", wgpu::Features::empty());
+
+/// SIREN's tiled GEMM with the sine forward / backward epilogues.
+pub const SIREN_GEMM: Shader = shader!("siren_gemm.wgsl", wgpu::Features::empty());
+/// SIREN's output layer, loss and its derivative.
+pub const SIREN_HEAD: Shader = shader!("siren_head.wgsl", wgpu::Features::empty());
+/// SIREN's batch sampling and reductions.
+pub const SIREN_TRAIN: Shader = shader!("siren_train.wgsl", wgpu::Features::empty());
 
 /// The sphere tracer of [`crate::render`]. It calls `hwsdf_distance` / `hwsdf_normal`, so it
 /// compiles only after a model's [`crate::NeuralSdf::wgsl`] snippet (listed in [`NEEDS_MODEL`]).
