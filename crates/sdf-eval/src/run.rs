@@ -387,6 +387,8 @@ pub fn train(
             let per_epoch = (train_config.uniform_points
                 + train_config.near_points
                 + train_config.surface_points) as f64;
+            // NGLOD trains at a fixed learning rate.
+            let lr = train_config.adam.lr;
             let mut trainer = NglodTrainer::new(gpu, &model, mesh, train_config)?;
             trainer.set_stop_flag(stop.clone());
             if let Some(c) = resume {
@@ -399,7 +401,7 @@ pub fn train(
                     total,
                     unit: "epoch",
                     loss: e.loss,
-                    lr: trainer_lr(),
+                    lr,
                     points_per_second: (done - first) as f64 * per_epoch
                         / start.elapsed().as_secs_f64().max(1e-9),
                 });
@@ -420,15 +422,10 @@ pub fn train(
                 interrupted: report.stopped_early && stop.load(Ordering::Relaxed),
                 details: training,
                 optimizer,
-                lr: trainer_lr(),
+                lr,
             })
         }
     }
-}
-
-/// NGLOD trains at a fixed learning rate.
-fn trainer_lr() -> f32 {
-    NglodTrainConfig::default().adam.lr
 }
 
 /// Evaluation results of one model on one mesh.
