@@ -115,8 +115,7 @@ fn corpus(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
     let preset = match args.preset {
         Some(PresetArg::Default) => Preset::Default,
         Some(PresetArg::Small) => Preset::Small,
-        None if gpu.is_cpu() => Preset::Small,
-        None => Preset::Default,
+        None => Preset::for_adapter(gpu.is_cpu()),
     };
     let state_dir = PathBuf::from(format!("{}.d", args.out.display()));
     std::fs::create_dir_all(&state_dir).map_err(|e| format!("{}: {e}", state_dir.display()))?;
@@ -143,12 +142,7 @@ fn corpus(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
             if stop.load(Ordering::Relaxed) {
                 break;
             }
-            let name = mesh
-                .file_name()
-                .unwrap_or_default()
-                .to_string_lossy()
-                .into_owned();
-            let record = state_dir.join(format!("{name}.{}.json", model.name()));
+            let (name, record) = record_path(&state_dir, mesh, model);
             if matches!(read_entry(&record), Some(Entry::Done(_))) {
                 eprintln!("{name} {}: done earlier, skipped", model.name());
                 continue;
@@ -199,12 +193,7 @@ fn corpus(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
     let mut entries = BTreeMap::new();
     for mesh in &meshes {
         for &model in &models {
-            let name = mesh
-                .file_name()
-                .unwrap_or_default()
-                .to_string_lossy()
-                .into_owned();
-            let record = state_dir.join(format!("{name}.{}.json", model.name()));
+            let (name, record) = record_path(&state_dir, mesh, model);
             if let Some(e) = read_entry(&record) {
                 entries.insert((model.name(), name), e);
             }
@@ -216,6 +205,17 @@ fn corpus(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
     print!("{table}");
     eprintln!("table written to {}", args.out.display());
     Ok(())
+}
+
+/// The mesh's file name and where its result for `model` is kept.
+fn record_path(state_dir: &Path, mesh: &Path, model: ModelKind) -> (String, PathBuf) {
+    let name = mesh
+        .file_name()
+        .unwrap_or_default()
+        .to_string_lossy()
+        .into_owned();
+    let record = state_dir.join(format!("{name}.{}.json", model.name()));
+    (name, record)
 }
 
 fn read_entry(path: &Path) -> Option<Entry> {

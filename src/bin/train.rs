@@ -100,13 +100,15 @@ fn train(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
     let preset = match args.preset {
         Some(PresetArg::Default) => Preset::Default,
         Some(PresetArg::Small) => Preset::Small,
-        None if gpu.is_cpu() => {
-            eprintln!(
-                "note: CPU adapter; using the `small` preset (pass --preset default to override)"
-            );
-            Preset::Small
+        None => {
+            let preset = Preset::for_adapter(gpu.is_cpu());
+            if gpu.is_cpu() {
+                eprintln!(
+                    "note: CPU adapter; using the `small` preset (pass --preset default to override)"
+                );
+            }
+            preset
         }
-        None => Preset::Default,
     };
     let out = args
         .out

@@ -86,6 +86,16 @@ pub enum Preset {
 }
 
 impl Preset {
+    /// The preset used when none is asked for: `small` on a CPU adapter (lavapipe), where the
+    /// design document's networks train too slowly, `default` on a GPU.
+    pub fn for_adapter(cpu_adapter: bool) -> Self {
+        if cpu_adapter {
+            Preset::Small
+        } else {
+            Preset::Default
+        }
+    }
+
     /// `"default"` or `"small"`.
     pub fn name(self) -> &'static str {
         match self {
