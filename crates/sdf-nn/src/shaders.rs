@@ -39,6 +39,9 @@ pub const NGLOD_REDUCE: Shader = shader!("nglod_reduce.wgsl", wgpu::Features::em
 
 /// SIREN's tiled GEMM with the sine forward / backward epilogues.
 pub const SIREN_GEMM: Shader = shader!("siren_gemm.wgsl", wgpu::Features::empty());
+/// SIREN's hidden layers with the weights in uniform-buffer windows (forward, backward and
+/// weight-gradient partials).
+pub const SIREN_DENSE: Shader = shader!("siren_dense.wgsl", wgpu::Features::empty());
 /// SIREN's output layer, loss and its derivative.
 pub const SIREN_HEAD: Shader = shader!("siren_head.wgsl", wgpu::Features::empty());
 /// SIREN's batch sampling and reductions.
@@ -56,6 +59,7 @@ pub const ALL: &[Shader] = &[
     SPHERE_TRACE,
     ADAM,
     SIREN_GEMM,
+    SIREN_DENSE,
     SIREN_HEAD,
     SIREN_TRAIN,
     NGLOD_FORWARD,

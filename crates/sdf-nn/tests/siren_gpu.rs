@@ -5,7 +5,7 @@
 use glam::Vec3;
 use rand::{Rng, SeedableRng};
 use rand_pcg::Pcg64;
-use sdf_nn::siren::{LossWeights, cpu};
+use sdf_nn::siren::{LayerKernels, LossWeights, cpu};
 use sdf_nn::{GpuContext, ModelFile, Siren, SirenConfig, SirenGpu, SirenTrainConfig, SirenTrainer};
 
 fn gpu() -> &'static GpuContext {
@@ -30,11 +30,40 @@ fn to64(v: Vec3) -> [f64; 3] {
     [v.x.into(), v.y.into(), v.z.into()]
 }
 
+/// Both layer kernels, checking that the row-blocked one really runs the hidden layers.
+fn with_each_kernel(gpu: &GpuContext, net: &Siren, mut check: impl FnMut(&mut SirenGpu)) {
+    for kernels in [LayerKernels::RowBlocked, LayerKernels::Gemm] {
+        let mut g = SirenGpu::new(gpu, net).unwrap();
+        g.set_layer_kernels(gpu, kernels).unwrap();
+        let expected = match kernels {
+            LayerKernels::Gemm => 0,
+            // Every hidden layer but the first (fan-in 3).
+            _ => net.config().hidden_layers - 1,
+        };
+        assert_eq!(g.row_blocked_layers(), expected, "{kernels:?}");
+        eprint!("{kernels:?}: ");
+        check(&mut g);
+    }
+}
+
 fn forward_matches(cfg: SirenConfig, n: usize, seed: u64, max_per_launch: Option<u32>) {
     let gpu = gpu();
     let net = Siren::new(cfg, seed).unwrap();
+    with_each_kernel(gpu, &net, |g| {
+        forward_matches_on(g, cfg, &net, n, seed, max_per_launch)
+    });
+}
+
+fn forward_matches_on(
+    g: &mut SirenGpu,
+    cfg: SirenConfig,
+    net: &Siren,
+    n: usize,
+    seed: u64,
+    max_per_launch: Option<u32>,
+) {
+    let gpu = gpu();
     let p64: Vec<f64> = net.params().iter().map(|&p| f64::from(p)).collect();
-    let mut g = SirenGpu::new(gpu, &net).unwrap();
     if let Some(m) = max_per_launch {
         g.set_max_points_per_launch(m);
     }
@@ -93,13 +122,38 @@ fn forward_and_input_gradient_match_cpu_reference() {
         3,
         Some(64),
     );
+    // The reference width: sixteen 16 KiB weight windows per layer, the backward pass summing
+    // over them.
+    forward_matches(
+        SirenConfig {
+            width: 256,
+            hidden_layers: 2,
+            omega0: 30.0,
+        },
+        45,
+        5,
+        None,
+    );
 }
 
 fn gradients_match(cfg: SirenConfig, n: usize, n_surface: usize, seed: u64) {
     let gpu = gpu();
     let net = Siren::new(cfg, seed).unwrap();
+    with_each_kernel(gpu, &net, |g| {
+        gradients_match_on(g, cfg, &net, n, n_surface, seed)
+    });
+}
+
+fn gradients_match_on(
+    g: &mut SirenGpu,
+    cfg: SirenConfig,
+    net: &Siren,
+    n: usize,
+    n_surface: usize,
+    seed: u64,
+) {
+    let gpu = gpu();
     let p64: Vec<f64> = net.params().iter().map(|&p| f64::from(p)).collect();
-    let mut g = SirenGpu::new(gpu, &net).unwrap();
     let mut rng = Pcg64::seed_from_u64(seed + 100);
     let pts = random_points(&mut rng, n);
     let normals: Vec<Vec3> = random_points(&mut rng, n_surface)
@@ -166,6 +220,16 @@ fn loss_and_every_parameter_gradient_match_cpu_reference() {
         300,
         150,
         4,
+    );
+    gradients_match(
+        SirenConfig {
+            width: 256,
+            hidden_layers: 2,
+            omega0: 30.0,
+        },
+        23,
+        11,
+        6,
     );
 }
 

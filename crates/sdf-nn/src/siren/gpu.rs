@@ -10,6 +10,7 @@
 
 use glam::Vec3;
 
+use super::dense::{DensePlan, LayerKernels, SPLITS};
 use super::{LayerLayout, Siren, SirenConfig, SirenConfigError};
 use crate::gpu::{GpuContext, GpuError};
 use crate::shaders;
@@ -294,6 +295,9 @@ pub struct SirenGpu {
     dummy: wgpu::Buffer,
     dummy_rw: wgpu::Buffer,
     max_chunk: u32,
+    kernels: LayerKernels,
+    /// The hidden layers on the row-blocked kernels, if any.
+    dense: Option<DensePlan>,
 }
 
 impl SirenGpu {
@@ -307,9 +311,16 @@ impl SirenGpu {
         padded.resize(padded.len().next_multiple_of(4), 0.0);
         let params = gpu.storage_from_slice("siren params", &padded)?;
         let grads = gpu.storage_zeroed("siren grads", padded.len() as u64 * 4)?;
+        let layers = config.layers();
+        let kernels = LayerKernels::default();
+        let dense = if kernels.row_blocked(gpu) {
+            DensePlan::new(gpu, &layers)?
+        } else {
+            None
+        };
         Ok(SirenGpu {
             config,
-            layers: config.layers(),
+            layers,
             params,
             grads,
             pipelines: Pipelines::new(gpu)?,
@@ -318,7 +329,50 @@ impl SirenGpu {
             dummy: gpu.storage_zeroed("siren dummy", 4)?,
             dummy_rw: gpu.storage_zeroed("siren dummy rw", 4)?,
             max_chunk: 65536,
+            kernels,
+            dense,
         })
+    }
+
+    /// Chooses the kernels of the hidden layers (default [`LayerKernels::Auto`]).
+    pub fn set_layer_kernels(
+        &mut self,
+        gpu: &GpuContext,
+        kernels: LayerKernels,
+    ) -> Result<(), SirenGpuError> {
+        self.dense = if kernels.row_blocked(gpu) {
+            DensePlan::new(gpu, &self.layers)?
+        } else {
+            None
+        };
+        self.kernels = kernels;
+        self.eval = None;
+        self.eval_grad = None;
+        Ok(())
+    }
+
+    /// The kernels of the hidden layers.
+    pub fn layer_kernels(&self) -> LayerKernels {
+        self.kernels
+    }
+
+    /// How many hidden layers run on the row-blocked kernels (0 with the GEMM).
+    pub fn row_blocked_layers(&self) -> usize {
+        self.dense.as_ref().map_or(0, |d| {
+            (0..self.layers.len()).filter(|&l| d.covers(l)).count()
+        })
+    }
+
+    /// Records the copy of the weights into the row-blocked kernels' uniform windows; every
+    /// submission that runs this network's launches must start with it.
+    pub(crate) fn record_pack(&self, enc: &mut wgpu::CommandEncoder) {
+        if let Some(d) = &self.dense {
+            d.record_pack(enc, &self.params);
+        }
+    }
+
+    fn dense_for(&self, l: usize) -> Option<&DensePlan> {
+        self.dense.as_ref().filter(|d| d.covers(l))
     }
 
     /// The architecture.
@@ -421,7 +475,7 @@ impl SirenGpu {
             for chunk in points.chunks(ws.capacity as usize) {
                 let n = chunk.len() as u32;
                 if ws.built_for != Some(n) {
-                    ws.launches = self.eval_launches(gpu, &ws, n);
+                    ws.launches = self.eval_launches(gpu, &ws, n)?;
                     ws.built_for = Some(n);
                 }
                 let input: Vec<f32> = if tangents {
@@ -431,6 +485,7 @@ impl SirenGpu {
                 };
                 gpu.write(&ws.input, &input)?;
                 let mut enc = gpu.device().create_command_encoder(&Default::default());
+                self.record_pack(&mut enc);
                 {
                     let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
                         label: Some("siren eval"),
@@ -479,7 +534,12 @@ impl SirenGpu {
     }
 
     /// The launches of a forward pass over `n` points of `ws`.
-    fn eval_launches(&self, gpu: &GpuContext, ws: &EvalWorkspace, n: u32) -> Vec<Launch> {
+    fn eval_launches(
+        &self,
+        gpu: &GpuContext,
+        ws: &EvalWorkspace,
+        n: u32,
+    ) -> Result<Vec<Launch>, GpuError> {
         let cfg = &self.config;
         let rows = if ws.tangents { 4 * n } else { n };
         let p = &self.pipelines;
@@ -491,7 +551,15 @@ impl SirenGpu {
                 &ws.act[(l - 1) % 2]
             };
             let dst = &ws.act[l % 2];
-            if ws.tangents {
+            if let Some(d) = self.dense_for(l) {
+                if ws.tangents {
+                    launches.extend(d.forward(gpu, l, rows, None, src, &self.params, &ws.z)?);
+                    launches.push(self.sine_forward_launch(gpu, l, n, &ws.z, dst));
+                } else {
+                    let fused = Some(cfg.omega0);
+                    launches.extend(d.forward(gpu, l, rows, fused, src, &self.params, dst)?);
+                }
+            } else if ws.tangents {
                 let u = gemm_forward(&self.layers[l], rows, false, cfg.omega0);
                 launches.push(self.gemm_launch(gpu, &u, src, &self.params, &ws.z));
                 launches.push(self.sine_forward_launch(gpu, l, n, &ws.z, dst));
@@ -526,7 +594,7 @@ impl SirenGpu {
             ],
             n,
         ));
-        launches
+        Ok(launches)
     }
 
     fn gemm_launch(
@@ -629,6 +697,7 @@ impl SirenGpu {
         let flat_n: Vec<f32> = normals.iter().flat_map(|v| v.to_array()).collect();
         gpu.write(&passes.normals, &flat_n)?;
         let mut enc = gpu.device().create_command_encoder(&Default::default());
+        self.record_pack(&mut enc);
         enc.clear_buffer(&self.grads, 0, None);
         {
             let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
@@ -725,7 +794,11 @@ impl TrainPasses {
         let wgrads: Vec<GemmUniforms> = layers.iter().map(|l| gemm_wgrad(l, rows)).collect();
         let partial_len = wgrads
             .iter()
-            .map(|u| u64::from(u.pbias_off) + u64::from(splits_for(rows) * u.m))
+            .enumerate()
+            .map(|(l, u)| match net.dense_for(l) {
+                Some(d) => d.partial_len(l),
+                None => u64::from(u.pbias_off) + u64::from(splits_for(rows) * u.m),
+            })
             .max()
             .unwrap_or(1);
         let partial = gpu.storage_zeroed("siren wgrad partial", partial_len * 4)?;
@@ -736,8 +809,12 @@ impl TrainPasses {
         // Forward: Z_l = A_{l-1} W_lᵀ, then bias, sine and tangents.
         for l in 0..l_hidden {
             let src = if l == 0 { &x_streams } else { &act[l - 1] };
-            let u = gemm_forward(&layers[l], rows, false, cfg.omega0);
-            launches.push(net.gemm_launch(gpu, &u, src, &net.params, &z[l]));
+            if let Some(d) = net.dense_for(l) {
+                launches.extend(d.forward(gpu, l, rows, None, src, &net.params, &z[l])?);
+            } else {
+                let u = gemm_forward(&layers[l], rows, false, cfg.omega0);
+                launches.push(net.gemm_launch(gpu, &u, src, &net.params, &z[l]));
+            }
             launches.push(net.sine_forward_launch(gpu, l, n, &z[l], &act[l]));
         }
         let last = layers.last().expect("at least one layer");
@@ -791,16 +868,27 @@ impl TrainPasses {
                           keep: &mut Vec<wgpu::Buffer>,
                           l: usize,
                           a: &wgpu::Buffer,
-                          b: &wgpu::Buffer| {
+                          b: &wgpu::Buffer|
+         -> Result<(), GpuError> {
             let val = wgrads[l];
-            launches.push(net.gemm_launch(gpu, &val, a, b, &partial));
+            let (splits, pbias_off) = match net.dense_for(l) {
+                Some(d) => {
+                    let (launch, pbias_off) = d.weight_gradient(gpu, l, n, a, b, &partial)?;
+                    launches.push(launch);
+                    (SPLITS, pbias_off)
+                }
+                None => {
+                    launches.push(net.gemm_launch(gpu, &val, a, b, &partial));
+                    (splits_for(rows), val.pbias_off)
+                }
+            };
             let ru = ReduceUniforms {
                 m: val.m,
                 n: val.n,
-                splits: splits_for(rows),
+                splits,
                 w_off: layers[l].weight as u32,
                 b_off: layers[l].bias as u32,
-                pbias_off: val.pbias_off,
+                pbias_off,
                 ..Default::default()
             };
             let rub = gpu.uniform("siren reduce", &ru);
@@ -812,6 +900,7 @@ impl TrainPasses {
                 val.m * val.n + val.m,
             ));
             keep.push(rub);
+            Ok(())
         };
         push_wgrad(
             &mut launches,
@@ -819,19 +908,23 @@ impl TrainPasses {
             l_hidden,
             &dout,
             &act[l_hidden - 1],
-        );
+        )?;
         for l in (0..l_hidden).rev() {
             let src = if l == 0 { &x_streams } else { &act[l - 1] };
-            push_wgrad(&mut launches, &mut keep, l, &zbar[l % 2], src);
+            push_wgrad(&mut launches, &mut keep, l, &zbar[l % 2], src)?;
             if l > 0 {
-                let u = gemm_backward(&layers[l], rows);
-                launches.push(net.gemm_launch(
-                    gpu,
-                    &u,
-                    &zbar[l % 2],
-                    &net.params,
-                    &zbar[(l - 1) % 2],
-                ));
+                if let Some(d) = net.dense_for(l) {
+                    launches.extend(d.backward(gpu, l, rows, &zbar[l % 2], &zbar[(l - 1) % 2])?);
+                } else {
+                    let u = gemm_backward(&layers[l], rows);
+                    launches.push(net.gemm_launch(
+                        gpu,
+                        &u,
+                        &zbar[l % 2],
+                        &net.params,
+                        &zbar[(l - 1) % 2],
+                    ));
+                }
                 launches.push(net.sine_backward_launch(
                     gpu,
                     l - 1,

@@ -24,9 +24,11 @@ use crate::model_file::{
 };
 
 pub mod cpu;
+mod dense;
 pub mod gpu;
 pub mod train;
 
+pub use dense::LayerKernels;
 pub use gpu::{SirenGpu, SirenGpuError};
 pub use train::{LossTerms, LossWeights, SirenTrainConfig, SirenTrainer, TrainError};
 

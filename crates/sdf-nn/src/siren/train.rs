@@ -423,6 +423,7 @@ impl SirenTrainer {
             }],
         )?;
         let mut enc = gpu.device().create_command_encoder(&Default::default());
+        self.net.record_pack(&mut enc);
         {
             let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
                 label: Some("siren step"),

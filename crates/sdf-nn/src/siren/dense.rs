@@ -1,0 +1,356 @@
+//! Host side of `shaders/siren_dense.wgsl`: SIREN's hidden layers as row-blocked kernels whose
+//! weights sit in 16 KiB uniform-buffer windows.
+//!
+//! A layer qualifies when its fan-in and fan-out are multiples of 16, its fan-in is at most
+//! 256, and its weight rows split into windows of at most 16 KiB at offsets the device's
+//! uniform-offset alignment allows. The first layer (fan-in 3) and the output layer (fan-out 1)
+//! always run on the GEMM kernel.
+
+use std::num::NonZeroU64;
+
+use super::LayerLayout;
+use super::gpu::Launch;
+use crate::gpu::{GpuContext, GpuError};
+use crate::shaders;
+
+/// Which kernels run SIREN's hidden layers.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum LayerKernels {
+    /// Row-blocked kernels on CPU adapters (lavapipe), where they measured ~20x faster than
+    /// the GEMM; the GEMM on GPUs, where the row-blocked layout has not been measured yet.
+    #[default]
+    Auto,
+    /// The row-blocked kernels of `siren_dense.wgsl` for every layer that qualifies.
+    RowBlocked,
+    /// The strided GEMM of `siren_gemm.wgsl` everywhere.
+    Gemm,
+}
+
+impl LayerKernels {
+    /// Whether the row-blocked kernels are used on `gpu`.
+    pub(crate) fn row_blocked(self, gpu: &GpuContext) -> bool {
+        match self {
+            LayerKernels::Auto => gpu.is_cpu(),
+            LayerKernels::RowBlocked => true,
+            LayerKernels::Gemm => false,
+        }
+    }
+}
+
+/// The uniform window size every device supports (WebGPU's minimum
+/// `max_uniform_buffer_binding_size`); the shader's `w` array has exactly this size.
+const WINDOW_BYTES: u64 = 16 * 1024;
+/// Invocations per workgroup (`WG` in the shader); each owns four rows.
+const WG: u32 = 64;
+/// Invocations per weight-gradient tile: each sums every `SPLITS`-th point.
+pub(crate) const SPLITS: u32 = 64;
+/// Largest reduction length of one launch (`MAX4` vec4s in the shader).
+const MAX_REDUCTION: usize = 256;
+
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, bytemuck::Pod, bytemuck::Zeroable)]
+struct DenseUniforms {
+    rows: u32,
+    a_stride4: u32,
+    a_first4: u32,
+    out_stride4: u32,
+    out_first4: u32,
+    mode: u32,
+    bias_off: u32,
+    omega: f32,
+}
+
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, bytemuck::Pod, bytemuck::Zeroable)]
+struct WgradUniforms {
+    points: u32,
+    splits: u32,
+    z_stride4: u32,
+    x_stride4: u32,
+    tiles_k: u32,
+    fan_out: u32,
+    fan_in: u32,
+    pbias_off: u32,
+}
+
+/// Where one qualifying layer's weights live in the packed uniform buffer.
+#[derive(Clone, Copy, Debug)]
+struct PackedLayer {
+    layout: LayerLayout,
+    /// Byte offset of `W` in the packed buffer.
+    offset: u64,
+    /// Rows of `W` per window.
+    window_rows: u32,
+}
+
+impl PackedLayer {
+    fn windows(&self) -> u32 {
+        self.layout.fan_out as u32 / self.window_rows
+    }
+
+    fn window_offset(&self, w: u32) -> u64 {
+        self.offset + u64::from(w) * u64::from(self.window_rows) * self.layout.fan_in as u64 * 4
+    }
+
+    /// Window `w`, bound at the full size the shader declares (what lies past the window's
+    /// rows is never read).
+    fn window_binding<'a>(&self, buffer: &'a wgpu::Buffer, w: u32) -> wgpu::BindingResource<'a> {
+        wgpu::BindingResource::Buffer(wgpu::BufferBinding {
+            buffer,
+            offset: self.window_offset(w),
+            size: NonZeroU64::new(WINDOW_BYTES),
+        })
+    }
+}
+
+/// The packed weight buffer and the layers that use it.
+#[derive(Debug)]
+pub(crate) struct DensePlan {
+    packed: wgpu::Buffer,
+    /// Indexed like the network's layers; `None` for layers on the GEMM.
+    layers: Vec<Option<PackedLayer>>,
+}
+
+fn entry(binding: u32, buffer: &wgpu::Buffer) -> wgpu::BindGroupEntry<'_> {
+    wgpu::BindGroupEntry {
+        binding,
+        resource: buffer.as_entire_binding(),
+    }
+}
+
+impl DensePlan {
+    /// The plan for `layers`, or `None` when no layer qualifies.
+    pub(crate) fn new(gpu: &GpuContext, layers: &[LayerLayout]) -> Result<Option<Self>, GpuError> {
+        let align = u64::from(gpu.limits().min_uniform_buffer_offset_alignment).max(4);
+        let mut offset = 0u64;
+        let mut packed = Vec::with_capacity(layers.len());
+        for lay in layers {
+            let (fan_in, fan_out) = (lay.fan_in, lay.fan_out);
+            let row_bytes = fan_in as u64 * 4;
+            let window_rows = (WINDOW_BYTES / row_bytes).min(fan_out as u64) as usize / 4 * 4;
+            let ok = fan_in % 16 == 0
+                && fan_out % 16 == 0
+                && fan_in <= MAX_REDUCTION
+                && window_rows >= 4
+                && window_rows <= MAX_REDUCTION
+                && fan_out % window_rows == 0
+                && (window_rows as u64 * row_bytes).is_multiple_of(align);
+            if ok {
+                packed.push(Some(PackedLayer {
+                    layout: *lay,
+                    offset,
+                    window_rows: window_rows as u32,
+                }));
+                offset = (offset + fan_out as u64 * row_bytes).next_multiple_of(align);
+            } else {
+                packed.push(None);
+            }
+        }
+        let Some(end) = packed
+            .iter()
+            .flatten()
+            .map(|p| p.window_offset(p.windows() - 1) + WINDOW_BYTES)
+            .max()
+        else {
+            return Ok(None);
+        };
+        let buffer = gpu.device().create_buffer(&wgpu::BufferDescriptor {
+            label: Some("siren packed weights"),
+            size: end.max(offset),
+            usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
+            mapped_at_creation: false,
+        });
+        Ok(Some(DensePlan {
+            packed: buffer,
+            layers: packed,
+        }))
+    }
+
+    /// Whether layer `l` runs on the row-blocked kernels.
+    pub(crate) fn covers(&self, l: usize) -> bool {
+        self.layers.get(l).is_some_and(Option::is_some)
+    }
+
+    /// Copies the current weights of every covered layer from `params` into the packed buffer.
+    /// Must be recorded before any launch of this plan reads them.
+    pub(crate) fn record_pack(&self, enc: &mut wgpu::CommandEncoder, params: &wgpu::Buffer) {
+        for p in self.layers.iter().flatten() {
+            let bytes = (p.layout.fan_out * p.layout.fan_in) as u64 * 4;
+            enc.copy_buffer_to_buffer(
+                params,
+                p.layout.weight as u64 * 4,
+                &self.packed,
+                p.offset,
+                bytes,
+            );
+        }
+    }
+
+    fn layer(&self, l: usize) -> &PackedLayer {
+        self.layers[l]
+            .as_ref()
+            .expect("layer runs on the row-blocked kernels")
+    }
+
+    fn groups(gpu: &GpuContext, rows: u32) -> (u32, u32, u32) {
+        let (x, y) = gpu.dispatch_size(rows.div_ceil(4).div_ceil(WG).max(1));
+        (x, y, 1)
+    }
+
+    /// `out = act · Wᵀ` for layer `l` over `rows` rows; with `fused_sine`, the inference
+    /// activations `sin(ω0 (out + b))` instead.
+    #[allow(clippy::too_many_arguments)]
+    pub(crate) fn forward(
+        &self,
+        gpu: &GpuContext,
+        l: usize,
+        rows: u32,
+        fused_sine: Option<f32>,
+        act: &wgpu::Buffer,
+        params: &wgpu::Buffer,
+        out: &wgpu::Buffer,
+    ) -> Result<Vec<Launch>, GpuError> {
+        let p = self.layer(l);
+        let (fan_in, fan_out) = (p.layout.fan_in as u32, p.layout.fan_out as u32);
+        let pipeline = gpu.pipeline(
+            &shaders::SIREN_DENSE,
+            "dense_fwd",
+            &[
+                ("RED4", f64::from(fan_in / 4)),
+                ("OUT4", f64::from(p.window_rows / 4)),
+            ],
+        )?;
+        Ok((0..p.windows())
+            .map(|w| {
+                let o0 = w * p.window_rows;
+                let u = gpu.uniform(
+                    "siren dense forward",
+                    &DenseUniforms {
+                        rows,
+                        a_stride4: fan_in / 4,
+                        a_first4: 0,
+                        out_stride4: fan_out / 4,
+                        out_first4: o0 / 4,
+                        mode: fused_sine.is_some() as u32,
+                        bias_off: p.layout.bias as u32 + o0,
+                        omega: fused_sine.unwrap_or(0.0),
+                    },
+                );
+                Launch::new(
+                    gpu,
+                    &pipeline,
+                    "siren dense forward",
+                    &[
+                        entry(0, &u),
+                        entry(1, act),
+                        wgpu::BindGroupEntry {
+                            binding: 2,
+                            resource: p.window_binding(&self.packed, w),
+                        },
+                        entry(3, out),
+                        entry(4, params),
+                    ],
+                    Self::groups(gpu, rows),
+                )
+            })
+            .collect())
+    }
+
+    /// `out = z̄ · W` for layer `l` (the gradient with respect to its input activations).
+    pub(crate) fn backward(
+        &self,
+        gpu: &GpuContext,
+        l: usize,
+        rows: u32,
+        zbar: &wgpu::Buffer,
+        out: &wgpu::Buffer,
+    ) -> Result<Vec<Launch>, GpuError> {
+        let p = self.layer(l);
+        let (fan_in, fan_out) = (p.layout.fan_in as u32, p.layout.fan_out as u32);
+        let pipeline = gpu.pipeline(
+            &shaders::SIREN_DENSE,
+            "dense_bwd",
+            &[
+                ("RED4", f64::from(p.window_rows / 4)),
+                ("OUT4", f64::from(fan_in / 4)),
+            ],
+        )?;
+        Ok((0..p.windows())
+            .map(|w| {
+                let u = gpu.uniform(
+                    "siren dense backward",
+                    &DenseUniforms {
+                        rows,
+                        a_stride4: fan_out / 4,
+                        a_first4: w * p.window_rows / 4,
+                        out_stride4: fan_in / 4,
+                        out_first4: 0,
+                        mode: (w > 0) as u32,
+                        ..Default::default()
+                    },
+                );
+                Launch::new(
+                    gpu,
+                    &pipeline,
+                    "siren dense backward",
+                    &[
+                        entry(0, &u),
+                        entry(1, zbar),
+                        wgpu::BindGroupEntry {
+                            binding: 2,
+                            resource: p.window_binding(&self.packed, w),
+                        },
+                        entry(3, out),
+                    ],
+                    Self::groups(gpu, rows),
+                )
+            })
+            .collect())
+    }
+
+    /// The weight-gradient partials of layer `l` for `points` points (four rows each) into
+    /// `partial` (`[SPLITS, fan_out, fan_in]`, then `[SPLITS, fan_out]` bias partials from
+    /// the returned offset), for `reduce_wgrad` with `SPLITS` splits.
+    pub(crate) fn weight_gradient(
+        &self,
+        gpu: &GpuContext,
+        l: usize,
+        points: u32,
+        zbar: &wgpu::Buffer,
+        x: &wgpu::Buffer,
+        partial: &wgpu::Buffer,
+    ) -> Result<(Launch, u32), GpuError> {
+        let p = self.layer(l);
+        let (fan_in, fan_out) = (p.layout.fan_in as u32, p.layout.fan_out as u32);
+        let pipeline = gpu.pipeline(&shaders::SIREN_DENSE, "dense_wgrad", &[("TK4", 4.0)])?;
+        let pbias_off = SPLITS * fan_out * fan_in;
+        let u = gpu.uniform(
+            "siren dense wgrad",
+            &WgradUniforms {
+                points,
+                splits: SPLITS,
+                z_stride4: fan_out / 4,
+                x_stride4: fan_in / 4,
+                tiles_k: fan_in / 16,
+                fan_out,
+                fan_in,
+                pbias_off,
+            },
+        );
+        let tiles = (fan_out / 16) * (fan_in / 16);
+        let launch = Launch::new(
+            gpu,
+            &pipeline,
+            "siren dense wgrad",
+            &[entry(5, &u), entry(6, zbar), entry(7, x), entry(8, partial)],
+            (SPLITS.div_ceil(WG), tiles, 1),
+        );
+        Ok((launch, pbias_off))
+    }
+
+    /// Floats of the partial buffer [`DensePlan::weight_gradient`] needs for layer `l`.
+    pub(crate) fn partial_len(&self, l: usize) -> u64 {
+        let p = self.layer(l);
+        u64::from(SPLITS) * (p.layout.fan_out as u64) * (p.layout.fan_in as u64 + 1)
+    }
+}

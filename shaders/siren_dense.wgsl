@@ -1,0 +1,264 @@
+// SIREN's hidden layers as row-blocked kernels with the weights in a uniform buffer.
+//
+// Every invocation owns four consecutive rows (with tangents: one point's value row and its
+// three tangent rows), so each weight it loads feeds four FMAs. The weights come from a uniform
+// buffer window of at most 16 KiB: on lavapipe a storage load is a per-lane loop with bounds
+// checks, while a uniform load is a plain gather, which made this layout ~20x faster than a
+// storage-buffer GEMM there. The reduction loops have trip counts fixed by override constants,
+// so the compiler unrolls them and the private row arrays are indexed with constants
+// (dynamically indexed private arrays become per-lane gathers on lavapipe).
+//
+// dense_fwd:   out[r, o] = Σ_i a[r, i] W[o, i] over one window of outputs; W rows in `w`.
+//              mode 1 applies the inference epilogue sin(ω0 (z + b)).
+// dense_bwd:   out[r, k] (+)= Σ_n a[r, n] W[n, k] over one window of n; W rows in `w`.
+//              mode 1 accumulates into `out` (windows after the first).
+// dense_wgrad: per-invocation partial sums of W̄[n, k] = Σ_r z̄[r, n] x[r, k] (and of the bias
+//              gradient Σ over value rows of z̄[r, n]) over a strided subset of the points, for
+//              one 16 × (4·TK4) tile; `reduce_wgrad` in siren_train.wgsl sums the partials.
+
+struct Dense {
+    rows: u32,
+    // vec4 stride of a row of `a` and the first vec4 column read.
+    a_stride4: u32,
+    a_first4: u32,
+    // vec4 stride of a row of `out` and the first vec4 column written.
+    out_stride4: u32,
+    out_first4: u32,
+    mode: u32,
+    bias_off: u32,
+    omega: f32,
+}
+
+struct Wgrad {
+    // Points (four rows each).
+    points: u32,
+    // Invocations per tile: each sums the points p ≡ split (mod splits).
+    splits: u32,
+    // vec4 strides of z̄ rows (fan_out / 4) and x rows (fan_in / 4).
+    z_stride4: u32,
+    x_stride4: u32,
+    // Tiles along k (fan_in / (4 TK4)).
+    tiles_k: u32,
+    fan_out: u32,
+    fan_in: u32,
+    pbias_off: u32,
+}
+
+// Reduction length / 4 of one launch (≤ MAX4) and output vec4s of one launch.
+override RED4: u32 = 16u;
+override OUT4: u32 = 16u;
+// k extent / 4 of a weight-gradient tile (1..=4).
+override TK4: u32 = 4u;
+const MAX4: u32 = 64u;
+const WG: u32 = 64u;
+
+@group(0) @binding(0) var<uniform> d: Dense;
+@group(0) @binding(1) var<storage, read> a: array<vec4<f32>>;
+@group(0) @binding(2) var<uniform> w: array<vec4<f32>, 1024>;
+@group(0) @binding(3) var<storage, read_write> out: array<vec4<f32>>;
+@group(0) @binding(4) var<storage, read> params: array<f32>;
+
+@group(0) @binding(5) var<uniform> g: Wgrad;
+@group(0) @binding(6) var<storage, read> zbar: array<vec4<f32>>;
+@group(0) @binding(7) var<storage, read> x: array<vec4<f32>>;
+// Weight partials, then from `pbias_off` (a multiple of 4) the bias partials.
+@group(0) @binding(8) var<storage, read_write> partial: array<vec4<f32>>;
+
+@compute @workgroup_size(64)
+fn dense_fwd(
+    @builtin(workgroup_id) wid: vec3<u32>,
+    @builtin(num_workgroups) nwg: vec3<u32>,
+    @builtin(local_invocation_index) lid: u32,
+) {
+    let r0 = 4u * ((wid.y * nwg.x + wid.x) * WG + lid);
+    if r0 >= d.rows {
+        return;
+    }
+    // Rows past the end repeat the last one; their results are not stored.
+    let last = d.rows - 1u;
+    let b0 = r0 * d.a_stride4 + d.a_first4;
+    let b1 = min(r0 + 1u, last) * d.a_stride4 + d.a_first4;
+    let b2 = min(r0 + 2u, last) * d.a_stride4 + d.a_first4;
+    let b3 = min(r0 + 3u, last) * d.a_stride4 + d.a_first4;
+    var x0: array<vec4<f32>, MAX4>;
+    var x1: array<vec4<f32>, MAX4>;
+    var x2: array<vec4<f32>, MAX4>;
+    var x3: array<vec4<f32>, MAX4>;
+    for (var j = 0u; j < RED4; j++) {
+        x0[j] = a[b0 + j];
+        x1[j] = a[b1 + j];
+        x2[j] = a[b2 + j];
+        x3[j] = a[b3 + j];
+    }
+    for (var o4 = 0u; o4 < OUT4; o4++) {
+        var acc0 = vec4<f32>(0.0);
+        var acc1 = vec4<f32>(0.0);
+        var acc2 = vec4<f32>(0.0);
+        var acc3 = vec4<f32>(0.0);
+        for (var c = 0u; c < 4u; c++) {
+            let wb = (4u * o4 + c) * RED4;
+            var s0 = vec4<f32>(0.0);
+            var s1 = vec4<f32>(0.0);
+            var s2 = vec4<f32>(0.0);
+            var s3 = vec4<f32>(0.0);
+            for (var j = 0u; j < RED4; j++) {
+                let wv = w[wb + j];
+                s0 = fma(x0[j], wv, s0);
+                s1 = fma(x1[j], wv, s1);
+                s2 = fma(x2[j], wv, s2);
+                s3 = fma(x3[j], wv, s3);
+            }
+            acc0[c] = s0.x + s0.y + s0.z + s0.w;
+            acc1[c] = s1.x + s1.y + s1.z + s1.w;
+            acc2[c] = s2.x + s2.y + s2.z + s2.w;
+            acc3[c] = s3.x + s3.y + s3.z + s3.w;
+        }
+        if d.mode == 1u {
+            let o = d.bias_off + 4u * o4;
+            let b = vec4<f32>(params[o], params[o + 1u], params[o + 2u], params[o + 3u]);
+            acc0 = sin(d.omega * (acc0 + b));
+            acc1 = sin(d.omega * (acc1 + b));
+            acc2 = sin(d.omega * (acc2 + b));
+            acc3 = sin(d.omega * (acc3 + b));
+        }
+        let ob = r0 * d.out_stride4 + d.out_first4 + o4;
+        out[ob] = acc0;
+        if r0 + 1u < d.rows {
+            out[ob + d.out_stride4] = acc1;
+        }
+        if r0 + 2u < d.rows {
+            out[ob + 2u * d.out_stride4] = acc2;
+        }
+        if r0 + 3u < d.rows {
+            out[ob + 3u * d.out_stride4] = acc3;
+        }
+    }
+}
+
+@compute @workgroup_size(64)
+fn dense_bwd(
+    @builtin(workgroup_id) wid: vec3<u32>,
+    @builtin(num_workgroups) nwg: vec3<u32>,
+    @builtin(local_invocation_index) lid: u32,
+) {
+    let r0 = 4u * ((wid.y * nwg.x + wid.x) * WG + lid);
+    if r0 >= d.rows {
+        return;
+    }
+    let last = d.rows - 1u;
+    let b0 = r0 * d.a_stride4 + d.a_first4;
+    let b1 = min(r0 + 1u, last) * d.a_stride4 + d.a_first4;
+    let b2 = min(r0 + 2u, last) * d.a_stride4 + d.a_first4;
+    let b3 = min(r0 + 3u, last) * d.a_stride4 + d.a_first4;
+    var z0: array<vec4<f32>, MAX4>;
+    var z1: array<vec4<f32>, MAX4>;
+    var z2: array<vec4<f32>, MAX4>;
+    var z3: array<vec4<f32>, MAX4>;
+    for (var j = 0u; j < RED4; j++) {
+        z0[j] = a[b0 + j];
+        z1[j] = a[b1 + j];
+        z2[j] = a[b2 + j];
+        z3[j] = a[b3 + j];
+    }
+    let os = d.out_stride4;
+    for (var o4 = 0u; o4 < OUT4; o4++) {
+        let ob = r0 * os + d.out_first4 + o4;
+        var acc0 = vec4<f32>(0.0);
+        var acc1 = vec4<f32>(0.0);
+        var acc2 = vec4<f32>(0.0);
+        var acc3 = vec4<f32>(0.0);
+        for (var j = 0u; j < RED4; j++) {
+            for (var c = 0u; c < 4u; c++) {
+                let wv = w[(4u * j + c) * OUT4 + o4];
+                acc0 = fma(vec4<f32>(z0[j][c]), wv, acc0);
+                acc1 = fma(vec4<f32>(z1[j][c]), wv, acc1);
+                acc2 = fma(vec4<f32>(z2[j][c]), wv, acc2);
+                acc3 = fma(vec4<f32>(z3[j][c]), wv, acc3);
+            }
+        }
+        let add = d.mode == 1u;
+        if add {
+            acc0 += out[ob];
+        }
+        out[ob] = acc0;
+        if r0 + 1u < d.rows {
+            if add {
+                acc1 += out[ob + os];
+            }
+            out[ob + os] = acc1;
+        }
+        if r0 + 2u < d.rows {
+            if add {
+                acc2 += out[ob + 2u * os];
+            }
+            out[ob + 2u * os] = acc2;
+        }
+        if r0 + 3u < d.rows {
+            if add {
+                acc3 += out[ob + 3u * os];
+            }
+            out[ob + 3u * os] = acc3;
+        }
+    }
+}
+
+// Tiles are 16 outputs n by 4·TK4 inputs k; four rows per point, the first the value row.
+@compute @workgroup_size(64)
+fn dense_wgrad(
+    @builtin(workgroup_id) wid: vec3<u32>,
+    @builtin(local_invocation_index) lid: u32,
+) {
+    let split = wid.x * WG + lid;
+    if split >= g.splits {
+        return;
+    }
+    let tile = wid.y;
+    let tn4 = (tile / g.tiles_k) * 4u;
+    let tk4 = (tile % g.tiles_k) * TK4;
+    var acc: array<vec4<f32>, 64>;
+    var bacc: array<vec4<f32>, 4>;
+    for (var p = split; p < g.points; p += g.splits) {
+        for (var t = 0u; t < 4u; t++) {
+            let r = 4u * p + t;
+            let zb = r * g.z_stride4 + tn4;
+            let xb = r * g.x_stride4 + tk4;
+            var zv: array<vec4<f32>, 4>;
+            var xv: array<vec4<f32>, 4>;
+            for (var j = 0u; j < 4u; j++) {
+                zv[j] = zbar[zb + j];
+            }
+            for (var j = 0u; j < TK4; j++) {
+                xv[j] = x[xb + j];
+            }
+            if t == 0u {
+                for (var j = 0u; j < 4u; j++) {
+                    bacc[j] += zv[j];
+                }
+            }
+            for (var j = 0u; j < 4u; j++) {
+                for (var c = 0u; c < 4u; c++) {
+                    let zs = vec4<f32>(zv[j][c]);
+                    for (var kk = 0u; kk < TK4; kk++) {
+                        let i = (4u * j + c) * TK4 + kk;
+                        acc[i] = fma(zs, xv[kk], acc[i]);
+                    }
+                }
+            }
+        }
+    }
+    // partial[split][n][k], row-major over the whole layer as reduce_wgrad expects.
+    let n_base = 4u * tn4;
+    let row4 = g.x_stride4;
+    let base = split * g.fan_out * row4;
+    for (var nn = 0u; nn < 16u; nn++) {
+        for (var kk = 0u; kk < TK4; kk++) {
+            partial[base + (n_base + nn) * row4 + tk4 + kk] = acc[nn * TK4 + kk];
+        }
+    }
+    if tk4 == 0u {
+        let pb = (g.pbias_off + split * g.fan_out + n_base) / 4u;
+        for (var j = 0u; j < 4u; j++) {
+            partial[pb + j] = bacc[j];
+        }
+    }
+}
