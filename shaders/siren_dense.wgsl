@@ -9,12 +9,15 @@
 // (dynamically indexed private arrays become per-lane gathers on lavapipe).
 //
 // dense_fwd:   out[r, o] = Σ_i a[r, i] W[o, i] over one window of outputs; W rows in `w`.
-//              mode 1 applies the inference epilogue sin(ω0 (z + b)).
+//              mode 1 applies the inference epilogue sin(ω0 (z + b)); mode 2 (four rows per
+//              point) adds the bias to `out` and writes the activations and their tangents
+//              to `act_out`.
 // dense_bwd:   out[r, k] (+)= Σ_n a[r, n] W[n, k] over one window of n; W rows in `w`.
-//              mode 1 accumulates into `out` (windows after the first).
+//              mode bit 0 accumulates into `out` (windows after the first); bit 1 (the last
+//              window) turns Ā into Z̄ of the layer below through its sine (`z_in`).
 // dense_wgrad: per-invocation partial sums of W̄[n, k] = Σ_r z̄[r, n] x[r, k] (and of the bias
 //              gradient Σ over value rows of z̄[r, n]) over a strided subset of the points, for
-//              one 16 × (4·TK4) tile; `reduce_wgrad` in siren_train.wgsl sums the partials.
+//              one 16 × 16 tile; `reduce_wgrad` in siren_train.wgsl sums the partials.
 
 struct Dense {
     rows: u32,
@@ -47,8 +50,6 @@ struct Wgrad {
 // Reduction length / 4 of one launch (≤ MAX4) and output vec4s of one launch.
 override RED4: u32 = 16u;
 override OUT4: u32 = 16u;
-// k extent / 4 of a weight-gradient tile (1..=4).
-override TK4: u32 = 4u;
 const MAX4: u32 = 64u;
 const WG: u32 = 64u;
 
@@ -57,6 +58,10 @@ const WG: u32 = 64u;
 @group(0) @binding(2) var<uniform> w: array<vec4<f32>, 1024>;
 @group(0) @binding(3) var<storage, read_write> out: array<vec4<f32>>;
 @group(0) @binding(4) var<storage, read> params: array<f32>;
+// dense_fwd mode 2: the activations (value and tangent rows) next to the pre-activations.
+@group(0) @binding(10) var<storage, read_write> act_out: array<vec4<f32>>;
+// dense_bwd with the sine epilogue: the pre-activations of the layer below.
+@group(0) @binding(11) var<storage, read> z_in: array<vec4<f32>>;
 
 @group(0) @binding(5) var<uniform> g: Wgrad;
 @group(0) @binding(6) var<storage, read> zbar: array<vec4<f32>>;
@@ -113,15 +118,31 @@ fn dense_fwd(
             acc2[c] = s2.x + s2.y + s2.z + s2.w;
             acc3[c] = s3.x + s3.y + s3.z + s3.w;
         }
-        if d.mode == 1u {
+        let ob = r0 * d.out_stride4 + d.out_first4 + o4;
+        if d.mode != 0u {
             let o = d.bias_off + 4u * o4;
             let b = vec4<f32>(params[o], params[o + 1u], params[o + 2u], params[o + 3u]);
-            acc0 = sin(d.omega * (acc0 + b));
-            acc1 = sin(d.omega * (acc1 + b));
-            acc2 = sin(d.omega * (acc2 + b));
-            acc3 = sin(d.omega * (acc3 + b));
+            if d.mode == 1u {
+                acc0 = sin(d.omega * (acc0 + b));
+                acc1 = sin(d.omega * (acc1 + b));
+                acc2 = sin(d.omega * (acc2 + b));
+                acc3 = sin(d.omega * (acc3 + b));
+            } else {
+                // z = (value, ∂x, ∂y, ∂z) rows; a = sin(ω0 z_v), a_j = ω0 cos(ω0 z_v) z_j.
+                let os = d.out_stride4;
+                acc0 += b;
+                let wc = d.omega * cos(d.omega * acc0);
+                out[ob] = acc0;
+                out[ob + os] = acc1;
+                out[ob + 2u * os] = acc2;
+                out[ob + 3u * os] = acc3;
+                act_out[ob] = sin(d.omega * acc0);
+                act_out[ob + os] = wc * acc1;
+                act_out[ob + 2u * os] = wc * acc2;
+                act_out[ob + 3u * os] = wc * acc3;
+                continue;
+            }
         }
-        let ob = r0 * d.out_stride4 + d.out_first4 + o4;
         out[ob] = acc0;
         if r0 + 1u < d.rows {
             out[ob + d.out_stride4] = acc1;
@@ -176,7 +197,27 @@ fn dense_bwd(
                 acc3 = fma(vec4<f32>(z3[j][c]), wv, acc3);
             }
         }
-        let add = d.mode == 1u;
+        let add = (d.mode & 1u) != 0u;
+        if (d.mode & 2u) != 0u {
+            // Four rows per point: t̄ = (h̄, t̄x, t̄y, t̄z) of the activations below become
+            // z̄_j = ω0 cos · t̄_j and z̄_v = ω0 cos · h̄ − ω0² sin · Σ_j t̄_j z_j.
+            if add {
+                acc0 += out[ob];
+                acc1 += out[ob + os];
+                acc2 += out[ob + 2u * os];
+                acc3 += out[ob + 3u * os];
+            }
+            let w0 = d.omega;
+            let zv = z_in[ob];
+            let s = sin(w0 * zv);
+            let wc = w0 * cos(w0 * zv);
+            let mix = acc1 * z_in[ob + os] + acc2 * z_in[ob + 2u * os] + acc3 * z_in[ob + 3u * os];
+            out[ob] = wc * acc0 - w0 * w0 * s * mix;
+            out[ob + os] = wc * acc1;
+            out[ob + 2u * os] = wc * acc2;
+            out[ob + 3u * os] = wc * acc3;
+            continue;
+        }
         if add {
             acc0 += out[ob];
         }
@@ -202,7 +243,14 @@ fn dense_bwd(
     }
 }
 
-// Tiles are 16 outputs n by 4·TK4 inputs k; four rows per point, the first the value row.
+// Column c of outer(z, x) is x · z[c]: the products of output n = c with the four inputs k.
+fn outer(z: vec4<f32>, x: vec4<f32>) -> mat4x4<f32> {
+    return mat4x4<f32>(x * z.x, x * z.y, x * z.z, x * z.w);
+}
+
+// Tiles are 16 outputs n by 16 inputs k; four rows per point, the first the value row. The
+// sixteen 4 × 4 blocks of the tile are named variables, not an array, so nothing depends on
+// the compiler unrolling loops.
 @compute @workgroup_size(64)
 fn dense_wgrad(
     @builtin(workgroup_id) wid: vec3<u32>,
@@ -214,51 +262,89 @@ fn dense_wgrad(
     }
     let tile = wid.y;
     let tn4 = (tile / g.tiles_k) * 4u;
-    let tk4 = (tile % g.tiles_k) * TK4;
-    var acc: array<vec4<f32>, 64>;
-    var bacc: array<vec4<f32>, 4>;
+    let tk4 = (tile % g.tiles_k) * 4u;
+    var a00 = mat4x4<f32>();
+    var a01 = mat4x4<f32>();
+    var a02 = mat4x4<f32>();
+    var a03 = mat4x4<f32>();
+    var a10 = mat4x4<f32>();
+    var a11 = mat4x4<f32>();
+    var a12 = mat4x4<f32>();
+    var a13 = mat4x4<f32>();
+    var a20 = mat4x4<f32>();
+    var a21 = mat4x4<f32>();
+    var a22 = mat4x4<f32>();
+    var a23 = mat4x4<f32>();
+    var a30 = mat4x4<f32>();
+    var a31 = mat4x4<f32>();
+    var a32 = mat4x4<f32>();
+    var a33 = mat4x4<f32>();
+    var bias = mat4x4<f32>();
     for (var p = split; p < g.points; p += g.splits) {
         for (var t = 0u; t < 4u; t++) {
             let r = 4u * p + t;
             let zb = r * g.z_stride4 + tn4;
             let xb = r * g.x_stride4 + tk4;
-            var zv: array<vec4<f32>, 4>;
-            var xv: array<vec4<f32>, 4>;
-            for (var j = 0u; j < 4u; j++) {
-                zv[j] = zbar[zb + j];
-            }
-            for (var j = 0u; j < TK4; j++) {
-                xv[j] = x[xb + j];
-            }
+            let z0 = zbar[zb];
+            let z1 = zbar[zb + 1u];
+            let z2 = zbar[zb + 2u];
+            let z3 = zbar[zb + 3u];
+            let x0 = x[xb];
+            let x1 = x[xb + 1u];
+            let x2 = x[xb + 2u];
+            let x3 = x[xb + 3u];
             if t == 0u {
-                for (var j = 0u; j < 4u; j++) {
-                    bacc[j] += zv[j];
-                }
+                bias += mat4x4<f32>(z0, z1, z2, z3);
             }
-            for (var j = 0u; j < 4u; j++) {
-                for (var c = 0u; c < 4u; c++) {
-                    let zs = vec4<f32>(zv[j][c]);
-                    for (var kk = 0u; kk < TK4; kk++) {
-                        let i = (4u * j + c) * TK4 + kk;
-                        acc[i] = fma(zs, xv[kk], acc[i]);
-                    }
-                }
-            }
+            a00 += outer(z0, x0);
+            a01 += outer(z0, x1);
+            a02 += outer(z0, x2);
+            a03 += outer(z0, x3);
+            a10 += outer(z1, x0);
+            a11 += outer(z1, x1);
+            a12 += outer(z1, x2);
+            a13 += outer(z1, x3);
+            a20 += outer(z2, x0);
+            a21 += outer(z2, x1);
+            a22 += outer(z2, x2);
+            a23 += outer(z2, x3);
+            a30 += outer(z3, x0);
+            a31 += outer(z3, x1);
+            a32 += outer(z3, x2);
+            a33 += outer(z3, x3);
         }
     }
     // partial[split][n][k], row-major over the whole layer as reduce_wgrad expects.
-    let n_base = 4u * tn4;
     let row4 = g.x_stride4;
-    let base = split * g.fan_out * row4;
-    for (var nn = 0u; nn < 16u; nn++) {
-        for (var kk = 0u; kk < TK4; kk++) {
-            partial[base + (n_base + nn) * row4 + tk4 + kk] = acc[nn * TK4 + kk];
-        }
-    }
+    let base = split * g.fan_out * row4 + (4u * tn4) * row4 + tk4;
+    store_block(base, row4, 0u, a00, a01, a02, a03);
+    store_block(base, row4, 4u, a10, a11, a12, a13);
+    store_block(base, row4, 8u, a20, a21, a22, a23);
+    store_block(base, row4, 12u, a30, a31, a32, a33);
     if tk4 == 0u {
-        let pb = (g.pbias_off + split * g.fan_out + n_base) / 4u;
-        for (var j = 0u; j < 4u; j++) {
-            partial[pb + j] = bacc[j];
-        }
+        let pb = (g.pbias_off + split * g.fan_out) / 4u + tn4;
+        partial[pb] = bias[0];
+        partial[pb + 1u] = bias[1];
+        partial[pb + 2u] = bias[2];
+        partial[pb + 3u] = bias[3];
+    }
+}
+
+// Rows n0..n0+3 of the tile (one z vec4) against its four k vec4s.
+fn store_block(
+    base: u32,
+    row4: u32,
+    n0: u32,
+    b0: mat4x4<f32>,
+    b1: mat4x4<f32>,
+    b2: mat4x4<f32>,
+    b3: mat4x4<f32>,
+) {
+    for (var c = 0u; c < 4u; c++) {
+        let o = base + (n0 + c) * row4;
+        partial[o] = b0[c];
+        partial[o + 1u] = b1[c];
+        partial[o + 2u] = b2[c];
+        partial[o + 3u] = b3[c];
     }
 }

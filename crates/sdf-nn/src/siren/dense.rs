@@ -103,10 +103,22 @@ impl PackedLayer {
     }
 }
 
+/// What `dense_fwd` does with a layer's pre-activations.
+#[derive(Clone, Copy, Debug)]
+pub(crate) enum Epilogue<'a> {
+    /// Inference: store `sin(ω0 (z + b))`.
+    Sine { omega: f32 },
+    /// Training or inference with tangents (four rows per point): store `z + b` (value row)
+    /// and the tangent rows in `out`, their activations and tangents in `act`.
+    SineWithTangents { omega: f32, act: &'a wgpu::Buffer },
+}
+
 /// The packed weight buffer and the layers that use it.
 #[derive(Debug)]
 pub(crate) struct DensePlan {
     packed: wgpu::Buffer,
+    /// Bound where an entry point declares a buffer that a launch does not use.
+    dummy: wgpu::Buffer,
     /// Indexed like the network's layers; `None` for layers on the GEMM.
     layers: Vec<Option<PackedLayer>>,
 }
@@ -162,6 +174,7 @@ impl DensePlan {
         });
         Ok(Some(DensePlan {
             packed: buffer,
+            dummy: gpu.storage_zeroed("siren dense dummy", 16)?,
             layers: packed,
         }))
     }
@@ -197,15 +210,14 @@ impl DensePlan {
         (x, y, 1)
     }
 
-    /// `out = act · Wᵀ` for layer `l` over `rows` rows; with `fused_sine`, the inference
-    /// activations `sin(ω0 (out + b))` instead.
+    /// `z = act · Wᵀ` for layer `l` over `rows` rows, finished by `epilogue` into `out`.
     #[allow(clippy::too_many_arguments)]
     pub(crate) fn forward(
         &self,
         gpu: &GpuContext,
         l: usize,
         rows: u32,
-        fused_sine: Option<f32>,
+        epilogue: Epilogue<'_>,
         act: &wgpu::Buffer,
         params: &wgpu::Buffer,
         out: &wgpu::Buffer,
@@ -223,6 +235,10 @@ impl DensePlan {
         Ok((0..p.windows())
             .map(|w| {
                 let o0 = w * p.window_rows;
+                let (mode, omega, act_out) = match epilogue {
+                    Epilogue::Sine { omega } => (1, omega, &self.dummy),
+                    Epilogue::SineWithTangents { omega, act } => (2, omega, act),
+                };
                 let u = gpu.uniform(
                     "siren dense forward",
                     &DenseUniforms {
@@ -231,9 +247,9 @@ impl DensePlan {
                         a_first4: 0,
                         out_stride4: fan_out / 4,
                         out_first4: o0 / 4,
-                        mode: fused_sine.is_some() as u32,
+                        mode,
                         bias_off: p.layout.bias as u32 + o0,
-                        omega: fused_sine.unwrap_or(0.0),
+                        omega,
                     },
                 );
                 Launch::new(
@@ -249,6 +265,7 @@ impl DensePlan {
                         },
                         entry(3, out),
                         entry(4, params),
+                        entry(10, act_out),
                     ],
                     Self::groups(gpu, rows),
                 )
@@ -256,7 +273,9 @@ impl DensePlan {
             .collect())
     }
 
-    /// `out = z̄ · W` for layer `l` (the gradient with respect to its input activations).
+    /// `out = z̄ · W` for layer `l` (the gradient with respect to its input activations);
+    /// with `sine_below = (ω0, z)`, carried on through the sine of the layer below (whose
+    /// pre-activations are `z`) to that layer's `z̄`.
     pub(crate) fn backward(
         &self,
         gpu: &GpuContext,
@@ -264,6 +283,7 @@ impl DensePlan {
         rows: u32,
         zbar: &wgpu::Buffer,
         out: &wgpu::Buffer,
+        sine_below: Option<(f32, &wgpu::Buffer)>,
     ) -> Result<Vec<Launch>, GpuError> {
         let p = self.layer(l);
         let (fan_in, fan_out) = (p.layout.fan_in as u32, p.layout.fan_out as u32);
@@ -285,7 +305,9 @@ impl DensePlan {
                         a_first4: w * p.window_rows / 4,
                         out_stride4: fan_in / 4,
                         out_first4: 0,
-                        mode: (w > 0) as u32,
+                        mode: u32::from(w > 0)
+                            | (u32::from(sine_below.is_some() && w + 1 == p.windows()) << 1),
+                        omega: sine_below.map_or(0.0, |(omega, _)| omega),
                         ..Default::default()
                     },
                 );
@@ -301,6 +323,7 @@ impl DensePlan {
                             resource: p.window_binding(&self.packed, w),
                         },
                         entry(3, out),
+                        entry(11, sine_below.map_or(&self.dummy, |(_, z)| z)),
                     ],
                     Self::groups(gpu, rows),
                 )
@@ -322,7 +345,7 @@ impl DensePlan {
     ) -> Result<(Launch, u32), GpuError> {
         let p = self.layer(l);
         let (fan_in, fan_out) = (p.layout.fan_in as u32, p.layout.fan_out as u32);
-        let pipeline = gpu.pipeline(&shaders::SIREN_DENSE, "dense_wgrad", &[("TK4", 4.0)])?;
+        let pipeline = gpu.pipeline(&shaders::SIREN_DENSE, "dense_wgrad", &[])?;
         let pbias_off = SPLITS * fan_out * fan_in;
         let u = gpu.uniform(
             "siren dense wgrad",

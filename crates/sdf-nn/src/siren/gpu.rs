@@ -10,7 +10,7 @@
 
 use glam::Vec3;
 
-use super::dense::{DensePlan, LayerKernels, SPLITS};
+use super::dense::{DensePlan, Epilogue, LayerKernels, SPLITS};
 use super::{LayerLayout, Siren, SirenConfig, SirenConfigError};
 use crate::gpu::{GpuContext, GpuError};
 use crate::shaders;
@@ -552,13 +552,13 @@ impl SirenGpu {
             };
             let dst = &ws.act[l % 2];
             if let Some(d) = self.dense_for(l) {
-                if ws.tangents {
-                    launches.extend(d.forward(gpu, l, rows, None, src, &self.params, &ws.z)?);
-                    launches.push(self.sine_forward_launch(gpu, l, n, &ws.z, dst));
+                let omega = cfg.omega0;
+                let (epilogue, out) = if ws.tangents {
+                    (Epilogue::SineWithTangents { omega, act: dst }, &ws.z)
                 } else {
-                    let fused = Some(cfg.omega0);
-                    launches.extend(d.forward(gpu, l, rows, fused, src, &self.params, dst)?);
-                }
+                    (Epilogue::Sine { omega }, dst)
+                };
+                launches.extend(d.forward(gpu, l, rows, epilogue, src, &self.params, out)?);
             } else if ws.tangents {
                 let u = gemm_forward(&self.layers[l], rows, false, cfg.omega0);
                 launches.push(self.gemm_launch(gpu, &u, src, &self.params, &ws.z));
@@ -810,12 +810,16 @@ impl TrainPasses {
         for l in 0..l_hidden {
             let src = if l == 0 { &x_streams } else { &act[l - 1] };
             if let Some(d) = net.dense_for(l) {
-                launches.extend(d.forward(gpu, l, rows, None, src, &net.params, &z[l])?);
+                let epilogue = Epilogue::SineWithTangents {
+                    omega: cfg.omega0,
+                    act: &act[l],
+                };
+                launches.extend(d.forward(gpu, l, rows, epilogue, src, &net.params, &z[l])?);
             } else {
                 let u = gemm_forward(&layers[l], rows, false, cfg.omega0);
                 launches.push(net.gemm_launch(gpu, &u, src, &net.params, &z[l]));
+                launches.push(net.sine_forward_launch(gpu, l, n, &z[l], &act[l]));
             }
-            launches.push(net.sine_forward_launch(gpu, l, n, &z[l], &act[l]));
         }
         let last = layers.last().expect("at least one layer");
         let head = HeadUniforms {
@@ -914,7 +918,9 @@ impl TrainPasses {
             push_wgrad(&mut launches, &mut keep, l, &zbar[l % 2], src)?;
             if l > 0 {
                 if let Some(d) = net.dense_for(l) {
-                    launches.extend(d.backward(gpu, l, rows, &zbar[l % 2], &zbar[(l - 1) % 2])?);
+                    let below = Some((cfg.omega0, &z[l - 1]));
+                    let (src, dst) = (&zbar[l % 2], &zbar[(l - 1) % 2]);
+                    launches.extend(d.backward(gpu, l, rows, src, dst, below)?);
                 } else {
                     let u = gemm_backward(&layers[l], rows);
                     launches.push(net.gemm_launch(
@@ -924,14 +930,14 @@ impl TrainPasses {
                         &net.params,
                         &zbar[(l - 1) % 2],
                     ));
+                    launches.push(net.sine_backward_launch(
+                        gpu,
+                        l - 1,
+                        n,
+                        &zbar[(l - 1) % 2],
+                        &z[l - 1],
+                    ));
                 }
-                launches.push(net.sine_backward_launch(
-                    gpu,
-                    l - 1,
-                    n,
-                    &zbar[(l - 1) % 2],
-                    &z[l - 1],
-                ));
             }
         }
         keep.push(hu);
