@@ -15,6 +15,11 @@
 // dense_bwd:   out[r, k] (+)= Σ_n a[r, n] W[n, k] over one window of n; W rows in `w`.
 //              mode bit 0 accumulates into `out` (windows after the first); bit 1 (the last
 //              window) turns Ā into Z̄ of the layer below through its sine (`z_in`).
+// first_fwd:   the first layer (fan-in 3) straight from the points: with tangents (mode 2)
+//              the tangent rows of its pre-activations are the columns of W, so it needs no
+//              GEMM; W ([fan_out, 3]) is read from `w` as floats.
+// first_wgrad: the first layer's weight-gradient partials, W̄[o, j] = Σ_p z̄_v[p, o] x_pj +
+//              z̄_j[p, o] (the tangent rows' inputs are unit vectors) and b̄[o] = Σ_p z̄_v[p, o].
 // dense_wgrad: per-invocation partial sums of W̄[n, k] = Σ_r z̄[r, n] x[r, k] (and of the bias
 //              gradient Σ over value rows of z̄[r, n]) over a strided subset of the points, for
 //              one 16 × 16 tile; `reduce_wgrad` in siren_train.wgsl sums the partials.
@@ -68,6 +73,11 @@ const WG: u32 = 64u;
 @group(0) @binding(7) var<storage, read> x: array<vec4<f32>>;
 // Weight partials, then from `pbias_off` (a multiple of 4) the bias partials.
 @group(0) @binding(8) var<storage, read_write> partial: array<vec4<f32>>;
+// first_fwd: the input points (three floats per row, or twelve per point with tangents);
+// first_wgrad: the training input streams (twelve floats per point) and the partials as
+// floats.
+@group(0) @binding(12) var<storage, read> points: array<f32>;
+@group(0) @binding(13) var<storage, read_write> partial_f: array<f32>;
 
 @compute @workgroup_size(64)
 fn dense_fwd(
@@ -346,5 +356,135 @@ fn store_block(
         partial[o + 1u] = b1[c];
         partial[o + 2u] = b2[c];
         partial[o + 3u] = b3[c];
+    }
+}
+
+fn w_scalar(i: u32) -> f32 {
+    return w[i / 4u][i % 4u];
+}
+
+// Modes as dense_fwd: 1 inference (one row per point, four points per invocation), 2 four
+// rows per point (one point per invocation). OUT4 = fan_out / 4.
+@compute @workgroup_size(64)
+fn first_fwd(
+    @builtin(workgroup_id) wid: vec3<u32>,
+    @builtin(num_workgroups) nwg: vec3<u32>,
+    @builtin(local_invocation_index) lid: u32,
+) {
+    let lane = (wid.y * nwg.x + wid.x) * WG + lid;
+    let os = d.out_stride4;
+    if d.mode == 2u {
+        let r0 = 4u * lane;
+        if r0 >= d.rows {
+            return;
+        }
+        let pb = 12u * lane;
+        let p = vec3<f32>(points[pb], points[pb + 1u], points[pb + 2u]);
+        for (var o4 = 0u; o4 < OUT4; o4++) {
+            var zv: vec4<f32>;
+            var zx: vec4<f32>;
+            var zy: vec4<f32>;
+            var zz: vec4<f32>;
+            for (var c = 0u; c < 4u; c++) {
+                let wo = 3u * (4u * o4 + c);
+                let wr = vec3<f32>(w_scalar(wo), w_scalar(wo + 1u), w_scalar(wo + 2u));
+                zv[c] = dot(wr, p) + params[d.bias_off + 4u * o4 + c];
+                zx[c] = wr.x;
+                zy[c] = wr.y;
+                zz[c] = wr.z;
+            }
+            let ob = r0 * os + o4;
+            let wc = d.omega * cos(d.omega * zv);
+            out[ob] = zv;
+            out[ob + os] = zx;
+            out[ob + 2u * os] = zy;
+            out[ob + 3u * os] = zz;
+            act_out[ob] = sin(d.omega * zv);
+            act_out[ob + os] = wc * zx;
+            act_out[ob + 2u * os] = wc * zy;
+            act_out[ob + 3u * os] = wc * zz;
+        }
+        return;
+    }
+    let r0 = 4u * lane;
+    if r0 >= d.rows {
+        return;
+    }
+    let last = d.rows - 1u;
+    let q0 = 3u * r0;
+    let q1 = 3u * min(r0 + 1u, last);
+    let q2 = 3u * min(r0 + 2u, last);
+    let q3 = 3u * min(r0 + 3u, last);
+    let p0 = vec3<f32>(points[q0], points[q0 + 1u], points[q0 + 2u]);
+    let p1 = vec3<f32>(points[q1], points[q1 + 1u], points[q1 + 2u]);
+    let p2 = vec3<f32>(points[q2], points[q2 + 1u], points[q2 + 2u]);
+    let p3 = vec3<f32>(points[q3], points[q3 + 1u], points[q3 + 2u]);
+    for (var o4 = 0u; o4 < OUT4; o4++) {
+        var z0: vec4<f32>;
+        var z1: vec4<f32>;
+        var z2: vec4<f32>;
+        var z3: vec4<f32>;
+        for (var c = 0u; c < 4u; c++) {
+            let wo = 3u * (4u * o4 + c);
+            let wr = vec3<f32>(w_scalar(wo), w_scalar(wo + 1u), w_scalar(wo + 2u));
+            let b = params[d.bias_off + 4u * o4 + c];
+            z0[c] = dot(wr, p0) + b;
+            z1[c] = dot(wr, p1) + b;
+            z2[c] = dot(wr, p2) + b;
+            z3[c] = dot(wr, p3) + b;
+        }
+        let ob = r0 * os + o4;
+        out[ob] = sin(d.omega * z0);
+        if r0 + 1u < d.rows {
+            out[ob + os] = sin(d.omega * z1);
+        }
+        if r0 + 2u < d.rows {
+            out[ob + 2u * os] = sin(d.omega * z2);
+        }
+        if r0 + 3u < d.rows {
+            out[ob + 3u * os] = sin(d.omega * z3);
+        }
+    }
+}
+
+// Tiles of 16 outputs (wid.y); z_stride4 = fan_out / 4; partials [split][o][3], then
+// [split][o] bias partials from pbias_off.
+@compute @workgroup_size(64)
+fn first_wgrad(
+    @builtin(workgroup_id) wid: vec3<u32>,
+    @builtin(local_invocation_index) lid: u32,
+) {
+    let split = wid.x * WG + lid;
+    if split >= g.splits {
+        return;
+    }
+    let tn4 = wid.y * 4u;
+    var gx = mat4x4<f32>();
+    var gy = mat4x4<f32>();
+    var gz = mat4x4<f32>();
+    var gb = mat4x4<f32>();
+    let zs = g.z_stride4;
+    for (var p = split; p < g.points; p += g.splits) {
+        let pb = 12u * p;
+        let x = vec3<f32>(points[pb], points[pb + 1u], points[pb + 2u]);
+        let r = 4u * p * zs + tn4;
+        for (var j = 0u; j < 4u; j++) {
+            let zv = zbar[r + j];
+            gx[j] += zv * x.x + zbar[r + zs + j];
+            gy[j] += zv * x.y + zbar[r + 2u * zs + j];
+            gz[j] += zv * x.z + zbar[r + 3u * zs + j];
+            gb[j] += zv;
+        }
+    }
+    let m = g.fan_out;
+    for (var j = 0u; j < 4u; j++) {
+        for (var c = 0u; c < 4u; c++) {
+            let o = 4u * (tn4 + j) + c;
+            let q = 3u * (split * m + o);
+            partial_f[q] = gx[j][c];
+            partial_f[q + 1u] = gy[j][c];
+            partial_f[q + 2u] = gz[j][c];
+            partial_f[g.pbias_off + split * m + o] = gb[j][c];
+        }
     }
 }

@@ -37,8 +37,8 @@ fn with_each_kernel(gpu: &GpuContext, net: &Siren, mut check: impl FnMut(&mut Si
         g.set_layer_kernels(gpu, kernels).unwrap();
         let expected = match kernels {
             LayerKernels::Gemm => 0,
-            // Every hidden layer but the first (fan-in 3).
-            _ => net.config().hidden_layers - 1,
+            // Every hidden layer; the output layer (fan-out 1) stays on the GEMM.
+            _ => net.config().hidden_layers,
         };
         assert_eq!(g.row_blocked_layers(), expected, "{kernels:?}");
         eprint!("{kernels:?}: ");
@@ -248,7 +248,11 @@ fn train_sign_accuracy(
 ) -> f64 {
     let gpu = gpu();
     let t0 = std::time::Instant::now();
-    let siren = Siren::new(SirenConfig::small(), seed).unwrap();
+    let net_cfg = SirenConfig {
+        omega0: env_or("SIREN_OMEGA", SirenConfig::small().omega0),
+        ..SirenConfig::small()
+    };
+    let siren = Siren::new(net_cfg, seed).unwrap();
     let mut trainer = SirenTrainer::from_mesh(gpu, &siren, mesh, train.clone()).unwrap();
     let t_setup = t0.elapsed();
     let summary = trainer

@@ -1,10 +1,11 @@
 //! Host side of `shaders/siren_dense.wgsl`: SIREN's hidden layers as row-blocked kernels whose
 //! weights sit in 16 KiB uniform-buffer windows.
 //!
-//! A layer qualifies when its fan-in and fan-out are multiples of 16, its fan-in is at most
+//! A hidden layer qualifies when its fan-out is a multiple of 16 and either its fan-in is 3
+//! (the first layer, which has kernels of its own) or its fan-in is a multiple of 16, at most
 //! 256, and its weight rows split into windows of at most 16 KiB at offsets the device's
-//! uniform-offset alignment allows. The first layer (fan-in 3) and the output layer (fan-out 1)
-//! always run on the GEMM kernel.
+//! uniform-offset alignment allows. The output layer (fan-out 1) always runs on the GEMM
+//! kernels.
 
 use std::num::NonZeroU64;
 
@@ -139,14 +140,21 @@ impl DensePlan {
         for lay in layers {
             let (fan_in, fan_out) = (lay.fan_in, lay.fan_out);
             let row_bytes = fan_in as u64 * 4;
-            let window_rows = (WINDOW_BYTES / row_bytes).min(fan_out as u64) as usize / 4 * 4;
-            let ok = fan_in % 16 == 0
+            let window_rows = if fan_in == 3 {
+                // The first layer: one window, read as floats by first_fwd / first_wgrad.
+                fan_out
+            } else {
+                (WINDOW_BYTES / row_bytes).min(fan_out as u64) as usize / 4 * 4
+            };
+            let ok = (fan_in == 3 || (fan_in % 16 == 0 && fan_in <= MAX_REDUCTION))
                 && fan_out % 16 == 0
-                && fan_in <= MAX_REDUCTION
                 && window_rows >= 4
                 && window_rows <= MAX_REDUCTION
                 && fan_out % window_rows == 0
+                && window_rows as u64 * row_bytes <= WINDOW_BYTES
                 && (window_rows as u64 * row_bytes).is_multiple_of(align);
+            let ok =
+                ok || (fan_in == 3 && fan_out % 16 == 0 && fan_out as u64 * 12 <= WINDOW_BYTES);
             if ok {
                 packed.push(Some(PackedLayer {
                     layout: *lay,
@@ -224,14 +232,20 @@ impl DensePlan {
     ) -> Result<Vec<Launch>, GpuError> {
         let p = self.layer(l);
         let (fan_in, fan_out) = (p.layout.fan_in as u32, p.layout.fan_out as u32);
-        let pipeline = gpu.pipeline(
-            &shaders::SIREN_DENSE,
-            "dense_fwd",
-            &[
-                ("RED4", f64::from(fan_in / 4)),
-                ("OUT4", f64::from(p.window_rows / 4)),
-            ],
-        )?;
+        let first = fan_in == 3;
+        let pipeline = if first {
+            let out4 = ("OUT4", f64::from(fan_out / 4));
+            gpu.pipeline(&shaders::SIREN_DENSE, "first_fwd", &[out4])?
+        } else {
+            gpu.pipeline(
+                &shaders::SIREN_DENSE,
+                "dense_fwd",
+                &[
+                    ("RED4", f64::from(fan_in / 4)),
+                    ("OUT4", f64::from(p.window_rows / 4)),
+                ],
+            )?
+        };
         Ok((0..p.windows())
             .map(|w| {
                 let o0 = w * p.window_rows;
@@ -252,13 +266,15 @@ impl DensePlan {
                         omega,
                     },
                 );
+                // first_fwd reads the points as floats at binding 12.
+                let input = if first { entry(12, act) } else { entry(1, act) };
                 Launch::new(
                     gpu,
                     &pipeline,
                     "siren dense forward",
                     &[
                         entry(0, &u),
-                        entry(1, act),
+                        input,
                         wgpu::BindGroupEntry {
                             binding: 2,
                             resource: p.window_binding(&self.packed, w),
@@ -345,7 +361,9 @@ impl DensePlan {
     ) -> Result<(Launch, u32), GpuError> {
         let p = self.layer(l);
         let (fan_in, fan_out) = (p.layout.fan_in as u32, p.layout.fan_out as u32);
-        let pipeline = gpu.pipeline(&shaders::SIREN_DENSE, "dense_wgrad", &[])?;
+        let first = fan_in == 3;
+        let entry_point = if first { "first_wgrad" } else { "dense_wgrad" };
+        let pipeline = gpu.pipeline(&shaders::SIREN_DENSE, entry_point, &[])?;
         let pbias_off = SPLITS * fan_out * fan_in;
         let u = gpu.uniform(
             "siren dense wgrad",
@@ -360,12 +378,23 @@ impl DensePlan {
                 pbias_off,
             },
         );
-        let tiles = (fan_out / 16) * (fan_in / 16);
+        let (tiles, entries) = if first {
+            let e = [
+                entry(5, &u),
+                entry(6, zbar),
+                entry(12, x),
+                entry(13, partial),
+            ];
+            (fan_out / 16, e)
+        } else {
+            let e = [entry(5, &u), entry(6, zbar), entry(7, x), entry(8, partial)];
+            ((fan_out / 16) * (fan_in / 16), e)
+        };
         let launch = Launch::new(
             gpu,
             &pipeline,
             "siren dense wgrad",
-            &[entry(5, &u), entry(6, zbar), entry(7, x), entry(8, partial)],
+            &entries,
             (SPLITS.div_ceil(WG), tiles, 1),
         );
         Ok((launch, pbias_off))
