@@ -132,6 +132,14 @@ fn eval(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
             "latency          {:.1} ns/point (50000 batch), {:.0} µs per 3000",
             latency.per_point_ns, latency.batch3000_us
         );
+        match latency.gpu_per_point_ns {
+            Some(ns) => {
+                println!("GPU time         {ns:.1} ns/point (50000 batch, timestamp queries)")
+            }
+            None => println!(
+                "GPU time         not measured (no timestamp queries for this adapter or model)"
+            ),
+        }
         if let Some(s) = surface {
             println!(
                 "surface @{}³     Chamfer-L1 {:.5} (normalised units), normal consistency {:.4}",

@@ -17,7 +17,7 @@ use sdf_nn::{
 use serde::{Deserialize, Serialize};
 
 use crate::metrics::{EVAL_SEED, EvalSets, Scores};
-use crate::timing::{Latency, measure_latency};
+use crate::timing::{Latency, measure_latency_timed};
 
 /// Errors of a run. Each names what failed so a corpus run can record it and go on.
 #[derive(Debug, thiserror::Error)]
@@ -462,7 +462,10 @@ pub fn evaluate(
     })?;
     let sets = EvalSets::new(mesh, &sdf, points, EVAL_SEED);
     let scores = sets.score(|p: &[Vec3]| model.eval_normalized(gpu, p))?;
-    let latency = measure_latency(&sets.bbox.points, 10, |p| model.eval_normalized(gpu, p))?;
+    // GPU time per point from timestamp queries where the adapter has them (NGLOD for now).
+    let latency = measure_latency_timed(&sets.bbox.points, 10, |p| {
+        model.eval_normalized_timed(gpu, p)
+    })?;
     Ok(Evaluation {
         scores,
         latency,

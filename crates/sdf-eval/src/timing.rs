@@ -54,23 +54,44 @@ pub fn median_seconds<E>(reps: usize, mut f: impl FnMut() -> Result<(), E>) -> R
 
 /// Measures `eval` (a batch evaluation returning one value per point) on the first
 /// [`PER_POINT_BATCH`] and [`LATENCY_BATCH`] of `points`, `reps` times each (at least
-/// [`MIN_REPS`]). `points` is cycled if shorter.
+/// [`MIN_REPS`]). `points` is cycled if shorter. Wall times only: `gpu_per_point_ns` is `None`
+/// (see [`measure_latency_timed`]).
 pub fn measure_latency<E>(
     points: &[Vec3],
     reps: usize,
     mut eval: impl FnMut(&[Vec3]) -> Result<Vec<f32>, E>,
+) -> Result<Latency, E> {
+    measure_latency_timed(points, reps, |p| Ok((eval(p)?, None)))
+}
+
+/// [`measure_latency`] for an `eval` that also returns the pure GPU time of the batch in
+/// nanoseconds where it can (e.g. `NeuralSdf::eval_normalized_timed`). `gpu_per_point_ns` is the
+/// median GPU time of the timed [`PER_POINT_BATCH`] repetitions divided by the batch size, when
+/// every one of them reported a GPU time, else `None`.
+pub fn measure_latency_timed<E>(
+    points: &[Vec3],
+    reps: usize,
+    mut eval: impl FnMut(&[Vec3]) -> Result<(Vec<f32>, Option<u64>), E>,
 ) -> Result<Latency, E> {
     assert!(!points.is_empty(), "latency needs points");
     let batch = |n: usize| -> Vec<Vec3> { points.iter().copied().cycle().take(n).collect() };
     let big = batch(PER_POINT_BATCH);
     let small = batch(LATENCY_BATCH);
     let reps = reps.max(MIN_REPS);
-    let per_batch = median_seconds(reps, || eval(&big).map(|_| ()))?;
+    // One entry per call, the untimed warm-up call first.
+    let mut gpu_ns: Vec<Option<u64>> = Vec::with_capacity(reps + 1);
+    let per_batch = median_seconds(reps, || {
+        gpu_ns.push(eval(&big)?.1);
+        Ok(())
+    })?;
     let latency = median_seconds(reps, || eval(&small).map(|_| ()))?;
+    let timed: Option<Vec<f64>> = gpu_ns.iter().skip(1).map(|t| t.map(|t| t as f64)).collect();
     Ok(Latency {
         per_point_ns: per_batch * 1e9 / PER_POINT_BATCH as f64,
         batch3000_us: latency * 1e6,
-        gpu_per_point_ns: None,
+        gpu_per_point_ns: timed
+            .filter(|t| !t.is_empty())
+            .map(|t| median(t) / PER_POINT_BATCH as f64),
         reps,
     })
 }
@@ -104,6 +125,51 @@ mod tests {
         );
         assert_eq!(lat.reps, MIN_REPS);
         assert!(lat.per_point_ns >= 0.0 && lat.batch3000_us >= 0.0);
+    }
+
+    #[test]
+    fn untimed_latency_has_no_gpu_time() {
+        let lat = measure_latency(&[Vec3::ZERO], 1, |p| Ok::<_, ()>(vec![0.0; p.len()])).unwrap();
+        assert_eq!(lat.gpu_per_point_ns, None);
+    }
+
+    #[test]
+    fn gpu_times_of_the_big_batch_flow_into_the_median() {
+        // The warm-up call reports a huge time that must be ignored; the timed repetitions of
+        // the 50000 batch report 1, 2, ..., MIN_REPS ms, the 3000 batch something else.
+        let mut big_calls = 0u64;
+        let lat = measure_latency_timed(&[Vec3::ONE; 3], 1, |p| {
+            let ns = if p.len() == PER_POINT_BATCH {
+                let ns = if big_calls == 0 {
+                    u64::MAX / 2
+                } else {
+                    big_calls * 1_000_000
+                };
+                big_calls += 1;
+                ns
+            } else {
+                7
+            };
+            Ok::<_, ()>((vec![0.0; p.len()], Some(ns)))
+        })
+        .unwrap();
+        assert_eq!(big_calls as usize, MIN_REPS + 1);
+        // Median of 1..=10 ms is 5.5 ms.
+        let expected = 5.5e6 / PER_POINT_BATCH as f64;
+        let got = lat.gpu_per_point_ns.expect("a GPU time");
+        assert!((got - expected).abs() < 1e-9, "{got} vs {expected}");
+    }
+
+    #[test]
+    fn a_missing_gpu_time_gives_none() {
+        let mut calls = 0;
+        let lat = measure_latency_timed(&[Vec3::ZERO], 1, |p| {
+            calls += 1;
+            let ns = (calls != 3).then_some(100);
+            Ok::<_, ()>((vec![0.0; p.len()], ns))
+        })
+        .unwrap();
+        assert_eq!(lat.gpu_per_point_ns, None);
     }
 
     #[test]

@@ -564,6 +564,136 @@ impl GpuContext {
     }
 }
 
+/// Pure GPU time of a piece of work, from two timestamp queries: one written when the work's
+/// first compute pass begins, one when its last pass ends.
+///
+/// Use it in four steps, one measurement at a time:
+/// 1. pass [`GpuTimer::writes`] as the `timestamp_writes` of the compute passes
+///    (`first` for the first pass, `last` for the last; both for a single pass);
+/// 2. call [`GpuTimer::resolve`] on the encoder after the last pass;
+/// 3. submit the encoder;
+/// 4. call [`GpuTimer::read_ns`], which waits for the GPU and returns the nanoseconds between
+///    the two timestamps.
+///
+/// Work split over several submissions is timed per submission and the results summed, so the
+/// host-side gaps between submissions are not counted.
+///
+/// ```no_run
+/// # fn main() -> Result<(), sdf_nn::GpuError> {
+/// use sdf_nn::gpu::{GpuContext, GpuTimer};
+/// let gpu = GpuContext::new()?;
+/// let Some(timer) = GpuTimer::new(&gpu) else {
+///     println!("no timestamp queries on {}", gpu.describe());
+///     return Ok(());
+/// };
+/// let mut enc = gpu.device().create_command_encoder(&Default::default());
+/// {
+///     let _pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
+///         label: Some("timed"),
+///         timestamp_writes: Some(timer.writes(true, true)),
+///     });
+///     // set_pipeline, set_bind_group, dispatch_workgroups ...
+/// }
+/// timer.resolve(&mut enc);
+/// gpu.queue().submit([enc.finish()]);
+/// println!("{} ns on the GPU", timer.read_ns(&gpu)?);
+/// # Ok(())
+/// # }
+/// ```
+#[derive(Debug)]
+pub struct GpuTimer {
+    queries: wgpu::QuerySet,
+    /// Where the two raw timestamps are resolved to (`QUERY_RESOLVE | COPY_SRC`).
+    resolved: wgpu::Buffer,
+    /// Host-mappable copy of `resolved`.
+    readback: wgpu::Buffer,
+    /// Nanoseconds per timestamp tick.
+    period_ns: f64,
+}
+
+/// Bytes of the two resolved `u64` timestamps.
+const TIMER_BYTES: u64 = 2 * std::mem::size_of::<u64>() as u64;
+
+impl GpuTimer {
+    /// A timer on `gpu`'s device, or `None` when the device lacks
+    /// [`wgpu::Features::TIMESTAMP_QUERY`] (see [`GpuContext::has_timestamps`]).
+    pub fn new(gpu: &GpuContext) -> Option<Self> {
+        if !gpu.has_timestamps() {
+            return None;
+        }
+        let device = gpu.device();
+        let queries = device.create_query_set(&wgpu::QuerySetDescriptor {
+            label: Some("gpu timer"),
+            ty: wgpu::QueryType::Timestamp,
+            count: 2,
+        });
+        // A resolve destination is written at offsets aligned to QUERY_RESOLVE_BUFFER_ALIGNMENT
+        // (we resolve at 0); 16 bytes hold both timestamps.
+        let resolved = device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("gpu timer resolve"),
+            size: TIMER_BYTES,
+            usage: wgpu::BufferUsages::QUERY_RESOLVE | wgpu::BufferUsages::COPY_SRC,
+            mapped_at_creation: false,
+        });
+        let readback = device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("gpu timer readback"),
+            size: TIMER_BYTES,
+            usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+            mapped_at_creation: false,
+        });
+        Some(GpuTimer {
+            queries,
+            resolved,
+            readback,
+            period_ns: f64::from(gpu.queue().get_timestamp_period()),
+        })
+    }
+
+    /// The `timestamp_writes` of a compute pass: `first` writes the start timestamp when the
+    /// pass begins, `last` the end timestamp when it ends. A single pass takes `(true, true)`;
+    /// passes in between take no writes (`None` in their descriptor).
+    pub fn writes(&self, first: bool, last: bool) -> wgpu::ComputePassTimestampWrites<'_> {
+        wgpu::ComputePassTimestampWrites {
+            query_set: &self.queries,
+            beginning_of_pass_write_index: first.then_some(0),
+            end_of_pass_write_index: last.then_some(1),
+        }
+    }
+
+    /// Records the resolution of both timestamps into `enc`, after the last timed pass. Submit
+    /// `enc` before calling [`GpuTimer::read_ns`].
+    pub fn resolve(&self, enc: &mut wgpu::CommandEncoder) {
+        enc.resolve_query_set(&self.queries, 0..2, &self.resolved, 0);
+        enc.copy_buffer_to_buffer(&self.resolved, 0, &self.readback, 0, TIMER_BYTES);
+    }
+
+    /// Waits for the submitted work and returns the GPU nanoseconds between the start and the
+    /// end timestamp (0 if the driver reports the end before the start).
+    pub fn read_ns(&self, gpu: &GpuContext) -> Result<u64, GpuError> {
+        let readback_error = |reason: String| GpuError::Readback {
+            label: "gpu timer".into(),
+            reason,
+        };
+        let slice = self.readback.slice(..);
+        let (tx, rx) = std::sync::mpsc::channel();
+        slice.map_async(wgpu::MapMode::Read, move |r| {
+            let _ = tx.send(r);
+        });
+        gpu.wait()?;
+        rx.recv()
+            .map_err(|e| readback_error(e.to_string()))?
+            .map_err(|e| readback_error(e.to_string()))?;
+        let view = slice
+            .get_mapped_range()
+            .map_err(|e| readback_error(e.to_string()))?;
+        let ticks: Vec<u64> = bytemuck::pod_collect_to_vec(&view);
+        drop(view);
+        self.readback.unmap();
+        let elapsed = ticks[1].saturating_sub(ticks[0]);
+        Ok((elapsed as f64 * self.period_ns).round() as u64)
+    }
+}
+
 /// See [`GpuContext::dispatch_size`]; `max` is the per-dimension limit.
 pub fn split_dispatch(workgroups: u32, max: u32) -> (u32, u32) {
     let workgroups = workgroups.max(1);

@@ -14,7 +14,7 @@ use std::sync::Mutex;
 use glam::Vec3;
 use rayon::prelude::*;
 
-use crate::gpu::{GpuContext, GpuError};
+use crate::gpu::{GpuContext, GpuError, GpuTimer};
 use crate::model_file::{ModelFile, ModelFileError, Normalization};
 use crate::nglod::{Nglod, NglodError, NglodGpu, ScatterMode};
 use crate::siren::{self, Siren, SirenGpu, SirenGpuError};
@@ -67,7 +67,15 @@ pub struct NeuralSdf {
     normalization: Normalization,
     file: ModelFile,
     lod: Option<usize>,
-    gpu: Mutex<Option<(wgpu::Device, GpuNetwork)>>,
+    gpu: Mutex<Option<GpuSide>>,
+}
+
+/// What [`NeuralSdf`] keeps per device: the network's GPU side and, where the device has
+/// timestamp queries, the timer of [`NeuralSdf::eval_normalized_timed`].
+struct GpuSide {
+    device: wgpu::Device,
+    network: GpuNetwork,
+    timer: Option<GpuTimer>,
 }
 
 impl std::fmt::Debug for NeuralSdf {
@@ -165,15 +173,41 @@ impl NeuralSdf {
         gpu: &GpuContext,
         points: &[Vec3],
     ) -> Result<Vec<f32>, NeuralSdfError> {
+        Ok(self.eval_normalized_with_timer(gpu, points, false)?.0)
+    }
+
+    /// [`NeuralSdf::eval_normalized`], also returning the pure GPU time of the network's
+    /// dispatches in nanoseconds, from timestamp queries (see [`GpuTimer`]). The time is `None`
+    /// when the device has no timestamp queries, and for now for SIREN models, whose kernels
+    /// are not timed yet. It excludes uploads, readbacks and the host's work.
+    pub fn eval_normalized_timed(
+        &self,
+        gpu: &GpuContext,
+        points: &[Vec3],
+    ) -> Result<(Vec<f32>, Option<u64>), NeuralSdfError> {
+        self.eval_normalized_with_timer(gpu, points, true)
+    }
+
+    /// The one GPU evaluation path; times the network's dispatches when `timed` and the device
+    /// has timestamp queries.
+    fn eval_normalized_with_timer(
+        &self,
+        gpu: &GpuContext,
+        points: &[Vec3],
+        timed: bool,
+    ) -> Result<(Vec<f32>, Option<u64>), NeuralSdfError> {
         let (clamped, outside) = clamp_to_box(points);
-        let mut d = self.with_gpu(gpu, |net| match net {
-            GpuNetwork::Siren(s) => Ok(s.eval(gpu, &clamped)?),
-            GpuNetwork::Nglod(m) => Ok(m.eval(gpu, &clamped, self.lod)?),
+        let (mut d, gpu_ns) = self.with_gpu(gpu, |net, timer| {
+            let timer = timer.filter(|_| timed);
+            match net {
+                GpuNetwork::Siren(s) => siren_eval_with_timer(s, gpu, &clamped, timer),
+                GpuNetwork::Nglod(m) => Ok(m.eval_with_timer(gpu, &clamped, self.lod, timer)?),
+            }
         })?;
         for (d, o) in d.iter_mut().zip(outside) {
             *d += o;
         }
-        Ok(d)
+        Ok((d, gpu_ns))
     }
 
     /// Signed distances and unit normals (the normalised analytic gradient) at `points` in
@@ -188,7 +222,7 @@ impl NeuralSdf {
         let local: Vec<Vec3> = points.iter().map(|&p| n.to_normalized(p)).collect();
         let (clamped, outside) = clamp_to_box(&local);
         let raw: Vec<(f32, Vec3)> = match &self.network {
-            Network::Siren(_) => self.with_gpu(gpu, |net| match net {
+            Network::Siren(_) => self.with_gpu(gpu, |net, _| match net {
                 GpuNetwork::Siren(s) => Ok(s.eval_with_gradient(gpu, &clamped)?),
                 GpuNetwork::Nglod(_) => unreachable!("the GPU network matches the host network"),
             })?,
@@ -249,27 +283,44 @@ impl NeuralSdf {
             .collect()
     }
 
-    /// Runs `f` on this model's GPU network for `gpu`'s device, creating it on first use (or
-    /// when called with another device).
+    /// Runs `f` on this model's GPU network for `gpu`'s device (and its timer, where the device
+    /// has timestamp queries), creating them on first use (or when called with another device).
     fn with_gpu<T>(
         &self,
         gpu: &GpuContext,
-        f: impl FnOnce(&mut GpuNetwork) -> Result<T, NeuralSdfError>,
+        f: impl FnOnce(&mut GpuNetwork, Option<&GpuTimer>) -> Result<T, NeuralSdfError>,
     ) -> Result<T, NeuralSdfError> {
         let mut slot = self.gpu.lock().unwrap_or_else(|e| e.into_inner());
-        let stale = !matches!(&*slot, Some((device, _)) if device == gpu.device());
+        let stale = !matches!(&*slot, Some(side) if side.device == *gpu.device());
         if stale {
-            let net = match &self.network {
+            let network = match &self.network {
                 Network::Siren(s) => GpuNetwork::Siren(Box::new(SirenGpu::new(gpu, s)?)),
                 Network::Nglod(m) => {
                     GpuNetwork::Nglod(Box::new(NglodGpu::new(gpu, m, ScatterMode::Auto)?))
                 }
             };
-            *slot = Some((gpu.device().clone(), net));
+            *slot = Some(GpuSide {
+                device: gpu.device().clone(),
+                network,
+                timer: GpuTimer::new(gpu),
+            });
         }
-        let (_, net) = slot.as_mut().expect("filled above");
-        f(net)
+        let side = slot.as_mut().expect("filled above");
+        f(&mut side.network, side.timer.as_ref())
     }
+}
+
+/// SIREN's evaluation with an optional timer, the counterpart of NGLOD's `eval_with_timer`.
+/// SIREN's kernels take no timer yet, so the GPU time is always `None`; once `SirenGpu` has
+/// `eval_with_timer(gpu, points, timer: Option<&GpuTimer>) -> Result<(Vec<f32>, Option<u64>),
+/// SirenGpuError>`, this body becomes `Ok(s.eval_with_timer(gpu, points, timer)?)`.
+fn siren_eval_with_timer(
+    s: &mut SirenGpu,
+    gpu: &GpuContext,
+    points: &[Vec3],
+    _timer: Option<&GpuTimer>,
+) -> Result<(Vec<f32>, Option<u64>), NeuralSdfError> {
+    Ok((s.eval(gpu, points)?, None))
 }
 
 /// Points clamped to `[-1, 1]³`, and each point's distance to its clamped copy.

@@ -7,7 +7,7 @@ use std::sync::Mutex;
 use glam::Vec3;
 
 use super::{MAX_LEVELS, MAX_MLP_FLOATS, Nglod, NglodConfig, NglodError, Objective, ParamLayout};
-use crate::gpu::{GpuContext, GpuError};
+use crate::gpu::{GpuContext, GpuError, GpuTimer};
 use crate::shaders;
 
 /// Invocations per workgroup of every NGLOD kernel (the `WG` constant of the shaders).
@@ -205,9 +205,35 @@ impl NglodGpu {
         points: &[Vec3],
         lod: Option<usize>,
     ) -> Result<Vec<f32>, NglodError> {
+        Ok(self.eval_with_timer(gpu, points, lod, None)?.0)
+    }
+
+    /// [`NglodGpu::eval`], also returning the pure GPU time of its dispatches in nanoseconds,
+    /// measured with `timer` (summed over the dispatches when a large input is split).
+    pub fn eval_timed(
+        &self,
+        gpu: &GpuContext,
+        points: &[Vec3],
+        lod: Option<usize>,
+        timer: &GpuTimer,
+    ) -> Result<(Vec<f32>, u64), NglodError> {
+        let (values, ns) = self.eval_with_timer(gpu, points, lod, Some(timer))?;
+        Ok((values, ns.unwrap_or(0)))
+    }
+
+    /// The one inference path, shared by [`NglodGpu::eval`] and [`NglodGpu::eval_timed`] (and
+    /// called by [`crate::NeuralSdf`]): `timer`, when given, brackets every forward pass and the
+    /// result's second field is the sum of their GPU nanoseconds (`None` without a timer).
+    pub(crate) fn eval_with_timer(
+        &self,
+        gpu: &GpuContext,
+        points: &[Vec3],
+        lod: Option<usize>,
+        timer: Option<&GpuTimer>,
+    ) -> Result<(Vec<f32>, Option<u64>), NglodError> {
         let k = self.config.lod(lod)?;
         if points.is_empty() {
-            return Ok(Vec::new());
+            return Ok((Vec::new(), timer.map(|_| 0)));
         }
         let pipeline = gpu.pipeline(&shaders::NGLOD_FORWARD, "forward", &self.constants)?;
         let mut guard = self.eval.lock().unwrap_or_else(|e| e.into_inner());
@@ -241,6 +267,7 @@ impl NglodGpu {
             unreachable!("scratch was just created")
         };
         let mut result = Vec::with_capacity(points.len());
+        let mut gpu_ns = 0u64;
         for chunk in points.chunks(s.capacity.min(self.eval_chunk)) {
             let n = chunk.len() as u32;
             gpu.write(&s.points, bytemuck::cast_slice::<Vec3, f32>(chunk))?;
@@ -250,17 +277,24 @@ impl NglodGpu {
             {
                 let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
                     label: Some("nglod forward"),
-                    timestamp_writes: None,
+                    // One pass per submission: it is both the first and the last timed pass.
+                    timestamp_writes: timer.map(|t| t.writes(true, true)),
                 });
                 pass.set_pipeline(&pipeline);
                 pass.set_bind_group(0, &s.bind_group, &[]);
                 let (x, y) = gpu.dispatch_size(n.div_ceil(WG));
                 pass.dispatch_workgroups(x, y, 1);
             }
+            if let Some(t) = timer {
+                t.resolve(&mut enc);
+            }
             gpu.queue().submit([enc.finish()]);
             result.extend(gpu.read_back_range::<f32>(&s.out, 0, u64::from(n))?);
+            if let Some(t) = timer {
+                gpu_ns += t.read_ns(gpu)?;
+            }
         }
-        Ok(result)
+        Ok((result, timer.map(|_| gpu_ns)))
     }
 
     /// Copies the MLP block of the parameters into the uniform buffer the kernels read it from.
