@@ -3,7 +3,7 @@
 use std::f32::consts::PI;
 use std::time::Duration;
 
-use glam::{DMat3, DVec3, Vec3, Vec3A};
+use glam::{BVec4A, DMat3, DVec3, Vec3, Vec3A, Vec4};
 use obvhs::BvhBuildParams;
 use obvhs::bvh2::builder::build_bvh2_from_tris;
 use obvhs::triangle::Triangle;
@@ -66,6 +66,212 @@ struct Node {
     count: u32,
 }
 
+/// A node of the 4-wide BVH used by the closest-point search (collapsed from the binary one): the
+/// boxes of up to four children in SoA form, so that one SIMD pass gives all four box distances.
+#[derive(Clone, Copy, Debug)]
+#[repr(C, align(64))]
+struct Node4 {
+    /// Per-axis (x, y, z) lower corners of the four children's boxes; +∞ in unused slots.
+    min: [Vec4; 3],
+    /// Per-axis upper corners; −∞ in unused slots (so their box distance is +∞).
+    max: [Vec4; 3],
+    /// Inner child: index into `nodes4`. Leaf child: first index into `packets`.
+    child: [u32; 4],
+    /// 0 for an inner child (or an unused slot), else the number of triangle packets in the leaf.
+    count: [u32; 4],
+}
+
+impl Node4 {
+    const EMPTY: Node4 = Node4 {
+        min: [Vec4::INFINITY; 3],
+        max: [Vec4::NEG_INFINITY; 3],
+        child: [0; 4],
+        count: [0; 4],
+    };
+
+    /// Squared distances from `p` (splatted per axis) to the four children's boxes.
+    #[inline(always)]
+    fn box_dist2(&self, px: Vec4, py: Vec4, pz: Vec4) -> Vec4 {
+        let dx = (self.min[0] - px).max(px - self.max[0]).max(Vec4::ZERO);
+        let dy = (self.min[1] - py).max(py - self.max[1]).max(Vec4::ZERO);
+        let dz = (self.min[2] - pz).max(pz - self.max[2]).max(Vec4::ZERO);
+        dx * dx + dy * dy + dz * dz
+    }
+}
+
+/// Three SoA vectors: the x, y and z coordinates of four points.
+#[derive(Clone, Copy, Debug)]
+struct P4 {
+    x: Vec4,
+    y: Vec4,
+    z: Vec4,
+}
+
+impl P4 {
+    #[inline(always)]
+    fn sub(self, o: P4) -> P4 {
+        P4 {
+            x: self.x - o.x,
+            y: self.y - o.y,
+            z: self.z - o.z,
+        }
+    }
+    #[inline(always)]
+    fn add(self, o: P4) -> P4 {
+        P4 {
+            x: self.x + o.x,
+            y: self.y + o.y,
+            z: self.z + o.z,
+        }
+    }
+    #[inline(always)]
+    fn scale(self, s: Vec4) -> P4 {
+        P4 {
+            x: self.x * s,
+            y: self.y * s,
+            z: self.z * s,
+        }
+    }
+    /// Same operation order as `Vec3A::dot`: (x·x + y·y) + z·z.
+    #[inline(always)]
+    fn dot(self, o: P4) -> Vec4 {
+        self.x * o.x + self.y * o.y + self.z * o.z
+    }
+    #[inline(always)]
+    fn select(m: BVec4A, t: P4, f: P4) -> P4 {
+        P4 {
+            x: Vec4::select(m, t.x, f.x),
+            y: Vec4::select(m, t.y, f.y),
+            z: Vec4::select(m, t.z, f.z),
+        }
+    }
+}
+
+/// Four triangles in SoA form (one leaf's worth; a short leaf repeats its first triangle).
+#[derive(Clone, Copy, Debug)]
+#[repr(C, align(16))]
+struct TriPacket {
+    a: P4,
+    b: P4,
+    c: P4,
+    /// Triangle slot of each lane (padding lanes repeat lane 0's).
+    slot: [u32; 4],
+}
+
+impl TriPacket {
+    /// Squared distances from `p` to the four triangles: [`closest_on_triangle`] evaluated in all
+    /// four lanes at once with every branch replaced by a select, operation for operation, so the
+    /// results are bit-identical to the scalar function's `(q − p)²`.
+    #[inline(always)]
+    fn dist2(&self, p: P4) -> Vec4 {
+        let (a, b, c) = (self.a, self.b, self.c);
+        let z = Vec4::ZERO;
+        let ab = b.sub(a);
+        let ac = c.sub(a);
+        let ap = p.sub(a);
+        let d1 = ab.dot(ap);
+        let d2 = ac.dot(ap);
+        let bp = p.sub(b);
+        let d3 = ab.dot(bp);
+        let d4 = ac.dot(bp);
+        let vc = d1 * d4 - d3 * d2;
+        let cp = p.sub(c);
+        let d5 = ab.dot(cp);
+        let d6 = ac.dot(cp);
+        let vb = d5 * d2 - d1 * d6;
+        let va = d3 * d6 - d5 * d4;
+        // Face region (lowest priority), then the other regions from the last test to the first.
+        let denom = Vec4::ONE / (va + vb + vc);
+        let v = vb * denom;
+        let w = vc * denom;
+        let finite = v.is_finite_mask() & w.is_finite_mask();
+        let mut q = P4::select(finite, a.add(ab.scale(v)).add(ac.scale(w)), a);
+        let e43 = d4 - d3;
+        let e56 = d5 - d6;
+        let m6 = va.cmple(z) & e43.cmpge(z) & e56.cmpge(z);
+        q = P4::select(m6, b.add(c.sub(b).scale(e43 / (e43 + e56))), q);
+        let m5 = vb.cmple(z) & d2.cmpge(z) & d6.cmple(z);
+        q = P4::select(m5, a.add(ac.scale(d2 / (d2 - d6))), q);
+        let m4 = d6.cmpge(z) & d5.cmple(d6);
+        q = P4::select(m4, c, q);
+        let m3 = vc.cmple(z) & d1.cmpge(z) & d3.cmple(z);
+        q = P4::select(m3, a.add(ab.scale(d1 / (d1 - d3))), q);
+        let m2 = d3.cmpge(z) & d4.cmple(d3);
+        q = P4::select(m2, b, q);
+        let m1 = d1.cmple(z) & d2.cmple(z);
+        q = P4::select(m1, a, q);
+        let e = q.sub(p);
+        e.dot(e)
+    }
+}
+
+/// Collapses the binary BVH below `root` into 4-wide nodes (appended to `out` in depth-first order,
+/// leaves' triangles appended to `packets` in the same order): an inner node's slots are filled by
+/// repeatedly opening the inner child with the largest box surface area. Returns the new node's
+/// index.
+fn collapse4(
+    nodes: &[Node],
+    tris: &[[Vec3A; 3]],
+    root: u32,
+    out: &mut Vec<Node4>,
+    packets: &mut Vec<TriPacket>,
+) -> u32 {
+    let half_area = |n: &Node| {
+        let e = (n.max - n.min).max(Vec3::ZERO);
+        e.x * e.y + e.y * e.z + e.z * e.x
+    };
+    let mut kids = [root; 4];
+    let mut m = 1;
+    while m < 4 {
+        let open = (0..m)
+            .filter(|&k| nodes[kids[k] as usize].count == 0)
+            .max_by(|&a, &b| {
+                half_area(&nodes[kids[a] as usize]).total_cmp(&half_area(&nodes[kids[b] as usize]))
+            });
+        let Some(k) = open else { break };
+        let first = nodes[kids[k] as usize].first;
+        kids[k] = first;
+        kids[m] = first + 1;
+        m += 1;
+    }
+    let idx = out.len();
+    out.push(Node4::EMPTY);
+    let mut node = Node4::EMPTY;
+    for (k, &c) in kids[..m].iter().enumerate() {
+        let n = &nodes[c as usize];
+        for axis in 0..3 {
+            node.min[axis][k] = n.min[axis];
+            node.max[axis][k] = n.max[axis];
+        }
+        if n.count > 0 {
+            node.child[k] = packets.len() as u32;
+            node.count[k] = n.count.div_ceil(4);
+            for chunk in (n.first..n.first + n.count).collect::<Vec<u32>>().chunks(4) {
+                let slot: [u32; 4] =
+                    std::array::from_fn(|l| chunk[if l < chunk.len() { l } else { 0 }]);
+                let corner = |j: usize| {
+                    let v: [Vec3A; 4] = slot.map(|s| tris[s as usize][j]);
+                    P4 {
+                        x: Vec4::new(v[0].x, v[1].x, v[2].x, v[3].x),
+                        y: Vec4::new(v[0].y, v[1].y, v[2].y, v[3].y),
+                        z: Vec4::new(v[0].z, v[1].z, v[2].z, v[3].z),
+                    }
+                };
+                packets.push(TriPacket {
+                    a: corner(0),
+                    b: corner(1),
+                    c: corner(2),
+                    slot,
+                });
+            }
+        } else {
+            node.child[k] = collapse4(nodes, tris, c, out, packets);
+        }
+    }
+    out[idx] = node;
+    idx as u32
+}
+
 #[derive(Clone, Copy, Debug, Default)]
 #[repr(C, align(16))]
 struct WindingNode {
@@ -90,14 +296,20 @@ struct WindingNode {
 /// Exact unsigned distance plus a robust sign, for one mesh.
 ///
 /// Owns a BVH (built with `obvhs` 0.4's PLOC builder, without spatial splits so each triangle sits in
-/// exactly one leaf) and a copy of the triangles in leaf order.
+/// exactly one leaf), a 4-wide copy of it for the distance, and the triangles in leaf order.
 ///
 /// # Distance
-/// [`closest_point`](Self::closest_point) is a best-first depth-first traversal: the nearer child (by
-/// the distance from the query to its box) is visited first and every node whose box is farther than
-/// the best triangle found so far is skipped. Point–triangle distance is Ericson's Voronoi-region
-/// method. The result is exact up to f32 rounding (the same triangle a brute-force scan would pick,
-/// up to ties).
+/// The binary tree is collapsed into a 4-wide one (children's boxes in SoA form, one SIMD pass for
+/// all four box distances; leaves' triangles in SoA packets of four, in depth-first order).
+/// [`closest_point`](Self::closest_point) is a best-first depth-first traversal: the children
+/// nearer than the best triangle so far are visited nearest first (by the distance from the query to
+/// their box) and every entry whose box is farther than the best triangle is skipped. Point–triangle
+/// distance is Ericson's Voronoi-region method, evaluated for four triangles at once with selects
+/// (bit-identical to the scalar version). The result is exact up to f32 rounding (the same triangle
+/// a brute-force scan would pick, up to ties). Batches run in Morton order of the points; in
+/// [`signed_distance_batch`](Self::signed_distance_batch) each query first measures the previous
+/// query's nearest triangle, which gives a tight starting bound (the distance, a minimum over all
+/// triangles, is unchanged bit for bit).
 ///
 /// # Sign
 /// The sign comes from the generalised winding number w(p) = Σ Ω_t(p) / 4π (Jacobson et al. 2013),
@@ -115,7 +327,10 @@ struct WindingNode {
 /// the threshold agrees with ray parity away from the surface (tested).
 #[derive(Clone, Debug)]
 pub struct SignedDistance {
-    nodes: Vec<Node>,
+    /// 4-wide BVH for the closest-point search.
+    nodes4: Vec<Node4>,
+    /// The leaves' triangles in SoA packets of four, in the order the 4-wide BVH references them.
+    packets: Vec<TriPacket>,
     wnodes: Vec<WindingNode>,
     /// Triangle corners in leaf order.
     tris: Vec<[Vec3A; 3]>,
@@ -129,16 +344,12 @@ pub struct SignedDistance {
 /// Per-thread traversal scratch space.
 #[derive(Default)]
 struct Scratch {
-    pairs: Vec<(u32, f32)>,
+    /// Closest-point stack: (box distance², child, leaf triangle count or 0).
+    pairs: Vec<(f32, u32, u32)>,
     nodes: Vec<u32>,
-}
-
-#[inline(always)]
-fn box_dist2(n: &Node, p: Vec3A) -> f32 {
-    let d = (Vec3A::from(n.min) - p)
-        .max(p - Vec3A::from(n.max))
-        .max(Vec3A::ZERO);
-    d.dot(d)
+    /// Triangle slot nearest to the previous query of a batch (`u32::MAX`: none), a starting bound
+    /// for the next one. Only used where the reported triangle does not matter (distances).
+    last: u32,
 }
 
 /// Closest point on triangle (a, b, c) to p (Ericson, Real-Time Collision Detection 5.1.5), with the
@@ -353,9 +564,13 @@ impl SignedDistance {
                 count: n.count,
             };
         }
+        let mut nodes4 = Vec::with_capacity(nodes.len() / 2 + 1);
+        let mut packets = Vec::with_capacity(tris.len() / 2 + 1);
+        collapse4(&nodes, &tris, 0, &mut nodes4, &mut packets);
         let diag = mesh.bounds().diagonal();
         Ok(SignedDistance {
-            nodes,
+            nodes4,
+            packets,
             wnodes,
             tris,
             tri_ids,
@@ -377,64 +592,101 @@ impl SignedDistance {
 
     fn scratch(&self) -> Scratch {
         Scratch {
-            pairs: Vec::with_capacity(self.stack_hint),
+            pairs: Vec::with_capacity(2 * self.stack_hint),
             nodes: Vec::with_capacity(self.stack_hint),
+            last: u32::MAX,
         }
     }
 
-    /// Best squared distance and slot of the nearest triangle.
+    /// Squared distance from `p` to the triangle in `slot`.
+    #[inline(always)]
+    fn tri_dist2(&self, p: Vec3A, slot: usize) -> f32 {
+        let t = &self.tris[slot];
+        let (q, _) = closest_on_triangle(p, t[0], t[1], t[2]);
+        (q - p).length_squared()
+    }
+
+    /// Best squared distance and slot of the nearest triangle. `seed` (a triangle slot, or
+    /// `u32::MAX`) is tested first to start with a finite bound; the distance is the same either way
+    /// (the minimum over all triangles), only the slot may differ between equally near triangles.
     #[inline]
-    fn nearest(&self, p: Vec3A, stack: &mut Vec<(u32, f32)>) -> (f32, u32) {
+    fn nearest(&self, p: Vec3A, stack: &mut Vec<(f32, u32, u32)>, seed: u32) -> (f32, u32) {
         stack.clear();
-        let mut best = f32::INFINITY;
-        let mut best_slot = 0u32;
-        let mut ni = 0u32;
+        let (mut best, mut best_slot) = if (seed as usize) < self.tris.len() {
+            (self.tri_dist2(p, seed as usize), seed)
+        } else {
+            (f32::INFINITY, 0)
+        };
+        let (px, py, pz) = (Vec4::splat(p.x), Vec4::splat(p.y), Vec4::splat(p.z));
+        let p4 = P4 {
+            x: px,
+            y: py,
+            z: pz,
+        };
+        // Current entry: (node or first packet, packet count; 0 for an inner node).
+        let (mut c, mut count) = (0u32, 0u32);
         loop {
-            let n = &self.nodes[ni as usize];
-            if n.count > 0 {
-                let start = n.first as usize;
-                for (k, t) in self.tris[start..start + n.count as usize]
-                    .iter()
-                    .enumerate()
-                {
-                    let (q, _) = closest_on_triangle(p, t[0], t[1], t[2]);
-                    let d2 = (q - p).length_squared();
-                    if d2 < best {
-                        best = d2;
-                        best_slot = (start + k) as u32;
+            if count > 0 {
+                let start = c as usize;
+                for t in &self.packets[start..start + count as usize] {
+                    let d2 = t.dist2(p4);
+                    if d2.cmplt(Vec4::splat(best)).any() {
+                        // Lanes in slot order with a strict `<`: the same triangle as a scalar scan.
+                        for (&d, &slot) in d2.to_array().iter().zip(&t.slot) {
+                            if d < best {
+                                best = d;
+                                best_slot = slot;
+                            }
+                        }
                     }
                 }
             } else {
-                let l = n.first;
-                let dl = box_dist2(&self.nodes[l as usize], p);
-                let dr = box_dist2(&self.nodes[l as usize + 1], p);
-                let (near, dn, far, df) = if dl <= dr {
-                    (l, dl, l + 1, dr)
-                } else {
-                    (l + 1, dr, l, dl)
-                };
-                if dn < best {
-                    if df < best {
-                        stack.push((far, df));
+                let n = &self.nodes4[c as usize];
+                let d2 = n.box_dist2(px, py, pz);
+                let mut mask = d2.cmplt(Vec4::splat(best)).bitmask();
+                if mask != 0 {
+                    if mask & (mask - 1) == 0 {
+                        // One child left: go straight on.
+                        let k = mask.trailing_zeros() as usize;
+                        (c, count) = (n.child[k], n.count[k]);
+                        continue;
                     }
-                    ni = near;
+                    // Several: sort by decreasing box distance, push all but the nearest, which is
+                    // visited next.
+                    let d = d2.to_array();
+                    let mut cand = [(0.0f32, 0u32, 0u32); 4];
+                    let mut m = 0;
+                    while mask != 0 {
+                        let k = mask.trailing_zeros() as usize;
+                        mask &= mask - 1;
+                        let e = (d[k], n.child[k], n.count[k]);
+                        let mut j = m;
+                        while j > 0 && cand[j - 1].0 < e.0 {
+                            cand[j] = cand[j - 1];
+                            j -= 1;
+                        }
+                        cand[j] = e;
+                        m += 1;
+                    }
+                    for e in &cand[..m - 1] {
+                        stack.push(*e);
+                    }
+                    (c, count) = (cand[m - 1].1, cand[m - 1].2);
                     continue;
                 }
             }
-            // Pop the next node that can still hold something closer.
-            let mut next = None;
-            while let Some((i, d)) = stack.pop() {
-                if d < best {
-                    next = Some(i);
-                    break;
+            // Pop the next entry that can still hold something closer.
+            loop {
+                match stack.pop() {
+                    Some((d, i, k)) if d < best => {
+                        (c, count) = (i, k);
+                        break;
+                    }
+                    Some(_) => {}
+                    None => return (best, best_slot),
                 }
             }
-            match next {
-                Some(i) => ni = i,
-                None => break,
-            }
         }
-        (best, best_slot)
     }
 
     /// The closest point on the mesh to `p`, with triangle id and barycentrics.
@@ -454,7 +706,7 @@ impl SignedDistance {
             };
         }
         let pa = Vec3A::from(p);
-        let (d2, slot) = self.nearest(pa, &mut s.pairs);
+        let (d2, slot) = self.nearest(pa, &mut s.pairs, u32::MAX);
         let t = &self.tris[slot as usize];
         let (q, bary) = closest_on_triangle(pa, t[0], t[1], t[2]);
         ClosestPoint {
@@ -470,7 +722,7 @@ impl SignedDistance {
         if !p.is_finite() {
             return f32::NAN;
         }
-        self.nearest(p.into(), &mut Vec::with_capacity(self.stack_hint))
+        self.nearest(p.into(), &mut Vec::with_capacity(self.stack_hint), u32::MAX)
             .0
             .sqrt()
     }
@@ -558,7 +810,9 @@ impl SignedDistance {
             return f32::NAN;
         }
         let pa = Vec3A::from(p);
-        let d = self.nearest(pa, &mut s.pairs).0.sqrt();
+        let (d2, slot) = self.nearest(pa, &mut s.pairs, s.last);
+        s.last = slot;
+        let d = d2.sqrt();
         if d <= self.surface_eps {
             return d;
         }
@@ -604,13 +858,17 @@ impl SignedDistance {
             })
             .collect();
         keys.par_sort_unstable();
-        let sorted: Vec<T> = keys
+        // Gather the points in Morton order first: a tight loop whose cache misses overlap, rather
+        // than one miss at the start of every query.
+        let sorted_points: Vec<Vec3> = keys
+            .par_iter()
+            .with_min_len(4096)
+            .map(|&k| points[k as u32 as usize])
+            .collect();
+        let sorted: Vec<T> = sorted_points
             .par_iter()
             .with_min_len(256)
-            .map_init(
-                || self.scratch(),
-                |s, &k| f(self, points[k as u32 as usize], s),
-            )
+            .map_init(|| self.scratch(), |s, &p| f(self, p, s))
             .collect();
         let mut out = vec![T::default(); points.len()];
         for (k, v) in keys.iter().zip(sorted) {
@@ -649,4 +907,68 @@ fn spread10(v: u32) -> u32 {
     x = (x | (x << 4)) & 0x030c_30c3;
     x = (x | (x << 2)) & 0x0924_9249;
     x
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A small deterministic generator (no dependency on the samplers).
+    fn lcg(state: &mut u64) -> f32 {
+        *state = state
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        ((*state >> 40) as f32 / (1u64 << 24) as f32) * 2.0 - 1.0
+    }
+
+    #[test]
+    fn packet_distance_is_bit_identical_to_scalar() {
+        let mut st = 7u64;
+        let v = |s: &mut u64| Vec3A::new(lcg(s), lcg(s), lcg(s));
+        let mut tris: Vec<[Vec3A; 3]> = (0..400)
+            .map(|_| [v(&mut st), v(&mut st), v(&mut st)])
+            .collect();
+        // Degenerate and nearly degenerate triangles: collinear, repeated corner, tiny, huge.
+        let a = v(&mut st);
+        let b = v(&mut st);
+        tris.push([a, b, a + (b - a) * 0.5]);
+        tris.push([a, a, b]);
+        tris.push([
+            a,
+            a + Vec3A::splat(1e-30),
+            a + Vec3A::new(1e-30, 0.0, 2e-30),
+        ]);
+        tris.push([a * 1e6, b * 1e6, Vec3A::ZERO]);
+        for chunk in tris.chunks(4) {
+            let slot: [usize; 4] = std::array::from_fn(|l| if l < chunk.len() { l } else { 0 });
+            let corner = |j: usize| P4 {
+                x: Vec4::from_array(slot.map(|s| chunk[s][j].x)),
+                y: Vec4::from_array(slot.map(|s| chunk[s][j].y)),
+                z: Vec4::from_array(slot.map(|s| chunk[s][j].z)),
+            };
+            let packet = TriPacket {
+                a: corner(0),
+                b: corner(1),
+                c: corner(2),
+                slot: [0; 4],
+            };
+            for _ in 0..50 {
+                // Points near and far, so that every Voronoi region is hit.
+                let s = if lcg(&mut st) > 0.0 { 3.0 } else { 0.3 };
+                let p = v(&mut st) * s;
+                let p4 = P4 {
+                    x: Vec4::splat(p.x),
+                    y: Vec4::splat(p.y),
+                    z: Vec4::splat(p.z),
+                };
+                let got = packet.dist2(p4).to_array();
+                for (l, &k) in slot.iter().enumerate() {
+                    let t = chunk[k];
+                    let (q, _) = closest_on_triangle(p, t[0], t[1], t[2]);
+                    let want = (q - p).length_squared();
+                    assert_eq!(got[l].to_bits(), want.to_bits(), "{t:?} {p:?}");
+                }
+            }
+        }
+    }
 }
