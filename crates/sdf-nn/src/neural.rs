@@ -311,16 +311,19 @@ impl NeuralSdf {
 }
 
 /// SIREN's evaluation with an optional timer, the counterpart of NGLOD's `eval_with_timer`.
-/// SIREN's kernels take no timer yet, so the GPU time is always `None`; once `SirenGpu` has
-/// `eval_with_timer(gpu, points, timer: Option<&GpuTimer>) -> Result<(Vec<f32>, Option<u64>),
-/// SirenGpuError>`, this body becomes `Ok(s.eval_with_timer(gpu, points, timer)?)`.
 fn siren_eval_with_timer(
     s: &mut SirenGpu,
     gpu: &GpuContext,
     points: &[Vec3],
-    _timer: Option<&GpuTimer>,
+    timer: Option<&GpuTimer>,
 ) -> Result<(Vec<f32>, Option<u64>), NeuralSdfError> {
-    Ok((s.eval(gpu, points)?, None))
+    Ok(match timer {
+        Some(t) => {
+            let (values, ns) = s.eval_timed(gpu, points, t)?;
+            (values, Some(ns))
+        }
+        None => (s.eval(gpu, points)?, None),
+    })
 }
 
 /// Points clamped to `[-1, 1]³`, and each point's distance to its clamped copy.

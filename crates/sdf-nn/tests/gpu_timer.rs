@@ -1,4 +1,4 @@
-//! GPU time from timestamp queries ([`GpuTimer`]): a timed NGLOD evaluation returns exactly the
+//! GPU time from timestamp queries ([`GpuTimer`]): a timed NGLOD or SIREN evaluation returns exactly the
 //! values of the untimed one, and a GPU time above zero and within the wall time around the call,
 //! also when the input is split over several dispatches and through [`NeuralSdf`]. Skips (prints
 //! and passes) on adapters without timestamp queries. One test binary, one shared device.
@@ -10,7 +10,10 @@ use rand::{Rng, SeedableRng};
 use rand_pcg::Pcg64;
 use sdf_nn::gpu::GpuTimer;
 use sdf_nn::nglod::ScatterMode;
-use sdf_nn::{GpuContext, NeuralSdf, Nglod, NglodConfig, NglodGpu, Normalization};
+use sdf_nn::{
+    GpuContext, NeuralSdf, Nglod, NglodConfig, NglodGpu, Normalization, Siren, SirenConfig,
+    SirenGpu,
+};
 
 /// The shared context and a timer on it, or `None` (after saying so) without timestamps.
 fn gpu_and_timer() -> Option<(&'static GpuContext, GpuTimer)> {
@@ -110,4 +113,31 @@ fn neural_sdf_reports_gpu_time_for_nglod() {
     assert_eq!(bits(&timed), bits(&untimed));
     let ns = ns.expect("NGLOD on an adapter with timestamps reports a GPU time");
     assert!(ns > 0 && ns <= wall, "{ns} ns vs {wall} ns");
+}
+
+#[test]
+fn timed_siren_eval_matches_untimed_and_is_within_wall_time() {
+    let Some((gpu, timer)) = gpu_and_timer() else {
+        return;
+    };
+    let cfg = SirenConfig {
+        width: 16,
+        hidden_layers: 2,
+        omega0: 30.0,
+    };
+    let mut net = SirenGpu::new(gpu, &Siren::new(cfg, 4).unwrap()).unwrap();
+    let pts = points(3000, 5);
+    let untimed = net.eval(gpu, &pts).unwrap();
+    // Also split into three launches of 1024 points (1024 + 1024 + 952), whose times add up.
+    for max_per_launch in [None, Some(1024)] {
+        if let Some(m) = max_per_launch {
+            net.set_max_points_per_launch(m);
+        }
+        let t = Instant::now();
+        let (timed, ns) = net.eval_timed(gpu, &pts, &timer).unwrap();
+        let wall = t.elapsed().as_nanos() as u64;
+        assert_eq!(bits(&timed), bits(&untimed));
+        assert!(ns > 0 && ns <= wall, "GPU time {ns} ns, wall {wall} ns");
+        eprintln!("SIREN {max_per_launch:?}: {ns} ns on the GPU, {wall} ns wall");
+    }
 }

@@ -146,15 +146,16 @@ impl DensePlan {
             } else {
                 (WINDOW_BYTES / row_bytes).min(fan_out as u64) as usize / 4 * 4
             };
-            let ok = (fan_in == 3 || (fan_in % 16 == 0 && fan_in <= MAX_REDUCTION))
-                && fan_out % 16 == 0
-                && window_rows >= 4
-                && window_rows <= MAX_REDUCTION
-                && fan_out % window_rows == 0
-                && window_rows as u64 * row_bytes <= WINDOW_BYTES
-                && (window_rows as u64 * row_bytes).is_multiple_of(align);
-            let ok =
-                ok || (fan_in == 3 && fan_out % 16 == 0 && fan_out as u64 * 12 <= WINDOW_BYTES);
+            let ok = if fan_in == 3 {
+                fan_out % 16 == 0 && fan_out as u64 * row_bytes <= WINDOW_BYTES
+            } else {
+                fan_in % 16 == 0
+                    && fan_in <= MAX_REDUCTION
+                    && fan_out % 16 == 0
+                    && (4..=MAX_REDUCTION).contains(&window_rows)
+                    && fan_out % window_rows == 0
+                    && (window_rows as u64 * row_bytes).is_multiple_of(align)
+            };
             if ok {
                 packed.push(Some(PackedLayer {
                     layout: *lay,

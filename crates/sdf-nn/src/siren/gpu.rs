@@ -12,7 +12,7 @@ use glam::Vec3;
 
 use super::dense::{DensePlan, Epilogue, LayerKernels, SPLITS};
 use super::{LayerLayout, Siren, SirenConfig, SirenConfigError};
-use crate::gpu::{GpuContext, GpuError};
+use crate::gpu::{GpuContext, GpuError, GpuTimer};
 use crate::shaders;
 
 /// Errors of the SIREN GPU code.
@@ -436,7 +436,19 @@ impl SirenGpu {
     /// Φ at each point (normalised coordinates), any number of points, split into launches that
     /// fit the device limits.
     pub fn eval(&mut self, gpu: &GpuContext, points: &[Vec3]) -> Result<Vec<f32>, SirenGpuError> {
-        self.run_eval(gpu, points, false)
+        Ok(self.run_eval(gpu, points, false, None)?.0)
+    }
+
+    /// [`SirenGpu::eval`], also returning the GPU time of its dispatches (summed over the
+    /// launches it splits into) from `timer`'s timestamp queries.
+    pub fn eval_timed(
+        &mut self,
+        gpu: &GpuContext,
+        points: &[Vec3],
+        timer: &GpuTimer,
+    ) -> Result<(Vec<f32>, u64), SirenGpuError> {
+        let (values, ns) = self.run_eval(gpu, points, false, Some(timer))?;
+        Ok((values, ns.unwrap_or(0)))
     }
 
     /// Φ and ∇Φ at each point.
@@ -445,7 +457,7 @@ impl SirenGpu {
         gpu: &GpuContext,
         points: &[Vec3],
     ) -> Result<Vec<(f32, Vec3)>, SirenGpuError> {
-        let vals = self.run_eval(gpu, points, true)?;
+        let (vals, _) = self.run_eval(gpu, points, true, None)?;
         Ok(vals
             .chunks_exact(4)
             .map(|v| (v[0], Vec3::new(v[1], v[2], v[3])))
@@ -457,11 +469,13 @@ impl SirenGpu {
         gpu: &GpuContext,
         points: &[Vec3],
         tangents: bool,
-    ) -> Result<Vec<f32>, SirenGpuError> {
+        timer: Option<&GpuTimer>,
+    ) -> Result<(Vec<f32>, Option<u64>), SirenGpuError> {
         let per = if tangents { 4 } else { 1 };
         let mut out = Vec::with_capacity(points.len() * per);
+        let mut gpu_ns = timer.map(|_| 0u64);
         if points.is_empty() {
-            return Ok(out);
+            return Ok((out, gpu_ns));
         }
         let mut ws = match if tangents {
             self.eval_grad.take()
@@ -489,13 +503,19 @@ impl SirenGpu {
                 {
                     let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
                         label: Some("siren eval"),
-                        timestamp_writes: None,
+                        timestamp_writes: timer.map(|t| t.writes(true, true)),
                     });
                     for l in &ws.launches {
                         l.record(&mut pass);
                     }
                 }
+                if let Some(t) = timer {
+                    t.resolve(&mut enc);
+                }
                 gpu.queue().submit([enc.finish()]);
+                if let (Some(t), Some(ns)) = (timer, gpu_ns.as_mut()) {
+                    *ns += t.read_ns(gpu)?;
+                }
                 out.extend(gpu.read_back_range::<f32>(&ws.values, 0, u64::from(n) * per as u64)?);
             }
             Ok::<(), GpuError>(())
@@ -506,7 +526,7 @@ impl SirenGpu {
             self.eval = Some(ws);
         }
         result?;
-        Ok(out)
+        Ok((out, gpu_ns))
     }
 
     fn alloc_eval(
