@@ -272,6 +272,11 @@ fn train_sign_accuracy(
         .filter(|(p, v)| (**v < 0.0) == truth.is_inside(**p))
         .count();
     let acc = correct as f64 / pts.len() as f64;
+    if let Ok(path) = std::env::var("SIREN_SAVE") {
+        // For `eval`'s F1 on a manual experiment.
+        let file = trainer.model_file(gpu).unwrap();
+        file.save(std::path::Path::new(&path)).unwrap();
+    }
     eprintln!(
         "{name}: {} steps in {:.1?} (setup {t_setup:.1?}), final loss {:?}, lr {:e}, sign accuracy {:.4}",
         summary.steps, summary.elapsed, summary.final_loss, summary.final_lr, acc
@@ -287,7 +292,7 @@ fn env_or<T: std::str::FromStr>(k: &str, d: T) -> T {
 }
 
 #[test]
-#[ignore = "manual experiment: SIREN_STEPS, SIREN_LR, SIREN_BATCH, SIREN_EIK, SIREN_MESH"]
+#[ignore = "manual experiment: SIREN_STEPS, SIREN_LR, SIREN_BATCH, SIREN_EIK, SIREN_MESH, SIREN_OMEGA, SIREN_SAVE"]
 fn experiment() {
     let mesh = match std::env::var("SIREN_MESH") {
         Ok(p) => sdf_geom::load_mesh(p).unwrap().0,
@@ -339,12 +344,12 @@ fn profile() {
     }
 }
 
-/// Settings of the end-to-end runs: `SIREN_E2E_STEPS` (default 3000), batch of
+/// Settings of the end-to-end runs: `steps` (or `SIREN_E2E_STEPS`) steps of
 /// `SIREN_E2E_BATCH` surface + as many box points (default 1000), learning rate 1e-4.
-fn e2e_config() -> SirenTrainConfig {
+fn e2e_config(steps: usize) -> SirenTrainConfig {
     let batch = env_or("SIREN_E2E_BATCH", 1000);
     SirenTrainConfig {
-        steps: env_or("SIREN_E2E_STEPS", 3000),
+        steps: env_or("SIREN_E2E_STEPS", steps),
         surface_per_step: batch,
         box_per_step: batch,
         dataset_size: 20_000,
@@ -353,19 +358,22 @@ fn e2e_config() -> SirenTrainConfig {
     }
 }
 
+// On the 2-core machine (lavapipe) a step of 2000 points takes ~0.11 s: ~1 min for the sphere
+// (99.5% with this seed, 99.8% with seed 1).
 #[test]
-#[ignore = "too slow for lavapipe's CI budget (~1 s per step on the 2-core machine); run with --ignored"]
 fn small_preset_learns_the_sign_of_a_sphere() {
-    let acc = train_sign_accuracy("sphere", &icosphere(3), e2e_config(), 11);
+    let acc = train_sign_accuracy("sphere", &icosphere(3), e2e_config(500), 11);
     assert!(acc >= 0.98, "sign accuracy {acc}");
 }
 
+// ~4.5 min on lavapipe, and not yet robust: 2000 steps gave 99.1% with seed 1 but 95.9% with
+// this seed (BENCHMARKS.md, SIREN); it needs longer training than CI affords.
 #[test]
-#[ignore = "too slow for lavapipe's CI budget (~1 s per step on the 2-core machine); run with --ignored"]
+#[ignore = "~4.5 min on lavapipe and seed-dependent (95.9-99.1% at 2000 steps); run with --ignored"]
 fn small_preset_learns_the_sign_of_spot() {
     let path = concat!(env!("CARGO_MANIFEST_DIR"), "/../../tests/data/spot.obj");
     let (mesh, _) = sdf_geom::load_mesh(path).unwrap();
-    let acc = train_sign_accuracy("spot", &mesh, e2e_config(), 12);
+    let acc = train_sign_accuracy("spot", &mesh, e2e_config(2000), 12);
     assert!(acc >= 0.98, "sign accuracy {acc}");
 }
 
