@@ -1,12 +1,11 @@
-// SIREN's matrix kernel and its elementwise companions.
+// SIREN's matrix kernel and its elementwise companions: the general path (every layer shape,
+// and the hidden layers on GPUs, `LayerKernels::Gemm`). On CPU adapters the hidden layers run on
+// siren_dense.wgsl instead, which avoids the per-lane storage loads this kernel makes.
 //
 // gemm: C[m, n] = Σ_k A[m, k] B[k, n], one invocation per row m. The invocation copies its
 // row of A, 256 values of k at a time, into a private array, then sweeps every column n,
 // four at a time; the B values it reads depend only on (k, n), which are the same for every
-// invocation, so they are scalar loads broadcast to all lanes. This is the shape lavapipe runs
-// well (one invocation per SIMD lane, private arrays as per-lane vectors, per-lane storage
-// loads costly): a shared-memory tiled kernel with barriers and a register-blocked variant
-// with per-k lane-divergent loads both measured ~0.1-0.3 GFLOP/s there.
+// invocation.
 //
 // Operands are read through (offset, row stride, column stride), so one kernel does every
 // product SIREN needs:

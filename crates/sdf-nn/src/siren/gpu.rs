@@ -1,12 +1,13 @@
-//! Host code of the SIREN kernels (`shaders/siren_gemm.wgsl`, `siren_head.wgsl`,
-//! `siren_train.wgsl`): inference, inference with the input gradient, and the forward + double
-//! backward of a training step.
+//! Host code of the SIREN kernels (`shaders/siren_gemm.wgsl`, `siren_dense.wgsl`,
+//! `siren_head.wgsl`, `siren_train.wgsl`): inference, inference with the input gradient, and
+//! the forward + double backward of a training step.
 //!
 //! Activations are row-major `[rows, width]` matrices. With tangents, a point owns four
-//! consecutive rows: the value, then ∂/∂x, ∂/∂y, ∂/∂z. Every dense layer is one launch of the
-//! tiled GEMM kernel, whose epilogue applies the sine (forward) or its derivative (backward);
-//! weight gradients are split-K GEMMs over the batch whose partials a second kernel sums into
-//! the gradient buffer, so there are no atomics anywhere.
+//! consecutive rows: the value, then ∂/∂x, ∂/∂y, ∂/∂z. A hidden layer runs either on the
+//! strided GEMM kernel followed by the elementwise sine kernels, or (see [`LayerKernels`]) on the
+//! row-blocked kernels of `siren_dense.wgsl` with the sine fused in; weight gradients are split
+//! over the batch into partials that a second kernel sums into the gradient buffer, so there are
+//! no atomics anywhere.
 
 use glam::Vec3;
 
