@@ -47,7 +47,7 @@ pub const SIREN_HEAD: Shader = shader!("siren_head.wgsl", wgpu::Features::empty(
 /// SIREN's batch sampling and reductions.
 pub const SIREN_TRAIN: Shader = shader!("siren_train.wgsl", wgpu::Features::empty());
 
-/// The sphere tracer of [`crate::render`]. It calls `hwsdf_distance` / `hwsdf_normal`, so it
+/// The sphere tracer of [`mod@crate::render`]. It calls `hwsdf_distance` / `hwsdf_normal`, so it
 /// compiles only after a model's [`crate::NeuralSdf::wgsl`] snippet (listed in [`NEEDS_MODEL`]).
 pub const SPHERE_TRACE: Shader = shader!("sphere_trace.wgsl", wgpu::Features::empty());
 
