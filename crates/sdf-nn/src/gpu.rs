@@ -454,29 +454,30 @@ impl GpuContext {
         let mut enc = self.device.create_command_encoder(&Default::default());
         enc.copy_buffer_to_buffer(buffer, offset, &staging, 0, bytes);
         self.queue.submit([enc.finish()]);
-        let slice = staging.slice(..);
+        self.map_read(&staging, &label)
+    }
+
+    /// Waits for the submitted work, then maps `buffer` (`MAP_READ`) and copies it out as `T`s.
+    /// `label` names the data in errors.
+    fn map_read<T: Pod>(&self, buffer: &wgpu::Buffer, label: &str) -> Result<Vec<T>, GpuError> {
+        let error = |reason: String| GpuError::Readback {
+            label: label.to_owned(),
+            reason,
+        };
+        let slice = buffer.slice(..);
         let (tx, rx) = std::sync::mpsc::channel();
         slice.map_async(wgpu::MapMode::Read, move |r| {
             let _ = tx.send(r);
         });
         self.wait()?;
         rx.recv()
-            .map_err(|e| GpuError::Readback {
-                label: label.clone(),
-                reason: e.to_string(),
-            })?
-            .map_err(|e| GpuError::Readback {
-                label: label.clone(),
-                reason: e.to_string(),
-            })?;
-        let view = slice.get_mapped_range().map_err(|e| GpuError::Readback {
-            label: label.clone(),
-            reason: e.to_string(),
-        })?;
-        // The staging bytes need not be aligned for T; copy through pod_collect.
+            .map_err(|e| error(e.to_string()))?
+            .map_err(|e| error(e.to_string()))?;
+        let view = slice.get_mapped_range().map_err(|e| error(e.to_string()))?;
+        // The mapped bytes need not be aligned for T; copy through pod_collect.
         let out: Vec<T> = bytemuck::pod_collect_to_vec(&view);
         drop(view);
-        staging.unmap();
+        buffer.unmap();
         Ok(out)
     }
 
@@ -670,25 +671,7 @@ impl GpuTimer {
     /// Waits for the submitted work and returns the GPU nanoseconds between the start and the
     /// end timestamp (0 if the driver reports the end before the start).
     pub fn read_ns(&self, gpu: &GpuContext) -> Result<u64, GpuError> {
-        let readback_error = |reason: String| GpuError::Readback {
-            label: "gpu timer".into(),
-            reason,
-        };
-        let slice = self.readback.slice(..);
-        let (tx, rx) = std::sync::mpsc::channel();
-        slice.map_async(wgpu::MapMode::Read, move |r| {
-            let _ = tx.send(r);
-        });
-        gpu.wait()?;
-        rx.recv()
-            .map_err(|e| readback_error(e.to_string()))?
-            .map_err(|e| readback_error(e.to_string()))?;
-        let view = slice
-            .get_mapped_range()
-            .map_err(|e| readback_error(e.to_string()))?;
-        let ticks: Vec<u64> = bytemuck::pod_collect_to_vec(&view);
-        drop(view);
-        self.readback.unmap();
+        let ticks: Vec<u64> = gpu.map_read(&self.readback, "gpu timer")?;
         let elapsed = ticks[1].saturating_sub(ticks[0]);
         Ok((elapsed as f64 * self.period_ns).round() as u64)
     }
