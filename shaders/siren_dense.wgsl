@@ -79,6 +79,15 @@ const WG: u32 = 64u;
 @group(0) @binding(12) var<storage, read> points: array<f32>;
 @group(0) @binding(13) var<storage, read_write> partial_f: array<f32>;
 
+// Row r of `a` into `row`: RED4 vec4s from column a_first4. Rows past the end repeat the last
+// one; their results are not stored.
+fn load_row(r: u32, row: ptr<function, array<vec4<f32>, MAX4>>) {
+    let b = min(r, d.rows - 1u) * d.a_stride4 + d.a_first4;
+    for (var j = 0u; j < RED4; j++) {
+        (*row)[j] = a[b + j];
+    }
+}
+
 @compute @workgroup_size(64)
 fn dense_fwd(
     @builtin(workgroup_id) wid: vec3<u32>,
@@ -89,22 +98,14 @@ fn dense_fwd(
     if r0 >= d.rows {
         return;
     }
-    // Rows past the end repeat the last one; their results are not stored.
-    let last = d.rows - 1u;
-    let b0 = r0 * d.a_stride4 + d.a_first4;
-    let b1 = min(r0 + 1u, last) * d.a_stride4 + d.a_first4;
-    let b2 = min(r0 + 2u, last) * d.a_stride4 + d.a_first4;
-    let b3 = min(r0 + 3u, last) * d.a_stride4 + d.a_first4;
     var x0: array<vec4<f32>, MAX4>;
     var x1: array<vec4<f32>, MAX4>;
     var x2: array<vec4<f32>, MAX4>;
     var x3: array<vec4<f32>, MAX4>;
-    for (var j = 0u; j < RED4; j++) {
-        x0[j] = a[b0 + j];
-        x1[j] = a[b1 + j];
-        x2[j] = a[b2 + j];
-        x3[j] = a[b3 + j];
-    }
+    load_row(r0, &x0);
+    load_row(r0 + 1u, &x1);
+    load_row(r0 + 2u, &x2);
+    load_row(r0 + 3u, &x3);
     for (var o4 = 0u; o4 < OUT4; o4++) {
         var acc0 = vec4<f32>(0.0);
         var acc1 = vec4<f32>(0.0);
@@ -176,21 +177,14 @@ fn dense_bwd(
     if r0 >= d.rows {
         return;
     }
-    let last = d.rows - 1u;
-    let b0 = r0 * d.a_stride4 + d.a_first4;
-    let b1 = min(r0 + 1u, last) * d.a_stride4 + d.a_first4;
-    let b2 = min(r0 + 2u, last) * d.a_stride4 + d.a_first4;
-    let b3 = min(r0 + 3u, last) * d.a_stride4 + d.a_first4;
     var z0: array<vec4<f32>, MAX4>;
     var z1: array<vec4<f32>, MAX4>;
     var z2: array<vec4<f32>, MAX4>;
     var z3: array<vec4<f32>, MAX4>;
-    for (var j = 0u; j < RED4; j++) {
-        z0[j] = a[b0 + j];
-        z1[j] = a[b1 + j];
-        z2[j] = a[b2 + j];
-        z3[j] = a[b3 + j];
-    }
+    load_row(r0, &z0);
+    load_row(r0 + 1u, &z1);
+    load_row(r0 + 2u, &z2);
+    load_row(r0 + 3u, &z3);
     let os = d.out_stride4;
     for (var o4 = 0u; o4 < OUT4; o4++) {
         let ob = r0 * os + d.out_first4 + o4;
