@@ -251,8 +251,8 @@ fn collapse4(
         for axis in 0..3 {
             wnode.center[axis][k] = w.center[axis];
             wnode.area_normal[axis][k] = w.area_normal[axis];
-            wnode.sym_diag[axis][k] = w.sym_diag[axis];
-            wnode.sym_off[axis][k] = w.sym_off[axis];
+            wnode.sym_diag3[axis][k] = 3.0 * w.sym_diag[axis];
+            wnode.sym_off6[axis][k] = 6.0 * w.sym_off[axis];
         }
         wnode.radius2[k] = w.radius2;
         wnode.trace[k] = w.trace;
@@ -321,10 +321,10 @@ struct WNode4 {
     area_normal: [Vec4; 3],
     /// Traces of the first-order moments.
     trace: Vec4,
-    /// Per-axis diagonals of the symmetric parts of the first-order moments.
-    sym_diag: [Vec4; 3],
-    /// Off-diagonals (xy, xz, yz) of the symmetric parts.
-    sym_off: [Vec4; 3],
+    /// Per-axis diagonals of the symmetric parts of the first-order moments, times 3.
+    sym_diag3: [Vec4; 3],
+    /// Off-diagonals (xy, xz, yz) of the symmetric parts, times 6 (3 × the two symmetric entries).
+    sym_off6: [Vec4; 3],
     /// Inner child: index into `wnodes4`; leaf child: first packet; unused slot: `u32::MAX`.
     child: [u32; 4],
     /// Number of triangles of a leaf child (0 for an inner child or an unused slot).
@@ -337,8 +337,8 @@ impl WNode4 {
         radius2: Vec4::INFINITY,
         area_normal: [Vec4::ZERO; 3],
         trace: Vec4::ZERO,
-        sym_diag: [Vec4::ZERO; 3],
-        sym_off: [Vec4::ZERO; 3],
+        sym_diag3: [Vec4::ZERO; 3],
+        sym_off6: [Vec4::ZERO; 3],
         child: [u32::MAX; 4],
         count: [0; 4],
     };
@@ -883,20 +883,22 @@ impl SignedDistance {
             if far_bits != 0 {
                 // Dipole plus first-order term of the Taylor expansion of the area integral
                 // (Barill et al. 2018): (N·r + tr C) / |r|^3 - 3 rᵀ S r / |r|^5.
-                let inv_d = Vec4::ONE / sqrt4(d2);
-                let inv3 = inv_d / d2;
+                // One division and one square root: 1/|r|² and 1/|r|.
+                let inv_d2 = Vec4::ONE / d2;
+                let inv3 = sqrt4(inv_d2) * inv_d2;
                 let n = P4 {
                     x: w.area_normal[0],
                     y: w.area_normal[1],
                     z: w.area_normal[2],
                 };
-                let sd = w.sym_diag[0] * d.x * d.x
-                    + w.sym_diag[1] * d.y * d.y
-                    + w.sym_diag[2] * d.z * d.z;
-                let so =
-                    w.sym_off[0] * d.x * d.y + w.sym_off[1] * d.x * d.z + w.sym_off[2] * d.y * d.z;
-                let rsr = sd + Vec4::splat(2.0) * so;
-                let t = (n.dot(d) + w.trace) * inv3 - Vec4::splat(3.0) * rsr * inv3 / d2;
+                // 3 rᵀ S r, with the factors 3 and 6 folded into the stored moments.
+                let rsr3 = w.sym_diag3[0] * d.x * d.x
+                    + w.sym_diag3[1] * d.y * d.y
+                    + w.sym_diag3[2] * d.z * d.z
+                    + w.sym_off6[0] * d.x * d.y
+                    + w.sym_off6[1] * d.x * d.z
+                    + w.sym_off6[2] * d.y * d.z;
+                let t = (n.dot(d) + w.trace - rsr3 * inv_d2) * inv3;
                 acc += Vec4::select(far, t, Vec4::ZERO);
             }
             let mut near = !far_bits & 0xf;
