@@ -315,3 +315,44 @@ fn ctrl_c_writes_a_checkpoint_that_resume_continues() {
         .unwrap();
     assert_clean_failure(&o, "not a checkpoint");
 }
+
+#[test]
+fn siren_loss_and_learning_rate_flags_reach_the_model_file() {
+    let out = scratch("spot.siren.safetensors");
+    let o = bin("train")
+        .arg(data("spot.obj"))
+        .args(["--model", "siren", "--preset", "small", "--steps", "2"])
+        .args(["--lr", "5e-4", "--eikonal-weight", "50", "--alpha", "80"])
+        .args(["--eval-points", "3000", "--out"])
+        .arg(&out)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "train failed: {}", stderr(&o));
+    let file = hwsdf::nn::ModelFile::load(&out).unwrap();
+    let t = &file.metadata.training;
+    let weights = &t["config"]["weights"];
+    assert_eq!(weights["eikonal"], 50.0, "{t}");
+    assert_eq!(weights["alpha"], 80.0, "{t}");
+    assert_eq!(weights["surface"], 3000.0, "{t}");
+    assert_eq!(t["config"]["lr"].as_f64().unwrap() as f32, 5e-4, "{t}");
+    // The run's own record sits beside the trainer's.
+    assert_eq!(t["done"], 2, "{t}");
+    assert_eq!(t["model"], "siren", "{t}");
+
+    let train = |extra: &[&str]| {
+        bin("train")
+            .arg(data("suzanne.obj"))
+            .args(["--preset", "small", "--out"])
+            .arg(scratch("never.safetensors"))
+            .args(extra)
+            .output()
+            .unwrap()
+    };
+    let o = train(&["--model", "siren", "--steps", "1", "--eikonal-weight=-1"]);
+    assert_clean_failure(&o, "loss weights");
+    let o = train(&["--model", "siren", "--steps", "1", "--lr", "0"]);
+    assert_clean_failure(&o, "learning rate");
+    let o = train(&["--model", "nglod", "--epochs", "1", "--normal-weight", "1"]);
+    assert_clean_failure(&o, "SIREN");
+    assert!(!scratch("never.safetensors").exists());
+}

@@ -153,6 +153,8 @@ fn corpus(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
                 steps: args.steps,
                 epochs: args.epochs,
                 seed: args.seed,
+                lr: None,
+                siren_weights: None,
             };
             let model_path = state_dir.join(format!("{name}.{}.safetensors", model.name()));
             eprintln!("{name} {}: training", model.name());

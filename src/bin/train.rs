@@ -16,7 +16,7 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use clap::{Parser, ValueEnum};
 use hwsdf::eval::metrics::DEFAULT_EVAL_POINTS;
 use hwsdf::eval::run::{self, ModelKind, Preset, Progress, TrainOptions};
-use hwsdf::nn::{GpuContext, NeuralSdf};
+use hwsdf::nn::{GpuContext, LossWeights, NeuralSdf};
 use indicatif::{ProgressBar, ProgressStyle};
 
 #[derive(Clone, Copy, Debug, ValueEnum)]
@@ -64,6 +64,48 @@ struct Args {
     /// Points in each evaluation set.
     #[arg(long, default_value_t = DEFAULT_EVAL_POINTS)]
     eval_points: usize,
+    /// Initial learning rate (default: 1e-4 for SIREN, 1e-3 for NGLOD).
+    #[arg(long)]
+    lr: Option<f32>,
+    /// SIREN loss: weight of the on-surface |Φ| term (default 3000).
+    #[arg(long, help_heading = "SIREN loss")]
+    surface_weight: Option<f32>,
+    /// SIREN loss: weight of the off-surface exp(−α|Φ|) term (default 100).
+    #[arg(long, help_heading = "SIREN loss")]
+    off_surface_weight: Option<f32>,
+    /// SIREN loss: weight of the normal term 1 − cos(∇Φ, n) (default 100).
+    #[arg(long, help_heading = "SIREN loss")]
+    normal_weight: Option<f32>,
+    /// SIREN loss: weight of the eikonal term |‖∇Φ‖ − 1| (default 5; the SIREN code uses 50).
+    #[arg(long, help_heading = "SIREN loss")]
+    eikonal_weight: Option<f32>,
+    /// SIREN loss: sharpness α of the off-surface term (default 100).
+    #[arg(long, help_heading = "SIREN loss")]
+    alpha: Option<f32>,
+}
+
+impl Args {
+    /// The SIREN loss weights, if any flag sets one (the others keep their defaults).
+    fn siren_weights(&self) -> Option<LossWeights> {
+        let flags = [
+            self.surface_weight,
+            self.off_surface_weight,
+            self.normal_weight,
+            self.eikonal_weight,
+            self.alpha,
+        ];
+        if flags.iter().all(Option::is_none) {
+            return None;
+        }
+        let d = LossWeights::default();
+        Some(LossWeights {
+            surface: self.surface_weight.unwrap_or(d.surface),
+            off_surface: self.off_surface_weight.unwrap_or(d.off_surface),
+            normal: self.normal_weight.unwrap_or(d.normal),
+            eikonal: self.eikonal_weight.unwrap_or(d.eikonal),
+            alpha: self.alpha.unwrap_or(d.alpha),
+        })
+    }
 }
 
 fn main() -> ExitCode {
@@ -124,6 +166,8 @@ fn train(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
         steps: args.steps,
         epochs: args.epochs,
         seed: args.seed,
+        lr: args.lr,
+        siren_weights: args.siren_weights(),
     };
     eprintln!(
         "training {} ({}) on {} with {}",

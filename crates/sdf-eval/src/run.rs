@@ -11,7 +11,7 @@ use sdf_geom::extract::{ExtractError, ExtractOptions, ExtractStats, extract_surf
 use sdf_geom::{Mesh, SignedDistance};
 use sdf_nn::model_file::write_atomic;
 use sdf_nn::{
-    AdamState, GpuContext, ModelFile, NeuralSdf, Nglod, NglodConfig, NglodTrainConfig,
+    AdamState, GpuContext, LossWeights, ModelFile, NeuralSdf, Nglod, NglodConfig, NglodTrainConfig,
     NglodTrainer, Siren, SirenConfig, SirenTrainConfig, SirenTrainer,
 };
 use serde::{Deserialize, Serialize};
@@ -118,6 +118,10 @@ pub struct TrainOptions {
     pub epochs: Option<usize>,
     /// Seed of initialisation and sampling.
     pub seed: u64,
+    /// Initial learning rate (`None`: the model's default, 1e-4 for SIREN and 1e-3 for NGLOD).
+    pub lr: Option<f32>,
+    /// SIREN loss weights (`None`: the design document's). An error for NGLOD.
+    pub siren_weights: Option<LossWeights>,
 }
 
 /// Progress of a training run, for progress bars and logs.
@@ -301,6 +305,18 @@ pub fn train(
             )));
         }
     }
+    if let Some(lr) = options.lr
+        && !(lr.is_finite() && lr > 0.0)
+    {
+        return Err(RunError::Options(format!(
+            "the learning rate must be positive, not {lr}"
+        )));
+    }
+    if options.model == ModelKind::Nglod && options.siren_weights.is_some() {
+        return Err(RunError::Options(
+            "loss weights apply to SIREN; NGLOD's loss is the squared error".into(),
+        ));
+    }
     let start = Instant::now();
     let total = match options.model {
         ModelKind::Siren => options.steps,
@@ -328,10 +344,13 @@ pub fn train(
                     Siren::new(config, options.seed).map_err(sdf_nn::siren::TrainError::from)?
                 }
             };
+            let defaults = SirenTrainConfig::default();
             let train_config = SirenTrainConfig {
                 steps: total,
                 seed: options.seed,
-                ..Default::default()
+                lr: options.lr.unwrap_or(defaults.lr),
+                weights: options.siren_weights.unwrap_or(defaults.weights),
+                ..defaults
             };
             let per_step = (train_config.surface_per_step + train_config.box_per_step) as f64;
             let mut trainer = SirenTrainer::from_mesh(gpu, &siren, mesh, train_config)?;
@@ -365,7 +384,17 @@ pub fn train(
             let optimizer = trainer.optimizer_state(gpu)?;
             let lr = trainer.lr();
             let mut file = trainer.model_file(gpu)?;
-            file.metadata.training = training_json(done, loss);
+            // Keep the trainer's record (its configuration: loss weights, learning rate,
+            // batch) and add the run's.
+            let run_record = training_json(done, loss);
+            if let (Some(t), Some(r)) = (
+                file.metadata.training.as_object_mut(),
+                run_record.as_object(),
+            ) {
+                t.extend(r.clone());
+            } else {
+                file.metadata.training = run_record;
+            }
             file.metadata.normalization = normalization;
             Ok(Trained {
                 file,
@@ -389,16 +418,28 @@ pub fn train(
                 None => Nglod::new(config)?,
             };
             let first = resume.map_or(0, Checkpoint::done).min(total);
-            let train_config = NglodTrainConfig {
+            let mut train_config = NglodTrainConfig {
                 epochs: total - first,
                 seed: options.seed,
                 ..Default::default()
             };
+            if let Some(lr) = options.lr {
+                train_config.adam.lr = lr;
+            }
             let per_epoch = (train_config.uniform_points
                 + train_config.near_points
                 + train_config.surface_points) as f64;
             // NGLOD trains at a fixed learning rate.
             let lr = train_config.adam.lr;
+            let config_json = serde_json::json!({
+                "lr": lr,
+                "batch_size": train_config.batch_size,
+                "uniform_points": train_config.uniform_points,
+                "near_points": train_config.near_points,
+                "surface_points": train_config.surface_points,
+                "sigma": train_config.sigma,
+                "objective": format!("{:?}", train_config.objective),
+            });
             let mut trainer = NglodTrainer::new(gpu, &model, mesh, train_config)?;
             trainer.set_stop_flag(stop.clone());
             if let Some(c) = resume {
@@ -423,6 +464,7 @@ pub fn train(
             training["gpu_seconds"] = report.gpu_seconds.into();
             training["sampling_seconds"] = report.sampling_seconds.into();
             training["stall_seconds"] = report.stall_seconds.into();
+            training["config"] = config_json;
             let file = trained.to_model_file(normalization, training.clone());
             Ok(Trained {
                 file,

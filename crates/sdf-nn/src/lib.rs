@@ -40,4 +40,4 @@ pub use model_file::{ModelFile, ModelFileError, Normalization};
 pub use neural::{NeuralSdf, NeuralSdfError};
 pub use nglod::{Nglod, NglodConfig, NglodError, NglodGpu, NglodTrainConfig, NglodTrainer};
 pub use render::{RenderError, RenderOptions, Renderer, RgbaImage, render};
-pub use siren::{Siren, SirenConfig, SirenGpu, SirenTrainConfig, SirenTrainer};
+pub use siren::{LossWeights, Siren, SirenConfig, SirenGpu, SirenTrainConfig, SirenTrainer};

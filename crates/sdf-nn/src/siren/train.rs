@@ -273,6 +273,16 @@ impl SirenTrainer {
                 config.lr
             )));
         }
+        let w = &config.weights;
+        let weights = [w.surface, w.off_surface, w.normal, w.eikonal];
+        let usable = weights.iter().all(|x| x.is_finite() && *x >= 0.0)
+            && w.alpha.is_finite()
+            && w.alpha > 0.0;
+        if !usable {
+            return Err(TrainError::BadTrainConfig(format!(
+                "loss weights must be finite and non-negative, alpha positive: {w:?}"
+            )));
+        }
         let net = SirenGpu::new(gpu, siren)?;
         let passes = TrainPasses::new(
             gpu,
