@@ -24,7 +24,8 @@ use crate::mesh::{LoadReport, Mesh, clean};
 /// [`GeomError::UnknownExtension`], [`GeomError::Io`] (missing or unreadable file),
 /// [`GeomError::Parse`], [`GeomError::NoTriangles`], [`GeomError::NonFiniteVertex`],
 /// [`GeomError::IndexOutOfRange`], [`GeomError::UnsupportedPrimitiveMode`] (glTF points and lines),
-/// [`GeomError::Unsupported`] (Draco, meshopt, quantised positions) and [`GeomError::MissingBuffer`].
+/// [`GeomError::Unsupported`] (Draco, meshopt, quantised positions, and any required glTF extension other
+/// than appearance-only ones such as `KHR_materials_*`) and [`GeomError::MissingBuffer`].
 pub fn load_mesh(path: impl AsRef<Path>) -> Result<(Mesh, LoadReport), GeomError> {
     let path = path.as_ref();
     let ext = path
@@ -275,7 +276,7 @@ fn load_gltf(path: &Path, format: &'static str) -> Result<(Mesh, LoadReport), Ge
     } else {
         (bytes, None)
     };
-    let root: gltf::json::Root = gltf::json::deserialize::from_slice(&json_bytes)
+    let mut root: gltf::json::Root = gltf::json::deserialize::from_slice(&json_bytes)
         .map_err(|e| parse_err(format!("bad glTF JSON: {e}")))?;
     for ext in root
         .extensions_used
@@ -298,6 +299,33 @@ fn load_gltf(path: &Path, format: &'static str) -> Result<(Mesh, LoadReport), Ge
             });
         }
     }
+    // A required extension we do not read could change the geometry (quantised attributes,
+    // GPU instancing) or is unknown: refuse it by name rather than load something wrong.
+    // Extensions that only concern appearance do not touch the triangles.
+    let appearance_only = |e: &str| {
+        [
+            "KHR_materials_",
+            "KHR_texture_",
+            "EXT_texture_",
+            "MSFT_texture_",
+        ]
+        .iter()
+        .any(|p| e.starts_with(p))
+            || matches!(e, "KHR_lights_punctual" | "KHR_xmp_json_ld")
+    };
+    if let Some(ext) = root
+        .extensions_required
+        .iter()
+        .find(|e| !appearance_only(e))
+    {
+        return Err(GeomError::Unsupported {
+            path: path.to_path_buf(),
+            feature: format!("the required glTF extension {ext}"),
+        });
+    }
+    // gltf's validation refuses required extensions it does not implement itself; the ones
+    // left are appearance only and are never read here.
+    root.extensions_required.clear();
     let doc =
         gltf::Document::from_json(root).map_err(|e| parse_err(format!("invalid glTF: {e}")))?;
 

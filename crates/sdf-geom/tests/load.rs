@@ -241,6 +241,51 @@ fn gltf_draco_and_meshopt_are_rejected() {
 }
 
 #[test]
+fn gltf_unknown_required_extensions_are_rejected_by_name() {
+    let (v, t) = cube();
+    let dir = temp_dir("required");
+    for ext in [
+        "KHR_mesh_quantization",
+        "EXT_mesh_gpu_instancing",
+        "VENDOR_made_up",
+    ] {
+        let p = write_gltf(
+            &dir,
+            &format!("{ext}.gltf"),
+            &Gltf {
+                positions: &v,
+                indices: Some(&t),
+                extensions_used: &[ext],
+                extensions_required: &[ext],
+                ..Default::default()
+            },
+        );
+        let err = load_mesh(&p).unwrap_err();
+        assert!(
+            matches!(&err, GeomError::Unsupported { feature, .. } if feature.contains(ext)),
+            "{err:?}"
+        );
+        assert!(err.to_string().contains("not supported"), "{err}");
+    }
+    // Appearance-only extensions, required or merely used, do not stop the geometry.
+    for ext in ["KHR_materials_unlit", "KHR_texture_transform"] {
+        let p = write_gltf(
+            &dir,
+            &format!("{ext}.gltf"),
+            &Gltf {
+                positions: &v,
+                indices: Some(&t),
+                extensions_used: &[ext, "VENDOR_optional"],
+                extensions_required: &[ext],
+                ..Default::default()
+            },
+        );
+        let (mesh, _) = load_mesh(&p).unwrap_or_else(|e| panic!("{ext}: {e}"));
+        assert_eq!(mesh.triangles.len(), 12);
+    }
+}
+
+#[test]
 fn gltf_index_out_of_range() {
     let (v, _) = cube();
     let dir = temp_dir("gidx");

@@ -55,6 +55,7 @@ pub struct Gltf<'a> {
     /// How the buffer is stored: `None` = base64 data URI, `Some(name)` = external file name.
     pub external: Option<&'a str>,
     pub extensions_used: &'a [&'a str],
+    pub extensions_required: &'a [&'a str],
     pub image_uri: Option<&'a str>,
 }
 
@@ -67,6 +68,7 @@ impl Default for Gltf<'_> {
             matrices: vec![IDENTITY],
             external: None,
             extensions_used: &[],
+            extensions_required: &[],
             image_uri: None,
         }
     }
@@ -157,6 +159,14 @@ pub fn gltf_json(g: &Gltf) -> (String, Vec<u8>) {
     );
     if !ext.is_empty() {
         json.push_str(&format!(r#","extensionsUsed":[{}]"#, ext.join(",")));
+    }
+    if !g.extensions_required.is_empty() {
+        let req: Vec<String> = g
+            .extensions_required
+            .iter()
+            .map(|e| format!("\"{e}\""))
+            .collect();
+        json.push_str(&format!(r#","extensionsRequired":[{}]"#, req.join(",")));
     }
     if let Some(img) = g.image_uri {
         json.push_str(&format!(
