@@ -40,21 +40,23 @@
 //!   number (see its documentation for the method and its accuracy).
 //! - [`sample`]: seeded samplers (box, surface, Poisson-disk, near-surface).
 //! - [`npy`]: `.npy` input and output for the `sdf` binary.
-//! - [`reference`]: brute-force f64 versions for tests.
+//! - [`reference`](mod@reference): brute-force f64 versions for tests.
 //!
 //! # Accuracy of the sign
 //! The fast winding number uses β = 1.5 with the dipole and first-order terms of each far node's
-//! expansion, exact solid angles near the query, and re-evaluation with β = 6 within 0.2 of the 1/2
-//! threshold. The `winding_error` example and the tests compare it with the exact O(n) sum at points
-//! off the surface (uniform in the box and within ~σ = 0.01 of the surface, normalised units).
-//! Without the re-evaluation, the absolute error at β = 1.5 is 0.5–2·10⁻² on average and at most
-//! 0.1 (bunny 0.096, teapot 0.083, lilium 0.059, spider 0.042; 4000 points each), i.e. half the
-//! refinement band, so any value on the wrong side of 1/2 is re-evaluated; the tests see at most
-//! 0.07 after refinement (teapot, suzanne, lilium, cubegrid, spider, boxframe, pins). So the sign is
-//! exact wherever the true winding number is not within a few 10⁻² of 1/2: everywhere off the
-//! surface of a watertight mesh (where it is 0 or 1; tested against ray parity), and everywhere
-//! except a thin band around open boundaries for open meshes (tested against the exact winding
-//! number with a 0.02 margin). Exactly on the surface the winding number is 1/2 ± rounding, so
+//! expansion, exact solid angles near the query (in f32, with a polynomial `atan2` within 2·10⁻⁷
+//! relative of f64), and re-evaluation with β = 6 within 0.2 of the 1/2 threshold. The
+//! `winding_error` example and the tests compare it with the exact O(n) sum at points off the
+//! surface (uniform in the box and within ~σ = 0.01 of the surface, normalised units). Without the
+//! re-evaluation, the absolute error at β = 1.5 is 0.4–1.5·10⁻² on average and at most 0.09 (bunny
+//! 0.086, armadillo 0.076, teapot 0.066, lilium 0.053, suzanne 0.052, spider 0.031; 4000 points
+//! each), i.e. under half the refinement band, so any value on the wrong side of 1/2 is
+//! re-evaluated; the tests see at most 0.053 after refinement (teapot, suzanne, lilium, cubegrid,
+//! spider, boxframe, pins) and at most 0.074 for the β = 1.5 pass alone (spot, lilium, teapot,
+//! suzanne, leaf sizes 1 to 255). So the sign is exact wherever the true winding number is not
+//! within a few 10⁻² of 1/2: everywhere off the surface of a watertight mesh (where it is 0 or 1;
+//! tested against ray parity), and everywhere except a thin band around open boundaries for open
+//! meshes (tested against the exact winding number with a 0.02 margin). Exactly on the surface the winding number is 1/2 ± rounding, so
 //! points within 10⁻⁶ of the bounding-box diagonal of the surface get an unsigned distance (see
 //! [`SignedDistanceOptions::surface_tolerance`]).
 

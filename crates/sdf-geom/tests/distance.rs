@@ -112,7 +112,7 @@ fn check_signs(name: &str, n: usize, margin: f64) {
         checked > pts.len() / 2,
         "{name}: only {checked} points checked"
     );
-    // Documented accuracy of the fast winding number (β = 2 with refinement near 1/2).
+    // Documented accuracy of the fast winding number (β = 1.5 with refinement near 1/2).
     assert!(max_err < 0.1, "{name}: max winding error {max_err}");
     eprintln!("{name}: {checked} signs checked, max |fast - exact| winding error {max_err:.2e}");
 }
