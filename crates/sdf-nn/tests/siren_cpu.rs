@@ -158,6 +158,10 @@ fn initialisation_follows_the_design_document() {
         assert!(w.iter().all(|w| w.abs() <= bound));
         assert!(w.iter().any(|w| w.abs() > 0.9 * bound));
     }
+    // The output bias starts "outside" everywhere (see OUTPUT_BIAS_INIT).
+    assert_eq!(*a.params().last().unwrap(), sdf_nn::siren::OUTPUT_BIAS_INIT);
+    let hidden_bias = &a.params()[layers[1].bias..layers[1].bias + 256];
+    assert!(hidden_bias.iter().all(|b| b.abs() <= 1.0 / 16.0));
     assert!(Siren::new(SirenConfig { width: 0, ..cfg }, 0).is_err());
     assert!(
         Siren::new(
