@@ -216,71 +216,60 @@ fn gltf_points_and_lines_are_rejected() {
     }
 }
 
+/// Loads a cube glTF that uses and requires the given extensions.
+fn load_cube_with_extensions(
+    dir: &std::path::Path,
+    used: &[&str],
+    required: &[&str],
+) -> Result<(Mesh, sdf_geom::LoadReport), GeomError> {
+    let (v, t) = cube();
+    let name = format!("{}.gltf", used.join("+"));
+    let p = write_gltf(
+        dir,
+        &name,
+        &Gltf {
+            positions: &v,
+            indices: Some(&t),
+            extensions_used: used,
+            extensions_required: required,
+            ..Default::default()
+        },
+    );
+    load_mesh(&p)
+}
+
+/// An `Unsupported` error that names `ext`.
+fn assert_unsupported(result: Result<(Mesh, sdf_geom::LoadReport), GeomError>, ext: &str) {
+    let err = result.unwrap_err();
+    assert!(
+        matches!(&err, GeomError::Unsupported { feature, .. } if feature.contains(ext)),
+        "{err:?}"
+    );
+    assert!(err.to_string().contains("not supported"), "{err}");
+}
+
 #[test]
 fn gltf_draco_and_meshopt_are_rejected() {
-    let (v, t) = cube();
     let dir = temp_dir("compressed");
     for ext in ["KHR_draco_mesh_compression", "EXT_meshopt_compression"] {
-        let p = write_gltf(
-            &dir,
-            &format!("{ext}.gltf"),
-            &Gltf {
-                positions: &v,
-                indices: Some(&t),
-                extensions_used: &[ext],
-                ..Default::default()
-            },
-        );
-        let err = load_mesh(&p).unwrap_err();
-        assert!(
-            matches!(&err, GeomError::Unsupported { feature, .. } if feature.contains(ext)),
-            "{err:?}"
-        );
-        assert!(err.to_string().contains("not supported"), "{err}");
+        assert_unsupported(load_cube_with_extensions(&dir, &[ext], &[]), ext);
     }
 }
 
 #[test]
 fn gltf_unknown_required_extensions_are_rejected_by_name() {
-    let (v, t) = cube();
     let dir = temp_dir("required");
     for ext in [
         "KHR_mesh_quantization",
         "EXT_mesh_gpu_instancing",
         "VENDOR_made_up",
     ] {
-        let p = write_gltf(
-            &dir,
-            &format!("{ext}.gltf"),
-            &Gltf {
-                positions: &v,
-                indices: Some(&t),
-                extensions_used: &[ext],
-                extensions_required: &[ext],
-                ..Default::default()
-            },
-        );
-        let err = load_mesh(&p).unwrap_err();
-        assert!(
-            matches!(&err, GeomError::Unsupported { feature, .. } if feature.contains(ext)),
-            "{err:?}"
-        );
-        assert!(err.to_string().contains("not supported"), "{err}");
+        assert_unsupported(load_cube_with_extensions(&dir, &[ext], &[ext]), ext);
     }
     // Appearance-only extensions, required or merely used, do not stop the geometry.
     for ext in ["KHR_materials_unlit", "KHR_texture_transform"] {
-        let p = write_gltf(
-            &dir,
-            &format!("{ext}.gltf"),
-            &Gltf {
-                positions: &v,
-                indices: Some(&t),
-                extensions_used: &[ext, "VENDOR_optional"],
-                extensions_required: &[ext],
-                ..Default::default()
-            },
-        );
-        let (mesh, _) = load_mesh(&p).unwrap_or_else(|e| panic!("{ext}: {e}"));
+        let (mesh, _) = load_cube_with_extensions(&dir, &[ext, "VENDOR_optional"], &[ext])
+            .unwrap_or_else(|e| panic!("{ext}: {e}"));
         assert_eq!(mesh.triangles.len(), 12);
     }
 }
