@@ -3,8 +3,6 @@
 //! once.
 
 use glam::Vec3;
-use rand::{Rng, SeedableRng};
-use rand_pcg::Pcg64;
 use sdf_nn::siren::{LayerKernels, LossWeights, cpu};
 use sdf_nn::{GpuContext, ModelFile, Siren, SirenConfig, SirenGpu, SirenTrainConfig, SirenTrainer};
 
@@ -12,18 +10,6 @@ fn gpu() -> &'static GpuContext {
     let gpu = GpuContext::shared().expect("a GPU adapter (lavapipe in CI)");
     eprintln!("adapter: {}", gpu.describe());
     gpu
-}
-
-fn random_points(rng: &mut Pcg64, n: usize) -> Vec<Vec3> {
-    (0..n)
-        .map(|_| {
-            Vec3::new(
-                rng.random_range(-1.0..1.0),
-                rng.random_range(-1.0..1.0),
-                rng.random_range(-1.0..1.0),
-            )
-        })
-        .collect()
 }
 
 fn to64(v: Vec3) -> [f64; 3] {
@@ -67,8 +53,7 @@ fn forward_matches_on(
     if let Some(m) = max_per_launch {
         g.set_max_points_per_launch(m);
     }
-    let mut rng = Pcg64::seed_from_u64(seed);
-    let pts = random_points(&mut rng, n);
+    let pts = sdf_geom::sample::uniform_box(n, seed);
     let vals = g.eval(gpu, &pts).unwrap();
     let with_grad = g.eval_with_gradient(gpu, &pts).unwrap();
     assert_eq!(vals.len(), n);
@@ -154,9 +139,8 @@ fn gradients_match_on(
 ) {
     let gpu = gpu();
     let p64: Vec<f64> = net.params().iter().map(|&p| f64::from(p)).collect();
-    let mut rng = Pcg64::seed_from_u64(seed + 100);
-    let pts = random_points(&mut rng, n);
-    let normals: Vec<Vec3> = random_points(&mut rng, n_surface)
+    let pts = sdf_geom::sample::uniform_box(n, seed + 100);
+    let normals: Vec<Vec3> = sdf_geom::sample::uniform_box(n_surface, seed + 200)
         .into_iter()
         .map(|v| v.normalize())
         .collect();
