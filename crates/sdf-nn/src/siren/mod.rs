@@ -46,7 +46,9 @@ pub const ARCHITECTURE: &str = "siren";
 /// 96.8% (seed 12, where 3581 of the errors lay more than 0.1 from the surface with 300 steps of
 /// 10⁴ points) and now 99.67% (seed 12) and 99.61% (seed 5), every remaining error within 0.1 of
 /// the surface. (The hidden layers' contribution at initialisation is ~0.1 for `small` and
-/// ~0.03 for `default`, so +0.5 dominates it.)
+/// ~0.03 for `default`, so +0.5 dominates it.) For `default` only a 300-step run exists: there
+/// the deep inside is carved later than from a zero bias (94.8% against 97.2%); its effect at full
+/// length is not yet measured (BENCHMARKS.md, SIREN).
 pub const OUTPUT_BIAS_INIT: f32 = 0.5;
 
 /// Shape of a SIREN: `3 → width × hidden_layers → 1`, with sine activations of frequency `omega0`
