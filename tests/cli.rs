@@ -352,6 +352,8 @@ fn siren_loss_and_learning_rate_flags_reach_the_model_file() {
     assert_clean_failure(&o, "loss weights");
     let o = train(&["--model", "siren", "--steps", "1", "--lr", "0"]);
     assert_clean_failure(&o, "learning rate");
+    let o = train(&["--model", "nglod", "--epochs", "1", "--lr", "0"]);
+    assert_clean_failure(&o, "learning rate");
     let o = train(&["--model", "nglod", "--epochs", "1", "--normal-weight", "1"]);
     assert_clean_failure(&o, "SIREN");
     assert!(!scratch("never.safetensors").exists());

@@ -305,13 +305,6 @@ pub fn train(
             )));
         }
     }
-    if let Some(lr) = options.lr
-        && !(lr.is_finite() && lr > 0.0)
-    {
-        return Err(RunError::Options(format!(
-            "the learning rate must be positive, not {lr}"
-        )));
-    }
     if options.model == ModelKind::Nglod && options.siren_weights.is_some() {
         return Err(RunError::Options(
             "loss weights apply to SIREN; NGLOD's loss is the squared error".into(),
@@ -384,17 +377,10 @@ pub fn train(
             let optimizer = trainer.optimizer_state(gpu)?;
             let lr = trainer.lr();
             let mut file = trainer.model_file(gpu)?;
-            // Keep the trainer's record (its configuration: loss weights, learning rate,
-            // batch) and add the run's.
-            let run_record = training_json(done, loss);
-            if let (Some(t), Some(r)) = (
-                file.metadata.training.as_object_mut(),
-                run_record.as_object(),
-            ) {
-                t.extend(r.clone());
-            } else {
-                file.metadata.training = run_record;
-            }
+            file.metadata.training = with_run_record(
+                std::mem::take(&mut file.metadata.training),
+                training_json(done, loss),
+            );
             file.metadata.normalization = normalization;
             Ok(Trained {
                 file,
@@ -431,15 +417,6 @@ pub fn train(
                 + train_config.surface_points) as f64;
             // NGLOD trains at a fixed learning rate.
             let lr = train_config.adam.lr;
-            let config_json = serde_json::json!({
-                "lr": lr,
-                "batch_size": train_config.batch_size,
-                "uniform_points": train_config.uniform_points,
-                "near_points": train_config.near_points,
-                "surface_points": train_config.surface_points,
-                "sigma": train_config.sigma,
-                "objective": format!("{:?}", train_config.objective),
-            });
             let mut trainer = NglodTrainer::new(gpu, &model, mesh, train_config)?;
             trainer.set_stop_flag(stop.clone());
             if let Some(c) = resume {
@@ -460,11 +437,11 @@ pub fn train(
             let trained = trainer.model()?;
             let optimizer = trainer.optimizer_state()?;
             let done = trainer.epochs_done();
-            let mut training = training_json(done, report.final_loss);
-            training["gpu_seconds"] = report.gpu_seconds.into();
-            training["sampling_seconds"] = report.sampling_seconds.into();
+            let mut training = with_run_record(
+                trainer.training_json(Some(&report)),
+                training_json(done, report.final_loss),
+            );
             training["stall_seconds"] = report.stall_seconds.into();
-            training["config"] = config_json;
             let file = trained.to_model_file(normalization, training.clone());
             Ok(Trained {
                 file,
@@ -477,6 +454,18 @@ pub fn train(
                 lr,
             })
         }
+    }
+}
+
+/// A trainer's record for the model file (its configuration: learning rate, loss weights, batch,
+/// ...) with the run's own record (model, preset, seed, steps done, final loss) added over it.
+fn with_run_record(trainer: serde_json::Value, run: serde_json::Value) -> serde_json::Value {
+    match (trainer, run) {
+        (serde_json::Value::Object(mut t), serde_json::Value::Object(r)) => {
+            t.extend(r);
+            serde_json::Value::Object(t)
+        }
+        (_, run) => run,
     }
 }
 

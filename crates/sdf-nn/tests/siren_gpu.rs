@@ -242,9 +242,7 @@ fn train_sign_accuracy(
     };
     let mut siren = Siren::new(net_cfg, seed).unwrap();
     if let Ok(b) = std::env::var("SIREN_OUT_BIAS") {
-        let mut params = siren.params().to_vec();
-        *params.last_mut().unwrap() = b.parse().unwrap();
-        siren = Siren::from_params(net_cfg, params).unwrap();
+        *siren.params_mut().last_mut().unwrap() = b.parse().unwrap();
     }
     let mut trainer = SirenTrainer::from_mesh(gpu, &siren, mesh, train.clone()).unwrap();
     let t_setup = t0.elapsed();
@@ -260,10 +258,9 @@ fn train_sign_accuracy(
     let pts = sdf_geom::sample::uniform_box(20_000, seed + 7);
     let vals = trainer.net().eval(gpu, &pts).unwrap();
     // Wrong signs by the true distance: near the surface (resolution) or far (spurious sheets).
-    // Wrong signs by the true distance: near the surface (resolution) or far (spurious sheets).
+    let truth_d = truth.signed_distance_batch(&pts);
     let mut wrong = [0usize; 6];
-    for (p, v) in pts.iter().zip(&vals) {
-        let d = truth.signed_distance(*p);
+    for (&d, v) in truth_d.iter().zip(&vals) {
         if (*v < 0.0) != (d < 0.0) {
             let band = if d.abs() < 0.02 {
                 0

@@ -200,6 +200,12 @@ impl<'g> NglodTrainer<'g> {
                 "points per epoch, batch size and loss_every must be positive".into(),
             ));
         }
+        if !(config.adam.lr.is_finite() && config.adam.lr > 0.0) {
+            return Err(NglodError::InvalidConfig(format!(
+                "the learning rate must be positive, not {}",
+                config.adam.lr
+            )));
+        }
         let n32 = u32::try_from(n)
             .map_err(|_| NglodError::InvalidConfig(format!("{n} points per epoch is too many")))?;
         // NaN area (non-finite vertices) is rejected too.
