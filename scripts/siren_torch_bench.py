@@ -11,7 +11,8 @@ Measures, like benches/siren.rs:
   crates/sdf-nn/src/siren/cpu.rs, backward through Φ and ∇Φ (double backprop), Adam.
 
 Every figure is the median of `--reps` timed repetitions after warm-up, with the device
-synchronised around each one. `--model` loads the weights from an hwsdf model file (the same
+synchronised around each one. `--json` prints one JSON object with the figures in seconds
+(what scripts/gpu-compare.sh reads). `--model` loads the weights from an hwsdf model file (the same
 tensor names, `net.{i}.weight` / `net.{i}.bias`), so both sides run the very same network; the
 timing does not depend on the values otherwise. Needs `pip install torch numpy` (plus
 `safetensors` for `--model`).
@@ -88,6 +89,7 @@ def main():
     ap.add_argument("--compile", action="store_true", help="also time torch.compile")
     ap.add_argument("--model", help="take the weights from an hwsdf .safetensors file")
     ap.add_argument("--reps", type=int, default=20)
+    ap.add_argument("--json", action="store_true", help="print the figures as one JSON object")
     args = ap.parse_args()
     if args.threads:
         torch.set_num_threads(args.threads)
@@ -105,8 +107,11 @@ def main():
 
     params = sum(p.numel() for p in model.parameters())
     name = torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu"
-    print(f"torch {torch.__version__}, device {name}, threads {torch.get_num_threads()}, "
-          f"preset {args.preset}, {params} parameters")
+    header = (f"torch {torch.__version__}, device {name}, threads {torch.get_num_threads()}, "
+              f"preset {args.preset}, {params} parameters")
+    if not args.json:
+        print(header)
+    results = {"torch": torch.__version__, "device": name, "preset": args.preset, "params": params}
 
     gen = torch.Generator(device="cpu").manual_seed(42)
     box = lambda n: (torch.rand(n, 3, generator=gen) * 2 - 1).to(device)  # noqa: E731
@@ -130,20 +135,26 @@ def main():
 
     for label, m in variants():
         figures = []
-        for what, fn, reps in [
-            ("eval 50k", lambda: m(x50k), args.reps),
-            ("eval 3000", lambda: m(x3k), args.reps),
-            ("train step 10^4", lambda: step(m), max(3, args.reps // 2)),
+        results[label] = {}
+        for what, key, fn, reps in [
+            ("eval 50k", "eval_50000_s", lambda: m(x50k), args.reps),
+            ("eval 3000", "eval_3000_s", lambda: m(x3k), args.reps),
+            ("train step 10^4", "train_step_s", lambda: step(m), max(3, args.reps // 2)),
         ]:
             try:
                 with torch.set_grad_enabled(what.startswith("train")):
                     t = timed(fn, device, reps)
             except Exception as e:  # torch.compile may not take every case
                 figures.append(f"{what} failed ({type(e).__name__}: {str(e).splitlines()[0][:120]})")
+                results[label][key] = None
                 continue
+            results[label][key] = t
             extra = f" ({t / 50_000 * 1e9:.1f} ns/pt)" if what == "eval 50k" else ""
             figures.append(f"{what} {t * 1e3:.3f} ms{extra}")
-        print(f"{label}: " + ", ".join(figures))
+        if not args.json:
+            print(f"{label}: " + ", ".join(figures))
+    if args.json:
+        print(json.dumps(results))
 
 if __name__ == "__main__":
     main()

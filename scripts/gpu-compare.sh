@@ -1,0 +1,255 @@
+#!/usr/bin/env bash
+# One table of our kernels against PyTorch on a GPU host that has no Rust toolchain.
+#
+#   scripts/gpu-compare.sh pack [DIR]   # here, with cargo: release benches + binaries into DIR
+#   scripts/gpu-compare.sh run  [DIR]   # on the GPU host, with python3 (+ torch for the peer)
+#
+# DIR defaults to out/gpu-pack (ignored by git). `pack` builds the criterion bench executables
+# (`cargo bench --no-run`) and the release binaries, strips them, and copies them with
+# tests/data (the benches open tests/data/spot.obj by a relative path), the PyTorch scripts and
+# this script. With GPU_COMPARE_DEBS=1 it also downloads Debian's amd64 Vulkan loader packages
+# into DIR/debs, for a host without a loader. Copy DIR to the host, then `bash DIR/gpu-compare.sh
+# run DIR` (or `cd DIR && bash gpu-compare.sh run .`).
+#
+# `run` finds the Vulkan loader (or unpacks DIR/debs/*.deb as root, or says how to get one),
+# prints the adapter, runs our benches (siren, nglod, and any other packed bench whose name
+# starts with `query`) with criterion's results under DIR/results/criterion, runs the PyTorch
+# scripts for both presets, and prints one Markdown table of ours against PyTorch eager (and
+# torch.compile where it works) with the ratios. The table is also written to
+# DIR/results/table.md, next to every raw log. Environment:
+#   GPU_COMPARE_PRESETS=small,default   presets to run (both by default)
+#   GPU_COMPARE_ALLOW_CPU=1             run even if the adapter is a CPU (lavapipe): a dry run
+#   GPU_COMPARE_SKIP_TORCH=1            only our side
+#   any variable the benches read (SIREN_BENCH_*, NGLOD_BENCH_EPOCHS, WGPU_ADAPTER_NAME, ...)
+set -euo pipefail
+
+usage() {
+    sed -n '2,25p' "$0" | sed 's/^# \{0,1\}//'
+    exit 2
+}
+
+cmd=${1:-}
+[ -n "$cmd" ] || usage
+dir=${2:-}
+
+pack() {
+    local root
+    root=$(cd "$(dirname "$0")/.." && pwd)
+    dir=${dir:-$root/out/gpu-pack}
+    mkdir -p "$dir"
+    dir=$(cd "$dir" && pwd)
+    cd "$root"
+    command -v cargo >/dev/null || { echo "pack needs cargo (run it where the project builds)" >&2; exit 1; }
+    echo "== building release binaries and bench executables"
+    cargo build --release --bins
+    local benches
+    benches=$(cargo bench --no-run --message-format=json 2>/dev/null | python3 -c '
+import json, sys
+for line in sys.stdin:
+    try:
+        m = json.loads(line)
+    except ValueError:
+        continue
+    if m.get("reason") == "compiler-artifact" and m.get("executable") and "bench" in m["target"]["kind"]:
+        print(m["target"]["name"], m["executable"])
+')
+    [ -n "$benches" ] || { echo "no bench executables were built" >&2; exit 1; }
+    rm -rf "$dir/bin" "$dir/benches" "$dir/tests" "$dir/scripts"
+    mkdir -p "$dir/bin" "$dir/benches" "$dir/tests" "$dir/scripts"
+    local exe
+    for exe in train eval corpus extract render sdf gpu-info; do
+        cp "target/release/$exe" "$dir/bin/"
+    done
+    while read -r name path; do
+        cp "$path" "$dir/benches/$name"
+    done <<<"$benches"
+    strip "$dir"/bin/* "$dir"/benches/* 2>/dev/null || true
+    cp -r tests/data "$dir/tests/"
+    cp scripts/siren_torch_bench.py scripts/nglod_torch_bench.py "$dir/scripts/"
+    cp scripts/gpu-compare.sh "$dir/"
+    git rev-parse --short HEAD >"$dir/COMMIT" 2>/dev/null || echo unknown >"$dir/COMMIT"
+    if [ "${GPU_COMPARE_DEBS:-0}" = 1 ]; then
+        echo "== downloading Debian's amd64 Vulkan loader packages into $dir/debs"
+        local o=(-oAPT::Architecture=amd64 -oAPT::Architectures=amd64 -oDir::State::Lists=/tmp/gpu-compare-apt)
+        mkdir -p /tmp/gpu-compare-apt/partial "$dir/debs"
+        apt-get "${o[@]}" update -qq
+        (cd "$dir/debs" && apt-get "${o[@]}" download libvulkan1)
+    fi
+    echo "== packed $(du -sh "$dir" | cut -f1) into $dir (commit $(cat "$dir/COMMIT"))"
+    echo "   benches: $(ls "$dir/benches" | tr '\n' ' ')"
+    echo "   on the GPU host: bash gpu-compare.sh run ."
+}
+
+find_vulkan() {
+    if ldconfig -p 2>/dev/null | grep -q 'libvulkan\.so\.1'; then
+        return 0
+    fi
+    local debs=("$dir"/debs/*.deb "$dir"/../.gl/*.deb)
+    local found=0 f
+    for f in "${debs[@]}"; do [ -e "$f" ] && found=1; done
+    if [ "$found" = 1 ] && [ "$(id -u)" = 0 ]; then
+        echo "== no Vulkan loader: unpacking the packed Debian packages"
+        for f in "${debs[@]}"; do [ -e "$f" ] && dpkg -x "$f" /; done
+        ldconfig
+        ldconfig -p | grep -q 'libvulkan\.so\.1' && return 0
+    fi
+    cat >&2 <<'EOF'
+No Vulkan loader (libvulkan.so.1) on this host. Either install it
+(apt-get install libvulkan1), or on the build machine run
+`GPU_COMPARE_DEBS=1 scripts/gpu-compare.sh pack` and run this again as root, which unpacks
+DIR/debs/*.deb into / (dpkg -x) and runs ldconfig.
+EOF
+    exit 1
+}
+
+find_icd() {
+    # The NVIDIA container runtime may put the ICD outside the loader's search path.
+    local icd
+    for icd in /usr/share/vulkan/icd.d/*.json /etc/vulkan/icd.d/*.json; do
+        [ -e "$icd" ] && return 0
+    done
+    for icd in /usr/local/nvidia/share/vulkan/icd.d/nvidia_icd.json /usr/local/nvidia/icd.d/nvidia_icd.json; do
+        if [ -e "$icd" ]; then
+            export VK_DRIVER_FILES=${VK_DRIVER_FILES:-$icd}
+            echo "== using the Vulkan driver manifest $icd"
+            return 0
+        fi
+    done
+}
+
+run() {
+    dir=${dir:-$(dirname "$0")}
+    dir=$(cd "$dir" && pwd)
+    cd "$dir"
+    [ -x bin/gpu-info ] || { echo "$dir holds no pack (run 'gpu-compare.sh pack' first)" >&2; exit 1; }
+    find_vulkan
+    find_icd
+    local res="$dir/results"
+    rm -rf "$res"
+    mkdir -p "$res"
+    echo "== adapter (commit $(cat COMMIT 2>/dev/null || echo unknown))"
+    bin/gpu-info | tee "$res/gpu-info.txt"
+    if grep -qi 'llvmpipe\|(Cpu,' "$res/gpu-info.txt" && [ "${GPU_COMPARE_ALLOW_CPU:-0}" != 1 ]; then
+        echo "the selected adapter is a CPU; set WGPU_ADAPTER_NAME, or GPU_COMPARE_ALLOW_CPU=1 for a dry run" >&2
+        exit 1
+    fi
+    export CRITERION_HOME="$res/criterion"
+    export SIREN_BENCH_PRESETS=${GPU_COMPARE_PRESETS:-small,default}
+    local b
+    for b in benches/*; do
+        local name
+        name=$(basename "$b")
+        case "$name" in
+            siren | nglod | query*) ;;
+            *) continue ;;
+        esac
+        echo "== bench $name"
+        "$b" --bench 2>&1 | tee "$res/bench-$name.txt"
+    done
+    local presets=${GPU_COMPARE_PRESETS:-small,default}
+    if [ "${GPU_COMPARE_SKIP_TORCH:-0}" != 1 ]; then
+        if python3 -c 'import torch' 2>/dev/null; then
+            local p
+            for p in ${presets//,/ }; do
+                echo "== PyTorch SIREN $p"
+                python3 scripts/siren_torch_bench.py --preset "$p" --compile --json \
+                    | tee "$res/torch-siren-$p.json" || echo "(failed)"
+                echo "== PyTorch NGLOD $p"
+                python3 scripts/nglod_torch_bench.py --preset "$p" --json \
+                    | tee "$res/torch-nglod-$p.json" || echo "(failed)"
+            done
+        else
+            echo "== no PyTorch here (python3 -c 'import torch' failed): our side only" | tee "$res/torch-missing.txt"
+        fi
+    fi
+    python3 - "$res" "$presets" <<'PY' | tee "$res/table.md"
+import glob, json, os, re, sys
+
+res, presets = sys.argv[1], sys.argv[2].split(",")
+
+def criterion(group, fn, param):
+    path = os.path.join(res, "criterion", group, fn, str(param), "new", "estimates.json")
+    try:
+        with open(path) as f:
+            return json.load(f)["median"]["point_estimate"] * 1e-9
+    except (OSError, KeyError, ValueError):
+        return None
+
+def torch_json(model, preset):
+    try:
+        with open(os.path.join(res, f"torch-{model}-{preset}.json")) as f:
+            lines = [l for l in f.read().splitlines() if l.startswith("{")]
+            return json.loads(lines[-1]) if lines else {}
+    except (OSError, ValueError):
+        return {}
+
+def epoch_gpu_seconds():
+    # benches/nglod.rs prints "total X s: GPU Y s, sampling Z s, stalls W s".
+    try:
+        text = open(os.path.join(res, "bench-nglod.txt")).read()
+    except OSError:
+        return None, None
+    totals = re.findall(r"total ([\d.]+) s: GPU ([\d.]+) s", text)
+    epochs = re.findall(r"epoch \d+: (\d+) steps, GPU loop ([\d.]+) s", text)
+    if not epochs:
+        return None, None
+    loops = sorted(float(g) for _, g in epochs)
+    return loops[len(loops) // 2], float(totals[-1][0]) if totals else None
+
+def fmt(t, per=None):
+    if t is None:
+        return "—"
+    s = f"{t * 1e6:.0f} µs" if t < 1e-2 else f"{t * 1e3:.2f} ms" if t < 10 else f"{t:.1f} s"
+    if per:
+        s += f" ({t / per * 1e9:.1f} ns/pt)"
+    return s
+
+def ratio(ours, theirs):
+    if ours is None or theirs is None or ours <= 0:
+        return "—"
+    return f"{theirs / ours:.2f}×"
+
+gpu = open(os.path.join(res, "gpu-info.txt")).read().strip().splitlines()
+print(f"Adapter: {gpu[0] if gpu else 'unknown'}\n")
+print("| model | preset | measure | ours | PyTorch eager | eager / ours | torch.compile | compile / ours |")
+print("| --- | --- | --- | --- | --- | --- | --- | --- |")
+rows = []
+for p in presets:
+    t = torch_json("siren", p)
+    eager, comp = t.get("eager", {}), t.get("compile", {})
+    for label, fn, param, key, per in [
+        ("eval, batch 50 000", "eval", 50000, "eval_50000_s", 50000),
+        ("eval, batch 3000", "eval", 3000, "eval_3000_s", None),
+        ("training step, 10⁴ points", "train_step", 10000, "train_step_s", None),
+    ]:
+        ours = criterion(f"siren_{p}", fn, param)
+        rows.append(("SIREN", p, label, ours, eager.get(key), comp.get(key), per))
+    t = torch_json("nglod", p)
+    eager = t.get("eager", {})
+    for label, param, key, per in [
+        ("eval, batch 50 000", 50000, "eval_50000_s", 50000),
+        ("eval, batch 3000", 3000, "eval_3000_s", None),
+    ]:
+        rows.append(("NGLOD", p, label, criterion(f"nglod_{p}", "eval", param), eager.get(key), None, per))
+    if p == "default":
+        loop, _ = epoch_gpu_seconds()
+        rows.append(("NGLOD", p, "epoch GPU loop, 5·10⁵ points", loop, eager.get("epoch_s"), None, None))
+for model, p, label, ours, eager, comp, per in rows:
+    print(f"| {model} | {p} | {label} | {fmt(ours, per)} | {fmt(eager, per)} | {ratio(ours, eager)} "
+          f"| {fmt(comp, per)} | {ratio(ours, comp)} |")
+print("\nRatios above 1× mean ours is faster. Every criterion result of the run:\n")
+for est in sorted(glob.glob(os.path.join(res, "criterion", "**", "new", "estimates.json"), recursive=True)):
+    name = os.path.relpath(os.path.dirname(os.path.dirname(est)), os.path.join(res, "criterion"))
+    try:
+        print(f"- {name}: {fmt(json.load(open(est))['median']['point_estimate'] * 1e-9)}")
+    except (OSError, KeyError, ValueError):
+        pass
+PY
+    echo "== table written to $res/table.md"
+}
+
+case "$cmd" in
+    pack) pack ;;
+    run) run ;;
+    *) usage ;;
+esac
