@@ -5,8 +5,8 @@
 #
 # 1. installs slurm-wlm and munge from Debian's packages if they are missing (needs root);
 # 2. starts munged, slurmctld and slurmd as root, on loopback, with every file in a temporary
-#    folder, and a node that offers three (count-only) GPUs so the recipe's --gres=gpu:1 is
-#    scheduled as written;
+#    folder, and a node that offers three stand-in GPUs so the recipe's --gres=gpu:1 is
+#    scheduled as written (the fits run on whatever adapter the machine has);
 # 3. submits scripts/slurm/corpus.sbatch as written: a 3-task array over 6 small meshes
 #    (NGLOD, small preset, 1 epoch, on whatever adapter the machine has: lavapipe in CI) and its
 #    merge job (--dependency=afterany);
@@ -47,6 +47,8 @@ pids=()
 cleanup() {
     local rc=$?
     if [ -n "${SLURM_CONF:-}" ] && [ -e "$SLURM_CONF" ]; then
+        [ $rc -ne 0 ] && squeue -o '%.12i %.10T %.40r' >&2 2>/dev/null
+        [ $rc -ne 0 ] && sinfo -N -o '%N %T %E' >&2 2>/dev/null
         scancel --quiet --user=root >/dev/null 2>&1 || true
     fi
     for pid in "${pids[@]}"; do
@@ -118,7 +120,9 @@ GresTypes=gpu
 NodeName=$node NodeHostname=$(hostname -s) NodeAddr=127.0.0.1 CPUs=4 RealMemory=8000 Gres=gpu:3 State=UNKNOWN
 PartitionName=smoke Nodes=$node Default=YES MaxTime=INFINITE State=UP
 EOF
-echo "NodeName=$node Name=gpu Count=3" >"$work/gres.conf"
+# Slurm drops GPUs without device files; any three character devices do, since nothing here
+# confines devices (TaskPlugin=task/none).
+echo "NodeName=$node Name=gpu File=/dev/null,/dev/zero,/dev/full" >"$work/gres.conf"
 export SLURM_CONF=$work/slurm.conf
 
 log "starting slurmctld and slurmd (ports $ctld_port, $slurmd_port)"
@@ -139,6 +143,9 @@ mkdir -p "$work/corpus/more"
 cp "$root/tests/data/duck.glb" "$work/corpus/more/"
 cp "$root/tests/data/boxframe.obj" "$work/corpus/more/"
 args="--model nglod --preset small --epochs 1 --eval-points 2000"
+# The recipe asks for 8 cores and 32 GB a task; this node has less, and a user overrides the
+# #SBATCH lines on the command line just so.
+fit=(--cpus-per-task=1 --mem=1G)
 
 wait_jobs() { # job ids...; fails after a timeout
     local deadline=$(($(date +%s) + ${WAIT_S:-240}))
@@ -150,8 +157,9 @@ wait_jobs() { # job ids...; fails after a timeout
 
 log "submitting the recipe: a 3-task array and its merge"
 cd "$work"
+export SHARDS=3
 submit=$(CORPUS=$work/corpus OUT=$work/sharded.md CORPUS_ARGS=$args MERGE_OUTPUT=$work/logs/merge-%j.out \
-    bash "$root/scripts/slurm/corpus.sbatch" submit --array=0-2 --output="$work/logs/%A_%a.out")
+    bash "$root/scripts/slurm/corpus.sbatch" submit "${fit[@]}" --output="$work/logs/%A_%a.out")
 echo "$submit"
 array=$(echo "$submit" | sed -n 's/^array job \([0-9]*\), merge job \([0-9]*\).*/\1/p')
 merge=$(echo "$submit" | sed -n 's/^array job \([0-9]*\), merge job \([0-9]*\).*/\2/p')
@@ -171,7 +179,7 @@ cancelled_log=$(cat "$work/logs/${array}_1.out")
 wait_jobs "$merge"
 log "resubmitting task 1"
 again=$(CORPUS=$work/corpus OUT=$work/sharded.md CORPUS_ARGS=$args \
-    sbatch --parsable --export=ALL --array=1 --output="$work/logs/%A_%a.out" \
+    sbatch --parsable --export=ALL --array=1 "${fit[@]}" --output="$work/logs/%A_%a.out" \
     "$root/scripts/slurm/corpus.sbatch")
 again=${again%%;*}
 wait_jobs "$again"
@@ -184,7 +192,7 @@ else
     # SIGTERM landed outside a fit (between meshes, or in an evaluation): nothing to resume.
     log "the cancel landed outside a fit; resubmission finishes the shard"
 fi
-grep -q "shard 1/3 finished" <<<"$resumed_log" || { echo "$resumed_log" >&2; exit 1; }
+grep -q "shard 1/3 finished" <<<"$resumed_log" || { echo "$resumed_log" >&2; echo "the resubmitted task is not shard 1/3" >&2; exit 1; }
 
 # Fault 2: a half-written result is ignored by the merge and redone by its shard.
 victim=$(ls "$work/sharded.md.d"/*.nglod.json | head -n 1)
@@ -196,7 +204,7 @@ grep -q "5 of 6 done, 0 failed, 1 not yet run" <<<"$partial" || { echo "$partial
 log "a corrupt result is ignored with a warning and counted as not done"
 # Resubmit the whole array: the shards skip what is done, so exactly one mesh is trained.
 redo=$(CORPUS=$work/corpus OUT=$work/sharded.md CORPUS_ARGS=$args \
-    sbatch --parsable --export=ALL --array=0-2 --output="$work/logs/redo-%A_%a.out" \
+    sbatch --parsable --export=ALL --array=0-2 "${fit[@]}" --output="$work/logs/redo-%A_%a.out" \
     "$root/scripts/slurm/corpus.sbatch")
 redo=${redo%%;*}
 wait_jobs "$redo"

@@ -210,9 +210,12 @@ impl Shard {
     /// The shard the engine assigned, from its variables (`var` reads one; pass
     /// `|k| std::env::var(k).ok()`), and a description of where it came from:
     ///
-    /// - Slurm job arrays: `SLURM_ARRAY_TASK_ID`, with `SLURM_ARRAY_TASK_MIN`,
-    ///   `SLURM_ARRAY_TASK_STEP` and the count from `SLURM_ARRAY_TASK_COUNT` (or from
-    ///   `SLURM_ARRAY_TASK_MAX`), so `--array=1-8` and `--array=0-14:2` work too;
+    /// - Slurm job arrays: `SLURM_ARRAY_TASK_ID`. With a count from `shards` (the `--shards`
+    ///   flag) or `HWSDF_SHARDS`, the task id is the 0-based shard index, which keeps a task
+    ///   resubmitted on its own (`sbatch --array=5`) in its shard; the recipe sets it. Without
+    ///   one, the index and count come from the array itself (`SLURM_ARRAY_TASK_MIN`,
+    ///   `SLURM_ARRAY_TASK_STEP`, `SLURM_ARRAY_TASK_COUNT` or `SLURM_ARRAY_TASK_MAX`), so
+    ///   `--array=1-8` and `--array=0-14:2` work too;
     /// - Kubernetes Indexed Jobs: `JOB_COMPLETION_INDEX`, with the count from `shards` (the
     ///   `--shards` flag) or `HWSDF_SHARDS`.
     ///
@@ -231,7 +234,18 @@ impl Shard {
                 }),
             }
         };
+        let count = match shards {
+            Some(n) => Some(n),
+            None => num("HWSDF_SHARDS")?,
+        };
         if let Some(id) = num("SLURM_ARRAY_TASK_ID")? {
+            if let Some(count) = count {
+                // A stated count makes the task id the shard index itself, so one task
+                // resubmitted alone (`sbatch --array=5`) is still shard 5 of the whole run.
+                let value = format!("task {id} of {count} (HWSDF_SHARDS or --shards)");
+                let shard = Self::checked(id, count, &value, "SLURM_ARRAY_TASK_ID")?;
+                return Ok(Some((shard, format!("Slurm array task {id}"))));
+            }
             let min = num("SLURM_ARRAY_TASK_MIN")?.unwrap_or(0);
             let step = num("SLURM_ARRAY_TASK_STEP")?.unwrap_or(1).max(1);
             let count = match (num("SLURM_ARRAY_TASK_COUNT")?, num("SLURM_ARRAY_TASK_MAX")?) {
@@ -241,7 +255,7 @@ impl Shard {
                     return Err(CorpusError::BadShard {
                         value: id.to_string(),
                         source_name: "SLURM_ARRAY_TASK_ID".into(),
-                        reason: "neither SLURM_ARRAY_TASK_COUNT nor a usable SLURM_ARRAY_TASK_MAX is set".into(),
+                        reason: "neither HWSDF_SHARDS, SLURM_ARRAY_TASK_COUNT nor a usable SLURM_ARRAY_TASK_MAX is set".into(),
                     });
                 }
             };
@@ -257,14 +271,11 @@ impl Shard {
             return Ok(Some((shard, format!("Slurm array task {id}"))));
         }
         if let Some(index) = num("JOB_COMPLETION_INDEX")? {
-            let count = match shards {
-                Some(n) => n,
-                None => num("HWSDF_SHARDS")?.ok_or_else(|| CorpusError::BadShard {
-                    value: index.to_string(),
-                    source_name: "JOB_COMPLETION_INDEX".into(),
-                    reason: "the shard count is unknown: pass --shards N or set HWSDF_SHARDS (the Job's completions)".into(),
-                })?,
-            };
+            let count = count.ok_or_else(|| CorpusError::BadShard {
+                value: index.to_string(),
+                source_name: "JOB_COMPLETION_INDEX".into(),
+                reason: "the shard count is unknown: pass --shards N or set HWSDF_SHARDS (the Job's completions)".into(),
+            })?;
             let value = format!("{index}/{count}");
             let shard = Self::checked(index, count, &value, "JOB_COMPLETION_INDEX")?;
             return Ok(Some((shard, format!("Kubernetes completion index {index}"))));
@@ -694,6 +705,18 @@ mod tests {
             Shard::from_env(stepped, None).unwrap().unwrap().0,
             Shard { index: 3, count: 8 }
         );
+        // A stated count keeps a task resubmitted alone (`--array=5`) in shard 5 of 8.
+        let alone = env(&[
+            ("SLURM_ARRAY_TASK_ID", "5"),
+            ("SLURM_ARRAY_TASK_COUNT", "1"),
+            ("SLURM_ARRAY_TASK_MIN", "5"),
+            ("SLURM_ARRAY_TASK_MAX", "5"),
+            ("HWSDF_SHARDS", "8"),
+        ]);
+        assert_eq!(
+            Shard::from_env(alone, None).unwrap().unwrap().0,
+            Shard { index: 5, count: 8 }
+        );
         let k8s = env(&[("JOB_COMPLETION_INDEX", "4"), ("HWSDF_SHARDS", "5")]);
         assert_eq!(
             Shard::from_env(&k8s, None).unwrap().unwrap().0,
@@ -709,6 +732,7 @@ mod tests {
             (vec![("JOB_COMPLETION_INDEX", "5"), ("HWSDF_SHARDS", "5")], "not below"),
             (vec![("SLURM_ARRAY_TASK_ID", "x")], "whole number"),
             (vec![("SLURM_ARRAY_TASK_ID", "1")], "SLURM_ARRAY_TASK_COUNT"),
+            (vec![("SLURM_ARRAY_TASK_ID", "8"), ("HWSDF_SHARDS", "8")], "not below"),
         ] {
             let e = Shard::from_env(env(&vars), None).unwrap_err().to_string();
             assert!(e.contains(needle), "{vars:?}: {e}");
