@@ -72,7 +72,11 @@ fn bad_shards_stop_before_any_work() {
         (vec!["--shard", "3/3"], vec![], "not below the count"),
         (vec!["--shard", "0/0"], vec![], "at least 1"),
         (vec!["--shard", "a/b"], vec![], "whole number"),
-        (vec![], vec![("SLURM_ARRAY_TASK_ID", "x")], "SLURM_ARRAY_TASK_ID"),
+        (
+            vec![],
+            vec![("SLURM_ARRAY_TASK_ID", "x")],
+            "SLURM_ARRAY_TASK_ID",
+        ),
         (vec![], vec![("JOB_COMPLETION_INDEX", "2")], "--shards"),
         (
             vec!["--shards", "2"],
@@ -89,7 +93,10 @@ fn bad_shards_stop_before_any_work() {
         let err = stderr(&o);
         assert!(!o.status.success(), "{args:?} {env:?} succeeded: {err}");
         assert!(!err.contains("panicked"), "{err}");
-        assert!(err.contains(needle), "{args:?} {env:?}: {needle:?} not in {err}");
+        assert!(
+            err.contains(needle),
+            "{args:?} {env:?}: {needle:?} not in {err}"
+        );
         // Refused before the GPU was opened or anything was written.
         assert!(!err.contains("training"), "{err}");
         assert!(!scratch("shard.md.d").exists());
@@ -160,7 +167,9 @@ fn sigterm_checkpoints_the_mesh_in_training_and_the_rerun_resumes_it() {
     let empty_shard = (0..2)
         .find(|k| {
             let rel = "sub/suzanne.obj";
-            !hwsdf::eval::corpus::Shard::new(*k, 2).unwrap().contains(rel)
+            !hwsdf::eval::corpus::Shard::new(*k, 2)
+                .unwrap()
+                .contains(rel)
         })
         .unwrap();
     let o = corpus("2")
@@ -169,7 +178,12 @@ fn sigterm_checkpoints_the_mesh_in_training_and_the_rerun_resumes_it() {
         .unwrap();
     let err = stderr(&o);
     assert!(o.status.success(), "{err}");
-    assert!(err.contains(&format!("shard {empty_shard}/2 (--shard): 0 of the corpus's 1 meshes")), "{err}");
+    assert!(
+        err.contains(&format!(
+            "shard {empty_shard}/2 (--shard): 0 of the corpus's 1 meshes"
+        )),
+        "{err}"
+    );
     assert!(err.contains("--merge"), "{err}");
 }
 
@@ -187,7 +201,10 @@ fn sigterm_stops_train_with_a_checkpoint() {
     let (log, status) = signal_when(child, "epoch ", "-TERM");
     assert!(status.success(), "{log}");
     assert!(log.contains("checkpoint written to"), "{log}");
-    assert!(out.with_extension("checkpoint.safetensors").exists(), "{log}");
+    assert!(
+        out.with_extension("checkpoint.safetensors").exists(),
+        "{log}"
+    );
     assert!(!out.exists());
 }
 
@@ -198,7 +215,11 @@ fn gpu_info_lists_indices_and_adapter_takes_one() {
     let err = stderr(&o);
     assert!(err.contains("  0: "), "{err}");
     assert!(err.contains("PCI"), "{err}");
-    let chosen = String::from_utf8_lossy(&o.stdout).lines().next().unwrap().to_owned();
+    let chosen = String::from_utf8_lossy(&o.stdout)
+        .lines()
+        .next()
+        .unwrap()
+        .to_owned();
     // Index 0 is a real adapter; HWSDF_ADAPTER takes it.
     let by_index = bin("gpu-info").env("HWSDF_ADAPTER", "0").output().unwrap();
     assert!(by_index.status.success(), "{}", stderr(&by_index));
@@ -207,12 +228,22 @@ fn gpu_info_lists_indices_and_adapter_takes_one() {
         .find_map(|l| l.trim().strip_prefix("0: "))
         .unwrap()
         .to_owned();
-    let picked = String::from_utf8_lossy(&by_index.stdout).lines().next().unwrap().to_owned();
-    assert!(first.starts_with(&picked), "{first} vs {picked} (default {chosen})");
+    let picked = String::from_utf8_lossy(&by_index.stdout)
+        .lines()
+        .next()
+        .unwrap()
+        .to_owned();
+    assert!(
+        first.starts_with(&picked),
+        "{first} vs {picked} (default {chosen})"
+    );
     let o = bin("gpu-info").env("HWSDF_ADAPTER", "97").output().unwrap();
     let err = stderr(&o);
     assert!(!o.status.success() && !err.contains("panicked"), "{err}");
-    assert!(err.contains("\"97\"") && err.contains("HWSDF_ADAPTER"), "{err}");
+    assert!(
+        err.contains("\"97\"") && err.contains("HWSDF_ADAPTER"),
+        "{err}"
+    );
     // The corpus flag says where the value came from.
     let o = bin("corpus")
         .arg(data(""))

@@ -173,7 +173,9 @@ fn corpus(args: &Args) -> Result<ExitCode, BoxError> {
                     continue;
                 }
                 Record::Corrupt(why) => {
-                    eprintln!("warning: ignoring an unreadable result ({why}); {rel} {tag} is redone")
+                    eprintln!(
+                        "warning: ignoring an unreadable result ({why}); {rel} {tag} is redone"
+                    )
                 }
                 Record::Missing | Record::Entry(Entry::Failed { .. }) => {}
             }
@@ -181,7 +183,10 @@ fn corpus(args: &Args) -> Result<ExitCode, BoxError> {
             let checkpoint = if checkpoint_path.exists() {
                 match Checkpoint::load(&checkpoint_path) {
                     Ok(c) => {
-                        eprintln!("{rel} {tag}: resuming from its checkpoint ({} done)", c.done());
+                        eprintln!(
+                            "{rel} {tag}: resuming from its checkpoint ({} done)",
+                            c.done()
+                        );
                         Some(c)
                     }
                     Err(e) => {

@@ -7,7 +7,9 @@ use std::process::ExitCode;
 
 fn main() -> ExitCode {
     let all = hwsdf::nn::gpu::list_adapters();
-    eprintln!("adapters wgpu can see (--adapter / HWSDF_ADAPTER take the index, the PCI bus id or part of the name):");
+    eprintln!(
+        "adapters wgpu can see (--adapter / HWSDF_ADAPTER take the index, the PCI bus id or part of the name):"
+    );
     if all.is_empty() {
         eprintln!("  none");
     }

@@ -109,7 +109,8 @@ pub fn walk(root: &Path) -> Result<Vec<CorpusMesh>, CorpusError> {
             let kind = entry.file_type().map_err(io(&entry.path()))?;
             if kind.is_dir() {
                 stack.push((entry.path(), format!("{rel}/")));
-            } else if is_mesh_name(&name) && std::fs::metadata(entry.path()).is_ok_and(|m| m.is_file())
+            } else if is_mesh_name(&name)
+                && std::fs::metadata(entry.path()).is_ok_and(|m| m.is_file())
             {
                 out.push(CorpusMesh {
                     path: entry.path(),
@@ -202,8 +203,14 @@ impl Shard {
         let (k, n) = value
             .split_once('/')
             .ok_or_else(|| bad("expected K/N, e.g. 0/8"))?;
-        let k = k.trim().parse().map_err(|_| bad("K is not a whole number"))?;
-        let n = n.trim().parse().map_err(|_| bad("N is not a whole number"))?;
+        let k = k
+            .trim()
+            .parse()
+            .map_err(|_| bad("K is not a whole number"))?;
+        let n = n
+            .trim()
+            .parse()
+            .map_err(|_| bad("N is not a whole number"))?;
         Self::checked(k, n, value, "--shard")
     }
 
@@ -227,11 +234,15 @@ impl Shard {
         let num = |name: &str| -> Result<Option<u32>, CorpusError> {
             match var(name).filter(|v| !v.trim().is_empty()) {
                 None => Ok(None),
-                Some(v) => v.trim().parse().map(Some).map_err(|_| CorpusError::BadShard {
-                    value: v.clone(),
-                    source_name: name.to_owned(),
-                    reason: "not a whole number".into(),
-                }),
+                Some(v) => v
+                    .trim()
+                    .parse()
+                    .map(Some)
+                    .map_err(|_| CorpusError::BadShard {
+                        value: v.clone(),
+                        source_name: name.to_owned(),
+                        reason: "not a whole number".into(),
+                    }),
             }
         };
         let count = match shards {
@@ -278,7 +289,10 @@ impl Shard {
             })?;
             let value = format!("{index}/{count}");
             let shard = Self::checked(index, count, &value, "JOB_COMPLETION_INDEX")?;
-            return Ok(Some((shard, format!("Kubernetes completion index {index}"))));
+            return Ok(Some((
+                shard,
+                format!("Kubernetes completion index {index}"),
+            )));
         }
         Ok(None)
     }
@@ -370,10 +384,23 @@ impl StateDir {
         } else {
             let cleaned: String = rel
                 .chars()
-                .map(|c| if c.is_ascii_alphanumeric() || matches!(c, '.' | '-') { c } else { '_' })
+                .map(|c| {
+                    if c.is_ascii_alphanumeric() || matches!(c, '.' | '-') {
+                        c
+                    } else {
+                        '_'
+                    }
+                })
                 .collect();
             let cleaned = cleaned.trim_start_matches(['.', '_']);
-            let tail: String = cleaned.chars().rev().take(80).collect::<Vec<_>>().into_iter().rev().collect();
+            let tail: String = cleaned
+                .chars()
+                .rev()
+                .take(80)
+                .collect::<Vec<_>>()
+                .into_iter()
+                .rev()
+                .collect();
             format!("{tail}-{:08x}", stable_hash(rel) as u32)
         };
         format!("{base}.{}", model.name())
@@ -386,7 +413,8 @@ impl StateDir {
 
     /// The model file of `rel` × `model`.
     pub fn model_file(&self, rel: &str, model: ModelKind) -> PathBuf {
-        self.dir.join(format!("{}.safetensors", Self::stem(rel, model)))
+        self.dir
+            .join(format!("{}.safetensors", Self::stem(rel, model)))
     }
 
     /// The checkpoint an interrupted fit of `rel` × `model` leaves.
@@ -532,7 +560,11 @@ impl Merge {
             self.status()
         );
         for model in ["siren", "nglod"] {
-            let rows: Vec<_> = self.entries.iter().filter(|((m, _), _)| *m == model).collect();
+            let rows: Vec<_> = self
+                .entries
+                .iter()
+                .filter(|((m, _), _)| *m == model)
+                .collect();
             if rows.is_empty() {
                 continue;
             }
@@ -725,14 +757,23 @@ mod tests {
         // --shards wins over HWSDF_SHARDS.
         assert_eq!(
             Shard::from_env(&k8s, Some(10)).unwrap().unwrap().0,
-            Shard { index: 4, count: 10 }
+            Shard {
+                index: 4,
+                count: 10
+            }
         );
         for (vars, needle) in [
             (vec![("JOB_COMPLETION_INDEX", "4")], "--shards"),
-            (vec![("JOB_COMPLETION_INDEX", "5"), ("HWSDF_SHARDS", "5")], "not below"),
+            (
+                vec![("JOB_COMPLETION_INDEX", "5"), ("HWSDF_SHARDS", "5")],
+                "not below",
+            ),
             (vec![("SLURM_ARRAY_TASK_ID", "x")], "whole number"),
             (vec![("SLURM_ARRAY_TASK_ID", "1")], "SLURM_ARRAY_TASK_COUNT"),
-            (vec![("SLURM_ARRAY_TASK_ID", "8"), ("HWSDF_SHARDS", "8")], "not below"),
+            (
+                vec![("SLURM_ARRAY_TASK_ID", "8"), ("HWSDF_SHARDS", "8")],
+                "not below",
+            ),
         ] {
             let e = Shard::from_env(env(&vars), None).unwrap_err().to_string();
             assert!(e.contains(needle), "{vars:?}: {e}");
@@ -756,18 +797,30 @@ mod tests {
             for model in [ModelKind::Siren, ModelKind::Nglod] {
                 let stem = StateDir::stem(rel, model);
                 assert!(!stem.contains('/') && !stem.starts_with('.'), "{stem}");
-                assert!(stems.insert(stem.clone()), "{rel} {model:?} -> {stem} twice");
+                assert!(
+                    stems.insert(stem.clone()),
+                    "{rel} {model:?} -> {stem} twice"
+                );
             }
         }
         // Flat corpora keep the names earlier versions wrote, so old runs resume.
-        assert_eq!(StateDir::stem("spot.obj", ModelKind::Nglod), "spot.obj.nglod");
+        assert_eq!(
+            StateDir::stem("spot.obj", ModelKind::Nglod),
+            "spot.obj.nglod"
+        );
     }
 
     #[test]
     fn walk_recurses_and_a_list_is_relative_to_itself() {
         let root = std::env::temp_dir().join(format!("hwsdf-corpus-walk-{}", std::process::id()));
         let _ = std::fs::remove_dir_all(&root);
-        for f in ["a.obj", "sub/b.GLB", "sub/deep/c.gltf", "sub/notes.txt", ".hidden/d.obj"] {
+        for f in [
+            "a.obj",
+            "sub/b.GLB",
+            "sub/deep/c.gltf",
+            "sub/notes.txt",
+            ".hidden/d.obj",
+        ] {
             let p = root.join(f);
             std::fs::create_dir_all(p.parent().unwrap()).unwrap();
             std::fs::write(&p, "").unwrap();
@@ -784,9 +837,15 @@ mod tests {
         assert_eq!(listed[0].rel, "b.GLB");
         assert_eq!(listed[0].path, root.join("sub/b.GLB"));
         assert_eq!(listed[1].rel, "deep/c.gltf");
-        assert!(matches!(walk(&root.join("sub/deep/nothing")), Err(CorpusError::Io { .. })));
+        assert!(matches!(
+            walk(&root.join("sub/deep/nothing")),
+            Err(CorpusError::Io { .. })
+        ));
         std::fs::create_dir_all(root.join("empty")).unwrap();
-        assert!(matches!(walk(&root.join("empty")), Err(CorpusError::Empty(_))));
+        assert!(matches!(
+            walk(&root.join("empty")),
+            Err(CorpusError::Empty(_))
+        ));
         std::fs::remove_dir_all(&root).unwrap();
     }
 
@@ -818,7 +877,10 @@ mod tests {
             Record::Corrupt(_)
         ));
         let table = m.markdown();
-        assert!(table.contains("0 of 3 done, 1 failed, 2 not yet run"), "{table}");
+        assert!(
+            table.contains("0 of 3 done, 1 failed, 2 not yet run"),
+            "{table}"
+        );
         assert!(table.contains("| a.obj | failed: no triangles"), "{table}");
         assert!(!table.contains("b.obj"), "{table}");
         std::fs::remove_dir_all(&root).unwrap();

@@ -747,7 +747,12 @@ fn choose_adapter(
             .map(|(i, info)| describe_listed(i, info))
             .collect::<Vec<_>>();
         return select_adapter(&infos, wanted)
-            .map(|i| adapters.into_iter().nth(i).expect("index from the same list"))
+            .map(|i| {
+                adapters
+                    .into_iter()
+                    .nth(i)
+                    .expect("index from the same list")
+            })
             .ok_or_else(|| GpuError::AdapterNotFound {
                 requested: wanted.clone(),
                 from: if options.adapter_from.is_empty() {
@@ -833,7 +838,12 @@ mod tests {
     fn adapters_are_chosen_by_index_bus_id_or_name() {
         // Eight identical GPUs share a name; the index and the bus id tell them apart.
         let infos: Vec<_> = (0..8)
-            .map(|i| info("NVIDIA H100 80GB HBM3", &format!("0000:{:02x}:00.0", 0x18 + i)))
+            .map(|i| {
+                info(
+                    "NVIDIA H100 80GB HBM3",
+                    &format!("0000:{:02x}:00.0", 0x18 + i),
+                )
+            })
             .chain([info("llvmpipe (LLVM 15.0.6, 256 bits)", "")])
             .collect();
         assert_eq!(select_adapter(&infos, "3"), Some(3));
