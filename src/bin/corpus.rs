@@ -1,26 +1,32 @@
-//! Trains and evaluates every mesh in a folder and writes the design document's table.
+//! Trains and evaluates every mesh of a corpus and writes the design document's table.
 //!
 //! ```sh
 //! cargo run --release --bin corpus -- ../shared/meshes --model both --out results.md
 //! ```
 //!
-//! Resumable: each mesh's report is kept in `<out>.d/` as it finishes, and a rerun skips the
-//! meshes that have one. A mesh that fails is recorded with its error (and retried on the next
-//! run); the others go on.
+//! The corpus is a folder (walked recursively) or a list file (`--list`, one path a line,
+//! relative to the list). Each mesh's result is kept in `<out>.d/` as it finishes; a rerun skips
+//! the meshes that have one, and a failed mesh is recorded with its error (and retried next time).
+//!
+//! Across many GPUs (docs/distributed.md): `--shard K/N` (or the engine's own variables:
+//! `SLURM_ARRAY_TASK_ID`, or `JOB_COMPLETION_INDEX` with `--shards N`) takes one deterministic
+//! share of the meshes, and `--merge` builds the table from `<out>.d/` alone, without a GPU.
+//!
+//! SIGINT, SIGTERM and SIGHUP (Ctrl-C, `scancel`, a time limit, preemption) stop the mesh in
+//! training at its next step, write its checkpoint to `<out>.d/`, and exit with 130; the next run
+//! resumes that mesh from the checkpoint and goes on with the rest.
 
-use std::collections::BTreeMap;
-use std::fmt::Write as _;
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 use std::process::ExitCode;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 
 use clap::{Parser, ValueEnum};
+use hwsdf::eval::corpus::{self, CorpusMesh, Entry, Record, Shard, StateDir};
 use hwsdf::eval::metrics::DEFAULT_EVAL_POINTS;
-use hwsdf::eval::run::{self, ModelKind, Preset, Report, TrainOptions};
+use hwsdf::eval::run::{self, Checkpoint, ModelKind, Preset, RunOutcome, TrainOptions};
 use hwsdf::geom::io::write_atomic;
-use hwsdf::nn::GpuContext;
-use serde::{Deserialize, Serialize};
+use hwsdf::nn::{GpuContext, GpuOptions};
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
 enum Models {
@@ -35,12 +41,16 @@ enum PresetArg {
     Small,
 }
 
-/// Train and evaluate every OBJ, glTF and GLB mesh in a folder.
+/// Train and evaluate every OBJ, glTF and GLB mesh of a corpus.
 #[derive(Parser, Debug)]
 #[command(version, about)]
 struct Args {
-    /// Folder of meshes.
-    dir: PathBuf,
+    /// Folder of meshes (walked recursively; hidden entries are skipped).
+    #[arg(required_unless_present = "list", conflicts_with = "list")]
+    dir: Option<PathBuf>,
+    /// A list of meshes instead of a folder: one path a line, relative to the list's folder.
+    #[arg(long)]
+    list: Option<PathBuf>,
     /// Which architectures.
     #[arg(long, value_enum, default_value = "both")]
     model: Models,
@@ -62,24 +72,27 @@ struct Args {
     /// Seed of every run.
     #[arg(long, default_value_t = 0)]
     seed: u64,
+    /// Take shard K of N (0-based), e.g. `--shard 3/8`. Without it, the engine's variables
+    /// decide (`SLURM_ARRAY_TASK_ID`, `JOB_COMPLETION_INDEX`), else every mesh is taken.
+    #[arg(long, conflicts_with = "merge")]
+    shard: Option<String>,
+    /// The number of shards when `JOB_COMPLETION_INDEX` gives the index (else `HWSDF_SHARDS`).
+    #[arg(long)]
+    shards: Option<u32>,
+    /// Build the table from `<out>.d/` alone (no GPU, no training); works while shards run.
+    #[arg(long)]
+    merge: bool,
+    /// Adapter: an index or PCI bus id from `gpu-info`, or part of a name (else `HWSDF_ADAPTER`).
+    #[arg(long)]
+    adapter: Option<String>,
 }
 
-/// One mesh × model outcome, as kept on disk.
-#[derive(Serialize, Deserialize)]
-#[serde(untagged)]
-enum Entry {
-    Done(Box<Report>),
-    Failed {
-        mesh: String,
-        model: String,
-        error: String,
-    },
-}
+type BoxError = Box<dyn std::error::Error>;
 
 fn main() -> ExitCode {
     let args = Args::parse();
     match corpus(&args) {
-        Ok(()) => ExitCode::SUCCESS,
+        Ok(code) => code,
         Err(e) => {
             eprintln!("error: {e}");
             ExitCode::FAILURE
@@ -87,38 +100,47 @@ fn main() -> ExitCode {
     }
 }
 
-fn meshes_in(dir: &Path) -> Result<Vec<PathBuf>, Box<dyn std::error::Error>> {
-    let mut meshes: Vec<PathBuf> = std::fs::read_dir(dir)
-        .map_err(|e| format!("{}: {e}", dir.display()))?
-        .filter_map(|e| e.ok().map(|e| e.path()))
-        .filter(|p| {
-            p.extension()
-                .and_then(|e| e.to_str())
-                .is_some_and(|e| matches!(e.to_ascii_lowercase().as_str(), "obj" | "gltf" | "glb"))
-        })
-        .collect();
-    meshes.sort();
-    if meshes.is_empty() {
-        return Err(format!("{} holds no .obj, .gltf or .glb file", dir.display()).into());
-    }
-    Ok(meshes)
-}
-
-fn corpus(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
-    let meshes = meshes_in(&args.dir)?;
+fn corpus(args: &Args) -> Result<ExitCode, BoxError> {
+    let meshes = match (&args.list, &args.dir) {
+        (Some(list), _) => corpus::read_list(list)?,
+        (None, Some(dir)) => corpus::walk(dir)?,
+        (None, None) => return Err("give a folder of meshes or --list FILE".into()),
+    };
     let models: Vec<ModelKind> = match args.model {
         Models::Siren => vec![ModelKind::Siren],
         Models::Nglod => vec![ModelKind::Nglod],
         Models::Both => vec![ModelKind::Siren, ModelKind::Nglod],
     };
-    let gpu = GpuContext::new()?;
+    let state = StateDir::for_table(&args.out);
+    if args.merge {
+        return merge(args, &state, &meshes, &models);
+    }
+    // Every check that can fail runs before the GPU is opened or a mesh is trained.
+    let shard = match &args.shard {
+        Some(s) => Some((Shard::parse(s)?, "--shard".to_owned())),
+        None => Shard::from_env(|k| std::env::var(k).ok(), args.shards)?,
+    };
+    let mine: Vec<&CorpusMesh> = match &shard {
+        Some((s, _)) => s.select(&meshes),
+        None => meshes.iter().collect(),
+    };
+    match &shard {
+        Some((s, from)) => eprintln!(
+            "shard {s} ({from}): {} of the corpus's {} meshes",
+            mine.len(),
+            meshes.len()
+        ),
+        None => eprintln!("all {} meshes (no shard)", meshes.len()),
+    }
+    state.create()?;
+    let gpu = GpuContext::with_options(
+        &GpuOptions::from_env().with_adapter(args.adapter.as_deref(), "--adapter"),
+    )?;
     let preset = match args.preset {
         Some(PresetArg::Default) => Preset::Default,
         Some(PresetArg::Small) => Preset::Small,
         None => Preset::for_adapter(gpu.is_cpu()),
     };
-    let state_dir = PathBuf::from(format!("{}.d", args.out.display()));
-    std::fs::create_dir_all(&state_dir).map_err(|e| format!("{}: {e}", state_dir.display()))?;
     let stop = Arc::new(AtomicBool::new(false));
     {
         let stop = stop.clone();
@@ -126,27 +148,55 @@ fn corpus(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
             if stop.swap(true, Ordering::Relaxed) {
                 std::process::exit(130);
             }
-            eprintln!("\nstopping after the current mesh; finished meshes are kept");
+            eprintln!("\nstopping: the mesh in training is checkpointed; finished meshes are kept");
         })?;
     }
     eprintln!(
         "{} meshes × {} models, {} preset, on {}",
-        meshes.len(),
+        mine.len(),
         models.len(),
         preset.name(),
         gpu.describe()
     );
 
-    for mesh in &meshes {
+    let mut interrupted = false;
+    'meshes: for mesh in &mine {
         for &model in &models {
             if stop.load(Ordering::Relaxed) {
-                break;
+                interrupted = true;
+                break 'meshes;
             }
-            let (name, record) = record_path(&state_dir, mesh, model);
-            if matches!(read_entry(&record), Some(Entry::Done(_))) {
-                eprintln!("{name} {}: done earlier, skipped", model.name());
-                continue;
+            let (rel, tag) = (&mesh.rel, model.name());
+            match state.read(rel, model) {
+                Record::Entry(Entry::Done(_)) => {
+                    eprintln!("{rel} {tag}: done earlier, skipped");
+                    continue;
+                }
+                Record::Corrupt(why) => {
+                    eprintln!(
+                        "warning: ignoring an unreadable result ({why}); {rel} {tag} is redone"
+                    )
+                }
+                Record::Missing | Record::Entry(Entry::Failed { .. }) => {}
             }
+            let checkpoint_path = state.checkpoint(rel, model);
+            let checkpoint = if checkpoint_path.exists() {
+                match Checkpoint::load(&checkpoint_path) {
+                    Ok(c) => {
+                        eprintln!(
+                            "{rel} {tag}: resuming from its checkpoint ({} done)",
+                            c.done()
+                        );
+                        Some(c)
+                    }
+                    Err(e) => {
+                        eprintln!("warning: {rel} {tag}: unusable checkpoint ({e}); starting over");
+                        None
+                    }
+                }
+            } else {
+                None
+            };
             let options = TrainOptions {
                 model,
                 preset,
@@ -156,141 +206,99 @@ fn corpus(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
                 lr: None,
                 siren_weights: None,
             };
-            let model_path = state_dir.join(format!("{name}.{}.safetensors", model.name()));
-            eprintln!("{name} {}: training", model.name());
-            let entry = match run::run(
+            eprintln!("{rel} {tag}: training");
+            let outcome = run::run(
                 &gpu,
-                mesh,
+                &mesh.path,
                 &options,
-                &model_path,
+                &state.model_file(rel, model),
                 args.eval_points,
+                checkpoint.as_ref(),
                 &stop,
                 |_| {},
-            ) {
-                Ok((_, trained)) if trained.interrupted => break,
-                Ok((report, _)) => {
+            );
+            let entry = match outcome {
+                Ok(RunOutcome::Interrupted(trained)) => {
+                    trained.checkpoint().save(&checkpoint_path)?;
                     eprintln!(
-                        "{name} {}: F1 box {:.3}, near {:.3}, {:.0} s",
-                        model.name(),
-                        report.f1_bbox,
-                        report.f1_near_surface,
-                        report.train_seconds
+                        "{rel} {tag}: interrupted after {}; checkpoint written to {}",
+                        trained.done,
+                        checkpoint_path.display()
                     );
-                    Entry::Done(Box::new(report))
+                    interrupted = true;
+                    break 'meshes;
+                }
+                Ok(RunOutcome::Finished(report, _)) => {
+                    eprintln!(
+                        "{rel} {tag}: F1 box {:.3}, near {:.3}, {:.0} s",
+                        report.f1_bbox, report.f1_near_surface, report.train_seconds
+                    );
+                    Entry::Done(report)
                 }
                 Err(e) => {
-                    eprintln!("{name} {}: failed: {e}", model.name());
+                    eprintln!("{rel} {tag}: failed: {e}");
                     Entry::Failed {
-                        mesh: mesh.display().to_string(),
-                        model: model.name().into(),
+                        mesh: mesh.path.display().to_string(),
+                        model: tag.into(),
                         error: e.to_string(),
                     }
                 }
             };
-            write_atomic(&record, &serde_json::to_vec_pretty(&entry)?)
-                .map_err(|e| format!("{}: {e}", record.display()))?;
-        }
-    }
-
-    let mut entries = BTreeMap::new();
-    for mesh in &meshes {
-        for &model in &models {
-            let (name, record) = record_path(&state_dir, mesh, model);
-            if let Some(e) = read_entry(&record) {
-                entries.insert((model.name(), name), e);
+            state.write(rel, model, &entry)?;
+            if checkpoint_path.exists() {
+                // The result supersedes the checkpoint it was resumed from.
+                let _ = std::fs::remove_file(&checkpoint_path);
             }
         }
     }
-    let table = markdown(&entries, preset, &gpu.describe());
+
+    if interrupted {
+        eprintln!("stopped; run the same command again to resume");
+        return Ok(ExitCode::from(130));
+    }
+    match shard {
+        // No shard writes the table: the merge is its only writer.
+        Some((s, _)) => {
+            let m = corpus::merge(&state, &meshes, &models);
+            eprintln!(
+                "shard {s} finished; corpus: {}. Build the table with: corpus {} --merge --out {}",
+                m.status(),
+                source_arg(args),
+                args.out.display()
+            );
+            Ok(ExitCode::SUCCESS)
+        }
+        None => merge(args, &state, &meshes, &models),
+    }
+}
+
+fn source_arg(args: &Args) -> String {
+    match (&args.list, &args.dir) {
+        (Some(list), _) => format!("--list {}", list.display()),
+        (None, Some(dir)) => dir.display().to_string(),
+        (None, None) => String::new(),
+    }
+}
+
+/// Builds the table from `<out>.d/`, writes it and prints it with the progress.
+fn merge(
+    args: &Args,
+    state: &StateDir,
+    meshes: &[CorpusMesh],
+    models: &[ModelKind],
+) -> Result<ExitCode, BoxError> {
+    let m = corpus::merge(state, meshes, models);
+    for why in &m.corrupt {
+        eprintln!("warning: ignoring an unreadable result ({why}); its mesh will be redone");
+    }
+    let table = m.markdown();
     write_atomic(&args.out, table.as_bytes())
         .map_err(|e| format!("{}: {e}", args.out.display()))?;
     print!("{table}");
+    eprintln!("{}", m.status());
+    for (rel, model, error) in m.failed() {
+        eprintln!("  failed: {rel} {model}: {error}");
+    }
     eprintln!("table written to {}", args.out.display());
-    Ok(())
-}
-
-/// The mesh's file name and where its result for `model` is kept.
-fn record_path(state_dir: &Path, mesh: &Path, model: ModelKind) -> (String, PathBuf) {
-    let name = mesh
-        .file_name()
-        .unwrap_or_default()
-        .to_string_lossy()
-        .into_owned();
-    let record = state_dir.join(format!("{name}.{}.json", model.name()));
-    (name, record)
-}
-
-fn read_entry(path: &Path) -> Option<Entry> {
-    serde_json::from_slice(&std::fs::read(path).ok()?).ok()
-}
-
-/// The design document's averages (F1 in the box, F1 near the surface).
-fn reference(model: &str) -> (f64, f64) {
-    match model {
-        "siren" => (0.90, 0.89),
-        _ => (0.98, 0.94),
-    }
-}
-
-fn markdown(entries: &BTreeMap<(&str, String), Entry>, preset: Preset, adapter: &str) -> String {
-    let mut s = String::new();
-    let _ = writeln!(s, "Preset `{}`, adapter {adapter}.\n", preset.name());
-    for model in ["siren", "nglod"] {
-        let rows: Vec<_> = entries.iter().filter(|((m, _), _)| *m == model).collect();
-        if rows.is_empty() {
-            continue;
-        }
-        let _ = writeln!(s, "### {}\n", model.to_uppercase());
-        let _ = writeln!(
-            s,
-            "| mesh | F1 in bounding box | F1 near surface | mean | train s | ns/point | µs/3000 | params | file bytes |"
-        );
-        let _ = writeln!(s, "| --- | --- | --- | --- | --- | --- | --- | --- | --- |");
-        let (mut fb, mut fnr, mut n) = (0.0, 0.0, 0usize);
-        for ((_, mesh), e) in &rows {
-            match e {
-                Entry::Done(r) => {
-                    let _ = writeln!(
-                        s,
-                        "| {mesh} | {:.3} | {:.3} | {:.3} | {:.0} | {:.0} | {:.0} | {} | {} |",
-                        r.f1_bbox,
-                        r.f1_near_surface,
-                        r.f1_mean,
-                        r.train_seconds,
-                        r.per_point_ns,
-                        r.batch3000_us,
-                        r.params,
-                        r.file_bytes
-                    );
-                    fb += r.f1_bbox;
-                    fnr += r.f1_near_surface;
-                    n += 1;
-                }
-                Entry::Failed { error, .. } => {
-                    let _ = writeln!(
-                        s,
-                        "| {mesh} | failed: {} | | | | | | | |",
-                        error.replace('|', "/")
-                    );
-                }
-            }
-        }
-        if n > 0 {
-            let (rb, rn) = reference(model);
-            let _ = writeln!(
-                s,
-                "| **average ({n} meshes)** | **{:.3}** | **{:.3}** | **{:.3}** | | | | | |",
-                fb / n as f64,
-                fnr / n as f64,
-                0.5 * (fb + fnr) / n as f64
-            );
-            let _ = writeln!(
-                s,
-                "| design document (50 meshes) | {rb:.2} | {rn:.2} | {:.3} | | | | | |",
-                0.5 * (rb + rn)
-            );
-        }
-        let _ = writeln!(s);
-    }
-    s
+    Ok(ExitCode::SUCCESS)
 }

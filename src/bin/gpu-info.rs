@@ -1,19 +1,21 @@
-//! Prints the adapter HW SDF would use and every adapter wgpu can see.
+//! Prints the adapter HW SDF would use, then (on stderr) every adapter wgpu can see with the
+//! index and PCI bus id that `--adapter` / `HWSDF_ADAPTER` take.
 //!
-//! `WGPU_ADAPTER_NAME` and `WGPU_BACKEND` are honoured exactly as in training.
+//! `HWSDF_ADAPTER`, `WGPU_ADAPTER_NAME` and `WGPU_BACKEND` are honoured exactly as in training.
 
 use std::process::ExitCode;
 
 fn main() -> ExitCode {
     let all = hwsdf::nn::gpu::list_adapters();
     eprintln!(
-        "adapters wgpu can see: {}",
-        if all.is_empty() {
-            "none".into()
-        } else {
-            all.join("; ")
-        }
+        "adapters wgpu can see (--adapter / HWSDF_ADAPTER take the index, the PCI bus id or part of the name):"
     );
+    if all.is_empty() {
+        eprintln!("  none");
+    }
+    for a in &all {
+        eprintln!("  {a}");
+    }
     match hwsdf::nn::GpuContext::new() {
         Ok(gpu) => {
             println!("{}", gpu.describe());

@@ -622,18 +622,34 @@ impl Report {
     }
 }
 
-/// The whole experiment for one mesh: train, save to `out`, evaluate, report.
+/// How [`run`] ended.
+#[derive(Debug)]
+pub enum RunOutcome {
+    /// Trained to the end, saved, evaluated.
+    Finished(Box<Report>, Box<Trained>),
+    /// The stop flag ended training early: nothing was saved or evaluated, and
+    /// [`Trained::checkpoint`] continues it.
+    Interrupted(Box<Trained>),
+}
+
+/// The whole experiment for one mesh: train (from `resume` if given), save to `out`, evaluate,
+/// report.
+#[allow(clippy::too_many_arguments)]
 pub fn run(
     gpu: &GpuContext,
     mesh_path: &Path,
     options: &TrainOptions,
     out: &Path,
     eval_points: usize,
+    resume: Option<&Checkpoint>,
     stop: &Arc<AtomicBool>,
     progress: impl FnMut(&Progress),
-) -> Result<(Report, Trained), RunError> {
+) -> Result<RunOutcome, RunError> {
     let (mesh, normalization) = load_normalized(mesh_path)?;
-    let trained = train(gpu, &mesh, normalization, options, None, stop, progress)?;
+    let trained = train(gpu, &mesh, normalization, options, resume, stop, progress)?;
+    if trained.interrupted {
+        return Ok(RunOutcome::Interrupted(Box::new(trained)));
+    }
     trained.file.save(out)?;
     let file_bytes = std::fs::metadata(out)
         .map_err(|source| RunError::Write {
@@ -651,5 +667,5 @@ pub fn run(
         &eval,
         gpu.describe(),
     );
-    Ok((report, trained))
+    Ok(RunOutcome::Finished(Box::new(report), Box::new(trained)))
 }

@@ -3,8 +3,10 @@
 //!
 //! Adapter choice honours the same environment variables as wgpu's own tools:
 //! - `WGPU_BACKEND` (e.g. `vulkan`, `metal`, `dx12`) restricts the backends;
-//! - `WGPU_ADAPTER_NAME` picks the first adapter whose name contains the value (case-insensitive),
-//!   and is an error when none does, rather than a silent fallback;
+//! - `HWSDF_ADAPTER` picks one adapter by its index in [`list_adapters`] (what `gpu-info`
+//!   prints), its PCI bus id (`0000:65:00.0`; eight identical GPUs share a name but not a bus), or
+//!   part of its name; `WGPU_ADAPTER_NAME` picks the first adapter whose name contains the value
+//!   (case-insensitive). Either is an error when nothing matches, rather than a silent fallback;
 //! - otherwise a real GPU (discrete, then integrated, then virtual) is preferred over a CPU
 //!   adapter such as lavapipe.
 
@@ -30,14 +32,17 @@ pub enum GpuError {
         /// The backends that were searched.
         backends: String,
     },
-    /// `WGPU_ADAPTER_NAME` (or [`GpuOptions::adapter_name`]) matched no adapter.
+    /// [`GpuOptions::adapter`] (`--adapter`, `HWSDF_ADAPTER` or `WGPU_ADAPTER_NAME`) matched no
+    /// adapter.
     #[error(
-        "no adapter name contains {requested:?} (from WGPU_ADAPTER_NAME); available adapters: \
-         {available}. Unset WGPU_ADAPTER_NAME or set it to part of one of these names"
+        "no adapter matches {requested:?} (from {from}: an index, a PCI bus id or part of a name); \
+         available adapters: {available}. Unset {from} or set it to one of these"
     )]
     AdapterNotFound {
-        /// The requested name fragment.
+        /// The requested index, bus id or name fragment.
         requested: String,
+        /// Where it came from.
+        from: String,
         /// The adapters that exist, for the message.
         available: String,
     },
@@ -107,25 +112,45 @@ pub enum GpuError {
     },
 }
 
-/// How to choose the adapter. [`GpuOptions::from_env`] reads the usual wgpu variables.
+/// How to choose the adapter. [`GpuOptions::from_env`] reads `HWSDF_ADAPTER` and the usual
+/// wgpu variables.
 #[derive(Clone, Debug, Default)]
 pub struct GpuOptions {
-    /// Pick the first adapter whose name contains this (case-insensitive).
-    pub adapter_name: Option<String>,
+    /// Which adapter: its index in [`list_adapters`] (as `gpu-info` prints it), its PCI bus id
+    /// (`wgpu::AdapterInfo::device_pci_bus_id`, e.g. `0000:65:00.0`), or part of its name
+    /// (case-insensitive; the first match wins). `None`: the best adapter.
+    pub adapter: Option<String>,
+    /// Where [`GpuOptions::adapter`] came from, for error messages (e.g. `--adapter`).
+    pub adapter_from: String,
     /// Restrict to these backends; `None` means wgpu's defaults (or `WGPU_BACKEND`).
     pub backends: Option<wgpu::Backends>,
 }
 
 impl GpuOptions {
-    /// Options from `WGPU_ADAPTER_NAME` and `WGPU_BACKEND`.
+    /// Options from `HWSDF_ADAPTER` (index, bus id or name), else `WGPU_ADAPTER_NAME` (name),
+    /// and `WGPU_BACKEND`.
     pub fn from_env() -> Self {
-        let adapter_name = std::env::var("WGPU_ADAPTER_NAME")
-            .ok()
-            .filter(|s| !s.trim().is_empty());
+        let var = |name: &str| std::env::var(name).ok().filter(|s| !s.trim().is_empty());
+        let (adapter, adapter_from) = match (var("HWSDF_ADAPTER"), var("WGPU_ADAPTER_NAME")) {
+            (Some(a), _) => (Some(a), "HWSDF_ADAPTER"),
+            (None, Some(a)) => (Some(a), "WGPU_ADAPTER_NAME"),
+            (None, None) => (None, ""),
+        };
         GpuOptions {
-            adapter_name,
+            adapter,
+            adapter_from: adapter_from.into(),
             backends: wgpu::Backends::from_env(),
         }
+    }
+
+    /// These options with the adapter chosen by a command-line flag instead (`None` keeps
+    /// the environment's choice).
+    pub fn with_adapter(mut self, adapter: Option<&str>, flag: &str) -> Self {
+        if let Some(a) = adapter.filter(|a| !a.trim().is_empty()) {
+            self.adapter = Some(a.to_owned());
+            self.adapter_from = flag.to_owned();
+        }
+        self
     }
 }
 
@@ -714,17 +739,27 @@ fn choose_adapter(
     options: &GpuOptions,
     backends: wgpu::Backends,
 ) -> Result<wgpu::Adapter, GpuError> {
-    if let Some(wanted) = &options.adapter_name {
-        let needle = wanted.to_lowercase();
-        let available = adapters
+    if let Some(wanted) = &options.adapter {
+        let infos: Vec<wgpu::AdapterInfo> = adapters.iter().map(|a| a.get_info()).collect();
+        let available = infos
             .iter()
-            .map(|a| describe_info(&a.get_info()))
+            .enumerate()
+            .map(|(i, info)| describe_listed(i, info))
             .collect::<Vec<_>>();
-        return adapters
-            .into_iter()
-            .find(|a| a.get_info().name.to_lowercase().contains(&needle))
+        return select_adapter(&infos, wanted)
+            .map(|i| {
+                adapters
+                    .into_iter()
+                    .nth(i)
+                    .expect("index from the same list")
+            })
             .ok_or_else(|| GpuError::AdapterNotFound {
                 requested: wanted.clone(),
+                from: if options.adapter_from.is_empty() {
+                    "GpuOptions::adapter".into()
+                } else {
+                    options.adapter_from.clone()
+                },
                 available: if available.is_empty() {
                     "none".into()
                 } else {
@@ -740,20 +775,88 @@ fn choose_adapter(
         })
 }
 
-/// Names and types of every adapter wgpu can see, for diagnostics.
+/// Which of `infos` `wanted` names: an index into the list, else a PCI bus id (with or without
+/// its `0000:` domain), else the first name that contains it (case-insensitive).
+fn select_adapter(infos: &[wgpu::AdapterInfo], wanted: &str) -> Option<usize> {
+    let wanted = wanted.trim();
+    if let Ok(i) = wanted.parse::<usize>() {
+        return (i < infos.len()).then_some(i);
+    }
+    let bus = |id: &str| {
+        !id.is_empty()
+            && (id.eq_ignore_ascii_case(wanted)
+                || (wanted.contains(':')
+                    && id
+                        .to_ascii_lowercase()
+                        .ends_with(&format!(":{}", wanted.to_ascii_lowercase()))))
+    };
+    if let Some(i) = infos.iter().position(|a| bus(&a.device_pci_bus_id)) {
+        return Some(i);
+    }
+    let needle = wanted.to_lowercase();
+    infos
+        .iter()
+        .position(|a| a.name.to_lowercase().contains(&needle))
+}
+
+/// `i: name (type, backend, driver) [PCI bus id]`, as `gpu-info` lists adapters.
+fn describe_listed(i: usize, info: &wgpu::AdapterInfo) -> String {
+    let bus = if info.device_pci_bus_id.is_empty() {
+        "no PCI bus id".to_owned()
+    } else {
+        format!("PCI {}", info.device_pci_bus_id)
+    };
+    format!("{i}: {} [{bus}]", describe_info(info))
+}
+
+/// Every adapter wgpu can see, in the order `HWSDF_ADAPTER`/`--adapter` indices refer to, each
+/// with its index, type, backend, driver and PCI bus id.
 pub fn list_adapters() -> Vec<String> {
     let desc = wgpu::InstanceDescriptor::new_without_display_handle_from_env();
     let backends = desc.backends;
     let instance = wgpu::Instance::new(desc);
     pollster::block_on(instance.enumerate_adapters(backends))
         .iter()
-        .map(|a| describe_info(&a.get_info()))
+        .enumerate()
+        .map(|(i, a)| describe_listed(i, &a.get_info()))
         .collect()
 }
 
 #[cfg(test)]
 mod tests {
-    use super::split_dispatch;
+    use super::{select_adapter, split_dispatch};
+
+    fn info(name: &str, bus: &str) -> wgpu::AdapterInfo {
+        wgpu::AdapterInfo {
+            name: name.into(),
+            device_pci_bus_id: bus.into(),
+            ..wgpu::AdapterInfo::new(wgpu::DeviceType::DiscreteGpu, wgpu::Backend::Vulkan)
+        }
+    }
+
+    #[test]
+    fn adapters_are_chosen_by_index_bus_id_or_name() {
+        // Eight identical GPUs share a name; the index and the bus id tell them apart.
+        let infos: Vec<_> = (0..8)
+            .map(|i| {
+                info(
+                    "NVIDIA H100 80GB HBM3",
+                    &format!("0000:{:02x}:00.0", 0x18 + i),
+                )
+            })
+            .chain([info("llvmpipe (LLVM 15.0.6, 256 bits)", "")])
+            .collect();
+        assert_eq!(select_adapter(&infos, "3"), Some(3));
+        assert_eq!(select_adapter(&infos, " 8 "), Some(8));
+        assert_eq!(select_adapter(&infos, "9"), None);
+        assert_eq!(select_adapter(&infos, "0000:1c:00.0"), Some(4));
+        assert_eq!(select_adapter(&infos, "0000:1C:00.0"), Some(4));
+        assert_eq!(select_adapter(&infos, "1c:00.0"), Some(4));
+        assert_eq!(select_adapter(&infos, "0000:99:00.0"), None);
+        assert_eq!(select_adapter(&infos, "h100"), Some(0));
+        assert_eq!(select_adapter(&infos, "LLVMPIPE"), Some(8));
+        assert_eq!(select_adapter(&infos, "radeon"), None);
+    }
 
     #[test]
     fn dispatch_folds_into_second_dimension() {

@@ -168,7 +168,8 @@ fn oversized_buffer_is_a_typed_error() {
 #[test]
 fn unknown_adapter_name_is_a_clear_error() {
     let options = GpuOptions {
-        adapter_name: Some("no-such-adapter-hwsdf".into()),
+        adapter: Some("no-such-adapter-hwsdf".into()),
+        adapter_from: "WGPU_ADAPTER_NAME".into(),
         backends: None,
     };
     let err = GpuContext::with_options(&options).unwrap_err();

@@ -1,0 +1,888 @@
+//! Corpus runs: which meshes a corpus holds, which of them one shard takes, where each mesh's
+//! result lives in the shared `<out>.d/` folder, and the table merged from those results.
+//!
+//! Scale-out rides on the engines people already run (Slurm job arrays, Kubernetes Indexed
+//! Jobs): the engine hands every task its index, [`Shard`] turns the index into a fixed subset of
+//! the meshes, every task writes one file per mesh and model into the same folder (atomically,
+//! under a name no other mesh shares), and [`merge`] builds the table from that folder alone.
+//! There is no queue, lock or protocol of our own: a shard that is run again skips what is done.
+//!
+//! ```
+//! use sdf_eval::corpus::{CorpusMesh, Shard};
+//!
+//! let meshes: Vec<CorpusMesh> = ["a.obj", "sub/b.glb", "c.gltf"]
+//!     .iter()
+//!     .map(|rel| CorpusMesh::new(std::path::Path::new("/data"), rel))
+//!     .collect();
+//! // Every mesh lands in exactly one of three shards, by a hash of its relative path.
+//! let total: usize = (0..3)
+//!     .map(|k| Shard::new(k, 3).unwrap().select(&meshes).len())
+//!     .sum();
+//! assert_eq!(total, meshes.len());
+//! ```
+
+use std::collections::{BTreeMap, BTreeSet};
+use std::fmt::Write as _;
+use std::path::{Path, PathBuf};
+
+use serde::{Deserialize, Serialize};
+
+use crate::run::{ModelKind, Report};
+
+/// File extensions a corpus walk picks up (case-insensitive).
+pub const MESH_EXTENSIONS: [&str; 3] = ["obj", "gltf", "glb"];
+
+/// Errors of corpus bookkeeping. Every one is raised before any training starts.
+#[derive(Debug, thiserror::Error)]
+pub enum CorpusError {
+    /// A folder or list could not be read.
+    #[error("{path}: {source}")]
+    Io {
+        /// The file or folder.
+        path: PathBuf,
+        /// The OS error.
+        source: std::io::Error,
+    },
+    /// The corpus holds no mesh.
+    #[error("{0} holds no .obj, .gltf or .glb file")]
+    Empty(PathBuf),
+    /// A shard specification that cannot be used.
+    #[error("bad shard {value:?} (from {source_name}): {reason}")]
+    BadShard {
+        /// The value as given.
+        value: String,
+        /// Where it came from (`--shard`, `SLURM_ARRAY_TASK_ID`, ...).
+        source_name: String,
+        /// Why it is refused.
+        reason: String,
+    },
+}
+
+/// One mesh of a corpus: where it is, and its path relative to the corpus root, which names it
+/// in the table, in the result files and in the shard hash.
+#[derive(Clone, Debug, PartialEq, Eq, PartialOrd, Ord)]
+pub struct CorpusMesh {
+    /// Relative path with `/` separators (the key of everything else).
+    pub rel: String,
+    /// The file to load.
+    pub path: PathBuf,
+}
+
+impl CorpusMesh {
+    /// The mesh at `rel` under `root` (`rel` may also be absolute; it is then its own key).
+    pub fn new(root: &Path, rel: &str) -> Self {
+        let rel = rel.trim().replace('\\', "/");
+        let rel = rel.trim_start_matches("./").to_owned();
+        CorpusMesh {
+            path: root.join(&rel),
+            rel,
+        }
+    }
+}
+
+fn is_mesh_name(name: &str) -> bool {
+    Path::new(name)
+        .extension()
+        .and_then(|e| e.to_str())
+        .is_some_and(|e| MESH_EXTENSIONS.contains(&e.to_ascii_lowercase().as_str()))
+}
+
+/// Every OBJ, glTF and GLB file under `root`, recursively, sorted by relative path.
+///
+/// Hidden entries (names starting with `.`) are skipped, and so are symbolic links to folders,
+/// so that a link cycle cannot make the walk endless; links to files are followed.
+pub fn walk(root: &Path) -> Result<Vec<CorpusMesh>, CorpusError> {
+    let io = |path: &Path| {
+        let path = path.to_owned();
+        move |source| CorpusError::Io { path, source }
+    };
+    let mut out = Vec::new();
+    let mut stack = vec![(root.to_owned(), String::new())];
+    while let Some((dir, prefix)) = stack.pop() {
+        for entry in std::fs::read_dir(&dir).map_err(io(&dir))? {
+            let entry = entry.map_err(io(&dir))?;
+            let name = entry.file_name().to_string_lossy().into_owned();
+            if name.starts_with('.') {
+                continue;
+            }
+            let rel = format!("{prefix}{name}");
+            let kind = entry.file_type().map_err(io(&entry.path()))?;
+            if kind.is_dir() {
+                stack.push((entry.path(), format!("{rel}/")));
+            } else if is_mesh_name(&name)
+                && std::fs::metadata(entry.path()).is_ok_and(|m| m.is_file())
+            {
+                out.push(CorpusMesh {
+                    path: entry.path(),
+                    rel,
+                });
+            }
+        }
+    }
+    out.sort();
+    if out.is_empty() {
+        return Err(CorpusError::Empty(root.to_owned()));
+    }
+    Ok(out)
+}
+
+/// The meshes named in a list file: one path a line, relative to the list's folder (or
+/// absolute); blank lines and lines starting with `#` are skipped, repeats are dropped.
+pub fn read_list(list: &Path) -> Result<Vec<CorpusMesh>, CorpusError> {
+    let text = std::fs::read_to_string(list).map_err(|source| CorpusError::Io {
+        path: list.to_owned(),
+        source,
+    })?;
+    let root = list.parent().unwrap_or(Path::new("."));
+    let set: BTreeSet<CorpusMesh> = text
+        .lines()
+        .map(str::trim)
+        .filter(|l| !l.is_empty() && !l.starts_with('#'))
+        .map(|l| CorpusMesh::new(root, l))
+        .collect();
+    if set.is_empty() {
+        return Err(CorpusError::Empty(list.to_owned()));
+    }
+    Ok(set.into_iter().collect())
+}
+
+/// FNV-1a, 64 bits: a hash that never changes between versions, platforms or runs (unlike
+/// `std`'s), so a mesh stays in its shard for as long as its relative path does.
+pub fn stable_hash(s: &str) -> u64 {
+    s.bytes().fold(0xcbf2_9ce4_8422_2325, |h, b| {
+        (h ^ u64::from(b)).wrapping_mul(0x0000_0100_0000_01b3)
+    })
+}
+
+/// Shard `index` of `count`: the meshes whose [`stable_hash`] of the relative path is `index`
+/// modulo `count`. Adding meshes to a corpus never moves the others between shards.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Shard {
+    /// 0-based shard index.
+    pub index: u32,
+    /// Number of shards.
+    pub count: u32,
+}
+
+impl Shard {
+    /// Everything in one shard.
+    pub const ALL: Shard = Shard { index: 0, count: 1 };
+
+    /// Shard `index` of `count`, checked.
+    pub fn new(index: u32, count: u32) -> Result<Self, CorpusError> {
+        Self::checked(index, count, &format!("{index}/{count}"), "arguments")
+    }
+
+    fn checked(index: u32, count: u32, value: &str, source: &str) -> Result<Self, CorpusError> {
+        let reason = if count == 0 {
+            Some("the shard count must be at least 1".to_owned())
+        } else if index >= count {
+            Some(format!(
+                "shard index {index} is not below the count {count} (indices are 0..{count})"
+            ))
+        } else {
+            None
+        };
+        match reason {
+            Some(reason) => Err(CorpusError::BadShard {
+                value: value.to_owned(),
+                source_name: source.to_owned(),
+                reason,
+            }),
+            None => Ok(Shard { index, count }),
+        }
+    }
+
+    /// Parses `K/N` (as `--shard` takes it).
+    pub fn parse(value: &str) -> Result<Self, CorpusError> {
+        let bad = |reason: &str| CorpusError::BadShard {
+            value: value.to_owned(),
+            source_name: "--shard".into(),
+            reason: reason.to_owned(),
+        };
+        let (k, n) = value
+            .split_once('/')
+            .ok_or_else(|| bad("expected K/N, e.g. 0/8"))?;
+        let k = k
+            .trim()
+            .parse()
+            .map_err(|_| bad("K is not a whole number"))?;
+        let n = n
+            .trim()
+            .parse()
+            .map_err(|_| bad("N is not a whole number"))?;
+        Self::checked(k, n, value, "--shard")
+    }
+
+    /// The shard the engine assigned, from its variables (`var` reads one; pass
+    /// `|k| std::env::var(k).ok()`), and a description of where it came from:
+    ///
+    /// - Slurm job arrays: `SLURM_ARRAY_TASK_ID`. With a count from `shards` (the `--shards`
+    ///   flag) or `HWSDF_SHARDS`, the task id is the 0-based shard index, which keeps a task
+    ///   resubmitted on its own (`sbatch --array=5`) in its shard; the recipe sets it. Without
+    ///   one, the index and count come from the array itself (`SLURM_ARRAY_TASK_MIN`,
+    ///   `SLURM_ARRAY_TASK_STEP`, `SLURM_ARRAY_TASK_COUNT` or `SLURM_ARRAY_TASK_MAX`), so
+    ///   `--array=1-8` and `--array=0-14:2` work too;
+    /// - Kubernetes Indexed Jobs: `JOB_COMPLETION_INDEX`, with the count from `shards` (the
+    ///   `--shards` flag) or `HWSDF_SHARDS`.
+    ///
+    /// `None` when no engine variable is set: the run takes every mesh.
+    pub fn from_env(
+        var: impl Fn(&str) -> Option<String>,
+        shards: Option<u32>,
+    ) -> Result<Option<(Self, String)>, CorpusError> {
+        let num = |name: &str| -> Result<Option<u32>, CorpusError> {
+            match var(name).filter(|v| !v.trim().is_empty()) {
+                None => Ok(None),
+                Some(v) => v
+                    .trim()
+                    .parse()
+                    .map(Some)
+                    .map_err(|_| CorpusError::BadShard {
+                        value: v.clone(),
+                        source_name: name.to_owned(),
+                        reason: "not a whole number".into(),
+                    }),
+            }
+        };
+        let count = match shards {
+            Some(n) => Some(n),
+            None => num("HWSDF_SHARDS")?,
+        };
+        if let Some(id) = num("SLURM_ARRAY_TASK_ID")? {
+            if let Some(count) = count {
+                // A stated count makes the task id the shard index itself, so one task
+                // resubmitted alone (`sbatch --array=5`) is still shard 5 of the whole run.
+                let value = format!("task {id} of {count} (HWSDF_SHARDS or --shards)");
+                let shard = Self::checked(id, count, &value, "SLURM_ARRAY_TASK_ID")?;
+                return Ok(Some((shard, format!("Slurm array task {id}"))));
+            }
+            let min = num("SLURM_ARRAY_TASK_MIN")?.unwrap_or(0);
+            let step = num("SLURM_ARRAY_TASK_STEP")?.unwrap_or(1).max(1);
+            let count = match (num("SLURM_ARRAY_TASK_COUNT")?, num("SLURM_ARRAY_TASK_MAX")?) {
+                (Some(c), _) => c,
+                (None, Some(max)) if max >= min => (max - min) / step + 1,
+                _ => {
+                    return Err(CorpusError::BadShard {
+                        value: id.to_string(),
+                        source_name: "SLURM_ARRAY_TASK_ID".into(),
+                        reason: "neither HWSDF_SHARDS, SLURM_ARRAY_TASK_COUNT nor a usable SLURM_ARRAY_TASK_MAX is set".into(),
+                    });
+                }
+            };
+            let value = format!("task {id} of {count} (min {min}, step {step})");
+            if id < min || (id - min) % step != 0 {
+                return Err(CorpusError::BadShard {
+                    value,
+                    source_name: "SLURM_ARRAY_TASK_ID".into(),
+                    reason: "the task id is not on the array's range".into(),
+                });
+            }
+            let shard = Self::checked((id - min) / step, count, &value, "SLURM_ARRAY_TASK_ID")?;
+            return Ok(Some((shard, format!("Slurm array task {id}"))));
+        }
+        if let Some(index) = num("JOB_COMPLETION_INDEX")? {
+            let count = count.ok_or_else(|| CorpusError::BadShard {
+                value: index.to_string(),
+                source_name: "JOB_COMPLETION_INDEX".into(),
+                reason: "the shard count is unknown: pass --shards N or set HWSDF_SHARDS (the Job's completions)".into(),
+            })?;
+            let value = format!("{index}/{count}");
+            let shard = Self::checked(index, count, &value, "JOB_COMPLETION_INDEX")?;
+            return Ok(Some((
+                shard,
+                format!("Kubernetes completion index {index}"),
+            )));
+        }
+        Ok(None)
+    }
+
+    /// Whether the mesh with relative path `rel` is in this shard.
+    pub fn contains(&self, rel: &str) -> bool {
+        stable_hash(rel) % u64::from(self.count) == u64::from(self.index)
+    }
+
+    /// This shard's meshes, in order.
+    pub fn select<'a>(&self, meshes: &'a [CorpusMesh]) -> Vec<&'a CorpusMesh> {
+        meshes.iter().filter(|m| self.contains(&m.rel)).collect()
+    }
+}
+
+impl std::fmt::Display for Shard {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "{}/{}", self.index, self.count)
+    }
+}
+
+/// One mesh × model outcome, as kept on disk.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+#[serde(untagged)]
+pub enum Entry {
+    /// Trained and evaluated.
+    Done(Box<Report>),
+    /// Failed with this error (retried by the next run).
+    Failed {
+        /// The mesh file.
+        mesh: String,
+        /// `"siren"` or `"nglod"`.
+        model: String,
+        /// The error.
+        error: String,
+    },
+}
+
+/// What a mesh's result file holds.
+#[derive(Debug)]
+pub enum Record {
+    /// No file yet.
+    Missing,
+    /// A finished or failed run.
+    Entry(Entry),
+    /// A file that does not parse (a writer killed by hand, a disk error): it is never merged,
+    /// and the next run redoes the mesh.
+    Corrupt(String),
+}
+
+/// The folder of per-mesh results, `<out>.d/`, shared by every shard.
+#[derive(Clone, Debug)]
+pub struct StateDir {
+    dir: PathBuf,
+}
+
+impl StateDir {
+    /// The folder that belongs to the table `out`.
+    pub fn for_table(out: &Path) -> Self {
+        StateDir {
+            dir: PathBuf::from(format!("{}.d", out.display())),
+        }
+    }
+
+    /// Its path.
+    pub fn path(&self) -> &Path {
+        &self.dir
+    }
+
+    /// Creates the folder (and its parents) if needed.
+    pub fn create(&self) -> Result<(), CorpusError> {
+        std::fs::create_dir_all(&self.dir).map_err(|source| CorpusError::Io {
+            path: self.dir.clone(),
+            source,
+        })
+    }
+
+    /// The stem of every file of `mesh` × `model`: the relative path itself where it is a
+    /// plain file name, otherwise the path with unsafe characters replaced and a hash of the
+    /// whole relative path appended, so that no two meshes share a name.
+    pub fn stem(rel: &str, model: ModelKind) -> String {
+        let plain = !rel.is_empty()
+            && !rel.starts_with('.')
+            && rel
+                .chars()
+                .all(|c| c.is_ascii_alphanumeric() || matches!(c, '.' | '_' | '-'));
+        let base = if plain {
+            rel.to_owned()
+        } else {
+            let cleaned: String = rel
+                .chars()
+                .map(|c| {
+                    if c.is_ascii_alphanumeric() || matches!(c, '.' | '-') {
+                        c
+                    } else {
+                        '_'
+                    }
+                })
+                .collect();
+            let cleaned = cleaned.trim_start_matches(['.', '_']);
+            let tail: String = cleaned
+                .chars()
+                .rev()
+                .take(80)
+                .collect::<Vec<_>>()
+                .into_iter()
+                .rev()
+                .collect();
+            format!("{tail}-{:08x}", stable_hash(rel) as u32)
+        };
+        format!("{base}.{}", model.name())
+    }
+
+    /// The result file of `rel` × `model`.
+    pub fn record(&self, rel: &str, model: ModelKind) -> PathBuf {
+        self.dir.join(format!("{}.json", Self::stem(rel, model)))
+    }
+
+    /// The model file of `rel` × `model`.
+    pub fn model_file(&self, rel: &str, model: ModelKind) -> PathBuf {
+        self.dir
+            .join(format!("{}.safetensors", Self::stem(rel, model)))
+    }
+
+    /// The checkpoint an interrupted fit of `rel` × `model` leaves.
+    pub fn checkpoint(&self, rel: &str, model: ModelKind) -> PathBuf {
+        self.dir
+            .join(format!("{}.checkpoint.safetensors", Self::stem(rel, model)))
+    }
+
+    /// Reads the result of `rel` × `model`.
+    pub fn read(&self, rel: &str, model: ModelKind) -> Record {
+        let path = self.record(rel, model);
+        match std::fs::read(&path) {
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => Record::Missing,
+            Err(e) => Record::Corrupt(format!("{}: {e}", path.display())),
+            Ok(bytes) => match serde_json::from_slice::<Entry>(&bytes) {
+                Ok(entry) => Record::Entry(entry),
+                Err(e) => Record::Corrupt(format!("{}: {e}", path.display())),
+            },
+        }
+    }
+
+    /// Writes the result of `rel` × `model`, atomically.
+    pub fn write(&self, rel: &str, model: ModelKind, entry: &Entry) -> Result<(), CorpusError> {
+        let path = self.record(rel, model);
+        let json = serde_json::to_vec_pretty(entry).expect("entries serialise");
+        sdf_geom::io::write_atomic(&path, &json).map_err(|source| CorpusError::Io { path, source })
+    }
+}
+
+/// The table built from a results folder, and what it knows about progress.
+#[derive(Debug)]
+pub struct Merge {
+    /// Finished and failed entries by model name and relative path.
+    pub entries: BTreeMap<(&'static str, String), Entry>,
+    /// Mesh × model pairs expected.
+    pub expected: usize,
+    /// Pairs without a result yet.
+    pub missing: usize,
+    /// Result files that do not parse (ignored; redone by the next run).
+    pub corrupt: Vec<String>,
+}
+
+/// Reads every expected result of `meshes` × `models` from `state`.
+pub fn merge(state: &StateDir, meshes: &[CorpusMesh], models: &[ModelKind]) -> Merge {
+    let mut m = Merge {
+        entries: BTreeMap::new(),
+        expected: meshes.len() * models.len(),
+        missing: 0,
+        corrupt: Vec::new(),
+    };
+    for mesh in meshes {
+        for &model in models {
+            match state.read(&mesh.rel, model) {
+                Record::Missing => m.missing += 1,
+                Record::Corrupt(why) => {
+                    m.missing += 1;
+                    m.corrupt.push(why);
+                }
+                Record::Entry(e) => {
+                    m.entries.insert((model.name(), mesh.rel.clone()), e);
+                }
+            }
+        }
+    }
+    m
+}
+
+/// The design document's averages (F1 in the box, F1 near the surface).
+fn reference(model: &str) -> (f64, f64) {
+    match model {
+        "siren" => (0.90, 0.89),
+        _ => (0.98, 0.94),
+    }
+}
+
+impl Merge {
+    /// Finished pairs.
+    pub fn done(&self) -> usize {
+        self.entries
+            .values()
+            .filter(|e| matches!(e, Entry::Done(_)))
+            .count()
+    }
+
+    /// Failed pairs with their errors: `(relative path, model, error)`.
+    pub fn failed(&self) -> Vec<(&str, &str, &str)> {
+        self.entries
+            .iter()
+            .filter_map(|((model, rel), e)| match e {
+                Entry::Failed { error, .. } => Some((rel.as_str(), *model, error.as_str())),
+                Entry::Done(_) => None,
+            })
+            .collect()
+    }
+
+    /// Whether every expected pair has a finished or failed result.
+    pub fn complete(&self) -> bool {
+        self.missing == 0
+    }
+
+    /// "N of M meshes done, F failed" (mesh × model pairs when several models run).
+    pub fn status(&self) -> String {
+        format!(
+            "{} of {} done, {} failed{}",
+            self.done(),
+            self.expected,
+            self.failed().len(),
+            if self.missing > 0 {
+                format!(", {} not yet run", self.missing)
+            } else {
+                String::new()
+            }
+        )
+    }
+
+    /// The design document's table: one section per model, a row per mesh, the averages and
+    /// the reference row. Depends only on the results folder, so a sharded run and a single
+    /// process over the same meshes write the same table.
+    pub fn markdown(&self) -> String {
+        let mut s = String::new();
+        let reports: Vec<&Report> = self
+            .entries
+            .values()
+            .filter_map(|e| match e {
+                Entry::Done(r) => Some(r.as_ref()),
+                Entry::Failed { .. } => None,
+            })
+            .collect();
+        let presets: BTreeSet<&str> = reports.iter().map(|r| r.preset.as_str()).collect();
+        let adapters: BTreeSet<&str> = reports.iter().map(|r| r.adapter.as_str()).collect();
+        let list = |set: &BTreeSet<&str>| {
+            if set.is_empty() {
+                "none yet".to_owned()
+            } else {
+                set.iter().copied().collect::<Vec<_>>().join("; ")
+            }
+        };
+        let _ = writeln!(
+            s,
+            "Preset `{}`, adapter {}. {}.\n",
+            list(&presets),
+            list(&adapters),
+            self.status()
+        );
+        for model in ["siren", "nglod"] {
+            let rows: Vec<_> = self
+                .entries
+                .iter()
+                .filter(|((m, _), _)| *m == model)
+                .collect();
+            if rows.is_empty() {
+                continue;
+            }
+            let _ = writeln!(s, "### {}\n", model.to_uppercase());
+            let _ = writeln!(
+                s,
+                "| mesh | F1 in bounding box | F1 near surface | mean | train s | ns/point | µs/3000 | params | file bytes |"
+            );
+            let _ = writeln!(s, "| --- | --- | --- | --- | --- | --- | --- | --- | --- |");
+            let (mut fb, mut fnr, mut n) = (0.0, 0.0, 0usize);
+            for ((_, mesh), e) in &rows {
+                match e {
+                    Entry::Done(r) => {
+                        let _ = writeln!(
+                            s,
+                            "| {mesh} | {:.3} | {:.3} | {:.3} | {:.0} | {:.0} | {:.0} | {} | {} |",
+                            r.f1_bbox,
+                            r.f1_near_surface,
+                            r.f1_mean,
+                            r.train_seconds,
+                            r.per_point_ns,
+                            r.batch3000_us,
+                            r.params,
+                            r.file_bytes
+                        );
+                        fb += r.f1_bbox;
+                        fnr += r.f1_near_surface;
+                        n += 1;
+                    }
+                    Entry::Failed { error, .. } => {
+                        let _ = writeln!(
+                            s,
+                            "| {mesh} | failed: {} | | | | | | | |",
+                            error.replace('|', "/").replace('\n', " ")
+                        );
+                    }
+                }
+            }
+            if n > 0 {
+                let (rb, rn) = reference(model);
+                let _ = writeln!(
+                    s,
+                    "| **average ({n} meshes)** | **{:.3}** | **{:.3}** | **{:.3}** | | | | | |",
+                    fb / n as f64,
+                    fnr / n as f64,
+                    0.5 * (fb + fnr) / n as f64
+                );
+                let _ = writeln!(
+                    s,
+                    "| design document (50 meshes) | {rb:.2} | {rn:.2} | {:.3} | | | | | |",
+                    0.5 * (rb + rn)
+                );
+            }
+            let _ = writeln!(s);
+        }
+        s
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn meshes(n: usize) -> Vec<CorpusMesh> {
+        (0..n)
+            .map(|i| CorpusMesh::new(Path::new("/c"), &format!("set{}/mesh{i}.obj", i % 7)))
+            .collect()
+    }
+
+    fn env(vars: &[(&str, &str)]) -> impl Fn(&str) -> Option<String> {
+        let vars: Vec<(String, String)> = vars
+            .iter()
+            .map(|(k, v)| (k.to_string(), v.to_string()))
+            .collect();
+        move |k| vars.iter().find(|(n, _)| n == k).map(|(_, v)| v.clone())
+    }
+
+    #[test]
+    fn the_hash_is_fixed_forever() {
+        // FNV-1a test vectors: changing them would move every mesh to another shard.
+        assert_eq!(stable_hash(""), 0xcbf2_9ce4_8422_2325);
+        assert_eq!(stable_hash("a"), 0xaf63_dc4c_8601_ec8c);
+        assert_eq!(stable_hash("foobar"), 0x8594_4171_f739_67e8);
+    }
+
+    #[test]
+    fn shards_partition_the_corpus_and_are_balanced() {
+        let all = meshes(1000);
+        for count in [1u32, 2, 3, 8, 64] {
+            let mut seen = BTreeSet::new();
+            for index in 0..count {
+                let part = Shard::new(index, count).unwrap().select(&all);
+                if count <= 8 {
+                    let ideal = all.len() as f64 / f64::from(count);
+                    assert!(
+                        (part.len() as f64 - ideal).abs() < 0.25 * ideal,
+                        "shard {index}/{count} has {} meshes",
+                        part.len()
+                    );
+                }
+                for m in part {
+                    assert!(seen.insert(m.rel.clone()), "{} in two shards", m.rel);
+                }
+            }
+            assert_eq!(seen.len(), all.len());
+        }
+    }
+
+    #[test]
+    fn adding_meshes_moves_none_of_the_others() {
+        let before = meshes(200);
+        let mut after = before.clone();
+        after.extend((0..50).map(|i| CorpusMesh::new(Path::new("/c"), &format!("new/{i}.glb"))));
+        after.sort();
+        for k in 0..5 {
+            let shard = Shard::new(k, 5).unwrap();
+            for m in &before {
+                let later = after.iter().find(|a| a.rel == m.rel).unwrap();
+                assert_eq!(shard.contains(&m.rel), shard.contains(&later.rel));
+            }
+        }
+    }
+
+    #[test]
+    fn bad_shards_are_refused_with_the_reason() {
+        for (value, needle) in [
+            ("3/3", "not below"),
+            ("0/0", "at least 1"),
+            ("x/2", "whole number"),
+            ("1", "K/N"),
+            ("-1/4", "whole number"),
+        ] {
+            let e = Shard::parse(value).unwrap_err().to_string();
+            assert!(e.contains(needle), "{value}: {e}");
+        }
+        assert_eq!(Shard::parse(" 2/8 ").unwrap(), Shard { index: 2, count: 8 });
+    }
+
+    #[test]
+    fn engines_variables_give_the_shard() {
+        let none = Shard::from_env(env(&[]), None).unwrap();
+        assert!(none.is_none());
+        let slurm = env(&[
+            ("SLURM_ARRAY_TASK_ID", "2"),
+            ("SLURM_ARRAY_TASK_COUNT", "3"),
+            ("SLURM_ARRAY_TASK_MIN", "0"),
+            ("SLURM_ARRAY_TASK_MAX", "2"),
+        ]);
+        let (s, from) = Shard::from_env(slurm, None).unwrap().unwrap();
+        assert_eq!(s, Shard { index: 2, count: 3 });
+        assert!(from.contains("Slurm"));
+        // --array=1-8: ids start at 1.
+        let one_based = env(&[
+            ("SLURM_ARRAY_TASK_ID", "8"),
+            ("SLURM_ARRAY_TASK_MIN", "1"),
+            ("SLURM_ARRAY_TASK_MAX", "8"),
+        ]);
+        assert_eq!(
+            Shard::from_env(one_based, None).unwrap().unwrap().0,
+            Shard { index: 7, count: 8 }
+        );
+        // --array=0-14:2 gives ids 0, 2, ..., 14: eight tasks.
+        let stepped = env(&[
+            ("SLURM_ARRAY_TASK_ID", "6"),
+            ("SLURM_ARRAY_TASK_MIN", "0"),
+            ("SLURM_ARRAY_TASK_MAX", "14"),
+            ("SLURM_ARRAY_TASK_STEP", "2"),
+        ]);
+        assert_eq!(
+            Shard::from_env(stepped, None).unwrap().unwrap().0,
+            Shard { index: 3, count: 8 }
+        );
+        // A stated count keeps a task resubmitted alone (`--array=5`) in shard 5 of 8.
+        let alone = env(&[
+            ("SLURM_ARRAY_TASK_ID", "5"),
+            ("SLURM_ARRAY_TASK_COUNT", "1"),
+            ("SLURM_ARRAY_TASK_MIN", "5"),
+            ("SLURM_ARRAY_TASK_MAX", "5"),
+            ("HWSDF_SHARDS", "8"),
+        ]);
+        assert_eq!(
+            Shard::from_env(alone, None).unwrap().unwrap().0,
+            Shard { index: 5, count: 8 }
+        );
+        let k8s = env(&[("JOB_COMPLETION_INDEX", "4"), ("HWSDF_SHARDS", "5")]);
+        assert_eq!(
+            Shard::from_env(&k8s, None).unwrap().unwrap().0,
+            Shard { index: 4, count: 5 }
+        );
+        // --shards wins over HWSDF_SHARDS.
+        assert_eq!(
+            Shard::from_env(&k8s, Some(10)).unwrap().unwrap().0,
+            Shard {
+                index: 4,
+                count: 10
+            }
+        );
+        for (vars, needle) in [
+            (vec![("JOB_COMPLETION_INDEX", "4")], "--shards"),
+            (
+                vec![("JOB_COMPLETION_INDEX", "5"), ("HWSDF_SHARDS", "5")],
+                "not below",
+            ),
+            (vec![("SLURM_ARRAY_TASK_ID", "x")], "whole number"),
+            (vec![("SLURM_ARRAY_TASK_ID", "1")], "SLURM_ARRAY_TASK_COUNT"),
+            (
+                vec![("SLURM_ARRAY_TASK_ID", "8"), ("HWSDF_SHARDS", "8")],
+                "not below",
+            ),
+        ] {
+            let e = Shard::from_env(env(&vars), None).unwrap_err().to_string();
+            assert!(e.contains(needle), "{vars:?}: {e}");
+        }
+    }
+
+    #[test]
+    fn names_are_unique_per_mesh_and_model() {
+        let rels = [
+            "a.obj",
+            "x/a.obj",
+            "x_a.obj",
+            "y/x/a.obj",
+            "a b.obj",
+            "a_b.obj",
+            "ünï.obj",
+            "../up.obj",
+        ];
+        let mut stems = BTreeSet::new();
+        for rel in rels {
+            for model in [ModelKind::Siren, ModelKind::Nglod] {
+                let stem = StateDir::stem(rel, model);
+                assert!(!stem.contains('/') && !stem.starts_with('.'), "{stem}");
+                assert!(
+                    stems.insert(stem.clone()),
+                    "{rel} {model:?} -> {stem} twice"
+                );
+            }
+        }
+        // Flat corpora keep the names earlier versions wrote, so old runs resume.
+        assert_eq!(
+            StateDir::stem("spot.obj", ModelKind::Nglod),
+            "spot.obj.nglod"
+        );
+    }
+
+    #[test]
+    fn walk_recurses_and_a_list_is_relative_to_itself() {
+        let root = std::env::temp_dir().join(format!("hwsdf-corpus-walk-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&root);
+        for f in [
+            "a.obj",
+            "sub/b.GLB",
+            "sub/deep/c.gltf",
+            "sub/notes.txt",
+            ".hidden/d.obj",
+        ] {
+            let p = root.join(f);
+            std::fs::create_dir_all(p.parent().unwrap()).unwrap();
+            std::fs::write(&p, "").unwrap();
+        }
+        let rels: Vec<String> = walk(&root).unwrap().into_iter().map(|m| m.rel).collect();
+        assert_eq!(rels, ["a.obj", "sub/b.GLB", "sub/deep/c.gltf"]);
+        std::fs::write(
+            root.join("sub/list.txt"),
+            "# meshes\nb.GLB\n\n./deep/c.gltf\nb.GLB\n",
+        )
+        .unwrap();
+        let listed = read_list(&root.join("sub/list.txt")).unwrap();
+        assert_eq!(listed.len(), 2);
+        assert_eq!(listed[0].rel, "b.GLB");
+        assert_eq!(listed[0].path, root.join("sub/b.GLB"));
+        assert_eq!(listed[1].rel, "deep/c.gltf");
+        assert!(matches!(
+            walk(&root.join("sub/deep/nothing")),
+            Err(CorpusError::Io { .. })
+        ));
+        std::fs::create_dir_all(root.join("empty")).unwrap();
+        assert!(matches!(
+            walk(&root.join("empty")),
+            Err(CorpusError::Empty(_))
+        ));
+        std::fs::remove_dir_all(&root).unwrap();
+    }
+
+    #[test]
+    fn a_corrupt_record_is_never_merged() {
+        let root = std::env::temp_dir().join(format!("hwsdf-corpus-merge-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&root);
+        let state = StateDir::for_table(&root.join("results.md"));
+        state.create().unwrap();
+        let all = vec![
+            CorpusMesh::new(&root, "a.obj"),
+            CorpusMesh::new(&root, "b.obj"),
+            CorpusMesh::new(&root, "c.obj"),
+        ];
+        let failed = Entry::Failed {
+            mesh: "a.obj".into(),
+            model: "nglod".into(),
+            error: "no triangles".into(),
+        };
+        state.write("a.obj", ModelKind::Nglod, &failed).unwrap();
+        // What a writer killed half-way through a file would leave, if it wrote in place.
+        std::fs::write(state.record("b.obj", ModelKind::Nglod), "{\"mesh\": \"b.o").unwrap();
+        let m = merge(&state, &all, &[ModelKind::Nglod]);
+        assert_eq!((m.expected, m.done(), m.missing), (3, 0, 2));
+        assert_eq!(m.failed(), vec![("a.obj", "nglod", "no triangles")]);
+        assert_eq!(m.corrupt.len(), 1);
+        assert!(matches!(
+            state.read("b.obj", ModelKind::Nglod),
+            Record::Corrupt(_)
+        ));
+        let table = m.markdown();
+        assert!(
+            table.contains("0 of 3 done, 1 failed, 2 not yet run"),
+            "{table}"
+        );
+        assert!(table.contains("| a.obj | failed: no triangles"), "{table}");
+        assert!(!table.contains("b.obj"), "{table}");
+        std::fs::remove_dir_all(&root).unwrap();
+    }
+}
