@@ -63,6 +63,15 @@ struct EvalScratch {
     bind_group: wgpu::BindGroup,
 }
 
+/// The inference kernel bound to caller buffers (see [`NglodGpu::eval_binding`]).
+pub(crate) struct NglodEvalBinding {
+    pipeline: wgpu::ComputePipeline,
+    uniforms: wgpu::Buffer,
+    bind_group: wgpu::BindGroup,
+    /// The point count and level the uniforms hold.
+    written: Option<(u32, usize)>,
+}
+
 /// An NGLOD model on the GPU: the flat parameter buffer, its gradient buffer (the layout of
 /// [`NglodConfig::layout`], shared with [`crate::Adam`]) and the pipelines.
 pub struct NglodGpu {
@@ -295,6 +304,70 @@ impl NglodGpu {
             }
         }
         Ok((result, timer.map(|_| gpu_ns)))
+    }
+
+    /// The inference kernel bound to a caller's `input` (3 floats per normalised point) and
+    /// `output` (1 float per point, or with `gradients` 4: value and gradient), for
+    /// [`NglodGpu::record_eval`]. Holds its own small uniform buffer for the point count.
+    pub(crate) fn eval_binding(
+        &self,
+        gpu: &GpuContext,
+        input: &wgpu::Buffer,
+        output: &wgpu::Buffer,
+        gradients: bool,
+    ) -> Result<NglodEvalBinding, NglodError> {
+        let entry_point = if gradients { "forward_grad" } else { "forward" };
+        let pipeline = gpu.pipeline(&shaders::NGLOD_FORWARD, entry_point, &self.constants)?;
+        let uniforms = gpu.uniform("nglod query uniforms", &self.eval_uniforms(0, 0));
+        let bind_group = gpu.device().create_bind_group(&wgpu::BindGroupDescriptor {
+            label: Some("nglod query"),
+            layout: &pipeline.get_bind_group_layout(0),
+            entries: &[
+                entry(0, &uniforms),
+                entry(1, &self.params),
+                entry(2, input),
+                entry(3, output),
+                entry(4, &self.mlp),
+            ],
+        });
+        Ok(NglodEvalBinding {
+            pipeline,
+            uniforms,
+            bind_group,
+            written: None,
+        })
+    }
+
+    /// Records the evaluation of the first `n` points of `binding`'s input into its output
+    /// with the first `lod` levels, into `enc` (the serving path, [`crate::query`]). The point
+    /// count and level go through the queue when they change, so they take effect at the next
+    /// submission: record one binding at most once per submission.
+    pub(crate) fn record_eval(
+        &self,
+        gpu: &GpuContext,
+        enc: &mut wgpu::CommandEncoder,
+        binding: &mut NglodEvalBinding,
+        n: u32,
+        lod: Option<usize>,
+    ) -> Result<(), NglodError> {
+        let k = self.config.lod(lod)?;
+        if n == 0 {
+            return Ok(());
+        }
+        if binding.written != Some((n, k)) {
+            gpu.write(&binding.uniforms, &[self.eval_uniforms(n, k)])?;
+            binding.written = Some((n, k));
+        }
+        self.record_mlp_copy(enc);
+        let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
+            label: Some("nglod query"),
+            timestamp_writes: None,
+        });
+        pass.set_pipeline(&binding.pipeline);
+        pass.set_bind_group(0, &binding.bind_group, &[]);
+        let (x, y) = gpu.dispatch_size(n.div_ceil(WG));
+        pass.dispatch_workgroups(x, y, 1);
+        Ok(())
     }
 
     /// Copies the MLP block of the parameters into the uniform buffer the kernels read it from.
