@@ -14,6 +14,8 @@ struct Uniforms {
     _pad: u32,
     // Per level: (resolution r, offset of the grid in params, unused, unused).
     levels: array<vec4<u32>, 8>,
+    // The serving entry points (query, query_grad): xyz the mesh's centre, w its scale.
+    query: vec4<f32>,
 }
 
 const WG: u32 = 64u;
@@ -50,7 +52,11 @@ fn forward(
         return;
     }
     let p = vec3<f32>(points[3u * idx], points[3u * idx + 1u], points[3u * idx + 2u]);
+    out[idx] = value_at(p);
+}
 
+// The network's value at a normalised point.
+fn value_at(p: vec3<f32>) -> f32 {
     var z: array<f32, MAX_F>;
     for (var f = 0u; f < F; f++) {
         z[f] = 0.0;
@@ -86,24 +92,13 @@ fn forward(
         }
         o += mlp_at(w1 + j) * max(h, 0.0);
     }
-    out[idx] = o;
+    return o;
 }
 
-// Value and gradient per point for the serving path's normals: out[4 idx] = value,
-// out[4 idx + 1..4] = dΦ/dp. The gradient differentiates the trilinear weights (zero along an
-// axis where the point is clamped, as on the CPU and in the embedded WGSL) and the active ReLUs.
-@compute @workgroup_size(WG)
-fn forward_grad(
-    @builtin(workgroup_id) wid: vec3<u32>,
-    @builtin(num_workgroups) nwg: vec3<u32>,
-    @builtin(local_invocation_index) lid: u32,
-) {
-    let idx = (wid.y * nwg.x + wid.x) * WG + lid;
-    if idx >= u.n_points {
-        return;
-    }
-    let p = vec3<f32>(points[3u * idx], points[3u * idx + 1u], points[3u * idx + 2u]);
-
+// The gradient differentiates the trilinear weights (zero along an axis where the point is
+// clamped, as on the CPU and in the embedded WGSL) and the active ReLUs.
+// The value (x) and the gradient (yzw) at a normalised point.
+fn value_grad_at(p: vec3<f32>) -> vec4<f32> {
     var z: array<f32, MAX_F>;
     var dz: array<vec3<f32>, MAX_F>;
     for (var f = 0u; f < F; f++) {
@@ -154,8 +149,55 @@ fn forward_grad(
             }
         }
     }
-    out[4u * idx] = o;
-    out[4u * idx + 1u] = grad.x;
-    out[4u * idx + 2u] = grad.y;
-    out[4u * idx + 3u] = grad.z;
+    return vec4<f32>(o, grad);
+}
+
+// The serving path (crates/sdf-nn/src/query.rs) in one dispatch: `points` holds vec4 points in
+// mesh coordinates (xyz), `out` receives the distance in mesh units with NeuralSdf's rule outside
+// the box, d = (Φ(clamp(x)) + |x - clamp(x)|) / scale, for x the normalised point.
+@compute @workgroup_size(WG)
+fn query(
+    @builtin(workgroup_id) wid: vec3<u32>,
+    @builtin(num_workgroups) nwg: vec3<u32>,
+    @builtin(local_invocation_index) lid: u32,
+) {
+    let idx = (wid.y * nwg.x + wid.x) * WG + lid;
+    if idx >= u.n_points {
+        return;
+    }
+    let x = (vec3<f32>(points[4u * idx], points[4u * idx + 1u], points[4u * idx + 2u]) - u.query.xyz) * u.query.w;
+    let c = clamp(x, vec3<f32>(-1.0), vec3<f32>(1.0));
+    out[idx] = (value_at(c) + length(x - c)) / u.query.w;
+}
+
+// `query` with normals: out[4 idx..] = (distance, unit normal), the normal pointing away from the
+// box outside it and along the normalised gradient inside.
+@compute @workgroup_size(WG)
+fn query_grad(
+    @builtin(workgroup_id) wid: vec3<u32>,
+    @builtin(num_workgroups) nwg: vec3<u32>,
+    @builtin(local_invocation_index) lid: u32,
+) {
+    let idx = (wid.y * nwg.x + wid.x) * WG + lid;
+    if idx >= u.n_points {
+        return;
+    }
+    let x = (vec3<f32>(points[4u * idx], points[4u * idx + 1u], points[4u * idx + 2u]) - u.query.xyz) * u.query.w;
+    let c = clamp(x, vec3<f32>(-1.0), vec3<f32>(1.0));
+    let away = x - c;
+    let outside = length(away);
+    let vg = value_grad_at(c);
+    var n = vec3<f32>(0.0);
+    if outside > 0.0 {
+        n = away / outside;
+    } else {
+        let len = length(vg.yzw);
+        if len > 0.0 {
+            n = vg.yzw / len;
+        }
+    }
+    out[4u * idx] = (vg.x + outside) / u.query.w;
+    out[4u * idx + 1u] = n.x;
+    out[4u * idx + 2u] = n.y;
+    out[4u * idx + 3u] = n.z;
 }

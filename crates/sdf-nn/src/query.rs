@@ -154,16 +154,8 @@ pub struct QueryBuffers {
     space: QuerySpace,
     points: wgpu::Buffer,
     results: wgpu::Buffer,
-    net_in: wgpu::Buffer,
-    net_out: wgpu::Buffer,
     staging: wgpu::Buffer,
-    uniforms: wgpu::Buffer,
-    /// The point count the uniforms hold.
-    written: Option<u32>,
-    prepare: (wgpu::ComputePipeline, wgpu::BindGroup),
-    finish: (wgpu::ComputePipeline, wgpu::BindGroup),
-    /// NGLOD's kernel bound to `net_in` and `net_out` (SIREN copies through its workspace).
-    nglod: Option<NglodEvalBinding>,
+    kernels: Kernels,
     /// Host copy of the points, padded to vec4, reused between uploads.
     host: Vec<[f32; 4]>,
     map: Arc<Mutex<MapState>>,
@@ -180,6 +172,26 @@ impl std::fmt::Debug for QueryBuffers {
             .field("space", &self.space)
             .finish_non_exhaustive()
     }
+}
+
+/// How a query runs on the GPU.
+enum Kernels {
+    /// NGLOD: one dispatch of its serving kernel, straight from `points` to `results`.
+    Nglod(NglodEvalBinding),
+    /// SIREN: `prepare` (points to the network's input rows), the network's launches (through
+    /// its workspace), `finish` (its values and gradients to distances and normals).
+    Staged(Box<Stages>),
+}
+
+/// The two ends of `shaders/query.wgsl` around a network's own kernels.
+struct Stages {
+    net_in: wgpu::Buffer,
+    net_out: wgpu::Buffer,
+    uniforms: wgpu::Buffer,
+    /// The point count the uniforms hold.
+    written: Option<u32>,
+    prepare: (wgpu::ComputePipeline, wgpu::BindGroup),
+    finish: (wgpu::ComputePipeline, wgpu::BindGroup),
 }
 
 /// A submitted query; redeem it with [`QueryBuffers::wait`].
@@ -411,61 +423,75 @@ impl NeuralSdf {
         let label = desc.label.unwrap_or("hwsdf query");
         let cap = u64::from(desc.capacity);
         let normals = desc.outputs == QueryOutputs::ValuesAndNormals;
-        // SIREN takes its gradient as three tangent rows per point.
-        let streams = normals && self.architecture() == crate::siren::ARCHITECTURE;
         let out_floats = u64::from(desc.outputs.floats_per_point());
-        let in_floats = if streams { 12 } else { 3 };
         let storage =
             |what: &str, bytes: u64| gpu.storage_zeroed(&format!("{label} {what}"), bytes);
         let points = storage("points", cap * 16)?;
         let results = storage("results", cap * out_floats * 4)?;
-        let net_in = storage("network input", cap * in_floats * 4)?;
-        let net_out = storage("network output", cap * out_floats * 4)?;
         let staging = gpu.device().create_buffer(&wgpu::BufferDescriptor {
             label: Some(&format!("{label} staging")),
             size: cap * out_floats * 4,
             usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
             mapped_at_creation: false,
         });
-        let (center, scale) = match desc.space {
+        let transform = match desc.space {
             QuerySpace::Mesh => (self.normalization().center, self.normalization().scale),
             QuerySpace::Normalized => (Vec3::ZERO, 1.0),
         };
-        let uniforms = gpu.uniform(
-            &format!("{label} uniforms"),
-            &QueryUniforms {
-                n_points: 0,
-                streams: streams.into(),
-                normals: normals.into(),
-                scale,
-                center: center.extend(0.0).to_array(),
-            },
-        );
-        let bind = |entry: &str, entries: &[(u32, &wgpu::Buffer)]| {
-            let pipeline = gpu.pipeline(&shaders::QUERY, entry, &[])?;
-            let entries: Vec<wgpu::BindGroupEntry<'_>> = entries
-                .iter()
-                .map(|&(binding, b)| wgpu::BindGroupEntry {
-                    binding,
-                    resource: b.as_entire_binding(),
-                })
-                .collect();
-            let group = gpu.device().create_bind_group(&wgpu::BindGroupDescriptor {
-                label: Some(entry),
-                layout: &pipeline.get_bind_group_layout(0),
-                entries: &entries,
-            });
-            Ok::<_, GpuError>((pipeline, group))
-        };
-        let prepare = bind("prepare", &[(0, &uniforms), (1, &points), (2, &net_in)])?;
-        let finish = bind(
-            "finish",
-            &[(0, &uniforms), (1, &points), (3, &net_out), (4, &results)],
-        )?;
         let nglod = self.with_gpu(gpu, |net, _| match net {
-            GpuNetwork::Nglod(m) => Ok(Some(m.eval_binding(gpu, &net_in, &net_out, normals)?)),
+            GpuNetwork::Nglod(m) => Ok(Some(
+                m.eval_binding(gpu, &points, &results, normals, transform)?,
+            )),
             GpuNetwork::Siren(_) => Ok(None),
         })?;
+        let kernels = match nglod {
+            Some(binding) => Kernels::Nglod(binding),
+            None => {
+                // SIREN takes its gradient as three tangent rows per point.
+                let in_floats = if normals { 12 } else { 3 };
+                let net_in = storage("network input", cap * in_floats * 4)?;
+                let net_out = storage("network output", cap * out_floats * 4)?;
+                let uniforms = gpu.uniform(
+                    &format!("{label} uniforms"),
+                    &QueryUniforms {
+                        n_points: 0,
+                        streams: normals.into(),
+                        normals: normals.into(),
+                        scale: transform.1,
+                        center: transform.0.extend(0.0).to_array(),
+                    },
+                );
+                let bind = |entry: &str, entries: &[(u32, &wgpu::Buffer)]| {
+                    let pipeline = gpu.pipeline(&shaders::QUERY, entry, &[])?;
+                    let entries: Vec<wgpu::BindGroupEntry<'_>> = entries
+                        .iter()
+                        .map(|&(binding, b)| wgpu::BindGroupEntry {
+                            binding,
+                            resource: b.as_entire_binding(),
+                        })
+                        .collect();
+                    let group = gpu.device().create_bind_group(&wgpu::BindGroupDescriptor {
+                        label: Some(entry),
+                        layout: &pipeline.get_bind_group_layout(0),
+                        entries: &entries,
+                    });
+                    Ok::<_, GpuError>((pipeline, group))
+                };
+                let prepare = bind("prepare", &[(0, &uniforms), (1, &points), (2, &net_in)])?;
+                let finish = bind(
+                    "finish",
+                    &[(0, &uniforms), (1, &points), (3, &net_out), (4, &results)],
+                )?;
+                Kernels::Staged(Box::new(Stages {
+                    net_in,
+                    net_out,
+                    uniforms,
+                    written: None,
+                    prepare,
+                    finish,
+                }))
+            }
+        };
         Ok(QueryBuffers {
             model: self.id(),
             device: gpu.device().clone(),
@@ -474,14 +500,8 @@ impl NeuralSdf {
             space: desc.space,
             points,
             results,
-            net_in,
-            net_out,
             staging,
-            uniforms,
-            written: None,
-            prepare,
-            finish,
-            nglod,
+            kernels,
             host: Vec::new(),
             map: Arc::new(Mutex::new(MapState::Idle)),
             generation: 0,
@@ -589,47 +609,41 @@ impl NeuralSdf {
         if n == 0 {
             return Ok(());
         }
-        if buffers.written != Some(n) {
-            // n_points is the first field of the uniforms.
-            gpu.queue()
-                .write_buffer(&buffers.uniforms, 0, bytemuck::bytes_of(&n));
-            buffers.written = Some(n);
-        }
         let normals = buffers.outputs == QueryOutputs::ValuesAndNormals;
-        let (x, y) = gpu.dispatch_size(n.div_ceil(WG));
         let lod = self.lod();
         self.with_gpu(gpu, |net, timer| {
             let timer: Option<&GpuTimer> = timer.filter(|_| timed);
-            {
-                let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
-                    label: Some("hwsdf query prepare"),
-                    timestamp_writes: timer.map(|t| t.writes(true, false)),
-                });
-                pass.set_pipeline(&buffers.prepare.0);
-                pass.set_bind_group(0, &buffers.prepare.1, &[]);
-                pass.dispatch_workgroups(x, y, 1);
-            }
-            match net {
-                GpuNetwork::Siren(s) => {
-                    s.record_eval(gpu, enc, &buffers.net_in, &buffers.net_out, n, normals)?
+            match (net, &mut buffers.kernels) {
+                (GpuNetwork::Nglod(m), Kernels::Nglod(binding)) => {
+                    m.record_eval(gpu, enc, binding, n, lod, timer)?
                 }
-                GpuNetwork::Nglod(m) => {
-                    let binding = buffers
-                        .nglod
-                        .as_mut()
-                        .ok_or(QueryError::Foreign)
-                        .map_err(NeuralSdfError::from)?;
-                    m.record_eval(gpu, enc, binding, n, lod)?
+                (GpuNetwork::Siren(s), Kernels::Staged(st)) => {
+                    if st.written != Some(n) {
+                        // n_points is the first field of the uniforms.
+                        gpu.queue()
+                            .write_buffer(&st.uniforms, 0, bytemuck::bytes_of(&n));
+                        st.written = Some(n);
+                    }
+                    let (x, y) = gpu.dispatch_size(n.div_ceil(WG));
+                    {
+                        let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                            label: Some("hwsdf query prepare"),
+                            timestamp_writes: timer.map(|t| t.writes(true, false)),
+                        });
+                        pass.set_pipeline(&st.prepare.0);
+                        pass.set_bind_group(0, &st.prepare.1, &[]);
+                        pass.dispatch_workgroups(x, y, 1);
+                    }
+                    s.record_eval(gpu, enc, &st.net_in, &st.net_out, n, normals)?;
+                    let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                        label: Some("hwsdf query finish"),
+                        timestamp_writes: timer.map(|t| t.writes(false, true)),
+                    });
+                    pass.set_pipeline(&st.finish.0);
+                    pass.set_bind_group(0, &st.finish.1, &[]);
+                    pass.dispatch_workgroups(x, y, 1);
                 }
-            }
-            {
-                let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
-                    label: Some("hwsdf query finish"),
-                    timestamp_writes: timer.map(|t| t.writes(false, true)),
-                });
-                pass.set_pipeline(&buffers.finish.0);
-                pass.set_bind_group(0, &buffers.finish.1, &[]);
-                pass.dispatch_workgroups(x, y, 1);
+                _ => return Err(QueryError::Foreign.into()),
             }
             if let Some(t) = timer {
                 t.resolve(enc);

@@ -38,6 +38,8 @@ struct EvalUniforms {
     mlp_offset: u32,
     _pad: u32,
     levels: [[u32; 4]; MAX_LEVELS],
+    /// The serving entry points' map from mesh coordinates: centre (xyz) and scale (w).
+    query: [f32; 4],
 }
 
 #[repr(C)]
@@ -68,6 +70,8 @@ pub(crate) struct NglodEvalBinding {
     pipeline: wgpu::ComputePipeline,
     uniforms: wgpu::Buffer,
     bind_group: wgpu::BindGroup,
+    /// Centre (xyz) and scale (w) of the map from mesh coordinates.
+    transform: [f32; 4],
     /// The point count and level the uniforms hold.
     written: Option<(u32, usize)>,
 }
@@ -306,17 +310,21 @@ impl NglodGpu {
         Ok((result, timer.map(|_| gpu_ns)))
     }
 
-    /// The inference kernel bound to a caller's `input` (3 floats per normalised point) and
-    /// `output` (1 float per point, or with `gradients` 4: value and gradient), for
-    /// [`NglodGpu::record_eval`]. Holds its own small uniform buffer for the point count.
+    /// The serving kernel (`query`, or with `gradients` `query_grad`, in
+    /// `shaders/nglod_forward.wgsl`) bound to a caller's `input` (`vec4` points in mesh
+    /// coordinates, mapped to the model's cube by `center` and `scale`) and `output` (the
+    /// distance in mesh units per point, or with `gradients` a `vec4`: distance and unit
+    /// normal), for [`NglodGpu::record_eval`]. The whole query is this one dispatch. Holds its
+    /// own small uniform buffer for the point count.
     pub(crate) fn eval_binding(
         &self,
         gpu: &GpuContext,
         input: &wgpu::Buffer,
         output: &wgpu::Buffer,
         gradients: bool,
+        (center, scale): (Vec3, f32),
     ) -> Result<NglodEvalBinding, NglodError> {
-        let entry_point = if gradients { "forward_grad" } else { "forward" };
+        let entry_point = if gradients { "query_grad" } else { "query" };
         let pipeline = gpu.pipeline(&shaders::NGLOD_FORWARD, entry_point, &self.constants)?;
         let uniforms = gpu.uniform("nglod query uniforms", &self.eval_uniforms(0, 0));
         let bind_group = gpu.device().create_bind_group(&wgpu::BindGroupDescriptor {
@@ -334,6 +342,7 @@ impl NglodGpu {
             pipeline,
             uniforms,
             bind_group,
+            transform: center.extend(scale).to_array(),
             written: None,
         })
     }
@@ -341,7 +350,8 @@ impl NglodGpu {
     /// Records the evaluation of the first `n` points of `binding`'s input into its output
     /// with the first `lod` levels, into `enc` (the serving path, [`crate::query`]). The point
     /// count and level go through the queue when they change, so they take effect at the next
-    /// submission: record one binding at most once per submission.
+    /// submission: record one binding at most once per submission. `timer`, when given,
+    /// brackets the dispatch (resolve it after).
     pub(crate) fn record_eval(
         &self,
         gpu: &GpuContext,
@@ -349,19 +359,24 @@ impl NglodGpu {
         binding: &mut NglodEvalBinding,
         n: u32,
         lod: Option<usize>,
+        timer: Option<&GpuTimer>,
     ) -> Result<(), NglodError> {
         let k = self.config.lod(lod)?;
         if n == 0 {
             return Ok(());
         }
         if binding.written != Some((n, k)) {
-            gpu.write(&binding.uniforms, &[self.eval_uniforms(n, k)])?;
+            let u = EvalUniforms {
+                query: binding.transform,
+                ..self.eval_uniforms(n, k)
+            };
+            gpu.write(&binding.uniforms, &[u])?;
             binding.written = Some((n, k));
         }
         self.record_mlp_copy(enc);
         let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
             label: Some("nglod query"),
-            timestamp_writes: None,
+            timestamp_writes: timer.map(|t| t.writes(true, true)),
         });
         pass.set_pipeline(&binding.pipeline);
         pass.set_bind_group(0, &binding.bind_group, &[]);
@@ -384,6 +399,7 @@ impl NglodGpu {
             mlp_offset: self.layout.w0 as u32,
             _pad: 0,
             levels: level_table(&self.config, &self.layout),
+            query: [0.0, 0.0, 0.0, 1.0],
         }
     }
 
