@@ -1,0 +1,156 @@
+//! The query path a user calls, `NeuralSdf`, against what it is made of, so that a per-call
+//! floor (issue 13) shows up in `cargo bench`:
+//! - `roundtrip/empty`: the smallest submit and readback there is (a 40-byte copy into a
+//!   persistent mappable buffer, map, wait) — the floor no readback query can go below;
+//! - `nglod_<preset>/kernel`: `NglodGpu::eval` (the kernel bench's path);
+//! - `nglod_<preset>/neural_sdf`: `NeuralSdf::eval_normalized`, the path the reports time for
+//!   wall figures;
+//! - `nglod_<preset>/neural_sdf_timed`: `NeuralSdf::eval_normalized_timed`, the separate call
+//!   the reports take kernel times from;
+//! - `nglod_<preset>/serve_submit_wait`: the serving API, `submit_query` then `wait`, into
+//!   caller-owned buffers and a reused host vector;
+//! - `nglod_<preset>/old_report_path`: the report's path before issue 13, rebuilt from the
+//!   public pieces it was made of (a rayon clamp to the box, `NglodGpu::eval_timed` with its
+//!   staging buffer per call, a second submission for the readback and a second wait for the
+//!   timestamps), kept as the reference the floor is measured against;
+//!
+//! each at 10 points (where only the floor is left) and at 3000.
+//!
+//! Run: `cargo bench --bench query`. `QUERY_BENCH_PRESETS=small` runs one preset.
+
+use std::time::Duration;
+
+use criterion::{BenchmarkId, Criterion, Throughput};
+use glam::Vec3;
+use rayon::prelude::*;
+use sdf_nn::gpu::GpuTimer;
+use sdf_nn::nglod::ScatterMode;
+use sdf_nn::{
+    GpuContext, NeuralSdf, Nglod, NglodConfig, NglodGpu, Normalization, QueryBuffersDescriptor,
+    QuerySpace,
+};
+
+fn presets() -> Vec<(&'static str, NglodConfig)> {
+    let which = std::env::var("QUERY_BENCH_PRESETS").unwrap_or_default();
+    [
+        ("small", NglodConfig::small()),
+        ("default", NglodConfig::default_preset()),
+    ]
+    .into_iter()
+    .filter(|(n, _)| which.is_empty() || which.split(',').any(|w| w == *n))
+    .collect()
+}
+
+/// A submit of one 40-byte copy and its readback through a persistent mappable buffer.
+fn empty_roundtrip(c: &mut Criterion, gpu: &GpuContext) {
+    let src = gpu.storage_zeroed("bench src", 40).unwrap();
+    let staging = gpu.device().create_buffer(&wgpu::BufferDescriptor {
+        label: Some("bench staging"),
+        size: 40,
+        usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+        mapped_at_creation: false,
+    });
+    let mut g = c.benchmark_group("roundtrip");
+    g.sample_size(20)
+        .warm_up_time(Duration::from_secs(1))
+        .measurement_time(Duration::from_secs(3));
+    g.bench_function("empty", |b| {
+        b.iter(|| {
+            let mut enc = gpu.device().create_command_encoder(&Default::default());
+            enc.copy_buffer_to_buffer(&src, 0, &staging, 0, 40);
+            gpu.queue().submit([enc.finish()]);
+            let slice = staging.slice(..);
+            slice.map_async(wgpu::MapMode::Read, |r| r.unwrap());
+            gpu.wait().unwrap();
+            let v: Vec<f32> = bytemuck::pod_collect_to_vec(&slice.get_mapped_range().unwrap());
+            staging.unmap();
+            v
+        })
+    });
+    g.finish();
+}
+
+fn nglod(c: &mut Criterion, gpu: &GpuContext) {
+    for (name, cfg) in presets() {
+        let model = Nglod::new(cfg).unwrap();
+        let net = NglodGpu::new(gpu, &model, ScatterMode::Auto).unwrap();
+        let sdf = NeuralSdf::from_model_file(
+            model.to_model_file(Normalization::identity(), serde_json::Value::Null),
+        )
+        .unwrap();
+        let mut g = c.benchmark_group(format!("nglod_{name}"));
+        g.sample_size(20)
+            .warm_up_time(Duration::from_secs(1))
+            .measurement_time(Duration::from_secs(3));
+        for n in [10usize, 3000] {
+            let pts: Vec<Vec3> = sdf_geom::sample::uniform_box(n, 42);
+            // Compile and allocate outside the timing.
+            net.eval(gpu, &pts, None).unwrap();
+            sdf.eval_normalized(gpu, &pts).unwrap();
+            g.throughput(Throughput::Elements(n as u64));
+            g.bench_with_input(BenchmarkId::new("kernel", n), &pts, |b, pts| {
+                b.iter(|| net.eval(gpu, pts, None).unwrap())
+            });
+            g.bench_with_input(BenchmarkId::new("neural_sdf", n), &pts, |b, pts| {
+                b.iter(|| sdf.eval_normalized(gpu, pts).unwrap())
+            });
+            g.bench_with_input(BenchmarkId::new("neural_sdf_timed", n), &pts, |b, pts| {
+                b.iter(|| sdf.eval_normalized_timed(gpu, pts).unwrap())
+            });
+            let mut buffers = sdf
+                .create_query_buffers(
+                    gpu,
+                    &QueryBuffersDescriptor {
+                        capacity: n as u32,
+                        space: QuerySpace::Normalized,
+                        ..Default::default()
+                    },
+                )
+                .unwrap();
+            let mut out = Vec::with_capacity(n);
+            g.bench_with_input(BenchmarkId::new("serve_submit_wait", n), &pts, |b, pts| {
+                b.iter(|| {
+                    let ticket = sdf.submit_query(gpu, &mut buffers, pts).unwrap();
+                    out.clear();
+                    buffers.wait(gpu, ticket).unwrap().extend_values(&mut out);
+                })
+            });
+            if let Some(timer) = GpuTimer::new(gpu) {
+                g.bench_with_input(BenchmarkId::new("old_report_path", n), &pts, |b, pts| {
+                    b.iter(|| old_report_path(gpu, &net, &timer, pts))
+                });
+            }
+        }
+        g.finish();
+    }
+}
+
+/// `NeuralSdf::eval_normalized_timed` as it was at ff1c4ae for NGLOD (see the module docs).
+fn old_report_path(
+    gpu: &GpuContext,
+    net: &NglodGpu,
+    timer: &GpuTimer,
+    points: &[Vec3],
+) -> (Vec<f32>, u64) {
+    let (clamped, outside): (Vec<Vec3>, Vec<f32>) = points
+        .par_iter()
+        .map(|&p| {
+            let c = p.clamp(Vec3::NEG_ONE, Vec3::ONE);
+            (c, p.distance(c))
+        })
+        .unzip();
+    let (mut d, ns) = net.eval_timed(gpu, &clamped, None, timer).unwrap();
+    for (d, o) in d.iter_mut().zip(outside) {
+        *d += o;
+    }
+    (d, ns)
+}
+
+fn main() {
+    let gpu = GpuContext::shared().expect("a GPU adapter");
+    eprintln!("adapter: {}", gpu.describe());
+    let mut c = Criterion::default().configure_from_args();
+    empty_roundtrip(&mut c, gpu);
+    nglod(&mut c, gpu);
+    c.final_summary();
+}
