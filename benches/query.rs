@@ -17,6 +17,11 @@
 //! each at 10 points (where only the floor is left) and at 3000.
 //!
 //! Run: `cargo bench --bench query`. `QUERY_BENCH_PRESETS=small` runs one preset.
+//!
+//! On a shared, loaded machine criterion's separate runs drift with the load. Set
+//! `QUERY_BENCH_INTERLEAVED=ROUNDS` to run the variants instead in turn, one call each per round,
+//! so that every variant sees the same load, and print the minimum, the 10th percentile and the
+//! median of each (no criterion).
 
 use std::time::Duration;
 
@@ -146,9 +151,170 @@ fn old_report_path(
     (d, ns)
 }
 
+/// The variants in turn, `rounds` calls each (see the module docs).
+fn interleaved(gpu: &GpuContext, rounds: usize) {
+    let src = gpu.storage_zeroed("bench src", 40).unwrap();
+    let staging = gpu.device().create_buffer(&wgpu::BufferDescriptor {
+        label: Some("bench staging"),
+        size: 40,
+        usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+        mapped_at_creation: false,
+    });
+    let timer = GpuTimer::new(gpu);
+    // A dispatch that does nothing (query.wgsl's `prepare` with a point count of 0), to split a
+    // query's cost into the submit+readback, one kernel launch, and the kernel's work.
+    let empty_pipeline = gpu
+        .pipeline(&sdf_nn::shaders::QUERY, "prepare", &[])
+        .unwrap();
+    let u = gpu.uniform("bench empty uniforms", &[0u32; 8]);
+    let (p, q) = (
+        gpu.storage_zeroed("bench p", 16).unwrap(),
+        gpu.storage_zeroed("bench q", 12).unwrap(),
+    );
+    let empty_group = gpu.device().create_bind_group(&wgpu::BindGroupDescriptor {
+        label: Some("bench empty"),
+        layout: &empty_pipeline.get_bind_group_layout(0),
+        entries: &[
+            wgpu::BindGroupEntry {
+                binding: 0,
+                resource: u.as_entire_binding(),
+            },
+            wgpu::BindGroupEntry {
+                binding: 1,
+                resource: p.as_entire_binding(),
+            },
+            wgpu::BindGroupEntry {
+                binding: 2,
+                resource: q.as_entire_binding(),
+            },
+        ],
+    });
+    for (name, cfg) in presets() {
+        let model = Nglod::new(cfg).unwrap();
+        let net = NglodGpu::new(gpu, &model, ScatterMode::Auto).unwrap();
+        let sdf = NeuralSdf::from_model_file(
+            model.to_model_file(Normalization::identity(), serde_json::Value::Null),
+        )
+        .unwrap();
+        for n in [10usize, 3000] {
+            let pts: Vec<Vec3> = sdf_geom::sample::uniform_box(n, 42);
+            let mut buffers = sdf
+                .create_query_buffers(
+                    gpu,
+                    &QueryBuffersDescriptor {
+                        capacity: n as u32,
+                        space: QuerySpace::Normalized,
+                        ..Default::default()
+                    },
+                )
+                .unwrap();
+            let mut out = Vec::with_capacity(n);
+            let mut variants: Vec<(&str, Box<dyn FnMut()>)> = vec![
+                (
+                    "roundtrip/empty",
+                    Box::new(|| {
+                        let mut enc = gpu.device().create_command_encoder(&Default::default());
+                        enc.copy_buffer_to_buffer(&src, 0, &staging, 0, 40);
+                        gpu.queue().submit([enc.finish()]);
+                        let slice = staging.slice(..);
+                        slice.map_async(wgpu::MapMode::Read, |r| r.unwrap());
+                        gpu.wait().unwrap();
+                        let v: Vec<f32> =
+                            bytemuck::pod_collect_to_vec(&slice.get_mapped_range().unwrap());
+                        staging.unmap();
+                        std::hint::black_box(v);
+                    }),
+                ),
+                (
+                    "roundtrip/dispatch",
+                    Box::new(|| {
+                        let mut enc = gpu.device().create_command_encoder(&Default::default());
+                        {
+                            let mut pass = enc.begin_compute_pass(&Default::default());
+                            pass.set_pipeline(&empty_pipeline);
+                            pass.set_bind_group(0, &empty_group, &[]);
+                            pass.dispatch_workgroups(1, 1, 1);
+                        }
+                        enc.copy_buffer_to_buffer(&src, 0, &staging, 0, 40);
+                        gpu.queue().submit([enc.finish()]);
+                        let slice = staging.slice(..);
+                        slice.map_async(wgpu::MapMode::Read, |r| r.unwrap());
+                        gpu.wait().unwrap();
+                        let v: Vec<f32> =
+                            bytemuck::pod_collect_to_vec(&slice.get_mapped_range().unwrap());
+                        staging.unmap();
+                        std::hint::black_box(v);
+                    }),
+                ),
+                (
+                    "kernel",
+                    Box::new(|| {
+                        std::hint::black_box(net.eval(gpu, &pts, None).unwrap());
+                    }),
+                ),
+                (
+                    "neural_sdf",
+                    Box::new(|| {
+                        std::hint::black_box(sdf.eval_normalized(gpu, &pts).unwrap());
+                    }),
+                ),
+                (
+                    "neural_sdf_timed",
+                    Box::new(|| {
+                        std::hint::black_box(sdf.eval_normalized_timed(gpu, &pts).unwrap());
+                    }),
+                ),
+                (
+                    "serve_submit_wait",
+                    Box::new(|| {
+                        let ticket = sdf.submit_query(gpu, &mut buffers, &pts).unwrap();
+                        out.clear();
+                        buffers.wait(gpu, ticket).unwrap().extend_values(&mut out);
+                    }),
+                ),
+            ];
+            if let Some(t) = &timer {
+                variants.push((
+                    "old_report_path",
+                    Box::new(|| {
+                        std::hint::black_box(old_report_path(gpu, &net, t, &pts));
+                    }),
+                ));
+            }
+            let mut times: Vec<Vec<f64>> = vec![Vec::with_capacity(rounds); variants.len()];
+            for (_, f) in variants.iter_mut() {
+                f(); // compile and allocate outside the timing
+            }
+            for _ in 0..rounds {
+                for ((_, f), t) in variants.iter_mut().zip(&mut times) {
+                    let start = std::time::Instant::now();
+                    f();
+                    t.push(start.elapsed().as_secs_f64() * 1e6);
+                }
+            }
+            for ((v, _), t) in variants.iter().zip(&mut times) {
+                t.sort_by(f64::total_cmp);
+                println!(
+                    "nglod_{name} n={n:5} {v:18} min {:8.1} µs  p10 {:8.1} µs  median {:8.1} µs",
+                    t[0],
+                    t[t.len() / 10],
+                    t[t.len() / 2]
+                );
+            }
+        }
+    }
+}
+
 fn main() {
     let gpu = GpuContext::shared().expect("a GPU adapter");
     eprintln!("adapter: {}", gpu.describe());
+    if let Some(rounds) = std::env::var("QUERY_BENCH_INTERLEAVED")
+        .ok()
+        .and_then(|s| s.parse::<usize>().ok())
+    {
+        interleaved(gpu, rounds.max(1));
+        return;
+    }
     let mut c = Criterion::default().configure_from_args();
     empty_roundtrip(&mut c, gpu);
     nglod(&mut c, gpu);
