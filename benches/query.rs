@@ -151,6 +151,9 @@ fn old_report_path(
     (d, ns)
 }
 
+/// A named call to time.
+type Variant<'a> = (&'static str, Box<dyn FnMut() + 'a>);
+
 /// The variants in turn, `rounds` calls each (see the module docs).
 fn interleaved(gpu: &GpuContext, rounds: usize) {
     let src = gpu.storage_zeroed("bench src", 40).unwrap();
@@ -209,7 +212,7 @@ fn interleaved(gpu: &GpuContext, rounds: usize) {
                 )
                 .unwrap();
             let mut out = Vec::with_capacity(n);
-            let mut variants: Vec<(&str, Box<dyn FnMut()>)> = vec![
+            let mut variants: Vec<Variant<'_>> = vec![
                 (
                     "roundtrip/empty",
                     Box::new(|| {
