@@ -284,27 +284,80 @@ fn interleaved(gpu: &GpuContext, rounds: usize) {
                     }),
                 ));
             }
-            let mut times: Vec<Vec<f64>> = vec![Vec::with_capacity(rounds); variants.len()];
-            for (_, f) in variants.iter_mut() {
-                f(); // compile and allocate outside the timing
-            }
-            for _ in 0..rounds {
-                for ((_, f), t) in variants.iter_mut().zip(&mut times) {
-                    let start = std::time::Instant::now();
-                    f();
-                    t.push(start.elapsed().as_secs_f64() * 1e6);
-                }
-            }
-            for ((v, _), t) in variants.iter().zip(&mut times) {
-                t.sort_by(f64::total_cmp);
-                println!(
-                    "nglod_{name} n={n:5} {v:18} min {:8.1} µs  p10 {:8.1} µs  median {:8.1} µs",
-                    t[0],
-                    t[t.len() / 10],
-                    t[t.len() / 2]
-                );
-            }
+            report_interleaved(&format!("nglod_{name} n={n:5}"), &mut variants, rounds);
         }
+    }
+}
+
+/// SIREN `small`: its kernel path (`SirenGpu::eval`) against `NeuralSdf`'s wall path and timed
+/// call, in turn like [`interleaved`] (the SIREN target: the wall path adds at most 50 µs
+/// to the kernel time).
+fn interleaved_siren(gpu: &GpuContext, rounds: usize) {
+    let siren = sdf_nn::Siren::new(sdf_nn::SirenConfig::small(), 1).unwrap();
+    let mut net = sdf_nn::SirenGpu::new(gpu, &siren).unwrap();
+    let sdf = NeuralSdf::from_model_file(
+        siren.to_model_file(Normalization::identity(), serde_json::Value::Null),
+    )
+    .unwrap();
+    for n in [10usize, 3000] {
+        let pts: Vec<Vec3> = sdf_geom::sample::uniform_box(n, 42);
+        let mut gpu_ns = Vec::with_capacity(rounds);
+        let mut variants: Vec<Variant<'_>> = vec![
+            (
+                "kernel",
+                Box::new(|| {
+                    std::hint::black_box(net.eval(gpu, &pts).unwrap());
+                }),
+            ),
+            (
+                "neural_sdf",
+                Box::new(|| {
+                    std::hint::black_box(sdf.eval_normalized(gpu, &pts).unwrap());
+                }),
+            ),
+            (
+                "neural_sdf_timed",
+                Box::new(|| {
+                    let (v, ns) = sdf.eval_normalized_timed(gpu, &pts).unwrap();
+                    gpu_ns.extend(ns.map(|ns| ns as f64 / 1e3));
+                    std::hint::black_box(v);
+                }),
+            ),
+        ];
+        report_interleaved(&format!("siren_small n={n:5}"), &mut variants, rounds);
+        drop(variants);
+        if !gpu_ns.is_empty() {
+            gpu_ns.sort_by(f64::total_cmp);
+            println!(
+                "siren_small n={n:5} kernel time (timestamps) median {:8.1} µs",
+                gpu_ns[gpu_ns.len() / 2]
+            );
+        }
+    }
+}
+
+/// Runs `variants` in turn `rounds` times after one untimed call each and prints min, p10 and
+/// median per variant.
+fn report_interleaved(prefix: &str, variants: &mut [Variant<'_>], rounds: usize) {
+    let mut times: Vec<Vec<f64>> = vec![Vec::with_capacity(rounds); variants.len()];
+    for (_, f) in variants.iter_mut() {
+        f(); // compile and allocate outside the timing
+    }
+    for _ in 0..rounds {
+        for ((_, f), t) in variants.iter_mut().zip(&mut times) {
+            let start = std::time::Instant::now();
+            f();
+            t.push(start.elapsed().as_secs_f64() * 1e6);
+        }
+    }
+    for ((v, _), t) in variants.iter().zip(&mut times) {
+        t.sort_by(f64::total_cmp);
+        println!(
+            "{prefix} {v:18} min {:8.1} µs  p10 {:8.1} µs  median {:8.1} µs",
+            t[0],
+            t[t.len() / 10],
+            t[t.len() / 2]
+        );
     }
 }
 
@@ -316,6 +369,7 @@ fn main() {
         .and_then(|s| s.parse::<usize>().ok())
     {
         interleaved(gpu, rounds.max(1));
+        interleaved_siren(gpu, rounds.max(1));
         return;
     }
     let mut c = Criterion::default().configure_from_args();
