@@ -14,6 +14,8 @@ struct Uniforms {
     _pad: u32,
     // Per level: (resolution r, offset of the grid in params, unused, unused).
     levels: array<vec4<u32>, 8>,
+    // The serving entry points (query, query_grad): xyz the mesh's centre, w its scale.
+    query: vec4<f32>,
 }
 
 const WG: u32 = 64u;
@@ -50,7 +52,11 @@ fn forward(
         return;
     }
     let p = vec3<f32>(points[3u * idx], points[3u * idx + 1u], points[3u * idx + 2u]);
+    out[idx] = value_at(p);
+}
 
+// The network's value at a normalised point.
+fn value_at(p: vec3<f32>) -> f32 {
     var z: array<f32, MAX_F>;
     for (var f = 0u; f < F; f++) {
         z[f] = 0.0;
@@ -86,5 +92,112 @@ fn forward(
         }
         o += mlp_at(w1 + j) * max(h, 0.0);
     }
-    out[idx] = o;
+    return o;
+}
+
+// The gradient differentiates the trilinear weights (zero along an axis where the point is
+// clamped, as on the CPU and in the embedded WGSL) and the active ReLUs.
+// The value (x) and the gradient (yzw) at a normalised point.
+fn value_grad_at(p: vec3<f32>) -> vec4<f32> {
+    var z: array<f32, MAX_F>;
+    var dz: array<vec3<f32>, MAX_F>;
+    for (var f = 0u; f < F; f++) {
+        z[f] = 0.0;
+        dz[f] = vec3<f32>(0.0);
+    }
+    for (var l = 0u; l < u.lod; l++) {
+        let lv = u.levels[l];
+        let res = lv.x;
+        let s = res + 1u;
+        let r = f32(res);
+        let uu = (p + 1.0) * 0.5 * r;
+        let uvw = clamp(uu, vec3<f32>(0.0), vec3<f32>(r));
+        let du = select(vec3<f32>(0.0), vec3<f32>(0.5 * r), (uu > vec3<f32>(0.0)) & (uu < vec3<f32>(r)));
+        let i0 = min(vec3<u32>(floor(uvw)), vec3<u32>(res - 1u));
+        let t = uvw - vec3<f32>(i0);
+        for (var c = 0u; c < 8u; c++) {
+            let d = vec3<u32>((c >> 2u) & 1u, (c >> 1u) & 1u, c & 1u);
+            let hi = d == vec3<u32>(1u);
+            let wv = select(1.0 - t, t, hi);
+            let w = wv.x * wv.y * wv.z;
+            let dw = select(vec3<f32>(-1.0), vec3<f32>(1.0), hi)
+                * vec3<f32>(wv.y * wv.z, wv.x * wv.z, wv.x * wv.y) * du;
+            let v = i0 + d;
+            let base = lv.y + ((v.x * s + v.y) * s + v.z) * F;
+            for (var f = 0u; f < F; f++) {
+                let g = params[base + f];
+                z[f] += w * g;
+                dz[f] += dw * g;
+            }
+        }
+    }
+
+    let b0 = H * F;
+    let w1 = b0 + H;
+    var o = mlp_at(w1 + H);
+    var grad = vec3<f32>(0.0);
+    for (var j = 0u; j < H; j++) {
+        var h = mlp_at(b0 + j);
+        for (var f = 0u; f < F; f++) {
+            h += mlp_at(j * F + f) * z[f];
+        }
+        if h > 0.0 {
+            let a = mlp_at(w1 + j);
+            o += a * h;
+            for (var f = 0u; f < F; f++) {
+                grad += a * mlp_at(j * F + f) * dz[f];
+            }
+        }
+    }
+    return vec4<f32>(o, grad);
+}
+
+// The serving path (crates/sdf-nn/src/query.rs) in one dispatch: `points` holds vec4 points in
+// mesh coordinates (xyz), `out` receives the distance in mesh units with NeuralSdf's rule outside
+// the box, d = (Φ(clamp(x)) + |x - clamp(x)|) / scale, for x the normalised point.
+@compute @workgroup_size(WG)
+fn query(
+    @builtin(workgroup_id) wid: vec3<u32>,
+    @builtin(num_workgroups) nwg: vec3<u32>,
+    @builtin(local_invocation_index) lid: u32,
+) {
+    let idx = (wid.y * nwg.x + wid.x) * WG + lid;
+    if idx >= u.n_points {
+        return;
+    }
+    let x = (vec3<f32>(points[4u * idx], points[4u * idx + 1u], points[4u * idx + 2u]) - u.query.xyz) * u.query.w;
+    let c = clamp(x, vec3<f32>(-1.0), vec3<f32>(1.0));
+    out[idx] = (value_at(c) + length(x - c)) / u.query.w;
+}
+
+// `query` with normals: out[4 idx..] = (distance, unit normal), the normal pointing away from the
+// box outside it and along the normalised gradient inside.
+@compute @workgroup_size(WG)
+fn query_grad(
+    @builtin(workgroup_id) wid: vec3<u32>,
+    @builtin(num_workgroups) nwg: vec3<u32>,
+    @builtin(local_invocation_index) lid: u32,
+) {
+    let idx = (wid.y * nwg.x + wid.x) * WG + lid;
+    if idx >= u.n_points {
+        return;
+    }
+    let x = (vec3<f32>(points[4u * idx], points[4u * idx + 1u], points[4u * idx + 2u]) - u.query.xyz) * u.query.w;
+    let c = clamp(x, vec3<f32>(-1.0), vec3<f32>(1.0));
+    let away = x - c;
+    let outside = length(away);
+    let vg = value_grad_at(c);
+    var n = vec3<f32>(0.0);
+    if outside > 0.0 {
+        n = away / outside;
+    } else {
+        let len = length(vg.yzw);
+        if len > 0.0 {
+            n = vg.yzw / len;
+        }
+    }
+    out[4u * idx] = (vg.x + outside) / u.query.w;
+    out[4u * idx + 1u] = n.x;
+    out[4u * idx + 2u] = n.y;
+    out[4u * idx + 3u] = n.z;
 }

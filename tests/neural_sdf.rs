@@ -4,7 +4,10 @@
 
 use glam::Vec3;
 use hwsdf::eval::run::extract_mesh;
-use hwsdf::nn::{GpuContext, NeuralSdf, Nglod, NglodConfig, Normalization, Siren, SirenConfig};
+use hwsdf::nn::{
+    GpuContext, NeuralSdf, NeuralSdfError, Nglod, NglodConfig, Normalization,
+    QueryBuffersDescriptor, QueryError, QueryOutputs, QuerySpace, Siren, SirenConfig,
+};
 use rand::{Rng, SeedableRng};
 use rand_pcg::Pcg64;
 
@@ -119,5 +122,87 @@ fn a_sphere_model_extracts_to_the_sphere() {
             (r - radius / norm.scale).abs() < 0.2 * cell,
             "vertex at radius {r}"
         );
+    }
+}
+
+/// The serving API on both architectures: caller-owned buffers reused across queries of
+/// different sizes, values and normals agree with the CPU, mesh and normalised spaces, and the
+/// misuses it promises to refuse are refused with typed errors.
+#[test]
+fn serving_api_reuses_buffers_and_refuses_misuse() {
+    let gpu = gpu();
+    let models = models();
+    for model in &models {
+        let arch = model.architecture();
+        let mut buffers = model
+            .create_query_buffers(
+                gpu,
+                &QueryBuffersDescriptor {
+                    label: Some("test"),
+                    capacity: 500,
+                    outputs: QueryOutputs::ValuesAndNormals,
+                    space: QuerySpace::Mesh,
+                },
+            )
+            .unwrap();
+        let mut got = Vec::new();
+        for n in [500usize, 37, 1, 0, 499] {
+            let pts = points(n);
+            let ticket = model.submit_query(gpu, &mut buffers, &pts).unwrap();
+            assert_eq!(ticket.len(), n);
+            // One query in flight per buffers.
+            assert!(matches!(
+                model.submit_query(gpu, &mut buffers, &pts),
+                Err(NeuralSdfError::Query(QueryError::Busy))
+            ));
+            got.clear();
+            buffers
+                .wait(gpu, ticket)
+                .unwrap()
+                .extend_values_and_normals(&mut got);
+            let want = model.eval_with_normals_cpu(&pts);
+            assert_eq!(got.len(), n, "{arch}");
+            for (i, ((da, na), (db, nb))) in got.iter().zip(&want).enumerate() {
+                assert!(
+                    (da - db).abs() <= 1e-4 * db.abs().max(1.0),
+                    "{arch} n={n} {i}: {da} vs {db}"
+                );
+                assert!((*na - *nb).length() < 1e-3, "{arch} {i}: {na} vs {nb}");
+            }
+        }
+        // Too many points, buffers of another model.
+        assert!(matches!(
+            model.submit_query(gpu, &mut buffers, &points(501)),
+            Err(NeuralSdfError::Query(QueryError::Capacity { .. }))
+        ));
+        let other = &models[if arch == "siren" { 1 } else { 0 }];
+        assert!(matches!(
+            other.submit_query(gpu, &mut buffers, &points(3)),
+            Err(NeuralSdfError::Query(QueryError::Foreign))
+        ));
+        // Normalised space, values only.
+        let mut norm = model
+            .create_query_buffers(
+                gpu,
+                &QueryBuffersDescriptor {
+                    capacity: 64,
+                    space: QuerySpace::Normalized,
+                    ..Default::default()
+                },
+            )
+            .unwrap();
+        let local: Vec<Vec3> = points(64)
+            .iter()
+            .map(|&p| normalization().to_normalized(p))
+            .collect();
+        let ticket = model.submit_query(gpu, &mut norm, &local).unwrap();
+        let mut d = Vec::new();
+        norm.wait(gpu, ticket).unwrap().extend_values(&mut d);
+        for (a, b) in d.iter().zip(model.eval_cpu_normalized(&local)) {
+            assert!(
+                (a - b).abs() <= 1e-4 * b.abs().max(1.0),
+                "{arch}: {a} vs {b}"
+            );
+        }
     }
 }

@@ -1,5 +1,11 @@
 //! Latency as the design document measures it: per point from a 50000-point batch, and the
 //! wall time of a 3000-point batch including upload, dispatch and readback.
+//!
+//! Two kinds of figure, from separate calls so that measuring one never slows the other:
+//! - wall time through the public API (`NeuralSdf::eval_normalized`): what a user waits for;
+//! - kernel time from GPU timestamps (`NeuralSdf::eval_normalized_timed`): what the GPU spends,
+//!   without uploads, readbacks or the host. Resolving and reading the timestamps costs a second
+//!   readback, so those calls are never the ones the wall clock times.
 
 use std::time::Instant;
 
@@ -13,16 +19,22 @@ pub const LATENCY_BATCH: usize = 3_000;
 /// Minimum repetitions behind each median.
 pub const MIN_REPS: usize = 10;
 
-/// Latency figures, medians over repetitions.
+/// Latency figures, medians over repetitions. The wall times and the GPU times come from
+/// separate calls (see the module docs).
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Latency {
-    /// Median wall time of a 50000-point batch divided by 50000, in nanoseconds.
+    /// Median wall time of a 50000-point batch through the untimed call, divided by 50000, in
+    /// nanoseconds (upload, kernels, readback and the host's work).
     pub per_point_ns: f64,
-    /// Median wall time of a 3000-point batch, in microseconds.
+    /// Median wall time of a 3000-point batch through the untimed call, in microseconds.
     pub batch3000_us: f64,
-    /// Median pure GPU time per point of the 50000 batch from timestamp queries, where the
-    /// adapter has them.
+    /// Median kernel time per point of the 50000 batch from timestamp queries, in nanoseconds,
+    /// where the adapter has them (from the timed calls only).
     pub gpu_per_point_ns: Option<f64>,
+    /// Median kernel time of the 3000 batch from timestamp queries, in microseconds, where the
+    /// adapter has them (from the timed calls only).
+    #[serde(default)]
+    pub gpu_batch3000_us: Option<f64>,
     /// Repetitions behind each median.
     pub reps: usize,
 }
@@ -54,44 +66,51 @@ pub fn median_seconds<E>(reps: usize, mut f: impl FnMut() -> Result<(), E>) -> R
 
 /// Measures `eval` (a batch evaluation returning one value per point) on the first
 /// [`PER_POINT_BATCH`] and [`LATENCY_BATCH`] of `points`, `reps` times each (at least
-/// [`MIN_REPS`]). `points` is cycled if shorter. Wall times only: `gpu_per_point_ns` is `None`
+/// [`MIN_REPS`]). `points` is cycled if shorter. Wall times only: the GPU fields are `None`
 /// (see [`measure_latency_timed`]).
 pub fn measure_latency<E>(
     points: &[Vec3],
     reps: usize,
-    mut eval: impl FnMut(&[Vec3]) -> Result<Vec<f32>, E>,
+    eval: impl FnMut(&[Vec3]) -> Result<Vec<f32>, E>,
 ) -> Result<Latency, E> {
-    measure_latency_timed(points, reps, |p| Ok((eval(p)?, None)))
+    measure_latency_timed(points, reps, eval, |_| Ok((Vec::new(), None)))
 }
 
-/// [`measure_latency`] for an `eval` that also returns the pure GPU time of the batch in
-/// nanoseconds where it can (e.g. `NeuralSdf::eval_normalized_timed`). `gpu_per_point_ns` is the
-/// median GPU time of the timed [`PER_POINT_BATCH`] repetitions divided by the batch size, when
-/// every one of them reported a GPU time, else `None`.
+/// [`measure_latency`] with kernel times too: the wall figures time `eval` (the plain public
+/// call), and `timed` (e.g. `NeuralSdf::eval_normalized_timed`, returning the batch's GPU time
+/// in nanoseconds where it can) is called separately, `reps` times per batch after a warm-up,
+/// for the GPU figures. A GPU figure is `None` unless every timed repetition of its batch
+/// reported a time.
 pub fn measure_latency_timed<E>(
     points: &[Vec3],
     reps: usize,
-    mut eval: impl FnMut(&[Vec3]) -> Result<(Vec<f32>, Option<u64>), E>,
+    mut eval: impl FnMut(&[Vec3]) -> Result<Vec<f32>, E>,
+    mut timed: impl FnMut(&[Vec3]) -> Result<(Vec<f32>, Option<u64>), E>,
 ) -> Result<Latency, E> {
     assert!(!points.is_empty(), "latency needs points");
     let batch = |n: usize| -> Vec<Vec3> { points.iter().copied().cycle().take(n).collect() };
     let big = batch(PER_POINT_BATCH);
     let small = batch(LATENCY_BATCH);
     let reps = reps.max(MIN_REPS);
-    // One entry per call, the untimed warm-up call first.
-    let mut gpu_ns: Vec<Option<u64>> = Vec::with_capacity(reps + 1);
-    let per_batch = median_seconds(reps, || {
-        gpu_ns.push(eval(&big)?.1);
-        Ok(())
-    })?;
+    let per_batch = median_seconds(reps, || eval(&big).map(|_| ()))?;
     let latency = median_seconds(reps, || eval(&small).map(|_| ()))?;
-    let timed: Option<Vec<f64>> = gpu_ns.iter().skip(1).map(|t| t.map(|t| t as f64)).collect();
+    // Kernel times: a warm-up call, then `reps` timed ones, per batch.
+    let mut gpu_median = |pts: &[Vec3]| -> Result<Option<f64>, E> {
+        timed(pts)?;
+        let mut ns = Vec::with_capacity(reps);
+        for _ in 0..reps {
+            ns.push(timed(pts)?.1);
+        }
+        let ns: Option<Vec<f64>> = ns.into_iter().map(|t| t.map(|t| t as f64)).collect();
+        Ok(ns.map(median))
+    };
+    let gpu_big = gpu_median(&big)?;
+    let gpu_small = gpu_median(&small)?;
     Ok(Latency {
         per_point_ns: per_batch * 1e9 / PER_POINT_BATCH as f64,
         batch3000_us: latency * 1e6,
-        gpu_per_point_ns: timed
-            .filter(|t| !t.is_empty())
-            .map(|t| median(t) / PER_POINT_BATCH as f64),
+        gpu_per_point_ns: gpu_big.map(|ns| ns / PER_POINT_BATCH as f64),
+        gpu_batch3000_us: gpu_small.map(|ns| ns / 1e3),
         reps,
     })
 }
@@ -131,45 +150,63 @@ mod tests {
     fn untimed_latency_has_no_gpu_time() {
         let lat = measure_latency(&[Vec3::ZERO], 1, |p| Ok::<_, ()>(vec![0.0; p.len()])).unwrap();
         assert_eq!(lat.gpu_per_point_ns, None);
+        assert_eq!(lat.gpu_batch3000_us, None);
     }
 
     #[test]
-    fn gpu_times_of_the_big_batch_flow_into_the_median() {
-        // The warm-up call reports a huge time that must be ignored; the timed repetitions of
-        // the 50000 batch report 1, 2, ..., MIN_REPS ms, the 3000 batch something else.
-        let mut big_calls = 0u64;
-        let lat = measure_latency_timed(&[Vec3::ONE; 3], 1, |p| {
-            let ns = if p.len() == PER_POINT_BATCH {
-                let ns = if big_calls == 0 {
-                    u64::MAX / 2
+    fn wall_and_gpu_times_come_from_separate_calls() {
+        // The untimed call is the only one the wall clock sees; the timed call's warm-up reports
+        // a huge time that must be ignored, its repetitions 1, 2, ..., MIN_REPS ms (50000) and
+        // 7 µs (3000).
+        let (mut plain, mut timed_big) = (0usize, 0u64);
+        let lat = measure_latency_timed(
+            &[Vec3::ONE; 3],
+            1,
+            |p| {
+                plain += 1;
+                Ok::<_, ()>(vec![0.0; p.len()])
+            },
+            |p| {
+                let ns = if p.len() == PER_POINT_BATCH {
+                    let ns = if timed_big == 0 {
+                        u64::MAX / 2
+                    } else {
+                        timed_big * 1_000_000
+                    };
+                    timed_big += 1;
+                    ns
                 } else {
-                    big_calls * 1_000_000
+                    7_000
                 };
-                big_calls += 1;
-                ns
-            } else {
-                7
-            };
-            Ok::<_, ()>((vec![0.0; p.len()], Some(ns)))
-        })
+                Ok::<_, ()>((vec![0.0; p.len()], Some(ns)))
+            },
+        )
         .unwrap();
-        assert_eq!(big_calls as usize, MIN_REPS + 1);
+        assert_eq!(plain, 2 * (MIN_REPS + 1));
+        assert_eq!(timed_big as usize, MIN_REPS + 1);
         // Median of 1..=10 ms is 5.5 ms.
         let expected = 5.5e6 / PER_POINT_BATCH as f64;
         let got = lat.gpu_per_point_ns.expect("a GPU time");
         assert!((got - expected).abs() < 1e-9, "{got} vs {expected}");
+        assert_eq!(lat.gpu_batch3000_us, Some(7.0));
     }
 
     #[test]
     fn a_missing_gpu_time_gives_none() {
         let mut calls = 0;
-        let lat = measure_latency_timed(&[Vec3::ZERO], 1, |p| {
-            calls += 1;
-            let ns = (calls != 3).then_some(100);
-            Ok::<_, ()>((vec![0.0; p.len()], ns))
-        })
+        let lat = measure_latency_timed(
+            &[Vec3::ZERO],
+            1,
+            |p| Ok::<_, ()>(vec![0.0; p.len()]),
+            |p| {
+                calls += 1;
+                let ns = (calls != 3).then_some(100);
+                Ok::<_, ()>((vec![0.0; p.len()], ns))
+            },
+        )
         .unwrap();
         assert_eq!(lat.gpu_per_point_ns, None);
+        assert_eq!(lat.gpu_batch3000_us, Some(0.1));
     }
 
     #[test]

@@ -29,6 +29,7 @@ pub mod gpu;
 pub mod model_file;
 pub mod neural;
 pub mod nglod;
+pub mod query;
 pub mod render;
 pub mod shaders;
 pub mod siren;
@@ -39,5 +40,9 @@ pub use gpu::{GpuContext, GpuError, GpuOptions};
 pub use model_file::{ModelFile, ModelFileError, Normalization};
 pub use neural::{NeuralSdf, NeuralSdfError};
 pub use nglod::{Nglod, NglodConfig, NglodError, NglodGpu, NglodTrainConfig, NglodTrainer};
+pub use query::{
+    QueryBuffers, QueryBuffersDescriptor, QueryError, QueryOutputs, QueryResults, QuerySpace,
+    QueryTicket,
+};
 pub use render::{RenderError, RenderOptions, Renderer, RgbaImage, render};
 pub use siren::{LossWeights, Siren, SirenConfig, SirenGpu, SirenTrainConfig, SirenTrainer};

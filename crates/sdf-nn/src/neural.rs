@@ -10,6 +10,7 @@
 
 use std::path::Path;
 use std::sync::Mutex;
+use std::sync::atomic::{AtomicU64, Ordering};
 
 use glam::Vec3;
 use rayon::prelude::*;
@@ -17,7 +18,11 @@ use rayon::prelude::*;
 use crate::gpu::{GpuContext, GpuError, GpuTimer};
 use crate::model_file::{ModelFile, ModelFileError, Normalization};
 use crate::nglod::{Nglod, NglodError, NglodGpu, ScatterMode};
+use crate::query::{QueryBuffers, QueryBuffersDescriptor, QueryError, QueryOutputs, QuerySpace};
 use crate::siren::{self, Siren, SirenGpu, SirenGpuError};
+
+/// Most points the host-side methods send in one submission; larger inputs are split.
+const HOST_CHUNK: usize = 1 << 18;
 
 /// Architecture name of NGLOD model files.
 const NGLOD_ARCHITECTURE: &str = "nglod";
@@ -40,6 +45,9 @@ pub enum NeuralSdfError {
     /// A GPU error.
     #[error(transparent)]
     Gpu(#[from] GpuError),
+    /// The serving API was misused (see [`crate::query`]).
+    #[error(transparent)]
+    Query(#[from] QueryError),
     /// A level of detail was asked of a model without levels.
     #[error("levels of detail exist only for NGLOD models; this is a {0} model")]
     NoLevels(&'static str),
@@ -56,7 +64,7 @@ pub enum Network {
 
 /// The network's GPU side, created on first GPU use and kept with the device it lives on.
 // Boxed: both hold several buffers and pipelines inline, of very different sizes.
-enum GpuNetwork {
+pub(crate) enum GpuNetwork {
     Siren(Box<SirenGpu>),
     Nglod(Box<NglodGpu>),
 }
@@ -68,6 +76,10 @@ pub struct NeuralSdf {
     file: ModelFile,
     lod: Option<usize>,
     gpu: Mutex<Option<GpuSide>>,
+    /// Identifies the model to the [`QueryBuffers`] made for it.
+    id: u64,
+    /// The query buffers of the host-side methods (`eval`, ...), one per kind and device.
+    host_queries: Mutex<Vec<QueryBuffers>>,
 }
 
 /// What [`NeuralSdf`] keeps per device: the network's GPU side and, where the device has
@@ -108,6 +120,11 @@ impl NeuralSdf {
             file,
             lod: None,
             gpu: Mutex::new(None),
+            id: {
+                static NEXT: AtomicU64 = AtomicU64::new(0);
+                NEXT.fetch_add(1, Ordering::Relaxed)
+            },
+            host_queries: Mutex::new(Vec::new()),
         })
     }
 
@@ -159,12 +176,20 @@ impl NeuralSdf {
     }
 
     /// Signed distances at `points` (mesh coordinates, mesh units), on the GPU. Any number of
-    /// points: the kernels split the work to fit the device.
+    /// points: large inputs are split into several submissions. Runs on the serving path of
+    /// [`crate::query`] with buffers the model keeps per device: one upload, one submission and
+    /// one readback per call, nothing allocated on the GPU after the first call.
     pub fn eval(&self, gpu: &GpuContext, points: &[Vec3]) -> Result<Vec<f32>, NeuralSdfError> {
-        let n = self.normalization;
-        let local: Vec<Vec3> = points.iter().map(|&p| n.to_normalized(p)).collect();
-        let d = self.eval_normalized(gpu, &local)?;
-        Ok(d.into_iter().map(|d| n.distance_to_original(d)).collect())
+        let mut out = Vec::with_capacity(points.len());
+        self.host_query(
+            gpu,
+            points,
+            QuerySpace::Mesh,
+            QueryOutputs::Values,
+            false,
+            |r| r.extend_values(&mut out),
+        )?;
+        Ok(out)
     }
 
     /// Signed distances at `points` in the normalised cube, in normalised units, on the GPU.
@@ -173,70 +198,115 @@ impl NeuralSdf {
         gpu: &GpuContext,
         points: &[Vec3],
     ) -> Result<Vec<f32>, NeuralSdfError> {
-        Ok(self.eval_normalized_with_timer(gpu, points, false)?.0)
+        let mut out = Vec::with_capacity(points.len());
+        self.host_query(
+            gpu,
+            points,
+            QuerySpace::Normalized,
+            QueryOutputs::Values,
+            false,
+            |r| r.extend_values(&mut out),
+        )?;
+        Ok(out)
     }
 
-    /// [`NeuralSdf::eval_normalized`], also returning the pure GPU time of the network's
-    /// dispatches in nanoseconds, from timestamp queries (see [`GpuTimer`]). The time is `None`
-    /// when the device has no timestamp queries, and for now for SIREN models, whose kernels
-    /// are not timed yet. It excludes uploads, readbacks and the host's work.
+    /// [`NeuralSdf::eval_normalized`], also returning the pure GPU time of the query's passes
+    /// in nanoseconds (from the first kernel's start to the last one's end, summed over the
+    /// submissions of a large input), from timestamp queries (see [`GpuTimer`]); `None` when the
+    /// device has none. It excludes uploads, readbacks and the host's work.
+    ///
+    /// The timestamps' resolve and readback cost wall time: time the wall clock with
+    /// [`NeuralSdf::eval_normalized`] and the GPU with this, in separate calls.
     pub fn eval_normalized_timed(
         &self,
         gpu: &GpuContext,
         points: &[Vec3],
     ) -> Result<(Vec<f32>, Option<u64>), NeuralSdfError> {
-        self.eval_normalized_with_timer(gpu, points, true)
-    }
-
-    /// The one GPU evaluation path; times the network's dispatches when `timed` and the device
-    /// has timestamp queries.
-    fn eval_normalized_with_timer(
-        &self,
-        gpu: &GpuContext,
-        points: &[Vec3],
-        timed: bool,
-    ) -> Result<(Vec<f32>, Option<u64>), NeuralSdfError> {
-        let (clamped, outside) = clamp_to_box(points);
-        let (mut d, gpu_ns) = self.with_gpu(gpu, |net, timer| {
-            let timer = timer.filter(|_| timed);
-            match net {
-                GpuNetwork::Siren(s) => siren_eval_with_timer(s, gpu, &clamped, timer),
-                GpuNetwork::Nglod(m) => Ok(m.eval_with_timer(gpu, &clamped, self.lod, timer)?),
-            }
-        })?;
-        for (d, o) in d.iter_mut().zip(outside) {
-            *d += o;
-        }
-        Ok((d, gpu_ns))
+        let mut out = Vec::with_capacity(points.len());
+        let ns = self.host_query(
+            gpu,
+            points,
+            QuerySpace::Normalized,
+            QueryOutputs::Values,
+            true,
+            |r| r.extend_values(&mut out),
+        )?;
+        Ok((out, ns))
     }
 
     /// Signed distances and unit normals (the normalised analytic gradient) at `points` in
-    /// mesh coordinates. SIREN's gradient comes from the GPU's forward-mode kernel; NGLOD's from
-    /// its analytic gradient on CPU threads (its GPU kernels compute values only).
+    /// mesh coordinates, both from the GPU: SIREN's gradient from its forward-mode kernels,
+    /// NGLOD's from its analytic-gradient kernel.
     pub fn eval_with_normals(
         &self,
         gpu: &GpuContext,
         points: &[Vec3],
     ) -> Result<Vec<(f32, Vec3)>, NeuralSdfError> {
-        let n = self.normalization;
-        let local: Vec<Vec3> = points.iter().map(|&p| n.to_normalized(p)).collect();
-        let (clamped, outside) = clamp_to_box(&local);
-        let raw: Vec<(f32, Vec3)> = match &self.network {
-            Network::Siren(_) => self.with_gpu(gpu, |net, _| match net {
-                GpuNetwork::Siren(s) => Ok(s.eval_with_gradient(gpu, &clamped)?),
-                GpuNetwork::Nglod(_) => unreachable!("the GPU network matches the host network"),
-            })?,
-            Network::Nglod(m) => {
-                let d = self.eval_normalized(gpu, &clamped)?;
-                let g = m.gradient_cpu(&clamped, self.lod)?;
-                d.into_iter().zip(g).collect()
+        let mut out = Vec::with_capacity(points.len());
+        self.host_query(
+            gpu,
+            points,
+            QuerySpace::Mesh,
+            QueryOutputs::ValuesAndNormals,
+            false,
+            |r| r.extend_values_and_normals(&mut out),
+        )?;
+        Ok(out)
+    }
+
+    /// The host-side methods' one path: `points` in chunks through this model's own
+    /// [`QueryBuffers`] of that kind, each chunk's results handed to `take`. With `timed`, the
+    /// summed GPU nanoseconds of the chunks (`None` without timestamp queries).
+    fn host_query(
+        &self,
+        gpu: &GpuContext,
+        points: &[Vec3],
+        space: QuerySpace,
+        outputs: QueryOutputs,
+        timed: bool,
+        mut take: impl FnMut(&crate::query::QueryResults<'_>),
+    ) -> Result<Option<u64>, NeuralSdfError> {
+        let mut all = self.host_queries.lock().unwrap_or_else(|e| e.into_inner());
+        let want = points.len().clamp(1, HOST_CHUNK);
+        let found = all
+            .iter()
+            .position(|b| b.space() == space && b.outputs() == outputs && b.belongs_to(gpu));
+        let index = match found {
+            Some(i) if all[i].capacity() as usize >= want => i,
+            _ => {
+                // Grow by powers of two from 4096, so small calls do not reallocate each time.
+                let capacity = want.max(4096).next_power_of_two().min(HOST_CHUNK) as u32;
+                let buffers = self.create_query_buffers(
+                    gpu,
+                    &QueryBuffersDescriptor {
+                        label: Some("hwsdf host query"),
+                        capacity,
+                        outputs,
+                        space,
+                    },
+                )?;
+                match found {
+                    Some(i) => {
+                        all[i] = buffers;
+                        i
+                    }
+                    None => {
+                        all.push(buffers);
+                        all.len() - 1
+                    }
+                }
             }
         };
-        Ok(raw
-            .into_iter()
-            .zip(local.iter().zip(&clamped).zip(outside))
-            .map(|((d, g), ((p, c), o))| (n.distance_to_original(d + o), outward_normal(g, *p, *c)))
-            .collect())
+        let buffers = &mut all[index];
+        let mut gpu_ns = (timed && gpu.has_timestamps()).then_some(0u64);
+        for chunk in points.chunks(buffers.capacity() as usize) {
+            let ticket = self.submit_query_timed(gpu, buffers, chunk, timed)?;
+            take(&buffers.wait(gpu, ticket)?);
+            if let Some(ns) = gpu_ns.as_mut() {
+                *ns += self.read_query_ns(gpu)?.unwrap_or(0);
+            }
+        }
+        Ok(gpu_ns)
     }
 
     /// Signed distances at `points` (mesh coordinates, mesh units) on CPU threads, for machines
@@ -283,9 +353,14 @@ impl NeuralSdf {
             .collect()
     }
 
+    /// Identifies the model to the [`QueryBuffers`] made for it.
+    pub(crate) fn id(&self) -> u64 {
+        self.id
+    }
+
     /// Runs `f` on this model's GPU network for `gpu`'s device (and its timer, where the device
     /// has timestamp queries), creating them on first use (or when called with another device).
-    fn with_gpu<T>(
+    pub(crate) fn with_gpu<T>(
         &self,
         gpu: &GpuContext,
         f: impl FnOnce(&mut GpuNetwork, Option<&GpuTimer>) -> Result<T, NeuralSdfError>,
@@ -308,22 +383,6 @@ impl NeuralSdf {
         let side = slot.as_mut().expect("filled above");
         f(&mut side.network, side.timer.as_ref())
     }
-}
-
-/// SIREN's evaluation with an optional timer, the counterpart of NGLOD's `eval_with_timer`.
-fn siren_eval_with_timer(
-    s: &mut SirenGpu,
-    gpu: &GpuContext,
-    points: &[Vec3],
-    timer: Option<&GpuTimer>,
-) -> Result<(Vec<f32>, Option<u64>), NeuralSdfError> {
-    Ok(match timer {
-        Some(t) => {
-            let (values, ns) = s.eval_timed(gpu, points, t)?;
-            (values, Some(ns))
-        }
-        None => (s.eval(gpu, points)?, None),
-    })
 }
 
 /// Points clamped to `[-1, 1]³`, and each point's distance to its clamped copy.

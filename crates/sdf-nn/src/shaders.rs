@@ -47,6 +47,9 @@ pub const SIREN_HEAD: Shader = shader!("siren_head.wgsl", wgpu::Features::empty(
 /// SIREN's batch sampling and reductions.
 pub const SIREN_TRAIN: Shader = shader!("siren_train.wgsl", wgpu::Features::empty());
 
+/// The serving path's ends: points to network input, network output to distances and normals.
+pub const QUERY: Shader = shader!("query.wgsl", wgpu::Features::empty());
+
 /// The sphere tracer of [`mod@crate::render`]. It calls `hwsdf_distance` / `hwsdf_normal`, so it
 /// compiles only after a model's [`crate::NeuralSdf::wgsl`] snippet (listed in [`NEEDS_MODEL`]).
 pub const SPHERE_TRACE: Shader = shader!("sphere_trace.wgsl", wgpu::Features::empty());
@@ -66,6 +69,7 @@ pub const ALL: &[Shader] = &[
     NGLOD_TRAIN_ATOMIC,
     NGLOD_TRAIN_CAS,
     NGLOD_REDUCE,
+    QUERY,
 ];
 
 #[cfg(test)]

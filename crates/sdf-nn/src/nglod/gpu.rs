@@ -38,6 +38,8 @@ struct EvalUniforms {
     mlp_offset: u32,
     _pad: u32,
     levels: [[u32; 4]; MAX_LEVELS],
+    /// The serving entry points' map from mesh coordinates: centre (xyz) and scale (w).
+    query: [f32; 4],
 }
 
 #[repr(C)]
@@ -61,6 +63,17 @@ struct EvalScratch {
     out: wgpu::Buffer,
     uniforms: wgpu::Buffer,
     bind_group: wgpu::BindGroup,
+}
+
+/// The inference kernel bound to caller buffers (see [`NglodGpu::eval_binding`]).
+pub(crate) struct NglodEvalBinding {
+    pipeline: wgpu::ComputePipeline,
+    uniforms: wgpu::Buffer,
+    bind_group: wgpu::BindGroup,
+    /// Centre (xyz) and scale (w) of the map from mesh coordinates.
+    transform: [f32; 4],
+    /// The point count and level the uniforms hold.
+    written: Option<(u32, usize)>,
 }
 
 /// An NGLOD model on the GPU: the flat parameter buffer, its gradient buffer (the layout of
@@ -297,6 +310,81 @@ impl NglodGpu {
         Ok((result, timer.map(|_| gpu_ns)))
     }
 
+    /// The serving kernel (`query`, or with `gradients` `query_grad`, in
+    /// `shaders/nglod_forward.wgsl`) bound to a caller's `input` (`vec4` points in mesh
+    /// coordinates, mapped to the model's cube by `center` and `scale`) and `output` (the
+    /// distance in mesh units per point, or with `gradients` a `vec4`: distance and unit
+    /// normal), for [`NglodGpu::record_eval`]. The whole query is this one dispatch. Holds its
+    /// own small uniform buffer for the point count.
+    pub(crate) fn eval_binding(
+        &self,
+        gpu: &GpuContext,
+        input: &wgpu::Buffer,
+        output: &wgpu::Buffer,
+        gradients: bool,
+        (center, scale): (Vec3, f32),
+    ) -> Result<NglodEvalBinding, NglodError> {
+        let entry_point = if gradients { "query_grad" } else { "query" };
+        let pipeline = gpu.pipeline(&shaders::NGLOD_FORWARD, entry_point, &self.constants)?;
+        let uniforms = gpu.uniform("nglod query uniforms", &self.eval_uniforms(0, 0));
+        let bind_group = gpu.device().create_bind_group(&wgpu::BindGroupDescriptor {
+            label: Some("nglod query"),
+            layout: &pipeline.get_bind_group_layout(0),
+            entries: &[
+                entry(0, &uniforms),
+                entry(1, &self.params),
+                entry(2, input),
+                entry(3, output),
+                entry(4, &self.mlp),
+            ],
+        });
+        Ok(NglodEvalBinding {
+            pipeline,
+            uniforms,
+            bind_group,
+            transform: center.extend(scale).to_array(),
+            written: None,
+        })
+    }
+
+    /// Records the evaluation of the first `n` points of `binding`'s input into its output
+    /// with the first `lod` levels, into `enc` (the serving path, [`crate::query`]). The point
+    /// count and level go through the queue when they change, so they take effect at the next
+    /// submission: record one binding at most once per submission. `timer`, when given,
+    /// brackets the dispatch (resolve it after).
+    pub(crate) fn record_eval(
+        &self,
+        gpu: &GpuContext,
+        enc: &mut wgpu::CommandEncoder,
+        binding: &mut NglodEvalBinding,
+        n: u32,
+        lod: Option<usize>,
+        timer: Option<&GpuTimer>,
+    ) -> Result<(), NglodError> {
+        let k = self.config.lod(lod)?;
+        if n == 0 {
+            return Ok(());
+        }
+        if binding.written != Some((n, k)) {
+            let u = EvalUniforms {
+                query: binding.transform,
+                ..self.eval_uniforms(n, k)
+            };
+            gpu.write(&binding.uniforms, &[u])?;
+            binding.written = Some((n, k));
+        }
+        self.record_mlp_copy(enc);
+        let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
+            label: Some("nglod query"),
+            timestamp_writes: timer.map(|t| t.writes(true, true)),
+        });
+        pass.set_pipeline(&binding.pipeline);
+        pass.set_bind_group(0, &binding.bind_group, &[]);
+        let (x, y) = gpu.dispatch_size(n.div_ceil(WG));
+        pass.dispatch_workgroups(x, y, 1);
+        Ok(())
+    }
+
     /// Copies the MLP block of the parameters into the uniform buffer the kernels read it from.
     fn record_mlp_copy(&self, enc: &mut wgpu::CommandEncoder) {
         let start = self.layout.w0 as u64 * 4;
@@ -311,6 +399,7 @@ impl NglodGpu {
             mlp_offset: self.layout.w0 as u32,
             _pad: 0,
             levels: level_table(&self.config, &self.layout),
+            query: [0.0, 0.0, 0.0, 1.0],
         }
     }
 

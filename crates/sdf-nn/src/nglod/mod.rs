@@ -20,7 +20,7 @@
 //! at `x = -1 + 2·ix/r_l`.
 
 pub mod cpu;
-mod gpu;
+pub(crate) mod gpu;
 mod train;
 
 use glam::Vec3;

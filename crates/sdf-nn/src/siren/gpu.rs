@@ -465,6 +465,79 @@ impl SirenGpu {
             .collect())
     }
 
+    /// Records the evaluation of `n` points from `input` into `output`, into the caller's
+    /// encoder: the serving path of [`crate::query`] (issue 13). `input` holds the network's
+    /// input rows (3 floats per normalised point, or with `gradients` the four rows of
+    /// `stream_rows`: the point and the unit tangents); `output` receives 1 float per point, or
+    /// with `gradients` 4 (value, then the gradient). Built on the launches of
+    /// [`SirenGpu::eval`]: the rows are copied into its workspace and the values out of it, one
+    /// chunk of its capacity at a time, all in `enc`.
+    pub(crate) fn record_eval(
+        &mut self,
+        gpu: &GpuContext,
+        enc: &mut wgpu::CommandEncoder,
+        input: &wgpu::Buffer,
+        output: &wgpu::Buffer,
+        n: u32,
+        gradients: bool,
+    ) -> Result<(), SirenGpuError> {
+        if n == 0 {
+            return Ok(());
+        }
+        let (in_per, out_per) = if gradients { (12u64, 4u64) } else { (3, 1) };
+        let mut ws = match if gradients {
+            self.eval_grad.take()
+        } else {
+            self.eval.take()
+        } {
+            Some(ws) => ws,
+            None => self.alloc_eval(gpu, self.chunk_capacity(gpu, gradients), gradients)?,
+        };
+        let result = (|| {
+            self.record_pack(enc);
+            let mut first = 0u32;
+            while first < n {
+                let m = (n - first).min(ws.capacity);
+                if ws.built_for != Some(m) {
+                    ws.launches = self.eval_launches(gpu, &ws, m)?;
+                    ws.built_for = Some(m);
+                }
+                let (i0, o0) = (u64::from(first) * 4, u64::from(first) * 4);
+                enc.copy_buffer_to_buffer(
+                    input,
+                    i0 * in_per,
+                    &ws.input,
+                    0,
+                    u64::from(m) * 4 * in_per,
+                );
+                {
+                    let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                        label: Some("siren query"),
+                        timestamp_writes: None,
+                    });
+                    for l in &ws.launches {
+                        l.record(&mut pass);
+                    }
+                }
+                enc.copy_buffer_to_buffer(
+                    &ws.values,
+                    0,
+                    output,
+                    o0 * out_per,
+                    u64::from(m) * 4 * out_per,
+                );
+                first += m;
+            }
+            Ok::<(), GpuError>(())
+        })();
+        if gradients {
+            self.eval_grad = Some(ws);
+        } else {
+            self.eval = Some(ws);
+        }
+        Ok(result?)
+    }
+
     fn run_eval(
         &mut self,
         gpu: &GpuContext,

@@ -1,0 +1,379 @@
+//! The query path a user calls, `NeuralSdf`, against what it is made of, so that a per-call
+//! floor (issue 13) shows up in `cargo bench`:
+//! - `roundtrip/empty`: the smallest submit and readback there is (a 40-byte copy into a
+//!   persistent mappable buffer, map, wait) — the floor no readback query can go below;
+//! - `nglod_<preset>/kernel`: `NglodGpu::eval` (the kernel bench's path);
+//! - `nglod_<preset>/neural_sdf`: `NeuralSdf::eval_normalized`, the path the reports time for
+//!   wall figures;
+//! - `nglod_<preset>/neural_sdf_timed`: `NeuralSdf::eval_normalized_timed`, the separate call
+//!   the reports take kernel times from;
+//! - `nglod_<preset>/serve_submit_wait`: the serving API, `submit_query` then `wait`, into
+//!   caller-owned buffers and a reused host vector;
+//! - `nglod_<preset>/old_report_path`: the report's path before issue 13, rebuilt from the
+//!   public pieces it was made of (a rayon clamp to the box, `NglodGpu::eval_timed` with its
+//!   staging buffer per call, a second submission for the readback and a second wait for the
+//!   timestamps), kept as the reference the floor is measured against;
+//!
+//! each at 10 points (where only the floor is left) and at 3000.
+//!
+//! Run: `cargo bench --bench query`. `QUERY_BENCH_PRESETS=small` runs one preset.
+//!
+//! On a shared, loaded machine criterion's separate runs drift with the load. Set
+//! `QUERY_BENCH_INTERLEAVED=ROUNDS` to run the variants instead in turn, one call each per round,
+//! so that every variant sees the same load, and print the minimum, the 10th percentile and the
+//! median of each (no criterion).
+
+use std::time::Duration;
+
+use criterion::{BenchmarkId, Criterion, Throughput};
+use glam::Vec3;
+use rayon::prelude::*;
+use sdf_nn::gpu::GpuTimer;
+use sdf_nn::nglod::ScatterMode;
+use sdf_nn::{
+    GpuContext, NeuralSdf, Nglod, NglodConfig, NglodGpu, Normalization, QueryBuffersDescriptor,
+    QuerySpace,
+};
+
+fn presets() -> Vec<(&'static str, NglodConfig)> {
+    let which = std::env::var("QUERY_BENCH_PRESETS").unwrap_or_default();
+    [
+        ("small", NglodConfig::small()),
+        ("default", NglodConfig::default_preset()),
+    ]
+    .into_iter()
+    .filter(|(n, _)| which.is_empty() || which.split(',').any(|w| w == *n))
+    .collect()
+}
+
+/// A submit of one 40-byte copy and its readback through a persistent mappable buffer.
+fn empty_roundtrip(c: &mut Criterion, gpu: &GpuContext) {
+    let src = gpu.storage_zeroed("bench src", 40).unwrap();
+    let staging = gpu.device().create_buffer(&wgpu::BufferDescriptor {
+        label: Some("bench staging"),
+        size: 40,
+        usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+        mapped_at_creation: false,
+    });
+    let mut g = c.benchmark_group("roundtrip");
+    g.sample_size(20)
+        .warm_up_time(Duration::from_secs(1))
+        .measurement_time(Duration::from_secs(3));
+    g.bench_function("empty", |b| {
+        b.iter(|| {
+            let mut enc = gpu.device().create_command_encoder(&Default::default());
+            enc.copy_buffer_to_buffer(&src, 0, &staging, 0, 40);
+            gpu.queue().submit([enc.finish()]);
+            let slice = staging.slice(..);
+            slice.map_async(wgpu::MapMode::Read, |r| r.unwrap());
+            gpu.wait().unwrap();
+            let v: Vec<f32> = bytemuck::pod_collect_to_vec(&slice.get_mapped_range().unwrap());
+            staging.unmap();
+            v
+        })
+    });
+    g.finish();
+}
+
+fn nglod(c: &mut Criterion, gpu: &GpuContext) {
+    for (name, cfg) in presets() {
+        let model = Nglod::new(cfg).unwrap();
+        let net = NglodGpu::new(gpu, &model, ScatterMode::Auto).unwrap();
+        let sdf = NeuralSdf::from_model_file(
+            model.to_model_file(Normalization::identity(), serde_json::Value::Null),
+        )
+        .unwrap();
+        let mut g = c.benchmark_group(format!("nglod_{name}"));
+        g.sample_size(20)
+            .warm_up_time(Duration::from_secs(1))
+            .measurement_time(Duration::from_secs(3));
+        for n in [10usize, 3000] {
+            let pts: Vec<Vec3> = sdf_geom::sample::uniform_box(n, 42);
+            // Compile and allocate outside the timing.
+            net.eval(gpu, &pts, None).unwrap();
+            sdf.eval_normalized(gpu, &pts).unwrap();
+            g.throughput(Throughput::Elements(n as u64));
+            g.bench_with_input(BenchmarkId::new("kernel", n), &pts, |b, pts| {
+                b.iter(|| net.eval(gpu, pts, None).unwrap())
+            });
+            g.bench_with_input(BenchmarkId::new("neural_sdf", n), &pts, |b, pts| {
+                b.iter(|| sdf.eval_normalized(gpu, pts).unwrap())
+            });
+            g.bench_with_input(BenchmarkId::new("neural_sdf_timed", n), &pts, |b, pts| {
+                b.iter(|| sdf.eval_normalized_timed(gpu, pts).unwrap())
+            });
+            let mut buffers = sdf
+                .create_query_buffers(
+                    gpu,
+                    &QueryBuffersDescriptor {
+                        capacity: n as u32,
+                        space: QuerySpace::Normalized,
+                        ..Default::default()
+                    },
+                )
+                .unwrap();
+            let mut out = Vec::with_capacity(n);
+            g.bench_with_input(BenchmarkId::new("serve_submit_wait", n), &pts, |b, pts| {
+                b.iter(|| {
+                    let ticket = sdf.submit_query(gpu, &mut buffers, pts).unwrap();
+                    out.clear();
+                    buffers.wait(gpu, ticket).unwrap().extend_values(&mut out);
+                })
+            });
+            if let Some(timer) = GpuTimer::new(gpu) {
+                g.bench_with_input(BenchmarkId::new("old_report_path", n), &pts, |b, pts| {
+                    b.iter(|| old_report_path(gpu, &net, &timer, pts))
+                });
+            }
+        }
+        g.finish();
+    }
+}
+
+/// `NeuralSdf::eval_normalized_timed` as it was at ff1c4ae for NGLOD (see the module docs).
+fn old_report_path(
+    gpu: &GpuContext,
+    net: &NglodGpu,
+    timer: &GpuTimer,
+    points: &[Vec3],
+) -> (Vec<f32>, u64) {
+    let (clamped, outside): (Vec<Vec3>, Vec<f32>) = points
+        .par_iter()
+        .map(|&p| {
+            let c = p.clamp(Vec3::NEG_ONE, Vec3::ONE);
+            (c, p.distance(c))
+        })
+        .unzip();
+    let (mut d, ns) = net.eval_timed(gpu, &clamped, None, timer).unwrap();
+    for (d, o) in d.iter_mut().zip(outside) {
+        *d += o;
+    }
+    (d, ns)
+}
+
+/// A named call to time.
+type Variant<'a> = (&'static str, Box<dyn FnMut() + 'a>);
+
+/// The variants in turn, `rounds` calls each (see the module docs).
+fn interleaved(gpu: &GpuContext, rounds: usize) {
+    let src = gpu.storage_zeroed("bench src", 40).unwrap();
+    let staging = gpu.device().create_buffer(&wgpu::BufferDescriptor {
+        label: Some("bench staging"),
+        size: 40,
+        usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+        mapped_at_creation: false,
+    });
+    let timer = GpuTimer::new(gpu);
+    // A dispatch that does nothing (query.wgsl's `prepare` with a point count of 0), to split a
+    // query's cost into the submit+readback, one kernel launch, and the kernel's work.
+    let empty_pipeline = gpu
+        .pipeline(&sdf_nn::shaders::QUERY, "prepare", &[])
+        .unwrap();
+    let u = gpu.uniform("bench empty uniforms", &[0u32; 8]);
+    let (p, q) = (
+        gpu.storage_zeroed("bench p", 16).unwrap(),
+        gpu.storage_zeroed("bench q", 12).unwrap(),
+    );
+    let empty_group = gpu.device().create_bind_group(&wgpu::BindGroupDescriptor {
+        label: Some("bench empty"),
+        layout: &empty_pipeline.get_bind_group_layout(0),
+        entries: &[
+            wgpu::BindGroupEntry {
+                binding: 0,
+                resource: u.as_entire_binding(),
+            },
+            wgpu::BindGroupEntry {
+                binding: 1,
+                resource: p.as_entire_binding(),
+            },
+            wgpu::BindGroupEntry {
+                binding: 2,
+                resource: q.as_entire_binding(),
+            },
+        ],
+    });
+    for (name, cfg) in presets() {
+        let model = Nglod::new(cfg).unwrap();
+        let net = NglodGpu::new(gpu, &model, ScatterMode::Auto).unwrap();
+        let sdf = NeuralSdf::from_model_file(
+            model.to_model_file(Normalization::identity(), serde_json::Value::Null),
+        )
+        .unwrap();
+        for n in [10usize, 3000] {
+            let pts: Vec<Vec3> = sdf_geom::sample::uniform_box(n, 42);
+            let mut buffers = sdf
+                .create_query_buffers(
+                    gpu,
+                    &QueryBuffersDescriptor {
+                        capacity: n as u32,
+                        space: QuerySpace::Normalized,
+                        ..Default::default()
+                    },
+                )
+                .unwrap();
+            let mut out = Vec::with_capacity(n);
+            let mut variants: Vec<Variant<'_>> = vec![
+                (
+                    "roundtrip/empty",
+                    Box::new(|| {
+                        let mut enc = gpu.device().create_command_encoder(&Default::default());
+                        enc.copy_buffer_to_buffer(&src, 0, &staging, 0, 40);
+                        gpu.queue().submit([enc.finish()]);
+                        let slice = staging.slice(..);
+                        slice.map_async(wgpu::MapMode::Read, |r| r.unwrap());
+                        gpu.wait().unwrap();
+                        let v: Vec<f32> =
+                            bytemuck::pod_collect_to_vec(&slice.get_mapped_range().unwrap());
+                        staging.unmap();
+                        std::hint::black_box(v);
+                    }),
+                ),
+                (
+                    "roundtrip/dispatch",
+                    Box::new(|| {
+                        let mut enc = gpu.device().create_command_encoder(&Default::default());
+                        {
+                            let mut pass = enc.begin_compute_pass(&Default::default());
+                            pass.set_pipeline(&empty_pipeline);
+                            pass.set_bind_group(0, &empty_group, &[]);
+                            pass.dispatch_workgroups(1, 1, 1);
+                        }
+                        enc.copy_buffer_to_buffer(&src, 0, &staging, 0, 40);
+                        gpu.queue().submit([enc.finish()]);
+                        let slice = staging.slice(..);
+                        slice.map_async(wgpu::MapMode::Read, |r| r.unwrap());
+                        gpu.wait().unwrap();
+                        let v: Vec<f32> =
+                            bytemuck::pod_collect_to_vec(&slice.get_mapped_range().unwrap());
+                        staging.unmap();
+                        std::hint::black_box(v);
+                    }),
+                ),
+                (
+                    "kernel",
+                    Box::new(|| {
+                        std::hint::black_box(net.eval(gpu, &pts, None).unwrap());
+                    }),
+                ),
+                (
+                    "neural_sdf",
+                    Box::new(|| {
+                        std::hint::black_box(sdf.eval_normalized(gpu, &pts).unwrap());
+                    }),
+                ),
+                (
+                    "neural_sdf_timed",
+                    Box::new(|| {
+                        std::hint::black_box(sdf.eval_normalized_timed(gpu, &pts).unwrap());
+                    }),
+                ),
+                (
+                    "serve_submit_wait",
+                    Box::new(|| {
+                        let ticket = sdf.submit_query(gpu, &mut buffers, &pts).unwrap();
+                        out.clear();
+                        buffers.wait(gpu, ticket).unwrap().extend_values(&mut out);
+                    }),
+                ),
+            ];
+            if let Some(t) = &timer {
+                variants.push((
+                    "old_report_path",
+                    Box::new(|| {
+                        std::hint::black_box(old_report_path(gpu, &net, t, &pts));
+                    }),
+                ));
+            }
+            report_interleaved(&format!("nglod_{name} n={n:5}"), &mut variants, rounds);
+        }
+    }
+}
+
+/// SIREN `small`: its kernel path (`SirenGpu::eval`) against `NeuralSdf`'s wall path and timed
+/// call, in turn like [`interleaved`] (the issue's SIREN target: the wall path adds at most 50 µs
+/// to the kernel time).
+fn interleaved_siren(gpu: &GpuContext, rounds: usize) {
+    let siren = sdf_nn::Siren::new(sdf_nn::SirenConfig::small(), 1).unwrap();
+    let mut net = sdf_nn::SirenGpu::new(gpu, &siren).unwrap();
+    let sdf = NeuralSdf::from_model_file(
+        siren.to_model_file(Normalization::identity(), serde_json::Value::Null),
+    )
+    .unwrap();
+    for n in [10usize, 3000] {
+        let pts: Vec<Vec3> = sdf_geom::sample::uniform_box(n, 42);
+        let mut gpu_ns = Vec::with_capacity(rounds);
+        let mut variants: Vec<Variant<'_>> = vec![
+            (
+                "kernel",
+                Box::new(|| {
+                    std::hint::black_box(net.eval(gpu, &pts).unwrap());
+                }),
+            ),
+            (
+                "neural_sdf",
+                Box::new(|| {
+                    std::hint::black_box(sdf.eval_normalized(gpu, &pts).unwrap());
+                }),
+            ),
+            (
+                "neural_sdf_timed",
+                Box::new(|| {
+                    let (v, ns) = sdf.eval_normalized_timed(gpu, &pts).unwrap();
+                    gpu_ns.extend(ns.map(|ns| ns as f64 / 1e3));
+                    std::hint::black_box(v);
+                }),
+            ),
+        ];
+        report_interleaved(&format!("siren_small n={n:5}"), &mut variants, rounds);
+        drop(variants);
+        if !gpu_ns.is_empty() {
+            gpu_ns.sort_by(f64::total_cmp);
+            println!(
+                "siren_small n={n:5} kernel time (timestamps) median {:8.1} µs",
+                gpu_ns[gpu_ns.len() / 2]
+            );
+        }
+    }
+}
+
+/// Runs `variants` in turn `rounds` times after one untimed call each and prints min, p10 and
+/// median per variant.
+fn report_interleaved(prefix: &str, variants: &mut [Variant<'_>], rounds: usize) {
+    let mut times: Vec<Vec<f64>> = vec![Vec::with_capacity(rounds); variants.len()];
+    for (_, f) in variants.iter_mut() {
+        f(); // compile and allocate outside the timing
+    }
+    for _ in 0..rounds {
+        for ((_, f), t) in variants.iter_mut().zip(&mut times) {
+            let start = std::time::Instant::now();
+            f();
+            t.push(start.elapsed().as_secs_f64() * 1e6);
+        }
+    }
+    for ((v, _), t) in variants.iter().zip(&mut times) {
+        t.sort_by(f64::total_cmp);
+        println!(
+            "{prefix} {v:18} min {:8.1} µs  p10 {:8.1} µs  median {:8.1} µs",
+            t[0],
+            t[t.len() / 10],
+            t[t.len() / 2]
+        );
+    }
+}
+
+fn main() {
+    let gpu = GpuContext::shared().expect("a GPU adapter");
+    eprintln!("adapter: {}", gpu.describe());
+    if let Some(rounds) = std::env::var("QUERY_BENCH_INTERLEAVED")
+        .ok()
+        .and_then(|s| s.parse::<usize>().ok())
+    {
+        interleaved(gpu, rounds.max(1));
+        interleaved_siren(gpu, rounds.max(1));
+        return;
+    }
+    let mut c = Criterion::default().configure_from_args();
+    empty_roundtrip(&mut c, gpu);
+    nglod(&mut c, gpu);
+    c.final_summary();
+}

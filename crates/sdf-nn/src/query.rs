@@ -1,0 +1,654 @@
+//! Serving a [`NeuralSdf`] to code that queries it all the time (a planner checking collisions,
+//! a renderer, a physics step), the way wgpu code is written: the caller owns the buffers, work
+//! is recorded into the caller's encoder, a submission returns at once, and reading back is a
+//! separate step that the caller may skip.
+//!
+//! - [`NeuralSdf::create_query_buffers`] makes a [`QueryBuffers`]: a points buffer
+//!   ([`QueryBuffers::points`], `array<vec4<f32>>`, xyz used), a results buffer
+//!   ([`QueryBuffers::results`]: `array<f32>` of distances, or with
+//!   [`QueryOutputs::ValuesAndNormals`] `array<vec4<f32>>` of (distance, normal)), the network's
+//!   scratch, and a mappable staging buffer. Create it once, reuse it for every query.
+//! - [`NeuralSdf::record_query`] records a query of the first `n` points into your encoder.
+//!   The results stay on the GPU: bind [`QueryBuffers::results`] in your next pass. Your own
+//!   pass may also have written [`QueryBuffers::points`] (it is a storage buffer).
+//! - [`NeuralSdf::submit_query`] uploads points, records, copies the results to the staging
+//!   buffer and submits, returning a [`QueryTicket`] at once; [`QueryBuffers::wait`] (or
+//!   [`QueryBuffers::is_ready`] then `wait`) maps the results and hands them out as a
+//!   [`QueryResults`] guard that unmaps on drop. One submission per [`QueryBuffers`] is in
+//!   flight at a time: keep two to overlap a query with the host's work on the last one.
+//!
+//! Distances and normals follow [`NeuralSdf`]'s rule outside the model's box, and are in mesh
+//! units and coordinates (or, with [`QuerySpace::Normalized`], in the model's cube). Every
+//! host-side method of [`NeuralSdf`] (`eval`, `eval_normalized`, `eval_with_normals`, the timed
+//! variant the reports use) runs on this same path, with buffers it keeps per device.
+//!
+//! ```no_run
+//! # fn main() -> Result<(), Box<dyn std::error::Error>> {
+//! use glam::Vec3;
+//! use sdf_nn::query::{QueryBuffersDescriptor, QueryOutputs};
+//! use sdf_nn::{GpuContext, NeuralSdf};
+//!
+//! let gpu = GpuContext::new()?;
+//! let sdf = NeuralSdf::load("model.safetensors")?;
+//! // Once: buffers for up to 4096 points, distances and normals.
+//! let mut buffers = sdf.create_query_buffers(
+//!     &gpu,
+//!     &QueryBuffersDescriptor {
+//!         capacity: 4096,
+//!         outputs: QueryOutputs::ValuesAndNormals,
+//!         ..Default::default()
+//!     },
+//! )?;
+//! let mut hits = Vec::new();
+//! for _frame in 0..3 {
+//!     let ticket = sdf.submit_query(&gpu, &mut buffers, &[Vec3::ZERO, Vec3::X])?;
+//!     // ... the host's own work runs while the GPU answers ...
+//!     hits.clear();
+//!     buffers.wait(&gpu, ticket)?.extend_values_and_normals(&mut hits);
+//! }
+//! # Ok(())
+//! # }
+//! ```
+
+use std::sync::{Arc, Mutex};
+
+use glam::Vec3;
+
+use crate::gpu::{GpuContext, GpuError, GpuTimer};
+use crate::neural::{GpuNetwork, NeuralSdf, NeuralSdfError};
+use crate::nglod::gpu::NglodEvalBinding;
+use crate::shaders;
+
+/// Invocations per workgroup of `shaders/query.wgsl`.
+const WG: u32 = 64;
+
+/// What a query computes.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash)]
+pub enum QueryOutputs {
+    /// One signed distance per point (`array<f32>`).
+    #[default]
+    Values,
+    /// Per point the signed distance and the unit normal, as one `vec4<f32>`: `(d, nx, ny, nz)`.
+    ValuesAndNormals,
+}
+
+impl QueryOutputs {
+    /// Floats per point in the results buffer.
+    pub fn floats_per_point(self) -> u32 {
+        match self {
+            QueryOutputs::Values => 1,
+            QueryOutputs::ValuesAndNormals => 4,
+        }
+    }
+}
+
+/// The coordinates of the points and the units of the distances.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash)]
+pub enum QuerySpace {
+    /// The original mesh's coordinates and units.
+    #[default]
+    Mesh,
+    /// The model's normalised cube `[-1, 1]³` and its units.
+    Normalized,
+}
+
+/// Describes a [`QueryBuffers`] (see [`NeuralSdf::create_query_buffers`]).
+#[derive(Clone, Copy, Debug, Default)]
+pub struct QueryBuffersDescriptor<'a> {
+    /// Debug label of the buffers.
+    pub label: Option<&'a str>,
+    /// Most points one query takes (at least 1).
+    pub capacity: u32,
+    /// Distances only, or distances and normals.
+    pub outputs: QueryOutputs,
+    /// Mesh or normalised coordinates.
+    pub space: QuerySpace,
+}
+
+/// Errors of the serving API.
+#[derive(Debug, thiserror::Error)]
+pub enum QueryError {
+    /// More points than the buffers hold.
+    #[error("{requested} points do not fit query buffers of capacity {capacity}")]
+    Capacity {
+        /// Points asked for.
+        requested: usize,
+        /// The buffers' capacity.
+        capacity: u32,
+    },
+    /// The buffers were made for another model or another device.
+    #[error("these query buffers belong to another model or another device")]
+    Foreign,
+    /// A submission is still in flight on these buffers (wait for it first).
+    #[error("a query is already in flight on these buffers; wait for its ticket first")]
+    Busy,
+    /// The ticket is not the one in flight on these buffers.
+    #[error("this ticket does not belong to the query in flight on these buffers")]
+    StaleTicket,
+    /// The capacity is zero or the buffers would exceed the device's limits.
+    #[error("invalid query buffers: {0}")]
+    Invalid(String),
+}
+
+/// The state of the staging buffer's mapping.
+#[derive(Debug, Default)]
+enum MapState {
+    /// Not mapped, nothing in flight.
+    #[default]
+    Idle,
+    /// `map_async` was called; its callback has not run yet.
+    Pending,
+    /// Mapped and readable.
+    Mapped,
+    /// The mapping failed.
+    Failed(String),
+}
+
+/// Reusable, caller-owned buffers for queries of up to `capacity` points of one
+/// [`NeuralSdf`] on one device. See the [module docs](self).
+pub struct QueryBuffers {
+    model: u64,
+    device: wgpu::Device,
+    capacity: u32,
+    outputs: QueryOutputs,
+    space: QuerySpace,
+    points: wgpu::Buffer,
+    results: wgpu::Buffer,
+    staging: wgpu::Buffer,
+    kernels: Kernels,
+    /// Host copy of the points, padded to vec4, reused between uploads.
+    host: Vec<[f32; 4]>,
+    map: Arc<Mutex<MapState>>,
+    /// Bumped on each submission; tickets carry it.
+    generation: u64,
+    in_flight: Option<(u64, u32)>,
+}
+
+impl std::fmt::Debug for QueryBuffers {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("QueryBuffers")
+            .field("capacity", &self.capacity)
+            .field("outputs", &self.outputs)
+            .field("space", &self.space)
+            .finish_non_exhaustive()
+    }
+}
+
+/// How a query runs on the GPU.
+enum Kernels {
+    /// NGLOD: one dispatch of its serving kernel, straight from `points` to `results`.
+    Nglod(NglodEvalBinding),
+    /// SIREN: `prepare` (points to the network's input rows), the network's launches (through
+    /// its workspace), `finish` (its values and gradients to distances and normals).
+    Staged(Box<Stages>),
+}
+
+/// The two ends of `shaders/query.wgsl` around a network's own kernels.
+struct Stages {
+    net_in: wgpu::Buffer,
+    net_out: wgpu::Buffer,
+    uniforms: wgpu::Buffer,
+    /// The point count the uniforms hold.
+    written: Option<u32>,
+    prepare: (wgpu::ComputePipeline, wgpu::BindGroup),
+    finish: (wgpu::ComputePipeline, wgpu::BindGroup),
+}
+
+/// A submitted query; redeem it with [`QueryBuffers::wait`].
+#[derive(Debug)]
+#[must_use = "a submitted query is read back with QueryBuffers::wait"]
+pub struct QueryTicket {
+    generation: u64,
+    submission: wgpu::SubmissionIndex,
+    n: u32,
+}
+
+impl QueryTicket {
+    /// Points in the query.
+    pub fn len(&self) -> usize {
+        self.n as usize
+    }
+
+    /// Whether the query has no points.
+    pub fn is_empty(&self) -> bool {
+        self.n == 0
+    }
+
+    /// The wgpu submission that carries the query.
+    pub fn submission(&self) -> &wgpu::SubmissionIndex {
+        &self.submission
+    }
+}
+
+/// The mapped results of a query; unmaps the staging buffer when dropped.
+pub struct QueryResults<'a> {
+    view: Option<wgpu::BufferView>,
+    staging: &'a wgpu::Buffer,
+    map: &'a Mutex<MapState>,
+    n: usize,
+    outputs: QueryOutputs,
+}
+
+impl QueryResults<'_> {
+    /// Points in the query.
+    pub fn len(&self) -> usize {
+        self.n
+    }
+
+    /// Whether the query had no points.
+    pub fn is_empty(&self) -> bool {
+        self.n == 0
+    }
+
+    /// The raw floats: one per point, or four (distance, normal) with normals.
+    pub fn floats(&self) -> Vec<f32> {
+        self.view
+            .as_ref()
+            .map(|v| bytemuck::pod_collect_to_vec(v))
+            .unwrap_or_default()
+    }
+
+    /// Appends the distances to `out` (reuse `out` between queries to avoid allocating).
+    pub fn extend_values(&self, out: &mut Vec<f32>) {
+        let Some(v) = &self.view else { return };
+        let per = self.outputs.floats_per_point() as usize * 4;
+        out.extend(
+            v.chunks_exact(per)
+                .map(|c| f32::from_ne_bytes([c[0], c[1], c[2], c[3]])),
+        );
+    }
+
+    /// Appends (distance, normal) pairs to `out`; normals are zero for a values-only query.
+    pub fn extend_values_and_normals(&self, out: &mut Vec<(f32, Vec3)>) {
+        let Some(v) = &self.view else { return };
+        let f = |c: &[u8], i: usize| f32::from_ne_bytes([c[i], c[i + 1], c[i + 2], c[i + 3]]);
+        match self.outputs {
+            QueryOutputs::Values => out.extend(v.chunks_exact(4).map(|c| (f(c, 0), Vec3::ZERO))),
+            QueryOutputs::ValuesAndNormals => out.extend(
+                v.chunks_exact(16)
+                    .map(|c| (f(c, 0), Vec3::new(f(c, 4), f(c, 8), f(c, 12)))),
+            ),
+        }
+    }
+}
+
+impl Drop for QueryResults<'_> {
+    fn drop(&mut self) {
+        if self.view.take().is_some() {
+            self.staging.unmap();
+        }
+        *self.map.lock().unwrap_or_else(|e| e.into_inner()) = MapState::Idle;
+    }
+}
+
+impl QueryBuffers {
+    /// Most points one query takes.
+    pub fn capacity(&self) -> u32 {
+        self.capacity
+    }
+
+    /// What the queries compute.
+    pub fn outputs(&self) -> QueryOutputs {
+        self.outputs
+    }
+
+    /// The coordinates the points are in.
+    pub fn space(&self) -> QuerySpace {
+        self.space
+    }
+
+    /// The points, `array<vec4<f32>>` (xyz used): `STORAGE | COPY_DST`, so your own pass or
+    /// copy may fill it as well as [`QueryBuffers::upload`].
+    pub fn points(&self) -> &wgpu::Buffer {
+        &self.points
+    }
+
+    /// The results, `STORAGE | COPY_SRC`: `array<f32>` of distances, or `array<vec4<f32>>` of
+    /// (distance, normal). Bind it in your next pass to use them without a readback.
+    pub fn results(&self) -> &wgpu::Buffer {
+        &self.results
+    }
+
+    /// Writes `points` into [`QueryBuffers::points`] through the queue (they take effect at
+    /// the next submission) and returns their count.
+    pub fn upload(&mut self, gpu: &GpuContext, points: &[Vec3]) -> Result<u32, QueryError> {
+        let n = self.check_count(points.len())?;
+        self.host.clear();
+        self.host
+            .extend(points.iter().map(|p| [p.x, p.y, p.z, 1.0]));
+        if n > 0 {
+            gpu.queue()
+                .write_buffer(&self.points, 0, bytemuck::cast_slice(&self.host));
+        }
+        Ok(n)
+    }
+
+    /// Whether the query of `ticket` can be read without blocking (polls the device once).
+    pub fn is_ready(&self, gpu: &GpuContext, ticket: &QueryTicket) -> bool {
+        let _ = gpu.device().poll(wgpu::PollType::Poll);
+        self.in_flight.map(|(g, _)| g) == Some(ticket.generation)
+            && !matches!(
+                *self.map.lock().unwrap_or_else(|e| e.into_inner()),
+                MapState::Pending
+            )
+    }
+
+    /// Blocks until the query of `ticket` has run and returns its mapped results.
+    pub fn wait(
+        &mut self,
+        gpu: &GpuContext,
+        ticket: QueryTicket,
+    ) -> Result<QueryResults<'_>, NeuralSdfError> {
+        match self.in_flight {
+            Some((g, _)) if g == ticket.generation => {}
+            _ => return Err(QueryError::StaleTicket.into()),
+        }
+        self.in_flight = None;
+        let error = |reason: String| GpuError::Readback {
+            label: "query results".into(),
+            reason,
+        };
+        let bytes = u64::from(ticket.n) * u64::from(self.outputs.floats_per_point()) * 4;
+        let view = if bytes == 0 {
+            None
+        } else {
+            gpu.device()
+                .poll(wgpu::PollType::Wait {
+                    submission_index: Some(ticket.submission),
+                    timeout: None,
+                })
+                .map_err(|e| error(e.to_string()))?;
+            let state = std::mem::take(&mut *self.map.lock().unwrap_or_else(|e| e.into_inner()));
+            match state {
+                MapState::Mapped => {}
+                MapState::Failed(reason) => return Err(error(reason).into()),
+                MapState::Idle | MapState::Pending => {
+                    return Err(error("the mapping did not complete".into()).into());
+                }
+            }
+            *self.map.lock().unwrap_or_else(|e| e.into_inner()) = MapState::Mapped;
+            Some(
+                self.staging
+                    .slice(..bytes)
+                    .get_mapped_range()
+                    .map_err(|e| error(e.to_string()))?,
+            )
+        };
+        Ok(QueryResults {
+            view,
+            staging: &self.staging,
+            map: &self.map,
+            n: ticket.n as usize,
+            outputs: self.outputs,
+        })
+    }
+
+    /// Whether these buffers live on `gpu`'s device.
+    pub(crate) fn belongs_to(&self, gpu: &GpuContext) -> bool {
+        self.device == *gpu.device()
+    }
+
+    fn check_count(&self, n: usize) -> Result<u32, QueryError> {
+        if n > self.capacity as usize {
+            return Err(QueryError::Capacity {
+                requested: n,
+                capacity: self.capacity,
+            });
+        }
+        Ok(n as u32)
+    }
+}
+
+/// The uniforms of `shaders/query.wgsl`.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, bytemuck::Pod, bytemuck::Zeroable)]
+struct QueryUniforms {
+    n_points: u32,
+    streams: u32,
+    normals: u32,
+    scale: f32,
+    center: [f32; 4],
+}
+
+impl NeuralSdf {
+    /// Buffers for queries of this model on `gpu`'s device (see the [module docs](self)).
+    pub fn create_query_buffers(
+        &self,
+        gpu: &GpuContext,
+        desc: &QueryBuffersDescriptor<'_>,
+    ) -> Result<QueryBuffers, NeuralSdfError> {
+        if desc.capacity == 0 {
+            return Err(QueryError::Invalid("capacity 0".into()).into());
+        }
+        let label = desc.label.unwrap_or("hwsdf query");
+        let cap = u64::from(desc.capacity);
+        let normals = desc.outputs == QueryOutputs::ValuesAndNormals;
+        let out_floats = u64::from(desc.outputs.floats_per_point());
+        let storage =
+            |what: &str, bytes: u64| gpu.storage_zeroed(&format!("{label} {what}"), bytes);
+        let points = storage("points", cap * 16)?;
+        let results = storage("results", cap * out_floats * 4)?;
+        let staging = gpu.device().create_buffer(&wgpu::BufferDescriptor {
+            label: Some(&format!("{label} staging")),
+            size: cap * out_floats * 4,
+            usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+            mapped_at_creation: false,
+        });
+        let transform = match desc.space {
+            QuerySpace::Mesh => (self.normalization().center, self.normalization().scale),
+            QuerySpace::Normalized => (Vec3::ZERO, 1.0),
+        };
+        let nglod = self.with_gpu(gpu, |net, _| match net {
+            GpuNetwork::Nglod(m) => Ok(Some(
+                m.eval_binding(gpu, &points, &results, normals, transform)?,
+            )),
+            GpuNetwork::Siren(_) => Ok(None),
+        })?;
+        let kernels = match nglod {
+            Some(binding) => Kernels::Nglod(binding),
+            None => {
+                // SIREN takes its gradient as three tangent rows per point.
+                let in_floats = if normals { 12 } else { 3 };
+                let net_in = storage("network input", cap * in_floats * 4)?;
+                let net_out = storage("network output", cap * out_floats * 4)?;
+                let uniforms = gpu.uniform(
+                    &format!("{label} uniforms"),
+                    &QueryUniforms {
+                        n_points: 0,
+                        streams: normals.into(),
+                        normals: normals.into(),
+                        scale: transform.1,
+                        center: transform.0.extend(0.0).to_array(),
+                    },
+                );
+                let bind = |entry: &str, entries: &[(u32, &wgpu::Buffer)]| {
+                    let pipeline = gpu.pipeline(&shaders::QUERY, entry, &[])?;
+                    let entries: Vec<wgpu::BindGroupEntry<'_>> = entries
+                        .iter()
+                        .map(|&(binding, b)| wgpu::BindGroupEntry {
+                            binding,
+                            resource: b.as_entire_binding(),
+                        })
+                        .collect();
+                    let group = gpu.device().create_bind_group(&wgpu::BindGroupDescriptor {
+                        label: Some(entry),
+                        layout: &pipeline.get_bind_group_layout(0),
+                        entries: &entries,
+                    });
+                    Ok::<_, GpuError>((pipeline, group))
+                };
+                let prepare = bind("prepare", &[(0, &uniforms), (1, &points), (2, &net_in)])?;
+                let finish = bind(
+                    "finish",
+                    &[(0, &uniforms), (1, &points), (3, &net_out), (4, &results)],
+                )?;
+                Kernels::Staged(Box::new(Stages {
+                    net_in,
+                    net_out,
+                    uniforms,
+                    written: None,
+                    prepare,
+                    finish,
+                }))
+            }
+        };
+        Ok(QueryBuffers {
+            model: self.id(),
+            device: gpu.device().clone(),
+            capacity: desc.capacity,
+            outputs: desc.outputs,
+            space: desc.space,
+            points,
+            results,
+            staging,
+            kernels,
+            host: Vec::new(),
+            map: Arc::new(Mutex::new(MapState::Idle)),
+            generation: 0,
+            in_flight: None,
+        })
+    }
+
+    /// Records a query of the first `n` points of [`QueryBuffers::points`] into `enc`; the
+    /// results land in [`QueryBuffers::results`] when `enc` has run, and stay on the GPU.
+    ///
+    /// The point count goes through the queue when it changes, taking effect at the next
+    /// submission: record one [`QueryBuffers`] at most once per submission (use one per batch).
+    pub fn record_query(
+        &self,
+        gpu: &GpuContext,
+        enc: &mut wgpu::CommandEncoder,
+        buffers: &mut QueryBuffers,
+        n: u32,
+    ) -> Result<(), NeuralSdfError> {
+        self.record_query_timed(gpu, enc, buffers, n, false)
+    }
+
+    /// Uploads `points`, records their query, copies the results to the staging buffer and
+    /// submits, without waiting: redeem the ticket with [`QueryBuffers::wait`].
+    pub fn submit_query(
+        &self,
+        gpu: &GpuContext,
+        buffers: &mut QueryBuffers,
+        points: &[Vec3],
+    ) -> Result<QueryTicket, NeuralSdfError> {
+        self.submit_query_timed(gpu, buffers, points, false)
+    }
+
+    /// [`NeuralSdf::submit_query`], with the query's passes timed by this model's
+    /// [`GpuTimer`] when `timed` (read it with [`NeuralSdf::read_query_ns`] after waiting).
+    pub(crate) fn submit_query_timed(
+        &self,
+        gpu: &GpuContext,
+        buffers: &mut QueryBuffers,
+        points: &[Vec3],
+        timed: bool,
+    ) -> Result<QueryTicket, NeuralSdfError> {
+        if buffers.in_flight.is_some() {
+            return Err(QueryError::Busy.into());
+        }
+        self.check_buffers(gpu, buffers)?;
+        let n = buffers.upload(gpu, points)?;
+        let mut enc = gpu.device().create_command_encoder(&Default::default());
+        self.record_query_timed(gpu, &mut enc, buffers, n, timed)?;
+        let bytes = u64::from(n) * u64::from(buffers.outputs.floats_per_point()) * 4;
+        if bytes > 0 {
+            enc.copy_buffer_to_buffer(&buffers.results, 0, &buffers.staging, 0, bytes);
+        }
+        let submission = gpu.queue().submit([enc.finish()]);
+        buffers.generation += 1;
+        if bytes > 0 {
+            *buffers.map.lock().unwrap_or_else(|e| e.into_inner()) = MapState::Pending;
+            let map = Arc::clone(&buffers.map);
+            buffers
+                .staging
+                .slice(..bytes)
+                .map_async(wgpu::MapMode::Read, move |r| {
+                    *map.lock().unwrap_or_else(|e| e.into_inner()) = match r {
+                        Ok(()) => MapState::Mapped,
+                        Err(e) => MapState::Failed(e.to_string()),
+                    };
+                });
+        }
+        buffers.in_flight = Some((buffers.generation, n));
+        Ok(QueryTicket {
+            generation: buffers.generation,
+            submission,
+            n,
+        })
+    }
+
+    /// The GPU nanoseconds of the last timed query's passes (prepare to finish), from this
+    /// model's timer; `None` without timestamp queries. Call after its ticket was waited on.
+    pub(crate) fn read_query_ns(&self, gpu: &GpuContext) -> Result<Option<u64>, NeuralSdfError> {
+        self.with_gpu(gpu, |_, timer| match timer {
+            Some(t) => Ok(Some(t.read_ns(gpu)?)),
+            None => Ok(None),
+        })
+    }
+
+    fn check_buffers(&self, gpu: &GpuContext, buffers: &QueryBuffers) -> Result<(), QueryError> {
+        if buffers.model != self.id() || buffers.device != *gpu.device() {
+            return Err(QueryError::Foreign);
+        }
+        Ok(())
+    }
+
+    /// [`NeuralSdf::record_query`], bracketing the passes with the model's timer when `timed`
+    /// and the device has timestamp queries (resolved into `enc`).
+    fn record_query_timed(
+        &self,
+        gpu: &GpuContext,
+        enc: &mut wgpu::CommandEncoder,
+        buffers: &mut QueryBuffers,
+        n: u32,
+        timed: bool,
+    ) -> Result<(), NeuralSdfError> {
+        self.check_buffers(gpu, buffers)?;
+        buffers.check_count(n as usize)?;
+        if n == 0 {
+            return Ok(());
+        }
+        let normals = buffers.outputs == QueryOutputs::ValuesAndNormals;
+        let lod = self.lod();
+        self.with_gpu(gpu, |net, timer| {
+            let timer: Option<&GpuTimer> = timer.filter(|_| timed);
+            match (net, &mut buffers.kernels) {
+                (GpuNetwork::Nglod(m), Kernels::Nglod(binding)) => {
+                    m.record_eval(gpu, enc, binding, n, lod, timer)?
+                }
+                (GpuNetwork::Siren(s), Kernels::Staged(st)) => {
+                    if st.written != Some(n) {
+                        // n_points is the first field of the uniforms.
+                        gpu.queue()
+                            .write_buffer(&st.uniforms, 0, bytemuck::bytes_of(&n));
+                        st.written = Some(n);
+                    }
+                    let (x, y) = gpu.dispatch_size(n.div_ceil(WG));
+                    {
+                        let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                            label: Some("hwsdf query prepare"),
+                            timestamp_writes: timer.map(|t| t.writes(true, false)),
+                        });
+                        pass.set_pipeline(&st.prepare.0);
+                        pass.set_bind_group(0, &st.prepare.1, &[]);
+                        pass.dispatch_workgroups(x, y, 1);
+                    }
+                    s.record_eval(gpu, enc, &st.net_in, &st.net_out, n, normals)?;
+                    let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                        label: Some("hwsdf query finish"),
+                        timestamp_writes: timer.map(|t| t.writes(false, true)),
+                    });
+                    pass.set_pipeline(&st.finish.0);
+                    pass.set_bind_group(0, &st.finish.1, &[]);
+                    pass.dispatch_workgroups(x, y, 1);
+                }
+                _ => return Err(QueryError::Foreign.into()),
+            }
+            if let Some(t) = timer {
+                t.resolve(enc);
+            }
+            Ok(())
+        })
+    }
+}
