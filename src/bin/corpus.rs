@@ -106,6 +106,11 @@ fn meshes_in(dir: &Path) -> Result<Vec<PathBuf>, Box<dyn std::error::Error>> {
 
 fn corpus(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
     let meshes = meshes_in(&args.dir)?;
+    // The table must not replace a mesh, and its folder must take it: checked before hours of
+    // training, not after.
+    let inputs: Vec<&Path> = meshes.iter().map(PathBuf::as_path).collect();
+    hwsdf::geom::io::check_outputs(&inputs, &[&args.out])?;
+    run::check_eval_points(args.eval_points)?;
     let models: Vec<ModelKind> = match args.model {
         Models::Siren => vec![ModelKind::Siren],
         Models::Nglod => vec![ModelKind::Nglod],

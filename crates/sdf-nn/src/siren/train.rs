@@ -267,12 +267,7 @@ impl SirenTrainer {
                 "loss_every must be in 1..=4096".into(),
             ));
         }
-        if !(config.lr.is_finite() && config.lr > 0.0) {
-            return Err(TrainError::BadTrainConfig(format!(
-                "learning rate {}",
-                config.lr
-            )));
-        }
+        crate::AdamConfig::check_lr(config.lr).map_err(TrainError::BadTrainConfig)?;
         let w = &config.weights;
         let weights = [w.surface, w.off_surface, w.normal, w.eikonal];
         let usable = weights.iter().all(|x| x.is_finite() && *x >= 0.0)
@@ -530,6 +525,9 @@ impl SirenTrainer {
         steps_done: usize,
         lr: f32,
     ) -> Result<(), TrainError> {
+        // A checkpoint's values get the checks a new run's configuration gets.
+        crate::AdamConfig::check_lr(lr).map_err(TrainError::BadTrainConfig)?;
+        state.validate().map_err(TrainError::BadTrainConfig)?;
         self.adam.import_state(gpu, state)?;
         self.adam.config.lr = lr;
         self.step = steps_done;
