@@ -138,6 +138,13 @@ fn train(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
         return Err("--steps applies to SIREN; NGLOD trains for --epochs".into());
     }
     run::check_eval_points(args.eval_points)?;
+    // The trainers check these again; here they fail before the mesh and the GPU are set up.
+    if let Some(lr) = args.lr {
+        hwsdf::nn::AdamConfig::check_lr(lr)?;
+    }
+    if let Some(w) = args.siren_weights() {
+        w.validate()?;
+    }
     let out = args
         .out
         .clone()
@@ -199,7 +206,9 @@ fn train(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
         ctrlc::set_handler(move || {
             // The model is saved by then; the evaluation has nothing to keep.
             if evaluating.load(Ordering::Relaxed) {
-                eprintln!("\ninterrupted during the evaluation; the model is saved, no report written");
+                eprintln!(
+                    "\ninterrupted during the evaluation; the model is saved, no report written"
+                );
                 std::process::exit(130);
             }
             if stop.swap(true, Ordering::Relaxed) {

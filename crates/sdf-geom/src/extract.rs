@@ -439,7 +439,10 @@ mod tests {
             mesh.vertices.len(),
             mesh.triangles.len()
         );
-        assert!(cells <= predicted && predicted < 2 * cells, "{cells} {predicted}");
+        assert!(
+            cells <= predicted && predicted < 2 * cells,
+            "{cells} {predicted}"
+        );
         let mut options = ExtractOptions::new(n);
         options.max_bytes = predicted * BYTES_PER_CELL - 1;
         match extract_surface(sphere(0.7), &options) {

@@ -356,11 +356,12 @@ mod tests {
             std::fs::set_permissions(&ro, std::fs::Permissions::from_mode(0o755)).unwrap();
         }
         // The checks leave no trial files behind.
-        assert!(
-            std::fs::read_dir(&dir)
-                .unwrap()
-                .all(|e| !e.unwrap().file_name().to_string_lossy().contains("write-check"))
-        );
+        assert!(std::fs::read_dir(&dir).unwrap().all(|e| {
+            !e.unwrap()
+                .file_name()
+                .to_string_lossy()
+                .contains("write-check")
+        }));
         std::fs::remove_dir_all(&dir).unwrap();
     }
 

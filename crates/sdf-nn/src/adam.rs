@@ -54,7 +54,9 @@ impl AdamConfig {
         if lr.is_finite() && lr > 0.0 {
             Ok(())
         } else {
-            Err(format!("the learning rate must be finite and positive, not {lr}"))
+            Err(format!(
+                "the learning rate must be finite and positive, not {lr}"
+            ))
         }
     }
 }

@@ -239,12 +239,13 @@ impl ModelFile {
     /// Reads and checks a file: a regular file of at most [`MAX_MODEL_FILE_BYTES`], safetensors
     /// structure, finite f32 tensors, and the metadata keys.
     pub fn load(path: &Path) -> Result<Self, ModelFileError> {
-        let bytes = sdf_geom::io::read_regular_file(path, MAX_MODEL_FILE_BYTES).map_err(|source| {
-            ModelFileError::Io {
-                path: path.to_owned(),
-                source,
-            }
-        })?;
+        let bytes =
+            sdf_geom::io::read_regular_file(path, MAX_MODEL_FILE_BYTES).map_err(|source| {
+                ModelFileError::Io {
+                    path: path.to_owned(),
+                    source,
+                }
+            })?;
         Self::from_bytes(&bytes, path)
     }
 
@@ -535,10 +536,7 @@ mod tests {
         f.ensure_holds(16).unwrap();
         assert!(matches!(
             f.ensure_holds(4096 * 4096 * 64),
-            Err(ModelFileError::DeclaredSize {
-                available: 16,
-                ..
-            })
+            Err(ModelFileError::DeclaredSize { available: 16, .. })
         ));
     }
 

@@ -119,6 +119,23 @@ impl Default for SirenTrainConfig {
     }
 }
 
+impl LossWeights {
+    /// Errors unless every weight is finite and non-negative and α finite and positive.
+    pub fn validate(&self) -> Result<(), TrainError> {
+        let w = self;
+        let weights = [w.surface, w.off_surface, w.normal, w.eikonal];
+        let usable = weights.iter().all(|x| x.is_finite() && *x >= 0.0)
+            && w.alpha.is_finite()
+            && w.alpha > 0.0;
+        if !usable {
+            return Err(TrainError::BadTrainConfig(format!(
+                "loss weights must be finite and non-negative, alpha positive: {w:?}"
+            )));
+        }
+        Ok(())
+    }
+}
+
 /// Training failures.
 #[derive(Debug, thiserror::Error)]
 pub enum TrainError {
@@ -268,16 +285,7 @@ impl SirenTrainer {
             ));
         }
         crate::AdamConfig::check_lr(config.lr).map_err(TrainError::BadTrainConfig)?;
-        let w = &config.weights;
-        let weights = [w.surface, w.off_surface, w.normal, w.eikonal];
-        let usable = weights.iter().all(|x| x.is_finite() && *x >= 0.0)
-            && w.alpha.is_finite()
-            && w.alpha > 0.0;
-        if !usable {
-            return Err(TrainError::BadTrainConfig(format!(
-                "loss weights must be finite and non-negative, alpha positive: {w:?}"
-            )));
-        }
+        config.weights.validate()?;
         let net = SirenGpu::new(gpu, siren)?;
         let passes = TrainPasses::new(
             gpu,
