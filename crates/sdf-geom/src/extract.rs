@@ -44,7 +44,8 @@ pub const EXTRACT_MEMORY_BUDGET: u64 = 4 << 30;
 /// keys before deduplication, corner points and values, cell vertices, the mesh), plus the OBJ
 /// text and the GPU's evaluation buffers (host memory on a CPU adapter). Measured: the `budget`
 /// test at 1024³ peaks at 836 MB for 6.7 M cells (124 B/cell, extraction and mesh only); the
-/// OBJ text adds about 26 B/cell.
+/// OBJ text adds about 26 B/cell. The `extract` binary at 1024³ on a plane model peaks at
+/// 745 MB for 5.2 M cells (142 B/cell, lavapipe), so this errs on the safe side by about 40%.
 pub const BYTES_PER_CELL: u64 = 200;
 
 /// Block size (cells) at which the kept blocks predict the final cell count.
