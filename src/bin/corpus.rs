@@ -106,6 +106,11 @@ fn corpus(args: &Args) -> Result<ExitCode, BoxError> {
         (None, Some(dir)) => corpus::walk(dir)?,
         (None, None) => return Err("give a folder of meshes or --list FILE".into()),
     };
+    // The table must not replace a mesh, and its folder must take it: checked before hours of
+    // training, not after.
+    let inputs: Vec<&std::path::Path> = meshes.iter().map(|m| m.path.as_path()).collect();
+    hwsdf::geom::io::check_outputs(&inputs, &[&args.out])?;
+    run::check_eval_points(args.eval_points)?;
     let models: Vec<ModelKind> = match args.model {
         Models::Siren => vec![ModelKind::Siren],
         Models::Nglod => vec![ModelKind::Nglod],

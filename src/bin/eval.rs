@@ -51,6 +51,7 @@ fn eval(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
     if args.points == 0 {
         return Err("--points must be at least 1".into());
     }
+    run::check_eval_points(args.points)?;
     let mut model = NeuralSdf::load(&args.model)?;
     model.set_lod(args.lod)?;
     let file_bytes = std::fs::metadata(&args.model)?.len();

@@ -10,8 +10,8 @@ use std::process::ExitCode;
 use std::time::Instant;
 
 use clap::Parser;
-use hwsdf::eval::run::extract_mesh;
-use hwsdf::geom::extract::MAX_RESOLUTION;
+use hwsdf::eval::run::extract_mesh_with;
+use hwsdf::geom::extract::{EXTRACT_MEMORY_BUDGET, ExtractOptions, MAX_RESOLUTION};
 use hwsdf::nn::{GpuContext, NeuralSdf};
 
 /// Extract the zero level set of a trained neural SDF as an OBJ mesh.
@@ -30,7 +30,13 @@ struct Args {
     /// NGLOD only: use the first k levels.
     #[arg(long)]
     lod: Option<usize>,
+    /// Memory budget in GiB: a resolution whose surface would need more is refused with the
+    /// estimate, after the coarse levels (a few seconds) and before the fine ones.
+    #[arg(long, default_value_t = EXTRACT_MEMORY_BUDGET as f64 / GIB)]
+    max_memory_gib: f64,
 }
+
+const GIB: f64 = (1u64 << 30) as f64;
 
 fn main() -> ExitCode {
     let args = Args::parse();
@@ -51,11 +57,19 @@ fn extract(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
         )
         .into());
     }
+    if !(args.max_memory_gib.is_finite() && args.max_memory_gib > 0.0) {
+        return Err(format!("--max-memory-gib {} must be positive", args.max_memory_gib).into());
+    }
+    hwsdf::geom::io::check_outputs(&[&args.model], &[&args.out])?;
     let mut model = NeuralSdf::load(&args.model)?;
     model.set_lod(args.lod)?;
     let gpu = GpuContext::new()?;
     let start = Instant::now();
-    let (mesh, stats) = extract_mesh(&gpu, &model, args.resolution)?;
+    let options = ExtractOptions {
+        max_bytes: (args.max_memory_gib * GIB).min(u64::MAX as f64) as u64,
+        ..ExtractOptions::new(args.resolution)
+    };
+    let (mesh, stats) = extract_mesh_with(&gpu, &model, &options)?;
     hwsdf::geom::io::write_obj(&mesh, &args.out)
         .map_err(|e| format!("writing {}: {e}", args.out.display()))?;
     eprintln!(

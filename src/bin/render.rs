@@ -75,15 +75,8 @@ fn main() -> ExitCode {
 }
 
 fn run(args: &Args) -> Result<(), String> {
-    // Fail before the slow GPU work if the image could not be written anyway.
-    let dir = args.out.parent().filter(|d| !d.as_os_str().is_empty());
-    if let Some(dir) = dir.filter(|d| !d.is_dir()) {
-        return Err(format!(
-            "cannot write {}: directory {} does not exist",
-            args.out.display(),
-            dir.display()
-        ));
-    }
+    // Fail before the slow GPU work if the image could not be written, or would replace the model.
+    hwsdf::geom::io::check_outputs(&[&args.model], &[&args.out]).map_err(|e| e.to_string())?;
     let mut sdf =
         NeuralSdf::load(&args.model).map_err(|e| format!("cannot load the model: {e}"))?;
     sdf.set_lod(args.lod).map_err(|e| e.to_string())?;

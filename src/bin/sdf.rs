@@ -37,7 +37,8 @@ struct Args {
     verbose: bool,
 }
 
-fn run(args: &Args) -> Result<(), GeomError> {
+fn run(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
+    hwsdf::geom::io::check_outputs(&[&args.mesh, &args.points], &[&args.out])?;
     let t = Instant::now();
     let (mesh, report) = load_mesh(&args.mesh)?;
     for w in &report.warnings {
@@ -56,7 +57,8 @@ fn run(args: &Args) -> Result<(), GeomError> {
         return Err(GeomError::Npy {
             path: args.points.clone(),
             message: format!("point {i} is not finite: {:?}", points[i]),
-        });
+        }
+        .into());
     }
     let sdf = SignedDistance::new(&mesh)?;
     let t_build = t.elapsed();
@@ -69,7 +71,7 @@ fn run(args: &Args) -> Result<(), GeomError> {
             (t.elapsed() - t_build).as_secs_f64() * 1e3
         );
     }
-    npy::write_f32(&args.out, &d)
+    Ok(npy::write_f32(&args.out, &d)?)
 }
 
 fn main() -> ExitCode {

@@ -16,6 +16,7 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use clap::{Parser, ValueEnum};
 use hwsdf::eval::metrics::DEFAULT_EVAL_POINTS;
 use hwsdf::eval::run::{self, ModelKind, Preset, Progress, TrainOptions};
+use hwsdf::geom::io;
 use hwsdf::nn::{GpuContext, LossWeights, NeuralSdf};
 use indicatif::{ProgressBar, ProgressStyle};
 
@@ -136,8 +137,36 @@ fn train(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
     if model == ModelKind::Nglod && args.steps.is_some() {
         return Err("--steps applies to SIREN; NGLOD trains for --epochs".into());
     }
-    // Load the mesh before the GPU: a bad mesh is reported at once.
+    run::check_eval_points(args.eval_points)?;
+    // The trainers check these again; here they fail before the mesh and the GPU are set up.
+    if let Some(lr) = args.lr {
+        hwsdf::nn::AdamConfig::check_lr(lr)?;
+    }
+    if let Some(w) = args.siren_weights() {
+        w.validate()?;
+    }
+    let out = args
+        .out
+        .clone()
+        .unwrap_or_else(|| default_out(&args.mesh, model));
+    let report_path = args
+        .report
+        .clone()
+        .unwrap_or_else(|| out.with_extension("json"));
+    let checkpoint = checkpoint_path(&out);
+    // Before any work: no output may replace the mesh, the checkpoint resumed from or another
+    // output, and each folder must take a new file. The checkpoint an interrupted run writes
+    // may replace the one it resumed from: that is the same run, further on.
+    let mut inputs = vec![args.mesh.as_path()];
+    inputs.extend(args.resume.as_deref());
+    io::check_outputs(&inputs, &[&out, &report_path])?;
+    io::check_outputs(&[&args.mesh], &[&out, &report_path, &checkpoint])?;
+    // Load the mesh and the checkpoint before the GPU: bad input is reported at once.
     let (mesh, normalization) = run::load_normalized(&args.mesh)?;
+    let resume = match &args.resume {
+        Some(path) => Some(run::Checkpoint::load(path)?),
+        None => None,
+    };
     let gpu = GpuContext::new()?;
     let preset = match args.preset {
         Some(PresetArg::Default) => Preset::Default,
@@ -152,14 +181,6 @@ fn train(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
             preset
         }
     };
-    let out = args
-        .out
-        .clone()
-        .unwrap_or_else(|| default_out(&args.mesh, model));
-    let report_path = args
-        .report
-        .clone()
-        .unwrap_or_else(|| out.with_extension("json"));
     let options = TrainOptions {
         model,
         preset,
@@ -178,9 +199,18 @@ fn train(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
     );
 
     let stop = Arc::new(AtomicBool::new(false));
+    let evaluating = Arc::new(AtomicBool::new(false));
     {
         let stop = stop.clone();
+        let evaluating = evaluating.clone();
         ctrlc::set_handler(move || {
+            // The model is saved by then; the evaluation has nothing to keep.
+            if evaluating.load(Ordering::Relaxed) {
+                eprintln!(
+                    "\ninterrupted during the evaluation; the model is saved, no report written"
+                );
+                std::process::exit(130);
+            }
             if stop.swap(true, Ordering::Relaxed) {
                 // A second Ctrl-C means now.
                 std::process::exit(130);
@@ -189,10 +219,6 @@ fn train(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
         })?;
     }
 
-    let resume = match &args.resume {
-        Some(path) => Some(run::Checkpoint::load(path)?),
-        None => None,
-    };
     let mut reporter = Reporter::new();
     let trained = run::train(
         &gpu,
@@ -206,7 +232,6 @@ fn train(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
     reporter.finish();
 
     if trained.interrupted {
-        let checkpoint = checkpoint_path(&out);
         trained.checkpoint().save(&checkpoint)?;
         eprintln!(
             "interrupted after {} {}s; checkpoint written to {}. Continue with:\n  train {} --model {} --resume {}",
@@ -227,8 +252,16 @@ fn train(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
     trained.file.save(&out)?;
     let file_bytes = std::fs::metadata(&out)?.len();
     eprintln!("saved {} ({} bytes); evaluating", out.display(), file_bytes);
+    evaluating.store(true, Ordering::Relaxed);
+    if stop.load(Ordering::Relaxed) {
+        // Ctrl-C came after the last step but before the evaluation began.
+        eprintln!("interrupted; the model is saved, no report written");
+        std::process::exit(130);
+    }
     let sdf = NeuralSdf::from_model_file(trained.file.clone())?;
     let eval = run::evaluate(&gpu, &sdf, &mesh, args.eval_points)?;
+    // The report's atomic write is not cut short by a late Ctrl-C.
+    evaluating.store(false, Ordering::Relaxed);
     let report = run::Report::new(
         &args.mesh,
         &options,

@@ -53,6 +53,83 @@ pub enum RunError {
     /// Options that cannot work together.
     #[error("{0}")]
     Options(String),
+    /// Training produced a NaN or infinite weight. Nothing is saved: a checkpoint resumed from
+    /// stays as it was, the last good state.
+    #[error(
+        "training diverged: after {done} {unit}s, value {index} of `{tensor}` is {value}; nothing was saved (try a lower learning rate or smaller loss weights)"
+    )]
+    Diverged {
+        /// Steps or epochs done.
+        done: usize,
+        /// `"step"` or `"epoch"`.
+        unit: &'static str,
+        /// The first tensor with a bad value.
+        tensor: String,
+        /// Index of the value.
+        index: usize,
+        /// The value.
+        value: f32,
+    },
+    /// The request would need more memory than the budget; refused before any work.
+    #[error(
+        "{what} would need about {:.1} GiB of memory, over the {:.1} GiB budget; {hint}",
+        *.need as f64 / GIB, *.budget as f64 / GIB
+    )]
+    OverBudget {
+        /// What was asked.
+        what: String,
+        /// Estimated bytes.
+        need: u64,
+        /// The budget in bytes.
+        budget: u64,
+        /// What to do instead.
+        hint: String,
+    },
+}
+
+const GIB: f64 = (1u64 << 30) as f64;
+
+/// Memory an evaluation holds per point of `--points` / `--eval-points`, in bytes: the two sets'
+/// points and truths, the Poisson-disk candidates of the near-surface set, predictions, and the
+/// GPU's buffers (host memory on a CPU adapter). Measured with `eval --surface-resolution 0` on
+/// lavapipe: peak RSS 295 MB at 2·10^5 points and 1168 MB at 10^6, 1.09 kB per point; rounded up.
+pub const EVAL_BYTES_PER_POINT: u64 = 1200;
+
+/// Memory budget of one evaluation, in bytes (4 GiB).
+pub const EVAL_MEMORY_BUDGET: u64 = 4 << 30;
+
+/// Refuses, before any work, an evaluation whose sets would pass [`EVAL_MEMORY_BUDGET`], with
+/// the estimate.
+pub fn check_eval_points(points: usize) -> Result<(), RunError> {
+    let need = (points as u64).saturating_mul(EVAL_BYTES_PER_POINT);
+    if need > EVAL_MEMORY_BUDGET {
+        return Err(RunError::OverBudget {
+            what: format!("evaluating on {points} points per set"),
+            need,
+            budget: EVAL_MEMORY_BUDGET,
+            hint: format!(
+                "use at most {} points",
+                EVAL_MEMORY_BUDGET / EVAL_BYTES_PER_POINT
+            ),
+        });
+    }
+    Ok(())
+}
+
+/// Errors with [`RunError::Diverged`] on the first NaN or infinite value of a trained model.
+fn check_trained(file: &ModelFile, done: usize, unit: &'static str) -> Result<(), RunError> {
+    match file.check_finite() {
+        Err(sdf_nn::ModelFileError::NonFinite {
+            name, index, value, ..
+        }) => Err(RunError::Diverged {
+            done,
+            unit,
+            tensor: name,
+            index,
+            value,
+        }),
+        other => Ok(other?),
+    }
 }
 
 /// Which architecture to train.
@@ -160,7 +237,12 @@ impl Checkpoint {
             )));
         }
         let c = Checkpoint { file };
-        c.optimizer()?;
+        // The hyperparameters it carries get the checks the command line's get.
+        let bad = |e: String| RunError::Options(format!("checkpoint {}: {e}", path.display()));
+        c.optimizer()?.validate().map_err(bad)?;
+        if let Some(lr) = c.lr() {
+            sdf_nn::AdamConfig::check_lr(lr).map_err(bad)?;
+        }
         Ok(c)
     }
 
@@ -193,9 +275,11 @@ impl Checkpoint {
         Ok(AdamState { m, v, step })
     }
 
-    /// The learning rate when it was written.
+    /// The learning rate when it was written (`None` if absent; a value that is not a number
+    /// reads as NaN, which the checks refuse).
     pub fn lr(&self) -> Option<f32> {
-        self.file.metadata.training["lr"].as_f64().map(|x| x as f32)
+        let v = &self.file.metadata.training["lr"];
+        (!v.is_null()).then(|| v.as_f64().map_or(f32::NAN, |x| x as f32))
     }
 
     /// Which architecture and preset it was trained with.
@@ -382,6 +466,9 @@ pub fn train(
                 training_json(done, loss),
             );
             file.metadata.normalization = normalization;
+            // The trainer checks each window's loss; the weights are checked here, since a run
+            // shorter than a window reads no loss at all.
+            check_trained(&file, done, "step")?;
             Ok(Trained {
                 file,
                 train_seconds: start.elapsed().as_secs_f64(),
@@ -443,6 +530,7 @@ pub fn train(
             );
             training["stall_seconds"] = report.stall_seconds.into();
             let file = trained.to_model_file(normalization, training.clone());
+            check_trained(&file, done, "epoch")?;
             Ok(Trained {
                 file,
                 train_seconds: start.elapsed().as_secs_f64(),
@@ -487,6 +575,7 @@ pub fn evaluate(
     mesh: &Mesh,
     points: usize,
 ) -> Result<Evaluation, RunError> {
+    check_eval_points(points)?;
     let sdf = SignedDistance::new(mesh).map_err(|source| RunError::Mesh {
         path: PathBuf::from("<normalised mesh>"),
         source,
@@ -515,14 +604,20 @@ pub fn extract_mesh(
     model: &NeuralSdf,
     resolution: u32,
 ) -> Result<(Mesh, ExtractStats), RunError> {
-    let (mut mesh, stats) = extract_surface(
-        |p: &[Vec3]| model.eval_normalized(gpu, p),
-        &ExtractOptions::new(resolution),
-    )
-    .map_err(|e| match e {
-        ExtractError::Eval(e) => RunError::Model(e),
-        other => RunError::Options(other.to_string()),
-    })?;
+    extract_mesh_with(gpu, model, &ExtractOptions::new(resolution))
+}
+
+/// [`extract_mesh`] with explicit options (memory budget, domain, bound factor).
+pub fn extract_mesh_with(
+    gpu: &GpuContext,
+    model: &NeuralSdf,
+    options: &ExtractOptions,
+) -> Result<(Mesh, ExtractStats), RunError> {
+    let (mut mesh, stats) = extract_surface(|p: &[Vec3]| model.eval_normalized(gpu, p), options)
+        .map_err(|e| match e {
+            ExtractError::Eval(e) => RunError::Model(e),
+            other => RunError::Options(other.to_string()),
+        })?;
     let n = model.normalization();
     for v in &mut mesh.vertices {
         *v = n.to_original(*v);

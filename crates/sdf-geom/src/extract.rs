@@ -31,7 +31,30 @@ pub struct ExtractOptions {
     pub half_size: f32,
     /// Safety factor on the distance bound used to prune blocks.
     pub lipschitz: f32,
+    /// Memory budget in bytes. Once the pruning is fine enough to predict the surface's cell
+    /// count (blocks of [`PREDICT_BLOCK`] cells), an extraction whose estimate passes it stops
+    /// with [`ExtractError::OverBudget`] before the fine levels allocate anything.
+    pub max_bytes: u64,
 }
+
+/// Default [`ExtractOptions::max_bytes`]: 4 GiB.
+pub const EXTRACT_MEMORY_BUDGET: u64 = 4 << 30;
+
+/// Host bytes per kept finest-level cell, all buffers at their peak together (cells, corner
+/// keys before deduplication, corner points and values, cell vertices, the mesh), plus the OBJ
+/// text and the GPU's evaluation buffers (host memory on a CPU adapter). Measured: the `budget`
+/// test at 1024³ peaks at 836 MB for 6.7 M cells (124 B/cell, extraction and mesh only); the
+/// OBJ text adds about 26 B/cell. The `extract` binary at 1024³ on a plane model peaks at
+/// 745 MB for 5.2 M cells (142 B/cell, lavapipe), so this errs on the safe side by about 40%.
+pub const BYTES_PER_CELL: u64 = 200;
+
+/// Block size (cells) at which the kept blocks predict the final cell count.
+pub const PREDICT_BLOCK: u32 = 16;
+
+/// Final cells per kept cell of a block at [`PREDICT_BLOCK`] (kept blocks × block² × this):
+/// the kept shell is about 4.6 cells thick at the finest level and 2.7 blocks thick at block
+/// size 16, so the ratio is about 1.7 for smooth surfaces; 2 leaves a margin.
+const PREDICT_RATIO: u64 = 2;
 
 impl ExtractOptions {
     /// Defaults for `resolution`: domain `[-1.05, 1.05]³`, bound factor 1.5.
@@ -40,6 +63,7 @@ impl ExtractOptions {
             resolution,
             half_size: 1.05,
             lipschitz: 1.5,
+            max_bytes: EXTRACT_MEMORY_BUDGET,
         }
     }
 }
@@ -56,6 +80,21 @@ pub enum ExtractError<E: std::error::Error + 'static> {
     /// The distance evaluation failed.
     #[error(transparent)]
     Eval(E),
+    /// The extraction would pass its memory budget.
+    #[error(
+        "extracting at {resolution}³ would need about {:.1} GiB ({cells} surface cells), over the {:.1} GiB budget; use a lower resolution (the need grows with its square)",
+        *.need as f64 / (1u64 << 30) as f64, *.budget as f64 / (1u64 << 30) as f64
+    )]
+    OverBudget {
+        /// The resolution asked.
+        resolution: u32,
+        /// Predicted cells at the finest level.
+        cells: u64,
+        /// Estimated bytes.
+        need: u64,
+        /// The budget.
+        budget: u64,
+    },
     /// The evaluation returned a different number of values than points.
     #[error("the distance function returned {got} values for {expected} points")]
     EvalLength {
@@ -118,6 +157,8 @@ pub fn extract_surface<E: std::error::Error + 'static>(
     // Top blocks of 2^k cells, about 8 per axis.
     let mut size = (n / 8).max(1).next_power_of_two();
     let per_axis = n.div_ceil(size) as i32;
+    // Both powers of two, so the halving levels pass through it.
+    let predict_at = size.min(PREDICT_BLOCK);
     let mut blocks: Vec<IVec3> = (0..per_axis)
         .flat_map(|z| {
             (0..per_axis).flat_map(move |y| (0..per_axis).map(move |x| IVec3::new(x, y, z)))
@@ -141,6 +182,20 @@ pub fn extract_surface<E: std::error::Error + 'static>(
             .map(|(b, _)| *b)
             .collect();
         stats.levels.push((size, kept.len()));
+        // Coarser levels overestimate (a block of a thin part counts as a full shell); here the
+        // prediction is good and the levels so far have cost little.
+        if size == predict_at {
+            let cells = kept.len() as u64 * u64::from(size).pow(2) * PREDICT_RATIO;
+            let need = cells.saturating_mul(BYTES_PER_CELL);
+            if need > options.max_bytes {
+                return Err(ExtractError::OverBudget {
+                    resolution: n,
+                    cells,
+                    need,
+                    budget: options.max_bytes,
+                });
+            }
+        }
         if size == 1 {
             blocks = kept;
             break;
@@ -366,6 +421,37 @@ mod tests {
             extract_surface(short, &ExtractOptions::new(16)),
             Err(ExtractError::EvalLength { .. })
         ));
+    }
+
+    /// The prediction made at block size 16 bounds the real cell count from above, by less than
+    /// a factor 2, and a budget below it stops the extraction with the estimate.
+    #[test]
+    fn budget() {
+        let n = std::env::var("HWSDF_EXTRACT_BUDGET_RES")
+            .ok()
+            .and_then(|v| v.parse().ok())
+            .unwrap_or(256);
+        let (mesh, stats) = extract_surface(sphere(0.7), &ExtractOptions::new(n)).unwrap();
+        let at16 = stats.levels.iter().find(|l| l.0 == PREDICT_BLOCK).unwrap();
+        let predicted = at16.1 as u64 * 256 * PREDICT_RATIO;
+        let cells = stats.cells as u64;
+        eprintln!(
+            "{n}: {cells} cells, predicted {predicted}, {} vertices, {} triangles",
+            mesh.vertices.len(),
+            mesh.triangles.len()
+        );
+        assert!(
+            cells <= predicted && predicted < 2 * cells,
+            "{cells} {predicted}"
+        );
+        let mut options = ExtractOptions::new(n);
+        options.max_bytes = predicted * BYTES_PER_CELL - 1;
+        match extract_surface(sphere(0.7), &options) {
+            Err(ExtractError::OverBudget { cells, need, .. }) => {
+                assert_eq!((cells, need), (predicted, predicted * BYTES_PER_CELL))
+            }
+            other => panic!("{other:?}"),
+        }
     }
 
     #[test]

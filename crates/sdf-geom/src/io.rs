@@ -1,34 +1,217 @@
-//! Output files, written so that a crash or Ctrl-C never leaves a partial file behind.
+//! Output files, written so that a crash or Ctrl-C never leaves a partial file behind, and
+//! checked before any work so that no output ever replaces an input or another output.
 
 use std::io::Write;
 use std::path::{Path, PathBuf};
 
 use crate::Mesh;
 
-/// Writes `bytes` to `path` atomically: a temporary file in the same directory, synced, then
-/// renamed over `path`. Readers see the old file or the new one, never a partial write.
+/// Writes `bytes` to `path` atomically: a temporary file with a random name, created exclusively
+/// (`O_EXCL`) in the target's folder, synced, then renamed over `path`. Readers see the old file
+/// or the new one, never a partial write; a link planted under a guessable temporary name cannot
+/// redirect the write, and on error the temporary file is removed.
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
-    let dir = match path.parent() {
-        Some(d) if !d.as_os_str().is_empty() => d.to_owned(),
-        _ => PathBuf::from("."),
-    };
+    let dir = parent_dir(path);
     let name = path.file_name().ok_or_else(|| {
         std::io::Error::new(std::io::ErrorKind::InvalidInput, "path has no file name")
     })?;
-    let mut tmp_name = std::ffi::OsString::from(".");
-    tmp_name.push(name);
-    tmp_name.push(format!(".{}.tmp", std::process::id()));
-    let tmp = dir.join(tmp_name);
-    let result = (|| {
-        let mut f = std::fs::File::create(&tmp)?;
-        f.write_all(bytes)?;
-        f.sync_all()?;
-        std::fs::rename(&tmp, path)
-    })();
-    if result.is_err() {
-        let _ = std::fs::remove_file(&tmp);
+    let mut prefix = std::ffi::OsString::from(".");
+    prefix.push(name);
+    prefix.push(".");
+    let mut builder = tempfile::Builder::new();
+    builder.prefix(&prefix).suffix(".tmp");
+    // tempfile creates files 0600; a model or a mesh is an ordinary file (0666 less the umask).
+    #[cfg(unix)]
+    builder.permissions(std::os::unix::fs::PermissionsExt::from_mode(0o666));
+    // Dropping `tmp` on any error below deletes it.
+    let mut tmp = builder.tempfile_in(&dir)?;
+    tmp.write_all(bytes)?;
+    tmp.as_file().sync_all()?;
+    tmp.persist(path).map_err(|e| e.error)?;
+    Ok(())
+}
+
+/// The folder a file named by `path` lives in (`.` for a bare name).
+fn parent_dir(path: &Path) -> PathBuf {
+    match path.parent() {
+        Some(d) if !d.as_os_str().is_empty() => d.to_owned(),
+        _ => PathBuf::from("."),
     }
-    result
+}
+
+/// Why an output path cannot be used. Checked by [`check_outputs`] before any work starts.
+#[derive(Debug, thiserror::Error)]
+pub enum OutputPathError {
+    /// The output names the same file as an input: writing it would destroy the input.
+    #[error("output {output} is the same file as the input {input}; choose another output path")]
+    SameAsInput {
+        /// The output as given.
+        output: PathBuf,
+        /// The input it aliases.
+        input: PathBuf,
+    },
+    /// Two outputs name the same file: one would be written over the other.
+    #[error("outputs {first} and {second} are the same file; give them different paths")]
+    SameOutput {
+        /// One output.
+        first: PathBuf,
+        /// The other.
+        second: PathBuf,
+    },
+    /// The path has no file name (`/`, `..`, or an empty path).
+    #[error("output {0} does not name a file")]
+    NoFileName(PathBuf),
+    /// The output's folder does not exist.
+    #[error("cannot write {path}: folder {dir} does not exist")]
+    MissingFolder {
+        /// The output.
+        path: PathBuf,
+        /// Its folder.
+        dir: PathBuf,
+    },
+    /// A file cannot be created in the output's folder (read-only, no permission, ...).
+    #[error("cannot write {path}: folder {dir} is not writable: {source}")]
+    NotWritable {
+        /// The output.
+        path: PathBuf,
+        /// Its folder.
+        dir: PathBuf,
+        /// The OS error from a trial file.
+        source: std::io::Error,
+    },
+    /// The output exists and is not a regular file (a folder, a FIFO, a device).
+    #[error("cannot write {0}: it exists and is not a regular file")]
+    NotAFile(PathBuf),
+}
+
+/// Where a path leads: its canonical form, and for an existing file its device and inode (so
+/// hard links and bind mounts compare equal too).
+#[derive(Debug, PartialEq, Eq)]
+struct FileId {
+    canonical: PathBuf,
+    #[cfg(unix)]
+    inode: Option<(u64, u64)>,
+}
+
+impl FileId {
+    /// `None` when neither the path nor its folder resolves (nothing there to alias).
+    fn of(path: &Path) -> Option<FileId> {
+        let canonical = match std::fs::canonicalize(path) {
+            Ok(c) => c,
+            // A file not created yet can only alias something through its folder and name.
+            Err(_) => std::fs::canonicalize(parent_dir(path))
+                .ok()?
+                .join(path.file_name()?),
+        };
+        #[cfg(unix)]
+        let inode = {
+            use std::os::unix::fs::MetadataExt;
+            std::fs::metadata(path).ok().map(|m| (m.dev(), m.ino()))
+        };
+        Some(FileId {
+            canonical,
+            #[cfg(unix)]
+            inode,
+        })
+    }
+
+    fn same(&self, other: &FileId) -> bool {
+        #[cfg(unix)]
+        if let (Some(a), Some(b)) = (self.inode, other.inode) {
+            return a == b;
+        }
+        self.canonical == other.canonical
+    }
+}
+
+/// Checks, before any work starts, that every output can be written and destroys nothing: its
+/// folder exists and accepts a new file, it is not an existing folder or special file, and it is
+/// not the same file as any input or as another output (canonical paths, and device and inode
+/// where the file exists).
+pub fn check_outputs(inputs: &[&Path], outputs: &[&Path]) -> Result<(), OutputPathError> {
+    let input_ids: Vec<(&Path, Option<FileId>)> =
+        inputs.iter().map(|&p| (p, FileId::of(p))).collect();
+    let mut seen: Vec<(&Path, FileId)> = Vec::new();
+    for &out in outputs {
+        if out.file_name().is_none() {
+            return Err(OutputPathError::NoFileName(out.to_owned()));
+        }
+        let dir = parent_dir(out);
+        if !dir.is_dir() {
+            return Err(OutputPathError::MissingFolder {
+                path: out.to_owned(),
+                dir,
+            });
+        }
+        if let Ok(meta) = std::fs::metadata(out)
+            && !meta.is_file()
+        {
+            return Err(OutputPathError::NotAFile(out.to_owned()));
+        }
+        // The only reliable test of writability is to create a file (ACLs, read-only mounts).
+        if let Err(source) = tempfile::Builder::new()
+            .prefix(".hwsdf-write-check.")
+            .tempfile_in(&dir)
+        {
+            return Err(OutputPathError::NotWritable {
+                path: out.to_owned(),
+                dir,
+                source,
+            });
+        }
+        let Some(id) = FileId::of(out) else {
+            continue;
+        };
+        if let Some((input, _)) = input_ids
+            .iter()
+            .find(|(_, i)| i.as_ref().is_some_and(|i| i.same(&id)))
+        {
+            return Err(OutputPathError::SameAsInput {
+                output: out.to_owned(),
+                input: input.to_path_buf(),
+            });
+        }
+        if let Some((first, _)) = seen.iter().find(|(_, s)| s.same(&id)) {
+            return Err(OutputPathError::SameOutput {
+                first: first.to_path_buf(),
+                second: out.to_owned(),
+            });
+        }
+        seen.push((out, id));
+    }
+    Ok(())
+}
+
+/// Reads a whole file that must be a regular file (not a FIFO, a device or a folder) of at most
+/// `max_bytes`; both are checked on the opened file before anything is read or allocated.
+pub fn read_regular_file(path: &Path, max_bytes: u64) -> std::io::Result<Vec<u8>> {
+    use std::io::Read;
+    let invalid = |msg: String| std::io::Error::new(std::io::ErrorKind::InvalidInput, msg);
+    // O_NONBLOCK so that opening a FIFO with no writer returns instead of blocking forever.
+    let mut options = std::fs::OpenOptions::new();
+    options.read(true);
+    #[cfg(unix)]
+    std::os::unix::fs::OpenOptionsExt::custom_flags(&mut options, libc::O_NONBLOCK);
+    let file = options.open(path)?;
+    let meta = file.metadata()?;
+    if !meta.is_file() {
+        return Err(invalid("not a regular file".into()));
+    }
+    if meta.len() > max_bytes {
+        return Err(invalid(format!(
+            "{} bytes is more than the {max_bytes} bytes accepted",
+            meta.len()
+        )));
+    }
+    let mut bytes = Vec::with_capacity(meta.len() as usize);
+    // `take`: a file growing while it is read still stops at the limit.
+    file.take(max_bytes + 1).read_to_end(&mut bytes)?;
+    if bytes.len() as u64 > max_bytes {
+        return Err(invalid(format!(
+            "the file grew past the {max_bytes} bytes accepted while it was read"
+        )));
+    }
+    Ok(bytes)
 }
 
 /// The mesh as Wavefront OBJ text: shared vertices (`v`), then 1-based triangles (`f`).
@@ -79,6 +262,126 @@ mod tests {
         assert_eq!(back.vertices.len(), mesh.vertices.len());
         // Only the file itself: the temporary was renamed away.
         assert_eq!(std::fs::read_dir(&dir).unwrap().count(), 1);
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    fn scratch(name: &str) -> PathBuf {
+        let dir = std::env::temp_dir().join(format!("hwsdf-io-{name}-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        std::fs::create_dir_all(&dir).unwrap();
+        dir
+    }
+
+    #[test]
+    fn atomic_write_ignores_a_link_planted_at_the_old_temporary_name() {
+        let dir = scratch("planted");
+        let victim = dir.join("victim.txt");
+        std::fs::write(&victim, b"precious").unwrap();
+        let out = dir.join("out.txt");
+        // The name the hand-made writer used to pick.
+        let planted = dir.join(format!(".out.txt.{}.tmp", std::process::id()));
+        #[cfg(unix)]
+        std::os::unix::fs::symlink(&victim, &planted).unwrap();
+        write_atomic(&out, b"new").unwrap();
+        assert_eq!(std::fs::read(&victim).unwrap(), b"precious");
+        assert_eq!(std::fs::read(&out).unwrap(), b"new");
+        // The planted link and the victim and the output; no temporary left.
+        assert_eq!(std::fs::read_dir(&dir).unwrap().count(), 3);
+        // Failing writes leave nothing behind either.
+        assert!(write_atomic(&dir.join("missing/x.txt"), b"x").is_err());
+        assert_eq!(std::fs::read_dir(&dir).unwrap().count(), 3);
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn outputs_that_alias_inputs_or_each_other_are_refused() {
+        let dir = scratch("alias");
+        let input = dir.join("mesh.obj");
+        std::fs::write(&input, b"v 0 0 0").unwrap();
+        let other = dir.join("other.obj");
+        let err = |inputs: &[&Path], outputs: &[&Path]| check_outputs(inputs, outputs).err();
+        assert!(err(&[&input], &[&other, &dir.join("r.json")]).is_none());
+        // The same file by name, through `..`, through a symlink, and through a hard link.
+        let dotted = dir.join("sub/../mesh.obj");
+        std::fs::create_dir_all(dir.join("sub")).unwrap();
+        let hard = dir.join("hard.obj");
+        std::fs::hard_link(&input, &hard).unwrap();
+        let mut aliases = vec![input.clone(), dotted, hard];
+        #[cfg(unix)]
+        {
+            let link = dir.join("link.obj");
+            std::os::unix::fs::symlink(&input, &link).unwrap();
+            aliases.push(link);
+        }
+        for alias in &aliases {
+            assert!(
+                matches!(
+                    err(&[&input], &[alias]),
+                    Some(OutputPathError::SameAsInput { .. })
+                ),
+                "{}",
+                alias.display()
+            );
+        }
+        // Two outputs that do not exist yet but name the same file.
+        assert!(matches!(
+            err(&[&input], &[&other, &dir.join("sub/../other.obj")]),
+            Some(OutputPathError::SameOutput { .. })
+        ));
+        assert!(matches!(
+            err(&[], &[&dir.join("missing/x.obj")]),
+            Some(OutputPathError::MissingFolder { .. })
+        ));
+        assert!(matches!(
+            err(&[], &[&dir.join("sub")]),
+            Some(OutputPathError::NotAFile(_))
+        ));
+        assert!(matches!(
+            err(&[], &[Path::new("/")]),
+            Some(OutputPathError::NoFileName(_))
+        ));
+        #[cfg(unix)]
+        {
+            use std::os::unix::fs::PermissionsExt;
+            let ro = dir.join("ro");
+            std::fs::create_dir_all(&ro).unwrap();
+            std::fs::set_permissions(&ro, std::fs::Permissions::from_mode(0o555)).unwrap();
+            // root ignores the mode; only check where the mode means something.
+            if std::fs::write(ro.join("probe"), b"").is_err() {
+                assert!(matches!(
+                    err(&[], &[&ro.join("x.obj")]),
+                    Some(OutputPathError::NotWritable { .. })
+                ));
+            }
+            std::fs::set_permissions(&ro, std::fs::Permissions::from_mode(0o755)).unwrap();
+        }
+        // The checks leave no trial files behind.
+        assert!(std::fs::read_dir(&dir).unwrap().all(|e| {
+            !e.unwrap()
+                .file_name()
+                .to_string_lossy()
+                .contains("write-check")
+        }));
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn only_regular_files_within_the_limit_are_read() {
+        let dir = scratch("regular");
+        let f = dir.join("f.bin");
+        std::fs::write(&f, [7u8; 100]).unwrap();
+        assert_eq!(read_regular_file(&f, 100).unwrap().len(), 100);
+        assert!(read_regular_file(&f, 99).is_err());
+        assert!(read_regular_file(&dir, 1 << 20).is_err());
+        #[cfg(unix)]
+        {
+            assert!(read_regular_file(Path::new("/dev/zero"), 1 << 20).is_err());
+            let fifo = dir.join("fifo");
+            let c = std::ffi::CString::new(fifo.to_str().unwrap()).unwrap();
+            assert_eq!(unsafe { libc::mkfifo(c.as_ptr(), 0o600) }, 0);
+            // Returns at once (no writer is ever coming) with an error.
+            assert!(read_regular_file(&fifo, 1 << 20).is_err());
+        }
         std::fs::remove_dir_all(&dir).unwrap();
     }
 }

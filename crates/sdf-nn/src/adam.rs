@@ -47,6 +47,44 @@ struct AdamUniforms {
 
 const WORKGROUP: u32 = 256;
 
+impl AdamConfig {
+    /// Errors unless `lr` is finite and positive: the one check shared by the trainers, their
+    /// resume paths and checkpoints read from disk.
+    pub fn check_lr(lr: f32) -> Result<(), String> {
+        if lr.is_finite() && lr > 0.0 {
+            Ok(())
+        } else {
+            Err(format!(
+                "the learning rate must be finite and positive, not {lr}"
+            ))
+        }
+    }
+}
+
+impl AdamState {
+    /// Errors unless the state can continue a run: moments of one length, finite, and second
+    /// moments non-negative (Adam divides by their square root).
+    pub fn validate(&self) -> Result<(), String> {
+        if self.m.len() != self.v.len() {
+            return Err(format!(
+                "{} first moments but {} second moments",
+                self.m.len(),
+                self.v.len()
+            ));
+        }
+        if let Some(i) = self.m.iter().position(|x| !x.is_finite()) {
+            return Err(format!("first moment {i} is {}", self.m[i]));
+        }
+        if let Some(i) = self.v.iter().position(|x| !(x.is_finite() && *x >= 0.0)) {
+            return Err(format!(
+                "second moment {i} is {}; it must be finite and non-negative",
+                self.v[i]
+            ));
+        }
+        Ok(())
+    }
+}
+
 /// Adam's moments and step counter on the host, as checkpoints store them.
 #[derive(Clone, Debug, PartialEq)]
 pub struct AdamState {

@@ -75,6 +75,29 @@ pub enum ModelFileError {
         /// Architecture asked for.
         expected: String,
     },
+    /// A tensor holds NaN or an infinity: such a model evaluates to garbage everywhere.
+    #[error("{path}: tensor `{name}` value {index} is {value}; a model's weights must be finite")]
+    NonFinite {
+        /// The file.
+        path: PathBuf,
+        /// The first tensor with a bad value.
+        name: String,
+        /// Index of that value (row-major).
+        index: usize,
+        /// The value.
+        value: f32,
+    },
+    /// The configuration declares more parameters than the file's tensors hold; checked before
+    /// anything is allocated for them.
+    #[error(
+        "the `config` metadata declares {declared} parameters but the file's tensors hold {available}"
+    )]
+    DeclaredSize {
+        /// Parameters the configuration needs.
+        declared: u64,
+        /// Values in the file.
+        available: u64,
+    },
     /// A tensor's data length does not match its shape (only when building a file in memory).
     #[error("tensor `{name}` has {len} values but shape {shape:?}")]
     BadTensor {
@@ -144,6 +167,11 @@ pub struct ModelFile {
     pub tensors: Vec<Tensor>,
 }
 
+/// Largest model file read, in bytes (2 GiB): thousands of times the presets' files (under
+/// 600 kB, three times that for a checkpoint with its optimiser moments), so that a path to a
+/// huge file fails at once instead of being read whole into memory.
+pub const MAX_MODEL_FILE_BYTES: u64 = 2 << 30;
+
 /// The crate version written into new files.
 pub const HWSDF_VERSION: &str = env!("CARGO_PKG_VERSION");
 
@@ -208,12 +236,16 @@ impl ModelFile {
         })
     }
 
-    /// Reads and checks a file: safetensors structure, f32 tensors, and the metadata keys.
+    /// Reads and checks a file: a regular file of at most [`MAX_MODEL_FILE_BYTES`], safetensors
+    /// structure, finite f32 tensors, and the metadata keys.
     pub fn load(path: &Path) -> Result<Self, ModelFileError> {
-        let bytes = std::fs::read(path).map_err(|source| ModelFileError::Io {
-            path: path.to_owned(),
-            source,
-        })?;
+        let bytes =
+            sdf_geom::io::read_regular_file(path, MAX_MODEL_FILE_BYTES).map_err(|source| {
+                ModelFileError::Io {
+                    path: path.to_owned(),
+                    source,
+                }
+            })?;
         Self::from_bytes(&bytes, path)
     }
 
@@ -279,9 +311,18 @@ impl ModelFile {
                     view.dtype()
                 )));
             }
+            let data: Vec<f32> = bytemuck::pod_collect_to_vec(view.data());
+            if let Some(index) = data.iter().position(|v| !v.is_finite()) {
+                return Err(ModelFileError::NonFinite {
+                    path: path.to_owned(),
+                    value: data[index],
+                    name,
+                    index,
+                });
+            }
             tensors.push(Tensor {
                 shape: view.shape().to_vec(),
-                data: bytemuck::pod_collect_to_vec(view.data()),
+                data,
                 name,
             });
         }
@@ -324,6 +365,35 @@ impl ModelFile {
                 expected: architecture.to_owned(),
             })
         }
+    }
+
+    /// Errors unless the tensors hold at least `declared` values: a configuration claiming more
+    /// parameters than the file has cannot match it, and is refused before its size is allocated.
+    pub fn ensure_holds(&self, declared: u64) -> Result<(), ModelFileError> {
+        let available = self.param_count() as u64;
+        if declared > available {
+            return Err(ModelFileError::DeclaredSize {
+                declared,
+                available,
+            });
+        }
+        Ok(())
+    }
+
+    /// Errors on the first tensor value that is NaN or infinite (a trained model about to be
+    /// saved, or one built in memory).
+    pub fn check_finite(&self) -> Result<(), ModelFileError> {
+        for t in &self.tensors {
+            if let Some(index) = t.data.iter().position(|v| !v.is_finite()) {
+                return Err(ModelFileError::NonFinite {
+                    path: PathBuf::new(),
+                    name: t.name.clone(),
+                    index,
+                    value: t.data[index],
+                });
+            }
+        }
+        Ok(())
     }
 
     /// Total number of parameters (values in all tensors).
@@ -440,6 +510,34 @@ mod tests {
         ));
         let missing = ModelFile::load(Path::new("/nonexistent/model.safetensors")).unwrap_err();
         assert!(matches!(missing, ModelFileError::Io { .. }));
+    }
+
+    #[test]
+    fn non_finite_values_name_the_tensor() {
+        let p = Path::new("x.safetensors");
+        for bad in [f32::NAN, f32::INFINITY, f32::NEG_INFINITY] {
+            let mut f = sample();
+            f.tensors[1].data[5] = bad;
+            let err = ModelFile::from_bytes(&f.to_bytes().unwrap(), p).unwrap_err();
+            match &err {
+                ModelFileError::NonFinite { name, index, .. } => {
+                    assert_eq!((name.as_str(), *index), ("net.0.weight", 5))
+                }
+                other => panic!("{other:?}"),
+            }
+            assert!(f.check_finite().is_err());
+        }
+        sample().check_finite().unwrap();
+    }
+
+    #[test]
+    fn declared_sizes_are_checked_against_the_tensors() {
+        let f = sample();
+        f.ensure_holds(16).unwrap();
+        assert!(matches!(
+            f.ensure_holds(4096 * 4096 * 64),
+            Err(ModelFileError::DeclaredSize { available: 16, .. })
+        ));
     }
 
     #[test]

@@ -544,6 +544,8 @@ impl Nglod {
         config.validate()?;
         let f = config.feature_dim as usize;
         let h = config.hidden as usize;
+        // The config's sizes come from the file: check them against its real tensors first.
+        file.ensure_holds(config.param_count() as u64)?;
         let mut params = Vec::with_capacity(config.param_count());
         for (l, &r) in config.resolutions.iter().enumerate() {
             let s = r as usize + 1;

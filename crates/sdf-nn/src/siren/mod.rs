@@ -390,6 +390,8 @@ impl Siren {
         config
             .validate()
             .map_err(|e| bad_config(format!(": {e}")))?;
+        // The config's sizes come from the file: check them against its real tensors first.
+        file.ensure_holds(config.param_count() as u64)?;
         let mut params = vec![0.0f32; config.param_count()];
         for (i, lay) in config.layers().iter().enumerate() {
             let w = file.tensor(&format!("net.{i}.weight"), &[lay.fan_out, lay.fan_in])?;

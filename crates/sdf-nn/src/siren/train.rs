@@ -119,6 +119,23 @@ impl Default for SirenTrainConfig {
     }
 }
 
+impl LossWeights {
+    /// Errors unless every weight is finite and non-negative and α finite and positive.
+    pub fn validate(&self) -> Result<(), TrainError> {
+        let w = self;
+        let weights = [w.surface, w.off_surface, w.normal, w.eikonal];
+        let usable = weights.iter().all(|x| x.is_finite() && *x >= 0.0)
+            && w.alpha.is_finite()
+            && w.alpha > 0.0;
+        if !usable {
+            return Err(TrainError::BadTrainConfig(format!(
+                "loss weights must be finite and non-negative, alpha positive: {w:?}"
+            )));
+        }
+        Ok(())
+    }
+}
+
 /// Training failures.
 #[derive(Debug, thiserror::Error)]
 pub enum TrainError {
@@ -267,22 +284,8 @@ impl SirenTrainer {
                 "loss_every must be in 1..=4096".into(),
             ));
         }
-        if !(config.lr.is_finite() && config.lr > 0.0) {
-            return Err(TrainError::BadTrainConfig(format!(
-                "learning rate {}",
-                config.lr
-            )));
-        }
-        let w = &config.weights;
-        let weights = [w.surface, w.off_surface, w.normal, w.eikonal];
-        let usable = weights.iter().all(|x| x.is_finite() && *x >= 0.0)
-            && w.alpha.is_finite()
-            && w.alpha > 0.0;
-        if !usable {
-            return Err(TrainError::BadTrainConfig(format!(
-                "loss weights must be finite and non-negative, alpha positive: {w:?}"
-            )));
-        }
+        crate::AdamConfig::check_lr(config.lr).map_err(TrainError::BadTrainConfig)?;
+        config.weights.validate()?;
         let net = SirenGpu::new(gpu, siren)?;
         let passes = TrainPasses::new(
             gpu,
@@ -530,6 +533,9 @@ impl SirenTrainer {
         steps_done: usize,
         lr: f32,
     ) -> Result<(), TrainError> {
+        // A checkpoint's values get the checks a new run's configuration gets.
+        crate::AdamConfig::check_lr(lr).map_err(TrainError::BadTrainConfig)?;
+        state.validate().map_err(TrainError::BadTrainConfig)?;
         self.adam.import_state(gpu, state)?;
         self.adam.config.lr = lr;
         self.step = steps_done;
