@@ -12,6 +12,7 @@
 use glam::Vec3;
 
 use super::dense::{DensePlan, Epilogue, LayerKernels, SPLITS};
+use super::kernels::tiled::{TiledEpilogue, TiledKernels};
 use super::{LayerLayout, Siren, SirenConfig, SirenConfigError};
 use crate::gpu::{GpuContext, GpuError, GpuTimer};
 use crate::shaders;
@@ -30,24 +31,24 @@ pub enum SirenGpuError {
 #[repr(C)]
 #[derive(Clone, Copy, Debug, Default, bytemuck::Pod, bytemuck::Zeroable)]
 pub(crate) struct GemmUniforms {
-    mode: u32,
-    m: u32,
-    n: u32,
-    k: u32,
-    a_off: u32,
-    a_rs: u32,
-    a_cs: u32,
-    b_off: u32,
-    b_rs: u32,
-    b_cs: u32,
-    ldc: u32,
-    bias_off: u32,
-    k_chunk: u32,
-    pbias_off: u32,
-    omega: f32,
-    b_style: u32,
-    a_vec4: u32,
-    _pad: [u32; 3],
+    pub(crate) mode: u32,
+    pub(crate) m: u32,
+    pub(crate) n: u32,
+    pub(crate) k: u32,
+    pub(crate) a_off: u32,
+    pub(crate) a_rs: u32,
+    pub(crate) a_cs: u32,
+    pub(crate) b_off: u32,
+    pub(crate) b_rs: u32,
+    pub(crate) b_cs: u32,
+    pub(crate) ldc: u32,
+    pub(crate) bias_off: u32,
+    pub(crate) k_chunk: u32,
+    pub(crate) pbias_off: u32,
+    pub(crate) omega: f32,
+    pub(crate) b_style: u32,
+    pub(crate) a_vec4: u32,
+    pub(crate) _pad: [u32; 3],
 }
 
 impl GemmUniforms {
@@ -114,6 +115,11 @@ struct ReduceUniforms {
     _pad0: u32,
     _pad1: u32,
 }
+
+/// Default of [`SirenGpu::set_fused_max_points`]: covers the latency-bound batches (the issue's
+/// 3000 points); where the per-layer tiled GEMM overtakes the fused kernel on a GPU is not
+/// measured yet.
+pub const DEFAULT_FUSED_MAX_POINTS: u32 = 8192;
 
 /// Rows per GEMM workgroup (see `siren_gemm.wgsl`).
 const GEMM_ROWS: u32 = 64;
@@ -299,6 +305,10 @@ pub struct SirenGpu {
     kernels: LayerKernels,
     /// The hidden layers on the row-blocked kernels, if any.
     dense: Option<DensePlan>,
+    /// The tiled kernels, when they run every product.
+    tiled: Option<TiledKernels>,
+    /// Largest inference batch (per launch) for the fused all-layer kernel of the tiled family.
+    fused_max_points: u32,
 }
 
 impl SirenGpu {
@@ -319,6 +329,11 @@ impl SirenGpu {
         } else {
             None
         };
+        let tiled = if kernels.tiled(gpu) {
+            TiledKernels::new(gpu)?
+        } else {
+            None
+        };
         Ok(SirenGpu {
             config,
             layers,
@@ -332,6 +347,8 @@ impl SirenGpu {
             max_chunk: 65536,
             kernels,
             dense,
+            tiled,
+            fused_max_points: DEFAULT_FUSED_MAX_POINTS,
         })
     }
 
@@ -343,6 +360,11 @@ impl SirenGpu {
     ) -> Result<(), SirenGpuError> {
         self.dense = if kernels.row_blocked(gpu) {
             DensePlan::new(gpu, &self.layers)?
+        } else {
+            None
+        };
+        self.tiled = if kernels.tiled(gpu) {
+            TiledKernels::new(gpu)?
         } else {
             None
         };
@@ -362,6 +384,29 @@ impl SirenGpu {
         self.dense.as_ref().map_or(0, |d| {
             (0..self.layers.len()).filter(|&l| d.covers(l)).count()
         })
+    }
+
+    /// Whether the tiled kernels run every product (they need 8 KiB of workgroup memory and
+    /// 256 invocations per workgroup; without them the GEMM runs instead).
+    pub fn runs_tiled(&self) -> bool {
+        self.tiled.is_some()
+    }
+
+    /// Inference launches of at most `points` points run on the tiled family's fused
+    /// all-layer kernel (default [`DEFAULT_FUSED_MAX_POINTS`]; 0 disables it), larger ones on
+    /// its per-layer kernels. Only with [`LayerKernels::Tiled`] and a width the fused kernel
+    /// fits (a multiple of 4, at most 1024).
+    pub fn set_fused_max_points(&mut self, points: u32) {
+        self.fused_max_points = points;
+        self.eval = None;
+        self.eval_grad = None;
+    }
+
+    /// Whether an inference launch of `n` points runs on the fused all-layer kernel.
+    pub fn runs_fused(&self, gpu: &GpuContext, n: u32) -> bool {
+        self.tiled.is_some()
+            && n <= self.fused_max_points
+            && TiledKernels::fused_group_rows(gpu, &self.config).is_some()
     }
 
     /// Records the copy of the weights into the row-blocked kernels' uniform windows; every
@@ -490,7 +535,7 @@ impl SirenGpu {
             for chunk in points.chunks(ws.capacity as usize) {
                 let n = chunk.len() as u32;
                 if ws.built_for != Some(n) {
-                    ws.launches = self.eval_launches(gpu, &ws, n)?;
+                    ws.launches = self.eval_launches(gpu, &ws, n, &ws.input, &ws.values)?;
                     ws.built_for = Some(n);
                 }
                 let input: Vec<f32> = if tangents {
@@ -554,23 +599,29 @@ impl SirenGpu {
         })
     }
 
-    /// The launches of a forward pass over `n` points of `ws`.
+    /// The launches of a forward pass over `n` points from `input` (three floats per point, or
+    /// with tangents the twelve of [`stream_rows`]) into `values` (Φ per point, or Φ and ∇Φ),
+    /// with `ws`'s activation buffers as scratch (sized for at least `n` points). Recorded after
+    /// [`SirenGpu::record_pack`], in one compute pass, in order.
     fn eval_launches(
         &self,
         gpu: &GpuContext,
         ws: &EvalWorkspace,
         n: u32,
+        input: &wgpu::Buffer,
+        values: &wgpu::Buffer,
     ) -> Result<Vec<Launch>, GpuError> {
         let cfg = &self.config;
         let rows = if ws.tangents { 4 * n } else { n };
+        if let Some(t) = self.tiled.as_ref().filter(|_| self.runs_fused(gpu, n)) {
+            let fused =
+                t.fused_forward(gpu, cfg, rows, ws.tangents, input, &self.params, values)?;
+            return Ok(vec![fused]);
+        }
         let p = &self.pipelines;
         let mut launches = Vec::new();
         for l in 0..cfg.hidden_layers {
-            let src = if l == 0 {
-                &ws.input
-            } else {
-                &ws.act[(l - 1) % 2]
-            };
+            let src = if l == 0 { input } else { &ws.act[(l - 1) % 2] };
             let dst = &ws.act[l % 2];
             if let Some(d) = self.dense_for(l) {
                 let omega = cfg.omega0;
@@ -580,6 +631,22 @@ impl SirenGpu {
                     (Epilogue::Sine { omega }, dst)
                 };
                 launches.extend(d.forward(gpu, l, rows, epilogue, src, &self.params, out)?);
+            } else if let Some(t) = &self.tiled {
+                let u = gemm_forward(&self.layers[l], rows, false, cfg.omega0);
+                let omega = cfg.omega0;
+                launches.push(if ws.tangents {
+                    let epilogue = TiledEpilogue::SineWithTangents { omega, act: dst };
+                    t.gemm(gpu, &u, epilogue, src, &self.params, &ws.z)
+                } else {
+                    t.gemm(
+                        gpu,
+                        &u,
+                        TiledEpilogue::Sine { omega },
+                        src,
+                        &self.params,
+                        dst,
+                    )
+                });
             } else if ws.tangents {
                 let u = gemm_forward(&self.layers[l], rows, false, cfg.omega0);
                 launches.push(self.gemm_launch(gpu, &u, src, &self.params, &ws.z));
@@ -609,7 +676,7 @@ impl SirenGpu {
                 entry(1, &ws.act[(cfg.hidden_layers - 1) % 2]),
                 entry(2, &self.params),
                 entry(3, &self.dummy),
-                entry(4, &ws.values),
+                entry(4, values),
                 entry(5, &self.dummy_rw),
                 entry(6, &self.dummy_rw),
             ],
@@ -836,6 +903,13 @@ impl TrainPasses {
                     act: &act[l],
                 };
                 launches.extend(d.forward(gpu, l, rows, epilogue, src, &net.params, &z[l])?);
+            } else if let Some(t) = &net.tiled {
+                let u = gemm_forward(&layers[l], rows, false, cfg.omega0);
+                let epilogue = TiledEpilogue::SineWithTangents {
+                    omega: cfg.omega0,
+                    act: &act[l],
+                };
+                launches.push(t.gemm(gpu, &u, epilogue, src, &net.params, &z[l]));
             } else {
                 let u = gemm_forward(&layers[l], rows, false, cfg.omega0);
                 launches.push(net.gemm_launch(gpu, &u, src, &net.params, &z[l]));
@@ -903,7 +977,10 @@ impl TrainPasses {
                     (SPLITS, pbias_off)
                 }
                 None => {
-                    launches.push(net.gemm_launch(gpu, &val, a, b, &partial));
+                    launches.push(match &net.tiled {
+                        Some(t) => t.gemm(gpu, &val, TiledEpilogue::WeightGradient, a, b, &partial),
+                        None => net.gemm_launch(gpu, &val, a, b, &partial),
+                    });
                     (splits_for(rows), val.pbias_off)
                 }
             };
@@ -942,6 +1019,14 @@ impl TrainPasses {
                     let below = Some((cfg.omega0, &z[l - 1]));
                     let (src, dst) = (&zbar[l % 2], &zbar[(l - 1) % 2]);
                     launches.extend(d.backward(gpu, l, rows, src, dst, below)?);
+                } else if let Some(t) = &net.tiled {
+                    let u = gemm_backward(&layers[l], rows);
+                    let epilogue = TiledEpilogue::SineBelow {
+                        omega: cfg.omega0,
+                        z: &z[l - 1],
+                    };
+                    let (src, dst) = (&zbar[l % 2], &zbar[(l - 1) % 2]);
+                    launches.push(t.gemm(gpu, &u, epilogue, src, &net.params, dst));
                 } else {
                     let u = gemm_backward(&layers[l], rows);
                     launches.push(net.gemm_launch(
