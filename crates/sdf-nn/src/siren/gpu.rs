@@ -838,6 +838,7 @@ fn stream_rows(p: Vec3) -> [f32; 12] {
 #[derive(Debug)]
 pub(crate) struct TrainPasses {
     pub(crate) n: u32,
+    n_surface: u32,
     pub(crate) x_streams: wgpu::Buffer,
     pub(crate) normals: wgpu::Buffer,
     pub(crate) loss_partial: wgpu::Buffer,
@@ -855,6 +856,54 @@ impl TrainPasses {
         n_surface: u32,
         weights: &super::LossWeights,
     ) -> Result<Self, SirenGpuError> {
+        let x_streams = gpu.storage_zeroed("siren x streams", u64::from(4 * n) * 3 * 4)?;
+        let normals =
+            gpu.storage_zeroed("siren batch normals", u64::from(n_surface.max(1)) * 3 * 4)?;
+        let loss_partial =
+            gpu.storage_zeroed("siren loss partial", u64::from(n.div_ceil(WG)) * 16)?;
+        Self::with_io(
+            gpu,
+            net,
+            n,
+            n_surface,
+            weights,
+            x_streams,
+            normals,
+            loss_partial,
+        )
+    }
+
+    /// The passes rebuilt for `net`'s current kernels, on the same input and loss buffers (so
+    /// launches bound to those stay valid).
+    pub(crate) fn rebuilt(
+        &self,
+        gpu: &GpuContext,
+        net: &SirenGpu,
+        weights: &super::LossWeights,
+    ) -> Result<Self, SirenGpuError> {
+        Self::with_io(
+            gpu,
+            net,
+            self.n,
+            self.n_surface,
+            weights,
+            self.x_streams.clone(),
+            self.normals.clone(),
+            self.loss_partial.clone(),
+        )
+    }
+
+    #[allow(clippy::too_many_arguments)]
+    fn with_io(
+        gpu: &GpuContext,
+        net: &SirenGpu,
+        n: u32,
+        n_surface: u32,
+        weights: &super::LossWeights,
+        x_streams: wgpu::Buffer,
+        normals: wgpu::Buffer,
+        loss_partial: wgpu::Buffer,
+    ) -> Result<Self, SirenGpuError> {
         let cfg = net.config;
         let layers = &net.layers;
         let p = &net.pipelines;
@@ -862,9 +911,6 @@ impl TrainPasses {
         let width = cfg.width as u64;
         let l_hidden = cfg.hidden_layers;
         let act_bytes = u64::from(rows) * width * 4;
-        let x_streams = gpu.storage_zeroed("siren x streams", u64::from(rows) * 3 * 4)?;
-        let normals =
-            gpu.storage_zeroed("siren batch normals", u64::from(n_surface.max(1)) * 3 * 4)?;
         let mut z = Vec::new();
         let mut act = Vec::new();
         for _ in 0..l_hidden {
@@ -878,7 +924,6 @@ impl TrainPasses {
         let values = gpu.storage_zeroed("siren values", u64::from(n) * 16)?;
         let dout = gpu.storage_zeroed("siren dout", u64::from(n) * 16)?;
         let loss_groups = n.div_ceil(WG);
-        let loss_partial = gpu.storage_zeroed("siren loss partial", u64::from(loss_groups) * 16)?;
         let wgrads: Vec<GemmUniforms> = layers.iter().map(|l| gemm_wgrad(l, rows)).collect();
         let partial_len = wgrads
             .iter()
@@ -1055,6 +1100,7 @@ impl TrainPasses {
         keep.push(partial);
         Ok(TrainPasses {
             n,
+            n_surface,
             x_streams,
             normals,
             loss_partial,
