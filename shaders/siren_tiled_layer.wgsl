@@ -18,9 +18,9 @@
 //           layer's Z̄ through its sine (pre-activations `z_in`):
 //           z̄_j = ω0 cos · ā_j, z̄_v = ω0 cos · ā_v − ω0² sin · Σ_j ā_j z_j
 //   mode 4: split-K weight gradient: partial[split] = Z̄ᵀ · A_prev over one chunk of batch rows
-//           (k_chunk rows from wid.z · k_chunk); the bias partial Σ Z̄[value rows] is the
-//           extra column n = N, whose B entries are 1 on rows k ≡ 0 (mod 4) and 0 elsewhere,
-//           stored at pbias_off + split · M + m.
+//           (k_chunk rows from wid.z · k_chunk, a multiple of 16); the workgroups of the first
+//           column tile also sum the bias partial Σ Z̄[value rows] (k ≡ 0 mod 4) from the A
+//           tiles they stage anyway, stored at pbias_off + split · M + m.
 
 struct Tiled {
     mode: u32,
@@ -73,14 +73,8 @@ fn a_at(m: u32, k: u32, k_end: u32) -> f32 {
 }
 
 fn b_at(k: u32, n: u32, k_end: u32) -> f32 {
-    if k >= k_end {
-        return 0.0;
-    }
-    if n < t.n {
+    if k < k_end && n < t.n {
         return b_src[t.b_off + k * t.b_rs + n * t.b_cs];
-    }
-    if t.mode == 4u && n == t.n && k % 4u == 0u {
-        return 1.0;
     }
     return 0.0;
 }
@@ -210,9 +204,7 @@ fn tiled_gemm(
     @builtin(num_workgroups) nwg: vec3<u32>,
     @builtin(local_invocation_index) lid: u32,
 ) {
-    // Mode 4 has the bias column n = N.
-    let n_cols = t.n + select(0u, 1u, t.mode == 4u);
-    let n_tiles = (n_cols + BN - 1u) / BN;
+    let n_tiles = (t.n + BN - 1u) / BN;
     let g = wid.y * nwg.x + wid.x;
     let m_tile = g / n_tiles;
     // Workgroup-uniform, so the barriers below stay in uniform control flow.
@@ -233,6 +225,9 @@ fn tiled_gemm(
     var c1 = vec4<f32>(0.0);
     var c2 = vec4<f32>(0.0);
     var c3 = vec4<f32>(0.0);
+    // Mode 4, first column tile, tx = 0: the bias partial of rows m..m+3.
+    let sum_bias = t.mode == 4u && n0 == 0u && tx == 0u;
+    var bias_sum = vec4<f32>(0.0);
     for (var k0 = k_begin; k0 < k_end; k0 += BK) {
         load_a(m0, k0, k_end, lid);
         load_b(n0, k0, k_end, lid);
@@ -245,11 +240,28 @@ fn tiled_gemm(
             c2 = fma(vec4<f32>(av.z), bv, c2);
             c3 = fma(vec4<f32>(av.w), bv, c3);
         }
+        if sum_bias {
+            // k0 is a multiple of 4: value rows sit at kk ≡ 0 (mod 4).
+            for (var kk = 0u; kk < BK; kk += 4u) {
+                bias_sum += tile_a[kk * T4 + ty];
+            }
+        }
         workgroupBarrier();
     }
     let m = m0 + 4u * ty;
     let n = n0 + 4u * tx;
-    if m >= t.m || n >= n_cols {
+    if m >= t.m {
+        return;
+    }
+    if sum_bias {
+        let pb = t.pbias_off + wid.z * t.m + m;
+        for (var i = 0u; i < 4u; i++) {
+            if m + i < t.m {
+                out0[pb + i] = bias_sum[i];
+            }
+        }
+    }
+    if n >= t.n {
         return;
     }
     switch t.mode {
@@ -290,21 +302,6 @@ fn tiled_gemm(
             store0(base, m + 1u, n, c1);
             store0(base, m + 2u, n, c2);
             store0(base, m + 3u, n, c3);
-            // The bias column, if this block holds it.
-            if n <= t.n && t.n < n + 4u {
-                let c = t.n - n;
-                let pb = t.pbias_off + wid.z * t.m + m;
-                out0[pb] = c0[c];
-                if m + 1u < t.m {
-                    out0[pb + 1u] = c1[c];
-                }
-                if m + 2u < t.m {
-                    out0[pb + 2u] = c2[c];
-                }
-                if m + 3u < t.m {
-                    out0[pb + 3u] = c3[c];
-                }
-            }
         }
         default: {
             store0(0u, m, n, c0);

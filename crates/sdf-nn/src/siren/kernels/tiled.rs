@@ -197,9 +197,10 @@ impl TiledKernels {
                 | u32::from(b_fast_n) << 2
                 | u32::from(b_aligned) << 3,
         };
+        // The bias partial walks value rows as every fourth row of each 16-row slice.
+        debug_assert!(mode != 4 || u.k_chunk.is_multiple_of(16));
         let ub = gpu.uniform("siren tiled uniforms", &uniforms);
-        let n_cols = u.n + u32::from(mode == 4);
-        let tiles = u.m.div_ceil(TILE) * n_cols.div_ceil(TILE);
+        let tiles = u.m.div_ceil(TILE) * u.n.div_ceil(TILE);
         let (x, y) = gpu.dispatch_size(tiles.max(1));
         let z = if mode == 4 {
             u.k.div_ceil(u.k_chunk).max(1)
