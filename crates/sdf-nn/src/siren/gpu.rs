@@ -3,11 +3,12 @@
 //! the forward + double backward of a training step.
 //!
 //! Activations are row-major `[rows, width]` matrices. With tangents, a point owns four
-//! consecutive rows: the value, then ∂/∂x, ∂/∂y, ∂/∂z. A hidden layer runs either on the
-//! strided GEMM kernel followed by the elementwise sine kernels, or (see [`LayerKernels`]) on the
-//! row-blocked kernels of `siren_dense.wgsl` with the sine fused in; weight gradients are split
-//! over the batch into partials that a second kernel sums into the gradient buffer, so there are
-//! no atomics anywhere.
+//! consecutive rows: the value, then ∂/∂x, ∂/∂y, ∂/∂z. A hidden layer runs (see
+//! [`LayerKernels`]) on the strided GEMM kernel followed by the elementwise sine kernels, on the
+//! row-blocked kernels of `siren_dense.wgsl` with the sine fused in (CPU adapters), or on the
+//! tiled kernels of `kernels::tiled` (GPUs; small inference batches in one fused dispatch);
+//! weight gradients are split over the batch into partials that a second kernel sums into the
+//! gradient buffer, so there are no atomics anywhere.
 
 use glam::Vec3;
 
