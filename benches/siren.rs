@@ -4,11 +4,15 @@
 //! to `small` or `default` to run one preset only. On a CPU adapter (lavapipe) the `default`
 //! preset runs only the 3000-point latency (a batch of 50 000 or a training step takes tens of
 //! seconds per iteration there); set `SIREN_BENCH_FULL=1` to run everything anyway.
+//! `SIREN_BENCH_KERNELS` forces a layer-kernel family (`row-blocked`, `gemm` or `tiled`;
+//! default: `LayerKernels::Auto`), and `SIREN_BENCH_FUSED_MAX` the largest inference batch of
+//! the tiled family's fused all-layer kernel (`SirenGpu::set_fused_max_points`; 0 disables it).
 
 use std::time::Duration;
 
 use criterion::{BenchmarkId, Criterion, Throughput, criterion_group, criterion_main};
 use glam::Vec3;
+use sdf_nn::siren::LayerKernels;
 use sdf_nn::{GpuContext, Siren, SirenConfig, SirenGpu, SirenTrainConfig, SirenTrainer};
 
 fn presets() -> Vec<(&'static str, SirenConfig)> {
@@ -22,6 +26,19 @@ fn presets() -> Vec<(&'static str, SirenConfig)> {
     .collect()
 }
 
+/// The family `SIREN_BENCH_KERNELS` names.
+fn kernels() -> LayerKernels {
+    match std::env::var("SIREN_BENCH_KERNELS").as_deref() {
+        Err(_) | Ok("" | "auto") => LayerKernels::Auto,
+        Ok("row-blocked") => LayerKernels::RowBlocked,
+        Ok("gemm") => LayerKernels::Gemm,
+        Ok("tiled") => LayerKernels::Tiled,
+        Ok(other) => {
+            panic!("SIREN_BENCH_KERNELS={other}: expected auto, row-blocked, gemm or tiled")
+        }
+    }
+}
+
 fn points(n: usize) -> Vec<Vec3> {
     sdf_geom::sample::uniform_box(n, 42)
 }
@@ -33,6 +50,15 @@ fn bench(c: &mut Criterion) {
     for (name, cfg) in presets() {
         let siren = Siren::new(cfg, 1).unwrap();
         let mut net = SirenGpu::new(gpu, &siren).unwrap();
+        net.set_layer_kernels(gpu, kernels()).unwrap();
+        if let Ok(v) = std::env::var("SIREN_BENCH_FUSED_MAX") {
+            net.set_fused_max_points(v.parse().expect("SIREN_BENCH_FUSED_MAX: a number"));
+        }
+        eprintln!(
+            "{name}: kernels {:?}, fused for 3000 points: {}",
+            net.layer_kernels(),
+            net.runs_fused(gpu, 3000)
+        );
         let macs = cfg.forward_macs();
 
         let mut g = c.benchmark_group(format!("siren_{name}"));
@@ -66,6 +92,7 @@ fn bench(c: &mut Criterion) {
             ..SirenTrainConfig::default()
         };
         let mut trainer = SirenTrainer::from_mesh(gpu, &siren, &mesh, train).unwrap();
+        trainer.set_layer_kernels(gpu, kernels()).unwrap();
         trainer.step(gpu).unwrap();
         gpu.wait().unwrap();
         g.throughput(Throughput::Elements(10_000));

@@ -42,6 +42,11 @@ pub const SIREN_GEMM: Shader = shader!("siren_gemm.wgsl", wgpu::Features::empty(
 /// SIREN's hidden layers with the weights in uniform-buffer windows (forward, backward and
 /// weight-gradient partials).
 pub const SIREN_DENSE: Shader = shader!("siren_dense.wgsl", wgpu::Features::empty());
+/// SIREN's tiled per-layer GEMM for GPUs, with the layer epilogues fused in.
+pub const SIREN_TILED_LAYER: Shader = shader!("siren_tiled_layer.wgsl", wgpu::Features::empty());
+/// SIREN inference in one dispatch for GPUs: every layer of a tile of points, activations in
+/// workgroup memory.
+pub const SIREN_TILED_FUSED: Shader = shader!("siren_tiled_fused.wgsl", wgpu::Features::empty());
 /// SIREN's output layer, loss and its derivative.
 pub const SIREN_HEAD: Shader = shader!("siren_head.wgsl", wgpu::Features::empty());
 /// SIREN's batch sampling and reductions.
@@ -63,6 +68,8 @@ pub const ALL: &[Shader] = &[
     ADAM,
     SIREN_GEMM,
     SIREN_DENSE,
+    SIREN_TILED_LAYER,
+    SIREN_TILED_FUSED,
     SIREN_HEAD,
     SIREN_TRAIN,
     NGLOD_FORWARD,

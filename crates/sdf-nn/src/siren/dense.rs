@@ -18,13 +18,18 @@ use crate::shaders;
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub enum LayerKernels {
     /// Row-blocked kernels on CPU adapters (lavapipe), where they measured ~20x faster than
-    /// the GEMM; the GEMM on GPUs, where the row-blocked layout has not been measured yet.
+    /// the GEMM; the tiled kernels on every other adapter (designed for GPUs: the row-blocked
+    /// and GEMM layouts keep per-invocation arrays that live in slow local memory there).
     #[default]
     Auto,
     /// The row-blocked kernels of `siren_dense.wgsl` for every layer that qualifies.
     RowBlocked,
     /// The strided GEMM of `siren_gemm.wgsl` everywhere.
     Gemm,
+    /// The tiled kernels of `siren_tiled_layer.wgsl` (workgroup-memory tiles, 4 × 4 register
+    /// blocks, fused sine epilogues) for every product, and `siren_tiled_fused.wgsl` for
+    /// inference batches that fit it.
+    Tiled,
 }
 
 impl LayerKernels {
@@ -33,7 +38,16 @@ impl LayerKernels {
         match self {
             LayerKernels::Auto => gpu.is_cpu(),
             LayerKernels::RowBlocked => true,
-            LayerKernels::Gemm => false,
+            LayerKernels::Gemm | LayerKernels::Tiled => false,
+        }
+    }
+
+    /// Whether the tiled kernels are used on `gpu`.
+    pub(crate) fn tiled(self, gpu: &GpuContext) -> bool {
+        match self {
+            LayerKernels::Auto => !gpu.is_cpu(),
+            LayerKernels::Tiled => true,
+            LayerKernels::RowBlocked | LayerKernels::Gemm => false,
         }
     }
 }

@@ -3,15 +3,17 @@
 //! the forward + double backward of a training step.
 //!
 //! Activations are row-major `[rows, width]` matrices. With tangents, a point owns four
-//! consecutive rows: the value, then ∂/∂x, ∂/∂y, ∂/∂z. A hidden layer runs either on the
-//! strided GEMM kernel followed by the elementwise sine kernels, or (see [`LayerKernels`]) on the
-//! row-blocked kernels of `siren_dense.wgsl` with the sine fused in; weight gradients are split
-//! over the batch into partials that a second kernel sums into the gradient buffer, so there are
-//! no atomics anywhere.
+//! consecutive rows: the value, then ∂/∂x, ∂/∂y, ∂/∂z. A hidden layer runs (see
+//! [`LayerKernels`]) on the strided GEMM kernel followed by the elementwise sine kernels, on the
+//! row-blocked kernels of `siren_dense.wgsl` with the sine fused in (CPU adapters), or on the
+//! tiled kernels of `kernels::tiled` (GPUs; small inference batches in one fused dispatch);
+//! weight gradients are split over the batch into partials that a second kernel sums into the
+//! gradient buffer, so there are no atomics anywhere.
 
 use glam::Vec3;
 
 use super::dense::{DensePlan, Epilogue, LayerKernels, SPLITS};
+use super::kernels::tiled::{TiledEpilogue, TiledKernels};
 use super::{LayerLayout, Siren, SirenConfig, SirenConfigError};
 use crate::gpu::{GpuContext, GpuError, GpuTimer};
 use crate::shaders;
@@ -30,24 +32,24 @@ pub enum SirenGpuError {
 #[repr(C)]
 #[derive(Clone, Copy, Debug, Default, bytemuck::Pod, bytemuck::Zeroable)]
 pub(crate) struct GemmUniforms {
-    mode: u32,
-    m: u32,
-    n: u32,
-    k: u32,
-    a_off: u32,
-    a_rs: u32,
-    a_cs: u32,
-    b_off: u32,
-    b_rs: u32,
-    b_cs: u32,
-    ldc: u32,
-    bias_off: u32,
-    k_chunk: u32,
-    pbias_off: u32,
-    omega: f32,
-    b_style: u32,
-    a_vec4: u32,
-    _pad: [u32; 3],
+    pub(crate) mode: u32,
+    pub(crate) m: u32,
+    pub(crate) n: u32,
+    pub(crate) k: u32,
+    pub(crate) a_off: u32,
+    pub(crate) a_rs: u32,
+    pub(crate) a_cs: u32,
+    pub(crate) b_off: u32,
+    pub(crate) b_rs: u32,
+    pub(crate) b_cs: u32,
+    pub(crate) ldc: u32,
+    pub(crate) bias_off: u32,
+    pub(crate) k_chunk: u32,
+    pub(crate) pbias_off: u32,
+    pub(crate) omega: f32,
+    pub(crate) b_style: u32,
+    pub(crate) a_vec4: u32,
+    pub(crate) _pad: [u32; 3],
 }
 
 impl GemmUniforms {
@@ -114,6 +116,11 @@ struct ReduceUniforms {
     _pad0: u32,
     _pad1: u32,
 }
+
+/// Default of [`SirenGpu::set_fused_max_points`]: covers the latency-bound batches (the issue's
+/// 3000 points); where the per-layer tiled GEMM overtakes the fused kernel on a GPU is not
+/// measured yet.
+pub const DEFAULT_FUSED_MAX_POINTS: u32 = 8192;
 
 /// Rows per GEMM workgroup (see `siren_gemm.wgsl`).
 const GEMM_ROWS: u32 = 64;
@@ -299,6 +306,10 @@ pub struct SirenGpu {
     kernels: LayerKernels,
     /// The hidden layers on the row-blocked kernels, if any.
     dense: Option<DensePlan>,
+    /// The tiled kernels, when they run every product.
+    tiled: Option<TiledKernels>,
+    /// Largest inference batch (per launch) for the fused all-layer kernel of the tiled family.
+    fused_max_points: u32,
 }
 
 impl SirenGpu {
@@ -319,6 +330,11 @@ impl SirenGpu {
         } else {
             None
         };
+        let tiled = if kernels.tiled(gpu) {
+            TiledKernels::new(gpu)?
+        } else {
+            None
+        };
         Ok(SirenGpu {
             config,
             layers,
@@ -332,6 +348,8 @@ impl SirenGpu {
             max_chunk: 65536,
             kernels,
             dense,
+            tiled,
+            fused_max_points: DEFAULT_FUSED_MAX_POINTS,
         })
     }
 
@@ -343,6 +361,11 @@ impl SirenGpu {
     ) -> Result<(), SirenGpuError> {
         self.dense = if kernels.row_blocked(gpu) {
             DensePlan::new(gpu, &self.layers)?
+        } else {
+            None
+        };
+        self.tiled = if kernels.tiled(gpu) {
+            TiledKernels::new(gpu)?
         } else {
             None
         };
@@ -362,6 +385,29 @@ impl SirenGpu {
         self.dense.as_ref().map_or(0, |d| {
             (0..self.layers.len()).filter(|&l| d.covers(l)).count()
         })
+    }
+
+    /// Whether the tiled kernels run every product (they need 8 KiB of workgroup memory and
+    /// 256 invocations per workgroup; without them the GEMM runs instead).
+    pub fn runs_tiled(&self) -> bool {
+        self.tiled.is_some()
+    }
+
+    /// Inference launches of at most `points` points run on the tiled family's fused
+    /// all-layer kernel (default [`DEFAULT_FUSED_MAX_POINTS`]; 0 disables it), larger ones on
+    /// its per-layer kernels. Only with [`LayerKernels::Tiled`] and a width the fused kernel
+    /// fits (a multiple of 4, at most 1024).
+    pub fn set_fused_max_points(&mut self, points: u32) {
+        self.fused_max_points = points;
+        self.eval = None;
+        self.eval_grad = None;
+    }
+
+    /// Whether an inference launch of `n` points runs on the fused all-layer kernel.
+    pub fn runs_fused(&self, gpu: &GpuContext, n: u32) -> bool {
+        self.tiled.is_some()
+            && n <= self.fused_max_points
+            && TiledKernels::fused_group_rows(gpu, &self.config).is_some()
     }
 
     /// Records the copy of the weights into the row-blocked kernels' uniform windows; every
@@ -563,7 +609,7 @@ impl SirenGpu {
             for chunk in points.chunks(ws.capacity as usize) {
                 let n = chunk.len() as u32;
                 if ws.built_for != Some(n) {
-                    ws.launches = self.eval_launches(gpu, &ws, n)?;
+                    ws.launches = self.eval_launches(gpu, &ws, n, &ws.input, &ws.values)?;
                     ws.built_for = Some(n);
                 }
                 let input: Vec<f32> = if tangents {
@@ -627,23 +673,29 @@ impl SirenGpu {
         })
     }
 
-    /// The launches of a forward pass over `n` points of `ws`.
+    /// The launches of a forward pass over `n` points from `input` (three floats per point, or
+    /// with tangents the twelve of [`stream_rows`]) into `values` (Φ per point, or Φ and ∇Φ),
+    /// with `ws`'s activation buffers as scratch (sized for at least `n` points). Recorded after
+    /// [`SirenGpu::record_pack`], in one compute pass, in order.
     fn eval_launches(
         &self,
         gpu: &GpuContext,
         ws: &EvalWorkspace,
         n: u32,
+        input: &wgpu::Buffer,
+        values: &wgpu::Buffer,
     ) -> Result<Vec<Launch>, GpuError> {
         let cfg = &self.config;
         let rows = if ws.tangents { 4 * n } else { n };
+        if let Some(t) = self.tiled.as_ref().filter(|_| self.runs_fused(gpu, n)) {
+            let fused =
+                t.fused_forward(gpu, cfg, rows, ws.tangents, input, &self.params, values)?;
+            return Ok(vec![fused]);
+        }
         let p = &self.pipelines;
         let mut launches = Vec::new();
         for l in 0..cfg.hidden_layers {
-            let src = if l == 0 {
-                &ws.input
-            } else {
-                &ws.act[(l - 1) % 2]
-            };
+            let src = if l == 0 { input } else { &ws.act[(l - 1) % 2] };
             let dst = &ws.act[l % 2];
             if let Some(d) = self.dense_for(l) {
                 let omega = cfg.omega0;
@@ -653,6 +705,22 @@ impl SirenGpu {
                     (Epilogue::Sine { omega }, dst)
                 };
                 launches.extend(d.forward(gpu, l, rows, epilogue, src, &self.params, out)?);
+            } else if let Some(t) = &self.tiled {
+                let u = gemm_forward(&self.layers[l], rows, false, cfg.omega0);
+                let omega = cfg.omega0;
+                launches.push(if ws.tangents {
+                    let epilogue = TiledEpilogue::SineWithTangents { omega, act: dst };
+                    t.gemm(gpu, &u, epilogue, src, &self.params, &ws.z)
+                } else {
+                    t.gemm(
+                        gpu,
+                        &u,
+                        TiledEpilogue::Sine { omega },
+                        src,
+                        &self.params,
+                        dst,
+                    )
+                });
             } else if ws.tangents {
                 let u = gemm_forward(&self.layers[l], rows, false, cfg.omega0);
                 launches.push(self.gemm_launch(gpu, &u, src, &self.params, &ws.z));
@@ -682,7 +750,7 @@ impl SirenGpu {
                 entry(1, &ws.act[(cfg.hidden_layers - 1) % 2]),
                 entry(2, &self.params),
                 entry(3, &self.dummy),
-                entry(4, &ws.values),
+                entry(4, values),
                 entry(5, &self.dummy_rw),
                 entry(6, &self.dummy_rw),
             ],
@@ -844,6 +912,7 @@ fn stream_rows(p: Vec3) -> [f32; 12] {
 #[derive(Debug)]
 pub(crate) struct TrainPasses {
     pub(crate) n: u32,
+    n_surface: u32,
     pub(crate) x_streams: wgpu::Buffer,
     pub(crate) normals: wgpu::Buffer,
     pub(crate) loss_partial: wgpu::Buffer,
@@ -861,6 +930,54 @@ impl TrainPasses {
         n_surface: u32,
         weights: &super::LossWeights,
     ) -> Result<Self, SirenGpuError> {
+        let x_streams = gpu.storage_zeroed("siren x streams", u64::from(4 * n) * 3 * 4)?;
+        let normals =
+            gpu.storage_zeroed("siren batch normals", u64::from(n_surface.max(1)) * 3 * 4)?;
+        let loss_partial =
+            gpu.storage_zeroed("siren loss partial", u64::from(n.div_ceil(WG)) * 16)?;
+        Self::with_io(
+            gpu,
+            net,
+            n,
+            n_surface,
+            weights,
+            x_streams,
+            normals,
+            loss_partial,
+        )
+    }
+
+    /// The passes rebuilt for `net`'s current kernels, on the same input and loss buffers (so
+    /// launches bound to those stay valid).
+    pub(crate) fn rebuilt(
+        &self,
+        gpu: &GpuContext,
+        net: &SirenGpu,
+        weights: &super::LossWeights,
+    ) -> Result<Self, SirenGpuError> {
+        Self::with_io(
+            gpu,
+            net,
+            self.n,
+            self.n_surface,
+            weights,
+            self.x_streams.clone(),
+            self.normals.clone(),
+            self.loss_partial.clone(),
+        )
+    }
+
+    #[allow(clippy::too_many_arguments)]
+    fn with_io(
+        gpu: &GpuContext,
+        net: &SirenGpu,
+        n: u32,
+        n_surface: u32,
+        weights: &super::LossWeights,
+        x_streams: wgpu::Buffer,
+        normals: wgpu::Buffer,
+        loss_partial: wgpu::Buffer,
+    ) -> Result<Self, SirenGpuError> {
         let cfg = net.config;
         let layers = &net.layers;
         let p = &net.pipelines;
@@ -868,9 +985,6 @@ impl TrainPasses {
         let width = cfg.width as u64;
         let l_hidden = cfg.hidden_layers;
         let act_bytes = u64::from(rows) * width * 4;
-        let x_streams = gpu.storage_zeroed("siren x streams", u64::from(rows) * 3 * 4)?;
-        let normals =
-            gpu.storage_zeroed("siren batch normals", u64::from(n_surface.max(1)) * 3 * 4)?;
         let mut z = Vec::new();
         let mut act = Vec::new();
         for _ in 0..l_hidden {
@@ -884,7 +998,6 @@ impl TrainPasses {
         let values = gpu.storage_zeroed("siren values", u64::from(n) * 16)?;
         let dout = gpu.storage_zeroed("siren dout", u64::from(n) * 16)?;
         let loss_groups = n.div_ceil(WG);
-        let loss_partial = gpu.storage_zeroed("siren loss partial", u64::from(loss_groups) * 16)?;
         let wgrads: Vec<GemmUniforms> = layers.iter().map(|l| gemm_wgrad(l, rows)).collect();
         let partial_len = wgrads
             .iter()
@@ -909,6 +1022,13 @@ impl TrainPasses {
                     act: &act[l],
                 };
                 launches.extend(d.forward(gpu, l, rows, epilogue, src, &net.params, &z[l])?);
+            } else if let Some(t) = &net.tiled {
+                let u = gemm_forward(&layers[l], rows, false, cfg.omega0);
+                let epilogue = TiledEpilogue::SineWithTangents {
+                    omega: cfg.omega0,
+                    act: &act[l],
+                };
+                launches.push(t.gemm(gpu, &u, epilogue, src, &net.params, &z[l]));
             } else {
                 let u = gemm_forward(&layers[l], rows, false, cfg.omega0);
                 launches.push(net.gemm_launch(gpu, &u, src, &net.params, &z[l]));
@@ -976,7 +1096,10 @@ impl TrainPasses {
                     (SPLITS, pbias_off)
                 }
                 None => {
-                    launches.push(net.gemm_launch(gpu, &val, a, b, &partial));
+                    launches.push(match &net.tiled {
+                        Some(t) => t.gemm(gpu, &val, TiledEpilogue::WeightGradient, a, b, &partial),
+                        None => net.gemm_launch(gpu, &val, a, b, &partial),
+                    });
                     (splits_for(rows), val.pbias_off)
                 }
             };
@@ -1015,6 +1138,14 @@ impl TrainPasses {
                     let below = Some((cfg.omega0, &z[l - 1]));
                     let (src, dst) = (&zbar[l % 2], &zbar[(l - 1) % 2]);
                     launches.extend(d.backward(gpu, l, rows, src, dst, below)?);
+                } else if let Some(t) = &net.tiled {
+                    let u = gemm_backward(&layers[l], rows);
+                    let epilogue = TiledEpilogue::SineBelow {
+                        omega: cfg.omega0,
+                        z: &z[l - 1],
+                    };
+                    let (src, dst) = (&zbar[l % 2], &zbar[(l - 1) % 2]);
+                    launches.push(t.gemm(gpu, &u, epilogue, src, &net.params, dst));
                 } else {
                     let u = gemm_backward(&layers[l], rows);
                     launches.push(net.gemm_launch(
@@ -1043,6 +1174,7 @@ impl TrainPasses {
         keep.push(partial);
         Ok(TrainPasses {
             n,
+            n_surface,
             x_streams,
             normals,
             loss_partial,

@@ -26,6 +26,7 @@ use crate::model_file::{
 pub mod cpu;
 mod dense;
 pub mod gpu;
+mod kernels;
 pub mod train;
 
 pub use dense::LayerKernels;

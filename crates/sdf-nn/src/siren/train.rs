@@ -384,7 +384,20 @@ impl SirenTrainer {
         self.last_loss
     }
 
-    /// The network on the GPU (e.g. for evaluation between steps).
+    /// Chooses the kernels of the network's layers, for training and evaluation (default
+    /// [`super::LayerKernels::Auto`]).
+    pub fn set_layer_kernels(
+        &mut self,
+        gpu: &GpuContext,
+        kernels: super::LayerKernels,
+    ) -> Result<(), TrainError> {
+        self.net.set_layer_kernels(gpu, kernels)?;
+        self.passes = self.passes.rebuilt(gpu, &self.net, &self.config.weights)?;
+        Ok(())
+    }
+
+    /// The network on the GPU (e.g. for evaluation between steps). Switch its kernels with
+    /// [`SirenTrainer::set_layer_kernels`], which also rebuilds the training passes.
     pub fn net(&mut self) -> &mut SirenGpu {
         &mut self.net
     }

@@ -1,0 +1,249 @@
+//! Host side of the tiled family for GPUs ([`super::super::LayerKernels::Tiled`]):
+//! `shaders/siren_tiled_layer.wgsl` (one tiled GEMM per layer product, epilogues fused) and
+//! `shaders/siren_tiled_fused.wgsl` (every layer of an inference in one dispatch).
+
+use crate::gpu::{GpuContext, GpuError};
+use crate::shaders;
+use crate::siren::SirenConfig;
+use crate::siren::gpu::{GemmUniforms, Launch};
+
+/// Rows and columns of C per workgroup of the tiled GEMM (`BM`, `BN` in the shader).
+const TILE: u32 = 64;
+/// Workgroup memory of the tiled GEMM: two 64 × 16 f32 tiles.
+const GEMM_WORKGROUP_BYTES: u32 = 2 * 64 * 16 * 4;
+/// Invocations per workgroup of both kernels.
+const INVOCATIONS: u32 = 256;
+
+/// What the tiled GEMM does with the product (the shader's `mode`).
+#[derive(Clone, Copy, Debug)]
+pub(crate) enum TiledEpilogue<'a> {
+    /// Inference: `sin(ω0 (C + b))`; B must be the parameter buffer.
+    Sine { omega: f32 },
+    /// Four rows per point: store `z` (bias added to the value row) in `out` and the
+    /// activations with their tangents in `act`; B must be the parameter buffer.
+    SineWithTangents { omega: f32, act: &'a wgpu::Buffer },
+    /// Four rows per point: turn Ā of the layer below's activations into its Z̄ through its
+    /// sine, whose pre-activations are `z`.
+    SineBelow { omega: f32, z: &'a wgpu::Buffer },
+    /// Split-K weight-gradient partials with the bias partials (see `siren_gemm.wgsl` mode 2).
+    WeightGradient,
+}
+
+/// Floats of activations the fused kernel keeps in workgroup memory (`act` in the shader).
+const FUSED_ACT_FLOATS: u32 = 4096;
+
+/// The fused kernel's `Fused` uniforms.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, bytemuck::Pod, bytemuck::Zeroable)]
+struct FusedUniforms {
+    rows: u32,
+    group_rows: u32,
+    width: u32,
+    hidden_layers: u32,
+    tangents: u32,
+    point_stride: u32,
+    omega: f32,
+    _pad: u32,
+}
+
+/// The tiled kernels' pipelines.
+#[derive(Debug)]
+pub(crate) struct TiledKernels {
+    gemm: wgpu::ComputePipeline,
+    /// Bound where a mode does not use a binding.
+    dummy: wgpu::Buffer,
+    dummy_rw: wgpu::Buffer,
+}
+
+fn entry(binding: u32, buffer: &wgpu::Buffer) -> wgpu::BindGroupEntry<'_> {
+    wgpu::BindGroupEntry {
+        binding,
+        resource: buffer.as_entire_binding(),
+    }
+}
+
+impl TiledKernels {
+    /// The kernels, or `None` when the device's limits do not fit them (read from the device,
+    /// which [`GpuContext`] opened with the adapter's limits).
+    pub(crate) fn new(gpu: &GpuContext) -> Result<Option<Self>, GpuError> {
+        let limits = gpu.limits();
+        if limits.max_compute_workgroup_storage_size < GEMM_WORKGROUP_BYTES
+            || limits.max_compute_invocations_per_workgroup < INVOCATIONS
+        {
+            return Ok(None);
+        }
+        Ok(Some(TiledKernels {
+            gemm: gpu.pipeline(&shaders::SIREN_TILED_LAYER, "tiled_gemm", &[])?,
+            dummy: gpu.storage_zeroed("siren tiled dummy", 16)?,
+            dummy_rw: gpu.storage_zeroed("siren tiled dummy rw", 16)?,
+        }))
+    }
+
+    /// Rows per workgroup of the fused inference kernel for `cfg`, or `None` when the
+    /// network does not fit it (width not a multiple of 4, or too wide for 4 rows of
+    /// activations in its workgroup memory, or the device's workgroup memory too small).
+    pub(crate) fn fused_group_rows(gpu: &GpuContext, cfg: &SirenConfig) -> Option<u32> {
+        let limits = gpu.limits();
+        let w = cfg.width as u32;
+        if !w.is_multiple_of(4)
+            || limits.max_compute_workgroup_storage_size < FUSED_ACT_FLOATS * 4
+            || limits.max_compute_invocations_per_workgroup < INVOCATIONS
+        {
+            return None;
+        }
+        // group_rows · width ≤ the buffer, one 4 × 4 block per invocation, one head row each.
+        let rows = (FUSED_ACT_FLOATS / w / 4 * 4).min(INVOCATIONS);
+        (rows >= 4).then_some(rows)
+    }
+
+    /// The fused inference launch over `rows` rows (points, or four rows per point with
+    /// `tangents`) from `input` (three floats per point, or twelve with tangents: the point and
+    /// the unit tangents) into `values` (one float per row).
+    #[allow(clippy::too_many_arguments)]
+    pub(crate) fn fused_forward(
+        &self,
+        gpu: &GpuContext,
+        cfg: &SirenConfig,
+        rows: u32,
+        tangents: bool,
+        input: &wgpu::Buffer,
+        params: &wgpu::Buffer,
+        values: &wgpu::Buffer,
+    ) -> Result<Launch, GpuError> {
+        let group_rows =
+            Self::fused_group_rows(gpu, cfg).expect("fused_forward only for networks that fit");
+        // Compiled on first use (the context caches pipelines).
+        let pipeline = gpu.pipeline(&shaders::SIREN_TILED_FUSED, "fused_forward", &[])?;
+        let u = gpu.uniform(
+            "siren fused uniforms",
+            &FusedUniforms {
+                rows,
+                group_rows,
+                width: cfg.width as u32,
+                hidden_layers: cfg.hidden_layers as u32,
+                tangents: u32::from(tangents),
+                point_stride: if tangents { 12 } else { 3 },
+                omega: cfg.omega0,
+                _pad: 0,
+            },
+        );
+        let (x, y) = gpu.dispatch_size(rows.div_ceil(group_rows).max(1));
+        Ok(Launch::new(
+            gpu,
+            &pipeline,
+            "siren fused forward",
+            &[
+                entry(0, &u),
+                entry(1, input),
+                entry(2, params),
+                entry(3, params),
+                entry(4, values),
+            ],
+            (x, y, 1),
+        ))
+    }
+
+    /// The launch of the product `u` describes (operands `a`, `b` as in
+    /// [`GemmUniforms`]; its `mode` is ignored) with `epilogue`, into `out`.
+    pub(crate) fn gemm(
+        &self,
+        gpu: &GpuContext,
+        u: &GemmUniforms,
+        epilogue: TiledEpilogue<'_>,
+        a: &wgpu::Buffer,
+        b: &wgpu::Buffer,
+        out: &wgpu::Buffer,
+    ) -> Launch {
+        let (mode, omega, out1, z_in) = match epilogue {
+            TiledEpilogue::Sine { omega } => (1, omega, &self.dummy_rw, &self.dummy),
+            TiledEpilogue::SineWithTangents { omega, act } => (2, omega, act, &self.dummy),
+            TiledEpilogue::SineBelow { omega, z } => (3, omega, &self.dummy_rw, z),
+            TiledEpilogue::WeightGradient => (4, 0.0, &self.dummy_rw, &self.dummy),
+        };
+        let four = |x: u32| x.is_multiple_of(4);
+        // Which way each operand is contiguous, and whether its vec4 loads are aligned.
+        let a_fast_m = u.a_rs == 1 && u.a_cs != 1;
+        let a_aligned = four(u.a_off)
+            && if a_fast_m {
+                four(u.a_cs)
+            } else {
+                u.a_cs == 1 && four(u.a_rs)
+            };
+        let b_fast_n = u.b_cs == 1 && u.b_rs != 1;
+        let b_aligned = four(u.b_off)
+            && if b_fast_n {
+                four(u.b_rs)
+            } else {
+                u.b_rs == 1 && four(u.b_cs)
+            };
+        let uniforms = TiledUniforms {
+            mode,
+            m: u.m,
+            n: u.n,
+            k: u.k,
+            a_off: u.a_off,
+            a_rs: u.a_rs,
+            a_cs: u.a_cs,
+            b_off: u.b_off,
+            b_rs: u.b_rs,
+            b_cs: u.b_cs,
+            ldc: u.ldc,
+            bias_off: u.bias_off,
+            k_chunk: u.k_chunk,
+            pbias_off: u.pbias_off,
+            omega,
+            flags: u32::from(a_fast_m)
+                | u32::from(a_aligned) << 1
+                | u32::from(b_fast_n) << 2
+                | u32::from(b_aligned) << 3,
+        };
+        // The bias partial walks value rows as every fourth row of each 16-row slice.
+        debug_assert!(mode != 4 || u.k_chunk.is_multiple_of(16));
+        let ub = gpu.uniform("siren tiled uniforms", &uniforms);
+        let tiles = u.m.div_ceil(TILE) * u.n.div_ceil(TILE);
+        let (x, y) = gpu.dispatch_size(tiles.max(1));
+        let z = if mode == 4 {
+            u.k.div_ceil(u.k_chunk).max(1)
+        } else {
+            1
+        };
+        Launch::new(
+            gpu,
+            &self.gemm,
+            "siren tiled gemm",
+            &[
+                entry(0, &ub),
+                entry(1, a),
+                entry(2, b),
+                entry(3, a),
+                entry(4, b),
+                entry(5, out),
+                entry(6, out1),
+                entry(7, z_in),
+            ],
+            (x, y, z),
+        )
+    }
+}
+
+/// The shader's `Tiled` uniforms.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, bytemuck::Pod, bytemuck::Zeroable)]
+struct TiledUniforms {
+    mode: u32,
+    m: u32,
+    n: u32,
+    k: u32,
+    a_off: u32,
+    a_rs: u32,
+    a_cs: u32,
+    b_off: u32,
+    b_rs: u32,
+    b_cs: u32,
+    ldc: u32,
+    bias_off: u32,
+    k_chunk: u32,
+    pbias_off: u32,
+    omega: f32,
+    flags: u32,
+}

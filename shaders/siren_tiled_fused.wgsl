@@ -1,0 +1,159 @@
+// SIREN inference in one dispatch (`LayerKernels::Tiled`, batches bound by latency): a
+// workgroup takes `group_rows` rows (points, or four rows per point with tangents) through
+// the first layer, every hidden layer and the linear head, keeping their activations in
+// workgroup memory (at most 16 KiB, every device has it); only Φ (and ∇Φ) reach global memory.
+//
+// Per layer, invocation i < (group_rows / 4) · (width / 4) owns a 4 × 4 register block: four
+// rows (with tangents: one point's value and tangent rows, so the tangent epilogue
+// a_j = ω0 cos(ω0 z_v) z_j runs in registers) by four output features. It reads its rows from
+// workgroup memory and the weight rows as vec4 from the parameters (the same weights for every
+// workgroup: they stay in cache), then, after a barrier, overwrites its block with the layer's
+// activations in place.
+
+struct Fused {
+    // Rows in all: points, or 4 × points with tangents.
+    rows: u32,
+    // Rows per workgroup: a multiple of 4 with group_rows · width ≤ 4096 and ≤ 256.
+    group_rows: u32,
+    // A multiple of 4.
+    width: u32,
+    hidden_layers: u32,
+    tangents: u32,
+    // Floats per point in `points`: 3, or 12 with tangents (the point, then e_x, e_y, e_z).
+    point_stride: u32,
+    omega: f32,
+    _pad: u32,
+}
+
+@group(0) @binding(0) var<uniform> f: Fused;
+@group(0) @binding(1) var<storage, read> points: array<f32>;
+@group(0) @binding(2) var<storage, read> params: array<f32>;
+// The same buffer as vec4 (every weight row starts 16-byte aligned when width % 4 = 0).
+@group(0) @binding(3) var<storage, read> params4: array<vec4<f32>>;
+// Φ per row: Φ per point, or (Φ, ∇Φ) per point with tangents.
+@group(0) @binding(4) var<storage, read_write> values: array<f32>;
+
+// [row][feature / 4] of the current layer's activations.
+var<workgroup> act: array<vec4<f32>, 1024>;
+
+fn point_at(p: u32) -> vec3<f32> {
+    let b = p * f.point_stride;
+    return vec3<f32>(points[b], points[b + 1u], points[b + 2u]);
+}
+
+// Row o of the first layer's W ([width, 3]).
+fn w0_row(o: u32) -> vec3<f32> {
+    return vec3<f32>(params[3u * o], params[3u * o + 1u], params[3u * o + 2u]);
+}
+
+@compute @workgroup_size(256)
+fn fused_forward(
+    @builtin(workgroup_id) wid: vec3<u32>,
+    @builtin(num_workgroups) nwg: vec3<u32>,
+    @builtin(local_invocation_index) lid: u32,
+) {
+    let group = wid.y * nwg.x + wid.x;
+    let first_row = group * f.group_rows;
+    // Workgroup-uniform, so the barriers below stay in uniform control flow.
+    if first_row >= f.rows {
+        return;
+    }
+    let w = f.width;
+    let w4 = w / 4u;
+    let owns_block = lid < (f.group_rows / 4u) * w4;
+    let r0 = 4u * (lid / w4);
+    let cb = lid % w4;
+    let o0 = 4u * cb;
+    let om = f.omega;
+
+    // First layer, straight from the points.
+    if owns_block {
+        var b = vec4<f32>(0.0);
+        var wx = vec4<f32>(0.0);
+        var wy = vec4<f32>(0.0);
+        var wz = vec4<f32>(0.0);
+        for (var c = 0u; c < 4u; c++) {
+            let wr = w0_row(o0 + c);
+            wx[c] = wr.x;
+            wy[c] = wr.y;
+            wz[c] = wr.z;
+            b[c] = params[3u * w + o0 + c];
+        }
+        let last = f.rows - 1u;
+        if f.tangents != 0u {
+            let p = point_at(min(first_row + r0, last) / 4u);
+            let zv = b + p.x * wx + p.y * wy + p.z * wz;
+            let wc = om * cos(om * zv);
+            act[r0 * w4 + cb] = sin(om * zv);
+            act[(r0 + 1u) * w4 + cb] = wc * wx;
+            act[(r0 + 2u) * w4 + cb] = wc * wy;
+            act[(r0 + 3u) * w4 + cb] = wc * wz;
+        } else {
+            for (var i = 0u; i < 4u; i++) {
+                let p = point_at(min(first_row + r0 + i, last));
+                act[(r0 + i) * w4 + cb] = sin(om * (b + p.x * wx + p.y * wy + p.z * wz));
+            }
+        }
+    }
+    workgroupBarrier();
+
+    // Hidden layers 1..L-1: W at 4w + (l - 1)(w² + w), then b.
+    for (var l = 1u; l < f.hidden_layers; l++) {
+        let woff = 4u * w + (l - 1u) * (w * w + w);
+        let wrow4 = woff / 4u + o0 * w4;
+        var c0 = vec4<f32>(0.0);
+        var c1 = vec4<f32>(0.0);
+        var c2 = vec4<f32>(0.0);
+        var c3 = vec4<f32>(0.0);
+        if owns_block {
+            for (var k4 = 0u; k4 < w4; k4++) {
+                let a0 = act[r0 * w4 + k4];
+                let a1 = act[(r0 + 1u) * w4 + k4];
+                let a2 = act[(r0 + 2u) * w4 + k4];
+                let a3 = act[(r0 + 3u) * w4 + k4];
+                let q0 = params4[wrow4 + k4];
+                let q1 = params4[wrow4 + w4 + k4];
+                let q2 = params4[wrow4 + 2u * w4 + k4];
+                let q3 = params4[wrow4 + 3u * w4 + k4];
+                c0 += vec4<f32>(dot(a0, q0), dot(a0, q1), dot(a0, q2), dot(a0, q3));
+                c1 += vec4<f32>(dot(a1, q0), dot(a1, q1), dot(a1, q2), dot(a1, q3));
+                c2 += vec4<f32>(dot(a2, q0), dot(a2, q1), dot(a2, q2), dot(a2, q3));
+                c3 += vec4<f32>(dot(a3, q0), dot(a3, q1), dot(a3, q2), dot(a3, q3));
+            }
+        }
+        // Every block is read before any is overwritten.
+        workgroupBarrier();
+        if owns_block {
+            let b = params4[(woff + w * w + o0) / 4u];
+            if f.tangents != 0u {
+                let zv = c0 + b;
+                let wc = om * cos(om * zv);
+                act[r0 * w4 + cb] = sin(om * zv);
+                act[(r0 + 1u) * w4 + cb] = wc * c1;
+                act[(r0 + 2u) * w4 + cb] = wc * c2;
+                act[(r0 + 3u) * w4 + cb] = wc * c3;
+            } else {
+                act[r0 * w4 + cb] = sin(om * (c0 + b));
+                act[(r0 + 1u) * w4 + cb] = sin(om * (c1 + b));
+                act[(r0 + 2u) * w4 + cb] = sin(om * (c2 + b));
+                act[(r0 + 3u) * w4 + cb] = sin(om * (c3 + b));
+            }
+        }
+        workgroupBarrier();
+    }
+
+    // The linear head, one row per invocation; the bias only on value rows.
+    let row = first_row + lid;
+    if lid < f.group_rows && row < f.rows {
+        let woff4 = (4u * w + (f.hidden_layers - 1u) * (w * w + w)) / 4u;
+        var s = vec4<f32>(0.0);
+        for (var k4 = 0u; k4 < w4; k4++) {
+            s = fma(act[lid * w4 + k4], params4[woff4 + k4], s);
+        }
+        var phi = s.x + s.y + s.z + s.w;
+        if f.tangents == 0u || lid % 4u == 0u {
+            phi += params[4u * woff4 + w];
+        }
+        values[row] = phi;
+    }
+}

@@ -1,0 +1,313 @@
+// SIREN's per-layer products for GPUs (`LayerKernels::Tiled`): a tiled GEMM with the layer's
+// epilogue fused in.
+//
+// C[m, n] = Σ_k A[m, k] B[k, n]. A workgroup of 256 invocations owns a 64 × 64 tile of C; K is
+// swept in slices of 16 whose A (64 × 16) and B (16 × 64) parts are staged in workgroup memory
+// (8 KiB in all), loaded as vec4 where the operand is contiguous and 16-byte aligned. Each
+// invocation keeps a 4 × 4 register block of C (four consecutive rows, four consecutive
+// columns), so one slice costs it 32 workgroup-memory vec4 reads for 256 FMAs. Four rows
+// aligned to 4 are one point with tangents (value, ∂x, ∂y, ∂z), so the tangent epilogues run
+// in registers.
+//
+// Operands are read through (offset, row stride, column stride), as in siren_gemm.wgsl:
+//   mode 0: C                                   (plain product)
+//   mode 1: sin(ω0 (C + b))                     (inference; b read from `b_src` = params)
+//   mode 2: four rows per point: out0 = z (bias added to the value row), out1 = activations
+//           a_v = sin(ω0 z_v), a_j = ω0 cos(ω0 z_v) z_j
+//   mode 3: four rows per point: C = Ā of the layer below's activations, turned into that
+//           layer's Z̄ through its sine (pre-activations `z_in`):
+//           z̄_j = ω0 cos · ā_j, z̄_v = ω0 cos · ā_v − ω0² sin · Σ_j ā_j z_j
+//   mode 4: split-K weight gradient: partial[split] = Z̄ᵀ · A_prev over one chunk of batch rows
+//           (k_chunk rows from wid.z · k_chunk, a multiple of 16); the workgroups of the first
+//           column tile also sum the bias partial Σ Z̄[value rows] (k ≡ 0 mod 4) from the A
+//           tiles they stage anyway, stored at pbias_off + split · M + m.
+
+struct Tiled {
+    mode: u32,
+    m: u32,
+    n: u32,
+    k: u32,
+    a_off: u32,
+    a_rs: u32,
+    a_cs: u32,
+    b_off: u32,
+    b_rs: u32,
+    b_cs: u32,
+    ldc: u32,
+    bias_off: u32,
+    k_chunk: u32,
+    pbias_off: u32,
+    omega: f32,
+    // bit 0: A is contiguous along m (else along k); bit 1: A's vec4 loads are aligned;
+    // bit 2: B is contiguous along n (else along k); bit 3: B's vec4 loads are aligned.
+    flags: u32,
+}
+
+const BM: u32 = 64u;
+const BN: u32 = 64u;
+const BK: u32 = 16u;
+// vec4 columns of a tile row (BM / 4 = BN / 4).
+const T4: u32 = 16u;
+
+@group(0) @binding(0) var<uniform> t: Tiled;
+@group(0) @binding(1) var<storage, read> a_src: array<f32>;
+@group(0) @binding(2) var<storage, read> b_src: array<f32>;
+// The same buffers seen as vec4 for aligned loads.
+@group(0) @binding(3) var<storage, read> a_src4: array<vec4<f32>>;
+@group(0) @binding(4) var<storage, read> b_src4: array<vec4<f32>>;
+@group(0) @binding(5) var<storage, read_write> out0: array<f32>;
+// Mode 2: the activations.
+@group(0) @binding(6) var<storage, read_write> out1: array<f32>;
+// Mode 3: the pre-activations of the layer below ([M, ldc], like out0).
+@group(0) @binding(7) var<storage, read> z_in: array<f32>;
+
+// [k][m / 4] and [k][n / 4]: an invocation reads its four rows (columns) as one vec4.
+var<workgroup> tile_a: array<vec4<f32>, 256>;
+var<workgroup> tile_b: array<vec4<f32>, 256>;
+
+fn a_at(m: u32, k: u32, k_end: u32) -> f32 {
+    if m < t.m && k < k_end {
+        return a_src[t.a_off + m * t.a_rs + k * t.a_cs];
+    }
+    return 0.0;
+}
+
+fn b_at(k: u32, n: u32, k_end: u32) -> f32 {
+    if k < k_end && n < t.n {
+        return b_src[t.b_off + k * t.b_rs + n * t.b_cs];
+    }
+    return 0.0;
+}
+
+fn load_a(m0: u32, k0: u32, k_end: u32, lid: u32) {
+    let aligned = (t.flags & 2u) != 0u;
+    if (t.flags & 1u) != 0u {
+        // Four consecutive m at one k.
+        let ml = 4u * (lid % T4);
+        let kl = lid / T4;
+        let m = m0 + ml;
+        let k = k0 + kl;
+        var v: vec4<f32>;
+        if aligned && m + 3u < t.m && k < k_end {
+            v = a_src4[(t.a_off + m + k * t.a_cs) / 4u];
+        } else {
+            v = vec4<f32>(a_at(m, k, k_end), a_at(m + 1u, k, k_end), a_at(m + 2u, k, k_end),
+                a_at(m + 3u, k, k_end));
+        }
+        tile_a[kl * T4 + ml / 4u] = v;
+    } else {
+        // Four consecutive k at one m.
+        let ml = lid / 4u;
+        let kl = 4u * (lid % 4u);
+        let m = m0 + ml;
+        let k = k0 + kl;
+        var v: vec4<f32>;
+        if aligned && m < t.m && k + 3u < k_end {
+            v = a_src4[(t.a_off + m * t.a_rs + k) / 4u];
+        } else {
+            v = vec4<f32>(a_at(m, k, k_end), a_at(m, k + 1u, k_end), a_at(m, k + 2u, k_end),
+                a_at(m, k + 3u, k_end));
+        }
+        let i = kl * T4 + ml / 4u;
+        let c = ml % 4u;
+        tile_a[i][c] = v.x;
+        tile_a[i + T4][c] = v.y;
+        tile_a[i + 2u * T4][c] = v.z;
+        tile_a[i + 3u * T4][c] = v.w;
+    }
+}
+
+fn load_b(n0: u32, k0: u32, k_end: u32, lid: u32) {
+    let aligned = (t.flags & 8u) != 0u;
+    if (t.flags & 4u) != 0u {
+        // Four consecutive n at one k.
+        let nl = 4u * (lid % T4);
+        let kl = lid / T4;
+        let n = n0 + nl;
+        let k = k0 + kl;
+        var v: vec4<f32>;
+        if aligned && n + 3u < t.n && k < k_end {
+            v = b_src4[(t.b_off + k * t.b_rs + n) / 4u];
+        } else {
+            v = vec4<f32>(b_at(k, n, k_end), b_at(k, n + 1u, k_end), b_at(k, n + 2u, k_end),
+                b_at(k, n + 3u, k_end));
+        }
+        tile_b[kl * T4 + nl / 4u] = v;
+    } else {
+        // Four consecutive k at one n.
+        let nl = lid / 4u;
+        let kl = 4u * (lid % 4u);
+        let n = n0 + nl;
+        let k = k0 + kl;
+        var v: vec4<f32>;
+        if aligned && n < t.n && k + 3u < k_end {
+            v = b_src4[(t.b_off + n * t.b_cs + k) / 4u];
+        } else {
+            v = vec4<f32>(b_at(k, n, k_end), b_at(k + 1u, n, k_end), b_at(k + 2u, n, k_end),
+                b_at(k + 3u, n, k_end));
+        }
+        let i = kl * T4 + nl / 4u;
+        let c = nl % 4u;
+        tile_b[i][c] = v.x;
+        tile_b[i + T4][c] = v.y;
+        tile_b[i + 2u * T4][c] = v.z;
+        tile_b[i + 3u * T4][c] = v.w;
+    }
+}
+
+// Row `m` of out0 at columns n..n+3 (those below N), from element offset `base`.
+fn store0(base: u32, m: u32, n: u32, v: vec4<f32>) {
+    if m >= t.m {
+        return;
+    }
+    let o = base + m * t.ldc + n;
+    for (var c = 0u; c < 4u; c++) {
+        if n + c < t.n {
+            out0[o + c] = v[c];
+        }
+    }
+}
+
+fn store1(m: u32, n: u32, v: vec4<f32>) {
+    let o = m * t.ldc + n;
+    for (var c = 0u; c < 4u; c++) {
+        if n + c < t.n {
+            out1[o + c] = v[c];
+        }
+    }
+}
+
+fn z_row(m: u32, n: u32) -> vec4<f32> {
+    var v = vec4<f32>(0.0);
+    let o = m * t.ldc + n;
+    for (var c = 0u; c < 4u; c++) {
+        if n + c < t.n {
+            v[c] = z_in[o + c];
+        }
+    }
+    return v;
+}
+
+fn bias4(n: u32) -> vec4<f32> {
+    var v = vec4<f32>(0.0);
+    for (var c = 0u; c < 4u; c++) {
+        if n + c < t.n {
+            v[c] = b_src[t.bias_off + n + c];
+        }
+    }
+    return v;
+}
+
+@compute @workgroup_size(256)
+fn tiled_gemm(
+    @builtin(workgroup_id) wid: vec3<u32>,
+    @builtin(num_workgroups) nwg: vec3<u32>,
+    @builtin(local_invocation_index) lid: u32,
+) {
+    let n_tiles = (t.n + BN - 1u) / BN;
+    let g = wid.y * nwg.x + wid.x;
+    let m_tile = g / n_tiles;
+    // Workgroup-uniform, so the barriers below stay in uniform control flow.
+    if m_tile * BM >= t.m {
+        return;
+    }
+    let m0 = m_tile * BM;
+    let n0 = (g % n_tiles) * BN;
+    var k_begin = 0u;
+    var k_end = t.k;
+    if t.mode == 4u {
+        k_begin = wid.z * t.k_chunk;
+        k_end = min(k_begin + t.k_chunk, t.k);
+    }
+    let tx = lid % T4;
+    let ty = lid / T4;
+    var c0 = vec4<f32>(0.0);
+    var c1 = vec4<f32>(0.0);
+    var c2 = vec4<f32>(0.0);
+    var c3 = vec4<f32>(0.0);
+    // Mode 4, first column tile, tx = 0: the bias partial of rows m..m+3.
+    let sum_bias = t.mode == 4u && n0 == 0u && tx == 0u;
+    var bias_sum = vec4<f32>(0.0);
+    for (var k0 = k_begin; k0 < k_end; k0 += BK) {
+        load_a(m0, k0, k_end, lid);
+        load_b(n0, k0, k_end, lid);
+        workgroupBarrier();
+        for (var kk = 0u; kk < BK; kk++) {
+            let av = tile_a[kk * T4 + ty];
+            let bv = tile_b[kk * T4 + tx];
+            c0 = fma(vec4<f32>(av.x), bv, c0);
+            c1 = fma(vec4<f32>(av.y), bv, c1);
+            c2 = fma(vec4<f32>(av.z), bv, c2);
+            c3 = fma(vec4<f32>(av.w), bv, c3);
+        }
+        if sum_bias {
+            // k0 is a multiple of 4: value rows sit at kk ≡ 0 (mod 4).
+            for (var kk = 0u; kk < BK; kk += 4u) {
+                bias_sum += tile_a[kk * T4 + ty];
+            }
+        }
+        workgroupBarrier();
+    }
+    let m = m0 + 4u * ty;
+    let n = n0 + 4u * tx;
+    if m >= t.m {
+        return;
+    }
+    if sum_bias {
+        let pb = t.pbias_off + wid.z * t.m + m;
+        for (var i = 0u; i < 4u; i++) {
+            if m + i < t.m {
+                out0[pb + i] = bias_sum[i];
+            }
+        }
+    }
+    if n >= t.n {
+        return;
+    }
+    switch t.mode {
+        case 1u: {
+            let b = bias4(n);
+            store0(0u, m, n, sin(t.omega * (c0 + b)));
+            store0(0u, m + 1u, n, sin(t.omega * (c1 + b)));
+            store0(0u, m + 2u, n, sin(t.omega * (c2 + b)));
+            store0(0u, m + 3u, n, sin(t.omega * (c3 + b)));
+        }
+        case 2u: {
+            // M is a multiple of 4: the four rows are one point.
+            let zv = c0 + bias4(n);
+            store0(0u, m, n, zv);
+            store0(0u, m + 1u, n, c1);
+            store0(0u, m + 2u, n, c2);
+            store0(0u, m + 3u, n, c3);
+            let wc = t.omega * cos(t.omega * zv);
+            store1(m, n, sin(t.omega * zv));
+            store1(m + 1u, n, wc * c1);
+            store1(m + 2u, n, wc * c2);
+            store1(m + 3u, n, wc * c3);
+        }
+        case 3u: {
+            let w0 = t.omega;
+            let zv = z_row(m, n);
+            let s = sin(w0 * zv);
+            let wc = w0 * cos(w0 * zv);
+            let mix = c1 * z_row(m + 1u, n) + c2 * z_row(m + 2u, n) + c3 * z_row(m + 3u, n);
+            store0(0u, m, n, wc * c0 - w0 * w0 * s * mix);
+            store0(0u, m + 1u, n, wc * c1);
+            store0(0u, m + 2u, n, wc * c2);
+            store0(0u, m + 3u, n, wc * c3);
+        }
+        case 4u: {
+            let base = wid.z * t.m * t.ldc;
+            store0(base, m, n, c0);
+            store0(base, m + 1u, n, c1);
+            store0(base, m + 2u, n, c2);
+            store0(base, m + 3u, n, c3);
+        }
+        default: {
+            store0(0u, m, n, c0);
+            store0(0u, m + 1u, n, c1);
+            store0(0u, m + 2u, n, c2);
+            store0(0u, m + 3u, n, c3);
+        }
+    }
+}
