@@ -545,7 +545,7 @@ impl SirenGpu {
             while first < n {
                 let m = (n - first).min(ws.capacity);
                 if ws.built_for != Some(m) {
-                    ws.launches = self.eval_launches(gpu, &ws, m)?;
+                    ws.launches = self.eval_launches(gpu, &ws, m, &ws.input, &ws.values)?;
                     ws.built_for = Some(m);
                 }
                 let (i0, o0) = (u64::from(first) * 4, u64::from(first) * 4);
