@@ -535,8 +535,7 @@ fn load_gltf(
     // gltf's validation refuses required extensions it does not implement itself; the ones
     // left are appearance only and are never read here.
     root.extensions_required.clear();
-    let doc =
-        gltf::Document::from_json(root).map_err(|e| parse_err(format!("invalid glTF: {e}")))?;
+    let doc = gltf::Document::from_json(root).map_err(|e| parse_err(e.to_string()))?;
 
     let mut report = LoadReport {
         format,
