@@ -72,7 +72,7 @@ pub mod npy;
 pub mod reference;
 pub mod sample;
 
-pub use distance::{ClosestPoint, SignedDistance, SignedDistanceOptions};
+pub use distance::{ClosestPoint, FAR_QUERY_RADII, SignedDistance, SignedDistanceOptions};
 pub use error::GeomError;
 pub use load::{
     LoadOptions, MAX_FILE_BYTES, MAX_INSTANCED_TRIANGLES, MAX_INSTANCED_VERTICES, MAX_INSTANCES,

@@ -450,3 +450,107 @@ fn gltf_buffer_uris_stay_in_the_assets_folder() {
         Err(GeomError::UriRefused { .. })
     ));
 }
+
+// ---------------------------------------------------------------------------------------------------
+// Numbers stay finite
+
+use glam::Vec3;
+use sdf_geom::{Mesh, SignedDistance, reference};
+
+/// Relative error of the fast distance against the f64 brute force.
+fn rel_err(mesh: &Mesh, sdf: &SignedDistance, p: Vec3) -> f64 {
+    let (want, _) = reference::brute_force_distance(mesh, p);
+    let got = sdf.unsigned_distance(p) as f64;
+    assert!(got.is_finite(), "{p}: {got}");
+    let signed = sdf.signed_distance(p) as f64;
+    assert_eq!(signed.abs(), got, "{p}");
+    (got - want).abs() / want.max(f64::MIN_POSITIVE)
+}
+
+#[test]
+fn far_query_points_get_finite_correct_distances() {
+    let mesh = Mesh::icosphere(1.0, 2);
+    let sdf = SignedDistance::new(&mesh).unwrap();
+    for p in [
+        Vec3::new(1e20, 0.0, 0.0),
+        Vec3::new(-3e19, 7e18, 1e19),
+        Vec3::new(1e30, -3e29, 5e29),
+        Vec3::new(2e38, -1e38, 1e38),
+        Vec3::new(5000.0, 1.0, -2.0),
+        Vec3::new(4000.0, 0.0, 0.0),
+        Vec3::new(0.0, 3.0, 0.0),
+    ] {
+        let e = rel_err(&mesh, &sdf, p);
+        assert!(e < 1e-6, "{p}: relative error {e}");
+        assert!(sdf.signed_distance(p) > 0.0, "{p}: outside");
+        assert_eq!(sdf.winding_number(p).round(), 0.0, "{p}");
+        let c = sdf.closest_point(p);
+        assert!(c.distance.is_finite() && c.point.is_finite(), "{p}: {c:?}");
+        assert!((c.point.length() - 1.0).abs() < 0.1, "{p}: {c:?}");
+    }
+    // The batch path (Morton order) agrees.
+    let pts = vec![Vec3::new(1e20, 0.0, 0.0); 5000];
+    assert!(
+        sdf.signed_distance_batch(&pts)
+            .iter()
+            .all(|d| (*d as f64 - 1e20).abs() < 1e14)
+    );
+}
+
+#[test]
+fn huge_and_tiny_coordinates_keep_distances_finite() {
+    for scale in [1e38f32, 1e25, 1e-30, 1e-38] {
+        let unit = Mesh::icosphere(1.0, 2);
+        let mesh = Mesh {
+            vertices: unit.vertices.iter().map(|v| *v * scale).collect(),
+            triangles: unit.triangles.clone(),
+        };
+        let sdf = SignedDistance::new(&mesh).unwrap();
+        for p in [
+            Vec3::ZERO,
+            Vec3::new(0.5, 0.2, 0.1) * scale,
+            Vec3::new(1.7, -0.2, 0.1) * scale,
+            Vec3::new(0.0, 0.0, 3.0) * scale,
+        ] {
+            let e = rel_err(&mesh, &sdf, p);
+            assert!(e < 1e-5, "scale {scale}, {p}: relative error {e}");
+        }
+        assert!(
+            sdf.signed_distance(Vec3::ZERO) < 0.0,
+            "scale {scale}: centre inside"
+        );
+        assert!(sdf.signed_distance(Vec3::new(0.0, 0.0, 3.0) * scale) > 0.0);
+        // Normalisation maps it onto the unit sphere's box, inside [-1, 1]^3.
+        let (n, _) = mesh.normalized();
+        let b = n.bounds();
+        assert!(
+            b.min.cmpge(Vec3::splat(-1.0)).all() && b.max.cmple(Vec3::ONE).all(),
+            "{b:?}"
+        );
+        assert!(
+            (b.max.max_element() - 1.0).abs() < 1e-5,
+            "scale {scale}: {b:?}"
+        );
+    }
+    // Coordinates near f32::MAX on both sides: the extent overflows f32 but not f64.
+    let mesh = Mesh {
+        vertices: vec![
+            Vec3::new(-3e38, -3e38, 0.0),
+            Vec3::new(3e38, -3e38, 0.0),
+            Vec3::new(0.0, 3e38, 0.0),
+            Vec3::new(0.0, 0.0, 3e38),
+        ],
+        triangles: vec![[0, 2, 1], [0, 1, 3], [1, 2, 3], [2, 0, 3]],
+    };
+    let (n, norm) = mesh.normalized();
+    assert!(norm.scale < 1e-38 && norm.scale > 0.0, "{norm:?}");
+    assert!(
+        n.vertices
+            .iter()
+            .all(|v| v.is_finite() && v.abs().max_element() <= 1.0),
+        "{n:?}"
+    );
+    let sdf = SignedDistance::new(&mesh).unwrap();
+    let e = rel_err(&mesh, &sdf, Vec3::new(0.0, 0.0, -1e38));
+    assert!(e < 1e-5, "{e}");
+}
