@@ -939,16 +939,13 @@ fn read_accessor<'b>(
     elem: usize,
     buffers: &'b [Vec<u8>],
     what: &str,
-) -> Result<Vec<std::borrow::Cow<'b, [u8]>>, String> {
-    use std::borrow::Cow;
+) -> Result<Vec<&'b [u8]>, String> {
+    static ZEROS: [u8; 16] = [0; 16];
     let count = acc.count();
-    let mut out: Vec<Cow<'b, [u8]>> = match acc.view() {
-        Some(view) => view_elements(&view, acc.offset(), count, elem, buffers, what)?
-            .into_iter()
-            .map(Cow::Borrowed)
-            .collect(),
+    let mut out: Vec<&'b [u8]> = match acc.view() {
+        Some(view) => view_elements(&view, acc.offset(), count, elem, buffers, what)?,
         // No view: zeros, normally replaced in part by sparse values.
-        None => vec![Cow::Owned(vec![0u8; elem]); count],
+        None => vec![&ZEROS[..elem.min(16)]; count],
     };
     if let Some(sparse) = acc.sparse() {
         let n = sparse.count();
@@ -987,7 +984,7 @@ fn read_accessor<'b>(
                 ));
             }
             prev = Some(k);
-            out[k as usize] = Cow::Borrowed(v);
+            out[k as usize] = v;
         }
     }
     Ok(out)
