@@ -37,6 +37,9 @@ enum PresetArg {
 struct Args {
     /// Mesh to fit (OBJ, glTF or GLB).
     mesh: PathBuf,
+    /// glTF: also follow buffer URIs outside the mesh's folder (absolute paths, `..`, symbolic links).
+    #[arg(long)]
+    allow_external_uris: bool,
     /// Architecture.
     #[arg(long, value_enum, default_value = "nglod")]
     model: Model,
@@ -137,7 +140,8 @@ fn train(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
         return Err("--steps applies to SIREN; NGLOD trains for --epochs".into());
     }
     // Load the mesh before the GPU: a bad mesh is reported at once.
-    let (mesh, normalization) = run::load_normalized(&args.mesh)?;
+    let uris = hwsdf::geom::LoadOptions::with_external_uris(args.allow_external_uris);
+    let (mesh, normalization) = run::load_normalized_with(&args.mesh, &uris)?;
     let gpu = GpuContext::new()?;
     let preset = match args.preset {
         Some(PresetArg::Default) => Preset::Default,
