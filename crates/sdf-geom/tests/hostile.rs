@@ -554,3 +554,59 @@ fn huge_and_tiny_coordinates_keep_distances_finite() {
     let e = rel_err(&mesh, &sdf, Vec3::new(0.0, 0.0, -1e38));
     assert!(e < 1e-5, "{e}");
 }
+
+/// A soup of `n` random triangles in `[-1, 1]³`, each with corners within `size` of a random centre
+/// (`size` 2: corners anywhere in the box, every triangle spanning it).
+fn soup(n: usize, size: f32, seed: u64) -> Mesh {
+    let c = sdf_geom::sample::uniform_box(n, seed);
+    let d = sdf_geom::sample::uniform_box(3 * n, seed + 1);
+    let vertices: Vec<Vec3> = (0..3 * n)
+        .map(|i| (c[i / 3] + d[i] * size).clamp(Vec3::splat(-1.0), Vec3::ONE))
+        .collect();
+    let triangles = (0..n as u32)
+        .map(|t| [3 * t, 3 * t + 1, 3 * t + 2])
+        .collect();
+    Mesh::from_raw(vertices, triangles).unwrap().0
+}
+
+/// Timing of one NGLOD `--preset small` epoch's sampling and labelling on triangle soups
+/// (`cargo test --release -p sdf-geom --test hostile soup_timing -- --ignored --nocapture`).
+#[test]
+#[ignore]
+fn soup_timing() {
+    let n: usize = std::env::var("SOUP_TRIANGLES")
+        .ok()
+        .and_then(|s| s.parse().ok())
+        .unwrap_or(400_000);
+    let points: usize = std::env::var("SOUP_POINTS")
+        .ok()
+        .and_then(|s| s.parse().ok())
+        .unwrap_or(20_000);
+    for size in [0.02f32, 0.2, 2.0] {
+        let t = std::time::Instant::now();
+        let mesh = soup(n, size, 5);
+        let t_mesh = t.elapsed();
+        let sdf = SignedDistance::new(&mesh).unwrap();
+        let t_build = t.elapsed() - t_mesh;
+        let mut pts = sdf_geom::sample::uniform_box(points / 3, 1);
+        pts.extend(sdf_geom::sample::near_surface(
+            &mesh,
+            2 * points / 3,
+            0.01,
+            2,
+        ));
+        let t_sample = t.elapsed() - t_mesh - t_build;
+        let s = std::time::Instant::now();
+        let d = sdf.signed_distance_batch(&pts);
+        let t_label = s.elapsed();
+        assert!(d.iter().all(|x| x.is_finite()));
+        eprintln!(
+            "soup {n} triangles of size {size}: build {:.2} s, sample {:.2} s, label {} points {:.2} s ({:.1} us/point)",
+            t_build.as_secs_f64(),
+            t_sample.as_secs_f64(),
+            pts.len(),
+            t_label.as_secs_f64(),
+            t_label.as_secs_f64() * 1e6 / pts.len() as f64
+        );
+    }
+}
