@@ -535,6 +535,22 @@ fn load_gltf(
     // gltf's validation refuses required extensions it does not implement itself; the ones
     // left are appearance only and are never read here.
     root.extensions_required.clear();
+    // gltf-json's own validation indexes `accessors` with the POSITION index before checking it
+    // (found by the gltf fuzz target: fuzz/regressions/gltf/position-index-out-of-range.gltf).
+    for (m, mesh) in root.meshes.iter().enumerate() {
+        for (k, prim) in mesh.primitives.iter().enumerate() {
+            if let Some(i) = prim.attributes.get(&gltf::json::validation::Checked::Valid(
+                gltf::Semantic::Positions,
+            )) && i.value() >= root.accessors.len()
+            {
+                return Err(parse_err(format!(
+                    "mesh {m} primitive {k}: POSITION accessor {} does not exist ({} accessors)",
+                    i.value(),
+                    root.accessors.len()
+                )));
+            }
+        }
+    }
     let doc = gltf::Document::from_json(root).map_err(|e| parse_err(e.to_string()))?;
 
     let mut report = LoadReport {
