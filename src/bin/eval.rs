@@ -34,6 +34,9 @@ struct Args {
     /// NGLOD only: evaluate with the first k levels.
     #[arg(long)]
     lod: Option<usize>,
+    /// glTF: also follow buffer URIs outside the mesh's folder (absolute paths, `..`, symbolic links).
+    #[arg(long)]
+    allow_external_uris: bool,
 }
 
 fn main() -> ExitCode {
@@ -55,7 +58,8 @@ fn eval(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
     let mut model = NeuralSdf::load(&args.model)?;
     model.set_lod(args.lod)?;
     let file_bytes = std::fs::metadata(&args.model)?.len();
-    let (mesh, normalization) = run::load_normalized(&args.mesh)?;
+    let uris = hwsdf::geom::LoadOptions::with_external_uris(args.allow_external_uris);
+    let (mesh, normalization) = run::load_normalized_with(&args.mesh, &uris)?;
     if (normalization.center - model.normalization().center).length()
         > 1e-4 * normalization.scale.recip()
         || (normalization.scale / model.normalization().scale - 1.0).abs() > 1e-4

@@ -14,7 +14,7 @@ use std::process::ExitCode;
 use std::time::Instant;
 
 use clap::Parser;
-use hwsdf::geom::{GeomError, SignedDistance, load_mesh, npy};
+use hwsdf::geom::{GeomError, LoadOptions, SignedDistance, load_mesh_with, npy};
 
 /// Exact signed distance from a triangle mesh (OBJ, glTF, GLB) to query points in a .npy file.
 #[derive(Parser, Debug)]
@@ -32,6 +32,9 @@ struct Args {
     /// mesh's own coordinates.
     #[arg(long)]
     normalized: bool,
+    /// glTF: also follow buffer URIs outside the mesh's folder (absolute paths, `..`, symbolic links).
+    #[arg(long)]
+    allow_external_uris: bool,
     /// Print the load report and timings to stderr.
     #[arg(long, short)]
     verbose: bool,
@@ -40,7 +43,8 @@ struct Args {
 fn run(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
     hwsdf::geom::io::check_outputs(&[&args.mesh, &args.points], &[&args.out])?;
     let t = Instant::now();
-    let (mesh, report) = load_mesh(&args.mesh)?;
+    let uris = LoadOptions::with_external_uris(args.allow_external_uris);
+    let (mesh, report) = load_mesh_with(&args.mesh, &uris)?;
     for w in &report.warnings {
         eprintln!("warning: {}: {w}", args.mesh.display());
     }

@@ -38,6 +38,9 @@ enum PresetArg {
 struct Args {
     /// Mesh to fit (OBJ, glTF or GLB).
     mesh: PathBuf,
+    /// glTF: also follow buffer URIs outside the mesh's folder (absolute paths, `..`, symbolic links).
+    #[arg(long)]
+    allow_external_uris: bool,
     /// Architecture.
     #[arg(long, value_enum, default_value = "nglod")]
     model: Model,
@@ -162,7 +165,8 @@ fn train(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
     io::check_outputs(&inputs, &[&out, &report_path])?;
     io::check_outputs(&[&args.mesh], &[&out, &report_path, &checkpoint])?;
     // Load the mesh and the checkpoint before the GPU: bad input is reported at once.
-    let (mesh, normalization) = run::load_normalized(&args.mesh)?;
+    let uris = hwsdf::geom::LoadOptions::with_external_uris(args.allow_external_uris);
+    let (mesh, normalization) = run::load_normalized_with(&args.mesh, &uris)?;
     let resume = match &args.resume {
         Some(path) => Some(run::Checkpoint::load(path)?),
         None => None,

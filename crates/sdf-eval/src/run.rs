@@ -354,10 +354,19 @@ pub fn default_length(model: ModelKind, preset: Preset, cpu_adapter: bool) -> us
 
 /// Loads a mesh and normalises it into `[-1, 1]³`.
 pub fn load_normalized(path: &Path) -> Result<(Mesh, sdf_geom::Normalization), RunError> {
-    let (mesh, _report) = sdf_geom::load_mesh(path).map_err(|source| RunError::Mesh {
-        path: path.to_owned(),
-        source,
-    })?;
+    load_normalized_with(path, &sdf_geom::LoadOptions::default())
+}
+
+/// [`load_normalized`] with explicit [`sdf_geom::LoadOptions`] (the bins' `--allow-external-uris`).
+pub fn load_normalized_with(
+    path: &Path,
+    options: &sdf_geom::LoadOptions,
+) -> Result<(Mesh, sdf_geom::Normalization), RunError> {
+    let (mesh, _report) =
+        sdf_geom::load_mesh_with(path, options).map_err(|source| RunError::Mesh {
+            path: path.to_owned(),
+            source,
+        })?;
     Ok(mesh.normalized())
 }
 

@@ -9,7 +9,25 @@ use obvhs::bvh2::builder::build_bvh2_from_tris;
 use obvhs::triangle::Triangle;
 use rayon::prelude::*;
 
+use crate::reference::closest_on_triangle_f64;
 use crate::{GeomError, Mesh};
+
+/// Queries farther than this many bounding-sphere radii from the mesh's bounding-box centre take the
+/// far path: the nearest triangle is found from the point at this radius in the query's direction,
+/// and the distance to it is computed in f64 from the query itself. That triangle's distance is
+/// within `radius / 8192` of the true minimum, below half an f32 ulp of distances this large, so the
+/// result is correct to f32 rounding; and squared distances in the f32 search can no longer
+/// overflow (they did from about 1.8e19). The sign there is "outside" (winding number 0: a closed
+/// mesh's winding number is exactly 0 outside its bounding sphere, an open mesh's is below 1e-7).
+/// A distance larger than `f32::MAX` (a query near `f32::MAX` on the far side) is `inf`: the only
+/// non-finite result for a finite query.
+pub const FAR_QUERY_RADII: f64 = 4096.0;
+
+/// Meshes whose largest coordinate magnitude lies outside `[2^-16, 2^16]` are rescaled internally
+/// by a power of two (exact in floating point) so that the f32 search and winding sums neither
+/// overflow (coordinates near 1e38) nor underflow; distances and points are scaled back on output.
+/// Meshes inside that range are used as they are, bit for bit.
+const TAME_EXPONENT: i32 = 16;
 
 /// The result of a closest-point query.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
@@ -445,6 +463,20 @@ pub struct SignedDistance {
     options: SignedDistanceOptions,
     surface_eps: f32,
     stack_hint: usize,
+    /// Internal coordinates are the mesh's times `to_internal` (a power of two, usually 1) ...
+    to_internal: f64,
+    /// ... and internal distances and points times `to_original` (its inverse) are the mesh's.
+    to_original: f64,
+    /// Bounding-box centre, internal coordinates.
+    center: DVec3,
+    /// Distance from `center` beyond which a query takes the far path (internal units).
+    far: f64,
+}
+
+/// Where a query point goes: the ordinary f32 search, or the far path (internal coordinates).
+enum Query {
+    Near(Vec3A),
+    Far(DVec3),
 }
 
 /// Per-thread traversal scratch space.
@@ -550,10 +582,28 @@ impl SignedDistance {
     /// Like [`SignedDistance::new`], with explicit options.
     pub fn with_options(mesh: &Mesh, options: SignedDistanceOptions) -> Result<Self, GeomError> {
         mesh.validate()?;
+        let bounds = mesh.bounds();
+        let max_abs = bounds.min.abs().max(bounds.max.abs()).max_element() as f64;
+        let exponent = if max_abs > 0.0
+            && (max_abs > 2f64.powi(TAME_EXPONENT) || max_abs < 2f64.powi(-TAME_EXPONENT))
+        {
+            // Largest magnitude into [0.5, 1).
+            -(max_abs.log2().floor() as i32) - 1
+        } else {
+            0
+        };
+        let to_internal = 2f64.powi(exponent);
+        let internal = |v: Vec3| -> Vec3 {
+            if exponent == 0 {
+                v
+            } else {
+                (v.as_dvec3() * to_internal).as_vec3()
+            }
+        };
         let mut prims = Vec::with_capacity(mesh.triangles.len());
         let mut ids = Vec::with_capacity(mesh.triangles.len());
         for (i, t) in mesh.triangles.iter().enumerate() {
-            let [a, b, c] = t.map(|k| mesh.vertices[k as usize]);
+            let [a, b, c] = t.map(|k| internal(mesh.vertices[k as usize]));
             if (b - a).as_dvec3().cross((c - a).as_dvec3()) == DVec3::ZERO {
                 continue;
             }
@@ -696,8 +746,17 @@ impl SignedDistance {
             &mut wnodes4,
             &mut packets,
         );
-        let diag = mesh.bounds().diagonal();
+        let ibounds = crate::Aabb {
+            min: internal(bounds.min),
+            max: internal(bounds.max),
+        };
+        let diag = ibounds.diagonal();
+        let (lo, hi) = (ibounds.min.as_dvec3(), ibounds.max.as_dvec3());
         Ok(SignedDistance {
+            to_internal,
+            to_original: 2f64.powi(-exponent),
+            center: (lo + hi) * 0.5,
+            far: FAR_QUERY_RADII * ((hi - lo) * 0.5).length(),
             nodes4,
             packets,
             wnodes4,
@@ -725,6 +784,40 @@ impl SignedDistance {
             nodes: Vec::with_capacity(self.stack_hint),
             last: u32::MAX,
         }
+    }
+
+    /// Maps a (finite) query into internal coordinates and picks its path.
+    #[inline]
+    fn query(&self, p: Vec3) -> Query {
+        let q = p.as_dvec3() * self.to_internal;
+        if q.distance_squared(self.center) > self.far * self.far {
+            Query::Far(q)
+        } else if self.to_internal == 1.0 {
+            Query::Near(p.into())
+        } else {
+            Query::Near(q.as_vec3().into())
+        }
+    }
+
+    /// An internal distance in the mesh's units.
+    #[inline]
+    fn out(&self, d: f32) -> f32 {
+        if self.to_original == 1.0 {
+            d
+        } else {
+            (d as f64 * self.to_original) as f32
+        }
+    }
+
+    /// The far path (see [`FAR_QUERY_RADII`]): distance, closest point, slot and barycentrics, all
+    /// internal and in f64.
+    fn far_closest(&self, q: DVec3, stack: &mut Vec<(f32, u32, u32)>) -> (f64, DVec3, u32, DVec3) {
+        let dir = q - self.center;
+        let proxy = self.center + dir * (self.far / dir.length());
+        let (_, slot) = self.nearest(proxy.as_vec3().into(), stack, u32::MAX);
+        let t = self.tris[slot as usize].map(|v| Vec3::from(v).as_dvec3());
+        let (c, bary) = closest_on_triangle_f64(q, t[0], t[1], t[2]);
+        (q.distance(c), c, slot, bary)
     }
 
     /// Squared distance from `p` to the triangle in `slot`.
@@ -852,13 +945,29 @@ impl SignedDistance {
                 barycentric: Vec3::NAN,
             };
         }
-        let pa = Vec3A::from(p);
+        let pa = match self.query(p) {
+            Query::Near(pa) => pa,
+            Query::Far(q) => {
+                let (d, c, slot, bary) = self.far_closest(q, &mut s.pairs);
+                return ClosestPoint {
+                    distance: (d * self.to_original) as f32,
+                    point: (c * self.to_original).as_vec3(),
+                    triangle: self.tri_ids[slot as usize],
+                    barycentric: bary.as_vec3(),
+                };
+            }
+        };
         let (d2, slot) = self.nearest(pa, &mut s.pairs, u32::MAX);
         let t = &self.tris[slot as usize];
         let (q, bary) = closest_on_triangle(pa, t[0], t[1], t[2]);
+        let point = if self.to_original == 1.0 {
+            q.into()
+        } else {
+            (Vec3::from(q).as_dvec3() * self.to_original).as_vec3()
+        };
         ClosestPoint {
-            distance: d2.sqrt(),
-            point: q.into(),
+            distance: self.out(d2.sqrt()),
+            point,
             triangle: self.tri_ids[slot as usize],
             barycentric: bary.into(),
         }
@@ -869,9 +978,11 @@ impl SignedDistance {
         if !p.is_finite() {
             return f32::NAN;
         }
-        self.nearest(p.into(), &mut Vec::with_capacity(self.stack_hint), u32::MAX)
-            .0
-            .sqrt()
+        let mut stack = Vec::with_capacity(self.stack_hint);
+        match self.query(p) {
+            Query::Near(pa) => self.out(self.nearest(pa, &mut stack, u32::MAX).0.sqrt()),
+            Query::Far(q) => (self.far_closest(q, &mut stack).0 * self.to_original) as f32,
+        }
     }
 
     #[inline]
@@ -973,6 +1084,14 @@ impl SignedDistance {
         acc.element_sum() / (4.0 * PI)
     }
 
+    /// The winding number at an original-coordinate (finite) point; 0 on the far path.
+    fn winding_at(&self, p: Vec3, s: &mut Scratch) -> f32 {
+        match self.query(p) {
+            Query::Near(pa) => self.winding_with(pa, s),
+            Query::Far(_) => 0.0,
+        }
+    }
+
     fn winding_with(&self, p: Vec3A, s: &mut Scratch) -> f32 {
         let w = self.winding_beta(p, self.options.beta, &mut s.nodes);
         if (w - 0.5).abs() < self.options.refine_band {
@@ -988,12 +1107,12 @@ impl SignedDistance {
         if !p.is_finite() {
             return f32::NAN;
         }
-        self.winding_with(p.into(), &mut self.scratch())
+        self.winding_at(p, &mut self.scratch())
     }
 
     /// The winding number with the exact solid angle of every triangle (O(n); for checks).
     pub fn winding_number_exact(&self, p: Vec3) -> f64 {
-        let p = Vec3A::from(p);
+        let p = Vec3A::from((p.as_dvec3() * self.to_internal).as_vec3());
         let s: f64 = self
             .tris
             .iter()
@@ -1018,17 +1137,23 @@ impl SignedDistance {
         if !p.is_finite() {
             return f32::NAN;
         }
-        let pa = Vec3A::from(p);
+        let pa = match self.query(p) {
+            Query::Near(pa) => pa,
+            // Outside the bounding sphere by thousands of radii: outside.
+            Query::Far(q) => {
+                return (self.far_closest(q, &mut s.pairs).0 * self.to_original) as f32;
+            }
+        };
         let (d2, slot) = self.nearest(pa, &mut s.pairs, s.last);
         s.last = slot;
         let d = d2.sqrt();
         if d <= self.surface_eps {
-            return d;
+            return self.out(d);
         }
         if self.winding_with(pa, s) >= 0.5 {
-            -d
+            -self.out(d)
         } else {
-            d
+            self.out(d)
         }
     }
 
@@ -1100,7 +1225,7 @@ impl SignedDistance {
     pub fn winding_number_batch(&self, points: &[Vec3]) -> Vec<f32> {
         self.batch(points, |sd, p, s| {
             if p.is_finite() {
-                sd.winding_with(p.into(), s)
+                sd.winding_at(p, s)
             } else {
                 f32::NAN
             }

@@ -103,6 +103,62 @@ pub enum GeomError {
         /// The underlying I/O error.
         source: std::io::Error,
     },
+    /// A path given as a mesh, points file or glTF buffer is not a regular file (a directory, FIFO,
+    /// device, socket): reading it could block forever or never end, so it is refused unread.
+    #[error("{path} is not a regular file (it is a {kind})")]
+    NotARegularFile {
+        /// The path (after following symbolic links).
+        path: PathBuf,
+        /// What it is instead, e.g. `"FIFO"` or `"character device"`.
+        kind: &'static str,
+    },
+    /// A file is larger than [`crate::MAX_FILE_BYTES`], checked before it is read.
+    #[error("{path} has {size} bytes, more than the limit of {limit} bytes")]
+    FileTooLarge {
+        /// The file.
+        path: PathBuf,
+        /// Its size in bytes.
+        size: u64,
+        /// The limit ([`crate::MAX_FILE_BYTES`]).
+        limit: u64,
+    },
+    /// A glTF buffer `uri` that is not followed: a scheme other than `data:`, an absolute path, or a
+    /// path that leaves the asset's folder (see [`crate::LoadOptions::allow_external_uris`]). The
+    /// message names the URI as written, never anything about the file it points at.
+    #[error("{gltf}: buffer {buffer} has uri {uri:?}, which is refused: {reason}")]
+    UriRefused {
+        /// The glTF file.
+        gltf: PathBuf,
+        /// Index of the buffer.
+        buffer: usize,
+        /// The URI as written in the file (truncated to 200 characters).
+        uri: String,
+        /// Why it is refused.
+        reason: &'static str,
+    },
+    /// A glTF scene expands to more instanced triangles, vertices or mesh instances than the stated
+    /// limit ([`crate::MAX_INSTANCED_TRIANGLES`], [`crate::MAX_INSTANCED_VERTICES`],
+    /// [`crate::MAX_INSTANCES`]); counted through shared nodes without expanding them.
+    #[error("{path}: the scene has {count} {what}, more than the limit of {limit}")]
+    SceneTooLarge {
+        /// The glTF file.
+        path: PathBuf,
+        /// What was counted: `"instanced triangles"`, `"instanced vertices"` or `"mesh instances"`.
+        what: &'static str,
+        /// The count (saturating at `u64::MAX`).
+        count: u64,
+        /// The limit.
+        limit: u64,
+    },
+    /// A mesh reader panicked. Input is validated before the readers run, so this is a bug (ours or
+    /// a dependency's) that the loader turned into an error instead of a crash.
+    #[error("internal error while reading {path}: {message} (please report this file)")]
+    ReaderPanic {
+        /// The file being read.
+        path: PathBuf,
+        /// The panic message.
+        message: String,
+    },
     /// A `.npy` file is malformed or has an unsupported dtype or shape.
     #[error("bad .npy file {path}: {message}")]
     Npy {

@@ -72,8 +72,11 @@ pub mod npy;
 pub mod reference;
 pub mod sample;
 
-pub use distance::{ClosestPoint, SignedDistance, SignedDistanceOptions};
+pub use distance::{ClosestPoint, FAR_QUERY_RADII, SignedDistance, SignedDistanceOptions};
 pub use error::GeomError;
-pub use load::load_mesh;
+pub use load::{
+    LoadOptions, MAX_FILE_BYTES, MAX_INSTANCED_TRIANGLES, MAX_INSTANCED_VERTICES, MAX_INSTANCES,
+    load_mesh, load_mesh_with, parse_mesh, read_input_file,
+};
 pub use mesh::{Aabb, LoadReport, Mesh, Normalization};
 pub use sample::{PoissonSamples, SurfaceSamples};

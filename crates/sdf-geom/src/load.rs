@@ -1,8 +1,14 @@
-//! Mesh loading: Wavefront OBJ (through `tobj`) and glTF / GLB (through `gltf`).
+//! Mesh loading: Wavefront OBJ (through `tobj`) and glTF / GLB (own validation and accessor reading,
+//! `gltf` for the JSON document and the GLB container).
+//!
+//! Everything here treats the file as hostile: only regular files of at most [`MAX_FILE_BYTES`] are
+//! read, glTF documents are validated (accessor types, strides, offsets, counts, sparse indices, the
+//! node graph) before any data is read, external buffer URIs stay inside the asset's folder, the
+//! instanced size of a scene is bounded, and a panic in a dependency becomes [`GeomError::ReaderPanic`].
 
 use std::cell::RefCell;
-use std::io::Cursor;
-use std::path::{Path, PathBuf};
+use std::io::{Cursor, Read};
+use std::path::{Component, Path, PathBuf};
 
 use base64::Engine as _;
 use glam::{Mat4, Vec3};
@@ -10,7 +16,39 @@ use glam::{Mat4, Vec3};
 use crate::GeomError;
 use crate::mesh::{LoadReport, Mesh, clean};
 
-/// Loads a triangle mesh, dispatching on the file extension (`obj`, `gltf`, `glb`, case-insensitive).
+/// Largest file read whole as a mesh, a glTF buffer or a `.npy` point set: 2 GiB. Checked from the
+/// file's metadata before reading (and enforced while reading, in case it grows).
+pub const MAX_FILE_BYTES: u64 = 2 << 30;
+/// Most triangles a glTF scene may produce with every mesh instance expanded (about 1 GB of
+/// loader memory at the limit).
+pub const MAX_INSTANCED_TRIANGLES: u64 = 20_000_000;
+/// Most vertices a glTF scene may produce with every mesh instance expanded.
+pub const MAX_INSTANCED_VERTICES: u64 = 20_000_000;
+/// Most mesh instances (node-to-mesh references, counted through shared nodes) in a glTF scene.
+pub const MAX_INSTANCES: u64 = 1_000_000;
+
+/// Options for [`load_mesh_with`].
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
+#[non_exhaustive]
+pub struct LoadOptions {
+    /// Follow glTF buffer URIs that are absolute paths or lead out of the asset's folder (after
+    /// percent-decoding, `..` and symbolic links). Off by default: a service that loads uploaded
+    /// files must not let them read (or probe) other files. URI schemes other than `data:` are
+    /// refused either way.
+    pub allow_external_uris: bool,
+}
+
+impl LoadOptions {
+    /// The defaults, with [`LoadOptions::allow_external_uris`] set to `allow`.
+    pub fn with_external_uris(allow: bool) -> Self {
+        LoadOptions {
+            allow_external_uris: allow,
+        }
+    }
+}
+
+/// Loads a triangle mesh, dispatching on the file extension (`obj`, `gltf`, `glb`, case-insensitive),
+/// with the default [`LoadOptions`].
 ///
 /// All objects (OBJ) or all mesh primitives of the default scene, or else the first scene, with node
 /// transforms applied (glTF) are merged into one mesh. Polygons are fan-triangulated; glTF strips and
@@ -18,44 +56,213 @@ use crate::mesh::{LoadReport, Mesh, clean};
 /// converted is counted in the [`LoadReport`].
 ///
 /// Material libraries and textures are never read, so a missing or broken `.mtl` or image never stops
-/// the geometry from loading (a missing `.mtl` is noted in [`LoadReport::warnings`]).
+/// the geometry from loading (a missing `.mtl` is noted in [`LoadReport::warnings`]). OBJ text may
+/// start with a UTF-8 byte-order mark, have trailing `#` comments, and contain names that are not
+/// UTF-8 (decoded lossily; geometry never depends on names).
 ///
 /// # Errors
 /// [`GeomError::UnknownExtension`], [`GeomError::Io`] (missing or unreadable file),
-/// [`GeomError::Parse`], [`GeomError::NoTriangles`], [`GeomError::NonFiniteVertex`],
-/// [`GeomError::IndexOutOfRange`], [`GeomError::UnsupportedPrimitiveMode`] (glTF points and lines),
-/// [`GeomError::Unsupported`] (Draco, meshopt, quantised positions, and any required glTF extension other
-/// than appearance-only ones such as `KHR_materials_*`) and [`GeomError::MissingBuffer`].
+/// [`GeomError::NotARegularFile`], [`GeomError::FileTooLarge`],
+/// [`GeomError::Parse`] (also every failed glTF validation), [`GeomError::NoTriangles`],
+/// [`GeomError::NonFiniteVertex`], [`GeomError::IndexOutOfRange`],
+/// [`GeomError::UnsupportedPrimitiveMode`] (glTF points and lines), [`GeomError::Unsupported`]
+/// (Draco, meshopt, quantised positions, and any required glTF extension other than appearance-only
+/// ones such as `KHR_materials_*`), [`GeomError::MissingBuffer`], [`GeomError::UriRefused`],
+/// [`GeomError::SceneTooLarge`] and [`GeomError::ReaderPanic`].
 pub fn load_mesh(path: impl AsRef<Path>) -> Result<(Mesh, LoadReport), GeomError> {
+    load_mesh_with(path, &LoadOptions::default())
+}
+
+/// [`load_mesh`] with explicit [`LoadOptions`].
+pub fn load_mesh_with(
+    path: impl AsRef<Path>,
+    options: &LoadOptions,
+) -> Result<(Mesh, LoadReport), GeomError> {
     let path = path.as_ref();
     let ext = path
         .extension()
         .and_then(|e| e.to_str())
         .map(str::to_ascii_lowercase)
         .unwrap_or_default();
-    match ext.as_str() {
-        "obj" => load_obj(path),
-        "gltf" => load_gltf(path, "gltf"),
-        "glb" => load_gltf(path, "glb"),
-        _ => Err(GeomError::UnknownExtension {
-            path: path.to_path_buf(),
-            extension: ext,
-        }),
+    let format = match ext.as_str() {
+        "obj" => "obj",
+        "gltf" => "gltf",
+        "glb" => "glb",
+        _ => {
+            return Err(GeomError::UnknownExtension {
+                path: path.to_path_buf(),
+                extension: ext,
+            });
+        }
+    };
+    let bytes = read_input_file(path)?;
+    let dir = match path.parent() {
+        Some(d) if !d.as_os_str().is_empty() => d,
+        _ => Path::new("."),
+    };
+    guarded(path, || parse(path, format, &bytes, Some(dir), options))
+}
+
+/// Parses a mesh held in memory: `format` is `"obj"`, `"gltf"` or `"glb"`; `path` is used only in
+/// messages. glTF buffers must be in the GLB container or `data:` URIs (there is no folder to resolve
+/// file URIs against). This is what the fuzz targets call.
+///
+/// # Errors
+/// As [`load_mesh`]; an unknown `format` is [`GeomError::UnknownExtension`].
+pub fn parse_mesh(
+    bytes: &[u8],
+    format: &str,
+    path: &Path,
+) -> Result<(Mesh, LoadReport), GeomError> {
+    let format = match format {
+        "obj" => "obj",
+        "gltf" => "gltf",
+        "glb" => "glb",
+        other => {
+            return Err(GeomError::UnknownExtension {
+                path: path.to_path_buf(),
+                extension: other.to_string(),
+            });
+        }
+    };
+    guarded(path, || {
+        parse(path, format, bytes, None, &LoadOptions::default())
+    })
+}
+
+fn parse(
+    path: &Path,
+    format: &'static str,
+    bytes: &[u8],
+    dir: Option<&Path>,
+    options: &LoadOptions,
+) -> Result<(Mesh, LoadReport), GeomError> {
+    if format == "obj" {
+        load_obj(path, bytes, dir)
+    } else {
+        load_gltf(path, format, bytes, dir, options)
     }
 }
 
-fn read_file(path: &Path) -> Result<Vec<u8>, GeomError> {
-    std::fs::read(path).map_err(|source| GeomError::Io {
+/// Runs a loader, turning a panic (a bug, ours or a dependency's) into [`GeomError::ReaderPanic`].
+/// The last line of defence only: inputs are validated before the readers run.
+fn guarded<T>(path: &Path, f: impl FnOnce() -> Result<T, GeomError>) -> Result<T, GeomError> {
+    match std::panic::catch_unwind(std::panic::AssertUnwindSafe(f)) {
+        Ok(r) => r,
+        Err(payload) => {
+            let message = payload
+                .downcast_ref::<&str>()
+                .map(|s| s.to_string())
+                .or_else(|| payload.downcast_ref::<String>().cloned())
+                .unwrap_or_else(|| "unknown panic".into());
+            Err(GeomError::ReaderPanic {
+                path: path.to_path_buf(),
+                message,
+            })
+        }
+    }
+}
+
+fn file_kind(t: &std::fs::FileType) -> &'static str {
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::FileTypeExt;
+        if t.is_fifo() {
+            return "FIFO";
+        }
+        if t.is_char_device() {
+            return "character device";
+        }
+        if t.is_block_device() {
+            return "block device";
+        }
+        if t.is_socket() {
+            return "socket";
+        }
+    }
+    if t.is_dir() {
+        "directory"
+    } else {
+        "special file"
+    }
+}
+
+/// Reads a whole input file (mesh, glTF buffer, `.npy`): only a regular file (symbolic links are
+/// followed; FIFOs and devices are refused before they are opened, so nothing blocks), and only up
+/// to [`MAX_FILE_BYTES`], checked before reading.
+///
+/// # Errors
+/// [`GeomError::Io`], [`GeomError::NotARegularFile`], [`GeomError::FileTooLarge`].
+pub fn read_input_file(path: &Path) -> Result<Vec<u8>, GeomError> {
+    let io = |source| GeomError::Io {
         path: path.to_path_buf(),
         source,
-    })
+    };
+    let check = |meta: &std::fs::Metadata| {
+        if !meta.is_file() {
+            return Err(GeomError::NotARegularFile {
+                path: path.to_path_buf(),
+                kind: file_kind(&meta.file_type()),
+            });
+        }
+        if meta.len() > MAX_FILE_BYTES {
+            return Err(GeomError::FileTooLarge {
+                path: path.to_path_buf(),
+                size: meta.len(),
+                limit: MAX_FILE_BYTES,
+            });
+        }
+        Ok(meta.len())
+    };
+    // stat before open: opening a FIFO for reading blocks until a writer appears.
+    check(&std::fs::metadata(path).map_err(io)?)?;
+    let file = std::fs::File::open(path).map_err(io)?;
+    // And again on the open handle, in case the path was swapped in between.
+    let len = check(&file.metadata().map_err(io)?)?;
+    let mut bytes = Vec::with_capacity(len as usize);
+    file.take(MAX_FILE_BYTES + 1)
+        .read_to_end(&mut bytes)
+        .map_err(io)?;
+    if bytes.len() as u64 > MAX_FILE_BYTES {
+        return Err(GeomError::FileTooLarge {
+            path: path.to_path_buf(),
+            size: bytes.len() as u64,
+            limit: MAX_FILE_BYTES,
+        });
+    }
+    Ok(bytes)
 }
 
 // ---------------------------------------------------------------------------------------------------
 // OBJ
 
-fn load_obj(path: &Path) -> Result<(Mesh, LoadReport), GeomError> {
-    let bytes = read_file(path)?;
+/// OBJ text as `tobj` can take it: no byte-order mark, lossy UTF-8 (names in Latin-1 and the like
+/// only lose their odd characters; numbers are ASCII), and `#` comments cut off every line, since
+/// `tobj` only skips whole-line comments and reads a trailing one as vertex colours.
+fn obj_text(bytes: &[u8]) -> String {
+    let bytes = bytes.strip_prefix(b"\xEF\xBB\xBF").unwrap_or(bytes);
+    let text = String::from_utf8_lossy(bytes);
+    let mut out = String::with_capacity(text.len());
+    for line in text.split_inclusive('\n') {
+        match line.find('#') {
+            Some(i) => {
+                out.push_str(&line[..i]);
+                if line.ends_with('\n') {
+                    out.push('\n');
+                }
+            }
+            None => out.push_str(line),
+        }
+    }
+    out
+}
+
+fn load_obj(
+    path: &Path,
+    bytes: &[u8],
+    dir: Option<&Path>,
+) -> Result<(Mesh, LoadReport), GeomError> {
+    let text = obj_text(bytes);
     let mut report = LoadReport {
         format: "obj",
         ..Default::default()
@@ -68,17 +275,16 @@ fn load_obj(path: &Path) -> Result<(Mesh, LoadReport), GeomError> {
     };
     // Materials are never needed: the loader only records which libraries were named.
     let mtllibs: RefCell<Vec<PathBuf>> = RefCell::new(Vec::new());
-    let result = tobj::load_obj_buf(&mut Cursor::new(&bytes), &options, |p| {
+    let result = tobj::load_obj_buf(&mut Cursor::new(text.as_bytes()), &options, |p| {
         mtllibs.borrow_mut().push(p.to_path_buf());
         Ok(Default::default())
     });
     let models = match result {
         Ok((models, _materials)) => models,
-        Err(err) => return Err(obj_error(path, &bytes, err)),
+        Err(err) => return Err(obj_error(path, &text, err)),
     };
-    let dir = path.parent().unwrap_or(Path::new("."));
     for lib in mtllibs.into_inner() {
-        if !dir.join(&lib).is_file() {
+        if dir.is_some_and(|d| !d.join(&lib).is_file()) {
             report.warnings.push(format!(
                 "material library {} not found (ignored: materials are not needed)",
                 lib.display()
@@ -133,9 +339,8 @@ fn load_obj(path: &Path) -> Result<(Mesh, LoadReport), GeomError> {
 }
 
 /// Turns a `tobj` error into a typed error, finding the offending line by re-scanning the text.
-fn obj_error(path: &Path, bytes: &[u8], err: tobj::LoadError) -> GeomError {
-    let text = String::from_utf8_lossy(bytes);
-    let found = scan_obj(&text);
+fn obj_error(path: &Path, text: &str, err: tobj::LoadError) -> GeomError {
+    let found = scan_obj(text);
     if err == tobj::LoadError::FaceVertexOutOfBounds {
         if let Some(ScanIssue::IndexOutOfRange {
             face,
@@ -261,22 +466,26 @@ fn scan_obj(text: &str) -> Option<ScanIssue> {
 // ---------------------------------------------------------------------------------------------------
 // glTF / GLB
 
-const MAX_NODE_DEPTH: usize = 256;
-
-fn load_gltf(path: &Path, format: &'static str) -> Result<(Mesh, LoadReport), GeomError> {
-    let bytes = read_file(path)?;
+fn load_gltf(
+    path: &Path,
+    format: &'static str,
+    bytes: &[u8],
+    dir: Option<&Path>,
+    options: &LoadOptions,
+) -> Result<(Mesh, LoadReport), GeomError> {
     let parse_err = |message: String| GeomError::Parse {
         path: path.to_path_buf(),
         line: None,
         message,
     };
-    let (json_bytes, blob): (Vec<u8>, Option<Vec<u8>>) = if bytes.starts_with(b"glTF") {
-        let glb = gltf::Glb::from_slice(&bytes).map_err(|e| parse_err(format!("bad GLB: {e}")))?;
-        (glb.json.into_owned(), glb.bin.map(|b| b.into_owned()))
+    let glb;
+    let (json_bytes, blob): (&[u8], Option<&[u8]>) = if bytes.starts_with(b"glTF") {
+        glb = gltf::Glb::from_slice(bytes).map_err(|e| parse_err(format!("bad GLB: {e}")))?;
+        (&glb.json, glb.bin.as_deref())
     } else {
         (bytes, None)
     };
-    let mut root: gltf::json::Root = gltf::json::deserialize::from_slice(&json_bytes)
+    let mut root: gltf::json::Root = gltf::json::deserialize::from_slice(json_bytes)
         .map_err(|e| parse_err(format!("bad glTF JSON: {e}")))?;
     for ext in root
         .extensions_used
@@ -326,22 +535,83 @@ fn load_gltf(path: &Path, format: &'static str) -> Result<(Mesh, LoadReport), Ge
     // gltf's validation refuses required extensions it does not implement itself; the ones
     // left are appearance only and are never read here.
     root.extensions_required.clear();
-    let doc =
-        gltf::Document::from_json(root).map_err(|e| parse_err(format!("invalid glTF: {e}")))?;
+    // gltf-json's own validation indexes `accessors` with the POSITION index before checking it
+    // (found by the gltf fuzz target: fuzz/regressions/gltf/position-index-out-of-range.gltf).
+    for (m, mesh) in root.meshes.iter().enumerate() {
+        for (k, prim) in mesh.primitives.iter().enumerate() {
+            if let Some(i) = prim.attributes.get(&gltf::json::validation::Checked::Valid(
+                gltf::Semantic::Positions,
+            )) && i.value() >= root.accessors.len()
+            {
+                return Err(parse_err(format!(
+                    "mesh {m} primitive {k}: POSITION accessor {} does not exist ({} accessors)",
+                    i.value(),
+                    root.accessors.len()
+                )));
+            }
+        }
+    }
+    let doc = gltf::Document::from_json(root).map_err(|e| parse_err(e.to_string()))?;
 
     let mut report = LoadReport {
         format,
         ..Default::default()
     };
 
-    // Buffers: GLB blob, data: URIs, or files relative to the .gltf. Images are never touched.
-    let dir = path.parent().unwrap_or(Path::new("."));
+    // The scene's shape first (cheap, no buffer is read): cycles, instance counts, limits.
+    let scene = doc.default_scene().or_else(|| doc.scenes().next());
+    let graph = match &scene {
+        Some(scene) => Some(node_graph(path, &doc, scene)?),
+        None => None,
+    };
+    // Which meshes are used, how often, and what they would add.
+    let mut mesh_uses = vec![0u64; doc.meshes().len()];
+    match &graph {
+        Some(g) => {
+            for node in doc.nodes() {
+                if let Some(mesh) = node.mesh() {
+                    let m = &mut mesh_uses[mesh.index()];
+                    *m = m.saturating_add(g.multiplicity[node.index()]);
+                }
+            }
+        }
+        None => mesh_uses.iter_mut().for_each(|m| *m = 1),
+    }
+    let (mut instances, mut tris, mut verts) = (0u64, 0u64, 0u64);
+    for mesh in doc.meshes() {
+        let uses = mesh_uses[mesh.index()];
+        if uses == 0 {
+            continue;
+        }
+        let (t, v) = mesh_size(&mesh);
+        instances = instances.saturating_add(uses);
+        tris = tris.saturating_add(uses.saturating_mul(t));
+        verts = verts.saturating_add(uses.saturating_mul(v));
+    }
+    for (what, count, limit) in [
+        ("mesh instances", instances, MAX_INSTANCES),
+        ("instanced triangles", tris, MAX_INSTANCED_TRIANGLES),
+        ("instanced vertices", verts, MAX_INSTANCED_VERTICES),
+    ] {
+        if count > limit {
+            return Err(GeomError::SceneTooLarge {
+                path: path.to_path_buf(),
+                what,
+                count,
+                limit,
+            });
+        }
+    }
+
+    // Buffers: GLB blob, data: URIs, or files inside the .gltf's folder. Images are never touched.
     let mut buffers: Vec<Vec<u8>> = Vec::new();
     for buffer in doc.buffers() {
         let data = match buffer.source() {
-            gltf::buffer::Source::Bin => blob.clone().ok_or_else(|| {
-                parse_err("buffer refers to a GLB BIN chunk that is missing".into())
-            })?,
+            gltf::buffer::Source::Bin => blob
+                .ok_or_else(|| {
+                    parse_err("buffer refers to a GLB BIN chunk that is missing".into())
+                })?
+                .to_vec(),
             gltf::buffer::Source::Uri(uri) => {
                 if let Some(rest) = uri.strip_prefix("data:") {
                     let Some((_, payload)) = rest.split_once(";base64,") else {
@@ -356,11 +626,14 @@ fn load_gltf(path: &Path, format: &'static str) -> Result<(Mesh, LoadReport), Ge
                             parse_err(format!("buffer {}: bad base64: {e}", buffer.index()))
                         })?
                 } else {
-                    let file = dir.join(percent_decode(uri));
-                    std::fs::read(&file).map_err(|source| GeomError::MissingBuffer {
-                        gltf: path.to_path_buf(),
-                        buffer: file.clone(),
-                        source,
+                    let file = resolve_uri(path, dir, buffer.index(), uri, options)?;
+                    read_input_file(&file).map_err(|e| match e {
+                        GeomError::Io { source, .. } => GeomError::MissingBuffer {
+                            gltf: path.to_path_buf(),
+                            buffer: file.clone(),
+                            source,
+                        },
+                        e => e,
                     })?
                 }
             }
@@ -378,18 +651,16 @@ fn load_gltf(path: &Path, format: &'static str) -> Result<(Mesh, LoadReport), Ge
 
     let mut vertices: Vec<Vec3> = Vec::new();
     let mut triangles: Vec<[u32; 3]> = Vec::new();
-    let scene = doc.default_scene().or_else(|| doc.scenes().next());
-    match scene {
-        Some(scene) => {
-            let mut stack: Vec<(gltf::Node, Mat4, usize)> =
-                scene.nodes().map(|n| (n, Mat4::IDENTITY, 0)).collect();
+    match (scene, graph) {
+        (Some(scene), Some(graph)) => {
+            // Expand instance paths, skipping subtrees without meshes: the counts above bound this.
+            let mut stack: Vec<(gltf::Node, Mat4)> = scene
+                .nodes()
+                .filter(|n| graph.mesh_below[n.index()])
+                .map(|n| (n, Mat4::IDENTITY))
+                .collect();
             stack.reverse();
-            while let Some((node, parent, depth)) = stack.pop() {
-                if depth > MAX_NODE_DEPTH {
-                    return Err(parse_err(format!(
-                        "node hierarchy deeper than {MAX_NODE_DEPTH} (cyclic?)"
-                    )));
-                }
+            while let Some((node, parent)) = stack.pop() {
                 let local = Mat4::from_cols_array_2d(&node.transform().matrix());
                 let world = parent * local;
                 if let Some(mesh) = node.mesh() {
@@ -404,12 +675,16 @@ fn load_gltf(path: &Path, format: &'static str) -> Result<(Mesh, LoadReport), Ge
                         &mut report,
                     )?;
                 }
-                for child in node.children() {
-                    stack.push((child, world, depth + 1));
-                }
+                let first = stack.len();
+                stack.extend(
+                    node.children()
+                        .filter(|c| graph.mesh_below[c.index()])
+                        .map(|c| (c, world)),
+                );
+                stack[first..].reverse();
             }
         }
-        None => {
+        _ => {
             report
                 .warnings
                 .push("no scene: every mesh taken once with the identity transform".into());
@@ -431,6 +706,178 @@ fn load_gltf(path: &Path, format: &'static str) -> Result<(Mesh, LoadReport), Ge
     Ok((mesh, report))
 }
 
+/// The node graph of one scene, checked and counted without expanding shared nodes.
+struct NodeGraph {
+    /// How many times each node is instanced (number of paths from the scene's roots), saturating.
+    multiplicity: Vec<u64>,
+    /// Whether the node or a descendant has a mesh.
+    mesh_below: Vec<bool>,
+}
+
+/// Checks the scene's node graph for cycles and counts node instances through shared children.
+fn node_graph(
+    path: &Path,
+    doc: &gltf::Document,
+    scene: &gltf::Scene,
+) -> Result<NodeGraph, GeomError> {
+    let n = doc.nodes().len();
+    let children: Vec<Vec<usize>> = doc
+        .nodes()
+        .map(|node| node.children().map(|c| c.index()).collect())
+        .collect();
+    // Iterative depth-first search: 0 unseen, 1 on the current path, 2 done.
+    let mut state = vec![0u8; n];
+    let mut post: Vec<usize> = Vec::with_capacity(n);
+    for root in scene.nodes() {
+        let r = root.index();
+        if state[r] != 0 {
+            continue;
+        }
+        let mut stack: Vec<(usize, usize)> = vec![(r, 0)];
+        state[r] = 1;
+        while let Some(&mut (node, ref mut next)) = stack.last_mut() {
+            if let Some(&child) = children[node].get(*next) {
+                *next += 1;
+                match state[child] {
+                    0 => {
+                        state[child] = 1;
+                        stack.push((child, 0));
+                    }
+                    1 => {
+                        return Err(GeomError::Parse {
+                            path: path.to_path_buf(),
+                            line: None,
+                            message: format!(
+                                "the node graph has a cycle: node {node} has node {child}, one of its ancestors, as a child"
+                            ),
+                        });
+                    }
+                    _ => {}
+                }
+            } else {
+                state[node] = 2;
+                post.push(node);
+                stack.pop();
+            }
+        }
+    }
+    let mut mesh_below: Vec<bool> = doc.nodes().map(|x| x.mesh().is_some()).collect();
+    for &node in &post {
+        mesh_below[node] = mesh_below[node] || children[node].iter().any(|&c| mesh_below[c]);
+    }
+    let mut multiplicity = vec![0u64; n];
+    for root in scene.nodes() {
+        multiplicity[root.index()] = multiplicity[root.index()].saturating_add(1);
+    }
+    // Reverse post-order is a topological order: parents before children.
+    for &node in post.iter().rev() {
+        let m = multiplicity[node];
+        for &c in &children[node] {
+            multiplicity[c] = multiplicity[c].saturating_add(m);
+        }
+    }
+    Ok(NodeGraph {
+        multiplicity,
+        mesh_below,
+    })
+}
+
+/// Triangles and vertices one instance of `mesh` adds (from accessor counts; nothing is read).
+fn mesh_size(mesh: &gltf::Mesh) -> (u64, u64) {
+    use gltf::mesh::Mode;
+    let (mut tris, mut verts) = (0u64, 0u64);
+    for prim in mesh.primitives() {
+        let Some(pos) = prim.get(&gltf::Semantic::Positions) else {
+            continue;
+        };
+        let n = match prim.indices() {
+            Some(acc) => acc.count() as u64,
+            None => pos.count() as u64,
+        };
+        tris += match prim.mode() {
+            Mode::Triangles => n / 3,
+            Mode::TriangleStrip | Mode::TriangleFan => n.saturating_sub(2),
+            _ => 0,
+        };
+        verts += pos.count() as u64;
+    }
+    (tris, verts)
+}
+
+/// Where a glTF buffer `uri` that is not a `data:` URI points: a file inside the asset's folder
+/// (after percent-decoding, `..` and symbolic links), unless `allow_external_uris`.
+fn resolve_uri(
+    gltf: &Path,
+    dir: Option<&Path>,
+    buffer: usize,
+    uri: &str,
+    options: &LoadOptions,
+) -> Result<PathBuf, GeomError> {
+    let refuse = |reason: &'static str| GeomError::UriRefused {
+        gltf: gltf.to_path_buf(),
+        buffer,
+        uri: uri.chars().take(200).collect(),
+        reason,
+    };
+    // A URI scheme: letters, digits, `+`, `-`, `.` before a `:`. (A Windows drive letter looks like
+    // one too, and is an absolute path anyway.)
+    if let Some((scheme, _)) = uri.split_once(':') {
+        let mut chars = scheme.chars();
+        if chars.next().is_some_and(|c| c.is_ascii_alphabetic())
+            && chars.all(|c| c.is_ascii_alphanumeric() || "+-.".contains(c))
+        {
+            return Err(refuse(
+                "only data: URIs and relative file paths are supported",
+            ));
+        }
+    }
+    let Some(dir) = dir else {
+        return Err(refuse(
+            "the glTF was given without a folder, so only data: and GLB buffers can be used",
+        ));
+    };
+    let decoded = percent_decode(uri);
+    if decoded.contains('\0') {
+        return Err(refuse("the path contains a NUL byte"));
+    }
+    let rel = Path::new(&decoded);
+    if options.allow_external_uris {
+        return Ok(dir.join(rel));
+    }
+    // Lexically first, so that nothing outside the folder is even looked at.
+    let mut depth = 0usize;
+    for c in rel.components() {
+        match c {
+            Component::Normal(_) => depth += 1,
+            Component::CurDir => {}
+            Component::ParentDir => {
+                if depth == 0 {
+                    return Err(refuse(
+                        "it leads out of the glTF's folder (allow_external_uris is off)",
+                    ));
+                }
+                depth -= 1;
+            }
+            Component::RootDir | Component::Prefix(_) => {
+                return Err(refuse(
+                    "it is an absolute path (allow_external_uris is off)",
+                ));
+            }
+        }
+    }
+    let file = dir.join(rel);
+    // Then through symbolic links. A missing file inside the folder is reported as missing.
+    let (Ok(real_dir), Ok(real_file)) = (dir.canonicalize(), file.canonicalize()) else {
+        return Ok(file);
+    };
+    if !real_file.starts_with(&real_dir) {
+        return Err(refuse(
+            "a symbolic link takes it out of the glTF's folder (allow_external_uris is off)",
+        ));
+    }
+    Ok(real_file)
+}
+
 fn percent_decode(s: &str) -> String {
     let b = s.as_bytes();
     let mut out = Vec::with_capacity(b.len());
@@ -450,6 +897,115 @@ fn percent_decode(s: &str) -> String {
     String::from_utf8_lossy(&out).into_owned()
 }
 
+/// The bytes of `count` elements of `elem` bytes, `offset` bytes into a buffer view, after checking
+/// the view against its buffer and the elements against the view (the checks the `gltf` crate's
+/// reader leaves to assertions).
+fn view_elements<'b>(
+    view: &gltf::buffer::View,
+    offset: usize,
+    count: usize,
+    elem: usize,
+    buffers: &'b [Vec<u8>],
+    what: &str,
+) -> Result<Vec<&'b [u8]>, String> {
+    let stride = view.stride().unwrap_or(elem);
+    if stride < elem {
+        return Err(format!(
+            "{what}: buffer view {} has byteStride {stride}, smaller than its {elem}-byte elements",
+            view.index()
+        ));
+    }
+    let data = buffers
+        .get(view.buffer().index())
+        .ok_or_else(|| format!("{what}: buffer {} is missing", view.buffer().index()))?;
+    let (start, len) = (view.offset(), view.length());
+    let bytes = start
+        .checked_add(len)
+        .and_then(|end| data.get(start..end))
+        .ok_or_else(|| {
+            format!(
+                "{what}: buffer view {} (byteOffset {start}, byteLength {len}) lies outside buffer {} ({} bytes)",
+                view.index(),
+                view.buffer().index(),
+                data.len()
+            )
+        })?;
+    if count == 0 {
+        return Ok(Vec::new());
+    }
+    let need = (count - 1)
+        .checked_mul(stride)
+        .and_then(|x| x.checked_add(elem))
+        .and_then(|x| x.checked_add(offset));
+    match need {
+        Some(need) if need <= len => Ok((0..count)
+            .map(|k| &bytes[offset + k * stride..offset + k * stride + elem])
+            .collect()),
+        _ => Err(format!(
+            "{what}: {count} elements of {elem} bytes with stride {stride} from byteOffset {offset} do not fit in buffer view {} ({len} bytes)",
+            view.index()
+        )),
+    }
+}
+
+/// Reads an accessor's elements as raw bytes (`elem` bytes each), applying sparse substitution.
+/// Everything is validated: view bounds, strides, the sparse index type, order and range.
+fn read_accessor<'b>(
+    acc: &gltf::Accessor,
+    elem: usize,
+    buffers: &'b [Vec<u8>],
+    what: &str,
+) -> Result<Vec<&'b [u8]>, String> {
+    static ZEROS: [u8; 16] = [0; 16];
+    let count = acc.count();
+    let mut out: Vec<&'b [u8]> = match acc.view() {
+        Some(view) => view_elements(&view, acc.offset(), count, elem, buffers, what)?,
+        // No view: zeros, normally replaced in part by sparse values.
+        None => vec![&ZEROS[..elem.min(16)]; count],
+    };
+    if let Some(sparse) = acc.sparse() {
+        let n = sparse.count();
+        if n == 0 || n > count {
+            return Err(format!(
+                "{what}: sparse count {n} is not within 1..={count} (the accessor's count)"
+            ));
+        }
+        let indices = sparse.indices();
+        let isize = indices.index_type().size();
+        let idx = view_elements(
+            &indices.view(),
+            indices.offset(),
+            n,
+            isize,
+            buffers,
+            &format!("{what} (sparse indices)"),
+        )?;
+        let values = sparse.values();
+        let vals = view_elements(
+            &values.view(),
+            values.offset(),
+            n,
+            elem,
+            buffers,
+            &format!("{what} (sparse values)"),
+        )?;
+        let mut prev: Option<u64> = None;
+        for (i, v) in idx.iter().zip(vals) {
+            let mut a = [0u8; 8];
+            a[..i.len()].copy_from_slice(i);
+            let k = u64::from_le_bytes(a);
+            if k >= count as u64 || prev.is_some_and(|p| k <= p) {
+                return Err(format!(
+                    "{what}: sparse index {k} is out of range or out of order (count {count})"
+                ));
+            }
+            prev = Some(k);
+            out[k as usize] = v;
+        }
+    }
+    Ok(out)
+}
+
 #[allow(clippy::too_many_arguments)]
 fn add_gltf_mesh(
     path: &Path,
@@ -460,8 +1016,14 @@ fn add_gltf_mesh(
     triangles: &mut Vec<[u32; 3]>,
     report: &mut LoadReport,
 ) -> Result<(), GeomError> {
+    use gltf::accessor::{DataType, Dimensions};
     use gltf::mesh::Mode;
     let flip = world.determinant() < 0.0;
+    let parse_err = |prim: usize, message: String| GeomError::Parse {
+        path: path.to_path_buf(),
+        line: None,
+        message: format!("mesh {} primitive {prim}: {message}", mesh.index()),
+    };
     for prim in mesh.primitives() {
         let mode = prim.mode();
         let mode_name = match mode {
@@ -487,9 +1049,7 @@ fn add_gltf_mesh(
             ));
             continue;
         };
-        if pos_acc.data_type() != gltf::accessor::DataType::F32
-            || pos_acc.dimensions() != gltf::accessor::Dimensions::Vec3
-        {
+        if pos_acc.data_type() != DataType::F32 || pos_acc.dimensions() != Dimensions::Vec3 {
             return Err(GeomError::Unsupported {
                 path: path.to_path_buf(),
                 feature: format!(
@@ -502,50 +1062,56 @@ fn add_gltf_mesh(
         if pos_acc.count() == 0 {
             continue;
         }
-        let reader = prim.reader(|b| buffers.get(b.index()).map(|v| v.as_slice()));
-        let Some(positions) = reader.read_positions() else {
-            return Err(GeomError::Parse {
-                path: path.to_path_buf(),
-                line: None,
-                message: format!(
-                    "mesh {} primitive {}: POSITION data lies outside its buffer",
-                    mesh.index(),
-                    prim.index()
-                ),
-            });
+        // Indices are validated before any position is read: type, then bounds.
+        let index_size = match prim.indices() {
+            Some(acc) => {
+                if acc.dimensions() != Dimensions::Scalar {
+                    return Err(parse_err(
+                        prim.index(),
+                        format!(
+                            "index accessor {} has type {:?}; indices must be SCALAR",
+                            acc.index(),
+                            acc.dimensions()
+                        ),
+                    ));
+                }
+                match acc.data_type() {
+                    DataType::U8 => Some(1),
+                    DataType::U16 => Some(2),
+                    DataType::U32 => Some(4),
+                    t => {
+                        return Err(parse_err(
+                            prim.index(),
+                            format!(
+                                "index accessor {} has component type {t:?}; indices must be unsigned byte, short or int",
+                                acc.index()
+                            ),
+                        ));
+                    }
+                }
+            }
+            None => None,
+        };
+        let positions = read_accessor(&pos_acc, 12, buffers, "POSITION")
+            .map_err(|m| parse_err(prim.index(), m))?;
+        let n = positions.len();
+        let indices: Vec<u32> = match (prim.indices(), index_size) {
+            (Some(acc), Some(size)) => read_accessor(&acc, size, buffers, "indices")
+                .map_err(|m| parse_err(prim.index(), m))?
+                .iter()
+                .map(|b| {
+                    let mut a = [0u8; 4];
+                    a[..b.len()].copy_from_slice(b);
+                    u32::from_le_bytes(a)
+                })
+                .collect(),
+            _ => (0..n as u32).collect(),
         };
         let base = vertices.len();
-        vertices.extend(positions.map(|p| world.transform_point3(Vec3::from_array(p))));
-        let n = vertices.len() - base;
-        if n != pos_acc.count() {
-            return Err(GeomError::Parse {
-                path: path.to_path_buf(),
-                line: None,
-                message: format!(
-                    "mesh {} primitive {}: POSITION data truncated",
-                    mesh.index(),
-                    prim.index()
-                ),
-            });
-        }
-        let indices: Vec<u32> = match prim.indices() {
-            Some(acc) if acc.count() == 0 => Vec::new(),
-            Some(_) => match reader.read_indices() {
-                Some(r) => r.into_u32().collect(),
-                None => {
-                    return Err(GeomError::Parse {
-                        path: path.to_path_buf(),
-                        line: None,
-                        message: format!(
-                            "mesh {} primitive {}: index data lies outside its buffer",
-                            mesh.index(),
-                            prim.index()
-                        ),
-                    });
-                }
-            },
-            None => (0..n as u32).collect(),
-        };
+        vertices.extend(positions.iter().map(|b| {
+            let f = |k: usize| f32::from_le_bytes([b[k], b[k + 1], b[k + 2], b[k + 3]]);
+            world.transform_point3(Vec3::new(f(0), f(4), f(8)))
+        }));
         let local: Vec<[u32; 3]> = match mode {
             Mode::TriangleStrip => {
                 report.strips_fans_converted += 1;
@@ -581,8 +1147,11 @@ fn add_gltf_mesh(
                 }
             }
         }
+        let base = u32::try_from(base + n)
+            .map(|_| base as u32)
+            .map_err(|_| parse_err(prim.index(), "more than 2^32 vertices".into()))?;
         triangles.extend(local.into_iter().map(|t| {
-            let t = t.map(|i| i + base as u32);
+            let t = t.map(|i| i + base);
             if flip { [t[0], t[2], t[1]] } else { t }
         }));
     }

@@ -84,35 +84,68 @@ impl Normalization {
     }
 
     /// The normalisation of a bounding box. A box that is empty or has zero extent gets scale 1.
+    ///
+    /// Computed in f32 where that stays finite (bit for bit what it always was), else in f64, so
+    /// boxes with coordinates up to `f32::MAX` work (in f32 their extent overflowed and the mesh was
+    /// silently left unscaled). Above about 8.5e37 the scale is an f32 subnormal with fewer bits;
+    /// it is then rounded down, so the box still maps inside `[-1, 1]³`. A box so small that its
+    /// scale would exceed `f32::MAX` (half-extent below about 3e-39) gets scale 1.
     pub fn from_bounds(bounds: &Aabb) -> Self {
         if bounds.is_empty() {
             return Self::identity();
         }
-        let half = bounds.half_extent().max_element();
-        let scale = if half > 0.0 && half.is_finite() {
-            1.0 / half
-        } else {
-            1.0
-        };
+        let (center, half) = (bounds.center(), bounds.half_extent().max_element());
+        if center.is_finite() && half > 0.0 && half.is_finite() && (1.0 / half).is_normal() {
+            return Normalization {
+                center,
+                scale: 1.0 / half,
+            };
+        }
+        let (lo, hi) = (bounds.min.as_dvec3(), bounds.max.as_dvec3());
+        let half = ((hi - lo) * 0.5).max_element();
+        let mut scale = (1.0 / half) as f32;
+        if !(half > 0.0 && scale.is_finite() && scale > 0.0) {
+            return Normalization {
+                center: ((lo + hi) * 0.5).as_vec3(),
+                scale: 1.0,
+            };
+        }
+        if scale as f64 * half > 1.0 {
+            scale = scale.next_down();
+        }
         Normalization {
-            center: bounds.center(),
+            center: ((lo + hi) * 0.5).as_vec3(),
             scale,
         }
     }
 
-    /// Maps a point from the original coordinates to the normalised ones.
+    /// Maps a point from the original coordinates to the normalised ones (in f32, or in f64 where
+    /// f32 overflows on the way).
     pub fn to_normalized(&self, p: Vec3) -> Vec3 {
-        (p - self.center) * self.scale
+        let q = (p - self.center) * self.scale;
+        if q.is_finite() || !p.is_finite() {
+            return q;
+        }
+        ((p.as_dvec3() - self.center.as_dvec3()) * self.scale as f64).as_vec3()
     }
 
-    /// Maps a point from normalised coordinates back to the original ones.
+    /// Maps a point from normalised coordinates back to the original ones (in f32, or in f64 where
+    /// f32 overflows on the way).
     pub fn to_original(&self, p: Vec3) -> Vec3 {
-        p / self.scale + self.center
+        let q = p / self.scale + self.center;
+        if q.is_finite() || !p.is_finite() {
+            return q;
+        }
+        (p.as_dvec3() / self.scale as f64 + self.center.as_dvec3()).as_vec3()
     }
 
     /// Maps a (signed) distance measured in normalised coordinates to original units.
     pub fn distance_to_original(&self, d: f32) -> f32 {
-        d / self.scale
+        let q = d / self.scale;
+        if q.is_finite() || !d.is_finite() {
+            return q;
+        }
+        (d as f64 / self.scale as f64) as f32
     }
 
     /// Maps a (signed) distance measured in original units to normalised units.

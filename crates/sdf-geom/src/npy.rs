@@ -85,15 +85,12 @@ fn parse_header(path: &Path, h: &str) -> Result<Header, GeomError> {
 /// Reads an `(N, 3)` float32 or float64 array of points. float64 values are rounded to float32.
 ///
 /// # Errors
-/// [`GeomError::Io`] if the file cannot be read, [`GeomError::Npy`] for a bad magic string, an
+/// [`GeomError::Io`] if the file cannot be read, [`GeomError::NotARegularFile`] or
+/// [`GeomError::FileTooLarge`] (see [`crate::read_input_file`]), [`GeomError::Npy`] for a bad magic string, an
 /// unsupported version, dtype or shape, or truncated data.
 pub fn read_points(path: impl AsRef<Path>) -> Result<Vec<Vec3>, GeomError> {
     let path = path.as_ref();
-    let bytes = std::fs::read(path).map_err(|source| GeomError::Io {
-        path: path.to_path_buf(),
-        source,
-    })?;
-    parse_points(path, &bytes)
+    parse_points(path, &crate::read_input_file(path)?)
 }
 
 /// Parses `.npy` bytes (see [`read_points`]); `path` is only used in error messages.
@@ -236,10 +233,7 @@ pub fn write_points(path: impl AsRef<Path>, points: &[Vec3]) -> Result<(), GeomE
 /// Reads a 1-D float32 array (as written by [`write_f32`]).
 pub fn read_f32(path: impl AsRef<Path>) -> Result<Vec<f32>, GeomError> {
     let path = path.as_ref();
-    let bytes = std::fs::read(path).map_err(|source| GeomError::Io {
-        path: path.to_path_buf(),
-        source,
-    })?;
+    let bytes = crate::read_input_file(path)?;
     if bytes.len() < 10 || &bytes[..6] != MAGIC || bytes[6] != 1 {
         return Err(bad(path, "not a version-1 .npy file"));
     }
@@ -252,10 +246,11 @@ pub fn read_f32(path: impl AsRef<Path>) -> Result<Vec<f32>, GeomError> {
     }
     let n = header.shape[0];
     let data = &bytes[end..];
-    if data.len() < n * 4 {
-        return Err(bad(path, "truncated data"));
-    }
-    Ok(data[..n * 4]
+    let need = n
+        .checked_mul(4)
+        .filter(|&need| need <= data.len())
+        .ok_or_else(|| bad(path, "truncated data"))?;
+    Ok(data[..need]
         .chunks_exact(4)
         .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]))
         .collect())

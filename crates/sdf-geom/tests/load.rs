@@ -311,10 +311,16 @@ fn missing_file_and_unknown_extension() {
     let err = load_mesh(data("no-such-mesh.obj")).unwrap_err();
     assert!(matches!(err, GeomError::Io { .. }), "{err:?}");
     assert!(err.to_string().contains("no-such-mesh.obj"));
-    // A directory is unreadable as a file.
+    // A directory is not read as a file.
     let dir = temp_dir("dir").join("folder.obj");
     std::fs::create_dir_all(&dir).unwrap();
-    assert!(matches!(load_mesh(&dir), Err(GeomError::Io { .. })));
+    assert!(matches!(
+        load_mesh(&dir),
+        Err(GeomError::NotARegularFile {
+            kind: "directory",
+            ..
+        })
+    ));
 
     for name in ["mesh.stl", "mesh", "mesh.obj.bak"] {
         match load_mesh(name) {

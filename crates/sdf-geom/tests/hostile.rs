@@ -1,0 +1,617 @@
+//! Hostile and odd input files (issue 17 part A, issue 14's OBJ names): every case ends in a typed
+//! error, or in the correct mesh where one is possible. Fixtures are generated here.
+
+mod common;
+
+use std::path::Path;
+
+use base64::Engine as _;
+use common::{cube, temp_dir, write};
+use sdf_geom::{GeomError, LoadOptions, load_mesh, load_mesh_with};
+
+const TRI_OBJ: &str = "v 0 0 0\nv 1 0 0\nv 0 1 0\n";
+
+#[test]
+fn obj_trailing_comments_bom_and_latin1_names_load() {
+    let dir = temp_dir("objtext");
+    let p = write(
+        &dir,
+        "comments.obj",
+        "v 0 0 0 # origin\nv 1 0 0 #x\nv 0 1 0\t# y\nf 1 2 3 # the face\n",
+    );
+    let (m, _) = load_mesh(&p).unwrap();
+    assert_eq!((m.vertices.len(), m.triangles.len()), (3, 1));
+
+    let mut bom = b"\xEF\xBB\xBF".to_vec();
+    bom.extend_from_slice(format!("{TRI_OBJ}f 1 2 3\n").as_bytes());
+    let (m, _) = load_mesh(write(&dir, "bom.obj", bom)).unwrap();
+    assert_eq!(m.triangles.len(), 1);
+
+    // "Würfel" and "grün" in Latin-1: not UTF-8.
+    let mut latin1 = b"g W\xFCrfel\nusemtl gr\xFCn\n".to_vec();
+    latin1.extend_from_slice(format!("{TRI_OBJ}f 1 2 3\r\n").as_bytes());
+    let (m, _) = load_mesh(write(&dir, "latin1.obj", latin1)).unwrap();
+    assert_eq!(m.triangles.len(), 1);
+
+    // A real error in a Latin-1 file still names the file, the line and the reason.
+    let bad = b"g W\xFCrfel\nv 0 0 0\nv 1 zwei 0\nv 0 1 0\nf 1 2 3\n";
+    let err = load_mesh(write(&dir, "bad-latin1.obj", bad)).unwrap_err();
+    match &err {
+        GeomError::Parse { line: Some(3), .. } => {}
+        e => panic!("expected a parse error at line 3, got {e:?}"),
+    }
+    let msg = err.to_string();
+    assert!(
+        msg.contains("bad-latin1.obj") && msg.contains("zwei"),
+        "{msg}"
+    );
+}
+
+#[cfg(unix)]
+#[test]
+fn fifos_devices_and_huge_files_are_refused_unread() {
+    let dir = temp_dir("special");
+    let fifo = dir.join("mesh.obj");
+    let ok = std::process::Command::new("mkfifo")
+        .arg(&fifo)
+        .status()
+        .unwrap()
+        .success();
+    assert!(ok, "mkfifo failed");
+    // Would block forever if opened for reading.
+    match load_mesh(&fifo) {
+        Err(GeomError::NotARegularFile { kind: "FIFO", .. }) => {}
+        other => panic!("expected NotARegularFile, got {other:?}"),
+    }
+    let link = dir.join("zero.glb");
+    std::os::unix::fs::symlink("/dev/zero", &link).unwrap();
+    match load_mesh(&link) {
+        Err(GeomError::NotARegularFile {
+            kind: "character device",
+            ..
+        }) => {}
+        other => panic!("expected NotARegularFile, got {other:?}"),
+    }
+    let npy_link = dir.join("points.npy");
+    std::os::unix::fs::symlink("/dev/zero", &npy_link).unwrap();
+    assert!(matches!(
+        sdf_geom::npy::read_points(&npy_link),
+        Err(GeomError::NotARegularFile { .. })
+    ));
+    // A sparse file over the limit: refused from its size, before reading.
+    let big = dir.join("big.obj");
+    let f = std::fs::File::create(&big).unwrap();
+    f.set_len(sdf_geom::MAX_FILE_BYTES + 1).unwrap();
+    match load_mesh(&big) {
+        Err(GeomError::FileTooLarge { size, limit, .. }) => {
+            assert_eq!((size, limit), (limit + 1, sdf_geom::MAX_FILE_BYTES))
+        }
+        other => panic!("expected FileTooLarge, got {other:?}"),
+    }
+}
+
+// ---------------------------------------------------------------------------------------------------
+// glTF documents written by hand
+
+/// The cube's buffer: 8 float32 VEC3 positions (96 bytes), 36 u32 indices (144 bytes), then `extra`.
+fn cube_buffer(extra: &[u8]) -> Vec<u8> {
+    let (v, t) = cube();
+    let mut b: Vec<u8> = v.iter().flatten().flat_map(|x| x.to_le_bytes()).collect();
+    b.extend(t.iter().flat_map(|x| x.to_le_bytes()));
+    b.extend_from_slice(extra);
+    b
+}
+
+fn data_uri(b: &[u8]) -> String {
+    format!(
+        "data:application/octet-stream;base64,{}",
+        base64::engine::general_purpose::STANDARD.encode(b)
+    )
+}
+
+/// A glTF document: one buffer (`uri`, `len` bytes), the given views, accessors and nodes; mesh 0 is
+/// a triangle list with POSITION accessor 0 and index accessor `indices` (if any).
+fn doc(
+    uri: &str,
+    len: usize,
+    views: &str,
+    accessors: &str,
+    indices: Option<u32>,
+    nodes: &str,
+    roots: &str,
+) -> String {
+    let idx = indices
+        .map(|i| format!(r#","indices":{i}"#))
+        .unwrap_or_default();
+    format!(
+        r#"{{"asset":{{"version":"2.0"}},"scene":0,"scenes":[{{"nodes":[{roots}]}}],"nodes":[{nodes}],
+        "meshes":[{{"primitives":[{{"attributes":{{"POSITION":0}}{idx}}}]}}],
+        "buffers":[{{"byteLength":{len},"uri":"{uri}"}}],"bufferViews":[{views}],"accessors":[{accessors}]}}"#
+    )
+}
+
+const CUBE_VIEWS: &str =
+    r#"{"buffer":0,"byteOffset":0,"byteLength":96},{"buffer":0,"byteOffset":96,"byteLength":144}"#;
+const POS: &str =
+    r#"{"bufferView":0,"componentType":5126,"count":8,"type":"VEC3","min":[0,0,0],"max":[1,1,1]}"#;
+
+/// The cube with index accessor `index_acc` (accessor 1), one node.
+fn cube_with_indices(index_acc: &str) -> String {
+    let b = cube_buffer(&[]);
+    doc(
+        &data_uri(&b),
+        b.len(),
+        CUBE_VIEWS,
+        &format!("{POS},{index_acc}"),
+        Some(1),
+        r#"{"mesh":0}"#,
+        "0",
+    )
+}
+
+fn load_text(dir: &Path, name: &str, json: &str) -> Result<sdf_geom::Mesh, GeomError> {
+    load_mesh(write(dir, name, json)).map(|(m, _)| m)
+}
+
+fn parse_message(r: Result<sdf_geom::Mesh, GeomError>) -> String {
+    match r {
+        Err(GeomError::Parse { message, .. }) => message,
+        other => panic!("expected a parse error, got {other:?}"),
+    }
+}
+
+#[test]
+fn gltf_hand_written_cube_loads() {
+    let dir = temp_dir("gcube");
+    let m = load_text(
+        &dir,
+        "cube.gltf",
+        &cube_with_indices(r#"{"bufferView":1,"componentType":5125,"count":36,"type":"SCALAR"}"#),
+    )
+    .unwrap();
+    assert_eq!(m.triangles.len(), 12);
+}
+
+#[test]
+fn gltf_bad_index_accessors_are_typed_errors() {
+    let dir = temp_dir("gidxacc");
+    // Float indices: the gltf crate reaches unreachable!() on these.
+    let msg = parse_message(load_text(
+        &dir,
+        "float.gltf",
+        &cube_with_indices(r#"{"bufferView":1,"componentType":5126,"count":36,"type":"SCALAR"}"#),
+    ));
+    assert!(msg.contains("component type F32"), "{msg}");
+    // VEC3 indices used to load as a mesh.
+    let msg = parse_message(load_text(
+        &dir,
+        "vec3.gltf",
+        &cube_with_indices(r#"{"bufferView":1,"componentType":5125,"count":12,"type":"VEC3"}"#),
+    ));
+    assert!(msg.contains("SCALAR"), "{msg}");
+    // More indices than the view holds.
+    let msg = parse_message(load_text(
+        &dir,
+        "count.gltf",
+        &cube_with_indices(r#"{"bufferView":1,"componentType":5125,"count":37,"type":"SCALAR"}"#),
+    ));
+    assert!(msg.contains("do not fit"), "{msg}");
+    // A huge byteOffset must not overflow.
+    let msg = parse_message(load_text(
+        &dir,
+        "offset.gltf",
+        &cube_with_indices(
+            r#"{"bufferView":1,"byteOffset":18446744073709551600,"componentType":5125,"count":36,"type":"SCALAR"}"#,
+        ),
+    ));
+    assert!(!msg.is_empty());
+}
+
+#[test]
+fn gltf_small_stride_and_views_outside_the_buffer_are_typed_errors() {
+    let dir = temp_dir("gstride");
+    let b = cube_buffer(&[]);
+    // byteStride 4 < 12-byte VEC3 elements: an assertion in gltf's reader.
+    let views = r#"{"buffer":0,"byteOffset":0,"byteLength":96,"byteStride":4},{"buffer":0,"byteOffset":96,"byteLength":144}"#;
+    let json = doc(
+        &data_uri(&b),
+        b.len(),
+        views,
+        &format!(
+            "{POS},{}",
+            r#"{"bufferView":1,"componentType":5125,"count":36,"type":"SCALAR"}"#
+        ),
+        Some(1),
+        r#"{"mesh":0}"#,
+        "0",
+    );
+    let msg = parse_message(load_text(&dir, "stride.gltf", &json));
+    assert!(msg.contains("byteStride 4"), "{msg}");
+    // A view past the end of its buffer.
+    let views = r#"{"buffer":0,"byteOffset":200,"byteLength":96},{"buffer":0,"byteOffset":96,"byteLength":144}"#;
+    let json = doc(
+        &data_uri(&b),
+        b.len(),
+        views,
+        POS,
+        None,
+        r#"{"mesh":0}"#,
+        "0",
+    );
+    let msg = parse_message(load_text(&dir, "view.gltf", &json));
+    assert!(msg.contains("lies outside buffer 0"), "{msg}");
+}
+
+#[test]
+fn gltf_sparse_indices_are_checked() {
+    let dir = temp_dir("gsparse");
+    let sparse_pos = |index: u32| {
+        let b = cube_buffer(
+            &[
+                index.to_le_bytes(),
+                5f32.to_le_bytes(),
+                5f32.to_le_bytes(),
+                5f32.to_le_bytes(),
+            ]
+            .concat(),
+        );
+        let views = format!(
+            r#"{CUBE_VIEWS},{{"buffer":0,"byteOffset":240,"byteLength":4}},{{"buffer":0,"byteOffset":244,"byteLength":12}}"#
+        );
+        let acc = r#"{"bufferView":0,"componentType":5126,"count":8,"type":"VEC3","min":[0,0,0],"max":[5,5,5],"sparse":{"count":1,"indices":{"bufferView":2,"componentType":5125},"values":{"bufferView":3}}},{"bufferView":1,"componentType":5125,"count":36,"type":"SCALAR"}"#;
+        doc(
+            &data_uri(&b),
+            b.len(),
+            &views,
+            acc,
+            Some(1),
+            r#"{"mesh":0}"#,
+            "0",
+        )
+    };
+    // In range: vertex 7 moves to (5, 5, 5).
+    let m = load_text(&dir, "ok.gltf", &sparse_pos(7)).unwrap();
+    assert!(
+        m.vertices
+            .iter()
+            .any(|v| v.x == 5.0 && v.y == 5.0 && v.z == 5.0)
+    );
+    // Out of range: used to load silently.
+    let msg = parse_message(load_text(&dir, "bad.gltf", &sparse_pos(99)));
+    assert!(msg.contains("sparse index 99"), "{msg}");
+}
+
+/// `levels` levels of two nodes, each node having both nodes of the next level as children: 2^levels
+/// paths to the last level, which instances mesh 0 if `mesh`.
+fn dag(levels: usize, mesh: bool) -> String {
+    let mut nodes = Vec::new();
+    for l in 0..levels {
+        for _ in 0..2 {
+            nodes.push(format!(r#"{{"children":[{},{}]}}"#, 2 * l + 2, 2 * l + 3));
+        }
+    }
+    let last = if mesh { r#"{"mesh":0}"# } else { "{}" };
+    nodes.push(last.to_string());
+    nodes.push(last.to_string());
+    let b = cube_buffer(&[]);
+    doc(
+        &data_uri(&b),
+        b.len(),
+        CUBE_VIEWS,
+        &format!(
+            "{POS},{}",
+            r#"{"bufferView":1,"componentType":5125,"count":36,"type":"SCALAR"}"#
+        ),
+        Some(1),
+        &nodes.join(","),
+        "0,1",
+    )
+}
+
+#[test]
+fn gltf_shared_nodes_are_counted_not_expanded() {
+    let dir = temp_dir("gdag");
+    let t = std::time::Instant::now();
+    // 2^41 instances of the cube: refused by count, naming it.
+    let err = load_text(&dir, "dag.gltf", &dag(40, true)).unwrap_err();
+    match &err {
+        GeomError::SceneTooLarge {
+            what: "mesh instances",
+            count,
+            limit,
+            ..
+        } => {
+            assert_eq!((*count, *limit), (1 << 41, sdf_geom::MAX_INSTANCES))
+        }
+        e => panic!("expected SceneTooLarge, got {e:?}"),
+    }
+    assert!(err.to_string().contains("2199023255552"), "{err}");
+    // The same graph without a mesh used to spin forever: now nothing to expand.
+    assert!(matches!(
+        load_text(&dir, "empty-dag.gltf", &dag(40, false)),
+        Err(GeomError::NoTriangles { .. })
+    ));
+    // A small DAG is expanded: 2^3 instances of 12 triangles, all at the same place, so the
+    // duplicates are dropped and counted.
+    let (m, r) = load_mesh(write(&dir, "small-dag.gltf", dag(2, true))).unwrap();
+    assert_eq!(
+        (r.instances, r.input_triangles, m.triangles.len()),
+        (8, 96, 12)
+    );
+    assert!(t.elapsed().as_secs() < 10, "{:?}", t.elapsed());
+}
+
+#[test]
+fn gltf_node_cycles_are_errors() {
+    let dir = temp_dir("gcycle");
+    let b = cube_buffer(&[]);
+    let acc = format!(
+        "{POS},{}",
+        r#"{"bufferView":1,"componentType":5125,"count":36,"type":"SCALAR"}"#
+    );
+    let json = doc(
+        &data_uri(&b),
+        b.len(),
+        CUBE_VIEWS,
+        &acc,
+        Some(1),
+        r#"{"mesh":0,"children":[1]},{"children":[0]}"#,
+        "0",
+    );
+    let msg = parse_message(load_text(&dir, "cycle.gltf", &json));
+    assert!(msg.contains("cycle"), "{msg}");
+    let json = doc(
+        &data_uri(&b),
+        b.len(),
+        CUBE_VIEWS,
+        &acc,
+        Some(1),
+        r#"{"mesh":0,"children":[0]}"#,
+        "0",
+    );
+    let msg = parse_message(load_text(&dir, "self.gltf", &json));
+    assert!(msg.contains("cycle"), "{msg}");
+}
+
+#[test]
+fn gltf_buffer_uris_stay_in_the_assets_folder() {
+    let root = temp_dir("guri");
+    let inside = root.join("assets");
+    std::fs::create_dir_all(inside.join("sub")).unwrap();
+    let b = cube_buffer(&[]);
+    // A secret file next to the folder, with cube geometry in it and a size that must not leak.
+    let mut secret = b.clone();
+    secret.extend_from_slice(&[7u8; 1081]);
+    write(&root, "secret.bin", &secret);
+    write(&inside, "cube.bin", &b);
+    let acc = format!(
+        "{POS},{}",
+        r#"{"bufferView":1,"componentType":5125,"count":36,"type":"SCALAR"}"#
+    );
+    let gltf = |uri: &str| {
+        doc(
+            uri,
+            b.len(),
+            CUBE_VIEWS,
+            &acc,
+            Some(1),
+            r#"{"mesh":0}"#,
+            "0",
+        )
+    };
+    let secret_abs = root.join("secret.bin").display().to_string();
+    for (i, uri) in [
+        "../secret.bin",
+        "..%2Fsecret.bin",
+        "sub/../../secret.bin",
+        secret_abs.as_str(),
+        &format!("file://{secret_abs}"),
+        "http://example.com/cube.bin",
+    ]
+    .iter()
+    .enumerate()
+    {
+        let p = write(&inside, &format!("u{i}.gltf"), gltf(uri));
+        let err = load_mesh(&p).unwrap_err();
+        assert!(
+            matches!(err, GeomError::UriRefused { buffer: 0, .. }),
+            "{uri}: {err:?}"
+        );
+        let msg = err.to_string();
+        assert!(!msg.contains(&secret.len().to_string()), "{msg}");
+    }
+    // A symbolic link inside the folder that points out of it.
+    #[cfg(unix)]
+    {
+        std::os::unix::fs::symlink(root.join("secret.bin"), inside.join("link.bin")).unwrap();
+        let p = write(&inside, "link.gltf", gltf("link.bin"));
+        assert!(matches!(load_mesh(&p), Err(GeomError::UriRefused { .. })));
+        // Opted in, the link is followed.
+        let (m, _) = load_mesh_with(&p, &LoadOptions::with_external_uris(true)).unwrap();
+        assert_eq!(m.triangles.len(), 12);
+        // Even opted in, a device is not read.
+        let p = write(&inside, "zero.gltf", gltf("/dev/zero"));
+        assert!(matches!(
+            load_mesh_with(&p, &LoadOptions::with_external_uris(true)),
+            Err(GeomError::NotARegularFile { .. })
+        ));
+    }
+    // Inside the folder, plain and percent-encoded, still loads; opted in, ../ does too.
+    for uri in ["cube.bin", "./sub/../cube.bin", "sub%2F..%2Fcube.bin"] {
+        let p = write(&inside, "in.gltf", gltf(uri));
+        assert_eq!(load_mesh(&p).unwrap().0.triangles.len(), 12, "{uri}");
+    }
+    let p = write(&inside, "out.gltf", gltf("../secret.bin"));
+    let (m, _) = load_mesh_with(&p, &LoadOptions::with_external_uris(true)).unwrap();
+    assert_eq!(m.triangles.len(), 12);
+    // In memory there is no folder: only data: URIs.
+    assert!(matches!(
+        sdf_geom::parse_mesh(gltf("cube.bin").as_bytes(), "gltf", Path::new("mem.gltf")),
+        Err(GeomError::UriRefused { .. })
+    ));
+}
+
+// ---------------------------------------------------------------------------------------------------
+// Numbers stay finite
+
+use glam::Vec3;
+use sdf_geom::{Mesh, SignedDistance, reference};
+
+/// Relative error of the fast distance against the f64 brute force.
+fn rel_err(mesh: &Mesh, sdf: &SignedDistance, p: Vec3) -> f64 {
+    let (want, _) = reference::brute_force_distance(mesh, p);
+    let got = sdf.unsigned_distance(p) as f64;
+    assert!(got.is_finite(), "{p}: {got}");
+    let signed = sdf.signed_distance(p) as f64;
+    assert_eq!(signed.abs(), got, "{p}");
+    (got - want).abs() / want.max(f64::MIN_POSITIVE)
+}
+
+#[test]
+fn far_query_points_get_finite_correct_distances() {
+    let mesh = Mesh::icosphere(1.0, 2);
+    let sdf = SignedDistance::new(&mesh).unwrap();
+    for p in [
+        Vec3::new(1e20, 0.0, 0.0),
+        Vec3::new(-3e19, 7e18, 1e19),
+        Vec3::new(1e30, -3e29, 5e29),
+        Vec3::new(2e38, -1e38, 1e38),
+        Vec3::new(5000.0, 1.0, -2.0),
+        Vec3::new(4000.0, 0.0, 0.0),
+        Vec3::new(0.0, 3.0, 0.0),
+    ] {
+        let e = rel_err(&mesh, &sdf, p);
+        assert!(e < 1e-6, "{p}: relative error {e}");
+        assert!(sdf.signed_distance(p) > 0.0, "{p}: outside");
+        assert_eq!(sdf.winding_number(p).round(), 0.0, "{p}");
+        let c = sdf.closest_point(p);
+        assert!(c.distance.is_finite() && c.point.is_finite(), "{p}: {c:?}");
+        assert!((c.point.length() - 1.0).abs() < 0.1, "{p}: {c:?}");
+    }
+    // The batch path (Morton order) agrees.
+    let pts = vec![Vec3::new(1e20, 0.0, 0.0); 5000];
+    assert!(
+        sdf.signed_distance_batch(&pts)
+            .iter()
+            .all(|d| (*d as f64 - 1e20).abs() < 1e14)
+    );
+}
+
+#[test]
+fn huge_and_tiny_coordinates_keep_distances_finite() {
+    for scale in [1e38f32, 1e25, 1e-30, 1e-38] {
+        let unit = Mesh::icosphere(1.0, 2);
+        let mesh = Mesh {
+            vertices: unit.vertices.iter().map(|v| *v * scale).collect(),
+            triangles: unit.triangles.clone(),
+        };
+        let sdf = SignedDistance::new(&mesh).unwrap();
+        for p in [
+            Vec3::ZERO,
+            Vec3::new(0.5, 0.2, 0.1) * scale,
+            Vec3::new(1.7, -0.2, 0.1) * scale,
+            Vec3::new(0.0, 0.0, 3.0) * scale,
+        ] {
+            let e = rel_err(&mesh, &sdf, p);
+            assert!(e < 1e-5, "scale {scale}, {p}: relative error {e}");
+        }
+        assert!(
+            sdf.signed_distance(Vec3::ZERO) < 0.0,
+            "scale {scale}: centre inside"
+        );
+        assert!(sdf.signed_distance(Vec3::new(0.0, 0.0, 3.0) * scale) > 0.0);
+        // Normalisation maps it onto the unit sphere's box, inside [-1, 1]^3.
+        let (n, _) = mesh.normalized();
+        let b = n.bounds();
+        assert!(
+            b.min.cmpge(Vec3::splat(-1.0)).all() && b.max.cmple(Vec3::ONE).all(),
+            "{b:?}"
+        );
+        assert!(
+            (b.max.max_element() - 1.0).abs() < 1e-5,
+            "scale {scale}: {b:?}"
+        );
+    }
+    // Coordinates near f32::MAX on both sides: the extent overflows f32 but not f64.
+    let mesh = Mesh {
+        vertices: vec![
+            Vec3::new(-3e38, -3e38, 0.0),
+            Vec3::new(3e38, -3e38, 0.0),
+            Vec3::new(0.0, 3e38, 0.0),
+            Vec3::new(0.0, 0.0, 3e38),
+        ],
+        triangles: vec![[0, 2, 1], [0, 1, 3], [1, 2, 3], [2, 0, 3]],
+    };
+    let (n, norm) = mesh.normalized();
+    assert!(norm.scale < 1e-38 && norm.scale > 0.0, "{norm:?}");
+    assert!(
+        n.vertices
+            .iter()
+            .all(|v| v.is_finite() && v.abs().max_element() <= 1.0),
+        "{n:?}"
+    );
+    let sdf = SignedDistance::new(&mesh).unwrap();
+    let e = rel_err(&mesh, &sdf, Vec3::new(0.0, 0.0, -1e38));
+    assert!(e < 1e-5, "{e}");
+}
+
+/// A soup of `n` random triangles in `[-1, 1]³`, each with corners within `size` of a random centre
+/// (`size` 2: corners anywhere in the box, every triangle spanning it).
+fn soup(n: usize, size: f32, seed: u64) -> Mesh {
+    let c = sdf_geom::sample::uniform_box(n, seed);
+    let d = sdf_geom::sample::uniform_box(3 * n, seed + 1);
+    let vertices: Vec<Vec3> = (0..3 * n)
+        .map(|i| (c[i / 3] + d[i] * size).clamp(Vec3::splat(-1.0), Vec3::ONE))
+        .collect();
+    let triangles = (0..n as u32)
+        .map(|t| [3 * t, 3 * t + 1, 3 * t + 2])
+        .collect();
+    Mesh::from_raw(vertices, triangles).unwrap().0
+}
+
+/// Timing of one NGLOD `--preset small` epoch's sampling and labelling on triangle soups
+/// (`cargo test --release -p sdf-geom --test hostile soup_timing -- --ignored --nocapture`).
+///
+/// Measured on the shared 2-core box (debug test profile, heavily loaded), 400k triangles, 20k
+/// labels: corner spread 0.02 -> 30 us/point, 0.2 -> 1.0 ms/point, 2 (box-spanning) -> 20 ms/point.
+/// Slowness, not a stall: every box-spanning triangle overlaps every query, so the BVH prunes
+/// nothing and each label costs O(n).
+#[test]
+#[ignore]
+fn soup_timing() {
+    let n: usize = std::env::var("SOUP_TRIANGLES")
+        .ok()
+        .and_then(|s| s.parse().ok())
+        .unwrap_or(400_000);
+    let points: usize = std::env::var("SOUP_POINTS")
+        .ok()
+        .and_then(|s| s.parse().ok())
+        .unwrap_or(20_000);
+    for size in [0.02f32, 0.2, 2.0] {
+        let t = std::time::Instant::now();
+        let mesh = soup(n, size, 5);
+        let t_mesh = t.elapsed();
+        let sdf = SignedDistance::new(&mesh).unwrap();
+        let t_build = t.elapsed() - t_mesh;
+        let mut pts = sdf_geom::sample::uniform_box(points / 3, 1);
+        pts.extend(sdf_geom::sample::near_surface(
+            &mesh,
+            2 * points / 3,
+            0.01,
+            2,
+        ));
+        let t_sample = t.elapsed() - t_mesh - t_build;
+        let s = std::time::Instant::now();
+        let d = sdf.signed_distance_batch(&pts);
+        let t_label = s.elapsed();
+        assert!(d.iter().all(|x| x.is_finite()));
+        eprintln!(
+            "soup {n} triangles of size {size}: build {:.2} s, sample {:.2} s, label {} points {:.2} s ({:.1} us/point)",
+            t_build.as_secs_f64(),
+            t_sample.as_secs_f64(),
+            pts.len(),
+            t_label.as_secs_f64(),
+            t_label.as_secs_f64() * 1e6 / pts.len() as f64
+        );
+    }
+}
