@@ -42,6 +42,7 @@ pack() {
     command -v cargo >/dev/null || { echo "pack needs cargo (run it where the project builds)" >&2; exit 1; }
     echo "== building release binaries and bench executables"
     cargo build --release --bins
+    cargo bench --no-run
     local benches
     benches=$(cargo bench --no-run --message-format=json 2>/dev/null | python3 -c '
 import json, sys

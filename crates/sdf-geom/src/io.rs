@@ -183,35 +183,13 @@ pub fn check_outputs(inputs: &[&Path], outputs: &[&Path]) -> Result<(), OutputPa
 }
 
 /// Reads a whole file that must be a regular file (not a FIFO, a device or a folder) of at most
-/// `max_bytes`; both are checked on the opened file before anything is read or allocated.
+/// `max_bytes`; both are checked before anything is read or allocated. The same checks as the
+/// mesh readers' [`crate::read_input_file`], with an I/O error for callers outside sdf-geom.
 pub fn read_regular_file(path: &Path, max_bytes: u64) -> std::io::Result<Vec<u8>> {
-    use std::io::Read;
-    let invalid = |msg: String| std::io::Error::new(std::io::ErrorKind::InvalidInput, msg);
-    // O_NONBLOCK so that opening a FIFO with no writer returns instead of blocking forever.
-    let mut options = std::fs::OpenOptions::new();
-    options.read(true);
-    #[cfg(unix)]
-    std::os::unix::fs::OpenOptionsExt::custom_flags(&mut options, libc::O_NONBLOCK);
-    let file = options.open(path)?;
-    let meta = file.metadata()?;
-    if !meta.is_file() {
-        return Err(invalid("not a regular file".into()));
-    }
-    if meta.len() > max_bytes {
-        return Err(invalid(format!(
-            "{} bytes is more than the {max_bytes} bytes accepted",
-            meta.len()
-        )));
-    }
-    let mut bytes = Vec::with_capacity(meta.len() as usize);
-    // `take`: a file growing while it is read still stops at the limit.
-    file.take(max_bytes + 1).read_to_end(&mut bytes)?;
-    if bytes.len() as u64 > max_bytes {
-        return Err(invalid(format!(
-            "the file grew past the {max_bytes} bytes accepted while it was read"
-        )));
-    }
-    Ok(bytes)
+    crate::load::read_file_within(path, max_bytes).map_err(|e| match e {
+        crate::GeomError::Io { source, .. } => source,
+        other => std::io::Error::new(std::io::ErrorKind::InvalidInput, other.to_string()),
+    })
 }
 
 /// The mesh as Wavefront OBJ text: shared vertices (`v`), then 1-based triangles (`f`).

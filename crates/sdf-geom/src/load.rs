@@ -194,6 +194,12 @@ fn file_kind(t: &std::fs::FileType) -> &'static str {
 /// # Errors
 /// [`GeomError::Io`], [`GeomError::NotARegularFile`], [`GeomError::FileTooLarge`].
 pub fn read_input_file(path: &Path) -> Result<Vec<u8>, GeomError> {
+    read_file_within(path, MAX_FILE_BYTES)
+}
+
+/// [`read_input_file`] with another size limit (model files use it through
+/// [`crate::io::read_regular_file`]).
+pub(crate) fn read_file_within(path: &Path, max_bytes: u64) -> Result<Vec<u8>, GeomError> {
     let io = |source| GeomError::Io {
         path: path.to_path_buf(),
         source,
@@ -205,11 +211,11 @@ pub fn read_input_file(path: &Path) -> Result<Vec<u8>, GeomError> {
                 kind: file_kind(&meta.file_type()),
             });
         }
-        if meta.len() > MAX_FILE_BYTES {
+        if meta.len() > max_bytes {
             return Err(GeomError::FileTooLarge {
                 path: path.to_path_buf(),
                 size: meta.len(),
-                limit: MAX_FILE_BYTES,
+                limit: max_bytes,
             });
         }
         Ok(meta.len())
@@ -220,14 +226,14 @@ pub fn read_input_file(path: &Path) -> Result<Vec<u8>, GeomError> {
     // And again on the open handle, in case the path was swapped in between.
     let len = check(&file.metadata().map_err(io)?)?;
     let mut bytes = Vec::with_capacity(len as usize);
-    file.take(MAX_FILE_BYTES + 1)
+    file.take(max_bytes + 1)
         .read_to_end(&mut bytes)
         .map_err(io)?;
-    if bytes.len() as u64 > MAX_FILE_BYTES {
+    if bytes.len() as u64 > max_bytes {
         return Err(GeomError::FileTooLarge {
             path: path.to_path_buf(),
             size: bytes.len() as u64,
-            limit: MAX_FILE_BYTES,
+            limit: max_bytes,
         });
     }
     Ok(bytes)
