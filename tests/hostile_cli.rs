@@ -12,8 +12,9 @@
 //! files (FIFOs, `/dev/zero`, folders), and malformed files of every family that loads today
 //! (OBJ, glTF/GLB, .npy, safetensors) and CLI values (NaN, inf, negative, huge numbers).
 //!
-//! [`PENDING_MESH_READER`] holds the mesh and points reader cases that another branch fixes; they
-//! run in the ignored test `pending_mesh_reader_cases` until that branch is merged.
+//! [`MESH_READER_CASES`] holds the mesh and points reader cases (URI confinement, special files as
+//! meshes and points, malformed glTF accessors, huge coordinates, far query points); they run in
+//! `mesh_reader_cases`.
 
 use std::collections::BTreeMap;
 use std::ffi::OsString;
@@ -1098,10 +1099,9 @@ fn cases() -> Vec<Case> {
     ]
 }
 
-/// The mesh and points reader cases fixed on another branch (URI confinement, regular-file
-/// checks for meshes and points, glTF accessors, coordinates near f32::MAX, far query points).
-/// They run in `pending_mesh_reader_cases`; the lead enables them after merging that branch.
-const PENDING_MESH_READER: &[(&str, &str, &[&str])] = &[
+/// The mesh and points reader cases (URI confinement, regular-file checks for meshes and points,
+/// glTF accessors, coordinates near f32::MAX, far query points), run by `mesh_reader_cases`.
+const MESH_READER_CASES: &[(&str, &str, &[&str])] = &[
     (
         "mesh is a FIFO",
         "sdf",
@@ -1173,8 +1173,8 @@ const PENDING_MESH_READER: &[(&str, &str, &[&str])] = &[
     ),
 ];
 
-/// Extra fixtures of the pending cases.
-fn pending_fixtures(dir: &Path) {
+/// Extra fixtures of the mesh-reader cases.
+fn mesh_reader_fixtures(dir: &Path) {
     let w = |name: &str, bytes: &[u8]| std::fs::write(dir.join(name), bytes).unwrap();
     w("outside_uri.gltf", br#"{"asset":{"version":"2.0"},"buffers":[{"uri":"../../../../etc/passwd","byteLength":36}],"bufferViews":[{"buffer":0,"byteLength":36}],"accessors":[{"bufferView":0,"componentType":5126,"count":3,"type":"VEC3"}],"meshes":[{"primitives":[{"attributes":{"POSITION":0}}]}],"nodes":[{"mesh":0}],"scenes":[{"nodes":[0]}]}"#);
     w("bad_accessor.gltf", br#"{"asset":{"version":"2.0"},"buffers":[{"uri":"data:application/octet-stream;base64,AAAAAAAAAAAAAAAA","byteLength":12}],"bufferViews":[{"buffer":0,"byteLength":12}],"accessors":[{"bufferView":0,"componentType":5126,"count":1000000,"type":"VEC3"}],"meshes":[{"primitives":[{"attributes":{"POSITION":0}}]}],"nodes":[{"mesh":0}],"scenes":[{"nodes":[0]}]}"#);
@@ -1219,16 +1219,15 @@ fn hostile_inputs_end_in_typed_errors_or_correct_results() {
     );
 }
 
-/// The reader cases owned by the mesh-reader branch: each must end in a typed error or in a
-/// correct result (exit 0 only if the distances written are finite), never hang or crash.
+/// The mesh and points reader cases: each must end in a typed error or in a correct result
+/// (exit 0 only if the distances written are finite), never hang or crash.
 #[test]
-#[ignore = "enabled once the mesh/points reader branch of issue 17 is merged"]
-fn pending_mesh_reader_cases() {
-    let fixtures = Fixtures::new("pending");
+fn mesh_reader_cases() {
+    let fixtures = Fixtures::new("mesh-reader");
     let mut failures = Vec::new();
-    for &(name, bin, args) in PENDING_MESH_READER {
+    for &(name, bin, args) in MESH_READER_CASES {
         let dir = fixtures.fresh_dir(name);
-        pending_fixtures(&dir);
+        mesh_reader_fixtures(&dir);
         let c = Case {
             name: name.to_owned(),
             bin,
