@@ -155,6 +155,10 @@ fn corpus(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
                 seed: args.seed,
                 lr: None,
                 siren_weights: None,
+                lr_final: None,
+                grow_every: None,
+                distance: hwsdf::nn::DistanceMode::Signed,
+                pool: None,
             };
             let model_path = state_dir.join(format!("{name}.{}.safetensors", model.name()));
             eprintln!("{name} {}: training", model.name());

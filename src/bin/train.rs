@@ -16,13 +16,19 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use clap::{Parser, ValueEnum};
 use hwsdf::eval::metrics::DEFAULT_EVAL_POINTS;
 use hwsdf::eval::run::{self, ModelKind, Preset, Progress, TrainOptions};
-use hwsdf::nn::{GpuContext, LossWeights, NeuralSdf};
+use hwsdf::nn::{DistanceMode, GpuContext, LossWeights, NeuralSdf};
 use indicatif::{ProgressBar, ProgressStyle};
 
 #[derive(Clone, Copy, Debug, ValueEnum)]
 enum Model {
     Siren,
     Nglod,
+}
+
+#[derive(Clone, Copy, Debug, ValueEnum)]
+enum DistanceArg {
+    Signed,
+    Unsigned,
 }
 
 #[derive(Clone, Copy, Debug, ValueEnum)]
@@ -67,6 +73,23 @@ struct Args {
     /// Initial learning rate (default: 1e-4 for SIREN, 1e-3 for NGLOD).
     #[arg(long)]
     lr: Option<f32>,
+    /// NGLOD: final learning rate as a fraction of the first, by cosine decay over the run
+    /// (1 keeps it constant).
+    #[arg(long)]
+    lr_final: Option<f32>,
+    /// NGLOD: progressive levels of detail, one more every this many epochs (0: all at once).
+    #[arg(long)]
+    grow_every: Option<usize>,
+    /// NGLOD: blocks of one epoch's worth of labelled points in the sample pool, and epochs
+    /// between fresh blocks once it is full, as BLOCKS,EVERY (default 4,4; 1,1 samples fresh
+    /// points every epoch).
+    #[arg(long, value_parser = parse_pool)]
+    pool: Option<(usize, usize)>,
+    /// Fit the signed distance, or the unsigned one |d| for meshes without an inside (flat or
+    /// open sheets, two-sided triangle soups); unsigned is scored by distance error and Chamfer
+    /// distance, not F1. NGLOD only.
+    #[arg(long, value_enum, default_value = "signed")]
+    distance: DistanceArg,
     /// SIREN loss: weight of the on-surface |Φ| term (default 3000).
     #[arg(long, help_heading = "SIREN loss")]
     surface_weight: Option<f32>,
@@ -168,6 +191,13 @@ fn train(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
         seed: args.seed,
         lr: args.lr,
         siren_weights: args.siren_weights(),
+        lr_final: args.lr_final,
+        grow_every: args.grow_every,
+        distance: match args.distance {
+            DistanceArg::Signed => DistanceMode::Signed,
+            DistanceArg::Unsigned => DistanceMode::Unsigned,
+        },
+        pool: args.pool,
     };
     eprintln!(
         "training {} ({}) on {} with {}",
@@ -253,6 +283,17 @@ fn train(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
     );
     eprintln!("report written to {}", report_path.display());
     Ok(())
+}
+
+fn parse_pool(s: &str) -> Result<(usize, usize), String> {
+    let (a, b) = s
+        .split_once(',')
+        .ok_or_else(|| format!("expected BLOCKS,EVERY, not {s:?}"))?;
+    let parse = |x: &str| match x.trim().parse::<usize>() {
+        Ok(v) if v > 0 => Ok(v),
+        _ => Err(format!("{x:?} is not a positive integer")),
+    };
+    Ok((parse(a)?, parse(b)?))
 }
 
 fn default_out(mesh: &Path, model: ModelKind) -> PathBuf {

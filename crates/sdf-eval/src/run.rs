@@ -11,8 +11,8 @@ use sdf_geom::extract::{ExtractError, ExtractOptions, ExtractStats, extract_surf
 use sdf_geom::{Mesh, SignedDistance};
 use sdf_nn::model_file::write_atomic;
 use sdf_nn::{
-    AdamState, GpuContext, LossWeights, ModelFile, NeuralSdf, Nglod, NglodConfig, NglodTrainConfig,
-    NglodTrainer, Siren, SirenConfig, SirenTrainConfig, SirenTrainer,
+    AdamState, DistanceMode, GpuContext, LossWeights, ModelFile, NeuralSdf, Nglod, NglodConfig,
+    NglodTrainConfig, NglodTrainer, Siren, SirenConfig, SirenTrainConfig, SirenTrainer,
 };
 use serde::{Deserialize, Serialize};
 
@@ -53,6 +53,13 @@ pub enum RunError {
     /// Options that cannot work together.
     #[error("{0}")]
     Options(String),
+    /// `--distance unsigned` with SIREN, whose loss (eikonal, normal alignment, the off-surface
+    /// term pushing |Φ| up away from the surface) assumes a signed field.
+    #[error(
+        "unsigned distance is supported for NGLOD only: SIREN's loss (normals, eikonal and \
+         off-surface terms) fits a signed field; use --model nglod"
+    )]
+    UnsignedSiren,
 }
 
 /// Which architecture to train.
@@ -122,6 +129,17 @@ pub struct TrainOptions {
     pub lr: Option<f32>,
     /// SIREN loss weights (`None`: the design document's). An error for NGLOD.
     pub siren_weights: Option<LossWeights>,
+    /// NGLOD: final learning rate as a fraction of the first, reached by cosine decay (`None`:
+    /// the trainer's default; 1 keeps it constant).
+    pub lr_final: Option<f32>,
+    /// NGLOD: add a level of detail every this many epochs (`None`: the trainer's default; 0
+    /// trains all levels from the start).
+    pub grow_every: Option<usize>,
+    /// Signed or unsigned distance (unsigned: NGLOD only).
+    pub distance: DistanceMode,
+    /// NGLOD sample pool: `(blocks, refresh_every)` (`None`: the trainer's default; `(1, 1)`
+    /// draws fresh points every epoch as before the pool).
+    pub pool: Option<(usize, usize)>,
 }
 
 /// Progress of a training run, for progress bars and logs.
@@ -179,6 +197,13 @@ impl Checkpoint {
     /// Steps or epochs done when it was written.
     pub fn done(&self) -> usize {
         self.file.metadata.training["done"].as_u64().unwrap_or(0) as usize
+    }
+
+    /// NGLOD: optimiser steps done within the unfinished epoch `done()`, which a resume finishes.
+    pub fn epoch_steps_done(&self) -> usize {
+        self.file.metadata.training["epoch_steps_done"]
+            .as_u64()
+            .unwrap_or(0) as usize
     }
 
     /// The optimiser's moments and step counter.
@@ -305,6 +330,9 @@ pub fn train(
             )));
         }
     }
+    if options.model == ModelKind::Siren && options.distance == DistanceMode::Unsigned {
+        return Err(RunError::UnsignedSiren);
+    }
     if options.model == ModelKind::Nglod && options.siren_weights.is_some() {
         return Err(RunError::Options(
             "loss weights apply to SIREN; NGLOD's loss is the squared error".into(),
@@ -412,15 +440,24 @@ pub fn train(
             if let Some(lr) = options.lr {
                 train_config.adam.lr = lr;
             }
+            if let Some(f) = options.lr_final {
+                train_config.lr_final = (f != 1.0).then_some(f);
+            }
+            if let Some(g) = options.grow_every {
+                train_config.grow_every = (g > 0).then_some(g);
+            }
+            train_config.distance = options.distance;
+            if let Some((blocks, every)) = options.pool {
+                train_config.pool_blocks = blocks;
+                train_config.refresh_every = every;
+            }
             let per_epoch = (train_config.uniform_points
                 + train_config.near_points
                 + train_config.surface_points) as f64;
-            // NGLOD trains at a fixed learning rate.
-            let lr = train_config.adam.lr;
             let mut trainer = NglodTrainer::new(gpu, &model, mesh, train_config)?;
             trainer.set_stop_flag(stop.clone());
             if let Some(c) = resume {
-                trainer.resume(&c.optimizer()?, first)?;
+                trainer.resume(&c.optimizer()?, first, c.epoch_steps_done())?;
             }
             let report = trainer.train_with(|e| {
                 let done = e.epoch + 1;
@@ -429,7 +466,7 @@ pub fn train(
                     total,
                     unit: "epoch",
                     loss: e.loss,
-                    lr,
+                    lr: e.lr,
                     points_per_second: (done - first) as f64 * per_epoch
                         / start.elapsed().as_secs_f64().max(1e-9),
                 });
@@ -437,6 +474,10 @@ pub fn train(
             let trained = trainer.model()?;
             let optimizer = trainer.optimizer_state()?;
             let done = trainer.epochs_done();
+            let lr = report
+                .epochs
+                .last()
+                .map_or(trainer.config().adam.lr, |e| e.lr);
             let mut training = with_run_record(
                 trainer.training_json(Some(&report)),
                 training_json(done, report.final_loss),

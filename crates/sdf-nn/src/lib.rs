@@ -38,6 +38,8 @@ pub use embed::{EmbedError, SdfBindGroup};
 pub use gpu::{GpuContext, GpuError, GpuOptions};
 pub use model_file::{ModelFile, ModelFileError, Normalization};
 pub use neural::{NeuralSdf, NeuralSdfError};
-pub use nglod::{Nglod, NglodConfig, NglodError, NglodGpu, NglodTrainConfig, NglodTrainer};
+pub use nglod::{
+    DistanceMode, Nglod, NglodConfig, NglodError, NglodGpu, NglodTrainConfig, NglodTrainer,
+};
 pub use render::{RenderError, RenderOptions, Renderer, RgbaImage, render};
 pub use siren::{LossWeights, Siren, SirenConfig, SirenGpu, SirenTrainConfig, SirenTrainer};
