@@ -174,10 +174,10 @@ fn corpus(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
                 Ok((_, trained)) if trained.interrupted => break,
                 Ok((report, _)) => {
                     eprintln!(
-                        "{name} {}: F1 box {:.3}, near {:.3}, {:.0} s",
+                        "{name} {}: F1 box {}, near {}, {:.0} s",
                         model.name(),
-                        report.f1_bbox,
-                        report.f1_near_surface,
+                        f3(report.f1_bbox),
+                        f3(report.f1_near_surface),
                         report.train_seconds
                     );
                     Entry::Done(Box::new(report))
@@ -224,6 +224,11 @@ fn record_path(state_dir: &Path, mesh: &Path, model: ModelKind) -> (String, Path
     (name, record)
 }
 
+/// An F1 to three decimals, or "n/a" where it is undefined (a mesh without an inside).
+fn f3(x: Option<f64>) -> String {
+    x.map_or_else(|| "n/a".to_owned(), |v| format!("{v:.3}"))
+}
+
 fn read_entry(path: &Path) -> Option<Entry> {
     serde_json::from_slice(&std::fs::read(path).ok()?).ok()
 }
@@ -250,25 +255,30 @@ fn markdown(entries: &BTreeMap<(&str, String), Entry>, preset: Preset, adapter: 
             "| mesh | F1 in bounding box | F1 near surface | mean | train s | ns/point | µs/3000 | params | file bytes |"
         );
         let _ = writeln!(s, "| --- | --- | --- | --- | --- | --- | --- | --- | --- |");
-        let (mut fb, mut fnr, mut n) = (0.0, 0.0, 0usize);
+        let (mut fb, mut fnr, mut n, mut left_out) = (0.0, 0.0, 0usize, 0usize);
         for ((_, mesh), e) in &rows {
             match e {
                 Entry::Done(r) => {
                     let _ = writeln!(
                         s,
-                        "| {mesh} | {:.3} | {:.3} | {:.3} | {:.0} | {:.0} | {:.0} | {} | {} |",
-                        r.f1_bbox,
-                        r.f1_near_surface,
-                        r.f1_mean,
+                        "| {mesh} | {} | {} | {} | {:.0} | {:.0} | {:.0} | {} | {} |",
+                        f3(r.f1_bbox),
+                        f3(r.f1_near_surface),
+                        f3(r.f1_mean),
                         r.train_seconds,
                         r.per_point_ns,
                         r.batch3000_us,
                         r.params,
                         r.file_bytes
                     );
-                    fb += r.f1_bbox;
-                    fnr += r.f1_near_surface;
-                    n += 1;
+                    // A mesh without an inside has no F1: left out of the averages.
+                    if let (Some(b), Some(near)) = (r.f1_bbox, r.f1_near_surface) {
+                        fb += b;
+                        fnr += near;
+                        n += 1;
+                    } else {
+                        left_out += 1;
+                    }
                 }
                 Entry::Failed { error, .. } => {
                     let _ = writeln!(
@@ -278,6 +288,12 @@ fn markdown(entries: &BTreeMap<(&str, String), Entry>, preset: Preset, adapter: 
                     );
                 }
             }
+        }
+        if left_out > 0 {
+            let _ = writeln!(
+                s,
+                "| n/a: {left_out} mesh(es) without an inside (F1 undefined), left out of the average | | | | | | | | |"
+            );
         }
         if n > 0 {
             let (rb, rn) = reference(model);

@@ -175,6 +175,16 @@ fn train(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
             preset
         }
     };
+    if options_distance(args) == DistanceMode::Signed
+        && let Some(reason) = run::no_inside_check(&mesh)?
+    {
+        eprintln!(
+            "warning: {}: {reason}. Its F1 will be reported as null (n/a); sign accuracy and \
+             distance errors are still reported. To fit it anyway, try --distance unsigned \
+             (fits the unsigned distance |d|, scored by distance error and Chamfer distance).",
+            args.mesh.display()
+        );
+    }
     let out = args
         .out
         .clone()
@@ -193,10 +203,7 @@ fn train(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
         siren_weights: args.siren_weights(),
         lr_final: args.lr_final,
         grow_every: args.grow_every,
-        distance: match args.distance {
-            DistanceArg::Signed => DistanceMode::Signed,
-            DistanceArg::Unsigned => DistanceMode::Unsigned,
-        },
+        distance: options_distance(args),
         pool: args.pool,
     };
     eprintln!(
@@ -268,13 +275,19 @@ fn train(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
         gpu.describe(),
     );
     report.write(&report_path)?;
+    let f4 = |x: Option<f64>| x.map_or_else(|| "n/a".to_owned(), |v| format!("{v:.4}"));
+    let chamfer = report
+        .chamfer_l1
+        .map(|c| format!(", Chamfer-L1 {c:.5} (level set {})", run::UNSIGNED_LEVEL))
+        .unwrap_or_default();
     println!(
-        "{} {}: F1 box {:.4}, near surface {:.4}, mean {:.4}; {:.1} ns/point, {:.0} µs per 3000; {} params, {} bytes; trained in {:.1} s",
+        "{} {}: F1 box {}, near surface {}, mean {}; |Φ−d| near {:.5}{chamfer}; {:.1} ns/point, {:.0} µs per 3000; {} params, {} bytes; trained in {:.1} s",
         args.mesh.display(),
         model.name(),
-        report.f1_bbox,
-        report.f1_near_surface,
-        report.f1_mean,
+        f4(report.f1_bbox),
+        f4(report.f1_near_surface),
+        f4(report.f1_mean),
+        report.near_surface_mean_abs_error,
         report.per_point_ns,
         report.batch3000_us,
         report.params,
@@ -283,6 +296,13 @@ fn train(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
     );
     eprintln!("report written to {}", report_path.display());
     Ok(())
+}
+
+fn options_distance(args: &Args) -> DistanceMode {
+    match args.distance {
+        DistanceArg::Signed => DistanceMode::Signed,
+        DistanceArg::Unsigned => DistanceMode::Unsigned,
+    }
 }
 
 fn parse_pool(s: &str) -> Result<(usize, usize), String> {

@@ -519,6 +519,46 @@ pub struct Evaluation {
     pub latency: Latency,
     /// Points in each evaluation set.
     pub eval_points: usize,
+    /// Unsigned fields: the mesh against the level set Φ = [`UNSIGNED_LEVEL`].
+    pub chamfer: Option<crate::metrics::SurfaceMetrics>,
+}
+
+/// The level set of an unsigned field that stands for its surface (|d| has no zero crossing for
+/// marching cubes to find): one cell of the [`UNSIGNED_EXTRACT_RESOLUTION`] grid, in normalised
+/// units.
+pub const UNSIGNED_LEVEL: f32 = 2.0 / UNSIGNED_EXTRACT_RESOLUTION as f32;
+/// Cells per axis of the extraction behind an unsigned field's Chamfer distance.
+pub const UNSIGNED_EXTRACT_RESOLUTION: u32 = 128;
+
+/// Whether a model file holds an unsigned distance field (`training.distance`).
+pub fn is_unsigned(file: &ModelFile) -> bool {
+    file.metadata
+        .training
+        .get("distance")
+        .and_then(|d| d.as_str())
+        == Some(DistanceMode::Unsigned.name())
+}
+
+/// Why F1 would be undefined for `mesh` (normalised): (almost) no inside among a quick sample
+/// of box and near-surface points (same bounds as the evaluation,
+/// [`crate::metrics::no_inside_reason`]). For a warning before training.
+pub fn no_inside_check(mesh: &Mesh) -> Result<Option<String>, RunError> {
+    let sdf = SignedDistance::new(mesh).map_err(|source| RunError::Mesh {
+        path: PathBuf::from("<normalised mesh>"),
+        source,
+    })?;
+    let clear = |points: Vec<Vec3>| {
+        let truth = sdf.signed_distance_batch(&points);
+        crate::metrics::clear_inside_fraction(&sdf, &points, &truth)
+    };
+    let b = clear(sdf_geom::sample::uniform_box(20_000, EVAL_SEED));
+    let n = clear(sdf_geom::sample::near_surface(
+        mesh,
+        20_000,
+        crate::metrics::NEAR_SURFACE_SIGMA,
+        EVAL_SEED ^ 1,
+    ));
+    Ok(crate::metrics::no_inside_reason(b, n))
 }
 
 /// Scores and times `model` against the exact SDF of the normalised `mesh`.
@@ -533,7 +573,33 @@ pub fn evaluate(
         source,
     })?;
     let sets = EvalSets::new(mesh, &sdf, points, EVAL_SEED);
-    let scores = sets.score(|p: &[Vec3]| model.eval_normalized(gpu, p))?;
+    let unsigned = is_unsigned(model.model_file());
+    let scores = if unsigned {
+        sets.score_unsigned(|p: &[Vec3]| model.eval_normalized(gpu, p))?
+    } else {
+        sets.score(|p: &[Vec3]| model.eval_normalized(gpu, p))?
+    };
+    let chamfer = if unsigned {
+        let (level_set, _) = extract_surface(
+            |p: &[Vec3]| {
+                model.eval_normalized(gpu, p).map(|d| {
+                    d.into_iter()
+                        .map(|x| x - UNSIGNED_LEVEL)
+                        .collect::<Vec<_>>()
+                })
+            },
+            &ExtractOptions::new(UNSIGNED_EXTRACT_RESOLUTION),
+        )
+        .map_err(|e| match e {
+            ExtractError::Eval(e) => RunError::Model(e),
+            other => RunError::Options(other.to_string()),
+        })?;
+        // An empty level set (the model never gets that close to 0) has no Chamfer distance.
+        crate::metrics::SurfaceMetrics::between(&level_set, mesh, points.min(20_000), EVAL_SEED)
+            .ok()
+    } else {
+        None
+    };
     // GPU time per point from timestamp queries where the adapter has them (NGLOD for now).
     let latency = measure_latency_timed(&sets.bbox.points, 10, |p| {
         model.eval_normalized_timed(gpu, p)
@@ -542,6 +608,7 @@ pub fn evaluate(
         scores,
         latency,
         eval_points: points,
+        chamfer,
     })
 }
 
@@ -580,16 +647,32 @@ pub struct Report {
     pub params: usize,
     /// Model file size in bytes.
     pub file_bytes: u64,
-    /// F1 of the inside class, uniform box points.
-    pub f1_bbox: f64,
+    /// F1 of the inside class, uniform box points (null when undefined: `f1_null_reason`).
+    pub f1_bbox: Option<f64>,
     /// F1 of the inside class, near-surface points.
-    pub f1_near_surface: f64,
+    pub f1_near_surface: Option<f64>,
     /// Mean of the two.
-    pub f1_mean: f64,
-    /// Sign accuracy, box points.
-    pub sign_accuracy_bbox: f64,
+    pub f1_mean: Option<f64>,
+    /// Why the F1 fields are null: a mesh without an inside, or an unsigned field.
+    #[serde(default)]
+    pub f1_null_reason: Option<String>,
+    /// `"signed"` or `"unsigned"`: what the model fits.
+    #[serde(default)]
+    pub distance: Option<DistanceMode>,
+    /// Sign accuracy, box points (null for an unsigned field).
+    pub sign_accuracy_bbox: Option<f64>,
     /// Sign accuracy, near-surface points.
-    pub sign_accuracy_near_surface: f64,
+    pub sign_accuracy_near_surface: Option<f64>,
+    /// Exact fraction of the box points inside the mesh.
+    #[serde(default)]
+    pub inside_fraction_bbox: f64,
+    /// Mean |Φ − SDF| on the box points, normalised units (|Φ − |SDF|| for an unsigned field).
+    #[serde(default)]
+    pub bbox_mean_abs_error: f64,
+    /// Unsigned fields: symmetric Chamfer-L1 distance between the mesh and the extracted
+    /// level set Φ = [`UNSIGNED_LEVEL`] (normalised units; an exact |d| scores about that level).
+    #[serde(default)]
+    pub chamfer_l1: Option<f64>,
     /// Mean |Φ − SDF| near the surface, normalised units.
     pub near_surface_mean_abs_error: f64,
     /// Max |Φ − SDF| near the surface, normalised units.
@@ -636,8 +719,13 @@ impl Report {
             f1_bbox: s.f1_bbox,
             f1_near_surface: s.f1_near_surface,
             f1_mean: s.f1_mean,
+            f1_null_reason: s.f1_null_reason.clone(),
+            distance: Some(options.distance),
             sign_accuracy_bbox: s.sign_accuracy_bbox,
             sign_accuracy_near_surface: s.sign_accuracy_near_surface,
+            inside_fraction_bbox: s.inside_fraction_bbox,
+            bbox_mean_abs_error: s.bbox_error.mean_abs,
+            chamfer_l1: eval.chamfer.map(|c| c.chamfer_l1),
             near_surface_mean_abs_error: s.near_surface_error.mean_abs,
             near_surface_max_abs_error: s.near_surface_error.max_abs,
             per_point_ns: eval.latency.per_point_ns,
