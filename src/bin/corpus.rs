@@ -115,7 +115,15 @@ fn corpus(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
     let preset = match args.preset {
         Some(PresetArg::Default) => Preset::Default,
         Some(PresetArg::Small) => Preset::Small,
-        None => Preset::for_adapter(gpu.is_cpu()),
+        // SIREN's CPU preset wins when both run: one preset for the whole table.
+        None => Preset::for_adapter(
+            gpu.is_cpu(),
+            if models.contains(&ModelKind::Siren) {
+                ModelKind::Siren
+            } else {
+                ModelKind::Nglod
+            },
+        ),
     };
     let state_dir = PathBuf::from(format!("{}.d", args.out.display()));
     std::fs::create_dir_all(&state_dir).map_err(|e| format!("{}: {e}", state_dir.display()))?;

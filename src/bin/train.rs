@@ -46,13 +46,13 @@ struct Args {
     /// Architecture.
     #[arg(long, value_enum, default_value = "nglod")]
     model: Model,
-    /// Size preset. Defaults to `default` on a GPU and `small` on a CPU adapter (lavapipe).
+    /// Size preset (default: `default`).
     #[arg(long, value_enum)]
     preset: Option<PresetArg>,
     /// SIREN training steps (default: 10000 on a GPU, a few hundred on a CPU adapter).
     #[arg(long, conflicts_with = "epochs")]
     steps: Option<usize>,
-    /// NGLOD epochs of 5·10^5 points (default: 20 on a GPU, a few on a CPU adapter).
+    /// NGLOD epochs of 5·10^5 points (default: 100 on a GPU, 12 on a CPU adapter).
     #[arg(long)]
     epochs: Option<usize>,
     /// Seed of initialisation and sampling.
@@ -166,10 +166,11 @@ fn train(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
         Some(PresetArg::Default) => Preset::Default,
         Some(PresetArg::Small) => Preset::Small,
         None => {
-            let preset = Preset::for_adapter(gpu.is_cpu());
+            let preset = Preset::for_adapter(gpu.is_cpu(), model);
             if gpu.is_cpu() {
                 eprintln!(
-                    "note: CPU adapter; using the `small` preset (pass --preset default to override)"
+                    "note: CPU adapter; using the `{}` preset and a shorter default run (pass --preset/--epochs/--steps to override)",
+                    preset.name()
                 );
             }
             preset

@@ -95,8 +95,10 @@ pub enum Preset {
 impl Preset {
     /// The preset used when none is asked for: `small` on a CPU adapter (lavapipe), where the
     /// design document's networks train too slowly, `default` on a GPU.
-    pub fn for_adapter(cpu_adapter: bool) -> Self {
-        if cpu_adapter {
+    /// NGLOD: `default` everywhere (`small` is capacity-bound and no longer saves time on
+    /// lavapipe: issue 14, BENCHMARKS.md). SIREN: `small` on a CPU adapter, `default` on a GPU.
+    pub fn for_adapter(cpu_adapter: bool, model: ModelKind) -> Self {
+        if cpu_adapter && model == ModelKind::Siren {
             Preset::Small
         } else {
             Preset::Default
@@ -289,7 +291,8 @@ pub fn default_length(model: ModelKind, preset: Preset, cpu_adapter: bool) -> us
         (ModelKind::Siren, Preset::Default, true) => 100,
         (ModelKind::Nglod, _, false) => NglodTrainConfig::default().epochs,
         (ModelKind::Nglod, Preset::Small, true) => 4,
-        (ModelKind::Nglod, Preset::Default, true) => 2,
+        // About a minute on the 2-core box with lavapipe (8 epochs: 31-77 s of training under load).
+        (ModelKind::Nglod, Preset::Default, true) => 12,
     }
 }
 
