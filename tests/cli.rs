@@ -358,3 +358,190 @@ fn siren_loss_and_learning_rate_flags_reach_the_model_file() {
     assert_clean_failure(&o, "SIREN");
     assert!(!scratch("never.safetensors").exists());
 }
+
+/// OBJ text of an open `n`×`n` grid over [-1, 1]² lifted by `z(x, y)`.
+fn sheet_obj(n: u32, z: impl Fn(f32, f32) -> f32) -> String {
+    use std::fmt::Write;
+    let mut s = String::new();
+    for j in 0..=n {
+        for i in 0..=n {
+            let (x, y) = (
+                i as f32 / n as f32 * 2.0 - 1.0,
+                j as f32 / n as f32 * 2.0 - 1.0,
+            );
+            let _ = writeln!(s, "v {x} {y} {}", z(x, y));
+        }
+    }
+    let id = |i: u32, j: u32| j * (n + 1) + i + 1;
+    for j in 0..n {
+        for i in 0..n {
+            let _ = writeln!(s, "f {} {} {}", id(i, j), id(i + 1, j), id(i + 1, j + 1));
+            let _ = writeln!(s, "f {} {} {}", id(i, j), id(i + 1, j + 1), id(i, j + 1));
+        }
+    }
+    s
+}
+
+/// A mesh's OBJ with every face stored twice, once per orientation (winding number 0).
+fn two_sided_obj(obj: &str) -> String {
+    let mut s = String::new();
+    for line in obj.lines() {
+        s.push_str(line);
+        s.push('\n');
+        if let Some(rest) = line.strip_prefix("f ") {
+            let v: Vec<&str> = rest.split_whitespace().collect();
+            s.push_str(&format!(
+                "f {}\n",
+                v.iter().rev().copied().collect::<Vec<_>>().join(" ")
+            ));
+        }
+    }
+    s
+}
+
+/// Fixtures without an inside: a flat z = 0 sheet, an open wavy sheet, a two-sided soup of a
+/// closed mesh (spot).
+fn no_inside_fixtures(dir: &Path) -> Vec<PathBuf> {
+    std::fs::create_dir_all(dir).unwrap();
+    let files = [
+        ("flat.obj", sheet_obj(6, |_, _| 0.0)),
+        (
+            "wavy.obj",
+            sheet_obj(12, |x, y| 0.15 * (2.0 * x).sin() * (1.5 * y).cos()),
+        ),
+        (
+            "two-sided.obj",
+            two_sided_obj(&std::fs::read_to_string(data("spot.obj")).unwrap()),
+        ),
+    ];
+    files
+        .into_iter()
+        .map(|(name, text)| {
+            let p = dir.join(name);
+            std::fs::write(&p, text).unwrap();
+            p
+        })
+        .collect()
+}
+
+#[test]
+fn meshes_without_an_inside_warn_report_null_f1_and_corpus_leaves_them_out() {
+    let dir = scratch("no-inside");
+    let fixtures = no_inside_fixtures(&dir);
+    std::fs::copy(data("suzanne.obj"), dir.join("suzanne.obj")).unwrap();
+    // `train` warns in plain words, suggests the unsigned mode, and reports F1 as null.
+    let report = scratch("flat.nglod.json");
+    let o = bin("train")
+        .arg(&fixtures[0])
+        .args(["--model", "nglod", "--preset", "small", "--epochs", "1"])
+        .args(["--eval-points", "2000", "--out"])
+        .arg(scratch("flat.nglod.safetensors"))
+        .arg("--report")
+        .arg(&report)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", stderr(&o));
+    let err = stderr(&o);
+    assert!(
+        err.contains("warning:") && err.contains("no inside"),
+        "{err}"
+    );
+    assert!(err.contains("--distance unsigned"), "{err}");
+    let json: serde_json::Value = serde_json::from_slice(&std::fs::read(&report).unwrap()).unwrap();
+    for k in ["f1_bbox", "f1_near_surface", "f1_mean"] {
+        assert!(json[k].is_null(), "{k}: {json}");
+    }
+    assert!(
+        json["f1_null_reason"]
+            .as_str()
+            .unwrap()
+            .contains("no inside"),
+        "{json}"
+    );
+    // Sign accuracy and distance errors are still there; the sheet has no inside, and the
+    // model learns that.
+    assert!(json["sign_accuracy_bbox"].as_f64().unwrap() > 0.9, "{json}");
+    assert!(json["near_surface_mean_abs_error"].as_f64().is_some());
+    assert!(String::from_utf8_lossy(&o.stdout).contains("n/a"));
+
+    // `corpus`: n/a for the three, an average over suzanne alone, saying what it left out.
+    let out = scratch("no-inside.md");
+    let o = bin("corpus")
+        .arg(&dir)
+        .args([
+            "--model",
+            "nglod",
+            "--epochs",
+            "1",
+            "--eval-points",
+            "2000",
+            "--out",
+        ])
+        .arg(&out)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", stderr(&o));
+    let table = std::fs::read_to_string(&out).unwrap();
+    for name in ["flat.obj", "wavy.obj", "two-sided.obj"] {
+        let row = table
+            .lines()
+            .find(|l| l.starts_with(&format!("| {name} |")))
+            .unwrap_or_else(|| panic!("no {name} row: {table}"));
+        assert!(
+            row.starts_with(&format!("| {name} | n/a | n/a | n/a |")),
+            "{row}"
+        );
+    }
+    assert!(
+        table.contains("n/a: 3 mesh(es) without an inside"),
+        "{table}"
+    );
+    assert!(table.contains("**average (1 meshes)**"), "{table}");
+}
+
+#[test]
+fn unsigned_mode_fits_a_flat_sheet_and_reports_distance_and_chamfer() {
+    let dir = scratch("unsigned");
+    let flat = no_inside_fixtures(&dir).remove(0);
+    let report = scratch("flat-unsigned.json");
+    let o = bin("train")
+        .arg(&flat)
+        .args(["--model", "nglod", "--preset", "small", "--epochs", "1"])
+        .args(["--distance", "unsigned", "--eval-points", "2000", "--out"])
+        .arg(scratch("flat-unsigned.safetensors"))
+        .arg("--report")
+        .arg(&report)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", stderr(&o));
+    // No warning: the user already chose the unsigned mode.
+    assert!(!stderr(&o).contains("warning:"), "{}", stderr(&o));
+    let json: serde_json::Value = serde_json::from_slice(&std::fs::read(&report).unwrap()).unwrap();
+    assert_eq!(json["distance"], "unsigned", "{json}");
+    assert!(
+        json["f1_bbox"].is_null() && json["sign_accuracy_bbox"].is_null(),
+        "{json}"
+    );
+    assert!(
+        json["f1_null_reason"]
+            .as_str()
+            .unwrap()
+            .contains("unsigned"),
+        "{json}"
+    );
+    assert_eq!(json["training"]["distance"], "unsigned", "{json}");
+    // One epoch of the small model already fits |d| closely, and the extracted level set lies
+    // near the sheet (an exact |d| scores about the level, 2/128).
+    let err = json["near_surface_mean_abs_error"].as_f64().unwrap();
+    assert!(err < 0.02, "{json}");
+    let chamfer = json["chamfer_l1"].as_f64().unwrap();
+    assert!(chamfer < 0.05, "{json}");
+    // SIREN has no unsigned mode: a clear error.
+    let o = bin("train")
+        .arg(&flat)
+        .args(["--model", "siren", "--preset", "small", "--steps", "1"])
+        .args(["--distance", "unsigned"])
+        .output()
+        .unwrap();
+    assert_clean_failure(&o, "unsigned distance is supported for NGLOD only");
+}

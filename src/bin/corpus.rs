@@ -144,7 +144,15 @@ fn corpus(args: &Args) -> Result<ExitCode, BoxError> {
     let preset = match args.preset {
         Some(PresetArg::Default) => Preset::Default,
         Some(PresetArg::Small) => Preset::Small,
-        None => Preset::for_adapter(gpu.is_cpu()),
+        // SIREN's CPU preset wins when both run: one preset for the whole table.
+        None => Preset::for_adapter(
+            gpu.is_cpu(),
+            if models.contains(&ModelKind::Siren) {
+                ModelKind::Siren
+            } else {
+                ModelKind::Nglod
+            },
+        ),
     };
     let stop = Arc::new(AtomicBool::new(false));
     {
@@ -210,6 +218,10 @@ fn corpus(args: &Args) -> Result<ExitCode, BoxError> {
                 seed: args.seed,
                 lr: None,
                 siren_weights: None,
+                lr_final: None,
+                grow_every: None,
+                distance: hwsdf::nn::DistanceMode::Signed,
+                pool: None,
             };
             eprintln!("{rel} {tag}: training");
             let outcome = run::run(
@@ -235,8 +247,10 @@ fn corpus(args: &Args) -> Result<ExitCode, BoxError> {
                 }
                 Ok(RunOutcome::Finished(report, _)) => {
                     eprintln!(
-                        "{rel} {tag}: F1 box {:.3}, near {:.3}, {:.0} s",
-                        report.f1_bbox, report.f1_near_surface, report.train_seconds
+                        "{rel} {tag}: F1 box {}, near {}, {:.0} s",
+                        corpus::f1_cell(report.f1_bbox),
+                        corpus::f1_cell(report.f1_near_surface),
+                        report.train_seconds
                     );
                     Entry::Done(report)
                 }

@@ -100,6 +100,9 @@ fn eval(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
         "f1_mean": scores.f1_mean,
         "sign_accuracy_bbox": scores.sign_accuracy_bbox,
         "sign_accuracy_near_surface": scores.sign_accuracy_near_surface,
+        "f1_null_reason": scores.f1_null_reason,
+        "inside_fraction_bbox": scores.inside_fraction_bbox,
+        "bbox_mean_abs_error": scores.bbox_error.mean_abs,
         "near_surface_mean_abs_error": scores.near_surface_error.mean_abs,
         "near_surface_max_abs_error": scores.near_surface_error.max_abs,
         "per_point_ns": latency.per_point_ns,
@@ -122,13 +125,20 @@ fn eval(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
             file_bytes
         );
         println!("mesh             {}", args.mesh.display());
+        let f4 = |x: Option<f64>| x.map_or_else(|| "n/a".to_owned(), |v| format!("{v:.4}"));
         println!(
-            "F1 box / near    {:.4} / {:.4} (mean {:.4})",
-            scores.f1_bbox, scores.f1_near_surface, scores.f1_mean
+            "F1 box / near    {} / {} (mean {})",
+            f4(scores.f1_bbox),
+            f4(scores.f1_near_surface),
+            f4(scores.f1_mean)
         );
+        if let Some(reason) = &scores.f1_null_reason {
+            println!("                 n/a: {reason}");
+        }
         println!(
-            "sign accuracy    {:.4} / {:.4}",
-            scores.sign_accuracy_bbox, scores.sign_accuracy_near_surface
+            "sign accuracy    {} / {}",
+            f4(scores.sign_accuracy_bbox),
+            f4(scores.sign_accuracy_near_surface)
         );
         println!(
             "|Φ−SDF| near     mean {:.5}, max {:.5} (normalised units)",

@@ -17,13 +17,19 @@ use clap::{Parser, ValueEnum};
 use hwsdf::eval::metrics::DEFAULT_EVAL_POINTS;
 use hwsdf::eval::run::{self, ModelKind, Preset, Progress, TrainOptions};
 use hwsdf::geom::io;
-use hwsdf::nn::{GpuContext, LossWeights, NeuralSdf};
+use hwsdf::nn::{DistanceMode, GpuContext, LossWeights, NeuralSdf};
 use indicatif::{ProgressBar, ProgressStyle};
 
 #[derive(Clone, Copy, Debug, ValueEnum)]
 enum Model {
     Siren,
     Nglod,
+}
+
+#[derive(Clone, Copy, Debug, ValueEnum)]
+enum DistanceArg {
+    Signed,
+    Unsigned,
 }
 
 #[derive(Clone, Copy, Debug, ValueEnum)]
@@ -44,13 +50,13 @@ struct Args {
     /// Architecture.
     #[arg(long, value_enum, default_value = "nglod")]
     model: Model,
-    /// Size preset. Defaults to `default` on a GPU and `small` on a CPU adapter (lavapipe).
+    /// Size preset (default: `default`).
     #[arg(long, value_enum)]
     preset: Option<PresetArg>,
     /// SIREN training steps (default: 10000 on a GPU, a few hundred on a CPU adapter).
     #[arg(long, conflicts_with = "epochs")]
     steps: Option<usize>,
-    /// NGLOD epochs of 5·10^5 points (default: 20 on a GPU, a few on a CPU adapter).
+    /// NGLOD epochs of 5·10^5 points (default: 100 on a GPU, 12 on a CPU adapter).
     #[arg(long)]
     epochs: Option<usize>,
     /// Seed of initialisation and sampling.
@@ -71,6 +77,23 @@ struct Args {
     /// Initial learning rate (default: 1e-4 for SIREN, 1e-3 for NGLOD).
     #[arg(long)]
     lr: Option<f32>,
+    /// NGLOD: final learning rate as a fraction of the first, by cosine decay over the run
+    /// (1 keeps it constant).
+    #[arg(long)]
+    lr_final: Option<f32>,
+    /// NGLOD: progressive levels of detail, one more every this many epochs (0: all at once).
+    #[arg(long)]
+    grow_every: Option<usize>,
+    /// NGLOD: blocks of one epoch's worth of labelled points in the sample pool, and epochs
+    /// between fresh blocks once it is full, as BLOCKS,EVERY (default 4,4; 1,1 samples fresh
+    /// points every epoch).
+    #[arg(long, value_parser = parse_pool)]
+    pool: Option<(usize, usize)>,
+    /// Fit the signed distance, or the unsigned one |d| for meshes without an inside (flat or
+    /// open sheets, two-sided triangle soups); unsigned is scored by distance error and Chamfer
+    /// distance, not F1. NGLOD only.
+    #[arg(long, value_enum, default_value = "signed")]
+    distance: DistanceArg,
     /// SIREN loss: weight of the on-surface |Φ| term (default 3000).
     #[arg(long, help_heading = "SIREN loss")]
     surface_weight: Option<f32>,
@@ -176,15 +199,26 @@ fn train(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
         Some(PresetArg::Default) => Preset::Default,
         Some(PresetArg::Small) => Preset::Small,
         None => {
-            let preset = Preset::for_adapter(gpu.is_cpu());
+            let preset = Preset::for_adapter(gpu.is_cpu(), model);
             if gpu.is_cpu() {
                 eprintln!(
-                    "note: CPU adapter; using the `small` preset (pass --preset default to override)"
+                    "note: CPU adapter; using the `{}` preset and a shorter default run (pass --preset/--epochs/--steps to override)",
+                    preset.name()
                 );
             }
             preset
         }
     };
+    if options_distance(args) == DistanceMode::Signed
+        && let Some(reason) = run::no_inside_check(&mesh)?
+    {
+        eprintln!(
+            "warning: {}: {reason}. Its F1 will be reported as null (n/a); sign accuracy and \
+             distance errors are still reported. To fit it anyway, try --distance unsigned \
+             (fits the unsigned distance |d|, scored by distance error and Chamfer distance).",
+            args.mesh.display()
+        );
+    }
     let options = TrainOptions {
         model,
         preset,
@@ -193,6 +227,10 @@ fn train(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
         seed: args.seed,
         lr: args.lr,
         siren_weights: args.siren_weights(),
+        lr_final: args.lr_final,
+        grow_every: args.grow_every,
+        distance: options_distance(args),
+        pool: args.pool,
     };
     eprintln!(
         "training {} ({}) on {} with {}",
@@ -275,13 +313,19 @@ fn train(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
         gpu.describe(),
     );
     report.write(&report_path)?;
+    let f4 = |x: Option<f64>| x.map_or_else(|| "n/a".to_owned(), |v| format!("{v:.4}"));
+    let chamfer = report
+        .chamfer_l1
+        .map(|c| format!(", Chamfer-L1 {c:.5} (level set {})", run::UNSIGNED_LEVEL))
+        .unwrap_or_default();
     println!(
-        "{} {}: F1 box {:.4}, near surface {:.4}, mean {:.4}; {:.1} ns/point, {:.0} µs per 3000; {} params, {} bytes; trained in {:.1} s",
+        "{} {}: F1 box {}, near surface {}, mean {}; |Φ−d| near {:.5}{chamfer}; {:.1} ns/point, {:.0} µs per 3000; {} params, {} bytes; trained in {:.1} s",
         args.mesh.display(),
         model.name(),
-        report.f1_bbox,
-        report.f1_near_surface,
-        report.f1_mean,
+        f4(report.f1_bbox),
+        f4(report.f1_near_surface),
+        f4(report.f1_mean),
+        report.near_surface_mean_abs_error,
         report.per_point_ns,
         report.batch3000_us,
         report.params,
@@ -290,6 +334,24 @@ fn train(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
     );
     eprintln!("report written to {}", report_path.display());
     Ok(())
+}
+
+fn options_distance(args: &Args) -> DistanceMode {
+    match args.distance {
+        DistanceArg::Signed => DistanceMode::Signed,
+        DistanceArg::Unsigned => DistanceMode::Unsigned,
+    }
+}
+
+fn parse_pool(s: &str) -> Result<(usize, usize), String> {
+    let (a, b) = s
+        .split_once(',')
+        .ok_or_else(|| format!("expected BLOCKS,EVERY, not {s:?}"))?;
+    let parse = |x: &str| match x.trim().parse::<usize>() {
+        Ok(v) if v > 0 => Ok(v),
+        _ => Err(format!("{x:?} is not a positive integer")),
+    };
+    Ok((parse(a)?, parse(b)?))
 }
 
 fn default_out(mesh: &Path, model: ModelKind) -> PathBuf {

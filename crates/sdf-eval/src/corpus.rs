@@ -482,6 +482,11 @@ pub fn merge(state: &StateDir, meshes: &[CorpusMesh], models: &[ModelKind]) -> M
     m
 }
 
+/// An F1 to three decimals, or "n/a" where it is undefined (a mesh without an inside).
+pub fn f1_cell(x: Option<f64>) -> String {
+    x.map_or_else(|| "n/a".to_owned(), |v| format!("{v:.3}"))
+}
+
 /// The design document's averages (F1 in the box, F1 near the surface).
 fn reference(model: &str) -> (f64, f64) {
     match model {
@@ -574,25 +579,30 @@ impl Merge {
                 "| mesh | F1 in bounding box | F1 near surface | mean | train s | ns/point | µs/3000 | params | file bytes |"
             );
             let _ = writeln!(s, "| --- | --- | --- | --- | --- | --- | --- | --- | --- |");
-            let (mut fb, mut fnr, mut n) = (0.0, 0.0, 0usize);
+            let (mut fb, mut fnr, mut n, mut left_out) = (0.0, 0.0, 0usize, 0usize);
             for ((_, mesh), e) in &rows {
                 match e {
                     Entry::Done(r) => {
                         let _ = writeln!(
                             s,
-                            "| {mesh} | {:.3} | {:.3} | {:.3} | {:.0} | {:.0} | {:.0} | {} | {} |",
-                            r.f1_bbox,
-                            r.f1_near_surface,
-                            r.f1_mean,
+                            "| {mesh} | {} | {} | {} | {:.0} | {:.0} | {:.0} | {} | {} |",
+                            f1_cell(r.f1_bbox),
+                            f1_cell(r.f1_near_surface),
+                            f1_cell(r.f1_mean),
                             r.train_seconds,
                             r.per_point_ns,
                             r.batch3000_us,
                             r.params,
                             r.file_bytes
                         );
-                        fb += r.f1_bbox;
-                        fnr += r.f1_near_surface;
-                        n += 1;
+                        // A mesh without an inside has no F1: left out of the averages.
+                        if let (Some(b), Some(near)) = (r.f1_bbox, r.f1_near_surface) {
+                            fb += b;
+                            fnr += near;
+                            n += 1;
+                        } else {
+                            left_out += 1;
+                        }
                     }
                     Entry::Failed { error, .. } => {
                         let _ = writeln!(
@@ -602,6 +612,12 @@ impl Merge {
                         );
                     }
                 }
+            }
+            if left_out > 0 {
+                let _ = writeln!(
+                    s,
+                    "| n/a: {left_out} mesh(es) without an inside (F1 undefined), left out of the average | | | | | | | | |"
+                );
             }
             if n > 0 {
                 let (rb, rn) = reference(model);

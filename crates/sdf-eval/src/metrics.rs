@@ -15,6 +15,59 @@ pub const EVAL_SEED: u64 = 0x5EED_E7A1_0000_0001;
 /// σ of the near-surface perturbation, as in the design document.
 pub const NEAR_SURFACE_SIGMA: f32 = 0.01;
 
+/// A point counts as clearly inside where the generalised winding number is at least this.
+/// Closed meshes have w ≈ 1 inside; an open sheet only bends the winding number a little past
+/// the sign threshold of 1/2 on its concave side (an open wavy sheet puts 0.7% of the box and
+/// 21% of the near-surface points "inside" by sign alone), and a two-sided soup has w = 0.
+pub const CLEAR_INSIDE_WINDING: f32 = 0.75;
+/// A mesh with fewer than this fraction of the box points clearly inside...
+pub const NO_INSIDE_BOX_FRACTION: f64 = 1e-3;
+/// ...and fewer than this fraction of the near-surface points clearly inside has no inside to
+/// score: it is flat, an open sheet or a two-sided triangle soup. The second bound keeps thin
+/// closed shapes (a slab 1% as thick as it is wide) from being flagged.
+pub const NO_INSIDE_NEAR_FRACTION: f64 = 1e-2;
+
+/// Fraction of `truth` that is inside (negative).
+pub fn inside_fraction(truth: &[f32]) -> f64 {
+    truth.iter().filter(|&&d| d < 0.0).count() as f64 / truth.len().max(1) as f64
+}
+
+/// Fraction of `points` (labelled `truth` by `sdf`) that are clearly inside: negative, with a
+/// winding number of at least [`CLEAR_INSIDE_WINDING`]. Only the negative points pay for a
+/// winding number.
+pub fn clear_inside_fraction(sdf: &SignedDistance, points: &[Vec3], truth: &[f32]) -> f64 {
+    let inside: Vec<Vec3> = points
+        .iter()
+        .zip(truth)
+        .filter(|&(_, &d)| d < 0.0)
+        .map(|(p, _)| *p)
+        .collect();
+    let clear = sdf
+        .winding_number_batch(&inside)
+        .iter()
+        .filter(|&&w| w >= CLEAR_INSIDE_WINDING)
+        .count();
+    clear as f64 / points.len().max(1) as f64
+}
+
+/// Why the inside class cannot be scored on a mesh with these fractions of box and
+/// near-surface points clearly inside ([`clear_inside_fraction`]), or `None` if it can.
+pub fn no_inside_reason(box_clear: f64, near_clear: f64) -> Option<String> {
+    (box_clear < NO_INSIDE_BOX_FRACTION && near_clear < NO_INSIDE_NEAR_FRACTION).then(|| {
+        format!(
+            "the mesh has (almost) no inside: {:.3}% of the box points and {:.3}% of the \
+             near-surface points are clearly inside (it is flat, an open sheet or a two-sided \
+             triangle soup), so the F1 of the inside class is undefined",
+            box_clear * 100.0,
+            near_clear * 100.0
+        )
+    })
+}
+
+/// Why F1 is not reported for an unsigned distance field.
+pub const UNSIGNED_REASON: &str =
+    "unsigned distance field: no inside to score; see the distance errors and Chamfer distance";
+
 /// Confusion counts of the inside class.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
 pub struct Confusion {
@@ -115,6 +168,8 @@ pub struct EvalSets {
     pub bbox: EvalSet,
     /// Poisson-disk surface samples perturbed by N(0, σ²), σ = 0.01.
     pub near_surface: EvalSet,
+    /// Fractions of the box and near-surface sets clearly inside ([`clear_inside_fraction`]).
+    pub clear_inside: (f64, f64),
 }
 
 impl EvalSets {
@@ -129,13 +184,21 @@ impl EvalSets {
             NEAR_SURFACE_SIGMA,
             seed ^ 0x7F4A_7C15,
         );
+        let (tb, tn) = (
+            sdf.signed_distance_batch(&bbox),
+            sdf.signed_distance_batch(&near),
+        );
         EvalSets {
+            clear_inside: (
+                clear_inside_fraction(sdf, &bbox, &tb),
+                clear_inside_fraction(sdf, &near, &tn),
+            ),
             bbox: EvalSet {
-                truth: sdf.signed_distance_batch(&bbox),
+                truth: tb,
                 points: bbox,
             },
             near_surface: EvalSet {
-                truth: sdf.signed_distance_batch(&near),
+                truth: tn,
                 points: near,
             },
         }
@@ -149,30 +212,57 @@ impl EvalSets {
     ) -> Result<Scores, E> {
         let pb = predict(&self.bbox.points)?;
         let pn = predict(&self.near_surface.points)?;
-        Ok(Scores::from_predictions(
+        let s = Scores::from_predictions(&pb, &self.bbox.truth, &pn, &self.near_surface.truth);
+        Ok(match self.no_inside_reason() {
+            Some(reason) => s.without_f1(reason),
+            None => s,
+        })
+    }
+
+    /// [`EvalSets::score`] for a model of the unsigned distance ([`Scores::unsigned`]).
+    pub fn score_unsigned<E>(
+        &self,
+        mut predict: impl FnMut(&[Vec3]) -> Result<Vec<f32>, E>,
+    ) -> Result<Scores, E> {
+        let pb = predict(&self.bbox.points)?;
+        let pn = predict(&self.near_surface.points)?;
+        Ok(Scores::unsigned(
             &pb,
             &self.bbox.truth,
             &pn,
             &self.near_surface.truth,
         ))
     }
+
+    /// Why F1 is undefined on this mesh ([`no_inside_reason`]), or `None`.
+    pub fn no_inside_reason(&self) -> Option<String> {
+        no_inside_reason(self.clear_inside.0, self.clear_inside.1)
+    }
 }
 
 /// What [`EvalSets::score`] reports.
-#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Scores {
-    /// F1 of the inside class on the box set.
-    pub f1_bbox: f64,
+    /// F1 of the inside class on the box set (`None` when undefined: see `f1_null_reason`).
+    pub f1_bbox: Option<f64>,
     /// F1 of the inside class on the near-surface set.
-    pub f1_near_surface: f64,
+    pub f1_near_surface: Option<f64>,
     /// Mean of the two, the design document's per-mesh figure.
-    pub f1_mean: f64,
-    /// Sign accuracy on the box set.
-    pub sign_accuracy_bbox: f64,
+    pub f1_mean: Option<f64>,
+    /// Why the F1 fields are null: a mesh without an inside, or an unsigned field.
+    pub f1_null_reason: Option<String>,
+    /// Sign accuracy on the box set (`None` for an unsigned field).
+    pub sign_accuracy_bbox: Option<f64>,
     /// Sign accuracy on the near-surface set.
-    pub sign_accuracy_near_surface: f64,
-    /// |Φ − SDF| near the surface, in normalised units.
+    pub sign_accuracy_near_surface: Option<f64>,
+    /// Fraction of the box set inside the mesh (exact).
+    pub inside_fraction_bbox: f64,
+    /// Fraction of the near-surface set inside the mesh (exact).
+    pub inside_fraction_near_surface: f64,
+    /// |Φ − SDF| near the surface, in normalised units (|Φ − |SDF|| for an unsigned field).
     pub near_surface_error: DistanceError,
+    /// |Φ − SDF| on the box set, in normalised units.
+    pub bbox_error: DistanceError,
 }
 
 impl Scores {
@@ -186,12 +276,51 @@ impl Scores {
         let cb = Confusion::from_distances(pred_bbox, truth_bbox);
         let cn = Confusion::from_distances(pred_near, truth_near);
         Scores {
-            f1_bbox: cb.f1(),
-            f1_near_surface: cn.f1(),
-            f1_mean: 0.5 * (cb.f1() + cn.f1()),
-            sign_accuracy_bbox: cb.accuracy(),
-            sign_accuracy_near_surface: cn.accuracy(),
+            f1_bbox: Some(cb.f1()),
+            f1_near_surface: Some(cn.f1()),
+            f1_mean: Some(0.5 * (cb.f1() + cn.f1())),
+            f1_null_reason: None,
+            sign_accuracy_bbox: Some(cb.accuracy()),
+            sign_accuracy_near_surface: Some(cn.accuracy()),
+            inside_fraction_bbox: inside_fraction(truth_bbox),
+            inside_fraction_near_surface: inside_fraction(truth_near),
             near_surface_error: DistanceError::between(pred_near, truth_near),
+            bbox_error: DistanceError::between(pred_bbox, truth_bbox),
+        }
+    }
+
+    /// These scores with the F1 fields null, for `reason` (a mesh without an inside); sign
+    /// accuracy and distance errors stay.
+    pub fn without_f1(self, reason: String) -> Self {
+        Scores {
+            f1_bbox: None,
+            f1_near_surface: None,
+            f1_mean: None,
+            f1_null_reason: Some(reason),
+            ..self
+        }
+    }
+
+    /// Scores of an unsigned field Φ ≈ |d| against the signed truths: distance errors against
+    /// |d|; no F1, no sign accuracy.
+    pub fn unsigned(
+        pred_bbox: &[f32],
+        truth_bbox: &[f32],
+        pred_near: &[f32],
+        truth_near: &[f32],
+    ) -> Self {
+        let abs = |t: &[f32]| t.iter().map(|d| d.abs()).collect::<Vec<f32>>();
+        Scores {
+            f1_bbox: None,
+            f1_near_surface: None,
+            f1_mean: None,
+            f1_null_reason: Some(UNSIGNED_REASON.into()),
+            sign_accuracy_bbox: None,
+            sign_accuracy_near_surface: None,
+            inside_fraction_bbox: inside_fraction(truth_bbox),
+            inside_fraction_near_surface: inside_fraction(truth_near),
+            near_surface_error: DistanceError::between(pred_near, &abs(truth_near)),
+            bbox_error: DistanceError::between(pred_bbox, &abs(truth_bbox)),
         }
     }
 }
@@ -379,14 +508,113 @@ mod tests {
         let exact = sets
             .score(|p| Ok::<_, ()>(sdf.signed_distance_batch(p)))
             .unwrap();
-        assert_eq!(exact.f1_mean, 1.0);
+        assert_eq!(exact.f1_mean, Some(1.0));
+        assert_eq!(exact.f1_null_reason, None);
         assert_eq!(exact.near_surface_error.max_abs, 0.0);
         let outside = sets.score(|p| Ok::<_, ()>(vec![1.0; p.len()])).unwrap();
-        assert_eq!(outside.f1_bbox, 0.0);
+        assert_eq!(outside.f1_bbox, Some(0.0));
         // Deterministic for a seed, different for another.
         let again = EvalSets::new(&unit, &sdf, 2000, EVAL_SEED);
         assert_eq!(again.near_surface.points, sets.near_surface.points);
         let other = EvalSets::new(&unit, &sdf, 2000, EVAL_SEED + 1);
         assert_ne!(other.bbox.points, sets.bbox.points);
+    }
+
+    /// A grid of `n`×`n` quads over [-1, 1]² lifted by `z(x, y)`: an open sheet.
+    fn sheet(n: u32, z: impl Fn(f32, f32) -> f32) -> Mesh {
+        let mut v = Vec::new();
+        for j in 0..=n {
+            for i in 0..=n {
+                let (x, y) = (
+                    i as f32 / n as f32 * 2.0 - 1.0,
+                    j as f32 / n as f32 * 2.0 - 1.0,
+                );
+                v.push(Vec3::new(x, y, z(x, y)));
+            }
+        }
+        let mut t = Vec::new();
+        let id = |i: u32, j: u32| j * (n + 1) + i;
+        for j in 0..n {
+            for i in 0..n {
+                t.push([id(i, j), id(i + 1, j), id(i + 1, j + 1)]);
+                t.push([id(i, j), id(i + 1, j + 1), id(i, j + 1)]);
+            }
+        }
+        Mesh::from_raw(v, t).unwrap().0
+    }
+
+    /// Every face stored twice, once per orientation: the winding number is 0 everywhere.
+    fn two_sided(m: &Mesh) -> Mesh {
+        let mut t = m.triangles.clone();
+        t.extend(m.triangles.iter().map(|&[a, b, c]| [a, c, b]));
+        Mesh::from_raw(m.vertices.clone(), t).unwrap().0
+    }
+
+    fn reason(m: &Mesh) -> (Option<String>, f64, f64) {
+        let (unit, _) = m.normalized();
+        let sdf = SignedDistance::new(&unit).unwrap();
+        let sets = EvalSets::new(&unit, &sdf, 5000, EVAL_SEED);
+        (
+            sets.no_inside_reason(),
+            sets.clear_inside.0,
+            sets.clear_inside.1,
+        )
+    }
+
+    #[test]
+    fn meshes_without_an_inside_are_detected() {
+        let flat = sheet(8, |_, _| 0.0);
+        let wavy = sheet(16, |x, y| 0.15 * (2.0 * x).sin() * (1.5 * y).cos());
+        let soup = two_sided(&Mesh::icosphere(0.8, 2));
+        for (name, m) in [("flat", &flat), ("open wavy", &wavy), ("two-sided", &soup)] {
+            let (r, b, n) = reason(m);
+            eprintln!("{name}: box {b:.5}, near {n:.5}");
+            assert!(r.is_some(), "{name}: box {b}, near {n}");
+        }
+        // Closed shapes, thin ones included, have an inside.
+        let slab = {
+            let (cube, _) = unit_cube().normalized();
+            Mesh {
+                vertices: cube
+                    .vertices
+                    .iter()
+                    .map(|v| Vec3::new(v.x, v.y, v.z * 0.01))
+                    .collect(),
+                triangles: cube.triangles.clone(),
+            }
+        };
+        for (name, m) in [("sphere", &Mesh::icosphere(0.8, 2)), ("slab", &slab)] {
+            let (r, b, n) = reason(m);
+            eprintln!("{name}: box {b:.5}, near {n:.5}");
+            assert!(r.is_none(), "{name}: {r:?}");
+        }
+        // Scores of a mesh without an inside: no F1, with the reason; sign accuracy and errors.
+        let (unit, _) = flat.normalized();
+        let sdf = SignedDistance::new(&unit).unwrap();
+        let sets = EvalSets::new(&unit, &sdf, 2000, EVAL_SEED);
+        let s = sets
+            .score(|p| Ok::<_, ()>(sdf.signed_distance_batch(p)))
+            .unwrap();
+        assert_eq!(
+            (s.f1_bbox, s.f1_near_surface, s.f1_mean),
+            (None, None, None)
+        );
+        assert!(s.f1_null_reason.as_deref().unwrap().contains("no inside"));
+        assert_eq!(s.sign_accuracy_bbox, Some(1.0));
+        assert_eq!(s.near_surface_error.max_abs, 0.0);
+        // An unsigned model is scored against |d|: the exact |d| has no error.
+        let u = sets
+            .score_unsigned(|p| {
+                Ok::<_, ()>(
+                    sdf.signed_distance_batch(p)
+                        .iter()
+                        .map(|d| d.abs())
+                        .collect(),
+                )
+            })
+            .unwrap();
+        assert_eq!(u.f1_null_reason.as_deref(), Some(UNSIGNED_REASON));
+        assert_eq!(u.sign_accuracy_bbox, None);
+        assert_eq!(u.bbox_error.max_abs, 0.0);
     }
 }

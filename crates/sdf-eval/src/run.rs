@@ -11,8 +11,8 @@ use sdf_geom::extract::{ExtractError, ExtractOptions, ExtractStats, extract_surf
 use sdf_geom::{Mesh, SignedDistance};
 use sdf_nn::model_file::write_atomic;
 use sdf_nn::{
-    AdamState, GpuContext, LossWeights, ModelFile, NeuralSdf, Nglod, NglodConfig, NglodTrainConfig,
-    NglodTrainer, Siren, SirenConfig, SirenTrainConfig, SirenTrainer,
+    AdamState, DistanceMode, GpuContext, LossWeights, ModelFile, NeuralSdf, Nglod, NglodConfig,
+    NglodTrainConfig, NglodTrainer, Siren, SirenConfig, SirenTrainConfig, SirenTrainer,
 };
 use serde::{Deserialize, Serialize};
 
@@ -85,6 +85,13 @@ pub enum RunError {
         /// What to do instead.
         hint: String,
     },
+    /// `--distance unsigned` with SIREN, whose loss (eikonal, normal alignment, the off-surface
+    /// term pushing |Φ| up away from the surface) assumes a signed field.
+    #[error(
+        "unsigned distance is supported for NGLOD only: SIREN's loss (normals, eikonal and \
+         off-surface terms) fits a signed field; use --model nglod"
+    )]
+    UnsignedSiren,
 }
 
 const GIB: f64 = (1u64 << 30) as f64;
@@ -165,8 +172,10 @@ pub enum Preset {
 impl Preset {
     /// The preset used when none is asked for: `small` on a CPU adapter (lavapipe), where the
     /// design document's networks train too slowly, `default` on a GPU.
-    pub fn for_adapter(cpu_adapter: bool) -> Self {
-        if cpu_adapter {
+    /// NGLOD: `default` everywhere (`small` is capacity-bound and no longer saves time on
+    /// lavapipe: issue 14, BENCHMARKS.md). SIREN: `small` on a CPU adapter, `default` on a GPU.
+    pub fn for_adapter(cpu_adapter: bool, model: ModelKind) -> Self {
+        if cpu_adapter && model == ModelKind::Siren {
             Preset::Small
         } else {
             Preset::Default
@@ -199,6 +208,17 @@ pub struct TrainOptions {
     pub lr: Option<f32>,
     /// SIREN loss weights (`None`: the design document's). An error for NGLOD.
     pub siren_weights: Option<LossWeights>,
+    /// NGLOD: final learning rate as a fraction of the first, reached by cosine decay (`None`:
+    /// the trainer's default; 1 keeps it constant).
+    pub lr_final: Option<f32>,
+    /// NGLOD: add a level of detail every this many epochs (`None`: the trainer's default; 0
+    /// trains all levels from the start).
+    pub grow_every: Option<usize>,
+    /// Signed or unsigned distance (unsigned: NGLOD only).
+    pub distance: DistanceMode,
+    /// NGLOD sample pool: `(blocks, refresh_every)` (`None`: the trainer's default; `(1, 1)`
+    /// draws fresh points every epoch as before the pool).
+    pub pool: Option<(usize, usize)>,
 }
 
 /// Progress of a training run, for progress bars and logs.
@@ -261,6 +281,13 @@ impl Checkpoint {
     /// Steps or epochs done when it was written.
     pub fn done(&self) -> usize {
         self.file.metadata.training["done"].as_u64().unwrap_or(0) as usize
+    }
+
+    /// NGLOD: optimiser steps done within the unfinished epoch `done()`, which a resume finishes.
+    pub fn epoch_steps_done(&self) -> usize {
+        self.file.metadata.training["epoch_steps_done"]
+            .as_u64()
+            .unwrap_or(0) as usize
     }
 
     /// The optimiser's moments and step counter.
@@ -348,7 +375,8 @@ pub fn default_length(model: ModelKind, preset: Preset, cpu_adapter: bool) -> us
         (ModelKind::Siren, Preset::Default, true) => 100,
         (ModelKind::Nglod, _, false) => NglodTrainConfig::default().epochs,
         (ModelKind::Nglod, Preset::Small, true) => 4,
-        (ModelKind::Nglod, Preset::Default, true) => 2,
+        // About a minute on the 2-core box with lavapipe (8 epochs: 31-77 s of training under load).
+        (ModelKind::Nglod, Preset::Default, true) => 12,
     }
 }
 
@@ -397,6 +425,9 @@ pub fn train(
                 options.preset.name()
             )));
         }
+    }
+    if options.model == ModelKind::Siren && options.distance == DistanceMode::Unsigned {
+        return Err(RunError::UnsignedSiren);
     }
     if options.model == ModelKind::Nglod && options.siren_weights.is_some() {
         return Err(RunError::Options(
@@ -508,15 +539,24 @@ pub fn train(
             if let Some(lr) = options.lr {
                 train_config.adam.lr = lr;
             }
+            if let Some(f) = options.lr_final {
+                train_config.lr_final = (f != 1.0).then_some(f);
+            }
+            if let Some(g) = options.grow_every {
+                train_config.grow_every = (g > 0).then_some(g);
+            }
+            train_config.distance = options.distance;
+            if let Some((blocks, every)) = options.pool {
+                train_config.pool_blocks = blocks;
+                train_config.refresh_every = every;
+            }
             let per_epoch = (train_config.uniform_points
                 + train_config.near_points
                 + train_config.surface_points) as f64;
-            // NGLOD trains at a fixed learning rate.
-            let lr = train_config.adam.lr;
             let mut trainer = NglodTrainer::new(gpu, &model, mesh, train_config)?;
             trainer.set_stop_flag(stop.clone());
             if let Some(c) = resume {
-                trainer.resume(&c.optimizer()?, first)?;
+                trainer.resume(&c.optimizer()?, first, c.epoch_steps_done())?;
             }
             let report = trainer.train_with(|e| {
                 let done = e.epoch + 1;
@@ -525,7 +565,7 @@ pub fn train(
                     total,
                     unit: "epoch",
                     loss: e.loss,
-                    lr,
+                    lr: e.lr,
                     points_per_second: (done - first) as f64 * per_epoch
                         / start.elapsed().as_secs_f64().max(1e-9),
                 });
@@ -533,6 +573,10 @@ pub fn train(
             let trained = trainer.model()?;
             let optimizer = trainer.optimizer_state()?;
             let done = trainer.epochs_done();
+            let lr = report
+                .epochs
+                .last()
+                .map_or(trainer.config().adam.lr, |e| e.lr);
             let mut training = with_run_record(
                 trainer.training_json(Some(&report)),
                 training_json(done, report.final_loss),
@@ -575,6 +619,46 @@ pub struct Evaluation {
     pub latency: Latency,
     /// Points in each evaluation set.
     pub eval_points: usize,
+    /// Unsigned fields: the mesh against the level set Φ = [`UNSIGNED_LEVEL`].
+    pub chamfer: Option<crate::metrics::SurfaceMetrics>,
+}
+
+/// The level set of an unsigned field that stands for its surface (|d| has no zero crossing for
+/// marching cubes to find): one cell of the [`UNSIGNED_EXTRACT_RESOLUTION`] grid, in normalised
+/// units.
+pub const UNSIGNED_LEVEL: f32 = 2.0 / UNSIGNED_EXTRACT_RESOLUTION as f32;
+/// Cells per axis of the extraction behind an unsigned field's Chamfer distance.
+pub const UNSIGNED_EXTRACT_RESOLUTION: u32 = 128;
+
+/// Whether a model file holds an unsigned distance field (`training.distance`).
+pub fn is_unsigned(file: &ModelFile) -> bool {
+    file.metadata
+        .training
+        .get("distance")
+        .and_then(|d| d.as_str())
+        == Some(DistanceMode::Unsigned.name())
+}
+
+/// Why F1 would be undefined for `mesh` (normalised): (almost) no inside among a quick sample
+/// of box and near-surface points (same bounds as the evaluation,
+/// [`crate::metrics::no_inside_reason`]). For a warning before training.
+pub fn no_inside_check(mesh: &Mesh) -> Result<Option<String>, RunError> {
+    let sdf = SignedDistance::new(mesh).map_err(|source| RunError::Mesh {
+        path: PathBuf::from("<normalised mesh>"),
+        source,
+    })?;
+    let clear = |points: Vec<Vec3>| {
+        let truth = sdf.signed_distance_batch(&points);
+        crate::metrics::clear_inside_fraction(&sdf, &points, &truth)
+    };
+    let b = clear(sdf_geom::sample::uniform_box(20_000, EVAL_SEED));
+    let n = clear(sdf_geom::sample::near_surface(
+        mesh,
+        20_000,
+        crate::metrics::NEAR_SURFACE_SIGMA,
+        EVAL_SEED ^ 1,
+    ));
+    Ok(crate::metrics::no_inside_reason(b, n))
 }
 
 /// Scores and times `model` against the exact SDF of the normalised `mesh`.
@@ -590,7 +674,33 @@ pub fn evaluate(
         source,
     })?;
     let sets = EvalSets::new(mesh, &sdf, points, EVAL_SEED);
-    let scores = sets.score(|p: &[Vec3]| model.eval_normalized(gpu, p))?;
+    let unsigned = is_unsigned(model.model_file());
+    let scores = if unsigned {
+        sets.score_unsigned(|p: &[Vec3]| model.eval_normalized(gpu, p))?
+    } else {
+        sets.score(|p: &[Vec3]| model.eval_normalized(gpu, p))?
+    };
+    let chamfer = if unsigned {
+        let (level_set, _) = extract_surface(
+            |p: &[Vec3]| {
+                model.eval_normalized(gpu, p).map(|d| {
+                    d.into_iter()
+                        .map(|x| x - UNSIGNED_LEVEL)
+                        .collect::<Vec<_>>()
+                })
+            },
+            &ExtractOptions::new(UNSIGNED_EXTRACT_RESOLUTION),
+        )
+        .map_err(|e| match e {
+            ExtractError::Eval(e) => RunError::Model(e),
+            other => RunError::Options(other.to_string()),
+        })?;
+        // An empty level set (the model never gets that close to 0) has no Chamfer distance.
+        crate::metrics::SurfaceMetrics::between(&level_set, mesh, points.min(20_000), EVAL_SEED)
+            .ok()
+    } else {
+        None
+    };
     // Wall time through the public call, and kernel time from timestamp queries (where the
     // adapter has them) in separate calls, so that the timestamps never slow the wall figures.
     let latency = measure_latency_timed(
@@ -603,6 +713,7 @@ pub fn evaluate(
         scores,
         latency,
         eval_points: points,
+        chamfer,
     })
 }
 
@@ -647,16 +758,32 @@ pub struct Report {
     pub params: usize,
     /// Model file size in bytes.
     pub file_bytes: u64,
-    /// F1 of the inside class, uniform box points.
-    pub f1_bbox: f64,
+    /// F1 of the inside class, uniform box points (null when undefined: `f1_null_reason`).
+    pub f1_bbox: Option<f64>,
     /// F1 of the inside class, near-surface points.
-    pub f1_near_surface: f64,
+    pub f1_near_surface: Option<f64>,
     /// Mean of the two.
-    pub f1_mean: f64,
-    /// Sign accuracy, box points.
-    pub sign_accuracy_bbox: f64,
+    pub f1_mean: Option<f64>,
+    /// Why the F1 fields are null: a mesh without an inside, or an unsigned field.
+    #[serde(default)]
+    pub f1_null_reason: Option<String>,
+    /// `"signed"` or `"unsigned"`: what the model fits.
+    #[serde(default)]
+    pub distance: Option<DistanceMode>,
+    /// Sign accuracy, box points (null for an unsigned field).
+    pub sign_accuracy_bbox: Option<f64>,
     /// Sign accuracy, near-surface points.
-    pub sign_accuracy_near_surface: f64,
+    pub sign_accuracy_near_surface: Option<f64>,
+    /// Exact fraction of the box points inside the mesh.
+    #[serde(default)]
+    pub inside_fraction_bbox: f64,
+    /// Mean |Φ − SDF| on the box points, normalised units (|Φ − |SDF|| for an unsigned field).
+    #[serde(default)]
+    pub bbox_mean_abs_error: f64,
+    /// Unsigned fields: symmetric Chamfer-L1 distance between the mesh and the extracted
+    /// level set Φ = [`UNSIGNED_LEVEL`] (normalised units; an exact |d| scores about that level).
+    #[serde(default)]
+    pub chamfer_l1: Option<f64>,
     /// Mean |Φ − SDF| near the surface, normalised units.
     pub near_surface_mean_abs_error: f64,
     /// Max |Φ − SDF| near the surface, normalised units.
@@ -708,8 +835,13 @@ impl Report {
             f1_bbox: s.f1_bbox,
             f1_near_surface: s.f1_near_surface,
             f1_mean: s.f1_mean,
+            f1_null_reason: s.f1_null_reason.clone(),
+            distance: Some(options.distance),
             sign_accuracy_bbox: s.sign_accuracy_bbox,
             sign_accuracy_near_surface: s.sign_accuracy_near_surface,
+            inside_fraction_bbox: s.inside_fraction_bbox,
+            bbox_mean_abs_error: s.bbox_error.mean_abs,
+            chamfer_l1: eval.chamfer.map(|c| c.chamfer_l1),
             near_surface_mean_abs_error: s.near_surface_error.mean_abs,
             near_surface_max_abs_error: s.near_surface_error.max_abs,
             per_point_ns: eval.latency.per_point_ns,

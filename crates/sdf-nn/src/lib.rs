@@ -39,7 +39,9 @@ pub use embed::{EmbedError, SdfBindGroup};
 pub use gpu::{GpuContext, GpuError, GpuOptions};
 pub use model_file::{ModelFile, ModelFileError, Normalization};
 pub use neural::{NeuralSdf, NeuralSdfError};
-pub use nglod::{Nglod, NglodConfig, NglodError, NglodGpu, NglodTrainConfig, NglodTrainer};
+pub use nglod::{
+    DistanceMode, Nglod, NglodConfig, NglodError, NglodGpu, NglodTrainConfig, NglodTrainer,
+};
 pub use query::{
     QueryBuffers, QueryBuffersDescriptor, QueryError, QueryOutputs, QueryResults, QuerySpace,
     QueryTicket,

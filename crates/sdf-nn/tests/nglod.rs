@@ -397,3 +397,131 @@ fn trains_with_the_compare_exchange_fallback() {
         "{report:#?}"
     );
 }
+
+/// A run stopped part-way through an epoch records the steps it did; a resume finishes that
+/// epoch on the same points in the same order, so it ends where an uninterrupted run ends.
+#[test]
+fn an_interrupted_epoch_resumes_where_it_stopped() {
+    use std::sync::Arc;
+    use std::sync::atomic::{AtomicBool, Ordering};
+    let gpu = gpu();
+    let mesh = icosphere(0.5, 2);
+    let model = Nglod::new(NglodConfig::small()).unwrap();
+    let config = NglodTrainConfig {
+        epochs: 2,
+        uniform_points: 2_000,
+        near_points: 2_000,
+        surface_points: 2_000,
+        // 12 steps per epoch, loss read (and stop flag polled) every 4.
+        batch_size: 512,
+        loss_every: 4,
+        pool_blocks: 2,
+        refresh_every: 1,
+        seed: 11,
+        ..Default::default()
+    };
+    let steps_per_epoch = 12;
+
+    let mut straight = NglodTrainer::new(gpu, &model, &mesh, config.clone()).unwrap();
+    let full = straight.train().unwrap();
+    assert_eq!(full.steps, 2 * steps_per_epoch);
+    let want = straight.model().unwrap();
+
+    // Stop at the first read-back of epoch 1: 4 of its 12 steps done.
+    let mut first = NglodTrainer::new(gpu, &model, &mesh, config.clone()).unwrap();
+    let stop = Arc::new(AtomicBool::new(false));
+    first.set_stop_flag(stop.clone());
+    let part = first
+        .train_with(|_| stop.store(true, Ordering::Relaxed))
+        .unwrap();
+    assert!(part.stopped_early);
+    assert_eq!(part.epochs.len(), 2);
+    assert_eq!(part.epochs[1].steps, 4);
+    // The unfinished epoch is not counted as done.
+    assert_eq!(first.epochs_done(), 1);
+    assert_eq!(first.epoch_steps_done(), 4);
+    let json = first.training_json(Some(&part));
+    assert_eq!(json["epochs_done"], 1);
+    assert_eq!(json["epoch_steps_done"], 4);
+
+    let state = first.optimizer_state().unwrap();
+    let halfway = first.model().unwrap();
+    let mut resumed = NglodTrainer::new(
+        gpu,
+        &halfway,
+        &mesh,
+        NglodTrainConfig {
+            epochs: 1,
+            ..config.clone()
+        },
+    )
+    .unwrap();
+    // A step count past the epoch's end is refused.
+    assert!(resumed.resume(&state, 1, steps_per_epoch).is_err());
+    resumed.resume(&state, 1, 4).unwrap();
+    let rest = resumed.train().unwrap();
+    assert_eq!(rest.epochs.len(), 1);
+    assert_eq!(rest.epochs[0].epoch, 1);
+    assert_eq!(rest.epochs[0].steps, steps_per_epoch - 4);
+    assert_eq!(resumed.epochs_done(), 2);
+    assert_eq!(resumed.epoch_steps_done(), 0);
+    assert_eq!(
+        resumed.optimizer_state().unwrap().step,
+        2 * steps_per_epoch as u32
+    );
+    let got = resumed.model().unwrap();
+    // Float atomics may sum in another order: equal up to rounding, not bit for bit. Skipping
+    // or repeating the 8 remaining steps moves the parameters by far more.
+    let diff = |a: &Nglod, b: &Nglod| {
+        a.params()
+            .iter()
+            .zip(b.params())
+            .map(|(x, y)| (x - y).abs())
+            .fold(0.0f32, f32::max)
+    };
+    let err = diff(&got, &want);
+    let skipped = diff(&halfway, &want);
+    eprintln!("resumed vs straight: {err:.3e}; stopped vs straight: {skipped:.3e}");
+    assert!(err < 1e-4 && err * 20.0 < skipped, "{err} vs {skipped}");
+}
+
+/// Progressive training: until a level is added its grid gets no gradient, so it keeps its
+/// initial values; the coarse level trains from the first epoch.
+#[test]
+fn progressive_training_adds_levels_one_at_a_time() {
+    let gpu = gpu();
+    let mesh = icosphere(0.5, 2);
+    let model = Nglod::new(NglodConfig::small()).unwrap();
+    let layout = model.config().layout();
+    let config = NglodTrainConfig {
+        epochs: 2,
+        uniform_points: 1_000,
+        near_points: 1_000,
+        surface_points: 1_000,
+        batch_size: 512,
+        grow_every: Some(1),
+        lr_final: Some(0.1),
+        ..Default::default()
+    };
+    let mut t = NglodTrainer::new(gpu, &model, &mesh, config).unwrap();
+    let report = t.train().unwrap();
+    assert_eq!(
+        report.epochs.iter().map(|e| e.levels).collect::<Vec<_>>(),
+        [1, 2]
+    );
+    // The learning rate decays over the run.
+    assert!(report.epochs[1].lr < report.epochs[0].lr);
+    let trained = t.model().unwrap();
+    let grid = |m: &Nglod, l: usize| {
+        m.params()
+            [layout.grid_offsets[l]..layout.grid_offsets.get(l + 1).copied().unwrap_or(layout.w0)]
+            .to_vec()
+    };
+    assert_ne!(grid(&trained, 0), grid(&model, 0));
+    assert_ne!(grid(&trained, 1), grid(&model, 1));
+    assert_eq!(
+        grid(&trained, 2),
+        grid(&model, 2),
+        "level 3 was never trained"
+    );
+}

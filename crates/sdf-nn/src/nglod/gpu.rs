@@ -467,6 +467,7 @@ pub(crate) struct TrainKernels {
     bg_reduce: wgpu::BindGroup,
     base: TrainUniforms,
     max_points: u32,
+    max_prefixes: u32,
     n_out: u32,
     hidden: u32,
 }
@@ -569,9 +570,19 @@ impl TrainKernels {
             bg_reduce,
             base,
             max_points,
+            max_prefixes: n_prefix as u32,
             n_out,
             hidden: c.hidden,
         })
+    }
+
+    /// Trains only the first `lod` levels from now on (progressive training): the prefixes of
+    /// `objective` capped at `lod`. `lod` is clamped to the levels the kernels were built for.
+    pub(crate) fn set_lod(&mut self, objective: Objective, lod: usize) {
+        let (base, count) = objective.prefixes(lod.max(1));
+        let max = self.max_prefixes;
+        self.base.lod_base = base as u32;
+        self.base.n_prefix = (count as u32).min(max);
     }
 
     /// Records forward, backward and the MLP reduction for points `first..first + n` into

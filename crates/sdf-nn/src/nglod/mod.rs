@@ -33,7 +33,9 @@ use crate::gpu::GpuError;
 use crate::model_file::{ModelFile, ModelFileError, ModelMetadata, Normalization, Tensor};
 
 pub use gpu::{NglodGpu, ScatterMode};
-pub use train::{EpochStats, NglodTrainConfig, NglodTrainer, TrainReport};
+pub use train::{
+    DistanceMode, EpochStats, NglodTrainConfig, NglodTrainer, PoolSchedule, TrainReport,
+};
 
 /// Largest number of levels the kernels accept.
 pub const MAX_LEVELS: usize = 8;
