@@ -7,9 +7,9 @@
 # DIR defaults to out/gpu-pack (ignored by git). `pack` builds the criterion bench executables
 # (`cargo bench --no-run`) and the release binaries, strips them, and copies them with
 # tests/data (the benches open tests/data/spot.obj by a relative path), the PyTorch scripts and
-# this script. With GPU_COMPARE_DEBS=1 it also downloads Debian's amd64 Vulkan loader packages
-# into DIR/debs, for a host without a loader. Copy DIR to the host, then `bash DIR/gpu-compare.sh
-# run DIR` (or `cd DIR && bash gpu-compare.sh run .`).
+# this script, and archives the folder as DIR.tar.gz. With GPU_COMPARE_DEBS=1 it also downloads
+# Debian's amd64 Vulkan loader packages into DIR/debs, for a host without a loader. Copy DIR (or
+# the archive) to the host, then `bash DIR/gpu-compare.sh run DIR`.
 #
 # `run` finds the Vulkan loader (or unpacks DIR/debs/*.deb as root, or says how to get one),
 # prints the adapter, runs our benches (siren, nglod, and any other packed bench whose name
@@ -62,7 +62,9 @@ for line in sys.stdin:
         cp "target/release/$exe" "$dir/bin/"
     done
     while read -r name path; do
-        cp "$path" "$dir/benches/$name"
+        case "$name" in
+            siren | nglod | query*) cp "$path" "$dir/benches/$name" ;;
+        esac
     done <<<"$benches"
     strip "$dir"/bin/* "$dir"/benches/* 2>/dev/null || true
     cp -r tests/data "$dir/tests/"
@@ -76,9 +78,11 @@ for line in sys.stdin:
         apt-get "${o[@]}" update -qq
         (cd "$dir/debs" && apt-get "${o[@]}" download libvulkan1)
     fi
-    echo "== packed $(du -sh "$dir" | cut -f1) into $dir (commit $(cat "$dir/COMMIT"))"
+    # One compressed file to carry (the folder is ~70 MB, the archive about a third of that).
+    tar -C "$(dirname "$dir")" -czf "$dir.tar.gz" "$(basename "$dir")"
+    echo "== packed $(du -sh "$dir" | cut -f1) into $dir, $(du -sh "$dir.tar.gz" | cut -f1) as $dir.tar.gz (commit $(cat "$dir/COMMIT"))"
     echo "   benches: $(ls "$dir/benches" | tr '\n' ' ')"
-    echo "   on the GPU host: bash gpu-compare.sh run ."
+    echo "   on the GPU host: tar xzf $(basename "$dir").tar.gz && bash $(basename "$dir")/gpu-compare.sh run $(basename "$dir")"
 }
 
 find_vulkan() {
