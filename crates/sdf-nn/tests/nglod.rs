@@ -387,6 +387,8 @@ fn trains_with_the_compare_exchange_fallback() {
         surface_points: 8_000,
         batch_size: 512,
         scatter: ScatterMode::CompareExchange,
+        // A constant rate: two epochs of the default cosine decay leave the second at a tenth.
+        lr_final: None,
         ..Default::default()
     };
     let mut trainer = NglodTrainer::new(gpu, &model, &mesh, config).unwrap();
