@@ -536,6 +536,17 @@ fn unsigned_mode_fits_a_flat_sheet_and_reports_distance_and_chamfer() {
     assert!(err < 0.02, "{json}");
     let chamfer = json["chamfer_l1"].as_f64().unwrap();
     assert!(chamfer < 0.05, "{json}");
+    // `eval` extracts the same level set for its surface figures (|d| has no zero crossing).
+    let o = bin("eval")
+        .arg(scratch("flat-unsigned.safetensors"))
+        .arg(&flat)
+        .args(["--points", "2000", "--surface-resolution", "64", "--json"])
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", stderr(&o));
+    let eval: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    let chamfer = eval["chamfer_l1"].as_f64().unwrap();
+    assert!(chamfer < 0.05, "{eval}");
     // SIREN has no unsigned mode: a clear error.
     let o = bin("train")
         .arg(&flat)

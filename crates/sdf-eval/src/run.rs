@@ -681,20 +681,8 @@ pub fn evaluate(
         sets.score(|p: &[Vec3]| model.eval_normalized(gpu, p))?
     };
     let chamfer = if unsigned {
-        let (level_set, _) = extract_surface(
-            |p: &[Vec3]| {
-                model.eval_normalized(gpu, p).map(|d| {
-                    d.into_iter()
-                        .map(|x| x - UNSIGNED_LEVEL)
-                        .collect::<Vec<_>>()
-                })
-            },
-            &ExtractOptions::new(UNSIGNED_EXTRACT_RESOLUTION),
-        )
-        .map_err(|e| match e {
-            ExtractError::Eval(e) => RunError::Model(e),
-            other => RunError::Options(other.to_string()),
-        })?;
+        let options = ExtractOptions::new(UNSIGNED_EXTRACT_RESOLUTION);
+        let (level_set, _) = extract_normalized(gpu, model, &options)?;
         // An empty level set (the model never gets that close to 0) has no Chamfer distance.
         crate::metrics::SurfaceMetrics::between(&level_set, mesh, points.min(20_000), EVAL_SEED)
             .ok()
@@ -717,8 +705,10 @@ pub fn evaluate(
     })
 }
 
-/// Extracts the model's zero level set at `resolution` cells per axis, evaluating on the GPU,
-/// and returns it in the original mesh's coordinates.
+/// Extracts the model's surface at `resolution` cells per axis, evaluating on the GPU, and
+/// returns it in the original mesh's coordinates. The surface is the zero level set, or for an
+/// unsigned field ([`is_unsigned`]) the level set Φ = [`UNSIGNED_LEVEL`], since |d| has no zero
+/// crossing to find.
 pub fn extract_mesh(
     gpu: &GpuContext,
     model: &NeuralSdf,
@@ -733,16 +723,36 @@ pub fn extract_mesh_with(
     model: &NeuralSdf,
     options: &ExtractOptions,
 ) -> Result<(Mesh, ExtractStats), RunError> {
-    let (mut mesh, stats) = extract_surface(|p: &[Vec3]| model.eval_normalized(gpu, p), options)
-        .map_err(|e| match e {
-            ExtractError::Eval(e) => RunError::Model(e),
-            other => RunError::Options(other.to_string()),
-        })?;
+    let (mut mesh, stats) = extract_normalized(gpu, model, options)?;
     let n = model.normalization();
     for v in &mut mesh.vertices {
         *v = n.to_original(*v);
     }
     Ok((mesh, stats))
+}
+
+/// The surface of [`extract_mesh_with`] in normalised coordinates.
+fn extract_normalized(
+    gpu: &GpuContext,
+    model: &NeuralSdf,
+    options: &ExtractOptions,
+) -> Result<(Mesh, ExtractStats), RunError> {
+    let level = if is_unsigned(model.model_file()) {
+        UNSIGNED_LEVEL
+    } else {
+        0.0
+    };
+    extract_surface(
+        |p: &[Vec3]| {
+            let d = model.eval_normalized(gpu, p)?;
+            Ok::<_, sdf_nn::NeuralSdfError>(d.into_iter().map(|x| x - level).collect::<Vec<_>>())
+        },
+        options,
+    )
+    .map_err(|e| match e {
+        ExtractError::Eval(e) => RunError::Model(e),
+        other => RunError::Options(other.to_string()),
+    })
 }
 
 /// The JSON report of `train` (and of each `corpus` entry).
