@@ -396,12 +396,7 @@ impl<'g> NglodTrainer<'g> {
                 "the final learning-rate ratio must be finite and non-negative, not {f}"
             )));
         }
-        if !(config.adam.lr.is_finite() && config.adam.lr > 0.0) {
-            return Err(NglodError::InvalidConfig(format!(
-                "the learning rate must be positive, not {}",
-                config.adam.lr
-            )));
-        }
+        crate::AdamConfig::check_lr(config.adam.lr).map_err(NglodError::InvalidConfig)?;
         let n32 = u32::try_from(n)
             .map_err(|_| NglodError::InvalidConfig(format!("{n} points per epoch is too many")))?;
         // NaN area (non-finite vertices) is rejected too.
