@@ -212,43 +212,28 @@ fn interleaved(gpu: &GpuContext, rounds: usize) {
                 )
                 .unwrap();
             let mut out = Vec::with_capacity(n);
+            // The floor of any query: one submission (with or without one empty dispatch) and
+            // the readback of 10 floats.
+            let roundtrip = |dispatch: bool| {
+                let mut enc = gpu.device().create_command_encoder(&Default::default());
+                if dispatch {
+                    let mut pass = enc.begin_compute_pass(&Default::default());
+                    pass.set_pipeline(&empty_pipeline);
+                    pass.set_bind_group(0, &empty_group, &[]);
+                    pass.dispatch_workgroups(1, 1, 1);
+                }
+                enc.copy_buffer_to_buffer(&src, 0, &staging, 0, 40);
+                gpu.queue().submit([enc.finish()]);
+                let slice = staging.slice(..);
+                slice.map_async(wgpu::MapMode::Read, |r| r.unwrap());
+                gpu.wait().unwrap();
+                let v: Vec<f32> = bytemuck::pod_collect_to_vec(&slice.get_mapped_range().unwrap());
+                staging.unmap();
+                std::hint::black_box(v);
+            };
             let mut variants: Vec<Variant<'_>> = vec![
-                (
-                    "roundtrip/empty",
-                    Box::new(|| {
-                        let mut enc = gpu.device().create_command_encoder(&Default::default());
-                        enc.copy_buffer_to_buffer(&src, 0, &staging, 0, 40);
-                        gpu.queue().submit([enc.finish()]);
-                        let slice = staging.slice(..);
-                        slice.map_async(wgpu::MapMode::Read, |r| r.unwrap());
-                        gpu.wait().unwrap();
-                        let v: Vec<f32> =
-                            bytemuck::pod_collect_to_vec(&slice.get_mapped_range().unwrap());
-                        staging.unmap();
-                        std::hint::black_box(v);
-                    }),
-                ),
-                (
-                    "roundtrip/dispatch",
-                    Box::new(|| {
-                        let mut enc = gpu.device().create_command_encoder(&Default::default());
-                        {
-                            let mut pass = enc.begin_compute_pass(&Default::default());
-                            pass.set_pipeline(&empty_pipeline);
-                            pass.set_bind_group(0, &empty_group, &[]);
-                            pass.dispatch_workgroups(1, 1, 1);
-                        }
-                        enc.copy_buffer_to_buffer(&src, 0, &staging, 0, 40);
-                        gpu.queue().submit([enc.finish()]);
-                        let slice = staging.slice(..);
-                        slice.map_async(wgpu::MapMode::Read, |r| r.unwrap());
-                        gpu.wait().unwrap();
-                        let v: Vec<f32> =
-                            bytemuck::pod_collect_to_vec(&slice.get_mapped_range().unwrap());
-                        staging.unmap();
-                        std::hint::black_box(v);
-                    }),
-                ),
+                ("roundtrip/empty", Box::new(|| roundtrip(false))),
+                ("roundtrip/dispatch", Box::new(|| roundtrip(true))),
                 (
                     "kernel",
                     Box::new(|| {
