@@ -1,36 +1,16 @@
 //! The binaries as a user runs them: `train` end to end with its report, `eval` and `extract`
 //! on the result, `corpus` resuming, and clear errors with non-zero exits on bad input.
 
+mod common;
+
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 use std::sync::OnceLock;
 
-fn bin(name: &str) -> Command {
-    let path = match name {
-        "train" => env!("CARGO_BIN_EXE_train"),
-        "eval" => env!("CARGO_BIN_EXE_eval"),
-        "extract" => env!("CARGO_BIN_EXE_extract"),
-        "corpus" => env!("CARGO_BIN_EXE_corpus"),
-        "gpu-info" => env!("CARGO_BIN_EXE_gpu-info"),
-        other => panic!("no binary {other}"),
-    };
-    Command::new(path)
-}
-
-fn data(name: &str) -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR"))
-        .join("tests/data")
-        .join(name)
-}
+use common::{bin, data, stderr};
 
 fn scratch(name: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("hwsdf-cli-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).unwrap();
-    dir.join(name)
-}
-
-fn stderr(o: &Output) -> String {
-    String::from_utf8_lossy(&o.stderr).into_owned()
+    common::scratch_in("cli", name)
 }
 
 /// Fails with a clear message, no panic, non-zero exit.

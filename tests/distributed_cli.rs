@@ -3,33 +3,16 @@
 //! checkpoint that the next run resumes, and adapters chosen by index. The full Slurm run is
 //! `scripts/slurm-smoke.sh`.
 
+mod common;
+
 use std::io::{BufRead, BufReader};
-use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Output, Stdio};
+use std::path::PathBuf;
+use std::process::{Child, Command, Stdio};
 
-fn bin(name: &str) -> Command {
-    Command::new(match name {
-        "train" => env!("CARGO_BIN_EXE_train"),
-        "corpus" => env!("CARGO_BIN_EXE_corpus"),
-        "gpu-info" => env!("CARGO_BIN_EXE_gpu-info"),
-        other => panic!("no binary {other}"),
-    })
-}
-
-fn data(name: &str) -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR"))
-        .join("tests/data")
-        .join(name)
-}
+use common::{bin, data, stderr};
 
 fn scratch(name: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("hwsdf-dist-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).unwrap();
-    dir.join(name)
-}
-
-fn stderr(o: &Output) -> String {
-    String::from_utf8_lossy(&o.stderr).into_owned()
+    common::scratch_in("dist", name)
 }
 
 /// Reads `child`'s stderr until a line contains `needle`, then sends it `signal`; returns the

@@ -1,0 +1,37 @@
+//! Helpers the CLI test binaries share: the built binaries, the test meshes, a scratch folder per
+//! test process, and a process's stderr.
+#![allow(dead_code)] // each test binary uses its own subset
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+/// A command for one of the package's binaries, as `cargo test` built it.
+pub fn bin(name: &str) -> Command {
+    Command::new(match name {
+        "train" => env!("CARGO_BIN_EXE_train"),
+        "eval" => env!("CARGO_BIN_EXE_eval"),
+        "extract" => env!("CARGO_BIN_EXE_extract"),
+        "corpus" => env!("CARGO_BIN_EXE_corpus"),
+        "gpu-info" => env!("CARGO_BIN_EXE_gpu-info"),
+        other => panic!("no binary {other}"),
+    })
+}
+
+/// A file of `tests/data`.
+pub fn data(name: &str) -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("tests/data")
+        .join(name)
+}
+
+/// `name` in this process's scratch folder `hwsdf-<tag>-<pid>` under the temp folder.
+pub fn scratch_in(tag: &str, name: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("hwsdf-{tag}-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    dir.join(name)
+}
+
+/// The process's stderr as text.
+pub fn stderr(o: &Output) -> String {
+    String::from_utf8_lossy(&o.stderr).into_owned()
+}
