@@ -48,6 +48,49 @@ const NORM_EPS: f32 = 1e-12;
 
 var<workgroup> red: array<vec4<f32>, 256>;
 
+// Inference only (modes 0 and 1): head_forward without the loss reduction. Its workgroup
+// barriers make lavapipe run every workgroup of head_forward as coroutines, which cost ~0.4 ms
+// per launch there even for one point; this entry point has none.
+@compute @workgroup_size(256)
+fn head_eval(
+    @builtin(workgroup_id) wid: vec3<u32>,
+    @builtin(num_workgroups) nwg: vec3<u32>,
+    @builtin(local_invocation_index) lid: u32,
+) {
+    let p = (wid.y * nwg.x + wid.x) * WG + lid;
+    if p < h.n_points {
+        head_point(p);
+    }
+}
+
+// Φ (mode 0) or Φ and ∇Φ (modes 1, 2) of point p into `values`; returns them.
+fn head_point(p: u32) -> vec4<f32> {
+    let bias = params[h.b_off];
+    if h.mode == 0u {
+        var s = 0.0;
+        let row = p * h.width;
+        for (var i = 0u; i < h.width; i++) {
+            s = fma(params[h.w_off + i], act[row + i], s);
+        }
+        values[p] = s + bias;
+        return vec4<f32>(s + bias, 0.0, 0.0, 0.0);
+    }
+    var y = vec4<f32>(0.0);
+    let r0 = 4u * p * h.width;
+    for (var i = 0u; i < h.width; i++) {
+        let w = params[h.w_off + i];
+        let a = vec4<f32>(act[r0 + i], act[r0 + h.width + i], act[r0 + 2u * h.width + i],
+            act[r0 + 3u * h.width + i]);
+        y = fma(vec4<f32>(w), a, y);
+    }
+    y.x += bias;
+    values[4u * p] = y.x;
+    values[4u * p + 1u] = y.y;
+    values[4u * p + 2u] = y.z;
+    values[4u * p + 3u] = y.w;
+    return y;
+}
+
 @compute @workgroup_size(256)
 fn head_forward(
     @builtin(workgroup_id) wid: vec3<u32>,
@@ -58,29 +101,10 @@ fn head_forward(
     let p = group * WG + lid;
     var terms = vec4<f32>(0.0);
     if p < h.n_points {
-        let bias = params[h.b_off];
-        if h.mode == 0u {
-            var s = 0.0;
-            let row = p * h.width;
-            for (var i = 0u; i < h.width; i++) {
-                s = fma(params[h.w_off + i], act[row + i], s);
-            }
-            values[p] = s + bias;
-        } else {
-            var y = vec4<f32>(0.0);
-            let r0 = 4u * p * h.width;
-            for (var i = 0u; i < h.width; i++) {
-                let w = params[h.w_off + i];
-                let a = vec4<f32>(act[r0 + i], act[r0 + h.width + i], act[r0 + 2u * h.width + i],
-                    act[r0 + 3u * h.width + i]);
-                y = fma(vec4<f32>(w), a, y);
-            }
-            let phi = y.x + bias;
+        let y = head_point(p);
+        if h.mode != 0u {
+            let phi = y.x;
             let gr = y.yzw;
-            values[4u * p] = phi;
-            values[4u * p + 1u] = gr.x;
-            values[4u * p + 2u] = gr.y;
-            values[4u * p + 3u] = gr.z;
             if h.mode == 2u {
                 // Same formulas as the CPU reference (siren::cpu::point_loss).
                 let gn = length(gr);

@@ -259,6 +259,8 @@ pub(crate) struct Pipelines {
     sine_forward: wgpu::ComputePipeline,
     sine_backward: wgpu::ComputePipeline,
     head_forward: wgpu::ComputePipeline,
+    /// `head_forward` without the loss reduction, for inference.
+    head_eval: wgpu::ComputePipeline,
     head_backward: wgpu::ComputePipeline,
 }
 
@@ -269,6 +271,7 @@ impl Pipelines {
             sine_forward: gpu.pipeline(&shaders::SIREN_GEMM, "sine_forward", &[])?,
             sine_backward: gpu.pipeline(&shaders::SIREN_GEMM, "sine_backward", &[])?,
             head_forward: gpu.pipeline(&shaders::SIREN_HEAD, "head_forward", &[])?,
+            head_eval: gpu.pipeline(&shaders::SIREN_HEAD, "head_eval", &[])?,
             head_backward: gpu.pipeline(&shaders::SIREN_HEAD, "head_backward", &[])?,
         })
     }
@@ -300,8 +303,6 @@ pub struct SirenGpu {
     pipelines: Pipelines,
     eval: Option<EvalWorkspace>,
     eval_grad: Option<EvalWorkspace>,
-    dummy: wgpu::Buffer,
-    dummy_rw: wgpu::Buffer,
     max_chunk: u32,
     kernels: LayerKernels,
     /// The hidden layers on the row-blocked kernels, if any.
@@ -310,6 +311,10 @@ pub struct SirenGpu {
     tiled: Option<TiledKernels>,
     /// Largest inference batch (per launch) for the fused all-layer kernel of the tiled family.
     fused_max_points: u32,
+    /// The parameters change only through [`SirenGpu::upload`] (a served model, see
+    /// [`SirenGpu::new_frozen`]): the row-blocked kernels' packed weights are then copied when
+    /// they change, not at the start of every evaluation.
+    frozen: bool,
 }
 
 impl SirenGpu {
@@ -343,14 +348,40 @@ impl SirenGpu {
             pipelines: Pipelines::new(gpu)?,
             eval: None,
             eval_grad: None,
-            dummy: gpu.storage_zeroed("siren dummy", 4)?,
-            dummy_rw: gpu.storage_zeroed("siren dummy rw", 4)?,
             max_chunk: 65536,
             kernels,
             dense,
             tiled,
             fused_max_points: DEFAULT_FUSED_MAX_POINTS,
+            frozen: false,
         })
+    }
+
+    /// [`SirenGpu::new`] for a network whose parameters nobody writes on the GPU (no trainer,
+    /// no writes through [`SirenGpu::params_buffer`]): [`crate::NeuralSdf`]'s. Its evaluations
+    /// skip [`SirenGpu::record_pack`]; [`SirenGpu::upload`] and
+    /// [`SirenGpu::set_layer_kernels`] pack.
+    pub(crate) fn new_frozen(gpu: &GpuContext, siren: &Siren) -> Result<Self, SirenGpuError> {
+        let mut net = Self::new(gpu, siren)?;
+        net.frozen = true;
+        net.pack_now(gpu);
+        Ok(net)
+    }
+
+    /// Submits [`SirenGpu::record_pack`] on its own (a frozen network's weights changed).
+    fn pack_now(&self, gpu: &GpuContext) {
+        if self.dense.is_some() {
+            let mut enc = gpu.device().create_command_encoder(&Default::default());
+            self.record_pack(&mut enc);
+            gpu.queue().submit([enc.finish()]);
+        }
+    }
+
+    /// [`SirenGpu::record_pack`] unless the network is frozen (its packed weights are current).
+    fn refresh_pack(&self, enc: &mut wgpu::CommandEncoder) {
+        if !self.frozen {
+            self.record_pack(enc);
+        }
     }
 
     /// Chooses the kernels of the hidden layers (default [`LayerKernels::Auto`]).
@@ -372,6 +403,9 @@ impl SirenGpu {
         self.kernels = kernels;
         self.eval = None;
         self.eval_grad = None;
+        if self.frozen {
+            self.pack_now(gpu);
+        }
         Ok(())
     }
 
@@ -447,6 +481,9 @@ impl SirenGpu {
             .into());
         }
         gpu.write(&self.params, siren.params())?;
+        if self.frozen {
+            self.pack_now(gpu);
+        }
         Ok(())
     }
 
@@ -540,7 +577,7 @@ impl SirenGpu {
             None => self.alloc_eval(gpu, self.chunk_capacity(gpu, gradients), gradients)?,
         };
         let result = (|| {
-            self.record_pack(enc);
+            self.refresh_pack(enc);
             let mut first = 0u32;
             while first < n {
                 let m = (n - first).min(ws.capacity);
@@ -584,6 +621,55 @@ impl SirenGpu {
         Ok(result?)
     }
 
+    /// The launches of an evaluation of `n` points straight from `input` into `output` (the
+    /// layouts of [`SirenGpu::record_eval`]), without its copies through the workspace; the
+    /// workspace's activations are their scratch. `None` when `n` exceeds one launch's
+    /// capacity: use `record_eval`, which splits. Record them with
+    /// [`SirenGpu::record_launches`]. They stay valid while this network lives and its kernels
+    /// are not changed.
+    pub(crate) fn bound_eval(
+        &mut self,
+        gpu: &GpuContext,
+        input: &wgpu::Buffer,
+        output: &wgpu::Buffer,
+        n: u32,
+        gradients: bool,
+    ) -> Result<Option<Vec<Launch>>, SirenGpuError> {
+        let capacity = self.chunk_capacity(gpu, gradients);
+        if n == 0 || n > capacity {
+            return Ok(None);
+        }
+        let slot = if gradients {
+            &mut self.eval_grad
+        } else {
+            &mut self.eval
+        };
+        let ws = match slot.take() {
+            Some(ws) => ws,
+            None => self.alloc_eval(gpu, capacity, gradients)?,
+        };
+        let launches = self.eval_launches(gpu, &ws, n, input, output);
+        if gradients {
+            self.eval_grad = Some(ws);
+        } else {
+            self.eval = Some(ws);
+        }
+        Ok(Some(launches?))
+    }
+
+    /// Records `launches` (from [`SirenGpu::bound_eval`]) into `enc` in one compute pass, after
+    /// the weight packing they need.
+    pub(crate) fn record_launches(&self, enc: &mut wgpu::CommandEncoder, launches: &[Launch]) {
+        self.refresh_pack(enc);
+        let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
+            label: Some("siren query"),
+            timestamp_writes: None,
+        });
+        for l in launches {
+            l.record(&mut pass);
+        }
+    }
+
     fn run_eval(
         &mut self,
         gpu: &GpuContext,
@@ -619,7 +705,7 @@ impl SirenGpu {
                 };
                 gpu.write(&ws.input, &input)?;
                 let mut enc = gpu.device().create_command_encoder(&Default::default());
-                self.record_pack(&mut enc);
+                self.refresh_pack(&mut enc);
                 {
                     let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
                         label: Some("siren eval"),
@@ -743,16 +829,13 @@ impl SirenGpu {
         let hu = gpu.uniform("siren head uniforms", &head);
         launches.push(Launch::flat(
             gpu,
-            &p.head_forward,
+            &p.head_eval,
             "siren eval head",
             &[
                 entry(0, &hu),
                 entry(1, &ws.act[(cfg.hidden_layers - 1) % 2]),
                 entry(2, &self.params),
-                entry(3, &self.dummy),
                 entry(4, values),
-                entry(5, &self.dummy_rw),
-                entry(6, &self.dummy_rw),
             ],
             n,
         ));
