@@ -16,12 +16,16 @@
 //!
 //! each at 10 points (where only the floor is left) and at 3000.
 //!
-//! Run: `cargo bench --bench query`. `QUERY_BENCH_PRESETS=small` runs one preset.
+//! Run: `cargo bench --bench query`. `QUERY_BENCH_PRESETS=small` runs one preset,
+//! `QUERY_BENCH_POINTS=1,10,64` other batch sizes (default 10 and 3000).
 //!
 //! On a shared, loaded machine criterion's separate runs drift with the load. Set
 //! `QUERY_BENCH_INTERLEAVED=ROUNDS` to run the variants instead in turn, one call each per round,
 //! so that every variant sees the same load, and print the minimum, the 10th percentile and the
-//! median of each (no criterion).
+//! median of each (no criterion). This mode adds rows that split a query's floor into its parts:
+//! `roundtrip/upload` (the empty round trip after a `Queue::write_buffer` of the points),
+//! `roundtrip/dispatch` (after one empty dispatch) and `serve_recorded` (`record_query` on points
+//! already on the GPU, a copy and a readback: a query without its upload).
 
 use std::time::Duration;
 
@@ -34,6 +38,15 @@ use sdf_nn::{
     GpuContext, NeuralSdf, Nglod, NglodConfig, NglodGpu, Normalization, QueryBuffersDescriptor,
     QuerySpace,
 };
+
+/// The batch sizes of `QUERY_BENCH_POINTS` (default 10 and 3000).
+fn batch_sizes() -> Vec<usize> {
+    std::env::var("QUERY_BENCH_POINTS")
+        .ok()
+        .map(|s| s.split(',').filter_map(|n| n.trim().parse().ok()).collect())
+        .filter(|v: &Vec<usize>| !v.is_empty())
+        .unwrap_or_else(|| vec![10, 3000])
+}
 
 fn presets() -> Vec<(&'static str, NglodConfig)> {
     let which = std::env::var("QUERY_BENCH_PRESETS").unwrap_or_default();
@@ -87,7 +100,7 @@ fn nglod(c: &mut Criterion, gpu: &GpuContext) {
         g.sample_size(20)
             .warm_up_time(Duration::from_secs(1))
             .measurement_time(Duration::from_secs(3));
-        for n in [10usize, 3000] {
+        for n in batch_sizes() {
             let pts: Vec<Vec3> = sdf_geom::sample::uniform_box(n, 42);
             // Compile and allocate outside the timing.
             net.eval(gpu, &pts, None).unwrap();
@@ -199,7 +212,7 @@ fn interleaved(gpu: &GpuContext, rounds: usize) {
             model.to_model_file(Normalization::identity(), serde_json::Value::Null),
         )
         .unwrap();
-        for n in [10usize, 3000] {
+        for n in batch_sizes() {
             let pts: Vec<Vec3> = sdf_geom::sample::uniform_box(n, 42);
             let mut buffers = sdf
                 .create_query_buffers(
@@ -212,6 +225,25 @@ fn interleaved(gpu: &GpuContext, rounds: usize) {
                 )
                 .unwrap();
             let mut out = Vec::with_capacity(n);
+            let host: Vec<[f32; 4]> = pts.iter().map(|p| [p.x, p.y, p.z, 1.0]).collect();
+            let upload_dst = gpu.storage_zeroed("bench upload", n as u64 * 16).unwrap();
+            let mut resident = sdf
+                .create_query_buffers(
+                    gpu,
+                    &QueryBuffersDescriptor {
+                        capacity: n as u32,
+                        space: QuerySpace::Normalized,
+                        ..Default::default()
+                    },
+                )
+                .unwrap();
+            resident.upload(gpu, &pts).unwrap();
+            let resident_staging = gpu.device().create_buffer(&wgpu::BufferDescriptor {
+                label: Some("bench resident staging"),
+                size: n as u64 * 4,
+                usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+                mapped_at_creation: false,
+            });
             // The floor of any query: one submission (with or without one empty dispatch) and
             // the readback of 10 floats.
             let roundtrip = |dispatch: bool| {
@@ -233,7 +265,39 @@ fn interleaved(gpu: &GpuContext, rounds: usize) {
             };
             let mut variants: Vec<Variant<'_>> = vec![
                 ("roundtrip/empty", Box::new(|| roundtrip(false))),
+                (
+                    "roundtrip/upload",
+                    Box::new(|| {
+                        gpu.queue()
+                            .write_buffer(&upload_dst, 0, bytemuck::cast_slice(&host));
+                        roundtrip(false)
+                    }),
+                ),
                 ("roundtrip/dispatch", Box::new(|| roundtrip(true))),
+                (
+                    "serve_recorded",
+                    Box::new(|| {
+                        let mut enc = gpu.device().create_command_encoder(&Default::default());
+                        sdf.record_query(gpu, &mut enc, &mut resident, n as u32)
+                            .unwrap();
+                        let bytes = n as u64 * 4;
+                        enc.copy_buffer_to_buffer(
+                            resident.results(),
+                            0,
+                            &resident_staging,
+                            0,
+                            bytes,
+                        );
+                        gpu.queue().submit([enc.finish()]);
+                        let slice = resident_staging.slice(..);
+                        slice.map_async(wgpu::MapMode::Read, |r| r.unwrap());
+                        gpu.wait().unwrap();
+                        let v: Vec<f32> =
+                            bytemuck::pod_collect_to_vec(&slice.get_mapped_range().unwrap());
+                        resident_staging.unmap();
+                        std::hint::black_box(v);
+                    }),
+                ),
                 (
                     "kernel",
                     Box::new(|| {
@@ -284,7 +348,7 @@ fn interleaved_siren(gpu: &GpuContext, rounds: usize) {
         siren.to_model_file(Normalization::identity(), serde_json::Value::Null),
     )
     .unwrap();
-    for n in [10usize, 3000] {
+    for n in batch_sizes() {
         let pts: Vec<Vec3> = sdf_geom::sample::uniform_box(n, 42);
         let mut gpu_ns = Vec::with_capacity(rounds);
         let mut variants: Vec<Variant<'_>> = vec![

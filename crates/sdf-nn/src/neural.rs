@@ -17,7 +17,7 @@ use rayon::prelude::*;
 
 use crate::gpu::{GpuContext, GpuError, GpuTimer};
 use crate::model_file::{ModelFile, ModelFileError, Normalization};
-use crate::nglod::{Nglod, NglodError, NglodGpu, ScatterMode};
+use crate::nglod::{Nglod, NglodError, NglodGpu};
 use crate::query::{QueryBuffers, QueryBuffersDescriptor, QueryError, QueryOutputs, QuerySpace};
 use crate::siren::{self, Siren, SirenGpu, SirenGpuError};
 
@@ -369,10 +369,8 @@ impl NeuralSdf {
         let stale = !matches!(&*slot, Some(side) if side.device == *gpu.device());
         if stale {
             let network = match &self.network {
-                Network::Siren(s) => GpuNetwork::Siren(Box::new(SirenGpu::new(gpu, s)?)),
-                Network::Nglod(m) => {
-                    GpuNetwork::Nglod(Box::new(NglodGpu::new(gpu, m, ScatterMode::Auto)?))
-                }
+                Network::Siren(s) => GpuNetwork::Siren(Box::new(SirenGpu::new_frozen(gpu, s)?)),
+                Network::Nglod(m) => GpuNetwork::Nglod(Box::new(NglodGpu::new_frozen(gpu, m)?)),
             };
             *slot = Some(GpuSide {
                 device: gpu.device().clone(),

@@ -83,8 +83,13 @@ pub struct NglodGpu {
     layout: ParamLayout,
     params: wgpu::Buffer,
     grads: wgpu::Buffer,
-    /// Uniform copy of the MLP block of `params`, refreshed before every dispatch that reads it.
+    /// Uniform copy of the MLP block of `params`, refreshed before every dispatch that reads it
+    /// (unless `frozen`).
     mlp: wgpu::Buffer,
+    /// The parameters change only through [`NglodGpu::upload`], which also rewrites `mlp`: the
+    /// inference paths then skip the refresh, one copy and one barrier fewer per query (a served
+    /// model, see [`NglodGpu::new_frozen`]).
+    frozen: bool,
     float_atomics: bool,
     constants: [(&'static str, f64); 2],
     eval: Mutex<Option<EvalScratch>>,
@@ -155,11 +160,28 @@ impl NglodGpu {
             params,
             grads,
             mlp,
+            frozen: false,
             float_atomics,
             constants,
             eval: Mutex::new(None),
             eval_chunk: EVAL_CHUNK,
         })
+    }
+
+    /// [`NglodGpu::new`] for a model whose parameters nobody writes on the GPU (no trainer, no
+    /// writes through [`NglodGpu::params_buffer`]): [`crate::NeuralSdf`]'s network. Its MLP
+    /// uniform is written here and by [`NglodGpu::upload`] only, not before every dispatch.
+    pub(crate) fn new_frozen(gpu: &GpuContext, model: &Nglod) -> Result<Self, NglodError> {
+        let mut net = Self::new(gpu, model, ScatterMode::Auto)?;
+        net.frozen = true;
+        net.write_mlp(gpu, model)?;
+        Ok(net)
+    }
+
+    /// Writes `model`'s MLP block into the uniform buffer through the queue.
+    fn write_mlp(&self, gpu: &GpuContext, model: &Nglod) -> Result<(), NglodError> {
+        gpu.write(&self.mlp, &model.params()[self.layout.w0..])?;
+        Ok(())
     }
 
     /// The configuration.
@@ -200,6 +222,9 @@ impl NglodGpu {
             ));
         }
         gpu.write(&self.params, model.params())?;
+        if self.frozen {
+            self.write_mlp(gpu, model)?;
+        }
         Ok(())
     }
 
@@ -286,7 +311,7 @@ impl NglodGpu {
             gpu.write(&s.points, bytemuck::cast_slice::<Vec3, f32>(chunk))?;
             gpu.write(&s.uniforms, &[self.eval_uniforms(n, k)])?;
             let mut enc = gpu.device().create_command_encoder(&Default::default());
-            self.record_mlp_copy(&mut enc);
+            self.refresh_mlp(&mut enc);
             {
                 let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
                     label: Some("nglod forward"),
@@ -373,7 +398,7 @@ impl NglodGpu {
             gpu.write(&binding.uniforms, &[u])?;
             binding.written = Some((n, k));
         }
-        self.record_mlp_copy(enc);
+        self.refresh_mlp(enc);
         let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
             label: Some("nglod query"),
             timestamp_writes: timer.map(|t| t.writes(true, true)),
@@ -383,6 +408,13 @@ impl NglodGpu {
         let (x, y) = gpu.dispatch_size(n.div_ceil(WG));
         pass.dispatch_workgroups(x, y, 1);
         Ok(())
+    }
+
+    /// Records [`NglodGpu::record_mlp_copy`] unless the network is frozen (its uniform is current).
+    fn refresh_mlp(&self, enc: &mut wgpu::CommandEncoder) {
+        if !self.frozen {
+            self.record_mlp_copy(enc);
+        }
     }
 
     /// Copies the MLP block of the parameters into the uniform buffer the kernels read it from.
