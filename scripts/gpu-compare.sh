@@ -16,15 +16,24 @@
 # starts with `query`) with criterion's results under DIR/results/criterion, runs the PyTorch
 # scripts for both presets, and prints one Markdown table of ours against PyTorch eager (and
 # torch.compile where it works) with the ratios. The table is also written to
-# DIR/results/table.md, next to every raw log. Environment:
+# DIR/results/table.md, next to every raw log. It then times whole fits with `train` on
+# tests/data/spot.obj (issue 14's "100 epochs of NGLOD `default`", issue 12's "a default SIREN
+# fit") and, when the pack holds meshes, runs `corpus` over them (issue 14's F1 averages), and
+# appends both to the table. Environment:
 #   GPU_COMPARE_PRESETS=small,default   presets to run (both by default)
+#   GPU_COMPARE_STAGES=bench,torch,fit,corpus
+#                                       what to run (default all; split a session's runs with it)
+#   GPU_COMPARE_FITS=nglod,siren        which fits the `fit` stage times (default nglod; a default
+#                                       SIREN fit is 10⁴ steps, minutes before issue 12's kernels)
+#   GPU_COMPARE_MESHES=DIR              (pack) copy DIR's meshes into the pack for `corpus`
+#   GPU_COMPARE_CORPUS_ARGS="..."       extra `corpus` arguments (default: --model nglod)
 #   GPU_COMPARE_ALLOW_CPU=1             run even if the adapter is a CPU (lavapipe): a dry run
-#   GPU_COMPARE_SKIP_TORCH=1            only our side
+#   GPU_COMPARE_SKIP_TORCH=1            only our side (same as leaving `torch` out of the stages)
 #   any variable the benches read (SIREN_BENCH_*, NGLOD_BENCH_EPOCHS, WGPU_ADAPTER_NAME, ...)
 set -euo pipefail
 
 usage() {
-    sed -n '2,25p' "$0" | sed 's/^# \{0,1\}//'
+    sed -n '2,35p' "$0" | sed 's/^# \{0,1\}//'
     exit 2
 }
 
@@ -71,6 +80,14 @@ for line in sys.stdin:
     cp scripts/siren_torch_bench.py scripts/nglod_torch_bench.py "$dir/scripts/"
     cp scripts/gpu-compare.sh "$dir/"
     git rev-parse --short HEAD >"$dir/COMMIT" 2>/dev/null || echo unknown >"$dir/COMMIT"
+    rm -rf "$dir/meshes"
+    if [ -n "${GPU_COMPARE_MESHES:-}" ]; then
+        echo "== copying the meshes of $GPU_COMPARE_MESHES"
+        mkdir -p "$dir/meshes"
+        find "$GPU_COMPARE_MESHES" -maxdepth 1 -type f \
+            \( -name '*.obj' -o -name '*.gltf' -o -name '*.glb' -o -name '*.bin' -o -name '*.tsv' \) \
+            -exec cp {} "$dir/meshes/" \;
+    fi
     if [ "${GPU_COMPARE_DEBS:-0}" = 1 ]; then
         echo "== downloading Debian's amd64 Vulkan loader packages into $dir/debs"
         local o=(-oAPT::Architecture=amd64 -oAPT::Architectures=amd64 -oDir::State::Lists=/tmp/gpu-compare-apt)
@@ -140,8 +157,10 @@ run() {
     fi
     export CRITERION_HOME="$res/criterion"
     export SIREN_BENCH_PRESETS=${GPU_COMPARE_PRESETS:-small,default}
+    local stages=",${GPU_COMPARE_STAGES:-bench,torch,fit,corpus},"
     local b
     for b in benches/*; do
+        [[ $stages == *,bench,* ]] || break
         local name
         name=$(basename "$b")
         case "$name" in
@@ -152,7 +171,7 @@ run() {
         "$b" --bench 2>&1 | tee "$res/bench-$name.txt"
     done
     local presets=${GPU_COMPARE_PRESETS:-small,default}
-    if [ "${GPU_COMPARE_SKIP_TORCH:-0}" != 1 ]; then
+    if [ "${GPU_COMPARE_SKIP_TORCH:-0}" != 1 ] && [[ $stages == *,torch,* ]]; then
         if python3 -c 'import torch' 2>/dev/null; then
             local p
             for p in ${presets//,/ }; do
@@ -249,6 +268,56 @@ for est in sorted(glob.glob(os.path.join(res, "criterion", "**", "new", "estimat
         print(f"- {name}: {fmt(json.load(open(est))['median']['point_estimate'] * 1e-9)}")
     except (OSError, KeyError, ValueError):
         pass
+PY
+    if [[ $stages == *,fit,* ]]; then
+        local m
+        for m in $(echo "${GPU_COMPARE_FITS:-nglod}" | tr ',' ' '); do
+            echo "== fit: $m on tests/data/spot.obj (the GPU default run)"
+            local t0 t1
+            t0=$(date +%s.%N)
+            bin/train tests/data/spot.obj --model "$m" --out "$res/fit-$m.safetensors" \
+                --report "$res/fit-$m.json" 2>&1 | tee "$res/fit-$m.txt" || echo "(failed)"
+            t1=$(date +%s.%N)
+            echo "wall $(python3 -c "print(f'{$t1 - $t0:.1f}')") s" | tee -a "$res/fit-$m.txt"
+        done
+    fi
+    if [[ $stages == *,corpus,* ]] && [ -d meshes ]; then
+        echo "== corpus over the packed meshes"
+        local t0 t1
+        t0=$(date +%s.%N)
+        # shellcheck disable=SC2086 # word splitting of the extra arguments is intended
+        bin/corpus meshes ${GPU_COMPARE_CORPUS_ARGS:---model nglod} --out "$res/corpus.md" 2>&1 \
+            | tee "$res/corpus.txt" || echo "(failed)"
+        t1=$(date +%s.%N)
+        echo "wall $(python3 -c "print(f'{$t1 - $t0:.1f}')") s" | tee -a "$res/corpus.txt"
+    fi
+    python3 - "$res" <<'PY' | tee -a "$res/table.md"
+import glob, json, os, sys
+
+res = sys.argv[1]
+fits = sorted(glob.glob(os.path.join(res, "fit-*.json")))
+if fits:
+    print("\n| fit on tests/data/spot.obj | preset | trained | training | wall in all | F1 box / near |")
+    print("| --- | --- | --- | --- | --- | --- |")
+for path in fits:
+    try:
+        r = json.load(open(path))
+    except (OSError, ValueError):
+        continue
+    wall = "—"
+    try:
+        lines = open(path[:-5] + ".txt").read().splitlines()
+        wall = next(l.split()[1] + " s" for l in reversed(lines) if l.startswith("wall "))
+    except (OSError, StopIteration, IndexError):
+        pass
+    f1 = lambda k: "n/a" if r.get(k) is None else f"{r[k]:.4f}"
+    unit = "epochs" if r.get("model") == "nglod" else "steps"
+    print(f"| {r.get('model')} | {r.get('preset')} | {r.get('trained')} {unit} | "
+          f"{r.get('train_seconds', 0):.1f} s | {wall} | {f1('f1_bbox')} / {f1('f1_near_surface')} |")
+corpus = os.path.join(res, "corpus.md")
+if os.path.exists(corpus):
+    print("\nCorpus over the packed meshes (results/corpus.md):\n")
+    print(open(corpus).read())
 PY
     echo "== table written to $res/table.md"
 }
