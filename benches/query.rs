@@ -35,9 +35,32 @@ use rayon::prelude::*;
 use sdf_nn::gpu::GpuTimer;
 use sdf_nn::nglod::ScatterMode;
 use sdf_nn::{
-    GpuContext, NeuralSdf, Nglod, NglodConfig, NglodGpu, Normalization, QueryBuffersDescriptor,
-    QuerySpace,
+    GpuContext, NeuralSdf, Nglod, NglodConfig, NglodGpu, Normalization, QueryBuffers,
+    QueryBuffersDescriptor, QuerySpace,
 };
+
+/// Query buffers for `n` points in the normalised cube, values only.
+fn normalized_buffers(gpu: &GpuContext, sdf: &NeuralSdf, n: usize) -> QueryBuffers {
+    sdf.create_query_buffers(
+        gpu,
+        &QueryBuffersDescriptor {
+            capacity: n as u32,
+            space: QuerySpace::Normalized,
+            ..Default::default()
+        },
+    )
+    .unwrap()
+}
+
+/// A mappable buffer to read `size` bytes back into.
+fn readback_buffer(gpu: &GpuContext, label: &str, size: u64) -> wgpu::Buffer {
+    gpu.device().create_buffer(&wgpu::BufferDescriptor {
+        label: Some(label),
+        size,
+        usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+        mapped_at_creation: false,
+    })
+}
 
 /// The batch sizes of `QUERY_BENCH_POINTS` (default 10 and 3000).
 fn batch_sizes() -> Vec<usize> {
@@ -62,12 +85,7 @@ fn presets() -> Vec<(&'static str, NglodConfig)> {
 /// A submit of one 40-byte copy and its readback through a persistent mappable buffer.
 fn empty_roundtrip(c: &mut Criterion, gpu: &GpuContext) {
     let src = gpu.storage_zeroed("bench src", 40).unwrap();
-    let staging = gpu.device().create_buffer(&wgpu::BufferDescriptor {
-        label: Some("bench staging"),
-        size: 40,
-        usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
-        mapped_at_creation: false,
-    });
+    let staging = readback_buffer(gpu, "bench staging", 40);
     let mut g = c.benchmark_group("roundtrip");
     g.sample_size(20)
         .warm_up_time(Duration::from_secs(1))
@@ -115,16 +133,7 @@ fn nglod(c: &mut Criterion, gpu: &GpuContext) {
             g.bench_with_input(BenchmarkId::new("neural_sdf_timed", n), &pts, |b, pts| {
                 b.iter(|| sdf.eval_normalized_timed(gpu, pts).unwrap())
             });
-            let mut buffers = sdf
-                .create_query_buffers(
-                    gpu,
-                    &QueryBuffersDescriptor {
-                        capacity: n as u32,
-                        space: QuerySpace::Normalized,
-                        ..Default::default()
-                    },
-                )
-                .unwrap();
+            let mut buffers = normalized_buffers(gpu, &sdf, n);
             let mut out = Vec::with_capacity(n);
             g.bench_with_input(BenchmarkId::new("serve_submit_wait", n), &pts, |b, pts| {
                 b.iter(|| {
@@ -170,12 +179,7 @@ type Variant<'a> = (&'static str, Box<dyn FnMut() + 'a>);
 /// The variants in turn, `rounds` calls each (see the module docs).
 fn interleaved(gpu: &GpuContext, rounds: usize) {
     let src = gpu.storage_zeroed("bench src", 40).unwrap();
-    let staging = gpu.device().create_buffer(&wgpu::BufferDescriptor {
-        label: Some("bench staging"),
-        size: 40,
-        usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
-        mapped_at_creation: false,
-    });
+    let staging = readback_buffer(gpu, "bench staging", 40);
     let timer = GpuTimer::new(gpu);
     // A dispatch that does nothing (query.wgsl's `prepare` with a point count of 0), to split a
     // query's cost into the submit+readback, one kernel launch, and the kernel's work.
@@ -214,36 +218,13 @@ fn interleaved(gpu: &GpuContext, rounds: usize) {
         .unwrap();
         for n in batch_sizes() {
             let pts: Vec<Vec3> = sdf_geom::sample::uniform_box(n, 42);
-            let mut buffers = sdf
-                .create_query_buffers(
-                    gpu,
-                    &QueryBuffersDescriptor {
-                        capacity: n as u32,
-                        space: QuerySpace::Normalized,
-                        ..Default::default()
-                    },
-                )
-                .unwrap();
+            let mut buffers = normalized_buffers(gpu, &sdf, n);
             let mut out = Vec::with_capacity(n);
             let host: Vec<[f32; 4]> = pts.iter().map(|p| [p.x, p.y, p.z, 1.0]).collect();
             let upload_dst = gpu.storage_zeroed("bench upload", n as u64 * 16).unwrap();
-            let mut resident = sdf
-                .create_query_buffers(
-                    gpu,
-                    &QueryBuffersDescriptor {
-                        capacity: n as u32,
-                        space: QuerySpace::Normalized,
-                        ..Default::default()
-                    },
-                )
-                .unwrap();
+            let mut resident = normalized_buffers(gpu, &sdf, n);
             resident.upload(gpu, &pts).unwrap();
-            let resident_staging = gpu.device().create_buffer(&wgpu::BufferDescriptor {
-                label: Some("bench resident staging"),
-                size: n as u64 * 4,
-                usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
-                mapped_at_creation: false,
-            });
+            let resident_staging = readback_buffer(gpu, "bench resident staging", n as u64 * 4);
             // The floor of any query: one submission (with or without one empty dispatch) and
             // the readback of 10 floats.
             let roundtrip = |dispatch: bool| {

@@ -731,6 +731,24 @@ mod tests {
         }
     }
 
+    /// Serves model file `a`, checks it, uploads `b`'s parameters into its GPU network with
+    /// `upload`, and checks that the next query answers with `b`'s values.
+    fn check_upload(
+        what: &str,
+        a: crate::ModelFile,
+        b: crate::ModelFile,
+        upload: impl FnOnce(&mut GpuNetwork) -> Result<(), crate::NeuralSdfError>,
+    ) {
+        let (gpu, pts) = (gpu(), points());
+        let served = sdf(a);
+        let want_b = sdf(b).eval_cpu(&pts);
+        let got = served.eval(gpu, &pts).unwrap();
+        assert_close(&got, &served.eval_cpu(&pts), what);
+        served.with_gpu(gpu, |net, _| upload(net)).unwrap();
+        let got = served.eval(gpu, &pts).unwrap();
+        assert_close(&got, &want_b, &format!("{what} after upload"));
+    }
+
     /// A served model's networks skip refreshing their derived weights (NGLOD's MLP uniform,
     /// SIREN's packed row-blocked weights) on every query; new parameters uploaded into them must
     /// still reach the next query.
@@ -738,7 +756,6 @@ mod tests {
     fn frozen_networks_follow_uploads() {
         let gpu = gpu();
         let id = Normalization::identity();
-        let pts = points();
         let a = Nglod::new(NglodConfig::small()).unwrap();
         // Same configuration, other parameters (the MLP's included).
         let b = Nglod::from_params(
@@ -746,47 +763,24 @@ mod tests {
             a.params().iter().map(|&x| 0.25 - 0.5 * x).collect(),
         )
         .unwrap();
-        let served = sdf(a.to_model_file(id, serde_json::Value::Null));
-        let want_b = sdf(b.to_model_file(id, serde_json::Value::Null)).eval_cpu(&pts);
-        assert_close(
-            &served.eval(gpu, &pts).unwrap(),
-            &served.eval_cpu(&pts),
-            "nglod a",
+        let (fa, fb) = (
+            a.to_model_file(id, serde_json::Value::Null),
+            b.to_model_file(id, serde_json::Value::Null),
         );
-        served
-            .with_gpu(gpu, |net, _| match net {
-                GpuNetwork::Nglod(m) => Ok(m.upload(gpu, &b)?),
-                GpuNetwork::Siren(_) => unreachable!(),
-            })
-            .unwrap();
-        assert_close(
-            &served.eval(gpu, &pts).unwrap(),
-            &want_b,
-            "nglod after upload",
+        check_upload("nglod", fa, fb, |net| match net {
+            GpuNetwork::Nglod(m) => Ok(m.upload(gpu, &b)?),
+            GpuNetwork::Siren(_) => unreachable!(),
+        });
+        let a = Siren::new(SirenConfig::small(), 1).unwrap();
+        let b = Siren::new(SirenConfig::small(), 2).unwrap();
+        let (fa, fb) = (
+            a.to_model_file(id, serde_json::Value::Null),
+            b.to_model_file(id, serde_json::Value::Null),
         );
-
-        let (a, b) = (
-            Siren::new(SirenConfig::small(), 1).unwrap(),
-            Siren::new(SirenConfig::small(), 2).unwrap(),
-        );
-        let served = sdf(a.to_model_file(id, serde_json::Value::Null));
-        let want_b = sdf(b.to_model_file(id, serde_json::Value::Null)).eval_cpu(&pts);
-        assert_close(
-            &served.eval(gpu, &pts).unwrap(),
-            &served.eval_cpu(&pts),
-            "siren a",
-        );
-        served
-            .with_gpu(gpu, |net, _| match net {
-                GpuNetwork::Siren(s) => Ok(s.upload(gpu, &b)?),
-                GpuNetwork::Nglod(_) => unreachable!(),
-            })
-            .unwrap();
-        assert_close(
-            &served.eval(gpu, &pts).unwrap(),
-            &want_b,
-            "siren after upload",
-        );
+        check_upload("siren", fa, fb, |net| match net {
+            GpuNetwork::Siren(s) => Ok(s.upload(gpu, &b)?),
+            GpuNetwork::Nglod(_) => unreachable!(),
+        });
     }
 
     /// A SIREN query larger than one of the network's launches takes the path that splits it
