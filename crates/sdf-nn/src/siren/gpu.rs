@@ -14,6 +14,7 @@ use glam::Vec3;
 
 use super::dense::{DensePlan, Epilogue, LayerKernels, SPLITS};
 use super::kernels::tiled::{TiledEpilogue, TiledKernels};
+use super::ror::{self, TrainStep};
 use super::{LayerLayout, Siren, SirenConfig, SirenConfigError};
 use crate::gpu::{GpuContext, GpuError, GpuTimer};
 use crate::shaders;
@@ -106,15 +107,15 @@ pub(crate) struct HeadUniforms {
 
 #[repr(C)]
 #[derive(Clone, Copy, Debug, Default, bytemuck::Pod, bytemuck::Zeroable)]
-struct ReduceUniforms {
-    m: u32,
-    n: u32,
-    splits: u32,
-    w_off: u32,
-    b_off: u32,
-    pbias_off: u32,
-    _pad0: u32,
-    _pad1: u32,
+pub(crate) struct ReduceUniforms {
+    pub(crate) m: u32,
+    pub(crate) n: u32,
+    pub(crate) splits: u32,
+    pub(crate) w_off: u32,
+    pub(crate) b_off: u32,
+    pub(crate) pbias_off: u32,
+    pub(crate) _pad0: u32,
+    pub(crate) _pad1: u32,
 }
 
 /// Default of [`SirenGpu::set_fused_max_points`]: covers the latency-bound batches (the issue's
@@ -122,14 +123,18 @@ struct ReduceUniforms {
 /// measured yet.
 pub const DEFAULT_FUSED_MAX_POINTS: u32 = 8192;
 
+/// Whether [`TrainStep::Auto`] picks the reverse-over-reverse step on the row-blocked kernels.
+const ROW_BLOCKED_AUTO_ROR: bool = false;
+const DENSE_ROR_IMPLEMENTED: bool = false;
+
 /// Rows per GEMM workgroup (see `siren_gemm.wgsl`).
 const GEMM_ROWS: u32 = 64;
 const WG: u32 = 256;
 /// Batch rows per split of a weight-gradient GEMM (a multiple of 4).
-const K_CHUNK: u32 = 1024;
+pub(crate) const K_CHUNK: u32 = 1024;
 
 /// Rows of a K chunk → number of splits.
-fn splits_for(rows: u32) -> u32 {
+pub(crate) fn splits_for(rows: u32) -> u32 {
     rows.div_ceil(K_CHUNK).max(1)
 }
 
@@ -310,6 +315,8 @@ pub struct SirenGpu {
     tiled: Option<TiledKernels>,
     /// Largest inference batch (per launch) for the fused all-layer kernel of the tiled family.
     fused_max_points: u32,
+    /// How training steps differentiate through ∇ₓΦ.
+    train_step: TrainStep,
 }
 
 impl SirenGpu {
@@ -350,7 +357,51 @@ impl SirenGpu {
             dense,
             tiled,
             fused_max_points: DEFAULT_FUSED_MAX_POINTS,
+            train_step: TrainStep::default(),
         })
+    }
+
+    /// Chooses how training steps (and [`SirenGpu::loss_and_gradient`]) differentiate the
+    /// loss's ∇ₓΦ terms (default [`TrainStep::Auto`]). A [`super::SirenTrainer`] must rebuild
+    /// its passes: use [`super::SirenTrainer::set_train_step`].
+    pub fn set_train_step(&mut self, step: TrainStep) {
+        self.train_step = step;
+    }
+
+    /// The chosen training step (possibly [`TrainStep::Auto`]).
+    pub fn train_step(&self) -> TrainStep {
+        self.train_step
+    }
+
+    /// Whether training steps run reverse over reverse with the current kernels and
+    /// [`TrainStep`] (otherwise they carry tangents).
+    pub fn runs_reverse_over_reverse(&self) -> bool {
+        let tiled = self.tiled.is_some();
+        let dense = self.dense_ror_plan().is_some();
+        match self.train_step {
+            TrainStep::Tangents => false,
+            TrainStep::ReverseOverReverse => tiled || dense,
+            TrainStep::Auto => tiled || (ROW_BLOCKED_AUTO_ROR && dense),
+        }
+    }
+
+    /// The tiled kernels, when they run every product.
+    pub(crate) fn tiled_kernels(&self) -> Option<&TiledKernels> {
+        self.tiled.as_ref()
+    }
+
+    /// The row-blocked kernels, when they cover every hidden layer (what the
+    /// reverse-over-reverse step needs of them).
+    pub(crate) fn dense_ror_plan(&self) -> Option<&DensePlan> {
+        let covers_all = |d: &DensePlan| (0..self.config.hidden_layers).all(|l| d.covers(l));
+        self.dense
+            .as_ref()
+            .filter(|d| DENSE_ROR_IMPLEMENTED && covers_all(d))
+    }
+
+    /// The layers' parameter layout.
+    pub(crate) fn layer_layouts(&self) -> &[LayerLayout] {
+        &self.layers
     }
 
     /// Chooses the kernels of the hidden layers (default [`LayerKernels::Auto`]).
@@ -978,6 +1029,28 @@ impl TrainPasses {
         normals: wgpu::Buffer,
         loss_partial: wgpu::Buffer,
     ) -> Result<Self, SirenGpuError> {
+        if net.runs_reverse_over_reverse() {
+            let r = ror::build(
+                gpu,
+                net,
+                n,
+                n_surface,
+                weights,
+                &x_streams,
+                &normals,
+                &loss_partial,
+            )?;
+            return Ok(TrainPasses {
+                n,
+                n_surface,
+                x_streams,
+                normals,
+                loss_partial,
+                loss_groups: r.loss_groups,
+                launches: r.launches,
+                _keep: r.keep,
+            });
+        }
         let cfg = net.config;
         let layers = &net.layers;
         let p = &net.pipelines;
