@@ -297,7 +297,8 @@ fn loss_and_every_parameter_gradient_match_cpu_reference() {
 /// forced explicitly, against the f64 reference: batches of 1, 37 and 700 points (not multiples
 /// of the 64-row tiles, the 64-point workgroups or the 256-point head groups; 700 points are
 /// 1400 stacked weight-gradient rows, two split-K chunks), surface and off-surface points, two
-/// and three hidden layers, a width that is not a multiple of 4.
+/// and three hidden layers, a width that is not a multiple of 4 (tiled only: the row-blocked
+/// kernels need multiples of 16) and the reference width 256.
 #[test]
 fn reverse_over_reverse_step_matches_cpu_reference() {
     let gpu = gpu();
@@ -307,6 +308,9 @@ fn reverse_over_reverse_step_matches_cpu_reference() {
         (16, 2, &[(1, 1), (37, 20), (700, 333)]),
         (32, 3, &[(37, 17)]),
         (20, 2, &[(45, 30)]),
+        // The reference width: the row-blocked kernels split every 256 × 256 layer into
+        // sixteen weight windows (offsets per window, accumulation over them).
+        (256, 2, &[(23, 11)]),
     ];
     for &(width, hidden_layers, sizes) in cases {
         let cfg = SirenConfig {
@@ -337,7 +341,7 @@ fn reverse_over_reverse_step_matches_cpu_reference() {
 }
 
 /// Whether the row-blocked family has the reverse-over-reverse step.
-const ROW_BLOCKED_ROR: bool = false;
+const ROW_BLOCKED_ROR: bool = true;
 
 /// The reverse-over-reverse gradient against central differences (in f64) of the reference
 /// loss, a few parameters of every weight matrix and bias.

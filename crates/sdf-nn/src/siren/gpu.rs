@@ -125,7 +125,7 @@ pub const DEFAULT_FUSED_MAX_POINTS: u32 = 8192;
 
 /// Whether [`TrainStep::Auto`] picks the reverse-over-reverse step on the row-blocked kernels.
 const ROW_BLOCKED_AUTO_ROR: bool = false;
-const DENSE_ROR_IMPLEMENTED: bool = false;
+const DENSE_ROR_IMPLEMENTED: bool = true;
 
 /// Rows per GEMM workgroup (see `siren_gemm.wgsl`).
 const GEMM_ROWS: u32 = 64;

@@ -39,7 +39,7 @@
 //! stacked operands of the weight gradient are contiguous: `P_l = (Z_l, G_l → T_l)`,
 //! `X_l = (A_l, Ḡ_l)`, `Y_l = (Z̄_l, H_l)`; `X_0 = (x, ḡ)`, six floats per point.
 
-use super::dense::DensePlan;
+use super::dense::{DensePlan, RorEpilogue, RorIo, SPLITS};
 use super::gpu::{GemmUniforms, Launch, ReduceUniforms, SirenGpu, SirenGpuError, splits_for};
 use super::kernels::tiled::{RorOffsets, TiledEpilogue, TiledKernels};
 use super::{LayerLayout, LossWeights};
@@ -265,7 +265,22 @@ pub(crate) fn build(
                 };
                 launches.push(t.gemm(gpu, &u, e, src, params, &p[l]));
             }
-            Family::RowBlocked(_) => unimplemented!(),
+            Family::RowBlocked(d) => {
+                let io = RorIo {
+                    a: src,
+                    a_stride: a_rs,
+                    a_first: 0,
+                    out: &p[l],
+                    aux: &x[l],
+                    stride: w2,
+                    out_first: 0,
+                    out1_first: 0,
+                    z_first: 0,
+                    t_first: 0,
+                };
+                let e = RorEpilogue::Forward { omega };
+                launches.extend(d.ror_times_wt(gpu, l, n, e, &io, params)?);
+            }
         }
     }
     // G_L = w, H_L = D(Z_L) ⊙ w.
@@ -299,7 +314,22 @@ pub(crate) fn build(
                 };
                 launches.push(t.gemm(gpu, &u, e, &y[l], params, &y[l - 1]));
             }
-            Family::RowBlocked(_) => unimplemented!(),
+            Family::RowBlocked(d) => {
+                let io = RorIo {
+                    a: &y[l],
+                    a_stride: w2,
+                    a_first: width,
+                    out: &y[l - 1],
+                    aux: &p[l - 1],
+                    stride: w2,
+                    out_first: width,
+                    out1_first: width,
+                    z_first: 0,
+                    t_first: 0,
+                };
+                let e = RorEpilogue::GradBackward { omega };
+                launches.extend(d.ror_times_w(gpu, l, n, e, &io)?);
+            }
         }
     }
     // Φ, ∇ₓΦ = H_1 W_1, the loss and its seeds φ̄ and ḡ.
@@ -344,7 +374,22 @@ pub(crate) fn build(
                 };
                 launches.push(t.gemm(gpu, &u, e, src, params, &x[l]));
             }
-            Family::RowBlocked(_) => unimplemented!(),
+            Family::RowBlocked(d) => {
+                let io = RorIo {
+                    a: src,
+                    a_stride: a_rs,
+                    a_first: a_off,
+                    out: &x[l],
+                    aux: &p[l],
+                    stride: w2,
+                    out_first: width,
+                    out1_first: width,
+                    z_first: 0,
+                    t_first: 0,
+                };
+                let e = RorEpilogue::GradAdjoint { omega };
+                launches.extend(d.ror_times_wt(gpu, l, n, e, &io, params)?);
+            }
         }
     }
     // Z̄_L = D(Z_L) ⊙ φ̄ wᵀ + T_L.
@@ -424,7 +469,12 @@ pub(crate) fn build(
                     u.pbias_off,
                 );
             }
-            Family::RowBlocked(_) => unimplemented!(),
+            Family::RowBlocked(d) => {
+                let (launch, pbias_off) =
+                    d.ror_weight_gradient(gpu, l, n, &y[l], below, &partial)?;
+                launches.push(launch);
+                push_reduce(&mut launches, &mut keep, &layers[l], SPLITS, pbias_off);
+            }
         }
         if l > 0 {
             let u = times_w(&layers[l], n, 0, w2, w2);
@@ -443,7 +493,22 @@ pub(crate) fn build(
                     };
                     launches.push(t.gemm(gpu, &u, e, &y[l], params, &y[l - 1]));
                 }
-                Family::RowBlocked(_) => unimplemented!(),
+                Family::RowBlocked(d) => {
+                    let io = RorIo {
+                        a: &y[l],
+                        a_stride: w2,
+                        a_first: 0,
+                        out: &y[l - 1],
+                        aux: &p[l - 1],
+                        stride: w2,
+                        out_first: 0,
+                        out1_first: 0,
+                        z_first: 0,
+                        t_first: width,
+                    };
+                    let e = RorEpilogue::ValueAdjoint { omega };
+                    launches.extend(d.ror_times_w(gpu, l, n, e, &io)?);
+                }
             }
         }
     }
