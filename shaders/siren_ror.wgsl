@@ -103,6 +103,10 @@ fn ror_head(
     @builtin(local_invocation_index) lid: u32,
 ) {
     let group = wid.y * nwg.x + wid.x;
+    // Workgroup-uniform: the groups a folded 2D dispatch adds past the end write nothing.
+    if group * WG >= r.n_points {
+        return;
+    }
     let p = group * WG + lid;
     var terms = vec4<f32>(0.0);
     if p < r.n_points {

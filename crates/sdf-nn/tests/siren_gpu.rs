@@ -510,12 +510,27 @@ fn experiment() {
 }
 
 #[test]
-#[ignore = "manual profile"]
+#[ignore = "manual profile: SIREN_N, SIREN_TRAIN_STEP (tangents or ror), SIREN_KERNELS (row-blocked or tiled)"]
 fn profile() {
     let gpu = gpu();
     let cfg = SirenConfig::small();
     let net = Siren::new(cfg, 1).unwrap();
     let mut g = SirenGpu::new(gpu, &net).unwrap();
+    match std::env::var("SIREN_KERNELS").as_deref() {
+        Ok("row-blocked") => g.set_layer_kernels(gpu, LayerKernels::RowBlocked).unwrap(),
+        Ok("tiled") => g.set_layer_kernels(gpu, LayerKernels::Tiled).unwrap(),
+        _ => {}
+    }
+    match std::env::var("SIREN_TRAIN_STEP").as_deref() {
+        Ok("tangents") => g.set_train_step(TrainStep::Tangents),
+        Ok("ror") => g.set_train_step(TrainStep::ReverseOverReverse),
+        _ => {}
+    }
+    eprintln!(
+        "kernels {:?}, reverse over reverse: {}",
+        g.layer_kernels(),
+        g.runs_reverse_over_reverse()
+    );
     let n: usize = env_or("SIREN_N", 10_000);
     let pts = sdf_geom::sample::uniform_box(n, 3);
     let nrm: Vec<Vec3> = pts[..n / 2].iter().map(|p| p.normalize()).collect();

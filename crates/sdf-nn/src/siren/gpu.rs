@@ -9,6 +9,10 @@
 //! tiled kernels of `kernels::tiled` (GPUs; small inference batches in one fused dispatch);
 //! weight gradients are split over the batch into partials that a second kernel sums into the
 //! gradient buffer, so there are no atomics anywhere.
+//!
+//! A training step either carries the tangents ([`TrainStep::Tangents`], the four rows per
+//! point above) or runs reverse over reverse ([`TrainStep::ReverseOverReverse`], one row per
+//! point; the math and layout are in [`super::ror`]); [`SirenGpu::set_train_step`] chooses.
 
 use glam::Vec3;
 
