@@ -293,6 +293,42 @@ fn loss_and_every_parameter_gradient_match_cpu_reference() {
     );
 }
 
+/// Where the reverse-over-reverse step runs: `Auto` picks it on the tiled and row-blocked
+/// families, never on the GEMM; forced, it falls back to the tangents where the row-blocked
+/// kernels leave a hidden layer to the GEMM (a width that is not a multiple of 16).
+#[test]
+fn train_step_auto_and_fallback() {
+    let gpu = gpu();
+    for (width, kernels, auto, forced) in [
+        (16, LayerKernels::Tiled, true, true),
+        (16, LayerKernels::RowBlocked, true, true),
+        (16, LayerKernels::Gemm, false, false),
+        (20, LayerKernels::RowBlocked, false, false),
+        (20, LayerKernels::Tiled, true, true),
+    ] {
+        let cfg = SirenConfig {
+            width,
+            hidden_layers: 2,
+            omega0: 30.0,
+        };
+        let mut g = SirenGpu::new(gpu, &Siren::new(cfg, 1).unwrap()).unwrap();
+        g.set_layer_kernels(gpu, kernels).unwrap();
+        assert_eq!(g.train_step(), TrainStep::Auto);
+        assert_eq!(
+            g.runs_reverse_over_reverse(),
+            auto,
+            "{width} {kernels:?} auto"
+        );
+        g.set_train_step(TrainStep::ReverseOverReverse);
+        assert_eq!(g.runs_reverse_over_reverse(), forced, "{width} {kernels:?}");
+        g.set_train_step(TrainStep::Tangents);
+        assert!(!g.runs_reverse_over_reverse());
+    }
+    // Auto kernels (row-blocked on CPU adapters, tiled on GPUs) run the new step by default.
+    let g = SirenGpu::new(gpu, &Siren::new(SirenConfig::small(), 1).unwrap()).unwrap();
+    assert!(g.runs_reverse_over_reverse());
+}
+
 /// Both training steps on the tiled family (forced on lavapipe) and the row-blocked family,
 /// forced explicitly, against the f64 reference: batches of 1, 37 and 700 points (not multiples
 /// of the 64-row tiles, the 64-point workgroups or the 256-point head groups; 700 points are
@@ -329,9 +365,8 @@ fn reverse_over_reverse_step_matches_cpu_reference() {
                 with_kernels(gpu, &net, families, |g| {
                     g.set_train_step(step);
                     let ror = step == TrainStep::ReverseOverReverse;
-                    let expect = ror && (g.runs_tiled() || ROW_BLOCKED_ROR);
-                    assert_eq!(g.runs_reverse_over_reverse(), expect);
-                    eprint!("{step:?} (runs ror: {expect}): ");
+                    assert_eq!(g.runs_reverse_over_reverse(), ror);
+                    eprint!("{step:?}: ");
                     let seed = 60 + n as u64;
                     gradients_match_with(g, cfg, &net, n, n_surface, seed, &soft_weights())
                 });
@@ -339,9 +374,6 @@ fn reverse_over_reverse_step_matches_cpu_reference() {
         }
     }
 }
-
-/// Whether the row-blocked family has the reverse-over-reverse step.
-const ROW_BLOCKED_ROR: bool = true;
 
 /// The reverse-over-reverse gradient against central differences (in f64) of the reference
 /// loss, a few parameters of every weight matrix and bias.
@@ -366,12 +398,8 @@ fn reverse_over_reverse_gradient_matches_finite_differences() {
     let weights = soft_weights();
     let loss =
         |params: &[f64]| -> f64 { cpu::loss(&cfg, params, &p_64, &n_64, &weights).iter().sum() };
-    let families: &[LayerKernels] = if ROW_BLOCKED_ROR {
-        &[LayerKernels::Tiled, LayerKernels::RowBlocked]
-    } else {
-        &[LayerKernels::Tiled]
-    };
-    with_kernels(gpu, &net, families, |g| {
+    let families = [LayerKernels::Tiled, LayerKernels::RowBlocked];
+    with_kernels(gpu, &net, &families, |g| {
         g.set_train_step(TrainStep::ReverseOverReverse);
         assert!(g.runs_reverse_over_reverse());
         let (_, grads) = g.loss_and_gradient(gpu, &pts, &normals, &weights).unwrap();
@@ -667,12 +695,7 @@ fn reverse_over_reverse_training_steps_reduce_the_loss() {
         plateau_patience: 20,
         ..SirenTrainConfig::default()
     };
-    let families: &[LayerKernels] = if ROW_BLOCKED_ROR {
-        &[LayerKernels::Tiled, LayerKernels::RowBlocked]
-    } else {
-        &[LayerKernels::Tiled]
-    };
-    for &kernels in families {
+    for kernels in [LayerKernels::Tiled, LayerKernels::RowBlocked] {
         let mut trainer = SirenTrainer::from_mesh(gpu, &siren, &icosphere(2), cfg.clone()).unwrap();
         trainer.set_layer_kernels(gpu, kernels).unwrap();
         trainer

@@ -127,9 +127,10 @@ pub(crate) struct ReduceUniforms {
 /// measured yet.
 pub const DEFAULT_FUSED_MAX_POINTS: u32 = 8192;
 
-/// Whether [`TrainStep::Auto`] picks the reverse-over-reverse step on the row-blocked kernels.
-const ROW_BLOCKED_AUTO_ROR: bool = false;
-const DENSE_ROR_IMPLEMENTED: bool = true;
+/// Whether [`TrainStep::Auto`] picks the reverse-over-reverse step on the row-blocked kernels:
+/// on lavapipe it measured 529–565 ms per `small` step of 10⁴ points against 852–894 ms for
+/// the tangents (BENCHMARKS.md, "The reverse-over-reverse training step").
+const ROW_BLOCKED_AUTO_ROR: bool = true;
 
 /// Rows per GEMM workgroup (see `siren_gemm.wgsl`).
 const GEMM_ROWS: u32 = 64;
@@ -398,9 +399,7 @@ impl SirenGpu {
     /// reverse-over-reverse step needs of them).
     pub(crate) fn dense_ror_plan(&self) -> Option<&DensePlan> {
         let covers_all = |d: &DensePlan| (0..self.config.hidden_layers).all(|l| d.covers(l));
-        self.dense
-            .as_ref()
-            .filter(|d| DENSE_ROR_IMPLEMENTED && covers_all(d))
+        self.dense.as_ref().filter(|d| covers_all(d))
     }
 
     /// The layers' parameter layout.

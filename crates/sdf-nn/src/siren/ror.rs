@@ -49,8 +49,11 @@ use crate::shaders;
 /// How a training step computes the loss's dependence on ∇ₓΦ.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub enum TrainStep {
-    /// [`TrainStep::ReverseOverReverse`] on the tiled kernels (GPUs) and on the row-blocked
-    /// kernels where it measured faster on lavapipe; [`TrainStep::Tangents`] otherwise.
+    /// [`TrainStep::ReverseOverReverse`] wherever it runs (the tiled kernels, GPUs' default,
+    /// and the row-blocked kernels covering every hidden layer, CPU adapters' default, where
+    /// it measured 1.6× faster on lavapipe for the `small` preset: BENCHMARKS.md);
+    /// [`TrainStep::Tangents`] otherwise (the plain GEMM family, or row-blocked kernels that
+    /// leave a layer to the GEMM).
     #[default]
     Auto,
     /// Forward-mode tangents: four rows per point (the point and e_x, e_y, e_z) in every
