@@ -344,6 +344,9 @@ fn reverse_over_reverse_step_matches_cpu_reference() {
         (16, 2, &[(1, 1), (37, 20), (700, 333)]),
         (32, 3, &[(37, 17)]),
         (20, 2, &[(45, 30)]),
+        // One hidden layer: the top layer is the first (no product of W with a width on
+        // either side).
+        (16, 1, &[(19, 7)]),
         // The reference width: the row-blocked kernels split every 256 × 256 layer into
         // sixteen weight windows (offsets per window, accumulation over them).
         (256, 2, &[(23, 11)]),
