@@ -7,12 +7,14 @@
 //! `SIREN_BENCH_KERNELS` forces a layer-kernel family (`row-blocked`, `gemm` or `tiled`;
 //! default: `LayerKernels::Auto`), and `SIREN_BENCH_FUSED_MAX` the largest inference batch of
 //! the tiled family's fused all-layer kernel (`SirenGpu::set_fused_max_points`; 0 disables it).
+//! `SIREN_BENCH_TRAIN_STEP` forces the training step (`tangents` or `ror`, reverse over reverse;
+//! default: `TrainStep::Auto`).
 
 use std::time::Duration;
 
 use criterion::{BenchmarkId, Criterion, Throughput, criterion_group, criterion_main};
 use glam::Vec3;
-use sdf_nn::siren::LayerKernels;
+use sdf_nn::siren::{LayerKernels, TrainStep};
 use sdf_nn::{GpuContext, Siren, SirenConfig, SirenGpu, SirenTrainConfig, SirenTrainer};
 
 fn presets() -> Vec<(&'static str, SirenConfig)> {
@@ -36,6 +38,16 @@ fn kernels() -> LayerKernels {
         Ok(other) => {
             panic!("SIREN_BENCH_KERNELS={other}: expected auto, row-blocked, gemm or tiled")
         }
+    }
+}
+
+/// The training step `SIREN_BENCH_TRAIN_STEP` names.
+fn train_step() -> TrainStep {
+    match std::env::var("SIREN_BENCH_TRAIN_STEP").as_deref() {
+        Err(_) | Ok("" | "auto") => TrainStep::Auto,
+        Ok("tangents") => TrainStep::Tangents,
+        Ok("ror") => TrainStep::ReverseOverReverse,
+        Ok(other) => panic!("SIREN_BENCH_TRAIN_STEP={other}: expected auto, tangents or ror"),
     }
 }
 
@@ -93,6 +105,12 @@ fn bench(c: &mut Criterion) {
         };
         let mut trainer = SirenTrainer::from_mesh(gpu, &siren, &mesh, train).unwrap();
         trainer.set_layer_kernels(gpu, kernels()).unwrap();
+        trainer.set_train_step(gpu, train_step()).unwrap();
+        eprintln!(
+            "{name}: train step {:?}, reverse over reverse: {}",
+            trainer.net().train_step(),
+            trainer.net().runs_reverse_over_reverse()
+        );
         trainer.step(gpu).unwrap();
         gpu.wait().unwrap();
         g.throughput(Throughput::Elements(10_000));

@@ -22,7 +22,24 @@
 //              z̄_j[p, o] (the tangent rows' inputs are unit vectors) and b̄[o] = Σ_p z̄_v[p, o].
 // dense_wgrad: per-invocation partial sums of W̄[n, k] = Σ_r z̄[r, n] x[r, k] (and of the bias
 //              gradient Σ over value rows of z̄[r, n]) over a strided subset of the points, for
-//              one 16 × 16 tile; `reduce_wgrad` in siren_train.wgsl sums the partials.
+//              one 16 × 16 tile; `reduce_wgrad` in siren_train.wgsl sums the partials. A point
+//              owns `rows_per_point` rows (4 with tangents, 2 in the reverse-over-reverse step),
+//              the first its value row.
+//
+// The reverse-over-reverse step (`siren::ror`; one row per point, four points per invocation;
+// every matrix with row stride out_stride4 and its own first vec4 column; D(z) = ω0 cos(ω0 z),
+// D'(z) = −ω0² sin(ω0 z)):
+//   dense_fwd / first_fwd mode 3: z = C + b → out, sin(ω0 z) → act_out (at out1_first4).
+//   dense_fwd / first_fwd mode 4: C = H̄; D(z) ⊙ H̄ → out; act_out holds z (z_first4) and G
+//                                 (out1_first4), G replaced by D'(z) ⊙ G ⊙ H̄.
+//   first_fwd modes 3 and 4 read three floats per point at a_first4 + a_stride4 · point
+//   (floats, not vec4s, here).
+//   dense_bwd bit 2 (last window): C = G → act_out (out1_first4), D(z) ⊙ G → out, z from
+//                                  act_out (z_first4).
+//   dense_bwd bit 3 (last window): C = Ā; D(z) ⊙ Ā + T → out, z and T from z_in (z_first4,
+//                                  t_first4).
+//   first_wgrad_pairs: the first layer's partials over the stacked rows (Z̄_1, H_1) of each
+//                      point against (x, ḡ) (six floats per point in `points`).
 
 struct Dense {
     rows: u32,
@@ -35,6 +52,11 @@ struct Dense {
     mode: u32,
     bias_off: u32,
     omega: f32,
+    // Reverse-over-reverse epilogues: first vec4 columns of the auxiliary matrices.
+    out1_first4: u32,
+    z_first4: u32,
+    t_first4: u32,
+    _pad: u32,
 }
 
 struct Wgrad {
@@ -50,6 +72,10 @@ struct Wgrad {
     fan_out: u32,
     fan_in: u32,
     pbias_off: u32,
+    rows_per_point: u32,
+    _pad0: u32,
+    _pad1: u32,
+    _pad2: u32,
 }
 
 // Reduction length / 4 of one launch (≤ MAX4) and output vec4s of one launch.
@@ -85,6 +111,26 @@ fn load_row(r: u32, row: ptr<function, array<vec4<f32>, MAX4>>) {
     let b = min(r, d.rows - 1u) * d.a_stride4 + d.a_first4;
     for (var j = 0u; j < RED4; j++) {
         (*row)[j] = a[b + j];
+    }
+}
+
+// The reverse-over-reverse epilogue (modes 3 and 4) of row r at output vec4 column o4.
+fn ror_fwd_row(r: u32, o4: u32, acc: vec4<f32>) {
+    if r >= d.rows {
+        return;
+    }
+    let w0 = d.omega;
+    let row = r * d.out_stride4 + o4;
+    if d.mode == 3u {
+        let o = d.bias_off + 4u * o4;
+        let z = acc + vec4<f32>(params[o], params[o + 1u], params[o + 2u], params[o + 3u]);
+        out[row + d.out_first4] = z;
+        act_out[row + d.out1_first4] = sin(w0 * z);
+    } else {
+        let z = act_out[row + d.z_first4];
+        let g = act_out[row + d.out1_first4];
+        out[row + d.out_first4] = w0 * cos(w0 * z) * acc;
+        act_out[row + d.out1_first4] = -w0 * w0 * sin(w0 * z) * g * acc;
     }
 }
 
@@ -129,6 +175,13 @@ fn dense_fwd(
             acc2[c] = s2.x + s2.y + s2.z + s2.w;
             acc3[c] = s3.x + s3.y + s3.z + s3.w;
         }
+        if d.mode >= 3u {
+            ror_fwd_row(r0, o4, acc0);
+            ror_fwd_row(r0 + 1u, o4, acc1);
+            ror_fwd_row(r0 + 2u, o4, acc2);
+            ror_fwd_row(r0 + 3u, o4, acc3);
+            continue;
+        }
         let ob = r0 * d.out_stride4 + d.out_first4 + o4;
         if d.mode != 0u {
             let o = d.bias_off + 4u * o4;
@@ -167,6 +220,23 @@ fn dense_fwd(
     }
 }
 
+// The reverse-over-reverse epilogues of dense_bwd (mode bits 2 and 3) of row r.
+fn ror_bwd_row(r: u32, o4: u32, acc: vec4<f32>) {
+    if r >= d.rows {
+        return;
+    }
+    let w0 = d.omega;
+    let row = r * d.out_stride4 + o4;
+    if (d.mode & 4u) != 0u {
+        let z = act_out[row + d.z_first4];
+        act_out[row + d.out1_first4] = acc;
+        out[row + d.out_first4] = w0 * cos(w0 * z) * acc;
+    } else {
+        let z = z_in[row + d.z_first4];
+        out[row + d.out_first4] = w0 * cos(w0 * z) * acc + z_in[row + d.t_first4];
+    }
+}
+
 @compute @workgroup_size(64)
 fn dense_bwd(
     @builtin(workgroup_id) wid: vec3<u32>,
@@ -202,6 +272,25 @@ fn dense_bwd(
             }
         }
         let add = (d.mode & 1u) != 0u;
+        if (d.mode & 12u) != 0u {
+            if add {
+                acc0 += out[ob];
+                if r0 + 1u < d.rows {
+                    acc1 += out[ob + os];
+                }
+                if r0 + 2u < d.rows {
+                    acc2 += out[ob + 2u * os];
+                }
+                if r0 + 3u < d.rows {
+                    acc3 += out[ob + 3u * os];
+                }
+            }
+            ror_bwd_row(r0, o4, acc0);
+            ror_bwd_row(r0 + 1u, o4, acc1);
+            ror_bwd_row(r0 + 2u, o4, acc2);
+            ror_bwd_row(r0 + 3u, o4, acc3);
+            continue;
+        }
         if (d.mode & 2u) != 0u {
             // Four rows per point: t̄ = (h̄, t̄x, t̄y, t̄z) of the activations below become
             // z̄_j = ω0 cos · t̄_j and z̄_v = ω0 cos · h̄ − ω0² sin · Σ_j t̄_j z_j.
@@ -285,8 +374,8 @@ fn dense_wgrad(
     var a33 = mat4x4<f32>();
     var bias = mat4x4<f32>();
     for (var p = split; p < g.points; p += g.splits) {
-        for (var t = 0u; t < 4u; t++) {
-            let r = 4u * p + t;
+        for (var t = 0u; t < g.rows_per_point; t++) {
+            let r = g.rows_per_point * p + t;
             let zb = r * g.z_stride4 + tn4;
             let xb = r * g.x_stride4 + tk4;
             let z0 = zbar[zb];
@@ -367,6 +456,41 @@ fn first_fwd(
 ) {
     let lane = (wid.y * nwg.x + wid.x) * WG + lid;
     let os = d.out_stride4;
+    if d.mode >= 3u {
+        // Four points, three floats each at a_first4 + a_stride4 · point (floats).
+        let r0 = 4u * lane;
+        if r0 >= d.rows {
+            return;
+        }
+        let last = d.rows - 1u;
+        let q0 = d.a_first4 + d.a_stride4 * r0;
+        let q1 = d.a_first4 + d.a_stride4 * min(r0 + 1u, last);
+        let q2 = d.a_first4 + d.a_stride4 * min(r0 + 2u, last);
+        let q3 = d.a_first4 + d.a_stride4 * min(r0 + 3u, last);
+        let p0 = vec3<f32>(points[q0], points[q0 + 1u], points[q0 + 2u]);
+        let p1 = vec3<f32>(points[q1], points[q1 + 1u], points[q1 + 2u]);
+        let p2 = vec3<f32>(points[q2], points[q2 + 1u], points[q2 + 2u]);
+        let p3 = vec3<f32>(points[q3], points[q3 + 1u], points[q3 + 2u]);
+        for (var o4 = 0u; o4 < OUT4; o4++) {
+            var z0: vec4<f32>;
+            var z1: vec4<f32>;
+            var z2: vec4<f32>;
+            var z3: vec4<f32>;
+            for (var c = 0u; c < 4u; c++) {
+                let wo = 3u * (4u * o4 + c);
+                let wr = vec3<f32>(w_scalar(wo), w_scalar(wo + 1u), w_scalar(wo + 2u));
+                z0[c] = dot(wr, p0);
+                z1[c] = dot(wr, p1);
+                z2[c] = dot(wr, p2);
+                z3[c] = dot(wr, p3);
+            }
+            ror_fwd_row(r0, o4, z0);
+            ror_fwd_row(r0 + 1u, o4, z1);
+            ror_fwd_row(r0 + 2u, o4, z2);
+            ror_fwd_row(r0 + 3u, o4, z3);
+        }
+        return;
+    }
     if d.mode == 2u {
         let r0 = 4u * lane;
         if r0 >= d.rows {
@@ -467,6 +591,51 @@ fn first_wgrad(
             gx[j] += zv * x.x + zbar[r + zs + j];
             gy[j] += zv * x.y + zbar[r + 2u * zs + j];
             gz[j] += zv * x.z + zbar[r + 3u * zs + j];
+            gb[j] += zv;
+        }
+    }
+    let m = g.fan_out;
+    for (var j = 0u; j < 4u; j++) {
+        for (var c = 0u; c < 4u; c++) {
+            let o = 4u * (tn4 + j) + c;
+            let q = 3u * (split * m + o);
+            partial_f[q] = gx[j][c];
+            partial_f[q + 1u] = gy[j][c];
+            partial_f[q + 2u] = gz[j][c];
+            partial_f[g.pbias_off + split * m + o] = gb[j][c];
+        }
+    }
+}
+
+// Tiles of 16 outputs (wid.y); zbar rows (Z̄_1, H_1) per point with z_stride4 = fan_out / 4;
+// `points` holds (x, ḡ) per point; partials [split][o][3], then [split][o] bias partials from
+// pbias_off.
+@compute @workgroup_size(64)
+fn first_wgrad_pairs(
+    @builtin(workgroup_id) wid: vec3<u32>,
+    @builtin(local_invocation_index) lid: u32,
+) {
+    let split = wid.x * WG + lid;
+    if split >= g.splits {
+        return;
+    }
+    let tn4 = wid.y * 4u;
+    var gx = mat4x4<f32>();
+    var gy = mat4x4<f32>();
+    var gz = mat4x4<f32>();
+    var gb = mat4x4<f32>();
+    let zs = g.z_stride4;
+    for (var p = split; p < g.points; p += g.splits) {
+        let pb = 6u * p;
+        let x = vec3<f32>(points[pb], points[pb + 1u], points[pb + 2u]);
+        let gbar = vec3<f32>(points[pb + 3u], points[pb + 4u], points[pb + 5u]);
+        let r = 2u * p * zs + tn4;
+        for (var j = 0u; j < 4u; j++) {
+            let zv = zbar[r + j];
+            let h = zbar[r + zs + j];
+            gx[j] += zv * x.x + h * gbar.x;
+            gy[j] += zv * x.y + h * gbar.y;
+            gz[j] += zv * x.z + h * gbar.z;
             gb[j] += zv;
         }
     }

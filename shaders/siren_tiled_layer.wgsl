@@ -20,7 +20,18 @@
 //   mode 4: split-K weight gradient: partial[split] = Z̄ᵀ · A_prev over one chunk of batch rows
 //           (k_chunk rows from wid.z · k_chunk, a multiple of 16); the workgroups of the first
 //           column tile also sum the bias partial Σ Z̄[value rows] (k ≡ 0 mod 4) from the A
-//           tiles they stage anyway, stored at pbias_off + split · M + m.
+//           tiles they stage anyway, stored at pbias_off + split · M + m. The value rows are
+//           every `bias_step`-th row (4 with tangents, 2 for the stacked rows of the
+//           reverse-over-reverse step).
+// Modes 5–8, the reverse-over-reverse training step (`siren::ror`): one row per point, every
+// output and auxiliary matrix with row stride ldc, at its own element offset (out_off, out1_off,
+// z_off, t_off); D(z) = ω0 cos(ω0 z), D'(z) = −ω0² sin(ω0 z):
+//   mode 5: z = C + b → out0, sin(ω0 z) → out1                        (forward)
+//   mode 6: C = G (Φ's gradient w.r.t. the layer below's activations) → out1,
+//           H = D(z) ⊙ G → out0, z read from out1 at z_off            (input-gradient chain)
+//   mode 7: C = H̄; D(z) ⊙ H̄ = Ḡ → out0; out1 holds G, replaced by
+//           T = D'(z) ⊙ G ⊙ H̄; z read from out1 at z_off            (its adjoint)
+//   mode 8: C = Ā; Z̄ = D(z) ⊙ Ā + T → out0, z and T read from z_in   (the forward's adjoint)
 
 struct Tiled {
     mode: u32,
@@ -41,6 +52,16 @@ struct Tiled {
     // bit 0: A is contiguous along m (else along k); bit 1: A's vec4 loads are aligned;
     // bit 2: B is contiguous along n (else along k); bit 3: B's vec4 loads are aligned.
     flags: u32,
+    // Modes 5–8: element offsets of out0, out1 and the auxiliary matrices (row stride ldc).
+    out_off: u32,
+    out1_off: u32,
+    z_off: u32,
+    t_off: u32,
+    // Mode 4: the bias partial sums every bias_step-th row.
+    bias_step: u32,
+    _pad0: u32,
+    _pad1: u32,
+    _pad2: u32,
 }
 
 const BM: u32 = 64u;
@@ -188,6 +209,79 @@ fn z_row(m: u32, n: u32) -> vec4<f32> {
     return v;
 }
 
+// Row m (a point) of a reverse-over-reverse matrix at columns n..n+3 (those below N).
+fn ror_store0(m: u32, n: u32, v: vec4<f32>) {
+    if m < t.m {
+        store0(t.out_off, m, n, v);
+    }
+}
+
+fn ror_store1(m: u32, n: u32, v: vec4<f32>) {
+    if m >= t.m {
+        return;
+    }
+    let o = t.out1_off + m * t.ldc + n;
+    for (var c = 0u; c < 4u; c++) {
+        if n + c < t.n {
+            out1[o + c] = v[c];
+        }
+    }
+}
+
+fn ror_load1(off: u32, m: u32, n: u32) -> vec4<f32> {
+    var v = vec4<f32>(0.0);
+    if m < t.m {
+        let o = off + m * t.ldc + n;
+        for (var c = 0u; c < 4u; c++) {
+            if n + c < t.n {
+                v[c] = out1[o + c];
+            }
+        }
+    }
+    return v;
+}
+
+fn ror_load_z(off: u32, m: u32, n: u32) -> vec4<f32> {
+    var v = vec4<f32>(0.0);
+    if m < t.m {
+        let o = off + m * t.ldc + n;
+        for (var c = 0u; c < 4u; c++) {
+            if n + c < t.n {
+                v[c] = z_in[o + c];
+            }
+        }
+    }
+    return v;
+}
+
+// The reverse-over-reverse epilogue of row m (modes 5–8).
+fn ror_epilogue(m: u32, n: u32, c: vec4<f32>) {
+    let w0 = t.omega;
+    switch t.mode {
+        case 5u: {
+            let z = c + bias4(n);
+            ror_store0(m, n, z);
+            ror_store1(m, n, sin(w0 * z));
+        }
+        case 6u: {
+            let z = ror_load1(t.z_off, m, n);
+            ror_store1(m, n, c);
+            ror_store0(m, n, w0 * cos(w0 * z) * c);
+        }
+        case 7u: {
+            let z = ror_load1(t.z_off, m, n);
+            let g = ror_load1(t.out1_off, m, n);
+            ror_store0(m, n, w0 * cos(w0 * z) * c);
+            ror_store1(m, n, -w0 * w0 * sin(w0 * z) * g * c);
+        }
+        default: {
+            let z = ror_load_z(t.z_off, m, n);
+            let tz = ror_load_z(t.t_off, m, n);
+            ror_store0(m, n, w0 * cos(w0 * z) * c + tz);
+        }
+    }
+}
+
 fn bias4(n: u32) -> vec4<f32> {
     var v = vec4<f32>(0.0);
     for (var c = 0u; c < 4u; c++) {
@@ -242,7 +336,7 @@ fn tiled_gemm(
         }
         if sum_bias {
             // k0 is a multiple of 4: value rows sit at kk ≡ 0 (mod 4).
-            for (var kk = 0u; kk < BK; kk += 4u) {
+            for (var kk = 0u; kk < BK; kk += t.bias_step) {
                 bias_sum += tile_a[kk * T4 + ty];
             }
         }
@@ -262,6 +356,13 @@ fn tiled_gemm(
         }
     }
     if n >= t.n {
+        return;
+    }
+    if t.mode >= 5u {
+        ror_epilogue(m, n, c0);
+        ror_epilogue(m + 1u, n, c1);
+        ror_epilogue(m + 2u, n, c2);
+        ror_epilogue(m + 3u, n, c3);
         return;
     }
     switch t.mode {

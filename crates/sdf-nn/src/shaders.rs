@@ -49,6 +49,8 @@ pub const SIREN_TILED_LAYER: Shader = shader!("siren_tiled_layer.wgsl", wgpu::Fe
 pub const SIREN_TILED_FUSED: Shader = shader!("siren_tiled_fused.wgsl", wgpu::Features::empty());
 /// SIREN's output layer, loss and its derivative.
 pub const SIREN_HEAD: Shader = shader!("siren_head.wgsl", wgpu::Features::empty());
+/// The elementwise and per-point kernels of SIREN's reverse-over-reverse training step.
+pub const SIREN_ROR: Shader = shader!("siren_ror.wgsl", wgpu::Features::empty());
 /// SIREN's batch sampling and reductions.
 pub const SIREN_TRAIN: Shader = shader!("siren_train.wgsl", wgpu::Features::empty());
 
@@ -71,6 +73,7 @@ pub const ALL: &[Shader] = &[
     SIREN_TILED_LAYER,
     SIREN_TILED_FUSED,
     SIREN_HEAD,
+    SIREN_ROR,
     SIREN_TRAIN,
     NGLOD_FORWARD,
     NGLOD_TRAIN_ATOMIC,

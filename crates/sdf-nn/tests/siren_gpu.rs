@@ -3,7 +3,7 @@
 //! once.
 
 use glam::Vec3;
-use sdf_nn::siren::{LayerKernels, LossWeights, cpu};
+use sdf_nn::siren::{LayerKernels, LossWeights, TrainStep, cpu};
 use sdf_nn::{GpuContext, ModelFile, Siren, SirenConfig, SirenGpu, SirenTrainConfig, SirenTrainer};
 
 fn gpu() -> &'static GpuContext {
@@ -193,6 +193,27 @@ fn gradients_match_on(
     n_surface: usize,
     seed: u64,
 ) {
+    gradients_match_with(g, cfg, net, n, n_surface, seed, &LossWeights::default());
+}
+
+/// A sharpness α at which the off-surface term matters for random points (with the default
+/// α = 100 it is ~1e-20 on an untrained network, so its gradient would go untested).
+fn soft_weights() -> LossWeights {
+    LossWeights {
+        alpha: 2.0,
+        ..LossWeights::default()
+    }
+}
+
+fn gradients_match_with(
+    g: &mut SirenGpu,
+    cfg: SirenConfig,
+    net: &Siren,
+    n: usize,
+    n_surface: usize,
+    seed: u64,
+    weights: &LossWeights,
+) {
     let gpu = gpu();
     let p64: Vec<f64> = net.params().iter().map(|&p| f64::from(p)).collect();
     let pts = sdf_geom::sample::uniform_box(n, seed + 100);
@@ -200,11 +221,10 @@ fn gradients_match_on(
         .into_iter()
         .map(|v| v.normalize())
         .collect();
-    let weights = LossWeights::default();
-    let (terms, grads) = g.loss_and_gradient(gpu, &pts, &normals, &weights).unwrap();
+    let (terms, grads) = g.loss_and_gradient(gpu, &pts, &normals, weights).unwrap();
     let p_64: Vec<[f64; 3]> = pts.iter().map(|&p| to64(p)).collect();
     let n_64: Vec<[f64; 3]> = normals.iter().map(|&p| to64(p)).collect();
-    let (rterms, rgrad) = cpu::loss_and_gradient(&cfg, &p64, &p_64, &n_64, &weights);
+    let (rterms, rgrad) = cpu::loss_and_gradient(&cfg, &p64, &p_64, &n_64, weights);
     let got = [
         terms.surface,
         terms.off_surface,
@@ -271,6 +291,150 @@ fn loss_and_every_parameter_gradient_match_cpu_reference() {
         11,
         6,
     );
+}
+
+/// Where the reverse-over-reverse step runs: `Auto` picks it on the tiled and row-blocked
+/// families, never on the GEMM; forced, it falls back to the tangents where the row-blocked
+/// kernels leave a hidden layer to the GEMM (a width that is not a multiple of 16).
+#[test]
+fn train_step_auto_and_fallback() {
+    let gpu = gpu();
+    for (width, kernels, auto, forced) in [
+        (16, LayerKernels::Tiled, true, true),
+        (16, LayerKernels::RowBlocked, true, true),
+        (16, LayerKernels::Gemm, false, false),
+        (20, LayerKernels::RowBlocked, false, false),
+        (20, LayerKernels::Tiled, true, true),
+    ] {
+        let cfg = SirenConfig {
+            width,
+            hidden_layers: 2,
+            omega0: 30.0,
+        };
+        let mut g = SirenGpu::new(gpu, &Siren::new(cfg, 1).unwrap()).unwrap();
+        g.set_layer_kernels(gpu, kernels).unwrap();
+        assert_eq!(g.train_step(), TrainStep::Auto);
+        assert_eq!(
+            g.runs_reverse_over_reverse(),
+            auto,
+            "{width} {kernels:?} auto"
+        );
+        g.set_train_step(TrainStep::ReverseOverReverse);
+        assert_eq!(g.runs_reverse_over_reverse(), forced, "{width} {kernels:?}");
+        g.set_train_step(TrainStep::Tangents);
+        assert!(!g.runs_reverse_over_reverse());
+    }
+    // Auto kernels (row-blocked on CPU adapters, tiled on GPUs) run the new step by default.
+    let g = SirenGpu::new(gpu, &Siren::new(SirenConfig::small(), 1).unwrap()).unwrap();
+    assert!(g.runs_reverse_over_reverse());
+}
+
+/// Both training steps on the tiled family (forced on lavapipe) and the row-blocked family,
+/// forced explicitly, against the f64 reference: batches of 1, 37 and 700 points (not multiples
+/// of the 64-row tiles, the 64-point workgroups or the 256-point head groups; 700 points are
+/// 1400 stacked weight-gradient rows, two split-K chunks), surface and off-surface points, two
+/// and three hidden layers, a width that is not a multiple of 4 (tiled only: the row-blocked
+/// kernels need multiples of 16) and the reference width 256.
+#[test]
+fn reverse_over_reverse_step_matches_cpu_reference() {
+    let gpu = gpu();
+    // (width, hidden layers, [(points, surface points)]).
+    type Case = (usize, usize, &'static [(usize, usize)]);
+    let cases: &[Case] = &[
+        (16, 2, &[(1, 1), (37, 20), (700, 333)]),
+        (32, 3, &[(37, 17)]),
+        (20, 2, &[(45, 30)]),
+        // One hidden layer: the top layer is the first (no product of W with a width on
+        // either side).
+        (16, 1, &[(19, 7)]),
+        // The reference width: the row-blocked kernels split every 256 × 256 layer into
+        // sixteen weight windows (offsets per window, accumulation over them).
+        (256, 2, &[(23, 11)]),
+    ];
+    for &(width, hidden_layers, sizes) in cases {
+        let cfg = SirenConfig {
+            width,
+            hidden_layers,
+            omega0: 30.0,
+        };
+        let net = Siren::new(cfg, 50 + width as u64).unwrap();
+        for &(n, n_surface) in sizes {
+            for step in [TrainStep::ReverseOverReverse, TrainStep::Tangents] {
+                let families: &[LayerKernels] = if width % 16 == 0 {
+                    &[LayerKernels::Tiled, LayerKernels::RowBlocked]
+                } else {
+                    &[LayerKernels::Tiled]
+                };
+                with_kernels(gpu, &net, families, |g| {
+                    g.set_train_step(step);
+                    let ror = step == TrainStep::ReverseOverReverse;
+                    assert_eq!(g.runs_reverse_over_reverse(), ror);
+                    eprint!("{step:?}: ");
+                    let seed = 60 + n as u64;
+                    gradients_match_with(g, cfg, &net, n, n_surface, seed, &soft_weights())
+                });
+            }
+        }
+    }
+}
+
+/// The reverse-over-reverse gradient against central differences (in f64) of the reference
+/// loss, a few parameters of every weight matrix and bias.
+#[test]
+fn reverse_over_reverse_gradient_matches_finite_differences() {
+    let gpu = gpu();
+    let cfg = SirenConfig {
+        width: 16,
+        hidden_layers: 2,
+        omega0: 30.0,
+    };
+    let net = Siren::new(cfg, 77).unwrap();
+    let p64: Vec<f64> = net.params().iter().map(|&p| f64::from(p)).collect();
+    let (n, n_surface) = (29, 13);
+    let pts = sdf_geom::sample::uniform_box(n, 78);
+    let normals: Vec<Vec3> = sdf_geom::sample::uniform_box(n_surface, 79)
+        .into_iter()
+        .map(|v| v.normalize())
+        .collect();
+    let p_64: Vec<[f64; 3]> = pts.iter().map(|&p| to64(p)).collect();
+    let n_64: Vec<[f64; 3]> = normals.iter().map(|&p| to64(p)).collect();
+    let weights = soft_weights();
+    let loss =
+        |params: &[f64]| -> f64 { cpu::loss(&cfg, params, &p_64, &n_64, &weights).iter().sum() };
+    let families = [LayerKernels::Tiled, LayerKernels::RowBlocked];
+    with_kernels(gpu, &net, &families, |g| {
+        g.set_train_step(TrainStep::ReverseOverReverse);
+        assert!(g.runs_reverse_over_reverse());
+        let (_, grads) = g.loss_and_gradient(gpu, &pts, &normals, &weights).unwrap();
+        let h = 1e-6;
+        let mut worst = 0.0f64;
+        for lay in cfg.layers() {
+            for range in [lay.weight..lay.bias, lay.bias..lay.bias + lay.fan_out] {
+                let scale = range
+                    .clone()
+                    .map(|i| f64::from(grads[i]).abs())
+                    .fold(0.0, f64::max);
+                // Five parameters spread over the tensor, its first and last included.
+                let len = range.len();
+                for j in 0..5.min(len) {
+                    let i = range.start + j * (len - 1) / 4;
+                    let mut plus = p64.clone();
+                    plus[i] += h;
+                    let mut minus = p64.clone();
+                    minus[i] -= h;
+                    let fd = (loss(&plus) - loss(&minus)) / (2.0 * h);
+                    let err = (f64::from(grads[i]) - fd).abs() / scale.max(1e-9);
+                    worst = worst.max(err);
+                    assert!(
+                        err < 1e-3,
+                        "param {i}: gpu {} vs finite difference {fd} (scale {scale:e})",
+                        grads[i]
+                    );
+                }
+            }
+        }
+        eprintln!("worst error against finite differences {worst:e} (relative to tensor max)");
+    });
 }
 
 /// A unit icosphere (`subdivisions` times subdivided icosahedron), outward-wound.
@@ -377,12 +541,27 @@ fn experiment() {
 }
 
 #[test]
-#[ignore = "manual profile"]
+#[ignore = "manual profile: SIREN_N, SIREN_TRAIN_STEP (tangents or ror), SIREN_KERNELS (row-blocked or tiled)"]
 fn profile() {
     let gpu = gpu();
     let cfg = SirenConfig::small();
     let net = Siren::new(cfg, 1).unwrap();
     let mut g = SirenGpu::new(gpu, &net).unwrap();
+    match std::env::var("SIREN_KERNELS").as_deref() {
+        Ok("row-blocked") => g.set_layer_kernels(gpu, LayerKernels::RowBlocked).unwrap(),
+        Ok("tiled") => g.set_layer_kernels(gpu, LayerKernels::Tiled).unwrap(),
+        _ => {}
+    }
+    match std::env::var("SIREN_TRAIN_STEP").as_deref() {
+        Ok("tangents") => g.set_train_step(TrainStep::Tangents),
+        Ok("ror") => g.set_train_step(TrainStep::ReverseOverReverse),
+        _ => {}
+    }
+    eprintln!(
+        "kernels {:?}, reverse over reverse: {}",
+        g.layer_kernels(),
+        g.runs_reverse_over_reverse()
+    );
     let n: usize = env_or("SIREN_N", 10_000);
     let pts = sdf_geom::sample::uniform_box(n, 3);
     let nrm: Vec<Vec3> = pts[..n / 2].iter().map(|p| p.normalize()).collect();
@@ -504,6 +683,36 @@ fn tiled_training_steps_reduce_the_loss() {
         .unwrap();
     assert!(losses.iter().all(|l| l.is_finite()));
     assert!(losses[3] < losses[0], "loss falls: {losses:?}");
+}
+
+/// Training with each step forced on each family that has it: the loss falls and stays finite.
+#[test]
+fn reverse_over_reverse_training_steps_reduce_the_loss() {
+    let gpu = gpu();
+    let siren = Siren::new(SirenConfig::small(), 5).unwrap();
+    let cfg = SirenTrainConfig {
+        surface_per_step: 200,
+        box_per_step: 201,
+        dataset_size: 5000,
+        loss_every: 10,
+        plateau_patience: 20,
+        ..SirenTrainConfig::default()
+    };
+    for kernels in [LayerKernels::Tiled, LayerKernels::RowBlocked] {
+        let mut trainer = SirenTrainer::from_mesh(gpu, &siren, &icosphere(2), cfg.clone()).unwrap();
+        trainer.set_layer_kernels(gpu, kernels).unwrap();
+        trainer
+            .set_train_step(gpu, TrainStep::ReverseOverReverse)
+            .unwrap();
+        assert!(trainer.net().runs_reverse_over_reverse());
+        let mut losses = Vec::new();
+        trainer
+            .train(gpu, 40, |_, l| losses.push(l.total()))
+            .unwrap();
+        eprintln!("{kernels:?}: losses {losses:?}");
+        assert!(losses.iter().all(|l| l.is_finite()));
+        assert!(losses[3] < losses[0], "loss falls: {losses:?}");
+    }
 }
 
 #[test]

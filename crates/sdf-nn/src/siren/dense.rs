@@ -73,6 +73,10 @@ struct DenseUniforms {
     mode: u32,
     bias_off: u32,
     omega: f32,
+    out1_first4: u32,
+    z_first4: u32,
+    t_first4: u32,
+    _pad: u32,
 }
 
 #[repr(C)]
@@ -86,6 +90,8 @@ struct WgradUniforms {
     fan_out: u32,
     fan_in: u32,
     pbias_off: u32,
+    rows_per_point: u32,
+    _pad: [u32; 3],
 }
 
 /// Where one qualifying layer's weights live in the packed uniform buffer.
@@ -128,12 +134,45 @@ pub(crate) enum Epilogue<'a> {
     SineWithTangents { omega: f32, act: &'a wgpu::Buffer },
 }
 
+/// The reverse-over-reverse epilogues of the row-blocked kernels (see `siren_dense.wgsl`).
+#[derive(Clone, Copy, Debug)]
+pub(crate) enum RorEpilogue {
+    /// `z = C + b`, `sin(ω0 z)`.
+    Forward { omega: f32 },
+    /// `Ḡ = D(z) ⊙ C`, G replaced by `T = D'(z) ⊙ G ⊙ C`.
+    GradAdjoint { omega: f32 },
+    /// `G = C`, `H = D(z) ⊙ G`.
+    GradBackward { omega: f32 },
+    /// `Z̄ = D(z) ⊙ C + T`.
+    ValueAdjoint { omega: f32 },
+}
+
+/// Operands of a reverse-over-reverse product, offsets and strides in floats: the input `a`
+/// (row stride `a_stride`, first column `a_first`), the output `out` and the auxiliary matrix
+/// `aux`, both with row stride `stride`, at `out_first`, and at `out1_first` (second output
+/// or G / T in place), `z_first` (z) and `t_first` (T).
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct RorIo<'a> {
+    pub(crate) a: &'a wgpu::Buffer,
+    pub(crate) a_stride: u32,
+    pub(crate) a_first: u32,
+    pub(crate) out: &'a wgpu::Buffer,
+    pub(crate) aux: &'a wgpu::Buffer,
+    pub(crate) stride: u32,
+    pub(crate) out_first: u32,
+    pub(crate) out1_first: u32,
+    pub(crate) z_first: u32,
+    pub(crate) t_first: u32,
+}
+
 /// The packed weight buffer and the layers that use it.
 #[derive(Debug)]
 pub(crate) struct DensePlan {
     packed: wgpu::Buffer,
     /// Bound where an entry point declares a buffer that a launch does not use.
     dummy: wgpu::Buffer,
+    /// The same for read-write bindings (a buffer must not be bound both ways in a launch).
+    dummy_rw: wgpu::Buffer,
     /// Indexed like the network's layers; `None` for layers on the GEMM.
     layers: Vec<Option<PackedLayer>>,
 }
@@ -198,6 +237,7 @@ impl DensePlan {
         Ok(Some(DensePlan {
             packed: buffer,
             dummy: gpu.storage_zeroed("siren dense dummy", 16)?,
+            dummy_rw: gpu.storage_zeroed("siren dense dummy rw", 16)?,
             layers: packed,
         }))
     }
@@ -279,6 +319,7 @@ impl DensePlan {
                         mode,
                         bias_off: p.layout.bias as u32 + o0,
                         omega,
+                        ..Default::default()
                     },
                 );
                 // first_fwd reads the points as floats at binding 12.
@@ -354,6 +395,7 @@ impl DensePlan {
                             resource: p.window_binding(&self.packed, w),
                         },
                         entry(3, out),
+                        entry(10, &self.dummy_rw),
                         entry(11, sine_below.map_or(&self.dummy, |(_, z)| z)),
                     ],
                     Self::groups(gpu, rows),
@@ -391,6 +433,8 @@ impl DensePlan {
                 fan_out,
                 fan_in,
                 pbias_off,
+                rows_per_point: 4,
+                _pad: [0; 3],
             },
         );
         let (tiles, entries) = if first {
@@ -409,6 +453,220 @@ impl DensePlan {
             gpu,
             &pipeline,
             "siren dense wgrad",
+            &entries,
+            (SPLITS.div_ceil(WG), tiles, 1),
+        );
+        Ok((launch, pbias_off))
+    }
+
+    /// A reverse-over-reverse product `C = A W_lᵀ` of layer `l` over `rows` points (`siren::ror`):
+    /// `Forward` (mode 3) or `GradAdjoint` (mode 4) epilogue. Offsets and strides in `io` are
+    /// in floats.
+    pub(crate) fn ror_times_wt(
+        &self,
+        gpu: &GpuContext,
+        l: usize,
+        rows: u32,
+        epilogue: RorEpilogue,
+        io: &RorIo<'_>,
+        params: &wgpu::Buffer,
+    ) -> Result<Vec<Launch>, GpuError> {
+        let p = self.layer(l);
+        let (fan_in, fan_out) = (p.layout.fan_in as u32, p.layout.fan_out as u32);
+        let first = fan_in == 3;
+        let (mode, omega) = match epilogue {
+            RorEpilogue::Forward { omega } => (3, omega),
+            RorEpilogue::GradAdjoint { omega } => (4, omega),
+            _ => unreachable!("ror_times_wt takes the Wᵀ epilogues"),
+        };
+        let pipeline = if first {
+            let out4 = ("OUT4", f64::from(fan_out / 4));
+            gpu.pipeline(&shaders::SIREN_DENSE, "first_fwd", &[out4])?
+        } else {
+            gpu.pipeline(
+                &shaders::SIREN_DENSE,
+                "dense_fwd",
+                &[
+                    ("RED4", f64::from(fan_in / 4)),
+                    ("OUT4", f64::from(p.window_rows / 4)),
+                ],
+            )?
+        };
+        Ok((0..p.windows())
+            .map(|w| {
+                let o0 = w * p.window_rows;
+                let (a_stride4, a_first4) = if first {
+                    (io.a_stride, io.a_first)
+                } else {
+                    (io.a_stride / 4, io.a_first / 4)
+                };
+                let u = gpu.uniform(
+                    "siren dense ror fwd",
+                    &DenseUniforms {
+                        rows,
+                        a_stride4,
+                        a_first4,
+                        out_stride4: io.stride / 4,
+                        out_first4: (io.out_first + o0) / 4,
+                        mode,
+                        bias_off: p.layout.bias as u32 + o0,
+                        omega,
+                        out1_first4: (io.out1_first + o0) / 4,
+                        z_first4: (io.z_first + o0) / 4,
+                        t_first4: 0,
+                        _pad: 0,
+                    },
+                );
+                let input = if first {
+                    entry(12, io.a)
+                } else {
+                    entry(1, io.a)
+                };
+                Launch::new(
+                    gpu,
+                    &pipeline,
+                    "siren dense ror fwd",
+                    &[
+                        entry(0, &u),
+                        input,
+                        wgpu::BindGroupEntry {
+                            binding: 2,
+                            resource: p.window_binding(&self.packed, w),
+                        },
+                        entry(3, io.out),
+                        entry(4, params),
+                        entry(10, io.aux),
+                    ],
+                    Self::groups(gpu, rows),
+                )
+            })
+            .collect())
+    }
+
+    /// A reverse-over-reverse product `C = A W_l` of layer `l` over `rows` points:
+    /// `GradBackward` (bit 2: `aux` holds z and receives G) or `ValueAdjoint` (bit 3: `aux`
+    /// holds z and T) on the last window.
+    pub(crate) fn ror_times_w(
+        &self,
+        gpu: &GpuContext,
+        l: usize,
+        rows: u32,
+        epilogue: RorEpilogue,
+        io: &RorIo<'_>,
+    ) -> Result<Vec<Launch>, GpuError> {
+        let p = self.layer(l);
+        let fan_in = p.layout.fan_in as u32;
+        let (bit, omega, grad_backward) = match epilogue {
+            RorEpilogue::GradBackward { omega } => (4, omega, true),
+            RorEpilogue::ValueAdjoint { omega } => (8, omega, false),
+            _ => unreachable!("ror_times_w takes the W epilogues"),
+        };
+        let pipeline = gpu.pipeline(
+            &shaders::SIREN_DENSE,
+            "dense_bwd",
+            &[
+                ("RED4", f64::from(p.window_rows / 4)),
+                ("OUT4", f64::from(fan_in / 4)),
+            ],
+        )?;
+        Ok((0..p.windows())
+            .map(|w| {
+                let last = w + 1 == p.windows();
+                let u = gpu.uniform(
+                    "siren dense ror bwd",
+                    &DenseUniforms {
+                        rows,
+                        a_stride4: io.a_stride / 4,
+                        a_first4: (io.a_first + w * p.window_rows) / 4,
+                        out_stride4: io.stride / 4,
+                        out_first4: io.out_first / 4,
+                        mode: u32::from(w > 0) | if last { bit } else { 0 },
+                        omega,
+                        out1_first4: io.out1_first / 4,
+                        z_first4: io.z_first / 4,
+                        t_first4: io.t_first / 4,
+                        ..Default::default()
+                    },
+                );
+                let (act, z) = if grad_backward {
+                    (io.aux, &self.dummy)
+                } else {
+                    (&self.dummy_rw, io.aux)
+                };
+                Launch::new(
+                    gpu,
+                    &pipeline,
+                    "siren dense ror bwd",
+                    &[
+                        entry(0, &u),
+                        entry(1, io.a),
+                        wgpu::BindGroupEntry {
+                            binding: 2,
+                            resource: p.window_binding(&self.packed, w),
+                        },
+                        entry(3, io.out),
+                        entry(10, act),
+                        entry(11, z),
+                    ],
+                    Self::groups(gpu, rows),
+                )
+            })
+            .collect())
+    }
+
+    /// The weight-gradient partials of layer `l` over the stacked rows of the
+    /// reverse-over-reverse step (`ys`: (Z̄, H) per point; `xs`: (A, Ḡ) per point, or (x, ḡ)
+    /// for the first layer), as [`DensePlan::weight_gradient`].
+    pub(crate) fn ror_weight_gradient(
+        &self,
+        gpu: &GpuContext,
+        l: usize,
+        points: u32,
+        ys: &wgpu::Buffer,
+        xs: &wgpu::Buffer,
+        partial: &wgpu::Buffer,
+    ) -> Result<(Launch, u32), GpuError> {
+        let p = self.layer(l);
+        let (fan_in, fan_out) = (p.layout.fan_in as u32, p.layout.fan_out as u32);
+        let first = fan_in == 3;
+        let entry_point = if first {
+            "first_wgrad_pairs"
+        } else {
+            "dense_wgrad"
+        };
+        let pipeline = gpu.pipeline(&shaders::SIREN_DENSE, entry_point, &[])?;
+        let pbias_off = SPLITS * fan_out * fan_in;
+        let u = gpu.uniform(
+            "siren dense ror wgrad",
+            &WgradUniforms {
+                points,
+                splits: SPLITS,
+                z_stride4: fan_out / 4,
+                x_stride4: fan_in / 4,
+                tiles_k: fan_in / 16,
+                fan_out,
+                fan_in,
+                pbias_off,
+                rows_per_point: 2,
+                _pad: [0; 3],
+            },
+        );
+        let (tiles, entries) = if first {
+            let e = [
+                entry(5, &u),
+                entry(6, ys),
+                entry(12, xs),
+                entry(13, partial),
+            ];
+            (fan_out / 16, e)
+        } else {
+            let e = [entry(5, &u), entry(6, ys), entry(7, xs), entry(8, partial)];
+            ((fan_out / 16) * (fan_in / 16), e)
+        };
+        let launch = Launch::new(
+            gpu,
+            &pipeline,
+            "siren dense ror wgrad",
             &entries,
             (SPLITS.div_ceil(WG), tiles, 1),
         );

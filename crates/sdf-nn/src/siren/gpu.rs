@@ -9,11 +9,16 @@
 //! tiled kernels of `kernels::tiled` (GPUs; small inference batches in one fused dispatch);
 //! weight gradients are split over the batch into partials that a second kernel sums into the
 //! gradient buffer, so there are no atomics anywhere.
+//!
+//! A training step either carries the tangents ([`TrainStep::Tangents`], the four rows per
+//! point above) or runs reverse over reverse ([`TrainStep::ReverseOverReverse`], one row per
+//! point; the math and layout are in [`super::ror`]); [`SirenGpu::set_train_step`] chooses.
 
 use glam::Vec3;
 
 use super::dense::{DensePlan, Epilogue, LayerKernels, SPLITS};
 use super::kernels::tiled::{TiledEpilogue, TiledKernels};
+use super::ror::{self, TrainStep};
 use super::{LayerLayout, Siren, SirenConfig, SirenConfigError};
 use crate::gpu::{GpuContext, GpuError, GpuTimer};
 use crate::shaders;
@@ -106,15 +111,15 @@ pub(crate) struct HeadUniforms {
 
 #[repr(C)]
 #[derive(Clone, Copy, Debug, Default, bytemuck::Pod, bytemuck::Zeroable)]
-struct ReduceUniforms {
-    m: u32,
-    n: u32,
-    splits: u32,
-    w_off: u32,
-    b_off: u32,
-    pbias_off: u32,
-    _pad0: u32,
-    _pad1: u32,
+pub(crate) struct ReduceUniforms {
+    pub(crate) m: u32,
+    pub(crate) n: u32,
+    pub(crate) splits: u32,
+    pub(crate) w_off: u32,
+    pub(crate) b_off: u32,
+    pub(crate) pbias_off: u32,
+    pub(crate) _pad0: u32,
+    pub(crate) _pad1: u32,
 }
 
 /// Default of [`SirenGpu::set_fused_max_points`]: covers the latency-bound batches (the issue's
@@ -122,14 +127,19 @@ struct ReduceUniforms {
 /// measured yet.
 pub const DEFAULT_FUSED_MAX_POINTS: u32 = 8192;
 
+/// Whether [`TrainStep::Auto`] picks the reverse-over-reverse step on the row-blocked kernels:
+/// on lavapipe it measured 529–565 ms per `small` step of 10⁴ points against 852–894 ms for
+/// the tangents (BENCHMARKS.md, "The reverse-over-reverse training step").
+const ROW_BLOCKED_AUTO_ROR: bool = true;
+
 /// Rows per GEMM workgroup (see `siren_gemm.wgsl`).
 const GEMM_ROWS: u32 = 64;
 const WG: u32 = 256;
 /// Batch rows per split of a weight-gradient GEMM (a multiple of 4).
-const K_CHUNK: u32 = 1024;
+pub(crate) const K_CHUNK: u32 = 1024;
 
 /// Rows of a K chunk → number of splits.
-fn splits_for(rows: u32) -> u32 {
+pub(crate) fn splits_for(rows: u32) -> u32 {
     rows.div_ceil(K_CHUNK).max(1)
 }
 
@@ -315,6 +325,8 @@ pub struct SirenGpu {
     /// [`SirenGpu::new_frozen`]): the row-blocked kernels' packed weights are then copied when
     /// they change, not at the start of every evaluation.
     frozen: bool,
+    /// How training steps differentiate through ∇ₓΦ.
+    train_step: TrainStep,
 }
 
 impl SirenGpu {
@@ -354,6 +366,7 @@ impl SirenGpu {
             tiled,
             fused_max_points: DEFAULT_FUSED_MAX_POINTS,
             frozen: false,
+            train_step: TrainStep::default(),
         })
     }
 
@@ -382,6 +395,47 @@ impl SirenGpu {
         if !self.frozen {
             self.record_pack(enc);
         }
+    }
+
+    /// Chooses how training steps (and [`SirenGpu::loss_and_gradient`]) differentiate the
+    /// loss's ∇ₓΦ terms (default [`TrainStep::Auto`]). A [`super::SirenTrainer`] must rebuild
+    /// its passes: use [`super::SirenTrainer::set_train_step`].
+    pub fn set_train_step(&mut self, step: TrainStep) {
+        self.train_step = step;
+    }
+
+    /// The chosen training step (possibly [`TrainStep::Auto`]).
+    pub fn train_step(&self) -> TrainStep {
+        self.train_step
+    }
+
+    /// Whether training steps run reverse over reverse with the current kernels and
+    /// [`TrainStep`] (otherwise they carry tangents).
+    pub fn runs_reverse_over_reverse(&self) -> bool {
+        let tiled = self.tiled.is_some();
+        let dense = self.dense_ror_plan().is_some();
+        match self.train_step {
+            TrainStep::Tangents => false,
+            TrainStep::ReverseOverReverse => tiled || dense,
+            TrainStep::Auto => tiled || (ROW_BLOCKED_AUTO_ROR && dense),
+        }
+    }
+
+    /// The tiled kernels, when they run every product.
+    pub(crate) fn tiled_kernels(&self) -> Option<&TiledKernels> {
+        self.tiled.as_ref()
+    }
+
+    /// The row-blocked kernels, when they cover every hidden layer (what the
+    /// reverse-over-reverse step needs of them).
+    pub(crate) fn dense_ror_plan(&self) -> Option<&DensePlan> {
+        let covers_all = |d: &DensePlan| (0..self.config.hidden_layers).all(|l| d.covers(l));
+        self.dense.as_ref().filter(|d| covers_all(d))
+    }
+
+    /// The layers' parameter layout.
+    pub(crate) fn layer_layouts(&self) -> &[LayerLayout] {
+        &self.layers
     }
 
     /// Chooses the kernels of the hidden layers (default [`LayerKernels::Auto`]).
@@ -1061,6 +1115,28 @@ impl TrainPasses {
         normals: wgpu::Buffer,
         loss_partial: wgpu::Buffer,
     ) -> Result<Self, SirenGpuError> {
+        if net.runs_reverse_over_reverse() {
+            let r = ror::build(
+                gpu,
+                net,
+                n,
+                n_surface,
+                weights,
+                &x_streams,
+                &normals,
+                &loss_partial,
+            )?;
+            return Ok(TrainPasses {
+                n,
+                n_surface,
+                x_streams,
+                normals,
+                loss_partial,
+                loss_groups: r.loss_groups,
+                launches: r.launches,
+                _keep: r.keep,
+            });
+        }
         let cfg = net.config;
         let layers = &net.layers;
         let p = &net.pipelines;

@@ -27,10 +27,12 @@ pub mod cpu;
 mod dense;
 pub mod gpu;
 mod kernels;
+pub mod ror;
 pub mod train;
 
 pub use dense::LayerKernels;
 pub use gpu::{SirenGpu, SirenGpuError};
+pub use ror::TrainStep;
 pub use train::{LossTerms, LossWeights, SirenTrainConfig, SirenTrainer, TrainError};
 
 /// Architecture name in model files.

@@ -396,6 +396,18 @@ impl SirenTrainer {
         Ok(())
     }
 
+    /// Chooses how the training step differentiates through ∇ₓΦ (default
+    /// [`super::TrainStep::Auto`]) and rebuilds the training passes.
+    pub fn set_train_step(
+        &mut self,
+        gpu: &GpuContext,
+        step: super::TrainStep,
+    ) -> Result<(), TrainError> {
+        self.net.set_train_step(step);
+        self.passes = self.passes.rebuilt(gpu, &self.net, &self.config.weights)?;
+        Ok(())
+    }
+
     /// The network on the GPU (e.g. for evaluation between steps). Switch its kernels with
     /// [`SirenTrainer::set_layer_kernels`], which also rebuilds the training passes.
     pub fn net(&mut self) -> &mut SirenGpu {

@@ -27,6 +27,47 @@ pub(crate) enum TiledEpilogue<'a> {
     SineBelow { omega: f32, z: &'a wgpu::Buffer },
     /// Split-K weight-gradient partials with the bias partials (see `siren_gemm.wgsl` mode 2).
     WeightGradient,
+    /// [`TiledEpilogue::WeightGradient`] over the stacked rows of the reverse-over-reverse
+    /// step (two per point, the bias summed over the first of each pair).
+    WeightGradientPairs,
+    /// Reverse-over-reverse forward (mode 5): `z = C + b` into `out`, `sin(ω0 z)` into `act`;
+    /// B must be the parameter buffer.
+    RorForward {
+        omega: f32,
+        act: &'a wgpu::Buffer,
+        offsets: RorOffsets,
+    },
+    /// Input-gradient chain (mode 6): `C = G` into `p`, `D(z) ⊙ G` into `out`; z read from `p`.
+    RorGradBackward {
+        omega: f32,
+        p: &'a wgpu::Buffer,
+        offsets: RorOffsets,
+    },
+    /// Its adjoint (mode 7): `C = H̄`, `D(z) ⊙ H̄` into `out`, G in `p` replaced by
+    /// `D'(z) ⊙ G ⊙ H̄`; z read from `p`.
+    RorGradAdjoint {
+        omega: f32,
+        p: &'a wgpu::Buffer,
+        offsets: RorOffsets,
+    },
+    /// The forward's adjoint (mode 8): `C = Ā`, `D(z) ⊙ Ā + T` into `out`, z and T read from
+    /// `p`.
+    RorValueAdjoint {
+        omega: f32,
+        p: &'a wgpu::Buffer,
+        offsets: RorOffsets,
+    },
+}
+
+/// Element offsets of the reverse-over-reverse epilogues' matrices (all with row stride
+/// `ldc`): `out` of the output, `out1` of the second output (or of G / T in place), `z` and
+/// `t` of the auxiliary inputs.
+#[derive(Clone, Copy, Debug, Default)]
+pub(crate) struct RorOffsets {
+    pub(crate) out: u32,
+    pub(crate) out1: u32,
+    pub(crate) z: u32,
+    pub(crate) t: u32,
 }
 
 /// Floats of activations the fused kernel keeps in workgroup memory (`act` in the shader).
@@ -154,11 +195,32 @@ impl TiledKernels {
         b: &wgpu::Buffer,
         out: &wgpu::Buffer,
     ) -> Launch {
-        let (mode, omega, out1, z_in) = match epilogue {
-            TiledEpilogue::Sine { omega } => (1, omega, &self.dummy_rw, &self.dummy),
-            TiledEpilogue::SineWithTangents { omega, act } => (2, omega, act, &self.dummy),
-            TiledEpilogue::SineBelow { omega, z } => (3, omega, &self.dummy_rw, z),
-            TiledEpilogue::WeightGradient => (4, 0.0, &self.dummy_rw, &self.dummy),
+        let none = RorOffsets::default();
+        let (mode, omega, out1, z_in, offs) = match epilogue {
+            TiledEpilogue::Sine { omega } => (1, omega, &self.dummy_rw, &self.dummy, none),
+            TiledEpilogue::SineWithTangents { omega, act } => (2, omega, act, &self.dummy, none),
+            TiledEpilogue::SineBelow { omega, z } => (3, omega, &self.dummy_rw, z, none),
+            TiledEpilogue::WeightGradient | TiledEpilogue::WeightGradientPairs => {
+                (4, 0.0, &self.dummy_rw, &self.dummy, none)
+            }
+            TiledEpilogue::RorForward {
+                omega,
+                act,
+                offsets,
+            } => (5, omega, act, &self.dummy, offsets),
+            TiledEpilogue::RorGradBackward { omega, p, offsets } => {
+                (6, omega, p, &self.dummy, offsets)
+            }
+            TiledEpilogue::RorGradAdjoint { omega, p, offsets } => {
+                (7, omega, p, &self.dummy, offsets)
+            }
+            TiledEpilogue::RorValueAdjoint { omega, p, offsets } => {
+                (8, omega, &self.dummy_rw, p, offsets)
+            }
+        };
+        let bias_step = match epilogue {
+            TiledEpilogue::WeightGradientPairs => 2,
+            _ => 4,
         };
         let four = |x: u32| x.is_multiple_of(4);
         // Which way each operand is contiguous, and whether its vec4 loads are aligned.
@@ -196,6 +258,12 @@ impl TiledKernels {
                 | u32::from(a_aligned) << 1
                 | u32::from(b_fast_n) << 2
                 | u32::from(b_aligned) << 3,
+            out_off: offs.out,
+            out1_off: offs.out1,
+            z_off: offs.z,
+            t_off: offs.t,
+            bias_step,
+            _pad: [0; 3],
         };
         // The bias partial walks value rows as every fourth row of each 16-row slice.
         debug_assert!(mode != 4 || u.k_chunk.is_multiple_of(16));
@@ -246,4 +314,10 @@ struct TiledUniforms {
     pbias_off: u32,
     omega: f32,
     flags: u32,
+    out_off: u32,
+    out1_off: u32,
+    z_off: u32,
+    t_off: u32,
+    bias_step: u32,
+    _pad: [u32; 3],
 }

@@ -1,0 +1,530 @@
+//! The reverse-over-reverse training step: the SIREN loss and its parameter gradient with one
+//! row per point in every product, instead of the four rows (point and three tangents) of the
+//! forward-mode step.
+//!
+//! # The math
+//!
+//! Hidden layers l = 1..L, rows are points: `Z_l = A_{l-1} W_lᵀ + b_l`, `A_l = sin(ω Z_l)`,
+//! `A_0 = x`, `Φ = A_L w + b`. With `D(z) = ω cos(ωz)` and `D'(z) = −ω² sin(ωz)`:
+//!
+//! ```text
+//! input gradient (reverse, n rows)   G_L = w (broadcast)            G_l = ∂Φ/∂A_l
+//!                                    H_l = D(Z_l) ⊙ G_l             H_l = ∂Φ/∂Z_l
+//!                                    G_{l-1} = H_l W_l              ∇ₓΦ = G_0 = H_1 W_1
+//! head                               φ̄ = ∂L/∂Φ, ḡ = ∂L/∂∇ₓΦ per point (already / N)
+//! its adjoint (upwards, n rows)      Ḡ_0 = ḡ
+//!                                    H̄_l = Ḡ_{l-1} W_lᵀ            (a product with Wᵀ)
+//!                                    Ḡ_l = D(Z_l) ⊙ H̄_l
+//!                                    T_l = D'(Z_l) ⊙ G_l ⊙ H̄_l      (Z_l's share from ∇ₓΦ)
+//!                                    w̄ += Σ_p Ḡ_L
+//! the forward's adjoint (downwards)  Ā_L = φ̄ wᵀ,  w̄ += Σ_p φ̄ A_L,  b̄ = Σ_p φ̄
+//!                                    Z̄_l = D(Z_l) ⊙ Ā_l + T_l
+//!                                    Ā_{l-1} = Z̄_l W_l              (a product with W)
+//! weight gradients                   W̄_l = Z̄_lᵀ A_{l-1} + H_lᵀ Ḡ_{l-1},  b̄_l = Σ_p Z̄_l
+//! ```
+//!
+//! (`W̄_l`'s second term is the adjoint of `G_{l-1} = H_l W_l`; `T_l` couples the two
+//! adjoint chains through the sine's second derivative.) The weight gradient is one split-K
+//! product over 2n stacked rows: `[Z̄_l; H_l]ᵀ [A_{l-1}; Ḡ_{l-1}]`, the bias summed over the
+//! first row of each pair.
+//!
+//! Per hidden layer that is four products over n rows (forward, `G`, `H̄`, `Ā`) and one over
+//! 2n rows (weights): 6n row-products, against 12n for the tangent step (forward, backward and
+//! weights over 4n rows). The first layer's `G_0 = H_1 W_1` (fan-in 3) is computed in the head
+//! kernel and `Ā_0` is not needed.
+//!
+//! # Layout
+//!
+//! Per hidden layer three matrices of two streams per point, row stride 2·width, so the two
+//! stacked operands of the weight gradient are contiguous: `P_l = (Z_l, G_l → T_l)`,
+//! `X_l = (A_l, Ḡ_l)`, `Y_l = (Z̄_l, H_l)`; `X_0 = (x, ḡ)`, six floats per point.
+
+use super::dense::{DensePlan, RorEpilogue, RorIo, SPLITS};
+use super::gpu::{GemmUniforms, Launch, ReduceUniforms, SirenGpu, SirenGpuError, splits_for};
+use super::kernels::tiled::{RorOffsets, TiledEpilogue, TiledKernels};
+use super::{LayerLayout, LossWeights};
+use crate::gpu::GpuContext;
+use crate::shaders;
+
+/// How a training step computes the loss's dependence on ∇ₓΦ.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum TrainStep {
+    /// [`TrainStep::ReverseOverReverse`] wherever it runs (the tiled kernels, GPUs' default,
+    /// and the row-blocked kernels covering every hidden layer, CPU adapters' default, where
+    /// it measured 1.6× faster on lavapipe for the `small` preset: BENCHMARKS.md);
+    /// [`TrainStep::Tangents`] otherwise (the plain GEMM family, or row-blocked kernels that
+    /// leave a layer to the GEMM).
+    #[default]
+    Auto,
+    /// Forward-mode tangents: four rows per point (the point and e_x, e_y, e_z) in every
+    /// product, 12n row-products per hidden layer.
+    Tangents,
+    /// Reverse over reverse (see [`self`](crate::siren::ror)): 6n row-products per hidden
+    /// layer. Runs on the tiled kernels, and on the row-blocked kernels when they cover every
+    /// hidden layer; with other kernels the step falls back to [`TrainStep::Tangents`].
+    ReverseOverReverse,
+}
+
+/// Splits of the output layer's gradient.
+const OUT_SPLITS: u32 = 64;
+/// Invocations per workgroup of `siren_ror.wgsl`.
+const WG: u32 = 256;
+
+/// `siren_ror.wgsl`'s uniforms.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, bytemuck::Pod, bytemuck::Zeroable)]
+struct RorUniforms {
+    n_points: u32,
+    n_surface: u32,
+    width: u32,
+    w_out_off: u32,
+    b_out_off: u32,
+    w1_off: u32,
+    splits: u32,
+    pbias_off: u32,
+    w_surface: f32,
+    w_off_surface: f32,
+    w_normal: f32,
+    w_eikonal: f32,
+    alpha: f32,
+    inv_n: f32,
+    omega: f32,
+    _pad: f32,
+}
+
+fn entry(binding: u32, buffer: &wgpu::Buffer) -> wgpu::BindGroupEntry<'_> {
+    wgpu::BindGroupEntry {
+        binding,
+        resource: buffer.as_entire_binding(),
+    }
+}
+
+/// `C = A W_lᵀ` over `rows` rows of `A` (offset `a_off`, row stride `a_rs`), output row stride
+/// `ldc`.
+fn times_wt(lay: &LayerLayout, rows: u32, a_off: u32, a_rs: u32, ldc: u32) -> GemmUniforms {
+    GemmUniforms {
+        m: rows,
+        n: lay.fan_out as u32,
+        k: lay.fan_in as u32,
+        a_off,
+        a_rs,
+        a_cs: 1,
+        b_off: lay.weight as u32,
+        b_rs: 1,
+        b_cs: lay.fan_in as u32,
+        ldc,
+        bias_off: lay.bias as u32,
+        ..Default::default()
+    }
+}
+
+/// `C = A W_l`.
+fn times_w(lay: &LayerLayout, rows: u32, a_off: u32, a_rs: u32, ldc: u32) -> GemmUniforms {
+    GemmUniforms {
+        m: rows,
+        n: lay.fan_in as u32,
+        k: lay.fan_out as u32,
+        a_off,
+        a_rs,
+        a_cs: 1,
+        b_off: lay.weight as u32,
+        b_rs: lay.fan_in as u32,
+        b_cs: 1,
+        ldc,
+        ..Default::default()
+    }
+}
+
+/// `W̄_l` partials over `rows` stacked rows (`[Z̄; H]ᵀ [A; Ḡ]`), split over the rows.
+fn stacked_wgrad(lay: &LayerLayout, rows: u32) -> GemmUniforms {
+    let (m, n) = (lay.fan_out as u32, lay.fan_in as u32);
+    let k_chunk = super::gpu::K_CHUNK;
+    GemmUniforms {
+        m,
+        n,
+        k: rows,
+        a_rs: 1,
+        a_cs: m,
+        b_rs: n,
+        b_cs: 1,
+        ldc: n,
+        k_chunk,
+        pbias_off: splits_for(rows) * m * n,
+        ..Default::default()
+    }
+}
+
+/// The launches and buffers of one reverse-over-reverse step.
+pub(crate) struct RorPasses {
+    pub(crate) launches: Vec<Launch>,
+    pub(crate) keep: Vec<wgpu::Buffer>,
+    pub(crate) loss_groups: u32,
+}
+
+/// Which kernels run the hidden layers' products.
+enum Family<'a> {
+    Tiled(&'a TiledKernels),
+    RowBlocked(&'a DensePlan),
+}
+
+/// Builds the step for `n` points (`n_surface` on the surface) reading the input streams
+/// (twelve floats per point, the point first) and normals, writing the loss partials.
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn build(
+    gpu: &GpuContext,
+    net: &SirenGpu,
+    n: u32,
+    n_surface: u32,
+    weights: &LossWeights,
+    x_streams: &wgpu::Buffer,
+    normals: &wgpu::Buffer,
+    loss_partial: &wgpu::Buffer,
+) -> Result<RorPasses, SirenGpuError> {
+    let family = match (net.tiled_kernels(), net.dense_ror_plan()) {
+        (Some(t), _) => Family::Tiled(t),
+        (None, Some(d)) => Family::RowBlocked(d),
+        (None, None) => {
+            unreachable!("the reverse-over-reverse step needs tiled or row-blocked kernels")
+        }
+    };
+    let cfg = *net.config();
+    let layers = net.layer_layouts();
+    let params = net.params_buffer();
+    let grads = net.grads_buffer();
+    let omega = cfg.omega0;
+    let l_hidden = cfg.hidden_layers;
+    let width = cfg.width as u32;
+    let w2 = 2 * width;
+    let pair_bytes = u64::from(n) * u64::from(w2) * 4;
+    let mut p = Vec::new();
+    let mut x = Vec::new();
+    let mut y = Vec::new();
+    for _ in 0..l_hidden {
+        p.push(gpu.storage_zeroed("siren ror P", pair_bytes)?);
+        x.push(gpu.storage_zeroed("siren ror X", pair_bytes)?);
+        y.push(gpu.storage_zeroed("siren ror Y", pair_bytes)?);
+    }
+    let x0 = gpu.storage_zeroed("siren ror X0", u64::from(n) * 6 * 4)?;
+    let dphi = gpu.storage_zeroed("siren ror dphi", u64::from(n) * 4)?;
+    let rows2 = 2 * n;
+    let wgrads: Vec<GemmUniforms> = layers[..l_hidden]
+        .iter()
+        .map(|l| stacked_wgrad(l, rows2))
+        .collect();
+    let partial_len = wgrads
+        .iter()
+        .enumerate()
+        .map(|(l, u)| match &family {
+            Family::RowBlocked(d) => d.partial_len(l),
+            Family::Tiled(_) => u64::from(u.pbias_off) + u64::from(splits_for(rows2) * u.m),
+        })
+        .chain([u64::from(OUT_SPLITS) * u64::from(width + 1)])
+        .max()
+        .unwrap_or(1);
+    let partial = gpu.storage_zeroed("siren ror wgrad partial", partial_len * 4)?;
+    let reduce = gpu.pipeline(&shaders::SIREN_TRAIN, "reduce_wgrad", &[])?;
+    let last = layers.last().expect("at least one layer");
+    let ru = gpu.uniform(
+        "siren ror uniforms",
+        &RorUniforms {
+            n_points: n,
+            n_surface,
+            width,
+            w_out_off: last.weight as u32,
+            b_out_off: last.bias as u32,
+            w1_off: layers[0].weight as u32,
+            splits: OUT_SPLITS,
+            pbias_off: OUT_SPLITS * width,
+            w_surface: weights.surface,
+            w_off_surface: weights.off_surface,
+            w_normal: weights.normal,
+            w_eikonal: weights.eikonal,
+            alpha: weights.alpha,
+            inv_n: 1.0 / n as f32,
+            omega,
+            _pad: 0.0,
+        },
+    );
+    let pipe = |name: &str| gpu.pipeline(&shaders::SIREN_ROR, name, &[]);
+    let mut launches = Vec::new();
+    let mut keep = Vec::new();
+    let top = l_hidden - 1;
+
+    // Forward: P_l ← Z_l, X_l ← A_l.
+    for l in 0..l_hidden {
+        let (src, a_rs) = if l == 0 {
+            (x_streams, 12)
+        } else {
+            (&x[l - 1], w2)
+        };
+        let u = times_wt(&layers[l], n, 0, a_rs, w2);
+        match &family {
+            Family::Tiled(t) => {
+                let offsets = RorOffsets::default();
+                let e = TiledEpilogue::RorForward {
+                    omega,
+                    act: &x[l],
+                    offsets,
+                };
+                launches.push(t.gemm(gpu, &u, e, src, params, &p[l]));
+            }
+            Family::RowBlocked(d) => {
+                let io = RorIo {
+                    a: src,
+                    a_stride: a_rs,
+                    a_first: 0,
+                    out: &p[l],
+                    aux: &x[l],
+                    stride: w2,
+                    out_first: 0,
+                    out1_first: 0,
+                    z_first: 0,
+                    t_first: 0,
+                };
+                let e = RorEpilogue::Forward { omega };
+                launches.extend(d.ror_times_wt(gpu, l, n, e, &io, params)?);
+            }
+        }
+    }
+    // G_L = w, H_L = D(Z_L) ⊙ w.
+    launches.push(Launch::flat(
+        gpu,
+        &pipe("ror_top")?,
+        "siren ror top",
+        &[
+            entry(0, &ru),
+            entry(1, params),
+            entry(2, &p[top]),
+            entry(3, &y[top]),
+        ],
+        n * width,
+    ));
+    // The input-gradient chain: G_{l-1} = H_l W_l into P_{l-1}, H_{l-1} into Y_{l-1}.
+    for l in (1..l_hidden).rev() {
+        let u = times_w(&layers[l], n, width, w2, w2);
+        match &family {
+            Family::Tiled(t) => {
+                let offsets = RorOffsets {
+                    out: width,
+                    out1: width,
+                    z: 0,
+                    t: 0,
+                };
+                let e = TiledEpilogue::RorGradBackward {
+                    omega,
+                    p: &p[l - 1],
+                    offsets,
+                };
+                launches.push(t.gemm(gpu, &u, e, &y[l], params, &y[l - 1]));
+            }
+            Family::RowBlocked(d) => {
+                let io = RorIo {
+                    a: &y[l],
+                    a_stride: w2,
+                    a_first: width,
+                    out: &y[l - 1],
+                    aux: &p[l - 1],
+                    stride: w2,
+                    out_first: width,
+                    out1_first: width,
+                    z_first: 0,
+                    t_first: 0,
+                };
+                let e = RorEpilogue::GradBackward { omega };
+                launches.extend(d.ror_times_w(gpu, l, n, e, &io)?);
+            }
+        }
+    }
+    // Φ, ∇ₓΦ = H_1 W_1, the loss and its seeds φ̄ and ḡ.
+    let loss_groups = n.div_ceil(WG);
+    launches.push(Launch::flat(
+        gpu,
+        &pipe("ror_head")?,
+        "siren ror head",
+        &[
+            entry(0, &ru),
+            entry(1, params),
+            entry(4, &x[top]),
+            entry(5, &y[0]),
+            entry(6, x_streams),
+            entry(7, normals),
+            entry(8, &x0),
+            entry(9, &dphi),
+            entry(10, loss_partial),
+        ],
+        n,
+    ));
+    // The adjoint of the input-gradient chain: H̄_l = Ḡ_{l-1} W_lᵀ, Ḡ_l into X_l, T_l into P_l.
+    for l in 0..l_hidden {
+        let (src, a_off, a_rs) = if l == 0 {
+            (&x0, 3, 6)
+        } else {
+            (&x[l - 1], width, w2)
+        };
+        let u = times_wt(&layers[l], n, a_off, a_rs, w2);
+        match &family {
+            Family::Tiled(t) => {
+                let offsets = RorOffsets {
+                    out: width,
+                    out1: width,
+                    z: 0,
+                    t: 0,
+                };
+                let e = TiledEpilogue::RorGradAdjoint {
+                    omega,
+                    p: &p[l],
+                    offsets,
+                };
+                launches.push(t.gemm(gpu, &u, e, src, params, &x[l]));
+            }
+            Family::RowBlocked(d) => {
+                let io = RorIo {
+                    a: src,
+                    a_stride: a_rs,
+                    a_first: a_off,
+                    out: &x[l],
+                    aux: &p[l],
+                    stride: w2,
+                    out_first: width,
+                    out1_first: width,
+                    z_first: 0,
+                    t_first: 0,
+                };
+                let e = RorEpilogue::GradAdjoint { omega };
+                launches.extend(d.ror_times_wt(gpu, l, n, e, &io, params)?);
+            }
+        }
+    }
+    // Z̄_L = D(Z_L) ⊙ φ̄ wᵀ + T_L.
+    launches.push(Launch::flat(
+        gpu,
+        &pipe("ror_top_back")?,
+        "siren ror top back",
+        &[
+            entry(0, &ru),
+            entry(1, params),
+            entry(2, &p[top]),
+            entry(3, &y[top]),
+            entry(11, &dphi),
+        ],
+        n * width,
+    ));
+    let push_reduce = |launches: &mut Vec<Launch>,
+                       keep: &mut Vec<wgpu::Buffer>,
+                       lay: &LayerLayout,
+                       splits: u32,
+                       pbias_off: u32| {
+        let (m, k) = (lay.fan_out as u32, lay.fan_in as u32);
+        let rub = gpu.uniform(
+            "siren ror reduce",
+            &ReduceUniforms {
+                m,
+                n: k,
+                splits,
+                w_off: lay.weight as u32,
+                b_off: lay.bias as u32,
+                pbias_off,
+                ..Default::default()
+            },
+        );
+        launches.push(Launch::flat(
+            gpu,
+            &reduce,
+            "siren ror reduce wgrad",
+            &[entry(5, &rub), entry(6, &partial), entry(7, grads)],
+            m * k + m,
+        ));
+        keep.push(rub);
+    };
+    // The output layer: w̄ = Σ φ̄ A_L + Ḡ_L, b̄ = Σ φ̄.
+    launches.push(Launch::flat(
+        gpu,
+        &pipe("ror_out_grad")?,
+        "siren ror output gradient",
+        &[
+            entry(0, &ru),
+            entry(4, &x[top]),
+            entry(11, &dphi),
+            entry(12, &partial),
+        ],
+        OUT_SPLITS * (width + 1),
+    ));
+    push_reduce(
+        &mut launches,
+        &mut keep,
+        last,
+        OUT_SPLITS,
+        OUT_SPLITS * width,
+    );
+    // Downwards: W̄_l from the stacked rows, then Z̄_{l-1} = D(Z_{l-1}) ⊙ Z̄_l W_l + T_{l-1}.
+    for l in (0..l_hidden).rev() {
+        let below = if l == 0 { &x0 } else { &x[l - 1] };
+        match &family {
+            Family::Tiled(t) => {
+                let u = wgrads[l];
+                let e = TiledEpilogue::WeightGradientPairs;
+                launches.push(t.gemm(gpu, &u, e, &y[l], below, &partial));
+                push_reduce(
+                    &mut launches,
+                    &mut keep,
+                    &layers[l],
+                    splits_for(rows2),
+                    u.pbias_off,
+                );
+            }
+            Family::RowBlocked(d) => {
+                let (launch, pbias_off) =
+                    d.ror_weight_gradient(gpu, l, n, &y[l], below, &partial)?;
+                launches.push(launch);
+                push_reduce(&mut launches, &mut keep, &layers[l], SPLITS, pbias_off);
+            }
+        }
+        if l > 0 {
+            let u = times_w(&layers[l], n, 0, w2, w2);
+            match &family {
+                Family::Tiled(t) => {
+                    let offsets = RorOffsets {
+                        out: 0,
+                        out1: 0,
+                        z: 0,
+                        t: width,
+                    };
+                    let e = TiledEpilogue::RorValueAdjoint {
+                        omega,
+                        p: &p[l - 1],
+                        offsets,
+                    };
+                    launches.push(t.gemm(gpu, &u, e, &y[l], params, &y[l - 1]));
+                }
+                Family::RowBlocked(d) => {
+                    let io = RorIo {
+                        a: &y[l],
+                        a_stride: w2,
+                        a_first: 0,
+                        out: &y[l - 1],
+                        aux: &p[l - 1],
+                        stride: w2,
+                        out_first: 0,
+                        out1_first: 0,
+                        z_first: 0,
+                        t_first: width,
+                    };
+                    let e = RorEpilogue::ValueAdjoint { omega };
+                    launches.extend(d.ror_times_w(gpu, l, n, e, &io)?);
+                }
+            }
+        }
+    }
+    keep.push(ru);
+    keep.extend(p);
+    keep.extend(x);
+    keep.extend(y);
+    keep.push(x0);
+    keep.push(dphi);
+    keep.push(partial);
+    Ok(RorPasses {
+        launches,
+        keep,
+        loss_groups,
+    })
+}

@@ -1,0 +1,195 @@
+// The elementwise and per-point kernels of SIREN's reverse-over-reverse training step
+// (`siren::ror`, where the math is). Per hidden layer l the step keeps three matrices of two
+// streams per point, row stride 2·width: P_l = (Z_l, G_l then T_l), X_l = (A_l, Ḡ_l) and
+// Y_l = (Z̄_l, H_l); X_0 = (x, ḡ) has row stride 6. D(z) = ω0 cos(ω0 z).
+//
+// ror_top:      last hidden layer L: G_L = w (the output weights) into P_L's second stream and
+//               H_L = D(Z_L) ⊙ w into Y_L's.
+// ror_head:     per point: Φ = w · A_L + b, ∇Φ = W_1ᵀ H_1 (the first layer's product of the
+//               input-gradient chain, fan-in 3), the four loss terms (as `siren_head.wgsl`),
+//               dL/dΦ / N into `dphi`, and (x, dL/d∇Φ / N) into X_0.
+// ror_top_back: Z̄_L = D(Z_L) ⊙ (dL/dΦ w) + T_L into Y_L's first stream.
+// ror_out_grad: split partials of the output layer's gradient w̄ = Σ_p dphi_p A_L[p] + Ḡ_L[p],
+//               b̄ = Σ_p dphi_p, in the layout `reduce_wgrad` reads (M = 1).
+
+struct Ror {
+    n_points: u32,
+    n_surface: u32,
+    width: u32,
+    w_out_off: u32,
+    b_out_off: u32,
+    w1_off: u32,
+    splits: u32,
+    pbias_off: u32,
+    w_surface: f32,
+    w_off_surface: f32,
+    w_normal: f32,
+    w_eikonal: f32,
+    alpha: f32,
+    inv_n: f32,
+    omega: f32,
+    _pad: f32,
+}
+
+const WG: u32 = 256u;
+const NORM_EPS: f32 = 1e-12;
+
+@group(0) @binding(0) var<uniform> r: Ror;
+@group(0) @binding(1) var<storage, read> params: array<f32>;
+// ror_top: P_L (written); ror_top_back: P_L (read).
+@group(0) @binding(2) var<storage, read_write> p_last: array<f32>;
+// ror_top, ror_top_back: Y_L.
+@group(0) @binding(3) var<storage, read_write> y_last: array<f32>;
+// ror_head: X_L (A_L) and Y_1 (H_1); ror_out_grad: X_L.
+@group(0) @binding(4) var<storage, read> x_last: array<f32>;
+@group(0) @binding(5) var<storage, read> y_first: array<f32>;
+// ror_head: the input streams (twelve floats per point, the point first), X_0, dL/dΦ / N and
+// the loss sums per workgroup.
+@group(0) @binding(6) var<storage, read> x_streams: array<f32>;
+@group(0) @binding(7) var<storage, read> normals: array<f32>;
+@group(0) @binding(8) var<storage, read_write> x0: array<f32>;
+@group(0) @binding(9) var<storage, read_write> dphi: array<f32>;
+@group(0) @binding(10) var<storage, read_write> loss_partial: array<f32>;
+// ror_top_back, ror_out_grad: dL/dΦ / N.
+@group(0) @binding(11) var<storage, read> dphi_in: array<f32>;
+// ror_out_grad: the partials.
+@group(0) @binding(12) var<storage, read_write> partial: array<f32>;
+
+var<workgroup> red: array<vec4<f32>, 256>;
+
+fn flat_id(wid: vec3<u32>, nwg: vec3<u32>, lid: u32) -> u32 {
+    return (wid.y * nwg.x + wid.x) * WG + lid;
+}
+
+@compute @workgroup_size(256)
+fn ror_top(
+    @builtin(workgroup_id) wid: vec3<u32>,
+    @builtin(num_workgroups) nwg: vec3<u32>,
+    @builtin(local_invocation_index) lid: u32,
+) {
+    let t = flat_id(wid, nwg, lid);
+    if t >= r.n_points * r.width {
+        return;
+    }
+    let p = t / r.width;
+    let o = t % r.width;
+    let i = 2u * p * r.width + o;
+    let w = params[r.w_out_off + o];
+    p_last[i + r.width] = w;
+    y_last[i + r.width] = r.omega * cos(r.omega * p_last[i]) * w;
+}
+
+@compute @workgroup_size(256)
+fn ror_top_back(
+    @builtin(workgroup_id) wid: vec3<u32>,
+    @builtin(num_workgroups) nwg: vec3<u32>,
+    @builtin(local_invocation_index) lid: u32,
+) {
+    let t = flat_id(wid, nwg, lid);
+    if t >= r.n_points * r.width {
+        return;
+    }
+    let p = t / r.width;
+    let o = t % r.width;
+    let i = 2u * p * r.width + o;
+    let abar = dphi_in[p] * params[r.w_out_off + o];
+    y_last[i] = r.omega * cos(r.omega * p_last[i]) * abar + p_last[i + r.width];
+}
+
+@compute @workgroup_size(256)
+fn ror_head(
+    @builtin(workgroup_id) wid: vec3<u32>,
+    @builtin(num_workgroups) nwg: vec3<u32>,
+    @builtin(local_invocation_index) lid: u32,
+) {
+    let group = wid.y * nwg.x + wid.x;
+    // Workgroup-uniform: the groups a folded 2D dispatch adds past the end write nothing.
+    if group * WG >= r.n_points {
+        return;
+    }
+    let p = group * WG + lid;
+    var terms = vec4<f32>(0.0);
+    if p < r.n_points {
+        let row = 2u * p * r.width;
+        var phi = params[r.b_out_off];
+        var gr = vec3<f32>(0.0);
+        for (var i = 0u; i < r.width; i++) {
+            phi = fma(params[r.w_out_off + i], x_last[row + i], phi);
+            let w1 = r.w1_off + 3u * i;
+            let h = y_first[row + r.width + i];
+            gr = fma(vec3<f32>(h), vec3<f32>(params[w1], params[w1 + 1u], params[w1 + 2u]), gr);
+        }
+        // Same formulas as the CPU reference (siren::cpu::point_loss) and siren_head.wgsl.
+        let gn = length(gr);
+        terms.w = r.w_eikonal * abs(gn - 1.0);
+        var dg = r.w_eikonal * sign(gn - 1.0) / max(gn, NORM_EPS) * gr;
+        var d = 0.0;
+        if p < r.n_surface {
+            let n = vec3<f32>(normals[3u * p], normals[3u * p + 1u], normals[3u * p + 2u]);
+            terms.x = r.w_surface * abs(phi);
+            d = r.w_surface * sign(phi);
+            let denom = max(gn * length(n), NORM_EPS);
+            let c = dot(gr, n) / denom;
+            terms.z = r.w_normal * (1.0 - c);
+            let gn2 = max(gn, NORM_EPS) * max(gn, NORM_EPS);
+            dg -= r.w_normal * (n / denom - c * gr / gn2);
+        } else {
+            let e = exp(-r.alpha * abs(phi));
+            terms.y = r.w_off_surface * e;
+            d = -r.w_off_surface * r.alpha * sign(phi) * e;
+        }
+        dphi[p] = d * r.inv_n;
+        let xs = 12u * p;
+        let o = 6u * p;
+        x0[o] = x_streams[xs];
+        x0[o + 1u] = x_streams[xs + 1u];
+        x0[o + 2u] = x_streams[xs + 2u];
+        x0[o + 3u] = dg.x * r.inv_n;
+        x0[o + 4u] = dg.y * r.inv_n;
+        x0[o + 5u] = dg.z * r.inv_n;
+    }
+    red[lid] = terms * r.inv_n;
+    workgroupBarrier();
+    for (var stride = WG / 2u; stride > 0u; stride /= 2u) {
+        if lid < stride {
+            red[lid] += red[lid + stride];
+        }
+        workgroupBarrier();
+    }
+    if lid == 0u {
+        let s = red[0];
+        loss_partial[4u * group] = s.x;
+        loss_partial[4u * group + 1u] = s.y;
+        loss_partial[4u * group + 2u] = s.z;
+        loss_partial[4u * group + 3u] = s.w;
+    }
+}
+
+// One invocation per (split, column): columns 0..width are w̄, column `width` is b̄.
+@compute @workgroup_size(256)
+fn ror_out_grad(
+    @builtin(workgroup_id) wid: vec3<u32>,
+    @builtin(num_workgroups) nwg: vec3<u32>,
+    @builtin(local_invocation_index) lid: u32,
+) {
+    let t = flat_id(wid, nwg, lid);
+    let cols = r.width + 1u;
+    if t >= r.splits * cols {
+        return;
+    }
+    let split = t / cols;
+    let i = t % cols;
+    var s = 0.0;
+    if i < r.width {
+        for (var p = split; p < r.n_points; p += r.splits) {
+            let row = 2u * p * r.width;
+            s += dphi_in[p] * x_last[row + i] + x_last[row + r.width + i];
+        }
+        partial[split * r.width + i] = s;
+    } else {
+        for (var p = split; p < r.n_points; p += r.splits) {
+            s += dphi_in[p];
+        }
+        partial[r.pbias_off + split] = s;
+    }
+}
