@@ -23,7 +23,7 @@
 // dense_wgrad: per-invocation partial sums of W̄[n, k] = Σ_r z̄[r, n] x[r, k] (and of the bias
 //              gradient Σ over value rows of z̄[r, n]) over a strided subset of the points, for
 //              one 16 × 16 tile; `reduce_wgrad` in siren_train.wgsl sums the partials. A point
-//              owns `rows_per_point` rows (4 with tangents, 2 in the reverse-over-reverse step),
+//              owns ROWS_PER_POINT rows (4 with tangents, 2 in the reverse-over-reverse step),
 //              the first its value row.
 //
 // The reverse-over-reverse step (`siren::ror`; one row per point, four points per invocation;
@@ -40,6 +40,8 @@
 //                                  t_first4).
 //   first_wgrad_pairs: the first layer's partials over the stacked rows (Z̄_1, H_1) of each
 //                      point against (x, ḡ) (six floats per point in `points`).
+// Those epilogues are compiled only into pipelines made with ROR = 1: the inference and
+// tangent-step pipelines (ROR = 0) keep the code, and the speed, they had without them.
 
 struct Dense {
     rows: u32,
@@ -72,15 +74,17 @@ struct Wgrad {
     fan_out: u32,
     fan_in: u32,
     pbias_off: u32,
-    rows_per_point: u32,
-    _pad0: u32,
-    _pad1: u32,
-    _pad2: u32,
 }
 
 // Reduction length / 4 of one launch (≤ MAX4) and output vec4s of one launch.
 override RED4: u32 = 16u;
 override OUT4: u32 = 16u;
+// 1: the pipeline runs the reverse-over-reverse epilogues (modes 3 and 4 of dense_fwd and
+// first_fwd, bits 2 and 3 of dense_bwd); 0: they are compiled out.
+override ROR: u32 = 0u;
+// Rows per point of dense_wgrad: 4 with tangents, 2 in the reverse-over-reverse step. A constant
+// so that the loop over them unrolls.
+override ROWS_PER_POINT: u32 = 4u;
 const MAX4: u32 = 64u;
 const WG: u32 = 64u;
 
@@ -175,7 +179,7 @@ fn dense_fwd(
             acc2[c] = s2.x + s2.y + s2.z + s2.w;
             acc3[c] = s3.x + s3.y + s3.z + s3.w;
         }
-        if d.mode >= 3u {
+        if ROR != 0u && d.mode >= 3u {
             ror_fwd_row(r0, o4, acc0);
             ror_fwd_row(r0 + 1u, o4, acc1);
             ror_fwd_row(r0 + 2u, o4, acc2);
@@ -272,7 +276,7 @@ fn dense_bwd(
             }
         }
         let add = (d.mode & 1u) != 0u;
-        if (d.mode & 12u) != 0u {
+        if ROR != 0u && (d.mode & 12u) != 0u {
             if add {
                 acc0 += out[ob];
                 if r0 + 1u < d.rows {
@@ -374,8 +378,8 @@ fn dense_wgrad(
     var a33 = mat4x4<f32>();
     var bias = mat4x4<f32>();
     for (var p = split; p < g.points; p += g.splits) {
-        for (var t = 0u; t < g.rows_per_point; t++) {
-            let r = g.rows_per_point * p + t;
+        for (var t = 0u; t < ROWS_PER_POINT; t++) {
+            let r = ROWS_PER_POINT * p + t;
             let zb = r * g.z_stride4 + tn4;
             let xb = r * g.x_stride4 + tk4;
             let z0 = zbar[zb];
@@ -456,7 +460,7 @@ fn first_fwd(
 ) {
     let lane = (wid.y * nwg.x + wid.x) * WG + lid;
     let os = d.out_stride4;
-    if d.mode >= 3u {
+    if ROR != 0u && d.mode >= 3u {
         // Four points, three floats each at a_first4 + a_stride4 · point (floats).
         let r0 = 4u * lane;
         if r0 >= d.rows {

@@ -21,7 +21,7 @@
 //           (k_chunk rows from wid.z · k_chunk, a multiple of 16); the workgroups of the first
 //           column tile also sum the bias partial Σ Z̄[value rows] (k ≡ 0 mod 4) from the A
 //           tiles they stage anyway, stored at pbias_off + split · M + m. The value rows are
-//           every `bias_step`-th row (4 with tangents, 2 for the stacked rows of the
+//           every BIAS_STEP-th row (4 with tangents, 2 for the stacked rows of the
 //           reverse-over-reverse step).
 // Modes 5–8, the reverse-over-reverse training step (`siren::ror`): one row per point, every
 // output and auxiliary matrix with row stride ldc, at its own element offset (out_off, out1_off,
@@ -57,12 +57,13 @@ struct Tiled {
     out1_off: u32,
     z_off: u32,
     t_off: u32,
-    // Mode 4: the bias partial sums every bias_step-th row.
-    bias_step: u32,
-    _pad0: u32,
-    _pad1: u32,
-    _pad2: u32,
 }
+
+// 1: the pipeline runs the reverse-over-reverse epilogues (modes 5–8); 0: they are compiled
+// out, so that inference and the tangent step keep the code they had without them.
+override ROR: u32 = 0u;
+// Mode 4: the bias partial sums every BIAS_STEP-th row (4 with tangents, 2 with ROR).
+override BIAS_STEP: u32 = 4u;
 
 const BM: u32 = 64u;
 const BN: u32 = 64u;
@@ -336,7 +337,7 @@ fn tiled_gemm(
         }
         if sum_bias {
             // k0 is a multiple of 4: value rows sit at kk ≡ 0 (mod 4).
-            for (var kk = 0u; kk < BK; kk += t.bias_step) {
+            for (var kk = 0u; kk < BK; kk += BIAS_STEP) {
                 bias_sum += tile_a[kk * T4 + ty];
             }
         }
@@ -358,7 +359,7 @@ fn tiled_gemm(
     if n >= t.n {
         return;
     }
-    if t.mode >= 5u {
+    if ROR != 0u && t.mode >= 5u {
         ror_epilogue(m, n, c0);
         ror_epilogue(m + 1u, n, c1);
         ror_epilogue(m + 2u, n, c2);

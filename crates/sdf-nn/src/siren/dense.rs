@@ -55,6 +55,8 @@ impl LayerKernels {
 /// The uniform window size every device supports (WebGPU's minimum
 /// `max_uniform_buffer_binding_size`); the shader's `w` array has exactly this size.
 const WINDOW_BYTES: u64 = 16 * 1024;
+/// The override that compiles the reverse-over-reverse epilogues into a pipeline.
+const ROR: (&str, f64) = ("ROR", 1.0);
 /// Invocations per workgroup (`WG` in the shader); each owns four rows.
 const WG: u32 = 64;
 /// Invocations per weight-gradient tile: each sums every `SPLITS`-th point.
@@ -90,8 +92,6 @@ struct WgradUniforms {
     fan_out: u32,
     fan_in: u32,
     pbias_off: u32,
-    rows_per_point: u32,
-    _pad: [u32; 3],
 }
 
 /// Where one qualifying layer's weights live in the packed uniform buffer.
@@ -404,9 +404,12 @@ impl DensePlan {
             .collect())
     }
 
-    /// The weight-gradient partials of layer `l` for `points` points (four rows each) into
-    /// `partial` (`[SPLITS, fan_out, fan_in]`, then `[SPLITS, fan_out]` bias partials from
-    /// the returned offset), for `reduce_wgrad` with `SPLITS` splits.
+    /// The weight-gradient partials of layer `l` for `points` points into `partial`
+    /// (`[SPLITS, fan_out, fan_in]`, then `[SPLITS, fan_out]` bias partials from the returned
+    /// offset), for `reduce_wgrad` with `SPLITS` splits. With `pairs`, the stacked rows of the
+    /// reverse-over-reverse step (`zbar`: (Z̄, H) per point; `x`: (A, Ḡ) per point, or (x, ḡ)
+    /// for the first layer); without, the tangent step's four rows per point.
+    #[allow(clippy::too_many_arguments)]
     pub(crate) fn weight_gradient(
         &self,
         gpu: &GpuContext,
@@ -415,12 +418,19 @@ impl DensePlan {
         zbar: &wgpu::Buffer,
         x: &wgpu::Buffer,
         partial: &wgpu::Buffer,
+        pairs: bool,
     ) -> Result<(Launch, u32), GpuError> {
         let p = self.layer(l);
         let (fan_in, fan_out) = (p.layout.fan_in as u32, p.layout.fan_out as u32);
         let first = fan_in == 3;
-        let entry_point = if first { "first_wgrad" } else { "dense_wgrad" };
-        let pipeline = gpu.pipeline(&shaders::SIREN_DENSE, entry_point, &[])?;
+        let pipeline = match (first, pairs) {
+            (true, false) => gpu.pipeline(&shaders::SIREN_DENSE, "first_wgrad", &[])?,
+            (true, true) => gpu.pipeline(&shaders::SIREN_DENSE, "first_wgrad_pairs", &[])?,
+            (false, _) => {
+                let rows = ("ROWS_PER_POINT", if pairs { 2.0 } else { 4.0 });
+                gpu.pipeline(&shaders::SIREN_DENSE, "dense_wgrad", &[rows])?
+            }
+        };
         let pbias_off = SPLITS * fan_out * fan_in;
         let u = gpu.uniform(
             "siren dense wgrad",
@@ -433,8 +443,6 @@ impl DensePlan {
                 fan_out,
                 fan_in,
                 pbias_off,
-                rows_per_point: 4,
-                _pad: [0; 3],
             },
         );
         let (tiles, entries) = if first {
@@ -481,7 +489,7 @@ impl DensePlan {
         };
         let pipeline = if first {
             let out4 = ("OUT4", f64::from(fan_out / 4));
-            gpu.pipeline(&shaders::SIREN_DENSE, "first_fwd", &[out4])?
+            gpu.pipeline(&shaders::SIREN_DENSE, "first_fwd", &[out4, ROR])?
         } else {
             gpu.pipeline(
                 &shaders::SIREN_DENSE,
@@ -489,6 +497,7 @@ impl DensePlan {
                 &[
                     ("RED4", f64::from(fan_in / 4)),
                     ("OUT4", f64::from(p.window_rows / 4)),
+                    ROR,
                 ],
             )?
         };
@@ -567,6 +576,7 @@ impl DensePlan {
             &[
                 ("RED4", f64::from(p.window_rows / 4)),
                 ("OUT4", f64::from(fan_in / 4)),
+                ROR,
             ],
         )?;
         Ok((0..p.windows())
@@ -612,65 +622,6 @@ impl DensePlan {
                 )
             })
             .collect())
-    }
-
-    /// The weight-gradient partials of layer `l` over the stacked rows of the
-    /// reverse-over-reverse step (`ys`: (Z̄, H) per point; `xs`: (A, Ḡ) per point, or (x, ḡ)
-    /// for the first layer), as [`DensePlan::weight_gradient`].
-    pub(crate) fn ror_weight_gradient(
-        &self,
-        gpu: &GpuContext,
-        l: usize,
-        points: u32,
-        ys: &wgpu::Buffer,
-        xs: &wgpu::Buffer,
-        partial: &wgpu::Buffer,
-    ) -> Result<(Launch, u32), GpuError> {
-        let p = self.layer(l);
-        let (fan_in, fan_out) = (p.layout.fan_in as u32, p.layout.fan_out as u32);
-        let first = fan_in == 3;
-        let entry_point = if first {
-            "first_wgrad_pairs"
-        } else {
-            "dense_wgrad"
-        };
-        let pipeline = gpu.pipeline(&shaders::SIREN_DENSE, entry_point, &[])?;
-        let pbias_off = SPLITS * fan_out * fan_in;
-        let u = gpu.uniform(
-            "siren dense ror wgrad",
-            &WgradUniforms {
-                points,
-                splits: SPLITS,
-                z_stride4: fan_out / 4,
-                x_stride4: fan_in / 4,
-                tiles_k: fan_in / 16,
-                fan_out,
-                fan_in,
-                pbias_off,
-                rows_per_point: 2,
-                _pad: [0; 3],
-            },
-        );
-        let (tiles, entries) = if first {
-            let e = [
-                entry(5, &u),
-                entry(6, ys),
-                entry(12, xs),
-                entry(13, partial),
-            ];
-            (fan_out / 16, e)
-        } else {
-            let e = [entry(5, &u), entry(6, ys), entry(7, xs), entry(8, partial)];
-            ((fan_out / 16) * (fan_in / 16), e)
-        };
-        let launch = Launch::new(
-            gpu,
-            &pipeline,
-            "siren dense ror wgrad",
-            &entries,
-            (SPLITS.div_ceil(WG), tiles, 1),
-        );
-        Ok((launch, pbias_off))
     }
 
     /// Floats of the partial buffer [`DensePlan::weight_gradient`] needs for layer `l`.

@@ -1250,7 +1250,8 @@ impl TrainPasses {
             let val = wgrads[l];
             let (splits, pbias_off) = match net.dense_for(l) {
                 Some(d) => {
-                    let (launch, pbias_off) = d.weight_gradient(gpu, l, n, a, b, &partial)?;
+                    let (launch, pbias_off) =
+                        d.weight_gradient(gpu, l, n, a, b, &partial, false)?;
                     launches.push(launch);
                     (SPLITS, pbias_off)
                 }

@@ -474,7 +474,7 @@ pub(crate) fn build(
             }
             Family::RowBlocked(d) => {
                 let (launch, pbias_off) =
-                    d.ror_weight_gradient(gpu, l, n, &y[l], below, &partial)?;
+                    d.weight_gradient(gpu, l, n, &y[l], below, &partial, true)?;
                 launches.push(launch);
                 push_reduce(&mut launches, &mut keep, &layers[l], SPLITS, pbias_off);
             }

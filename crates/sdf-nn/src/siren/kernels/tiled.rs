@@ -91,6 +91,8 @@ struct FusedUniforms {
 #[derive(Debug)]
 pub(crate) struct TiledKernels {
     gemm: wgpu::ComputePipeline,
+    /// `gemm` with the reverse-over-reverse epilogues (and the pairs' bias step) compiled in.
+    gemm_ror: wgpu::ComputePipeline,
     /// Bound where a mode does not use a binding.
     dummy: wgpu::Buffer,
     dummy_rw: wgpu::Buffer,
@@ -115,6 +117,11 @@ impl TiledKernels {
         }
         Ok(Some(TiledKernels {
             gemm: gpu.pipeline(&shaders::SIREN_TILED_LAYER, "tiled_gemm", &[])?,
+            gemm_ror: gpu.pipeline(
+                &shaders::SIREN_TILED_LAYER,
+                "tiled_gemm",
+                &[("ROR", 1.0), ("BIAS_STEP", 2.0)],
+            )?,
             dummy: gpu.storage_zeroed("siren tiled dummy", 16)?,
             dummy_rw: gpu.storage_zeroed("siren tiled dummy rw", 16)?,
         }))
@@ -218,9 +225,10 @@ impl TiledKernels {
                 (8, omega, &self.dummy_rw, p, offsets)
             }
         };
-        let bias_step = match epilogue {
-            TiledEpilogue::WeightGradientPairs => 2,
-            _ => 4,
+        let pipeline = if mode >= 5 || matches!(epilogue, TiledEpilogue::WeightGradientPairs) {
+            &self.gemm_ror
+        } else {
+            &self.gemm
         };
         let four = |x: u32| x.is_multiple_of(4);
         // Which way each operand is contiguous, and whether its vec4 loads are aligned.
@@ -262,8 +270,6 @@ impl TiledKernels {
             out1_off: offs.out1,
             z_off: offs.z,
             t_off: offs.t,
-            bias_step,
-            _pad: [0; 3],
         };
         // The bias partial walks value rows as every fourth row of each 16-row slice.
         debug_assert!(mode != 4 || u.k_chunk.is_multiple_of(16));
@@ -277,7 +283,7 @@ impl TiledKernels {
         };
         Launch::new(
             gpu,
-            &self.gemm,
+            pipeline,
             "siren tiled gemm",
             &[
                 entry(0, &ub),
@@ -318,6 +324,4 @@ struct TiledUniforms {
     out1_off: u32,
     z_off: u32,
     t_off: u32,
-    bias_step: u32,
-    _pad: [u32; 3],
 }
