@@ -50,7 +50,8 @@
 //! # }
 //! ```
 
-use std::sync::{Arc, Mutex};
+use std::sync::{Arc, Condvar, Mutex, MutexGuard};
+use std::time::{Duration, Instant};
 
 use glam::Vec3;
 
@@ -144,6 +145,51 @@ enum MapState {
     Failed(String),
 }
 
+/// The staging buffer's [`MapState`], and a condition variable its `map_async` callback
+/// notifies: the callback may run on another thread's `poll` after ours has returned (devices
+/// are shared), so a waiter waits for the callback itself, not only for the submission.
+#[derive(Debug, Default)]
+struct MapSlot {
+    state: Mutex<MapState>,
+    changed: Condvar,
+}
+
+impl MapSlot {
+    fn lock(&self) -> MutexGuard<'_, MapState> {
+        self.state.lock().unwrap_or_else(|e| e.into_inner())
+    }
+
+    fn set(&self, state: MapState) {
+        *self.lock() = state;
+        self.changed.notify_all();
+    }
+
+    /// Takes the state once it is no longer [`MapState::Pending`], polling `device` between
+    /// waits; [`MapState::Pending`] if that takes longer than `timeout`.
+    fn take_settled(&self, device: &wgpu::Device, timeout: Duration) -> MapState {
+        let deadline = Instant::now() + timeout;
+        let mut state = self.lock();
+        while matches!(*state, MapState::Pending) {
+            let now = Instant::now();
+            if now >= deadline {
+                break;
+            }
+            drop(state);
+            let _ = device.poll(wgpu::PollType::Poll);
+            state = self.lock();
+            if matches!(*state, MapState::Pending) {
+                let wait = (deadline - now).min(Duration::from_millis(1));
+                state = self
+                    .changed
+                    .wait_timeout(state, wait)
+                    .unwrap_or_else(|e| e.into_inner())
+                    .0;
+            }
+        }
+        std::mem::take(&mut *state)
+    }
+}
+
 /// Reusable, caller-owned buffers for queries of up to `capacity` points of one
 /// [`NeuralSdf`] on one device. See the [module docs](self).
 pub struct QueryBuffers {
@@ -162,7 +208,7 @@ pub struct QueryBuffers {
     /// from in its own encoder: unlike `Queue::write_buffer`, no staging buffer is created and
     /// no second command buffer submitted per query (≈ 8 µs of a 10-point query on lavapipe).
     belt: wgpu::util::StagingBelt,
-    map: Arc<Mutex<MapState>>,
+    map: Arc<MapSlot>,
     /// Bumped on each submission; tickets carry it.
     generation: u64,
     in_flight: Option<(u64, u32)>,
@@ -232,7 +278,7 @@ impl QueryTicket {
 pub struct QueryResults<'a> {
     view: Option<wgpu::BufferView>,
     staging: &'a wgpu::Buffer,
-    map: &'a Mutex<MapState>,
+    map: &'a MapSlot,
     n: usize,
     outputs: QueryOutputs,
 }
@@ -285,7 +331,7 @@ impl Drop for QueryResults<'_> {
         if self.view.take().is_some() {
             self.staging.unmap();
         }
-        *self.map.lock().unwrap_or_else(|e| e.into_inner()) = MapState::Idle;
+        self.map.set(MapState::Idle);
     }
 }
 
@@ -359,10 +405,7 @@ impl QueryBuffers {
     pub fn is_ready(&self, gpu: &GpuContext, ticket: &QueryTicket) -> bool {
         let _ = gpu.device().poll(wgpu::PollType::Poll);
         self.in_flight.map(|(g, _)| g) == Some(ticket.generation)
-            && !matches!(
-                *self.map.lock().unwrap_or_else(|e| e.into_inner()),
-                MapState::Pending
-            )
+            && !matches!(*self.map.lock(), MapState::Pending)
     }
 
     /// Blocks until the query of `ticket` has run and returns its mapped results.
@@ -390,15 +433,15 @@ impl QueryBuffers {
                     timeout: None,
                 })
                 .map_err(|e| error(e.to_string()))?;
-            let state = std::mem::take(&mut *self.map.lock().unwrap_or_else(|e| e.into_inner()));
-            match state {
+            // The submission is done; its callback may still be running on another thread.
+            match self.map.take_settled(gpu.device(), Duration::from_secs(10)) {
                 MapState::Mapped => {}
                 MapState::Failed(reason) => return Err(error(reason).into()),
                 MapState::Idle | MapState::Pending => {
                     return Err(error("the mapping did not complete".into()).into());
                 }
             }
-            *self.map.lock().unwrap_or_else(|e| e.into_inner()) = MapState::Mapped;
+            self.map.set(MapState::Mapped);
             Some(
                 self.staging
                     .slice(..bytes)
@@ -537,7 +580,7 @@ impl NeuralSdf {
             kernels,
             host: Vec::new(),
             belt: wgpu::util::StagingBelt::new(gpu.device().clone(), cap * 16),
-            map: Arc::new(Mutex::new(MapState::Idle)),
+            map: Arc::new(MapSlot::default()),
             generation: 0,
             in_flight: None,
         })
@@ -594,16 +637,16 @@ impl NeuralSdf {
         buffers.belt.recall();
         buffers.generation += 1;
         if bytes > 0 {
-            *buffers.map.lock().unwrap_or_else(|e| e.into_inner()) = MapState::Pending;
+            buffers.map.set(MapState::Pending);
             let map = Arc::clone(&buffers.map);
             buffers
                 .staging
                 .slice(..bytes)
                 .map_async(wgpu::MapMode::Read, move |r| {
-                    *map.lock().unwrap_or_else(|e| e.into_inner()) = match r {
+                    map.set(match r {
                         Ok(()) => MapState::Mapped,
                         Err(e) => MapState::Failed(e.to_string()),
-                    };
+                    });
                 });
         }
         buffers.in_flight = Some((buffers.generation, n));
