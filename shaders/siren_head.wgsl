@@ -29,7 +29,6 @@ struct Head {
 }
 
 const WG: u32 = 256u;
-const NORM_EPS: f32 = 1e-12;
 
 @group(0) @binding(0) var<uniform> h: Head;
 @group(0) @binding(1) var<storage, read> act: array<f32>;
@@ -46,7 +45,6 @@ const NORM_EPS: f32 = 1e-12;
 @group(0) @binding(8) var<storage, read> z_last: array<f32>;
 @group(0) @binding(9) var<storage, read_write> zbar: array<f32>;
 
-var<workgroup> red: array<vec4<f32>, 256>;
 
 // Inference only (modes 0 and 1): head_forward without the loss reduction. Its workgroup
 // barriers make lavapipe run every workgroup of head_forward as coroutines, which cost ~0.4 ms
@@ -106,49 +104,23 @@ fn head_forward(
             let phi = y.x;
             let gr = y.yzw;
             if h.mode == 2u {
-                // Same formulas as the CPU reference (siren::cpu::point_loss).
-                let gn = length(gr);
-                terms.w = h.w_eikonal * abs(gn - 1.0);
-                var dg = h.w_eikonal * sign(gn - 1.0) / max(gn, NORM_EPS) * gr;
-                var dphi = 0.0;
-                if p < h.n_surface {
-                    let n = vec3<f32>(normals[3u * p], normals[3u * p + 1u], normals[3u * p + 2u]);
-                    terms.x = h.w_surface * abs(phi);
-                    dphi = h.w_surface * sign(phi);
-                    let denom = max(gn * length(n), NORM_EPS);
-                    let c = dot(gr, n) / denom;
-                    terms.z = h.w_normal * (1.0 - c);
-                    let gn2 = max(gn, NORM_EPS) * max(gn, NORM_EPS);
-                    dg -= h.w_normal * (n / denom - c * gr / gn2);
-                } else {
-                    let e = exp(-h.alpha * abs(phi));
-                    terms.y = h.w_off_surface * e;
-                    dphi = -h.w_off_surface * h.alpha * sign(phi) * e;
+                let on_surface = p < h.n_surface;
+                var n = vec3<f32>(0.0);
+                if on_surface {
+                    n = vec3<f32>(normals[3u * p], normals[3u * p + 1u], normals[3u * p + 2u]);
                 }
-                dout[4u * p] = dphi * h.inv_n;
-                dout[4u * p + 1u] = dg.x * h.inv_n;
-                dout[4u * p + 2u] = dg.y * h.inv_n;
-                dout[4u * p + 3u] = dg.z * h.inv_n;
+                let weights = vec4<f32>(h.w_surface, h.w_off_surface, h.w_normal, h.w_eikonal);
+                let l = point_loss(phi, gr, on_surface, n, weights, h.alpha);
+                terms = l.terms;
+                dout[4u * p] = l.dphi * h.inv_n;
+                dout[4u * p + 1u] = l.dgrad.x * h.inv_n;
+                dout[4u * p + 2u] = l.dgrad.y * h.inv_n;
+                dout[4u * p + 3u] = l.dgrad.z * h.inv_n;
             }
         }
     }
     if h.mode == 2u {
-        // Tree reduction of the four terms over the workgroup.
-        red[lid] = terms * h.inv_n;
-        workgroupBarrier();
-        for (var stride = WG / 2u; stride > 0u; stride /= 2u) {
-            if lid < stride {
-                red[lid] += red[lid + stride];
-            }
-            workgroupBarrier();
-        }
-        if lid == 0u {
-            let r = red[0];
-            loss_partial[4u * group] = r.x;
-            loss_partial[4u * group + 1u] = r.y;
-            loss_partial[4u * group + 2u] = r.z;
-            loss_partial[4u * group + 3u] = r.w;
-        }
+        store_loss_sum(lid, terms * h.inv_n, group);
     }
 }
 

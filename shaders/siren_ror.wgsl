@@ -32,7 +32,6 @@ struct Ror {
 }
 
 const WG: u32 = 256u;
-const NORM_EPS: f32 = 1e-12;
 
 @group(0) @binding(0) var<uniform> r: Ror;
 @group(0) @binding(1) var<storage, read> params: array<f32>;
@@ -55,7 +54,6 @@ const NORM_EPS: f32 = 1e-12;
 // ror_out_grad: the partials.
 @group(0) @binding(12) var<storage, read_write> partial: array<f32>;
 
-var<workgroup> red: array<vec4<f32>, 256>;
 
 fn flat_id(wid: vec3<u32>, nwg: vec3<u32>, lid: u32) -> u32 {
     return (wid.y * nwg.x + wid.x) * WG + lid;
@@ -119,25 +117,16 @@ fn ror_head(
             let h = y_first[row + r.width + i];
             gr = fma(vec3<f32>(h), vec3<f32>(params[w1], params[w1 + 1u], params[w1 + 2u]), gr);
         }
-        // Same formulas as the CPU reference (siren::cpu::point_loss) and siren_head.wgsl.
-        let gn = length(gr);
-        terms.w = r.w_eikonal * abs(gn - 1.0);
-        var dg = r.w_eikonal * sign(gn - 1.0) / max(gn, NORM_EPS) * gr;
-        var d = 0.0;
-        if p < r.n_surface {
-            let n = vec3<f32>(normals[3u * p], normals[3u * p + 1u], normals[3u * p + 2u]);
-            terms.x = r.w_surface * abs(phi);
-            d = r.w_surface * sign(phi);
-            let denom = max(gn * length(n), NORM_EPS);
-            let c = dot(gr, n) / denom;
-            terms.z = r.w_normal * (1.0 - c);
-            let gn2 = max(gn, NORM_EPS) * max(gn, NORM_EPS);
-            dg -= r.w_normal * (n / denom - c * gr / gn2);
-        } else {
-            let e = exp(-r.alpha * abs(phi));
-            terms.y = r.w_off_surface * e;
-            d = -r.w_off_surface * r.alpha * sign(phi) * e;
+        let on_surface = p < r.n_surface;
+        var n = vec3<f32>(0.0);
+        if on_surface {
+            n = vec3<f32>(normals[3u * p], normals[3u * p + 1u], normals[3u * p + 2u]);
         }
+        let weights = vec4<f32>(r.w_surface, r.w_off_surface, r.w_normal, r.w_eikonal);
+        let l = point_loss(phi, gr, on_surface, n, weights, r.alpha);
+        terms = l.terms;
+        let d = l.dphi;
+        let dg = l.dgrad;
         dphi[p] = d * r.inv_n;
         let xs = 12u * p;
         let o = 6u * p;
@@ -148,21 +137,7 @@ fn ror_head(
         x0[o + 4u] = dg.y * r.inv_n;
         x0[o + 5u] = dg.z * r.inv_n;
     }
-    red[lid] = terms * r.inv_n;
-    workgroupBarrier();
-    for (var stride = WG / 2u; stride > 0u; stride /= 2u) {
-        if lid < stride {
-            red[lid] += red[lid + stride];
-        }
-        workgroupBarrier();
-    }
-    if lid == 0u {
-        let s = red[0];
-        loss_partial[4u * group] = s.x;
-        loss_partial[4u * group + 1u] = s.y;
-        loss_partial[4u * group + 2u] = s.z;
-        loss_partial[4u * group + 3u] = s.w;
-    }
+    store_loss_sum(lid, terms * r.inv_n, group);
 }
 
 // One invocation per (split, column): columns 0..width are w̄, column `width` is b̄.

@@ -20,6 +20,17 @@ macro_rules! shader {
             required_features: $features,
         }
     };
+    // A shader completed by shared WGSL files, prepended in order (WGSL has no includes).
+    ($name:literal with [$($part:literal),+], $features:expr) => {
+        Shader {
+            name: $name,
+            source: concat!(
+                $(include_str!(concat!("../../../shaders/", $part)), "\n",)+
+                include_str!(concat!("../../../shaders/", $name))
+            ),
+            required_features: $features,
+        }
+    };
 }
 
 /// The shared Adam optimiser step.
@@ -48,9 +59,15 @@ pub const SIREN_TILED_LAYER: Shader = shader!("siren_tiled_layer.wgsl", wgpu::Fe
 /// workgroup memory.
 pub const SIREN_TILED_FUSED: Shader = shader!("siren_tiled_fused.wgsl", wgpu::Features::empty());
 /// SIREN's output layer, loss and its derivative.
-pub const SIREN_HEAD: Shader = shader!("siren_head.wgsl", wgpu::Features::empty());
+pub const SIREN_HEAD: Shader = shader!(
+    "siren_head.wgsl" with ["siren_loss.wgsl"],
+    wgpu::Features::empty()
+);
 /// The elementwise and per-point kernels of SIREN's reverse-over-reverse training step.
-pub const SIREN_ROR: Shader = shader!("siren_ror.wgsl", wgpu::Features::empty());
+pub const SIREN_ROR: Shader = shader!(
+    "siren_ror.wgsl" with ["siren_loss.wgsl"],
+    wgpu::Features::empty()
+);
 /// SIREN's batch sampling and reductions.
 pub const SIREN_TRAIN: Shader = shader!("siren_train.wgsl", wgpu::Features::empty());
 
@@ -60,6 +77,10 @@ pub const QUERY: Shader = shader!("query.wgsl", wgpu::Features::empty());
 /// The sphere tracer of [`mod@crate::render`]. It calls `hwsdf_distance` / `hwsdf_normal`, so it
 /// compiles only after a model's [`crate::NeuralSdf::wgsl`] snippet (listed in [`NEEDS_MODEL`]).
 pub const SPHERE_TRACE: Shader = shader!("sphere_trace.wgsl", wgpu::Features::empty());
+
+/// Files of shared WGSL that the `shader!` macro prepends to the shaders that use them; they
+/// are validated as part of those.
+pub const SHARED_PARTS: &[&str] = &["siren_loss.wgsl"];
 
 /// Shaders that are completed by a model's WGSL snippet (prepended at group 1).
 pub const NEEDS_MODEL: &[&str] = &[SPHERE_TRACE.name];
@@ -167,6 +188,15 @@ mod tests {
             .collect();
         on_disk.sort();
         let mut registered: Vec<String> = ALL.iter().map(|s| s.name.to_owned()).collect();
+        for part in SHARED_PARTS {
+            let path = format!("{dir}/{part}");
+            let text = std::fs::read_to_string(&path).expect("shared part exists");
+            assert!(
+                ALL.iter().any(|s| s.source.contains(&text)),
+                "{part} is prepended to no shader"
+            );
+            registered.push((*part).to_owned());
+        }
         registered.sort();
         registered.dedup();
         assert_eq!(on_disk, registered);
