@@ -5,7 +5,7 @@
 //! the same length, so one dispatch updates everything. The kernel zeroes the gradient as it
 //! consumes it, ready for the next step's accumulation.
 
-use crate::gpu::{GpuContext, GpuError};
+use crate::gpu::{GpuContext, GpuError, entry};
 use crate::shaders;
 
 /// Adam hyperparameters.
@@ -257,13 +257,6 @@ impl AdamUniforms {
             len,
             ..bytemuck::Zeroable::zeroed()
         }
-    }
-}
-
-fn entry(binding: u32, buffer: &wgpu::Buffer) -> wgpu::BindGroupEntry<'_> {
-    wgpu::BindGroupEntry {
-        binding,
-        resource: buffer.as_entire_binding(),
     }
 }
 

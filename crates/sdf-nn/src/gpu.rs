@@ -702,6 +702,14 @@ impl GpuTimer {
     }
 }
 
+/// A bind-group entry that binds the whole of `buffer` at `binding`.
+pub(crate) fn entry(binding: u32, buffer: &wgpu::Buffer) -> wgpu::BindGroupEntry<'_> {
+    wgpu::BindGroupEntry {
+        binding,
+        resource: buffer.as_entire_binding(),
+    }
+}
+
 /// See [`GpuContext::dispatch_size`]; `max` is the per-dimension limit.
 pub fn split_dispatch(workgroups: u32, max: u32) -> (u32, u32) {
     let workgroups = workgroups.max(1);

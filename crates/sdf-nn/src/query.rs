@@ -55,7 +55,7 @@ use std::time::{Duration, Instant};
 
 use glam::Vec3;
 
-use crate::gpu::{GpuContext, GpuError, GpuTimer};
+use crate::gpu::{GpuContext, GpuError, GpuTimer, entry};
 use crate::neural::{GpuNetwork, NeuralSdf, NeuralSdfError};
 use crate::nglod::gpu::NglodEvalBinding;
 use crate::shaders;
@@ -536,17 +536,14 @@ impl NeuralSdf {
                         center: transform.0.extend(0.0).to_array(),
                     },
                 );
-                let bind = |entry: &str, entries: &[(u32, &wgpu::Buffer)]| {
-                    let pipeline = gpu.pipeline(&shaders::QUERY, entry, &[])?;
+                let bind = |entry_point: &str, entries: &[(u32, &wgpu::Buffer)]| {
+                    let pipeline = gpu.pipeline(&shaders::QUERY, entry_point, &[])?;
                     let entries: Vec<wgpu::BindGroupEntry<'_>> = entries
                         .iter()
-                        .map(|&(binding, b)| wgpu::BindGroupEntry {
-                            binding,
-                            resource: b.as_entire_binding(),
-                        })
+                        .map(|&(binding, b)| entry(binding, b))
                         .collect();
                     let group = gpu.device().create_bind_group(&wgpu::BindGroupDescriptor {
-                        label: Some(entry),
+                        label: Some(entry_point),
                         layout: &pipeline.get_bind_group_layout(0),
                         entries: &entries,
                     });

@@ -7,7 +7,7 @@ use std::sync::Mutex;
 use glam::Vec3;
 
 use super::{MAX_LEVELS, MAX_MLP_FLOATS, Nglod, NglodConfig, NglodError, Objective, ParamLayout};
-use crate::gpu::{GpuContext, GpuError, GpuTimer};
+use crate::gpu::{GpuContext, GpuError, GpuTimer, entry};
 use crate::shaders;
 
 /// Invocations per workgroup of every NGLOD kernel (the `WG` constant of the shaders).
@@ -102,13 +102,6 @@ impl std::fmt::Debug for NglodGpu {
             .field("config", &self.config)
             .field("float_atomics", &self.float_atomics)
             .finish_non_exhaustive()
-    }
-}
-
-pub(crate) fn entry(binding: u32, buffer: &wgpu::Buffer) -> wgpu::BindGroupEntry<'_> {
-    wgpu::BindGroupEntry {
-        binding,
-        resource: buffer.as_entire_binding(),
     }
 }
 

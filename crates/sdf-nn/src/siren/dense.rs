@@ -11,7 +11,7 @@ use std::num::NonZeroU64;
 
 use super::LayerLayout;
 use super::gpu::Launch;
-use crate::gpu::{GpuContext, GpuError};
+use crate::gpu::{GpuContext, GpuError, entry};
 use crate::shaders;
 
 /// Which kernels run SIREN's hidden layers.
@@ -175,13 +175,6 @@ pub(crate) struct DensePlan {
     dummy_rw: wgpu::Buffer,
     /// Indexed like the network's layers; `None` for layers on the GEMM.
     layers: Vec<Option<PackedLayer>>,
-}
-
-fn entry(binding: u32, buffer: &wgpu::Buffer) -> wgpu::BindGroupEntry<'_> {
-    wgpu::BindGroupEntry {
-        binding,
-        resource: buffer.as_entire_binding(),
-    }
 }
 
 impl DensePlan {

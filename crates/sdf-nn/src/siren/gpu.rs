@@ -20,7 +20,7 @@ use super::dense::{DensePlan, Epilogue, LayerKernels, SPLITS};
 use super::kernels::tiled::{TiledEpilogue, TiledKernels};
 use super::ror::{self, TrainStep};
 use super::{LayerLayout, Siren, SirenConfig, SirenConfigError};
-use crate::gpu::{GpuContext, GpuError, GpuTimer};
+use crate::gpu::{GpuContext, GpuError, GpuTimer, entry};
 use crate::shaders;
 
 /// Errors of the SIREN GPU code.
@@ -197,13 +197,6 @@ fn gemm_wgrad(lay: &LayerLayout, rows: u32) -> GemmUniforms {
         k_chunk: K_CHUNK,
         pbias_off: splits * m * n,
         ..Default::default()
-    }
-}
-
-fn entry(binding: u32, buffer: &wgpu::Buffer) -> wgpu::BindGroupEntry<'_> {
-    wgpu::BindGroupEntry {
-        binding,
-        resource: buffer.as_entire_binding(),
     }
 }
 

@@ -43,7 +43,7 @@ use super::dense::{DensePlan, RorEpilogue, RorIo, SPLITS};
 use super::gpu::{GemmUniforms, Launch, ReduceUniforms, SirenGpu, SirenGpuError, splits_for};
 use super::kernels::tiled::{RorOffsets, TiledEpilogue, TiledKernels};
 use super::{LayerLayout, LossWeights};
-use crate::gpu::GpuContext;
+use crate::gpu::{GpuContext, entry};
 use crate::shaders;
 
 /// How a training step computes the loss's dependence on ∇ₓΦ.
@@ -90,13 +90,6 @@ struct RorUniforms {
     inv_n: f32,
     omega: f32,
     _pad: f32,
-}
-
-fn entry(binding: u32, buffer: &wgpu::Buffer) -> wgpu::BindGroupEntry<'_> {
-    wgpu::BindGroupEntry {
-        binding,
-        resource: buffer.as_entire_binding(),
-    }
 }
 
 /// `C = A W_lᵀ` over `rows` rows of `A` (offset `a_off`, row stride `a_rs`), output row stride

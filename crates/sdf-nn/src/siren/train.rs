@@ -11,7 +11,7 @@ use serde::{Deserialize, Serialize};
 use super::gpu::{Launch, SirenGpu, SirenGpuError, TrainPasses};
 use super::{Siren, SirenConfigError};
 use crate::adam::{Adam, AdamConfig};
-use crate::gpu::{GpuContext, GpuError};
+use crate::gpu::{GpuContext, GpuError, entry};
 use crate::model_file::{self, ModelFile};
 use crate::shaders;
 
@@ -220,13 +220,6 @@ pub struct SirenTrainer {
     best: f32,
     since_best: usize,
     last_loss: Option<LossTerms>,
-}
-
-fn entry(binding: u32, buffer: &wgpu::Buffer) -> wgpu::BindGroupEntry<'_> {
-    wgpu::BindGroupEntry {
-        binding,
-        resource: buffer.as_entire_binding(),
-    }
 }
 
 /// Mixes a seed and a step into a 32-bit kernel seed.

@@ -2,7 +2,7 @@
 //! `shaders/siren_tiled_layer.wgsl` (one tiled GEMM per layer product, epilogues fused) and
 //! `shaders/siren_tiled_fused.wgsl` (every layer of an inference in one dispatch).
 
-use crate::gpu::{GpuContext, GpuError};
+use crate::gpu::{GpuContext, GpuError, entry};
 use crate::shaders;
 use crate::siren::SirenConfig;
 use crate::siren::gpu::{GemmUniforms, Launch};
@@ -96,13 +96,6 @@ pub(crate) struct TiledKernels {
     /// Bound where a mode does not use a binding.
     dummy: wgpu::Buffer,
     dummy_rw: wgpu::Buffer,
-}
-
-fn entry(binding: u32, buffer: &wgpu::Buffer) -> wgpu::BindGroupEntry<'_> {
-    wgpu::BindGroupEntry {
-        binding,
-        resource: buffer.as_entire_binding(),
-    }
 }
 
 impl TiledKernels {
