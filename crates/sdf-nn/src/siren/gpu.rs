@@ -143,45 +143,72 @@ pub(crate) fn splits_for(rows: u32) -> u32 {
     rows.div_ceil(K_CHUNK).max(1)
 }
 
-/// Z = A_prev · Wᵀ (mode 0), or with `fused_sine` the inference activations sin(ω0 (Z + b)).
-fn gemm_forward(lay: &LayerLayout, rows: u32, fused_sine: bool, omega: f32) -> GemmUniforms {
+/// `C = A W_lᵀ` over `rows` rows of `A` (offset `a_off`, row stride `a_rs`), output row stride
+/// `ldc`.
+pub(crate) fn times_wt(
+    lay: &LayerLayout,
+    rows: u32,
+    a_off: u32,
+    a_rs: u32,
+    ldc: u32,
+) -> GemmUniforms {
     GemmUniforms {
-        mode: fused_sine as u32,
         m: rows,
         n: lay.fan_out as u32,
         k: lay.fan_in as u32,
-        a_rs: lay.fan_in as u32,
+        a_off,
+        a_rs,
         a_cs: 1,
         b_off: lay.weight as u32,
-        // B(k = i, n = o) = W[o, i].
         b_rs: 1,
         b_cs: lay.fan_in as u32,
-        ldc: lay.fan_out as u32,
+        ldc,
         bias_off: lay.bias as u32,
-        omega,
         ..Default::default()
+    }
+}
+
+/// `C = A W_l`.
+pub(crate) fn times_w(
+    lay: &LayerLayout,
+    rows: u32,
+    a_off: u32,
+    a_rs: u32,
+    ldc: u32,
+) -> GemmUniforms {
+    GemmUniforms {
+        m: rows,
+        n: lay.fan_in as u32,
+        k: lay.fan_out as u32,
+        a_off,
+        a_rs,
+        a_cs: 1,
+        b_off: lay.weight as u32,
+        b_rs: lay.fan_in as u32,
+        b_cs: 1,
+        ldc,
+        ..Default::default()
+    }
+}
+
+/// Z = A_prev · Wᵀ (mode 0), or with `fused_sine` the inference activations sin(ω0 (Z + b)).
+fn gemm_forward(lay: &LayerLayout, rows: u32, fused_sine: bool, omega: f32) -> GemmUniforms {
+    let (fan_in, fan_out) = (lay.fan_in as u32, lay.fan_out as u32);
+    GemmUniforms {
+        mode: fused_sine as u32,
+        omega,
+        ..times_wt(lay, rows, 0, fan_in, fan_out)
     }
 }
 
 /// Ā_{l-1} = Z̄_l · W_l.
 fn gemm_backward(lay: &LayerLayout, rows: u32) -> GemmUniforms {
-    GemmUniforms {
-        mode: 0,
-        m: rows,
-        n: lay.fan_in as u32,
-        k: lay.fan_out as u32,
-        a_rs: lay.fan_out as u32,
-        a_cs: 1,
-        b_off: lay.weight as u32,
-        b_rs: lay.fan_in as u32,
-        b_cs: 1,
-        ldc: lay.fan_in as u32,
-        ..Default::default()
-    }
+    times_w(lay, rows, 0, lay.fan_out as u32, lay.fan_in as u32)
 }
 
-/// W̄_l partials = Z̄_lᵀ · A_{l-1}, split over the batch rows.
-fn gemm_wgrad(lay: &LayerLayout, rows: u32) -> GemmUniforms {
+/// W̄_l partials = Z̄_lᵀ · A_{l-1}, split over the batch rows (also over the stacked rows
+/// `[Z̄; H]ᵀ [A; Ḡ]` of the reverse-over-reverse step, whose tiled kernel ignores the mode).
+pub(crate) fn gemm_wgrad(lay: &LayerLayout, rows: u32) -> GemmUniforms {
     let (m, n) = (lay.fan_out as u32, lay.fan_in as u32);
     let splits = splits_for(rows);
     GemmUniforms {

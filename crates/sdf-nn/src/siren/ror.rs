@@ -40,7 +40,10 @@
 //! `X_l = (A_l, Ḡ_l)`, `Y_l = (Z̄_l, H_l)`; `X_0 = (x, ḡ)`, six floats per point.
 
 use super::dense::{DensePlan, RorEpilogue, RorIo, SPLITS};
-use super::gpu::{GemmUniforms, Launch, ReduceUniforms, SirenGpu, SirenGpuError, splits_for};
+use super::gpu::{
+    GemmUniforms, Launch, ReduceUniforms, SirenGpu, SirenGpuError, gemm_wgrad, splits_for, times_w,
+    times_wt,
+};
 use super::kernels::tiled::{RorOffsets, TiledEpilogue, TiledKernels};
 use super::{LayerLayout, LossWeights};
 use crate::gpu::{GpuContext, entry};
@@ -90,61 +93,6 @@ struct RorUniforms {
     inv_n: f32,
     omega: f32,
     _pad: f32,
-}
-
-/// `C = A W_lᵀ` over `rows` rows of `A` (offset `a_off`, row stride `a_rs`), output row stride
-/// `ldc`.
-fn times_wt(lay: &LayerLayout, rows: u32, a_off: u32, a_rs: u32, ldc: u32) -> GemmUniforms {
-    GemmUniforms {
-        m: rows,
-        n: lay.fan_out as u32,
-        k: lay.fan_in as u32,
-        a_off,
-        a_rs,
-        a_cs: 1,
-        b_off: lay.weight as u32,
-        b_rs: 1,
-        b_cs: lay.fan_in as u32,
-        ldc,
-        bias_off: lay.bias as u32,
-        ..Default::default()
-    }
-}
-
-/// `C = A W_l`.
-fn times_w(lay: &LayerLayout, rows: u32, a_off: u32, a_rs: u32, ldc: u32) -> GemmUniforms {
-    GemmUniforms {
-        m: rows,
-        n: lay.fan_in as u32,
-        k: lay.fan_out as u32,
-        a_off,
-        a_rs,
-        a_cs: 1,
-        b_off: lay.weight as u32,
-        b_rs: lay.fan_in as u32,
-        b_cs: 1,
-        ldc,
-        ..Default::default()
-    }
-}
-
-/// `W̄_l` partials over `rows` stacked rows (`[Z̄; H]ᵀ [A; Ḡ]`), split over the rows.
-fn stacked_wgrad(lay: &LayerLayout, rows: u32) -> GemmUniforms {
-    let (m, n) = (lay.fan_out as u32, lay.fan_in as u32);
-    let k_chunk = super::gpu::K_CHUNK;
-    GemmUniforms {
-        m,
-        n,
-        k: rows,
-        a_rs: 1,
-        a_cs: m,
-        b_rs: n,
-        b_cs: 1,
-        ldc: n,
-        k_chunk,
-        pbias_off: splits_for(rows) * m * n,
-        ..Default::default()
-    }
 }
 
 /// The launches and buffers of one reverse-over-reverse step.
@@ -202,7 +150,7 @@ pub(crate) fn build(
     let rows2 = 2 * n;
     let wgrads: Vec<GemmUniforms> = layers[..l_hidden]
         .iter()
-        .map(|l| stacked_wgrad(l, rows2))
+        .map(|l| gemm_wgrad(l, rows2))
         .collect();
     let partial_len = wgrads
         .iter()
