@@ -569,6 +569,30 @@ fn first_fwd(
     }
 }
 
+// The first layer's weight-gradient partials of one split for the 16 outputs from 4 tn4:
+// partials [split][o][3] (gx, gy, gz along x, y, z), then [split][o] bias partials (gb) from
+// pbias_off.
+fn store_first_partials(
+    split: u32,
+    tn4: u32,
+    gx: mat4x4<f32>,
+    gy: mat4x4<f32>,
+    gz: mat4x4<f32>,
+    gb: mat4x4<f32>,
+) {
+    let m = g.fan_out;
+    for (var j = 0u; j < 4u; j++) {
+        for (var c = 0u; c < 4u; c++) {
+            let o = 4u * (tn4 + j) + c;
+            let q = 3u * (split * m + o);
+            partial_f[q] = gx[j][c];
+            partial_f[q + 1u] = gy[j][c];
+            partial_f[q + 2u] = gz[j][c];
+            partial_f[g.pbias_off + split * m + o] = gb[j][c];
+        }
+    }
+}
+
 // Tiles of 16 outputs (wid.y); z_stride4 = fan_out / 4; partials [split][o][3], then
 // [split][o] bias partials from pbias_off.
 @compute @workgroup_size(64)
@@ -598,17 +622,7 @@ fn first_wgrad(
             gb[j] += zv;
         }
     }
-    let m = g.fan_out;
-    for (var j = 0u; j < 4u; j++) {
-        for (var c = 0u; c < 4u; c++) {
-            let o = 4u * (tn4 + j) + c;
-            let q = 3u * (split * m + o);
-            partial_f[q] = gx[j][c];
-            partial_f[q + 1u] = gy[j][c];
-            partial_f[q + 2u] = gz[j][c];
-            partial_f[g.pbias_off + split * m + o] = gb[j][c];
-        }
-    }
+    store_first_partials(split, tn4, gx, gy, gz, gb);
 }
 
 // Tiles of 16 outputs (wid.y); zbar rows (Z̄_1, H_1) per point with z_stride4 = fan_out / 4;
@@ -643,15 +657,5 @@ fn first_wgrad_pairs(
             gb[j] += zv;
         }
     }
-    let m = g.fan_out;
-    for (var j = 0u; j < 4u; j++) {
-        for (var c = 0u; c < 4u; c++) {
-            let o = 4u * (tn4 + j) + c;
-            let q = 3u * (split * m + o);
-            partial_f[q] = gx[j][c];
-            partial_f[q + 1u] = gy[j][c];
-            partial_f[q + 2u] = gz[j][c];
-            partial_f[g.pbias_off + split * m + o] = gb[j][c];
-        }
-    }
+    store_first_partials(split, tn4, gx, gy, gz, gb);
 }
