@@ -52,6 +52,24 @@ fn normalized_buffers(gpu: &GpuContext, sdf: &NeuralSdf, n: usize) -> QueryBuffe
     .unwrap()
 }
 
+/// Copies the start of `src` into the whole of the mappable `staging` at the end of `enc`,
+/// submits, and reads `staging` back: the readback every row of this bench ends with.
+fn submit_and_read(
+    gpu: &GpuContext,
+    mut enc: wgpu::CommandEncoder,
+    src: &wgpu::Buffer,
+    staging: &wgpu::Buffer,
+) -> Vec<f32> {
+    enc.copy_buffer_to_buffer(src, 0, staging, 0, staging.size());
+    gpu.queue().submit([enc.finish()]);
+    let slice = staging.slice(..);
+    slice.map_async(wgpu::MapMode::Read, |r| r.unwrap());
+    gpu.wait().unwrap();
+    let v: Vec<f32> = bytemuck::pod_collect_to_vec(&slice.get_mapped_range().unwrap());
+    staging.unmap();
+    v
+}
+
 /// A mappable buffer to read `size` bytes back into.
 fn readback_buffer(gpu: &GpuContext, label: &str, size: u64) -> wgpu::Buffer {
     gpu.device().create_buffer(&wgpu::BufferDescriptor {
@@ -92,15 +110,8 @@ fn empty_roundtrip(c: &mut Criterion, gpu: &GpuContext) {
         .measurement_time(Duration::from_secs(3));
     g.bench_function("empty", |b| {
         b.iter(|| {
-            let mut enc = gpu.device().create_command_encoder(&Default::default());
-            enc.copy_buffer_to_buffer(&src, 0, &staging, 0, 40);
-            gpu.queue().submit([enc.finish()]);
-            let slice = staging.slice(..);
-            slice.map_async(wgpu::MapMode::Read, |r| r.unwrap());
-            gpu.wait().unwrap();
-            let v: Vec<f32> = bytemuck::pod_collect_to_vec(&slice.get_mapped_range().unwrap());
-            staging.unmap();
-            v
+            let enc = gpu.device().create_command_encoder(&Default::default());
+            submit_and_read(gpu, enc, &src, &staging)
         })
     });
     g.finish();
@@ -235,14 +246,7 @@ fn interleaved(gpu: &GpuContext, rounds: usize) {
                     pass.set_bind_group(0, &empty_group, &[]);
                     pass.dispatch_workgroups(1, 1, 1);
                 }
-                enc.copy_buffer_to_buffer(&src, 0, &staging, 0, 40);
-                gpu.queue().submit([enc.finish()]);
-                let slice = staging.slice(..);
-                slice.map_async(wgpu::MapMode::Read, |r| r.unwrap());
-                gpu.wait().unwrap();
-                let v: Vec<f32> = bytemuck::pod_collect_to_vec(&slice.get_mapped_range().unwrap());
-                staging.unmap();
-                std::hint::black_box(v);
+                std::hint::black_box(submit_and_read(gpu, enc, &src, &staging));
             };
             let mut variants: Vec<Variant<'_>> = vec![
                 ("roundtrip/empty", Box::new(|| roundtrip(false))),
@@ -261,22 +265,12 @@ fn interleaved(gpu: &GpuContext, rounds: usize) {
                         let mut enc = gpu.device().create_command_encoder(&Default::default());
                         sdf.record_query(gpu, &mut enc, &mut resident, n as u32)
                             .unwrap();
-                        let bytes = n as u64 * 4;
-                        enc.copy_buffer_to_buffer(
+                        std::hint::black_box(submit_and_read(
+                            gpu,
+                            enc,
                             resident.results(),
-                            0,
                             &resident_staging,
-                            0,
-                            bytes,
-                        );
-                        gpu.queue().submit([enc.finish()]);
-                        let slice = resident_staging.slice(..);
-                        slice.map_async(wgpu::MapMode::Read, |r| r.unwrap());
-                        gpu.wait().unwrap();
-                        let v: Vec<f32> =
-                            bytemuck::pod_collect_to_vec(&slice.get_mapped_range().unwrap());
-                        resident_staging.unmap();
-                        std::hint::black_box(v);
+                        ));
                     }),
                 ),
                 (
