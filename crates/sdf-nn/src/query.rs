@@ -366,10 +366,7 @@ impl QueryBuffers {
     /// Writes `points` into [`QueryBuffers::points`] through the queue (they take effect at
     /// the next submission) and returns their count.
     pub fn upload(&mut self, gpu: &GpuContext, points: &[Vec3]) -> Result<u32, QueryError> {
-        let n = self.check_count(points.len())?;
-        self.host.clear();
-        self.host
-            .extend(points.iter().map(|p| [p.x, p.y, p.z, 1.0]));
+        let n = self.stage_host(points)?;
         if n > 0 {
             gpu.queue()
                 .write_buffer(&self.points, 0, bytemuck::cast_slice(&self.host));
@@ -388,13 +385,10 @@ impl QueryBuffers {
         enc: &mut wgpu::CommandEncoder,
         points: &[Vec3],
     ) -> Result<u32, QueryError> {
-        let n = self.check_count(points.len())?;
+        let n = self.stage_host(points)?;
         let Some(size) = wgpu::BufferSize::new(u64::from(n) * 16) else {
             return Ok(0);
         };
-        self.host.clear();
-        self.host
-            .extend(points.iter().map(|p| [p.x, p.y, p.z, 1.0]));
         self.belt
             .write_buffer(enc, &self.points, 0, size)
             .copy_from_slice(bytemuck::cast_slice(&self.host));
@@ -461,6 +455,15 @@ impl QueryBuffers {
     /// Whether these buffers live on `gpu`'s device.
     pub(crate) fn belongs_to(&self, gpu: &GpuContext) -> bool {
         self.device == *gpu.device()
+    }
+
+    /// Checks the count of `points` and writes them, padded to vec4, into the host copy.
+    fn stage_host(&mut self, points: &[Vec3]) -> Result<u32, QueryError> {
+        let n = self.check_count(points.len())?;
+        self.host.clear();
+        self.host
+            .extend(points.iter().map(|p| [p.x, p.y, p.z, 1.0]));
+        Ok(n)
     }
 
     fn check_count(&self, n: usize) -> Result<u32, QueryError> {
