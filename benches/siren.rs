@@ -4,8 +4,9 @@
 //! to `small` or `default` to run one preset only. On a CPU adapter (lavapipe) the `default`
 //! preset runs only the 3000-point latency (a batch of 50 000 or a training step takes tens of
 //! seconds per iteration there); set `SIREN_BENCH_FULL=1` to run everything anyway.
-//! `SIREN_BENCH_KERNELS` forces a layer-kernel family (`row-blocked`, `gemm` or `tiled`;
-//! default: `LayerKernels::Auto`), and `SIREN_BENCH_FUSED_MAX` the largest inference batch of
+//! `SIREN_BENCH_KERNELS` forces a layer-kernel family (`row-blocked`, `gemm`, `tiled` or
+//! `coop`, inference on f16 cooperative matrices where the adapter has them; default:
+//! `LayerKernels::Auto`), and `SIREN_BENCH_FUSED_MAX` the largest inference batch of
 //! the tiled family's fused all-layer kernel (`SirenGpu::set_fused_max_points`; 0 disables it).
 //! `SIREN_BENCH_TRAIN_STEP` forces the training step (`tangents` or `ror`, reverse over reverse;
 //! default: `TrainStep::Auto`).
@@ -35,8 +36,9 @@ fn kernels() -> LayerKernels {
         Ok("row-blocked") => LayerKernels::RowBlocked,
         Ok("gemm") => LayerKernels::Gemm,
         Ok("tiled") => LayerKernels::Tiled,
+        Ok("coop") => LayerKernels::CoopF16,
         Ok(other) => {
-            panic!("SIREN_BENCH_KERNELS={other}: expected auto, row-blocked, gemm or tiled")
+            panic!("SIREN_BENCH_KERNELS={other}: expected auto, row-blocked, gemm, tiled or coop")
         }
     }
 }
@@ -67,9 +69,10 @@ fn bench(c: &mut Criterion) {
             net.set_fused_max_points(v.parse().expect("SIREN_BENCH_FUSED_MAX: a number"));
         }
         eprintln!(
-            "{name}: kernels {:?}, fused for 3000 points: {}",
+            "{name}: kernels {:?}, fused for 3000 points: {}, cooperative-matrix tiles: {:?}",
             net.layer_kernels(),
-            net.runs_fused(gpu, 3000)
+            net.runs_fused(gpu, 3000),
+            net.coop_tile()
         );
         let macs = cfg.forward_macs();
 

@@ -20,9 +20,11 @@ fn main() -> ExitCode {
         Ok(gpu) => {
             println!("{}", gpu.describe());
             println!(
-                "float atomics: {}, timestamps: {}",
+                "float atomics: {}, timestamps: {}, f16 cooperative matrices (f32 accumulators): {}",
                 gpu.has_float_atomics(),
-                gpu.has_timestamps()
+                gpu.has_timestamps(),
+                gpu.coop_f16_tile()
+                    .map_or("none".to_owned(), |t| format!("{t}x{t}x{t}"))
             );
             ExitCode::SUCCESS
         }

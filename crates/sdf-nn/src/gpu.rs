@@ -172,6 +172,9 @@ pub struct GpuContext {
     queue: wgpu::Queue,
     pipelines: Mutex<HashMap<PipelineKey, wgpu::ComputePipeline>>,
     max_dispatch: u32,
+    /// The side of the square f16 × f16 → f32 cooperative-matrix tiles the device runs (16 or
+    /// 8; tensor cores), if any.
+    coop_tile: Option<u32>,
 }
 
 impl fmt::Debug for GpuContext {
@@ -201,7 +204,36 @@ const NEEDED_INVOCATIONS: u32 = 256;
 
 /// Features we use when present; none is required.
 fn wanted_features() -> wgpu::Features {
-    wgpu::Features::SHADER_FLOAT32_ATOMIC | wgpu::Features::TIMESTAMP_QUERY
+    wgpu::Features::SHADER_FLOAT32_ATOMIC
+        | wgpu::Features::TIMESTAMP_QUERY
+        | wgpu::Features::SHADER_F16
+        | wgpu::Features::SUBGROUP
+}
+
+/// The features of the f16 cooperative-matrix kernels: f16 arithmetic, subgroups, and wgpu's
+/// experimental cooperative matrices.
+const COOP_F16_FEATURES: wgpu::Features = wgpu::Features::EXPERIMENTAL_COOPERATIVE_MATRIX
+    .union(wgpu::Features::SHADER_F16)
+    .union(wgpu::Features::SUBGROUP);
+
+/// The side of the largest square tile (16 or 8) in which `adapter` multiplies f16 matrices
+/// into f32 accumulators, if it also has the other features our cooperative-matrix kernels
+/// need, among them one fixed subgroup size (they give each subgroup a tile).
+fn coop_f16_tile(adapter: &wgpu::Adapter) -> Option<u32> {
+    let info = adapter.get_info();
+    if !adapter.features().contains(COOP_F16_FEATURES)
+        || info.subgroup_min_size != info.subgroup_max_size
+    {
+        return None;
+    }
+    let props = adapter.cooperative_matrix_properties();
+    [16, 8].into_iter().find(|&t| {
+        props.iter().any(|p| {
+            (p.m_size, p.n_size, p.k_size) == (t, t, t)
+                && p.ab_type == wgpu::CooperativeScalarType::F16
+                && p.cr_type == wgpu::CooperativeScalarType::F32
+        })
+    })
 }
 
 impl GpuContext {
@@ -289,16 +321,43 @@ impl GpuContext {
             ..wgpu::Limits::downlevel_defaults()
         };
         let features = adapter.features() & wanted_features();
-        let (device, queue) = pollster::block_on(adapter.request_device(&wgpu::DeviceDescriptor {
-            label: Some("hwsdf"),
-            required_features: features,
-            required_limits: limits,
-            ..Default::default()
-        }))
-        .map_err(|source| GpuError::RequestDevice {
-            adapter: info.name.clone(),
-            source,
-        })?;
+        let request = |features: wgpu::Features, experimental: wgpu::ExperimentalFeatures| {
+            pollster::block_on(adapter.request_device(&wgpu::DeviceDescriptor {
+                label: Some("hwsdf"),
+                required_features: features,
+                required_limits: limits.clone(),
+                experimental_features: experimental,
+                ..Default::default()
+            }))
+        };
+        // Cooperative matrices are experimental in wgpu: ask for them only where our kernels can
+        // use them, and open the device without them if the driver refuses the request.
+        // `HWSDF_NO_COOP=1` leaves them off.
+        let opted_out = std::env::var_os("HWSDF_NO_COOP").is_some_and(|v| v != "0");
+        let coop_tile = coop_f16_tile(&adapter).filter(|_| !opted_out);
+        let with_coop = coop_tile.and_then(|_| {
+            // SAFETY: wgpu's contract for experimental features. Only the kernels of
+            // `siren::kernels::coop` use cooperative matrices, in the configuration
+            // checked above, and their tests compare them against the f64 reference.
+            let experimental = unsafe { wgpu::ExperimentalFeatures::enabled() };
+            request(
+                features | wgpu::Features::EXPERIMENTAL_COOPERATIVE_MATRIX,
+                experimental,
+            )
+            .ok()
+        });
+        let coop_tile = coop_tile.filter(|_| with_coop.is_some());
+        let (device, queue) = match with_coop {
+            Some(dq) => dq,
+            None => {
+                request(features, wgpu::ExperimentalFeatures::disabled()).map_err(|source| {
+                    GpuError::RequestDevice {
+                        adapter: info.name.clone(),
+                        source,
+                    }
+                })?
+            }
+        };
         let max_dispatch = device.limits().max_compute_workgroups_per_dimension;
         Ok(GpuContext {
             adapter_info: info,
@@ -306,6 +365,7 @@ impl GpuContext {
             queue,
             pipelines: Mutex::new(HashMap::new()),
             max_dispatch,
+            coop_tile,
         })
     }
 
@@ -346,6 +406,19 @@ impl GpuContext {
         self.device
             .features()
             .contains(wgpu::Features::TIMESTAMP_QUERY)
+    }
+
+    /// The side (16 or 8) of the square tiles in which the device multiplies f16 cooperative
+    /// matrices into f32 (tensor cores from WGSL), which
+    /// [`crate::siren::LayerKernels::CoopF16`] needs; `None` without them.
+    pub fn coop_f16_tile(&self) -> Option<u32> {
+        self.coop_tile
+    }
+
+    /// The subgroup size of every compute dispatch, where the adapter has a single one.
+    pub fn fixed_subgroup_size(&self) -> Option<u32> {
+        let info = &self.adapter_info;
+        (info.subgroup_min_size == info.subgroup_max_size).then_some(info.subgroup_min_size)
     }
 
     /// The limits the device was created with.

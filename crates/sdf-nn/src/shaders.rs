@@ -31,6 +31,18 @@ macro_rules! shader {
             required_features: $features,
         }
     };
+    // A shader file (named) followed by shared WGSL files: for a file of `enable` directives
+    // and definitions that must come before the code they configure.
+    ($name:literal then [$($part:literal),+], $features:expr) => {
+        Shader {
+            name: $name,
+            source: concat!(
+                include_str!(concat!("../../../shaders/", $name)),
+                $("\n", include_str!(concat!("../../../shaders/", $part)),)+
+            ),
+            required_features: $features,
+        }
+    };
 }
 
 /// The shared Adam optimiser step.
@@ -58,6 +70,15 @@ pub const SIREN_TILED_LAYER: Shader = shader!("siren_tiled_layer.wgsl", wgpu::Fe
 /// SIREN inference in one dispatch for GPUs: every layer of a tile of points, activations in
 /// workgroup memory.
 pub const SIREN_TILED_FUSED: Shader = shader!("siren_tiled_fused.wgsl", wgpu::Features::empty());
+/// The features of the cooperative-matrix kernels.
+const COOP: wgpu::Features = wgpu::Features::EXPERIMENTAL_COOPERATIVE_MATRIX
+    .union(wgpu::Features::SHADER_F16)
+    .union(wgpu::Features::SUBGROUP);
+/// SIREN inference on f16 16 × 16 cooperative matrices (tensor cores), every layer in one
+/// dispatch.
+pub const SIREN_COOP_16: Shader = shader!("siren_coop_16x16.wgsl" then ["siren_coop.wgsl"], COOP);
+/// [`SIREN_COOP_16`] on 8 × 8 tiles.
+pub const SIREN_COOP_8: Shader = shader!("siren_coop_8x8.wgsl" then ["siren_coop.wgsl"], COOP);
 /// SIREN's output layer, loss and its derivative.
 pub const SIREN_HEAD: Shader = shader!(
     "siren_head.wgsl" with ["siren_loss.wgsl"],
@@ -80,7 +101,7 @@ pub const SPHERE_TRACE: Shader = shader!("sphere_trace.wgsl", wgpu::Features::em
 
 /// Files of shared WGSL that the `shader!` macro prepends to the shaders that use them; they
 /// are validated as part of those.
-pub const SHARED_PARTS: &[&str] = &["siren_loss.wgsl"];
+pub const SHARED_PARTS: &[&str] = &["siren_loss.wgsl", "siren_coop.wgsl"];
 
 /// Shaders that are completed by a model's WGSL snippet (prepended at group 1).
 pub const NEEDS_MODEL: &[&str] = &[SPHERE_TRACE.name];
@@ -93,6 +114,8 @@ pub const ALL: &[Shader] = &[
     SIREN_DENSE,
     SIREN_TILED_LAYER,
     SIREN_TILED_FUSED,
+    SIREN_COOP_16,
+    SIREN_COOP_8,
     SIREN_HEAD,
     SIREN_ROR,
     SIREN_TRAIN,
@@ -120,6 +143,9 @@ mod tests {
         }
         if features.contains(wgpu::Features::SHADER_F16) {
             caps |= C::SHADER_FLOAT16;
+        }
+        if features.contains(wgpu::Features::EXPERIMENTAL_COOPERATIVE_MATRIX) {
+            caps |= C::COOPERATIVE_MATRIX;
         }
         caps
     }

@@ -147,6 +147,72 @@ fn forward_and_input_gradient_match_cpu_reference() {
 /// The tiled family on ragged shapes: batches of 1, 7 and 1001 points (not multiples of the
 /// 64-row tiles), a width that is not a multiple of 4 (scalar loads, partial register blocks)
 /// and one that is.
+/// The worst |Φ − Φ₆₄| of `g.eval` over `pts` against `net`'s f64 reference.
+fn worst_value_error(g: &mut SirenGpu, net: &Siren, pts: &[Vec3]) -> f64 {
+    let gpu = gpu();
+    let p64: Vec<f64> = net.params().iter().map(|&p| f64::from(p)).collect();
+    let vals = g.eval(gpu, pts).unwrap();
+    assert_eq!(vals.len(), pts.len());
+    pts.iter().zip(&vals).fold(0.0f64, |worst, (p, v)| {
+        let r = cpu::forward_with_gradient(net.config(), &p64, to64(*p)).0;
+        worst.max((f64::from(*v) - r).abs())
+    })
+}
+
+/// `LayerKernels::CoopF16` against the f64 reference where the adapter has f16 cooperative
+/// matrices (Mesa's lavapipe from 25.1 on: 8 × 8 tiles; NVIDIA and AMD GPUs: 16 × 16), with
+/// widths of one and several tiles, odd batches, a network uploaded after the first
+/// evaluation, and gradients on the tiled fallback. Elsewhere it says why it did nothing,
+/// unless `HWSDF_REQUIRE_COOP=1` (CI's Mesa 26 step), which makes that a failure.
+#[test]
+fn coop_f16_inference_matches_cpu_reference() {
+    let gpu = gpu();
+    let Some(tile) = gpu.coop_f16_tile() else {
+        let required = std::env::var("HWSDF_REQUIRE_COOP").is_ok_and(|v| v == "1");
+        assert!(
+            !required,
+            "HWSDF_REQUIRE_COOP=1 but {} has no f16 cooperative matrices",
+            gpu.describe()
+        );
+        eprintln!(
+            "skipped: {} has no f16 cooperative matrices",
+            gpu.describe()
+        );
+        return;
+    };
+    for (width, hidden_layers, seed) in [(16, 2, 1), (32, 3, 2), (256, 3, 3)] {
+        let cfg = SirenConfig {
+            width,
+            hidden_layers,
+            omega0: 30.0,
+        };
+        let net = Siren::new(cfg, seed).unwrap();
+        let mut g = SirenGpu::new(gpu, &net).unwrap();
+        g.set_layer_kernels(gpu, LayerKernels::CoopF16).unwrap();
+        assert_eq!(g.coop_tile(), Some(tile), "{cfg:?}");
+        assert!(g.runs_tiled(), "the f32 fallback for gradients");
+        for n in [1, 37, 700] {
+            let pts = sdf_geom::sample::uniform_box(n, seed + n as u64);
+            let worst = worst_value_error(&mut g, &net, &pts);
+            eprintln!("coop {tile}x{tile} {cfg:?} n={n}: |ΔΦ| ≤ {worst:e}");
+            // f16 activations and ω0·W: at most 5e-5 on Mesa 26's 8 × 8 tiles.
+            assert!(worst < 1e-3, "{cfg:?} n={n}: coop error {worst:e}");
+        }
+        // The packed weights follow an upload.
+        let other = Siren::new(cfg, seed + 100).unwrap();
+        g.upload(gpu, &other).unwrap();
+        let pts = sdf_geom::sample::uniform_box(64, seed);
+        let worst = worst_value_error(&mut g, &other, &pts);
+        assert!(worst < 1e-3, "{cfg:?} after upload: {worst:e}");
+        // Gradients run on the tiled f32 kernels, to f32 accuracy.
+        let p64: Vec<f64> = other.params().iter().map(|&p| f64::from(p)).collect();
+        for (p, (v, _)) in pts.iter().zip(g.eval_with_gradient(gpu, &pts).unwrap()) {
+            let r = cpu::forward_with_gradient(&cfg, &p64, to64(*p)).0;
+            assert!((f64::from(v) - r).abs() < 1e-6, "{cfg:?}: fallback value");
+        }
+    }
+}
+
 #[test]
 fn tiled_kernels_match_cpu_reference_on_ragged_shapes() {
     let gpu = gpu();

@@ -30,6 +30,11 @@ pub enum LayerKernels {
     /// blocks, fused sine epilogues) for every product, and `siren_tiled_fused.wgsl` for
     /// inference batches that fit it.
     Tiled,
+    /// Inference on f16 cooperative matrices with f32 accumulators (tensor cores;
+    /// `siren_coop.wgsl`, every layer in one dispatch), where the device has them and the
+    /// network fits; everything else (gradients, training, other devices) on
+    /// [`LayerKernels::Tiled`]. Opt-in: its f16 rounding costs accuracy (see the tests).
+    CoopF16,
 }
 
 impl LayerKernels {
@@ -38,7 +43,7 @@ impl LayerKernels {
         match self {
             LayerKernels::Auto => gpu.is_cpu(),
             LayerKernels::RowBlocked => true,
-            LayerKernels::Gemm | LayerKernels::Tiled => false,
+            LayerKernels::Gemm | LayerKernels::Tiled | LayerKernels::CoopF16 => false,
         }
     }
 
@@ -46,7 +51,7 @@ impl LayerKernels {
     pub(crate) fn tiled(self, gpu: &GpuContext) -> bool {
         match self {
             LayerKernels::Auto => !gpu.is_cpu(),
-            LayerKernels::Tiled => true,
+            LayerKernels::Tiled | LayerKernels::CoopF16 => true,
             LayerKernels::RowBlocked | LayerKernels::Gemm => false,
         }
     }

@@ -17,6 +17,7 @@
 use glam::Vec3;
 
 use super::dense::{DensePlan, Epilogue, LayerKernels, SPLITS};
+use super::kernels::coop::CoopKernels;
 use super::kernels::tiled::{TiledEpilogue, TiledKernels};
 use super::ror::{self, TrainStep};
 use super::{LayerLayout, Siren, SirenConfig, SirenConfigError};
@@ -339,6 +340,8 @@ pub struct SirenGpu {
     dense: Option<DensePlan>,
     /// The tiled kernels, when they run every product.
     tiled: Option<TiledKernels>,
+    /// The cooperative-matrix kernels, when they run inference of values.
+    coop: Option<CoopKernels>,
     /// Largest inference batch (per launch) for the fused all-layer kernel of the tiled family.
     fused_max_points: u32,
     /// The parameters change only through [`SirenGpu::upload`] (a served model, see
@@ -372,6 +375,7 @@ impl SirenGpu {
         } else {
             None
         };
+        let coop = Self::coop_for(gpu, kernels, &config, &params)?;
         Ok(SirenGpu {
             config,
             layers,
@@ -384,6 +388,7 @@ impl SirenGpu {
             kernels,
             dense,
             tiled,
+            coop,
             fused_max_points: DEFAULT_FUSED_MAX_POINTS,
             frozen: false,
             train_step: TrainStep::default(),
@@ -401,9 +406,23 @@ impl SirenGpu {
         Ok(net)
     }
 
+    /// The cooperative-matrix kernels where `kernels` asks for them and they apply.
+    fn coop_for(
+        gpu: &GpuContext,
+        kernels: LayerKernels,
+        config: &SirenConfig,
+        params: &wgpu::Buffer,
+    ) -> Result<Option<CoopKernels>, GpuError> {
+        if kernels == LayerKernels::CoopF16 {
+            CoopKernels::new(gpu, config, params)
+        } else {
+            Ok(None)
+        }
+    }
+
     /// Submits [`SirenGpu::record_pack`] on its own (a frozen network's weights changed).
     fn pack_now(&self, gpu: &GpuContext) {
-        if self.dense.is_some() {
+        if self.dense.is_some() || self.coop.is_some() {
             let mut enc = gpu.device().create_command_encoder(&Default::default());
             self.record_pack(&mut enc);
             gpu.queue().submit([enc.finish()]);
@@ -474,6 +493,7 @@ impl SirenGpu {
         } else {
             None
         };
+        self.coop = Self::coop_for(gpu, kernels, &self.config, &self.params)?;
         self.kernels = kernels;
         self.eval = None;
         self.eval_grad = None;
@@ -511,6 +531,12 @@ impl SirenGpu {
         self.eval_grad = None;
     }
 
+    /// The side of the cooperative-matrix tiles that run inference of values
+    /// ([`LayerKernels::CoopF16`] where the device and the network allow them), if they do.
+    pub fn coop_tile(&self) -> Option<u32> {
+        self.coop.as_ref().map(CoopKernels::tile)
+    }
+
     /// Whether an inference launch of `n` points runs on the fused all-layer kernel.
     pub fn runs_fused(&self, gpu: &GpuContext, n: u32) -> bool {
         self.tiled.is_some()
@@ -518,11 +544,15 @@ impl SirenGpu {
             && TiledKernels::fused_group_rows(gpu, &self.config).is_some()
     }
 
-    /// Records the copy of the weights into the row-blocked kernels' uniform windows; every
-    /// submission that runs this network's launches must start with it.
+    /// Records the copy of the weights into the row-blocked kernels' uniform windows, or their
+    /// f16 packing for the cooperative-matrix kernels; every submission that runs this
+    /// network's launches must start with it.
     pub(crate) fn record_pack(&self, enc: &mut wgpu::CommandEncoder) {
         if let Some(d) = &self.dense {
             d.record_pack(enc, &self.params);
+        }
+        if let Some(c) = &self.coop {
+            c.record_pack(enc);
         }
     }
 
@@ -847,6 +877,9 @@ impl SirenGpu {
     ) -> Result<Vec<Launch>, GpuError> {
         let cfg = &self.config;
         let rows = if ws.tangents { 4 * n } else { n };
+        if let Some(c) = self.coop.as_ref().filter(|_| !ws.tangents) {
+            return Ok(vec![c.forward(gpu, cfg, n, input, &self.params, values)]);
+        }
         if let Some(t) = self.tiled.as_ref().filter(|_| self.runs_fused(gpu, n)) {
             let fused =
                 t.fused_forward(gpu, cfg, rows, ws.tangents, input, &self.params, values)?;

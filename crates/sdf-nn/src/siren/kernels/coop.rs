@@ -1,0 +1,194 @@
+//! Host side of the cooperative-matrix family ([`super::super::LayerKernels::CoopF16`]):
+//! `shaders/siren_coop.wgsl`, SIREN inference with the hidden layers' products on f16
+//! cooperative matrices with f32 accumulators (tensor cores), every layer in one dispatch.
+//!
+//! Only inference of values runs here. Gradients (normals) and training stay on the tiled f32
+//! kernels, which are also the fallback where the device or the network does not fit.
+//!
+//! Precision: the hidden layers' weights (times ω0) and activations are rounded to f16; the
+//! sums, the first layer, the sines' arguments and the head are f32. The tests state the
+//! error against the f64 reference.
+
+use crate::gpu::{GpuContext, GpuError, entry};
+use crate::shaders::{self, Shader};
+use crate::siren::SirenConfig;
+use crate::siren::gpu::Launch;
+
+/// What each tile file fixes (see `siren_coop_16x16.wgsl`, `siren_coop_8x8.wgsl`).
+#[derive(Clone, Copy, Debug)]
+struct TileShape {
+    shader: Shader,
+    /// Side of a tile.
+    tile: u32,
+    /// f16 activations per buffer (`ACT`).
+    act: u32,
+    /// Subgroups per workgroup, one tile each (`SLOTS`).
+    slots: u32,
+}
+
+impl TileShape {
+    fn for_tile(tile: u32) -> Option<Self> {
+        match tile {
+            16 => Some(TileShape {
+                shader: shaders::SIREN_COOP_16,
+                tile,
+                act: 8192,
+                slots: 8,
+            }),
+            8 => Some(TileShape {
+                shader: shaders::SIREN_COOP_8,
+                tile,
+                act: 4096,
+                slots: 32,
+            }),
+            _ => None,
+        }
+    }
+
+    /// Workgroup memory of the forward kernel: two activation buffers and the scratch.
+    fn workgroup_bytes(&self) -> u32 {
+        2 * self.act * 2 + self.slots * self.tile * self.tile * 4
+    }
+}
+
+/// The shader's `Coop` uniforms.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, bytemuck::Pod, bytemuck::Zeroable)]
+struct CoopUniforms {
+    points: u32,
+    group_points: u32,
+    width: u32,
+    hidden_layers: u32,
+    omega: f32,
+    _pad: [u32; 3],
+}
+
+/// The cooperative-matrix kernels of one network, with its packed f16 weights.
+#[derive(Debug)]
+pub(crate) struct CoopKernels {
+    shape: TileShape,
+    /// Points per workgroup.
+    group_points: u32,
+    forward: wgpu::ComputePipeline,
+    /// Writes `packed` from the parameters; recorded before evaluations whenever they may
+    /// have changed.
+    pack: Launch,
+    /// ω0 · W of the hidden layers after the first, f16.
+    packed: wgpu::Buffer,
+}
+
+impl CoopKernels {
+    /// The kernels for `cfg` on `gpu`, or `None` where they do not apply: no f16 cooperative
+    /// matrices, no fixed subgroup size, too little workgroup memory or too few invocations, a
+    /// width that is not a multiple of the tile or too wide for a tile of points, or no
+    /// hidden width × width layer.
+    pub(crate) fn new(
+        gpu: &GpuContext,
+        cfg: &SirenConfig,
+        params: &wgpu::Buffer,
+    ) -> Result<Option<Self>, GpuError> {
+        let (Some(shape), Some(subgroup)) = (
+            gpu.coop_f16_tile().and_then(TileShape::for_tile),
+            gpu.fixed_subgroup_size(),
+        ) else {
+            return Ok(None);
+        };
+        let limits = gpu.limits();
+        let invocations = shape.slots * subgroup;
+        let w = cfg.width as u32;
+        let group_points = (shape.act / w.max(1)) / shape.tile * shape.tile;
+        if limits.max_compute_workgroup_storage_size < shape.workgroup_bytes()
+            || limits.max_compute_invocations_per_workgroup < invocations
+            || limits.max_compute_workgroup_size_x < invocations
+            || !w.is_multiple_of(shape.tile)
+            || group_points == 0
+            || cfg.hidden_layers < 2
+        {
+            return Ok(None);
+        }
+        let forward = gpu.pipeline(
+            &shape.shader,
+            "coop_forward",
+            &[("WG", f64::from(invocations))],
+        )?;
+        let weights = (cfg.hidden_layers as u64 - 1) * u64::from(w) * u64::from(w);
+        // f16, padded to whole u32s.
+        let packed = gpu.storage_zeroed("siren coop packed weights", weights.div_ceil(2) * 4)?;
+        let u = gpu.uniform(
+            "siren coop pack uniforms",
+            &CoopUniforms {
+                width: w,
+                hidden_layers: cfg.hidden_layers as u32,
+                omega: cfg.omega0,
+                ..Default::default()
+            },
+        );
+        let pack_pipeline = gpu.pipeline(&shape.shader, "coop_pack", &[])?;
+        let pack = Launch::flat(
+            gpu,
+            &pack_pipeline,
+            "siren coop pack",
+            &[entry(0, &u), entry(2, params), entry(5, &packed)],
+            weights as u32,
+        );
+        Ok(Some(CoopKernels {
+            shape,
+            group_points,
+            forward,
+            pack,
+            packed,
+        }))
+    }
+
+    /// The side of the tiles.
+    pub(crate) fn tile(&self) -> u32 {
+        self.shape.tile
+    }
+
+    /// Records the packing of the weights into f16 (after every change of the parameters).
+    pub(crate) fn record_pack(&self, enc: &mut wgpu::CommandEncoder) {
+        let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
+            label: Some("siren coop pack"),
+            timestamp_writes: None,
+        });
+        self.pack.record(&mut pass);
+    }
+
+    /// The inference launch over `n` points from `input` (three floats each) into `values`
+    /// (Φ per point), reading the first layer, the biases and the head from `params`.
+    pub(crate) fn forward(
+        &self,
+        gpu: &GpuContext,
+        cfg: &SirenConfig,
+        n: u32,
+        input: &wgpu::Buffer,
+        params: &wgpu::Buffer,
+        values: &wgpu::Buffer,
+    ) -> Launch {
+        let u = gpu.uniform(
+            "siren coop uniforms",
+            &CoopUniforms {
+                points: n,
+                group_points: self.group_points,
+                width: cfg.width as u32,
+                hidden_layers: cfg.hidden_layers as u32,
+                omega: cfg.omega0,
+                _pad: [0; 3],
+            },
+        );
+        let (x, y) = gpu.dispatch_size(n.div_ceil(self.group_points).max(1));
+        Launch::new(
+            gpu,
+            &self.forward,
+            "siren coop forward",
+            &[
+                entry(0, &u),
+                entry(1, input),
+                entry(2, params),
+                entry(3, &self.packed),
+                entry(4, values),
+            ],
+            (x, y, 1),
+        )
+    }
+}

@@ -1,0 +1,51 @@
+#!/usr/bin/env bash
+# Runs the cooperative-matrix tests (`LayerKernels::CoopF16`) against the f64 reference on a
+# CPU: Mesa's lavapipe has f16 cooperative matrices (8 × 8 tiles) from Mesa 25.1 on, and
+# Debian 12's Mesa 22.3 has none. This builds the SIREN GPU test binary here, installs a
+# Debian 13 root with the Mesa of trixie-backports (once; about 300 MB under DIR, default
+# target/coop-root, ignored by git), and runs the tests whose names contain `coop` inside it,
+# with HWSDF_REQUIRE_COOP=1 so that a driver without cooperative matrices fails instead of
+# skipping. CI runs it after `cargo test`. Needs root (or sudo) and Debian's mirror.
+#
+#   scripts/coop-check.sh [DIR]
+set -euo pipefail
+cd "$(dirname "$0")/.."
+root=${1:-target/coop-root}
+mirror=http://deb.debian.org/debian
+SUDO=""
+[ "$(id -u)" -ne 0 ] && SUDO="sudo"
+
+if [ ! -e "$root/.ready" ]; then
+    if ! command -v debootstrap >/dev/null; then
+        echo "== installing debootstrap"
+        $SUDO apt-get update -qq
+        DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq debootstrap >/dev/null
+    fi
+    echo "== a Debian 13 root with trixie-backports' Mesa in $root"
+    $SUDO rm -rf "$root"
+    mkdir -p "$(dirname "$root")"
+    $SUDO debootstrap --variant=minbase trixie "$root" "$mirror" >"$root.log" 2>&1 \
+        || { tail -20 "$root.log" >&2; exit 1; }
+    echo "deb $mirror trixie-backports main" | $SUDO tee "$root/etc/apt/sources.list.d/backports.list" >/dev/null
+    $SUDO chroot "$root" apt-get update -qq
+    $SUDO chroot "$root" env DEBIAN_FRONTEND=noninteractive \
+        apt-get install -y -qq -t trixie-backports mesa-vulkan-drivers libvulkan1 >/dev/null
+    $SUDO touch "$root/.ready"
+fi
+
+echo "== building the SIREN GPU tests"
+exe=$(cargo test -q -p sdf-nn --test siren_gpu --no-run --message-format=json 2>/dev/null | python3 -c '
+import json, sys
+for line in sys.stdin:
+    try:
+        m = json.loads(line)
+    except ValueError:
+        continue
+    if m.get("reason") == "compiler-artifact" and m.get("executable") and m["target"]["name"] == "siren_gpu":
+        print(m["executable"])
+')
+[ -n "$exe" ] || { echo "the siren_gpu test binary was not built" >&2; exit 1; }
+$SUDO cp "$exe" "$root/tmp/siren_gpu"
+echo "== adapter: $($SUDO chroot "$root" dpkg-query -W -f '${Package} ${Version}' mesa-vulkan-drivers)"
+$SUDO chroot "$root" env HWSDF_REQUIRE_COOP=1 /tmp/siren_gpu coop --nocapture 2>&1 \
+    | grep -v 'XDG_RUNTIME_DIR'
