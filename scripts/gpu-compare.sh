@@ -19,9 +19,12 @@
 # DIR/results/table.md, next to every raw log. It then times whole fits with `train` on
 # tests/data/spot.obj (issue 14's "100 epochs of NGLOD `default`", issue 12's "a default SIREN
 # fit") and, when the pack holds meshes, runs `corpus` over them (issue 14's F1 averages), and
-# appends both to the table. Environment:
+# appends both to the table. Where the adapter has f16 cooperative matrices (`gpu-info` says
+# so), the `coop` stage runs their test against the f64 reference (the packed siren_gpu test
+# binary, HWSDF_REQUIRE_COOP=1) and the SIREN eval bench on them (SIREN_BENCH_KERNELS=coop,
+# criterion's results under DIR/results/criterion-coop), and adds their rows. Environment:
 #   GPU_COMPARE_PRESETS=small,default   presets to run (both by default)
-#   GPU_COMPARE_STAGES=bench,torch,fit,corpus
+#   GPU_COMPARE_STAGES=bench,coop,torch,fit,corpus
 #                                       what to run (default all; split a session's runs with it)
 #   GPU_COMPARE_FITS=nglod,siren        which fits the `fit` stage times (default nglod; a default
 #                                       SIREN fit is 10⁴ steps, minutes before issue 12's kernels)
@@ -52,6 +55,19 @@ pack() {
     echo "== building release binaries and bench executables"
     cargo build --release --bins
     cargo bench --no-run
+    local check
+    check=$(cargo test --release -p sdf-nn --test siren_gpu --no-run --message-format=json 2>/dev/null \
+        | python3 -c '
+import json, sys
+for line in sys.stdin:
+    try:
+        m = json.loads(line)
+    except ValueError:
+        continue
+    if m.get("reason") == "compiler-artifact" and m.get("executable") and m["target"]["name"] == "siren_gpu":
+        print(m["executable"])
+')
+    [ -n "$check" ] || { echo "the siren_gpu test binary was not built" >&2; exit 1; }
     local benches
     benches=$(cargo bench --no-run --message-format=json 2>/dev/null | python3 -c '
 import json, sys
@@ -64,8 +80,9 @@ for line in sys.stdin:
         print(m["target"]["name"], m["executable"])
 ')
     [ -n "$benches" ] || { echo "no bench executables were built" >&2; exit 1; }
-    rm -rf "$dir/bin" "$dir/benches" "$dir/tests" "$dir/scripts"
-    mkdir -p "$dir/bin" "$dir/benches" "$dir/tests" "$dir/scripts"
+    rm -rf "$dir/bin" "$dir/benches" "$dir/tests" "$dir/scripts" "$dir/checks"
+    mkdir -p "$dir/bin" "$dir/benches" "$dir/tests" "$dir/scripts" "$dir/checks"
+    cp "$check" "$dir/checks/siren_gpu"
     local exe
     for exe in train eval corpus extract render sdf gpu-info; do
         cp "target/release/$exe" "$dir/bin/"
@@ -75,7 +92,7 @@ for line in sys.stdin:
             siren | nglod | query*) cp "$path" "$dir/benches/$name" ;;
         esac
     done <<<"$benches"
-    strip "$dir"/bin/* "$dir"/benches/* 2>/dev/null || true
+    strip "$dir"/bin/* "$dir"/benches/* "$dir"/checks/* 2>/dev/null || true
     cp -r tests/data "$dir/tests/"
     cp scripts/siren_torch_bench.py scripts/nglod_torch_bench.py "$dir/scripts/"
     cp scripts/gpu-compare.sh "$dir/"
@@ -157,7 +174,7 @@ run() {
     fi
     export CRITERION_HOME="$res/criterion"
     export SIREN_BENCH_PRESETS=${GPU_COMPARE_PRESETS:-small,default}
-    local stages=",${GPU_COMPARE_STAGES:-bench,torch,fit,corpus},"
+    local stages=",${GPU_COMPARE_STAGES:-bench,coop,torch,fit,corpus},"
     local b
     for b in benches/*; do
         [[ $stages == *,bench,* ]] || break
@@ -170,6 +187,18 @@ run() {
         echo "== bench $name"
         "$b" --bench 2>&1 | tee "$res/bench-$name.txt"
     done
+    if [[ $stages == *,coop,* ]]; then
+        if grep -q 'cooperative matrices (f32 accumulators): none' "$res/gpu-info.txt"; then
+            echo "== no f16 cooperative matrices on this adapter: coop stage skipped" | tee "$res/coop-missing.txt"
+        else
+            echo "== cooperative matrices: f16 inference against the f64 reference"
+            HWSDF_REQUIRE_COOP=1 checks/siren_gpu coop --nocapture 2>&1 | grep -v XDG_RUNTIME_DIR \
+                | tee "$res/coop-check.txt" || echo "(failed)"
+            echo "== bench siren on cooperative matrices (SIREN_BENCH_KERNELS=coop)"
+            CRITERION_HOME="$res/criterion-coop" SIREN_BENCH_KERNELS=coop benches/siren --bench eval 2>&1 \
+                | tee "$res/bench-siren-coop.txt" || echo "(failed)"
+        fi
+    fi
     local presets=${GPU_COMPARE_PRESETS:-small,default}
     if [ "${GPU_COMPARE_SKIP_TORCH:-0}" != 1 ] && [[ $stages == *,torch,* ]]; then
         if python3 -c 'import torch' 2>/dev/null; then
@@ -191,8 +220,8 @@ import glob, json, os, re, sys
 
 res, presets = sys.argv[1], sys.argv[2].split(",")
 
-def criterion(group, fn, param):
-    path = os.path.join(res, "criterion", group, fn, str(param), "new", "estimates.json")
+def criterion(group, fn, param, home="criterion"):
+    path = os.path.join(res, home, group, fn, str(param), "new", "estimates.json")
     try:
         with open(path) as f:
             return json.load(f)["median"]["point_estimate"] * 1e-9
@@ -248,6 +277,10 @@ for p in presets:
     ]:
         ours = criterion(f"siren_{p}", fn, param)
         rows.append(("SIREN", p, label, ours, eager.get(key), comp.get(key), per))
+        coop = criterion(f"siren_{p}", fn, param, "criterion-coop") if fn == "eval" else None
+        if coop is not None:
+            rows.append(("SIREN", p, label + ", f16 cooperative matrices", coop, eager.get(key),
+                         comp.get(key), per))
     t = torch_json("nglod", p)
     eager = t.get("eager", {})
     for label, param, key, per in [
@@ -262,8 +295,8 @@ for model, p, label, ours, eager, comp, per in rows:
     print(f"| {model} | {p} | {label} | {fmt(ours, per)} | {fmt(eager, per)} | {ratio(ours, eager)} "
           f"| {fmt(comp, per)} | {ratio(ours, comp)} |")
 print("\nRatios above 1× mean ours is faster. Every criterion result of the run:\n")
-for est in sorted(glob.glob(os.path.join(res, "criterion", "**", "new", "estimates.json"), recursive=True)):
-    name = os.path.relpath(os.path.dirname(os.path.dirname(est)), os.path.join(res, "criterion"))
+for est in sorted(glob.glob(os.path.join(res, "criterion*", "**", "new", "estimates.json"), recursive=True)):
+    name = os.path.relpath(os.path.dirname(os.path.dirname(est)), res)
     try:
         print(f"- {name}: {fmt(json.load(open(est))['median']['point_estimate'] * 1e-9)}")
     except (OSError, KeyError, ValueError):
