@@ -46,6 +46,8 @@ for line in sys.stdin:
 ')
 [ -n "$exe" ] || { echo "the siren_gpu test binary was not built" >&2; exit 1; }
 $SUDO cp "$exe" "$root/tmp/siren_gpu"
+$SUDO rm -rf "$root/tmp/data"
+$SUDO cp -r tests/data "$root/tmp/data"
 echo "== adapter: $($SUDO chroot "$root" dpkg-query -W -f '${Package} ${Version}' mesa-vulkan-drivers)"
-$SUDO chroot "$root" env HWSDF_REQUIRE_COOP=1 /tmp/siren_gpu coop --nocapture 2>&1 \
+$SUDO chroot "$root" env HWSDF_REQUIRE_COOP=1 HWSDF_TEST_DATA=/tmp/data /tmp/siren_gpu coop --nocapture 2>&1 \
     | grep -v 'XDG_RUNTIME_DIR'

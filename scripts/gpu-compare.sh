@@ -192,7 +192,8 @@ run() {
             echo "== no f16 cooperative matrices on this adapter: coop stage skipped" | tee "$res/coop-missing.txt"
         else
             echo "== cooperative matrices: f16 inference against the f64 reference"
-            HWSDF_REQUIRE_COOP=1 checks/siren_gpu coop --nocapture 2>&1 | grep -v XDG_RUNTIME_DIR \
+            HWSDF_REQUIRE_COOP=1 HWSDF_TEST_DATA="$dir/tests/data" checks/siren_gpu coop --nocapture 2>&1 \
+                | grep -v XDG_RUNTIME_DIR \
                 | tee "$res/coop-check.txt" || echo "(failed)"
             echo "== bench siren on cooperative matrices (SIREN_BENCH_KERNELS=coop)"
             CRITERION_HOME="$res/criterion-coop" SIREN_BENCH_KERNELS=coop benches/siren --bench eval 2>&1 \

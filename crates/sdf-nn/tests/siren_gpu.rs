@@ -159,15 +159,11 @@ fn worst_value_error(g: &mut SirenGpu, net: &Siren, pts: &[Vec3]) -> f64 {
     })
 }
 
-/// `LayerKernels::CoopF16` against the f64 reference where the adapter has f16 cooperative
-/// matrices (Mesa's lavapipe from 25.1 on: 8 × 8 tiles; NVIDIA and AMD GPUs: 16 × 16), with
-/// widths of one and several tiles, odd batches, a network uploaded after the first
-/// evaluation, and gradients on the tiled fallback. Elsewhere it says why it did nothing,
-/// unless `HWSDF_REQUIRE_COOP=1` (CI's Mesa 26 step), which makes that a failure.
-#[test]
-fn coop_f16_inference_matches_cpu_reference() {
-    let gpu = gpu();
-    let Some(tile) = gpu.coop_f16_tile() else {
+/// The adapter's cooperative-matrix tile; `None` (the caller returns) where it has none, which
+/// is a failure under `HWSDF_REQUIRE_COOP=1`.
+fn coop_tile_or_skip(gpu: &GpuContext) -> Option<u32> {
+    let tile = gpu.coop_f16_tile();
+    if tile.is_none() {
         let required = std::env::var("HWSDF_REQUIRE_COOP").is_ok_and(|v| v == "1");
         assert!(
             !required,
@@ -178,6 +174,28 @@ fn coop_f16_inference_matches_cpu_reference() {
             "skipped: {} has no f16 cooperative matrices",
             gpu.describe()
         );
+    }
+    tile
+}
+
+/// A file of `tests/data`: from `HWSDF_TEST_DATA` where set (a test binary carried to another
+/// machine, see scripts/gpu-compare.sh), else from the source tree.
+fn test_data(name: &str) -> std::path::PathBuf {
+    std::env::var_os("HWSDF_TEST_DATA")
+        .map(std::path::PathBuf::from)
+        .unwrap_or_else(|| concat!(env!("CARGO_MANIFEST_DIR"), "/../../tests/data").into())
+        .join(name)
+}
+
+/// `LayerKernels::CoopF16` against the f64 reference where the adapter has f16 cooperative
+/// matrices (Mesa's lavapipe from 25.1 on: 8 × 8 tiles; NVIDIA and AMD GPUs: 16 × 16), with
+/// widths of one and several tiles, odd batches, a network uploaded after the first
+/// evaluation, and gradients on the tiled fallback. Elsewhere it says why it did nothing,
+/// unless `HWSDF_REQUIRE_COOP=1` (CI's Mesa 26 step), which makes that a failure.
+#[test]
+fn coop_f16_inference_matches_cpu_reference() {
+    let gpu = gpu();
+    let Some(tile) = coop_tile_or_skip(gpu) else {
         return;
     };
     for (width, hidden_layers, seed) in [(16, 2, 1), (32, 3, 2), (256, 3, 3)] {
@@ -211,6 +229,46 @@ fn coop_f16_inference_matches_cpu_reference() {
             assert!((f64::from(v) - r).abs() < 1e-6, "{cfg:?}: fallback value");
         }
     }
+}
+
+/// `LayerKernels::CoopF16` on a network trained on a real mesh (its weights and activations
+/// have left their initial ranges): the error against the f64 reference, and the points whose
+/// sign differs from the f32 kernels' (the F1 that f16 can cost).
+#[test]
+fn coop_f16_on_a_trained_network() {
+    let gpu = gpu();
+    if coop_tile_or_skip(gpu).is_none() {
+        return;
+    }
+    let (mesh, _) = sdf_geom::load_mesh(test_data("spot.obj")).unwrap();
+    let train = e2e_config(300);
+    let init = Siren::new(SirenConfig::small(), 12).unwrap();
+    let mut trainer = SirenTrainer::from_mesh(gpu, &init, &mesh, train.clone()).unwrap();
+    trainer.train(gpu, train.steps, |_, _| {}).unwrap();
+    let net = trainer.siren(gpu).unwrap();
+    let mut coop = SirenGpu::new(gpu, &net).unwrap();
+    coop.set_layer_kernels(gpu, LayerKernels::CoopF16).unwrap();
+    let mut tiled = SirenGpu::new(gpu, &net).unwrap();
+    tiled.set_layer_kernels(gpu, LayerKernels::Tiled).unwrap();
+    let pts = sdf_geom::sample::uniform_box(20_000, 5);
+    let worst = worst_value_error(&mut coop, &net, &pts);
+    let (c, t) = (
+        coop.eval(gpu, &pts).unwrap(),
+        tiled.eval(gpu, &pts).unwrap(),
+    );
+    let flips = c
+        .iter()
+        .zip(&t)
+        .filter(|(a, b)| (**a < 0.0) != (**b < 0.0))
+        .count();
+    eprintln!(
+        "coop on SIREN small after {} steps on spot: |ΔΦ| ≤ {worst:e}, sign differs from f32 at {flips} of {}",
+        train.steps,
+        pts.len()
+    );
+    // 1.7e-4 and 1 flip in 20 000 on Mesa 26.1 lavapipe (8 × 8 tiles).
+    assert!(worst < 2e-3, "trained network: coop error {worst:e}");
+    assert!(flips * 1000 <= pts.len(), "{flips} sign flips");
 }
 
 #[test]
