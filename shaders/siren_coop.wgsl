@@ -3,41 +3,47 @@
 // that enables f16 and cooperative matrices and defines the tile types CA, CB, CC, their side
 // T, the activation buffer size ACT and the number of scratch SLOTS.
 //
-// A workgroup takes `group_points` points through every layer:
+// A workgroup takes `group_rows` rows through every layer. A row is a point, or, with
+// tangents, one of a point's four rows: its value, then ∂/∂x, ∂/∂y, ∂/∂z (forward-mode input
+// gradient, as in `siren_tiled_fused.wgsl`; T is a multiple of 4, so a tile holds whole points).
 // - the first layer (3 → width) in f32 from the points, stored as f16 activations;
 // - each hidden layer as tiles of T points × T outputs: A = T points' activations (f16, row
 //   major in workgroup memory), B = T rows of ω0·W (f16, packed by `coop_pack`), accumulated
 //   in f32 over the width. The workgroup's SLOTS subgroups each take one tile at a time and
-//   store it to f32 scratch, then the whole workgroup adds ω0·b, takes the sine and writes the
-//   f16 activations of the next layer into the other half of `act`;
-// - the linear head in f32, one point per invocation.
+//   store it to f32 scratch, then the whole workgroup adds ω0·b and takes the sine (value rows),
+//   or multiplies by the cosine of the value row's argument (tangent rows), and writes the f16
+//   activations of the next layer into the other half of `act`;
+// - the linear head in f32, one row per invocation (the bias only on value rows).
 // ω0 is folded into the packed weights so that tiny trained weights stay normal f16 numbers.
 
 struct Coop {
-    points: u32,
-    // A multiple of T with group_points · width ≤ ACT.
-    group_points: u32,
+    // Rows in all: points, or 4 × points with tangents.
+    rows: u32,
+    // A multiple of T with group_rows · width ≤ ACT.
+    group_rows: u32,
     // A multiple of T.
     width: u32,
     hidden_layers: u32,
     omega: f32,
-    _pad0: u32,
-    _pad1: u32,
-    _pad2: u32,
+    tangents: u32,
+    // Floats per point in `points`: 3, or 12 with tangents (the point, then the unit axes).
+    point_stride: u32,
+    _pad: u32,
 }
 
 @group(0) @binding(0) var<uniform> u: Coop;
-// Three floats per point.
+// `point_stride` floats per point, the point first.
 @group(0) @binding(1) var<storage, read> points: array<f32>;
 // The f32 parameters (layout in `siren/mod.rs`): the first layer, the biases and the head.
 @group(0) @binding(2) var<storage, read> params: array<f32>;
 // ω0 · W of hidden layers 1 .. L-1, each [width][width] row major (out, in).
 @group(0) @binding(3) var<storage, read> packed: array<f16>;
+// Φ per row: Φ per point, or (Φ, ∇Φ) per point with tangents.
 @group(0) @binding(4) var<storage, read_write> values: array<f32>;
 // `packed`, written by `coop_pack`.
 @group(0) @binding(5) var<storage, read_write> packed_out: array<f16>;
 
-// A layer's input activations and its output, [point][feature] each.
+// A layer's input activations and its output, [row][feature] each.
 var<workgroup> act: array<f16, 2u * ACT>;
 // The f32 products of the tiles in flight, T × T row major each.
 var<workgroup> scratch: array<f32, SLOTS * T * T>;
@@ -58,28 +64,33 @@ fn coop_forward(
     @builtin(subgroup_id) sg: u32,
 ) {
     let group = wid.y * nwg.x + wid.x;
-    let first = group * u.group_points;
+    let first = group * u.group_rows;
     // Workgroup-uniform, so the barriers below stay in uniform control flow.
-    if first >= u.points {
+    if first >= u.rows {
         return;
     }
     let w = u.width;
-    let gp = u.group_points;
+    let gr = u.group_rows;
     let om = u.omega;
-    let last = u.points - 1u;
+    let last = u.rows - 1u;
 
-    // First layer, from the points (the rows past the batch repeat its last point).
-    for (var e = lid; e < gp * w; e += WG) {
+    // First layer, from the points (rows past the batch repeat its last row): z = ω0 (W0 x + b0)
+    // gives sin(z) on a value row and cos(z) ω0 W0[o][j] on the tangent row of axis j.
+    for (var e = lid; e < gr * w; e += WG) {
         let o = e % w;
-        let q = 3u * min(first + e / w, last);
-        let z = params[3u * o] * points[q] + params[3u * o + 1u] * points[q + 1u]
-            + params[3u * o + 2u] * points[q + 2u] + params[3u * w + o];
-        act[e] = f16(sin(om * z));
+        let row = min(first + e / w, last);
+        let j = select(0u, row % 4u, u.tangents != 0u);
+        let q = u.point_stride * select(row, row / 4u, u.tangents != 0u);
+        let z = om * (params[3u * o] * points[q] + params[3u * o + 1u] * points[q + 1u]
+            + params[3u * o + 2u] * points[q + 2u] + params[3u * w + o]);
+        // Both operands of `select` are evaluated: index a weight that exists on value rows.
+        let wj = params[3u * o + max(j, 1u) - 1u];
+        act[e] = f16(select(cos(z) * om * wj, sin(z), j == 0u));
     }
     workgroupBarrier();
 
     let tiles_o = w / T;
-    let tiles = (gp / T) * tiles_o;
+    let tiles = (gr / T) * tiles_o;
     let rounds = (tiles + SLOTS - 1u) / SLOTS;
     var acc = CC();
     for (var l = 1u; l < u.hidden_layers; l++) {
@@ -104,28 +115,33 @@ fn coop_forward(
             }
             coopStoreT(acc, &scratch[sg * T * T], T);
             workgroupBarrier();
-            // The epilogue of every slot of this round, by the whole workgroup.
+            // The epilogue of every slot of this round, by the whole workgroup. A tangent row's
+            // value row is in the same tile, i % 4 rows up.
             for (var e = lid; e < SLOTS * T * T; e += WG) {
                 let te = r * SLOTS + e / (T * T);
                 if te < tiles {
+                    let i = (e / T) % T;
                     let o = (te % tiles_o) * T + e % T;
-                    let p = (te / tiles_o) * T + (e / T) % T;
-                    act[dst + p * w + o] = f16(sin(scratch[e] + om * params[boff + o]));
+                    let row = (te / tiles_o) * T + i;
+                    let j = select(0u, i % 4u, u.tangents != 0u);
+                    let z = scratch[e - j * T] + om * params[boff + o];
+                    act[dst + row * w + o] = f16(select(cos(z) * scratch[e], sin(z), j == 0u));
                 }
             }
             workgroupBarrier();
         }
     }
 
-    // The linear head, in f32.
+    // The linear head, in f32; the bias only on value rows.
     let fin = ((u.hidden_layers - 1u) % 2u) * ACT;
     let hoff = hidden_offset(u.hidden_layers, w);
-    for (var p = lid; p < gp && first + p < u.points; p += WG) {
+    for (var r = lid; r < gr && first + r < u.rows; r += WG) {
         var s = 0.0;
         for (var k = 0u; k < w; k++) {
-            s = fma(f32(act[fin + p * w + k]), params[hoff + k], s);
+            s = fma(f32(act[fin + r * w + k]), params[hoff + k], s);
         }
-        values[first + p] = s + params[hoff + w];
+        let value_row = u.tangents == 0u || (first + r) % 4u == 0u;
+        values[first + r] = s + select(0.0, params[hoff + w], value_row);
     }
 }
 

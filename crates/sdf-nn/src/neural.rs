@@ -19,7 +19,7 @@ use crate::gpu::{GpuContext, GpuError, GpuTimer};
 use crate::model_file::{ModelFile, ModelFileError, Normalization};
 use crate::nglod::{Nglod, NglodError, NglodGpu};
 use crate::query::{QueryBuffers, QueryBuffersDescriptor, QueryError, QueryOutputs, QuerySpace};
-use crate::siren::{self, Siren, SirenGpu, SirenGpuError};
+use crate::siren::{self, LayerKernels, Siren, SirenGpu, SirenGpuError};
 
 /// Most points the host-side methods send in one submission; larger inputs are split.
 const HOST_CHUNK: usize = 1 << 18;
@@ -51,6 +51,9 @@ pub enum NeuralSdfError {
     /// A level of detail was asked of a model without levels.
     #[error("levels of detail exist only for NGLOD models; this is a {0} model")]
     NoLevels(&'static str),
+    /// Layer kernels were chosen for a model that is not a SIREN.
+    #[error("layer kernels are chosen only for SIREN models; this is a {0} model")]
+    NoLayerKernels(&'static str),
 }
 
 /// The network inside a [`NeuralSdf`].
@@ -75,6 +78,8 @@ pub struct NeuralSdf {
     normalization: Normalization,
     file: ModelFile,
     lod: Option<usize>,
+    /// The kernels a SIREN's GPU side runs on.
+    siren_kernels: LayerKernels,
     gpu: Mutex<Option<GpuSide>>,
     /// Identifies the model to the [`QueryBuffers`] made for it.
     id: u64,
@@ -119,11 +124,9 @@ impl NeuralSdf {
             normalization: file.metadata.normalization,
             file,
             lod: None,
+            siren_kernels: LayerKernels::Auto,
             gpu: Mutex::new(None),
-            id: {
-                static NEXT: AtomicU64 = AtomicU64::new(0);
-                NEXT.fetch_add(1, Ordering::Relaxed)
-            },
+            id: next_id(),
             host_queries: Mutex::new(Vec::new()),
         })
     }
@@ -173,6 +176,32 @@ impl NeuralSdf {
     /// The level of detail in use (`None`: all levels).
     pub fn lod(&self) -> Option<usize> {
         self.lod
+    }
+
+    /// Chooses the kernels a SIREN model runs on (default [`LayerKernels::Auto`]), for example
+    /// [`LayerKernels::CoopF16`]: f16 cooperative matrices (tensor cores) where the device has
+    /// them, at some cost in accuracy. [`QueryBuffers`] made before the change are refused
+    /// after it ([`QueryError::Foreign`]); make new ones. An error for NGLOD models.
+    pub fn set_siren_kernels(&mut self, kernels: LayerKernels) -> Result<(), NeuralSdfError> {
+        if let Network::Nglod(_) = self.network {
+            return Err(NeuralSdfError::NoLayerKernels("nglod"));
+        }
+        if kernels != self.siren_kernels {
+            self.siren_kernels = kernels;
+            // Rebuilt on next use, under a new identity for the query buffers.
+            *self.gpu.get_mut().unwrap_or_else(|e| e.into_inner()) = None;
+            self.host_queries
+                .get_mut()
+                .unwrap_or_else(|e| e.into_inner())
+                .clear();
+            self.id = next_id();
+        }
+        Ok(())
+    }
+
+    /// The kernels a SIREN model runs on.
+    pub fn siren_kernels(&self) -> LayerKernels {
+        self.siren_kernels
     }
 
     /// Signed distances at `points` (mesh coordinates, mesh units), on the GPU. Any number of
@@ -369,7 +398,13 @@ impl NeuralSdf {
         let stale = !matches!(&*slot, Some(side) if side.device == *gpu.device());
         if stale {
             let network = match &self.network {
-                Network::Siren(s) => GpuNetwork::Siren(Box::new(SirenGpu::new_frozen(gpu, s)?)),
+                Network::Siren(s) => {
+                    let mut net = SirenGpu::new_frozen(gpu, s)?;
+                    if self.siren_kernels != LayerKernels::Auto {
+                        net.set_layer_kernels(gpu, self.siren_kernels)?;
+                    }
+                    GpuNetwork::Siren(Box::new(net))
+                }
                 Network::Nglod(m) => GpuNetwork::Nglod(Box::new(NglodGpu::new_frozen(gpu, m)?)),
             };
             *slot = Some(GpuSide {
@@ -381,6 +416,12 @@ impl NeuralSdf {
         let side = slot.as_mut().expect("filled above");
         f(&mut side.network, side.timer.as_ref())
     }
+}
+
+/// A fresh model identity (see [`NeuralSdf::set_siren_kernels`]).
+fn next_id() -> u64 {
+    static NEXT: AtomicU64 = AtomicU64::new(0);
+    NEXT.fetch_add(1, Ordering::Relaxed)
 }
 
 /// Points clamped to `[-1, 1]³`, and each point's distance to its clamped copy.

@@ -858,4 +858,49 @@ mod tests {
             assert!((*na - *nb).length() < 1e-3, "{i}: {na} vs {nb}");
         }
     }
+
+    /// Changing a SIREN's kernels rebuilds its GPU side under a new identity: query buffers
+    /// made before are refused, new ones answer on the new kernels. NGLOD has no kernels to
+    /// choose.
+    #[test]
+    fn siren_kernels_change_refuses_old_buffers() {
+        let gpu = gpu();
+        let id = Normalization::identity();
+        let siren = Siren::new(SirenConfig::small(), 4).unwrap();
+        let mut served = sdf(siren.to_model_file(id, serde_json::Value::Null));
+        let pts = points();
+        let want = served.eval_cpu(&pts);
+        let desc = crate::QueryBuffersDescriptor {
+            capacity: pts.len() as u32,
+            space: crate::QuerySpace::Normalized,
+            ..Default::default()
+        };
+        let mut old = served.create_query_buffers(gpu, &desc).unwrap();
+        served
+            .set_siren_kernels(crate::siren::LayerKernels::Tiled)
+            .unwrap();
+        assert!(matches!(
+            served.submit_query(gpu, &mut old, &pts),
+            Err(crate::NeuralSdfError::Query(crate::QueryError::Foreign))
+        ));
+        let mut new = served.create_query_buffers(gpu, &desc).unwrap();
+        let ticket = served.submit_query(gpu, &mut new, &pts).unwrap();
+        let got = new.wait(gpu, ticket).unwrap().floats();
+        assert_close(&got, &want, "tiled kernels");
+        served
+            .with_gpu(gpu, |net, _| match net {
+                GpuNetwork::Siren(s) => {
+                    assert!(s.runs_tiled());
+                    Ok(())
+                }
+                GpuNetwork::Nglod(_) => unreachable!(),
+            })
+            .unwrap();
+        let nglod = Nglod::new(NglodConfig::small()).unwrap();
+        let mut served = sdf(nglod.to_model_file(id, serde_json::Value::Null));
+        assert!(matches!(
+            served.set_siren_kernels(crate::siren::LayerKernels::Tiled),
+            Err(crate::NeuralSdfError::NoLayerKernels("nglod"))
+        ));
+    }
 }

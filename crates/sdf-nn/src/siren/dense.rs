@@ -30,10 +30,10 @@ pub enum LayerKernels {
     /// blocks, fused sine epilogues) for every product, and `siren_tiled_fused.wgsl` for
     /// inference batches that fit it.
     Tiled,
-    /// Inference on f16 cooperative matrices with f32 accumulators (tensor cores;
-    /// `siren_coop.wgsl`, every layer in one dispatch), where the device has them and the
-    /// network fits; everything else (gradients, training, other devices) on
-    /// [`LayerKernels::Tiled`]. Opt-in: its f16 rounding costs accuracy (see the tests).
+    /// Inference (values, and gradients as tangent rows) on f16 cooperative matrices with f32
+    /// accumulators (tensor cores; `siren_coop.wgsl`, every layer in one dispatch), where the
+    /// device has them and the network fits; training, and devices or networks they do not
+    /// fit, on [`LayerKernels::Tiled`]. Opt-in: its f16 rounding costs accuracy (see the tests).
     CoopF16,
 }
 

@@ -877,8 +877,9 @@ impl SirenGpu {
     ) -> Result<Vec<Launch>, GpuError> {
         let cfg = &self.config;
         let rows = if ws.tangents { 4 * n } else { n };
-        if let Some(c) = self.coop.as_ref().filter(|_| !ws.tangents) {
-            return Ok(vec![c.forward(gpu, cfg, n, input, &self.params, values)]);
+        if let Some(c) = &self.coop {
+            let launch = c.forward(gpu, cfg, rows, ws.tangents, input, &self.params, values);
+            return Ok(vec![launch]);
         }
         if let Some(t) = self.tiled.as_ref().filter(|_| self.runs_fused(gpu, n)) {
             let fused =

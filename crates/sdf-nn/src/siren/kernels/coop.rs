@@ -2,8 +2,9 @@
 //! `shaders/siren_coop.wgsl`, SIREN inference with the hidden layers' products on f16
 //! cooperative matrices with f32 accumulators (tensor cores), every layer in one dispatch.
 //!
-//! Only inference of values runs here. Gradients (normals) and training stay on the tiled f32
-//! kernels, which are also the fallback where the device or the network does not fit.
+//! Inference runs here, with the input gradient (normals) as three tangent rows per point.
+//! Training stays on the tiled f32 kernels, which are also the fallback where the device or the
+//! network does not fit.
 //!
 //! Precision: the hidden layers' weights (times ω0) and activations are rounded to f16; the
 //! sums, the first layer, the sines' arguments and the head are f32. The tests state the
@@ -55,20 +56,22 @@ impl TileShape {
 #[repr(C)]
 #[derive(Clone, Copy, Debug, Default, bytemuck::Pod, bytemuck::Zeroable)]
 struct CoopUniforms {
-    points: u32,
-    group_points: u32,
+    rows: u32,
+    group_rows: u32,
     width: u32,
     hidden_layers: u32,
     omega: f32,
-    _pad: [u32; 3],
+    tangents: u32,
+    point_stride: u32,
+    _pad: u32,
 }
 
 /// The cooperative-matrix kernels of one network, with its packed f16 weights.
 #[derive(Debug)]
 pub(crate) struct CoopKernels {
     shape: TileShape,
-    /// Points per workgroup.
-    group_points: u32,
+    /// Rows per workgroup (a multiple of the tile, so of 4: whole points with tangents).
+    group_rows: u32,
     forward: wgpu::ComputePipeline,
     /// Writes `packed` from the parameters; recorded before evaluations whenever they may
     /// have changed.
@@ -96,12 +99,12 @@ impl CoopKernels {
         let limits = gpu.limits();
         let invocations = shape.slots * subgroup;
         let w = cfg.width as u32;
-        let group_points = (shape.act / w.max(1)) / shape.tile * shape.tile;
+        let group_rows = (shape.act / w.max(1)) / shape.tile * shape.tile;
         if limits.max_compute_workgroup_storage_size < shape.workgroup_bytes()
             || limits.max_compute_invocations_per_workgroup < invocations
             || limits.max_compute_workgroup_size_x < invocations
             || !w.is_multiple_of(shape.tile)
-            || group_points == 0
+            || group_rows == 0
             || cfg.hidden_layers < 2
         {
             return Ok(None);
@@ -133,7 +136,7 @@ impl CoopKernels {
         );
         Ok(Some(CoopKernels {
             shape,
-            group_points,
+            group_rows,
             forward,
             pack,
             packed,
@@ -154,13 +157,17 @@ impl CoopKernels {
         self.pack.record(&mut pass);
     }
 
-    /// The inference launch over `n` points from `input` (three floats each) into `values`
-    /// (Φ per point), reading the first layer, the biases and the head from `params`.
+    /// The inference launch over `rows` rows (points, or four rows per point with `tangents`)
+    /// from `input` (three floats per point, or twelve with tangents: the point and the unit
+    /// axes) into `values` (one float per row), reading the first layer, the biases and the
+    /// head from `params`.
+    #[allow(clippy::too_many_arguments)]
     pub(crate) fn forward(
         &self,
         gpu: &GpuContext,
         cfg: &SirenConfig,
-        n: u32,
+        rows: u32,
+        tangents: bool,
         input: &wgpu::Buffer,
         params: &wgpu::Buffer,
         values: &wgpu::Buffer,
@@ -168,15 +175,17 @@ impl CoopKernels {
         let u = gpu.uniform(
             "siren coop uniforms",
             &CoopUniforms {
-                points: n,
-                group_points: self.group_points,
+                rows,
+                group_rows: self.group_rows,
                 width: cfg.width as u32,
                 hidden_layers: cfg.hidden_layers as u32,
                 omega: cfg.omega0,
-                _pad: [0; 3],
+                tangents: u32::from(tangents),
+                point_stride: if tangents { 12 } else { 3 },
+                _pad: 0,
             },
         );
-        let (x, y) = gpu.dispatch_size(n.div_ceil(self.group_points).max(1));
+        let (x, y) = gpu.dispatch_size(rows.div_ceil(self.group_rows).max(1));
         Launch::new(
             gpu,
             &self.forward,
