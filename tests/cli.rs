@@ -203,6 +203,14 @@ fn bad_input_gives_clear_errors() {
         .output()
         .unwrap();
     assert_clean_failure(&o, "level");
+
+    let o = bin("eval")
+        .arg(model)
+        .arg(data("suzanne.obj"))
+        .args(["--siren-kernels", "coop"])
+        .output()
+        .unwrap();
+    assert_clean_failure(&o, "SIREN");
 }
 
 #[test]
@@ -318,6 +326,28 @@ fn siren_loss_and_learning_rate_flags_reach_the_model_file() {
     // The run's own record sits beside the trainer's.
     assert_eq!(t["done"], 2, "{t}");
     assert_eq!(t["model"], "siren", "{t}");
+
+    // eval on other kernels: the same signs up to f32 rounding, the kernels named in the
+    // report.
+    let eval = |kernels: &str| {
+        let o = bin("eval")
+            .arg(&out)
+            .arg(data("spot.obj"))
+            .args(["--points", "3000", "--surface-resolution", "0", "--json"])
+            .args(["--siren-kernels", kernels])
+            .output()
+            .unwrap();
+        assert!(
+            o.status.success(),
+            "eval --siren-kernels {kernels}: {}",
+            stderr(&o)
+        );
+        serde_json::from_slice::<serde_json::Value>(&o.stdout).unwrap()
+    };
+    let (auto, tiled) = (eval("auto"), eval("tiled"));
+    assert_eq!(tiled["siren_kernels"], "tiled");
+    let f1 = |j: &serde_json::Value| j["f1_bbox"].as_f64().unwrap();
+    assert!((f1(&auto) - f1(&tiled)).abs() < 2e-3, "{auto} vs {tiled}");
 
     let train = |extra: &[&str]| {
         bin("train")

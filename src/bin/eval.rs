@@ -11,6 +11,7 @@ use std::process::ExitCode;
 use clap::Parser;
 use hwsdf::eval::metrics::{DEFAULT_EVAL_POINTS, EVAL_SEED, SurfaceMetrics};
 use hwsdf::eval::run::{self, Evaluation};
+use hwsdf::nn::siren::LayerKernels;
 use hwsdf::nn::{GpuContext, NeuralSdf};
 use serde_json::json;
 
@@ -34,6 +35,10 @@ struct Args {
     /// NGLOD only: evaluate with the first k levels.
     #[arg(long)]
     lod: Option<usize>,
+    /// SIREN only: the kernels to evaluate on. `coop` runs on f16 cooperative matrices (tensor
+    /// cores) where the adapter has them (`gpu-info` says), trading some accuracy for speed.
+    #[arg(long, value_enum, default_value_t = KernelsArg::Auto)]
+    siren_kernels: KernelsArg,
     /// glTF: also follow buffer URIs outside the mesh's folder (absolute paths, `..`, symbolic links).
     #[arg(long)]
     allow_external_uris: bool,
@@ -50,6 +55,28 @@ fn main() -> ExitCode {
     }
 }
 
+/// `--siren-kernels`: a [`LayerKernels`] family.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+enum KernelsArg {
+    Auto,
+    RowBlocked,
+    Gemm,
+    Tiled,
+    Coop,
+}
+
+impl From<KernelsArg> for LayerKernels {
+    fn from(k: KernelsArg) -> Self {
+        match k {
+            KernelsArg::Auto => LayerKernels::Auto,
+            KernelsArg::RowBlocked => LayerKernels::RowBlocked,
+            KernelsArg::Gemm => LayerKernels::Gemm,
+            KernelsArg::Tiled => LayerKernels::Tiled,
+            KernelsArg::Coop => LayerKernels::CoopF16,
+        }
+    }
+}
+
 fn eval(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
     if args.points == 0 {
         return Err("--points must be at least 1".into());
@@ -57,6 +84,9 @@ fn eval(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
     run::check_eval_points(args.points)?;
     let mut model = NeuralSdf::load(&args.model)?;
     model.set_lod(args.lod)?;
+    if args.siren_kernels != KernelsArg::Auto {
+        model.set_siren_kernels(args.siren_kernels.into())?;
+    }
     let file_bytes = std::fs::metadata(&args.model)?.len();
     let uris = hwsdf::geom::LoadOptions::with_external_uris(args.allow_external_uris);
     let (mesh, normalization) = run::load_normalized_with(&args.mesh, &uris)?;
@@ -71,6 +101,12 @@ fn eval(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
         );
     }
     let gpu = GpuContext::new()?;
+    if args.siren_kernels == KernelsArg::Coop && gpu.coop_f16_tile().is_none() {
+        eprintln!(
+            "warning: {} has no f16 cooperative matrices; --siren-kernels coop evaluates on the tiled f32 kernels",
+            gpu.describe()
+        );
+    }
     let Evaluation {
         scores, latency, ..
     } = run::evaluate(&gpu, &model, &mesh, args.points)?;
@@ -92,6 +128,7 @@ fn eval(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
         "mesh": args.mesh.display().to_string(),
         "architecture": model.architecture(),
         "lod": model.lod(),
+        "siren_kernels": format!("{:?}", args.siren_kernels).to_lowercase(),
         "params": model.param_count(),
         "file_bytes": file_bytes,
         "eval_points": args.points,
