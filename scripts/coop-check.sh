@@ -34,16 +34,8 @@ if [ ! -e "$root/.ready" ]; then
 fi
 
 echo "== building the SIREN GPU tests"
-exe=$(cargo test -q -p sdf-nn --test siren_gpu --no-run --message-format=json 2>/dev/null | python3 -c '
-import json, sys
-for line in sys.stdin:
-    try:
-        m = json.loads(line)
-    except ValueError:
-        continue
-    if m.get("reason") == "compiler-artifact" and m.get("executable") and m["target"]["name"] == "siren_gpu":
-        print(m["executable"])
-')
+exe=$(cargo test -q -p sdf-nn --test siren_gpu --no-run --message-format=json 2>/dev/null \
+    | python3 scripts/cargo_executables.py --name siren_gpu | cut -d' ' -f2-)
 [ -n "$exe" ] || { echo "the siren_gpu test binary was not built" >&2; exit 1; }
 $SUDO cp "$exe" "$root/tmp/siren_gpu"
 $SUDO rm -rf "$root/tmp/data"

@@ -57,28 +57,11 @@ pack() {
     cargo bench --no-run
     local check
     check=$(cargo test --release -p sdf-nn --test siren_gpu --no-run --message-format=json 2>/dev/null \
-        | python3 -c '
-import json, sys
-for line in sys.stdin:
-    try:
-        m = json.loads(line)
-    except ValueError:
-        continue
-    if m.get("reason") == "compiler-artifact" and m.get("executable") and m["target"]["name"] == "siren_gpu":
-        print(m["executable"])
-')
+        | python3 scripts/cargo_executables.py --name siren_gpu | cut -d' ' -f2-)
     [ -n "$check" ] || { echo "the siren_gpu test binary was not built" >&2; exit 1; }
     local benches
-    benches=$(cargo bench --no-run --message-format=json 2>/dev/null | python3 -c '
-import json, sys
-for line in sys.stdin:
-    try:
-        m = json.loads(line)
-    except ValueError:
-        continue
-    if m.get("reason") == "compiler-artifact" and m.get("executable") and "bench" in m["target"]["kind"]:
-        print(m["target"]["name"], m["executable"])
-')
+    benches=$(cargo bench --no-run --message-format=json 2>/dev/null \
+        | python3 scripts/cargo_executables.py --kind bench)
     [ -n "$benches" ] || { echo "no bench executables were built" >&2; exit 1; }
     rm -rf "$dir/bin" "$dir/benches" "$dir/tests" "$dir/scripts" "$dir/checks"
     mkdir -p "$dir/bin" "$dir/benches" "$dir/tests" "$dir/scripts" "$dir/checks"

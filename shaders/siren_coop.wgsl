@@ -19,7 +19,7 @@
 struct Coop {
     // Rows in all: points, or 4 × points with tangents.
     rows: u32,
-    // A multiple of T with group_rows · width ≤ ACT.
+    // A multiple of T with group_rows · act_stride ≤ ACT.
     group_rows: u32,
     // A multiple of T.
     width: u32,
@@ -28,7 +28,9 @@ struct Coop {
     tangents: u32,
     // Floats per point in `points`: 3, or 12 with tangents (the point, then the unit axes).
     point_stride: u32,
-    _pad: u32,
+    // f16s from one row of `act` to the next: the width plus a pad of 16 bytes, so that the
+    // rows of a tile start in different memory banks; group_rows · act_stride ≤ ACT.
+    act_stride: u32,
 }
 
 @group(0) @binding(0) var<uniform> u: Coop;
@@ -43,7 +45,7 @@ struct Coop {
 // `packed`, written by `coop_pack`.
 @group(0) @binding(5) var<storage, read_write> packed_out: array<f16>;
 
-// A layer's input activations and its output, [row][feature] each.
+// A layer's input activations and its output, [row][feature] each, rows `act_stride` apart.
 var<workgroup> act: array<f16, 2u * ACT>;
 // The f32 products of the tiles in flight, T × T row major each.
 var<workgroup> scratch: array<f32, SLOTS * T * T>;
@@ -70,6 +72,7 @@ fn coop_forward(
         return;
     }
     let w = u.width;
+    let ls = u.act_stride;
     let gr = u.group_rows;
     let om = u.omega;
     let last = u.rows - 1u;
@@ -85,7 +88,7 @@ fn coop_forward(
             + params[3u * o + 2u] * points[q + 2u] + params[3u * w + o]);
         // Both operands of `select` are evaluated: index a weight that exists on value rows.
         let wj = params[3u * o + max(j, 1u) - 1u];
-        act[e] = f16(select(cos(z) * om * wj, sin(z), j == 0u));
+        act[(e / w) * ls + o] = f16(select(cos(z) * om * wj, sin(z), j == 0u));
     }
     workgroupBarrier();
 
@@ -103,13 +106,13 @@ fn coop_forward(
             // workgroup-uniform control flow, so a subgroup past the last tile recomputes it
             // instead of skipping, and the epilogue ignores its slot.
             let t = min(r * SLOTS + sg, tiles - 1u);
-            let a0 = src + (t / tiles_o) * T * w;
+            let a0 = src + (t / tiles_o) * T * ls;
             let b0 = woff + (t % tiles_o) * T * w;
             // Assigned, not declared, here: naga hoists a declaration's initialiser.
             acc = CC();
             for (var k = 0u; k < w; k += T) {
-                // A(i, kk) = act[a0 + i·w + k + kk]; B(kk, j) = ω0·W[o0 + j][k + kk].
-                let a = coopLoadT<CA>(&act[a0 + k], w);
+                // A(i, kk) = act[a0 + i·ls + k + kk]; B(kk, j) = ω0·W[o0 + j][k + kk].
+                let a = coopLoadT<CA>(&act[a0 + k], ls);
                 let b = coopLoad<CB>(&packed[b0 + k], w);
                 acc = coopMultiplyAdd(a, b, acc);
             }
@@ -125,7 +128,7 @@ fn coop_forward(
                     let row = (te / tiles_o) * T + i;
                     let j = select(0u, i % 4u, u.tangents != 0u);
                     let z = scratch[e - j * T] + om * params[boff + o];
-                    act[dst + row * w + o] = f16(select(cos(z) * scratch[e], sin(z), j == 0u));
+                    act[dst + row * ls + o] = f16(select(cos(z) * scratch[e], sin(z), j == 0u));
                 }
             }
             workgroupBarrier();
@@ -138,7 +141,7 @@ fn coop_forward(
     for (var r = lid; r < gr && first + r < u.rows; r += WG) {
         var s = 0.0;
         for (var k = 0u; k < w; k++) {
-            s = fma(f32(act[fin + r * w + k]), params[hoff + k], s);
+            s = fma(f32(act[fin + r * ls + k]), params[hoff + k], s);
         }
         let value_row = u.tangents == 0u || (first + r) % 4u == 0u;
         values[first + r] = s + select(0.0, params[hoff + w], value_row);

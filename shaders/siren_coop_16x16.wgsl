@@ -1,5 +1,5 @@
 // The 16 × 16 tiles of `siren_coop.wgsl` (f16 × f16 → f32; NVIDIA tensor cores, AMD WMMA).
-// Workgroup memory: 2 × 16 KiB of activations and 8 KiB of scratch (40 KiB).
+// Workgroup memory: 2 × 16.5 KiB of activations and 8 KiB of scratch (41 KiB).
 enable f16;
 enable wgpu_cooperative_matrix;
 
@@ -8,7 +8,7 @@ alias CB = coop_mat16x16<f16, B>;
 alias CC = coop_mat16x16<f32, C>;
 // Side of a tile.
 const T: u32 = 16u;
-// f16 activations per buffer: 32 points of width 256.
-const ACT: u32 = 8192u;
+// f16 activations per buffer: 32 rows of width 256 (rows padded by 8).
+const ACT: u32 = 8448u;
 // Tiles multiplied at once: one per subgroup of 32 in a workgroup of 256.
 const SLOTS: u32 = 8u;

@@ -33,13 +33,13 @@ impl TileShape {
             16 => Some(TileShape {
                 shader: shaders::SIREN_COOP_16,
                 tile,
-                act: 8192,
+                act: 8448,
                 slots: 8,
             }),
             8 => Some(TileShape {
                 shader: shaders::SIREN_COOP_8,
                 tile,
-                act: 4096,
+                act: 4224,
                 slots: 32,
             }),
             _ => None,
@@ -63,8 +63,12 @@ struct CoopUniforms {
     omega: f32,
     tangents: u32,
     point_stride: u32,
-    _pad: u32,
+    act_stride: u32,
 }
+
+/// f16s of padding after each row of activations in workgroup memory (16 bytes: a tile's rows
+/// then start in different banks).
+const ACT_PAD: u32 = 8;
 
 /// The cooperative-matrix kernels of one network, with its packed f16 weights.
 #[derive(Debug)]
@@ -99,7 +103,7 @@ impl CoopKernels {
         let limits = gpu.limits();
         let invocations = shape.slots * subgroup;
         let w = cfg.width as u32;
-        let group_rows = (shape.act / w.max(1)) / shape.tile * shape.tile;
+        let group_rows = (shape.act / (w + ACT_PAD)) / shape.tile * shape.tile;
         if limits.max_compute_workgroup_storage_size < shape.workgroup_bytes()
             || limits.max_compute_invocations_per_workgroup < invocations
             || limits.max_compute_workgroup_size_x < invocations
@@ -182,7 +186,7 @@ impl CoopKernels {
                 omega: cfg.omega0,
                 tangents: u32::from(tangents),
                 point_stride: if tangents { 12 } else { 3 },
-                _pad: 0,
+                act_stride: cfg.width as u32 + ACT_PAD,
             },
         );
         let (x, y) = gpu.dispatch_size(rows.div_ceil(self.group_rows).max(1));
