@@ -18,7 +18,8 @@
 # torch.compile where it works) with the ratios. The table is also written to
 # DIR/results/table.md, next to every raw log. It then times whole fits with `train` on
 # tests/data/spot.obj (issue 14's "100 epochs of NGLOD `default`", issue 12's "a default SIREN
-# fit") and, when the pack holds meshes, runs `corpus` over them (issue 14's F1 averages), and
+# fit", whose model `eval` then scores and times on the f32 kernels and on cooperative matrices)
+# and, when the pack holds meshes, runs `corpus` over them (issue 14's F1 averages), and
 # appends both to the table. Where the adapter has f16 cooperative matrices (`gpu-info` says
 # so), the `coop` stage runs their test against the f64 reference (the packed siren_gpu test
 # binary, HWSDF_REQUIRE_COOP=1) and the SIREN eval bench on them (SIREN_BENCH_KERNELS=coop,
@@ -36,7 +37,7 @@
 set -euo pipefail
 
 usage() {
-    sed -n '2,35p' "$0" | sed 's/^# \{0,1\}//'
+    sed -n '2,36p' "$0" | sed 's/^# \{0,1\}//'
     exit 2
 }
 
@@ -296,6 +297,19 @@ PY
                 --report "$res/fit-$m.json" 2>&1 | tee "$res/fit-$m.txt" || echo "(failed)"
             t1=$(date +%s.%N)
             echo "wall $(python3 -c "print(f'{$t1 - $t0:.1f}')") s" | tee -a "$res/fit-$m.txt"
+            # The fitted SIREN through the report's path on the f32 kernels and, where the
+            # adapter has them, on f16 cooperative matrices: F1 and latency side by side.
+            if [ "$m" = siren ] && [ -e "$res/fit-siren.safetensors" ]; then
+                local k
+                for k in auto coop; do
+                    if [ "$k" = coop ] && grep -q 'cooperative matrices (f32 accumulators): none' "$res/gpu-info.txt"; then
+                        continue
+                    fi
+                    echo "== eval of the SIREN fit, --siren-kernels $k"
+                    bin/eval "$res/fit-siren.safetensors" tests/data/spot.obj --json --siren-kernels "$k" \
+                        >"$res/eval-siren-$k.json" 2>"$res/eval-siren-$k.txt" || echo "(failed)"
+                done
+            fi
         done
     fi
     if [[ $stages == *,corpus,* ]] && [ -d meshes ]; then
@@ -331,6 +345,19 @@ for path in fits:
     unit = "epochs" if r.get("model") == "nglod" else "steps"
     print(f"| {r.get('model')} | {r.get('preset')} | {r.get('trained')} {unit} | "
           f"{r.get('train_seconds', 0):.1f} s | {wall} | {f1('f1_bbox')} / {f1('f1_near_surface')} |")
+evals = sorted(glob.glob(os.path.join(res, "eval-siren-*.json")))
+if evals:
+    print("\n| SIREN fit through `eval` | kernels | F1 box / near | wall per point | wall per 3000 | GPU per point | GPU per 3000 |")
+    print("| --- | --- | --- | --- | --- | --- | --- |")
+for path in evals:
+    try:
+        r = json.load(open(path))
+    except (OSError, ValueError):
+        continue
+    g = lambda k, f: "—" if r.get(k) is None else f.format(r[k])
+    print(f"| spot | {r.get('siren_kernels')} | {g('f1_bbox', '{:.4f}')} / {g('f1_near_surface', '{:.4f}')} | "
+          f"{g('per_point_ns', '{:.1f} ns')} | {g('batch3000_us', '{:.0f} µs')} | "
+          f"{g('gpu_per_point_ns', '{:.2f} ns')} | {g('gpu_batch3000_us', '{:.0f} µs')} |")
 corpus = os.path.join(res, "corpus.md")
 if os.path.exists(corpus):
     print("\nCorpus over the packed meshes (results/corpus.md):\n")
