@@ -31,13 +31,16 @@
 #                                       SIREN fit is 10⁴ steps, minutes before issue 12's kernels)
 #   GPU_COMPARE_MESHES=DIR              (pack) copy DIR's meshes into the pack for `corpus`
 #   GPU_COMPARE_CORPUS_ARGS="..."       extra `corpus` arguments (default: --model nglod)
+#   GPU_COMPARE_TIMEOUT=240             seconds each fit and the corpus run may take (a lent
+#                                       machine's calls are limited; corpus resumes where a
+#                                       run stopped, so a second call finishes it)
 #   GPU_COMPARE_ALLOW_CPU=1             run even if the adapter is a CPU (lavapipe): a dry run
 #   GPU_COMPARE_SKIP_TORCH=1            only our side (same as leaving `torch` out of the stages)
 #   any variable the benches read (SIREN_BENCH_*, NGLOD_BENCH_EPOCHS, WGPU_ADAPTER_NAME, ...)
 set -euo pipefail
 
 usage() {
-    sed -n '2,36p' "$0" | sed 's/^# \{0,1\}//'
+    sed -n '2,39p' "$0" | sed 's/^# \{0,1\}//'
     exit 2
 }
 
@@ -293,7 +296,9 @@ PY
             echo "== fit: $m on tests/data/spot.obj (the GPU default run)"
             local t0 t1
             t0=$(date +%s.%N)
-            bin/train tests/data/spot.obj --model "$m" --out "$res/fit-$m.safetensors" \
+            # SIGTERM at the limit: train writes its checkpoint and stops cleanly.
+            timeout "${GPU_COMPARE_TIMEOUT:-240}" \
+                bin/train tests/data/spot.obj --model "$m" --out "$res/fit-$m.safetensors" \
                 --report "$res/fit-$m.json" 2>&1 | tee "$res/fit-$m.txt" || echo "(failed)"
             t1=$(date +%s.%N)
             echo "wall $(python3 -c "print(f'{$t1 - $t0:.1f}')") s" | tee -a "$res/fit-$m.txt"
@@ -316,11 +321,16 @@ PY
         echo "== corpus over the packed meshes"
         local t0 t1
         t0=$(date +%s.%N)
+        # Outside results/ (which each run clears), so that a run stopped by the timeout
+        # resumes there: corpus keeps each mesh's result in corpus/corpus.md.d/.
+        mkdir -p "$dir/corpus"
         # shellcheck disable=SC2086 # word splitting of the extra arguments is intended
-        bin/corpus meshes ${GPU_COMPARE_CORPUS_ARGS:---model nglod} --out "$res/corpus.md" 2>&1 \
+        timeout "${GPU_COMPARE_TIMEOUT:-240}" \
+            bin/corpus meshes ${GPU_COMPARE_CORPUS_ARGS:---model nglod} --out "$dir/corpus/corpus.md" 2>&1 \
             | tee "$res/corpus.txt" || echo "(failed)"
         t1=$(date +%s.%N)
         echo "wall $(python3 -c "print(f'{$t1 - $t0:.1f}')") s" | tee -a "$res/corpus.txt"
+        [ -e "$dir/corpus/corpus.md" ] && cp "$dir/corpus/corpus.md" "$res/corpus.md"
     fi
     python3 - "$res" <<'PY' | tee -a "$res/table.md"
 import glob, json, os, sys
