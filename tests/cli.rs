@@ -270,6 +270,9 @@ fn ctrl_c_writes_a_checkpoint_that_resume_continues() {
         !out.exists(),
         "an interrupted run writes a checkpoint, not a model"
     );
+    // It remembers the length its run planned, which a resume without --epochs goes on to.
+    let saved = hwsdf::eval::run::Checkpoint::load(&checkpoint).unwrap();
+    assert_eq!(saved.planned(), Some(200));
     // `--resume` continues to the requested total.
     let o = bin("train")
         .arg(data("suzanne.obj"))

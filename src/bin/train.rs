@@ -201,8 +201,14 @@ fn train(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
         None => {
             let preset = Preset::for_adapter(gpu.is_cpu(), model);
             if gpu.is_cpu() {
+                let length = match model {
+                    ModelKind::Nglod if args.epochs.is_none() => {
+                        "as many epochs as about a minute of training buys here"
+                    }
+                    _ => "a shorter default run",
+                };
                 eprintln!(
-                    "note: CPU adapter; using the `{}` preset and a shorter default run (pass --preset/--epochs/--steps to override)",
+                    "note: CPU adapter; using the `{}` preset and {length} (pass --preset/--epochs/--steps to override)",
                     preset.name()
                 );
             }

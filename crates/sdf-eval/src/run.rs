@@ -283,6 +283,14 @@ impl Checkpoint {
         self.file.metadata.training["done"].as_u64().unwrap_or(0) as usize
     }
 
+    /// NGLOD: the epochs its run planned (with the CPU time budget, more than the default), which
+    /// a resume without `--epochs` goes on to.
+    pub fn planned(&self) -> Option<usize> {
+        self.file.metadata.training["planned"]
+            .as_u64()
+            .map(|p| p as usize)
+    }
+
     /// NGLOD: optimiser steps done within the unfinished epoch `done()`, which a resume finishes.
     pub fn epoch_steps_done(&self) -> usize {
         self.file.metadata.training["epoch_steps_done"]
@@ -366,8 +374,18 @@ impl Trained {
     }
 }
 
+/// NGLOD's default run on a CPU adapter: as many epochs as about a minute of training buys
+/// there (issue 14: "the best fit that about a minute buys"), planned from the first epoch,
+/// between [`default_length`]'s and 100. On the 2-core box that is ~13 epochs with Debian 12's
+/// Mesa 22.3 and ~35 with Mesa 26.1 (BENCHMARKS.md).
+pub const CPU_TIME_BUDGET: sdf_nn::nglod::TimeBudget = sdf_nn::nglod::TimeBudget {
+    seconds: 55.0,
+    max_epochs: 100,
+};
+
 /// Default SIREN steps and NGLOD epochs: what converges on a GPU for the design document's
-/// presets, and a budget of a few minutes on a CPU adapter (lavapipe).
+/// presets, and a budget of a few minutes on a CPU adapter (lavapipe); for NGLOD there, the
+/// least of [`CPU_TIME_BUDGET`].
 pub fn default_length(model: ModelKind, preset: Preset, cpu_adapter: bool) -> usize {
     match (model, preset, cpu_adapter) {
         (ModelKind::Siren, _, false) => SirenTrainConfig::default().steps,
@@ -435,11 +453,18 @@ pub fn train(
         ));
     }
     let start = Instant::now();
-    let total = match options.model {
+    let asked = match options.model {
         ModelKind::Siren => options.steps,
         ModelKind::Nglod => options.epochs,
-    }
-    .unwrap_or_else(|| default_length(options.model, options.preset, gpu.is_cpu()));
+    };
+    // A resumed run goes on to the length its first run planned.
+    let total = asked
+        .or_else(|| resume.and_then(Checkpoint::planned))
+        .unwrap_or_else(|| default_length(options.model, options.preset, gpu.is_cpu()));
+    // NGLOD's CPU default fills a time budget instead (`default_length` is then its least).
+    let time_budget =
+        (options.model == ModelKind::Nglod && asked.is_none() && resume.is_none() && gpu.is_cpu())
+            .then_some(CPU_TIME_BUDGET);
     let training_json = |done: usize, loss: f32| {
         serde_json::json!({
             "model": options.model.name(),
@@ -546,6 +571,7 @@ pub fn train(
                 train_config.grow_every = (g > 0).then_some(g);
             }
             train_config.distance = options.distance;
+            train_config.time_budget = time_budget;
             if let Some((blocks, every)) = options.pool {
                 train_config.pool_blocks = blocks;
                 train_config.refresh_every = every;
@@ -558,11 +584,13 @@ pub fn train(
             if let Some(c) = resume {
                 trainer.resume(&c.optimizer()?, first, c.epoch_steps_done())?;
             }
+            let mut planned = total;
             let report = trainer.train_with(|e| {
                 let done = e.epoch + 1;
+                planned = first + e.planned;
                 progress(&Progress {
                     done,
-                    total,
+                    total: planned,
                     unit: "epoch",
                     loss: e.loss,
                     lr: e.lr,
@@ -581,6 +609,7 @@ pub fn train(
                 trainer.training_json(Some(&report)),
                 training_json(done, report.final_loss),
             );
+            training["planned"] = planned.into();
             training["stall_seconds"] = report.stall_seconds.into();
             let file = trained.to_model_file(normalization, training.clone());
             check_trained(&file, done, "epoch")?;

@@ -309,6 +309,40 @@ fn trains_a_sphere_with_correct_signs_at_every_lod() {
     }
 }
 
+/// A time budget plans the run after its first epoch: a budget no epoch fits in keeps the
+/// least (`epochs`), a budget every epoch fits in runs `max_epochs`; the pool samples for the
+/// epochs added, and every epoch reports the plan.
+#[test]
+fn a_time_budget_plans_the_number_of_epochs() {
+    let gpu = gpu();
+    let mesh = icosphere(0.5, 1);
+    let model = Nglod::new(NglodConfig::small()).unwrap();
+    let run = |seconds: f64, least: usize, max_epochs: usize| {
+        let config = NglodTrainConfig {
+            epochs: least,
+            uniform_points: 2_000,
+            near_points: 1_000,
+            surface_points: 1_000,
+            batch_size: 1_000,
+            // Blocks refreshed every epoch: the added epochs need freshly sampled blocks.
+            pool_blocks: 2,
+            refresh_every: 1,
+            time_budget: Some(sdf_nn::nglod::TimeBudget {
+                seconds,
+                max_epochs,
+            }),
+            ..Default::default()
+        };
+        let mut trainer = NglodTrainer::new(gpu, &model, &mesh, config).unwrap();
+        let mut planned = Vec::new();
+        let report = trainer.train_with(|e| planned.push(e.planned)).unwrap();
+        assert_eq!(trainer.epochs_done(), report.epochs.len());
+        (report.epochs.len(), planned)
+    };
+    assert_eq!(run(0.0, 2, 50), (2, vec![2, 2]));
+    assert_eq!(run(1e9, 1, 4), (4, vec![4, 4, 4, 4]));
+}
+
 #[test]
 fn divergence_is_a_typed_error() {
     let gpu = gpu();

@@ -34,7 +34,7 @@ use crate::model_file::{ModelFile, ModelFileError, ModelMetadata, Normalization,
 
 pub use gpu::{NglodGpu, ScatterMode};
 pub use train::{
-    DistanceMode, EpochStats, NglodTrainConfig, NglodTrainer, PoolSchedule, TrainReport,
+    DistanceMode, EpochStats, NglodTrainConfig, NglodTrainer, PoolSchedule, TimeBudget, TrainReport,
 };
 
 /// Largest number of levels the kernels accept.

@@ -96,6 +96,39 @@ pub struct NglodTrainConfig {
     pub grow_every: Option<usize>,
     /// Signed or unsigned distance targets.
     pub distance: DistanceMode,
+    /// Plan the run's length from its first epoch instead of `epochs` alone (`None`: `epochs`).
+    pub time_budget: Option<TimeBudget>,
+}
+
+/// A training time to fill ([`NglodTrainConfig::time_budget`]): after each of the first two
+/// epochs of a fresh run, the trainer plans as many epochs as fit in `seconds` at the pace of
+/// the epoch just done, at least `epochs` and at most `max_epochs`. The first epoch waits for
+/// its samples, so its plan is a cautious one; the second runs at the pace the rest will. So
+/// the same command gives the best fit a given time buys on machines (and drivers) of very
+/// different speeds.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct TimeBudget {
+    /// Seconds of training, sampling included.
+    pub seconds: f64,
+    /// The most epochs to plan.
+    pub max_epochs: usize,
+}
+
+impl TimeBudget {
+    /// Epochs to plan in all after `done` epochs and `elapsed` seconds, the last epoch having
+    /// taken `last_epoch_seconds`: those done and as many more as fit in what is left of the
+    /// budget, clamped to `least ..= max_epochs` (`least` wins over `max_epochs`).
+    pub fn epochs(
+        &self,
+        least: usize,
+        done: usize,
+        elapsed: f64,
+        last_epoch_seconds: f64,
+    ) -> usize {
+        let more = (self.seconds - elapsed).max(0.0) / last_epoch_seconds.max(1e-9);
+        let fit = done as f64 + more.min(self.max_epochs as f64);
+        (fit.min(self.max_epochs as f64) as usize).max(least)
+    }
 }
 
 impl Default for NglodTrainConfig {
@@ -123,6 +156,7 @@ impl Default for NglodTrainConfig {
             lr_final: Some(0.1),
             grow_every: None,
             distance: DistanceMode::Signed,
+            time_budget: None,
         }
     }
 }
@@ -217,6 +251,9 @@ pub struct EpochStats {
     pub lr: f32,
     /// Levels of detail trained in this epoch.
     pub levels: usize,
+    /// Epochs the run plans in all (counted from its first epoch); with a
+    /// [`NglodTrainConfig::time_budget`], set after the first epoch.
+    pub planned: usize,
 }
 
 /// Summary of a training run.
@@ -474,6 +511,7 @@ impl<'g> NglodTrainer<'g> {
             "refresh_every": c.refresh_every,
             "lr_final": c.lr_final,
             "grow_every": c.grow_every,
+            "time_budget": c.time_budget,
             "distance": c.distance,
         });
         if let Some(r) = report {
@@ -486,8 +524,9 @@ impl<'g> NglodTrainer<'g> {
         v
     }
 
-    /// Runs `config.epochs` epochs (or until `max_seconds`); after [`NglodTrainer::resume`],
-    /// the rest of the interrupted epoch counts as the first.
+    /// Runs `config.epochs` epochs, or with a [`NglodTrainConfig::time_budget`] the number it
+    /// plans after the first (or until `max_seconds`); after [`NglodTrainer::resume`], the rest
+    /// of the interrupted epoch counts as the first.
     pub fn train(&mut self) -> Result<TrainReport, NglodError> {
         self.train_with(|_| {})
     }
@@ -522,7 +561,7 @@ impl<'g> NglodTrainer<'g> {
         let gpu: &GpuContext = gpu;
         let (mesh, sdf, config) = (&*mesh, &*sdf, &*config);
         let first_epoch = *epochs_done;
-        let end_epoch = first_epoch + epochs;
+        let mut end_epoch = first_epoch + epochs;
         let n = config.points_per_epoch() as u32;
         let batch = config.batch_size.min(n);
         let steps_per_epoch = n.div_ceil(batch) as usize;
@@ -559,7 +598,11 @@ impl<'g> NglodTrainer<'g> {
             let mut stall = wait.elapsed().as_secs_f64();
             let mut next_block = initial.end;
             let mut pending = (schedule.due(next_block) < end_epoch).then(|| spawn(next_block));
-            for e in first_epoch..end_epoch {
+            let mut e = first_epoch;
+            // When the current epoch began, in seconds from `start` (the first one: at 0, so
+            // that its wait for the first samples counts).
+            let mut epoch_began = 0.0;
+            while e < end_epoch {
                 let wait = Instant::now();
                 while schedule.due(next_block) <= e {
                     let Some(h) = pending.take() else {
@@ -651,6 +694,19 @@ impl<'g> NglodTrainer<'g> {
                     stall_seconds: stall,
                     lr,
                     levels: lod,
+                    planned: end_epoch - first_epoch,
+                };
+                // A fresh run with a time budget plans its length after its first two epochs.
+                if let Some(b) = config.time_budget.filter(|_| e < 2 && !stop && first >= n) {
+                    let elapsed = start.elapsed().as_secs_f64();
+                    end_epoch = b.epochs(epochs, e + 1, elapsed, elapsed - epoch_began);
+                    if pending.is_none() && schedule.due(next_block) < end_epoch {
+                        pending = Some(spawn(next_block));
+                    }
+                }
+                let stats = EpochStats {
+                    planned: end_epoch - first_epoch,
+                    ..stats
                 };
                 stall = 0.0;
                 on_epoch(&stats);
@@ -674,6 +730,8 @@ impl<'g> NglodTrainer<'g> {
                     // Let the pending sampler finish (scope joins it); its work is discarded.
                     break;
                 }
+                e += 1;
+                epoch_began = start.elapsed().as_secs_f64();
             }
             Ok(())
         })?;
@@ -769,6 +827,31 @@ mod tests {
             pool.push(k, sample_block(mesh, sdf, c, k));
         }
         (blocks.collect(), pool)
+    }
+
+    #[test]
+    fn a_time_budget_fits_epochs_between_its_bounds() {
+        let b = TimeBudget {
+            seconds: 60.0,
+            max_epochs: 100,
+        };
+        // After the first epoch (4.5 s, 1.6 s), then after the second (from 2 s in all).
+        assert_eq!(b.epochs(12, 1, 4.5, 4.5), 13);
+        assert_eq!(b.epochs(12, 1, 1.6, 1.6), 37);
+        assert_eq!(b.epochs(12, 2, 3.0, 1.2), 49);
+        assert_eq!(
+            b.epochs(12, 1, 10.0, 10.0),
+            12,
+            "never fewer than the least"
+        );
+        assert_eq!(b.epochs(12, 2, 70.0, 1.0), 12, "past the budget");
+        assert_eq!(b.epochs(12, 1, 0.1, 0.1), 100, "never more than max_epochs");
+        assert_eq!(
+            b.epochs(120, 1, 0.1, 0.1),
+            120,
+            "the least wins over max_epochs"
+        );
+        assert_eq!(b.epochs(3, 1, 0.0, 0.0), 100, "an epoch of no time");
     }
 
     #[test]
