@@ -26,6 +26,16 @@ fn main() -> ExitCode {
                 gpu.coop_f16_tile()
                     .map_or("none".to_owned(), |t| format!("{t}x{t}x{t}"))
             );
+            let info = gpu.adapter_info();
+            let limits = gpu.limits();
+            println!(
+                "subgroup size: {}..{}, workgroup memory: {} KiB, invocations per workgroup: {}, storage binding: {} MiB",
+                info.subgroup_min_size,
+                info.subgroup_max_size,
+                limits.max_compute_workgroup_storage_size / 1024,
+                limits.max_compute_invocations_per_workgroup,
+                limits.max_storage_buffer_binding_size / (1024 * 1024)
+            );
             ExitCode::SUCCESS
         }
         Err(e) => {
