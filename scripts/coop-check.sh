@@ -27,9 +27,11 @@ if [ ! -e "$root/.ready" ]; then
     $SUDO debootstrap --variant=minbase trixie "$root" "$mirror" >"$root.log" 2>&1 \
         || { tail -20 "$root.log" >&2; exit 1; }
     echo "deb $mirror trixie-backports main" | $SUDO tee "$root/etc/apt/sources.list.d/backports.list" >/dev/null
-    $SUDO chroot "$root" apt-get update -qq
-    $SUDO chroot "$root" env DEBIAN_FRONTEND=noninteractive \
-        apt-get install -y -qq -t trixie-backports mesa-vulkan-drivers libvulkan1 >/dev/null
+    # apt's "Can not write log (Is /dev/pts mounted?)" is harmless here: into the log with the rest.
+    { $SUDO chroot "$root" apt-get update -qq \
+        && $SUDO chroot "$root" env DEBIAN_FRONTEND=noninteractive \
+            apt-get install -y -qq -t trixie-backports mesa-vulkan-drivers libvulkan1; } \
+        >>"$root.log" 2>&1 || { tail -20 "$root.log" >&2; exit 1; }
     $SUDO touch "$root/.ready"
 fi
 
@@ -40,6 +42,7 @@ exe=$(cargo test -q -p sdf-nn --test siren_gpu --no-run --message-format=json 2>
 $SUDO cp "$exe" "$root/tmp/siren_gpu"
 $SUDO rm -rf "$root/tmp/data"
 $SUDO cp -r tests/data "$root/tmp/data"
-echo "== adapter: $($SUDO chroot "$root" dpkg-query -W -f '${Package} ${Version}' mesa-vulkan-drivers)"
+echo "== driver: $($SUDO chroot "$root" dpkg-query -W -f '${Package} ${Version}' mesa-vulkan-drivers)"
+# The tests print the adapter at every step; the driver line above names it.
 $SUDO chroot "$root" env HWSDF_REQUIRE_COOP=1 HWSDF_TEST_DATA=/tmp/data /tmp/siren_gpu coop --nocapture 2>&1 \
-    | grep -v 'XDG_RUNTIME_DIR'
+    | grep -v 'XDG_RUNTIME_DIR\|^adapter: '
