@@ -6,7 +6,8 @@ use glam::Vec3;
 use hwsdf::eval::run::extract_mesh;
 use hwsdf::nn::{
     GpuContext, NeuralSdf, NeuralSdfError, Nglod, NglodConfig, Normalization,
-    QueryBuffersDescriptor, QueryError, QueryOutputs, QuerySpace, Siren, SirenConfig,
+    QueryBuffersDescriptor, QueryError, QueryOutputs, QuerySpace, QueryTransfer, Siren,
+    SirenConfig,
 };
 use rand::{Rng, SeedableRng};
 use rand_pcg::Pcg64;
@@ -132,19 +133,31 @@ fn a_sphere_model_extracts_to_the_sphere() {
 fn serving_api_reuses_buffers_and_refuses_misuse() {
     let gpu = gpu();
     let models = models();
-    for model in &models {
+    let mappable = gpu
+        .device()
+        .features()
+        .contains(wgpu::Features::MAPPABLE_PRIMARY_BUFFERS);
+    // Both ways of moving data, whichever `Auto` picks on this adapter.
+    for (model, transfer) in models
+        .iter()
+        .flat_map(|m| [(m, QueryTransfer::Staged), (m, QueryTransfer::Mapped)])
+    {
         let arch = model.architecture();
-        let mut buffers = model
-            .create_query_buffers(
-                gpu,
-                &QueryBuffersDescriptor {
-                    label: Some("test"),
-                    capacity: 500,
-                    outputs: QueryOutputs::ValuesAndNormals,
-                    space: QuerySpace::Mesh,
-                },
-            )
-            .unwrap();
+        let desc = QueryBuffersDescriptor {
+            label: Some("test"),
+            capacity: 500,
+            outputs: QueryOutputs::ValuesAndNormals,
+            space: QuerySpace::Mesh,
+            transfer,
+        };
+        if transfer == QueryTransfer::Mapped && !mappable {
+            assert!(matches!(
+                model.create_query_buffers(gpu, &desc),
+                Err(NeuralSdfError::Query(QueryError::Invalid(_)))
+            ));
+            continue;
+        }
+        let mut buffers = model.create_query_buffers(gpu, &desc).unwrap();
         let mut got = Vec::new();
         for n in [500usize, 37, 1, 0, 499] {
             let pts = points(n);
@@ -161,11 +174,11 @@ fn serving_api_reuses_buffers_and_refuses_misuse() {
                 .unwrap()
                 .extend_values_and_normals(&mut got);
             let want = model.eval_with_normals_cpu(&pts);
-            assert_eq!(got.len(), n, "{arch}");
+            assert_eq!(got.len(), n, "{arch} {transfer:?}");
             for (i, ((da, na), (db, nb))) in got.iter().zip(&want).enumerate() {
                 assert!(
                     (da - db).abs() <= 1e-4 * db.abs().max(1.0),
-                    "{arch} n={n} {i}: {da} vs {db}"
+                    "{arch} {transfer:?} n={n} {i}: {da} vs {db}"
                 );
                 assert!((*na - *nb).length() < 1e-3, "{arch} {i}: {na} vs {nb}");
             }

@@ -208,6 +208,7 @@ fn wanted_features() -> wgpu::Features {
         | wgpu::Features::TIMESTAMP_QUERY
         | wgpu::Features::SHADER_F16
         | wgpu::Features::SUBGROUP
+        | wgpu::Features::MAPPABLE_PRIMARY_BUFFERS
 }
 
 /// The features of the f16 cooperative-matrix kernels: f16 arithmetic, subgroups, and wgpu's
@@ -415,6 +416,38 @@ impl GpuContext {
         self.coop_tile
     }
 
+    /// Whether storage buffers can be mapped directly and cheaply: the device allows it
+    /// (`MAPPABLE_PRIMARY_BUFFERS`) and its memory is the host's (a CPU or integrated adapter),
+    /// so kernels read and write mapped memory at full speed and copies through staging
+    /// buffers are pure overhead. On a discrete GPU mappable memory is slow for kernels.
+    pub fn maps_storage_cheaply(&self) -> bool {
+        self.device
+            .features()
+            .contains(wgpu::Features::MAPPABLE_PRIMARY_BUFFERS)
+            && matches!(
+                self.adapter_info.device_type,
+                wgpu::DeviceType::Cpu | wgpu::DeviceType::IntegratedGpu
+            )
+    }
+
+    /// A zeroed storage buffer (as [`GpuContext::storage_zeroed`]) with extra `usage`, e.g.
+    /// `MAP_READ` where [`GpuContext::maps_storage_cheaply`].
+    pub fn storage_zeroed_with(
+        &self,
+        label: &str,
+        bytes: u64,
+        usage: wgpu::BufferUsages,
+    ) -> Result<wgpu::Buffer, GpuError> {
+        let bytes = bytes.max(4).next_multiple_of(4);
+        self.check_storage_size(label, bytes)?;
+        Ok(self.device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some(label),
+            size: bytes,
+            usage: storage_usage() | usage,
+            mapped_at_creation: false,
+        }))
+    }
+
     /// The subgroup size of every compute dispatch, where the adapter has a single one.
     pub fn fixed_subgroup_size(&self) -> Option<u32> {
         let info = &self.adapter_info;
@@ -471,15 +504,8 @@ impl GpuContext {
 
     /// A zero-filled storage buffer of `bytes` bytes (rounded up to a multiple of 4).
     pub fn storage_zeroed(&self, label: &str, bytes: u64) -> Result<wgpu::Buffer, GpuError> {
-        let bytes = bytes.max(4).next_multiple_of(4);
-        self.check_storage_size(label, bytes)?;
         // wgpu zero-initialises new buffers, so no clear pass is needed.
-        Ok(self.device.create_buffer(&wgpu::BufferDescriptor {
-            label: Some(label),
-            size: bytes,
-            usage: storage_usage(),
-            mapped_at_creation: false,
-        }))
+        self.storage_zeroed_with(label, bytes, wgpu::BufferUsages::empty())
     }
 
     /// A uniform buffer holding `value`, writable later with [`GpuContext::write`].

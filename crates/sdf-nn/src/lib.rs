@@ -44,7 +44,7 @@ pub use nglod::{
 };
 pub use query::{
     QueryBuffers, QueryBuffersDescriptor, QueryError, QueryOutputs, QueryResults, QuerySpace,
-    QueryTicket,
+    QueryTicket, QueryTransfer,
 };
 pub use render::{RenderError, RenderOptions, Renderer, RgbaImage, render};
 pub use siren::{LossWeights, Siren, SirenConfig, SirenGpu, SirenTrainConfig, SirenTrainer};

@@ -312,6 +312,7 @@ impl NeuralSdf {
                         capacity,
                         outputs,
                         space,
+                        ..Default::default()
                     },
                 )?;
                 match found {

@@ -7,7 +7,8 @@
 //!   ([`QueryBuffers::points`], `array<vec4<f32>>`, xyz used), a results buffer
 //!   ([`QueryBuffers::results`]: `array<f32>` of distances, or with
 //!   [`QueryOutputs::ValuesAndNormals`] `array<vec4<f32>>` of (distance, normal)), the network's
-//!   scratch, and a mappable staging buffer. Create it once, reuse it for every query.
+//!   scratch, and a mappable staging buffer (or, on CPU and integrated adapters, mappable points
+//!   and results buffers instead: [`QueryTransfer`]). Create it once, reuse it for every query.
 //! - [`NeuralSdf::record_query`] records a query of the first `n` points into your encoder.
 //!   The results stay on the GPU: bind [`QueryBuffers::results`] in your next pass. Your own
 //!   pass may also have written [`QueryBuffers::points`] (it is a storage buffer).
@@ -104,6 +105,26 @@ pub struct QueryBuffersDescriptor<'a> {
     pub outputs: QueryOutputs,
     /// Mesh or normalised coordinates.
     pub space: QuerySpace,
+    /// How [`NeuralSdf::submit_query`] moves points in and results out.
+    pub transfer: QueryTransfer,
+}
+
+/// How [`NeuralSdf::submit_query`] and [`QueryBuffers::wait`] move points and results between
+/// the host and the buffers.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash)]
+pub enum QueryTransfer {
+    /// [`QueryTransfer::Mapped`] where [`GpuContext::maps_storage_cheaply`] (CPU and integrated
+    /// adapters), [`QueryTransfer::Staged`] elsewhere.
+    #[default]
+    Auto,
+    /// Copies through an upload belt and a staging buffer, recorded in the query's submission:
+    /// what a discrete GPU needs, whose mappable memory is slow for kernels.
+    Staged,
+    /// No copies: the points buffer is mapped and written, the results buffer mapped and read.
+    /// On lavapipe a 10-point query costs two copy commands less. Needs the device feature
+    /// `MAPPABLE_PRIMARY_BUFFERS`. The results buffer is then mapped while a [`QueryResults`]
+    /// lives: drop it before a submission that uses [`QueryBuffers::results`].
+    Mapped,
 }
 
 /// Errors of the serving API.
@@ -200,7 +221,14 @@ pub struct QueryBuffers {
     space: QuerySpace,
     points: wgpu::Buffer,
     results: wgpu::Buffer,
+    /// Where results are read from: a staging copy of `results`, or `results` itself
+    /// ([`QueryTransfer::Mapped`]).
     staging: wgpu::Buffer,
+    /// [`QueryTransfer::Mapped`]: the points are written into the mapped points buffer and
+    /// the results read from the mapped results buffer, with no copies.
+    mapped: bool,
+    /// The points buffer's write mapping ([`QueryTransfer::Mapped`]).
+    upload_map: Arc<MapSlot>,
     kernels: Kernels,
     /// Host copy of the points, padded to vec4, reused between uploads.
     host: Vec<[f32; 4]>,
@@ -351,14 +379,16 @@ impl QueryBuffers {
         self.space
     }
 
-    /// The points, `array<vec4<f32>>` (xyz used): `STORAGE | COPY_DST`, so your own pass or
-    /// copy may fill it as well as [`QueryBuffers::upload`].
+    /// The points, `array<vec4<f32>>` (xyz used): `STORAGE | COPY_DST` (and `MAP_WRITE` with
+    /// [`QueryTransfer::Mapped`]), so your own pass or copy may fill it as well as
+    /// [`QueryBuffers::upload`].
     pub fn points(&self) -> &wgpu::Buffer {
         &self.points
     }
 
-    /// The results, `STORAGE | COPY_SRC`: `array<f32>` of distances, or `array<vec4<f32>>` of
-    /// (distance, normal). Bind it in your next pass to use them without a readback.
+    /// The results, `STORAGE | COPY_SRC` (and `MAP_READ` with [`QueryTransfer::Mapped`]):
+    /// `array<f32>` of distances, or `array<vec4<f32>>` of (distance, normal). Bind it in your
+    /// next pass to use them without a readback.
     pub fn results(&self) -> &wgpu::Buffer {
         &self.results
     }
@@ -392,6 +422,46 @@ impl QueryBuffers {
         self.belt
             .write_buffer(enc, &self.points, 0, size)
             .copy_from_slice(bytemuck::cast_slice(&self.host));
+        Ok(n)
+    }
+
+    /// [`QueryTransfer::Mapped`]: writes `points` into the mapped points buffer (mapping it
+    /// first: no submission uses it, since the last query was waited for) and returns their
+    /// count.
+    fn upload_mapped(&mut self, gpu: &GpuContext, points: &[Vec3]) -> Result<u32, NeuralSdfError> {
+        let n = self.stage_host(points)?;
+        let bytes = u64::from(n) * 16;
+        if bytes == 0 {
+            return Ok(0);
+        }
+        let error = |reason: String| GpuError::Readback {
+            label: "query points".into(),
+            reason,
+        };
+        let slice = self.points.slice(..bytes);
+        self.upload_map.set(MapState::Pending);
+        let map = Arc::clone(&self.upload_map);
+        slice.map_async(wgpu::MapMode::Write, move |r| {
+            map.set(match r {
+                Ok(()) => MapState::Mapped,
+                Err(e) => MapState::Failed(e.to_string()),
+            });
+        });
+        match self
+            .upload_map
+            .take_settled(gpu.device(), Duration::from_secs(10))
+        {
+            MapState::Mapped => {}
+            MapState::Failed(reason) => return Err(error(reason).into()),
+            MapState::Idle | MapState::Pending => {
+                return Err(error("the mapping did not complete".into()).into());
+            }
+        }
+        slice
+            .get_mapped_range_mut()
+            .map_err(|e| error(e.to_string()))?
+            .copy_from_slice(bytemuck::cast_slice(&self.host));
+        self.points.unmap();
         Ok(n)
     }
 
@@ -504,14 +574,48 @@ impl NeuralSdf {
         let out_floats = u64::from(desc.outputs.floats_per_point());
         let storage =
             |what: &str, bytes: u64| gpu.storage_zeroed(&format!("{label} {what}"), bytes);
-        let points = storage("points", cap * 16)?;
-        let results = storage("results", cap * out_floats * 4)?;
-        let staging = gpu.device().create_buffer(&wgpu::BufferDescriptor {
-            label: Some(&format!("{label} staging")),
-            size: cap * out_floats * 4,
-            usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
-            mapped_at_creation: false,
-        });
+        let mappable = gpu
+            .device()
+            .features()
+            .contains(wgpu::Features::MAPPABLE_PRIMARY_BUFFERS);
+        let mapped = match desc.transfer {
+            QueryTransfer::Auto => gpu.maps_storage_cheaply(),
+            QueryTransfer::Staged => false,
+            QueryTransfer::Mapped if mappable => true,
+            QueryTransfer::Mapped => {
+                return Err(QueryError::Invalid(format!(
+                    "QueryTransfer::Mapped needs MAPPABLE_PRIMARY_BUFFERS, which {} lacks",
+                    gpu.describe()
+                ))
+                .into());
+            }
+        };
+        let (points, results, staging) = if mapped {
+            let points = gpu.storage_zeroed_with(
+                &format!("{label} points"),
+                cap * 16,
+                wgpu::BufferUsages::MAP_WRITE,
+            )?;
+            let results = gpu.storage_zeroed_with(
+                &format!("{label} results"),
+                cap * out_floats * 4,
+                wgpu::BufferUsages::MAP_READ,
+            )?;
+            let staging = results.clone();
+            (points, results, staging)
+        } else {
+            let staging = gpu.device().create_buffer(&wgpu::BufferDescriptor {
+                label: Some(&format!("{label} staging")),
+                size: cap * out_floats * 4,
+                usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+                mapped_at_creation: false,
+            });
+            (
+                storage("points", cap * 16)?,
+                storage("results", cap * out_floats * 4)?,
+                staging,
+            )
+        };
         let transform = match desc.space {
             QuerySpace::Mesh => (self.normalization().center, self.normalization().scale),
             QuerySpace::Normalized => (Vec3::ZERO, 1.0),
@@ -577,6 +681,8 @@ impl NeuralSdf {
             points,
             results,
             staging,
+            mapped,
+            upload_map: Arc::new(MapSlot::default()),
             kernels,
             host: Vec::new(),
             belt: wgpu::util::StagingBelt::new(gpu.device().clone(), cap * 16),
@@ -626,15 +732,22 @@ impl NeuralSdf {
         }
         self.check_buffers(gpu, buffers)?;
         let mut enc = gpu.device().create_command_encoder(&Default::default());
-        let n = buffers.upload_in(&mut enc, points)?;
-        buffers.belt.finish();
+        let n = if buffers.mapped {
+            buffers.upload_mapped(gpu, points)?
+        } else {
+            let n = buffers.upload_in(&mut enc, points)?;
+            buffers.belt.finish();
+            n
+        };
         self.record_query_timed(gpu, &mut enc, buffers, n, timed)?;
         let bytes = u64::from(n) * u64::from(buffers.outputs.floats_per_point()) * 4;
-        if bytes > 0 {
+        if bytes > 0 && !buffers.mapped {
             enc.copy_buffer_to_buffer(&buffers.results, 0, &buffers.staging, 0, bytes);
         }
         let submission = gpu.queue().submit([enc.finish()]);
-        buffers.belt.recall();
+        if !buffers.mapped {
+            buffers.belt.recall();
+        }
         buffers.generation += 1;
         if bytes > 0 {
             buffers.map.set(MapState::Pending);
