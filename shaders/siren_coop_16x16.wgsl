@@ -1,4 +1,5 @@
-// The 16 × 16 tiles of `siren_coop.wgsl` (f16 × f16 → f32; NVIDIA tensor cores, AMD WMMA).
+// The 16 × 16 tiles of `siren_coop.wgsl` (f16 × f16 → f32; NVIDIA tensor cores; AMD's drivers
+// report a range of subgroup sizes, which the host does not run these kernels on yet).
 // Workgroup memory: 2 × 16.5 KiB of activations and 8 KiB of scratch (41 KiB).
 enable f16;
 enable wgpu_cooperative_matrix;

@@ -1,5 +1,6 @@
-// The 8 × 8 tiles of `siren_coop.wgsl` (f16 × f16 → f32; Apple GPUs, Mesa's lavapipe from
-// Mesa 25.1 on). Workgroup memory: 2 × 8.25 KiB of activations and 8 KiB of scratch (24.5 KiB).
+// The 8 × 8 tiles of `siren_coop.wgsl` (f16 × f16 → f32; Mesa's lavapipe from Mesa 25.1 on;
+// Apple GPUs too once the host runs these kernels on a range of subgroup sizes).
+// Workgroup memory: 2 × 8.25 KiB of activations and 8 KiB of scratch (24.5 KiB).
 enable f16;
 enable wgpu_cooperative_matrix;
 

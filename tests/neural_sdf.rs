@@ -168,6 +168,15 @@ fn serving_api_reuses_buffers_and_refuses_misuse() {
                 model.submit_query(gpu, &mut buffers, &pts),
                 Err(NeuralSdfError::Query(QueryError::Busy))
             ));
+            // With mapped transfers the results buffer is mapped until the results are read:
+            // recording another query into it meanwhile is refused, not a wgpu panic.
+            if transfer == QueryTransfer::Mapped && n > 0 {
+                let mut enc = gpu.device().create_command_encoder(&Default::default());
+                assert!(matches!(
+                    model.record_query(gpu, &mut enc, &mut buffers, n as u32),
+                    Err(NeuralSdfError::Query(QueryError::Busy))
+                ));
+            }
             got.clear();
             buffers
                 .wait(gpu, ticket)

@@ -321,7 +321,15 @@ impl GpuContext {
             max_compute_workgroups_per_dimension: have.max_compute_workgroups_per_dimension,
             ..wgpu::Limits::downlevel_defaults()
         };
-        let features = adapter.features() & wanted_features();
+        let mut features = adapter.features() & wanted_features();
+        // Mappable storage only where memory is the host's ([`GpuContext::maps_storage_cheaply`]):
+        // elsewhere it is slow for kernels, and wgpu warns about it at every device creation.
+        if !matches!(
+            info.device_type,
+            wgpu::DeviceType::Cpu | wgpu::DeviceType::IntegratedGpu
+        ) {
+            features.remove(wgpu::Features::MAPPABLE_PRIMARY_BUFFERS);
+        }
         let request = |features: wgpu::Features, experimental: wgpu::ExperimentalFeatures| {
             pollster::block_on(adapter.request_device(&wgpu::DeviceDescriptor {
                 label: Some("hwsdf"),

@@ -122,8 +122,10 @@ pub enum QueryTransfer {
     Staged,
     /// No copies: the points buffer is mapped and written, the results buffer mapped and read.
     /// On lavapipe a 10-point query costs two copy commands less. Needs the device feature
-    /// `MAPPABLE_PRIMARY_BUFFERS`. The results buffer is then mapped while a [`QueryResults`]
-    /// lives: drop it before a submission that uses [`QueryBuffers::results`].
+    /// `MAPPABLE_PRIMARY_BUFFERS` (requested on CPU and integrated adapters). The results buffer
+    /// is then mapped from [`NeuralSdf::submit_query`] until the [`QueryResults`] of its ticket
+    /// is dropped: no submission may use [`QueryBuffers::results`] meanwhile
+    /// ([`NeuralSdf::record_query`] refuses with [`QueryError::Busy`]).
     Mapped,
 }
 
@@ -447,21 +449,21 @@ impl QueryBuffers {
                 Err(e) => MapState::Failed(e.to_string()),
             });
         });
-        match self
+        let settled = self
             .upload_map
-            .take_settled(gpu.device(), Duration::from_secs(10))
-        {
-            MapState::Mapped => {}
-            MapState::Failed(reason) => return Err(error(reason).into()),
-            MapState::Idle | MapState::Pending => {
-                return Err(error("the mapping did not complete".into()).into());
-            }
-        }
-        slice
-            .get_mapped_range_mut()
-            .map_err(|e| error(e.to_string()))?
-            .copy_from_slice(bytemuck::cast_slice(&self.host));
+            .take_settled(gpu.device(), Duration::from_secs(10));
+        let written = match settled {
+            MapState::Mapped => slice
+                .get_mapped_range_mut()
+                .map(|mut view| view.copy_from_slice(bytemuck::cast_slice(&self.host)))
+                .map_err(|e| e.to_string()),
+            MapState::Failed(reason) => Err(reason),
+            MapState::Idle | MapState::Pending => Err("the mapping did not complete".into()),
+        };
+        // Also on failure: unmapping cancels a mapping still pending, which would otherwise
+        // land later and leave the buffer mapped for every later submission.
         self.points.unmap();
+        written.map_err(error)?;
         Ok(n)
     }
 
@@ -520,6 +522,11 @@ impl QueryBuffers {
             n: ticket.n as usize,
             outputs: self.outputs,
         })
+    }
+
+    /// Whether the staging (with mapped transfers: the results) buffer is mapped or being mapped.
+    fn map_busy(&self) -> bool {
+        !matches!(*self.map.lock(), MapState::Idle)
     }
 
     /// Whether these buffers live on `gpu`'s device.
@@ -798,6 +805,11 @@ impl NeuralSdf {
     ) -> Result<(), NeuralSdfError> {
         self.check_buffers(gpu, buffers)?;
         buffers.check_count(n as usize)?;
+        // With mapped transfers the results buffer is mapped from `submit_query` until its
+        // results are dropped: no other submission may use it meanwhile.
+        if buffers.mapped && (buffers.in_flight.is_some() || buffers.map_busy()) {
+            return Err(QueryError::Busy.into());
+        }
         if n == 0 {
             return Ok(());
         }

@@ -697,7 +697,8 @@ impl<'g> NglodTrainer<'g> {
                     planned: end_epoch - first_epoch,
                 };
                 // A fresh run with a time budget plans its length after its first two epochs.
-                if let Some(b) = config.time_budget.filter(|_| e < 2 && !stop && first >= n) {
+                let fresh = first_epoch == 0 && e < 2;
+                if let Some(b) = config.time_budget.filter(|_| fresh && !stop && first >= n) {
                     let elapsed = start.elapsed().as_secs_f64();
                     end_epoch = b.epochs(epochs, e + 1, elapsed, elapsed - epoch_began);
                     if pending.is_none() && schedule.due(next_block) < end_epoch {

@@ -424,15 +424,25 @@ impl SirenGpu {
     fn pack_now(&self, gpu: &GpuContext) {
         if self.dense.is_some() || self.coop.is_some() {
             let mut enc = gpu.device().create_command_encoder(&Default::default());
-            self.record_pack(&mut enc);
+            self.record_eval_pack(&mut enc);
             gpu.queue().submit([enc.finish()]);
         }
     }
 
-    /// [`SirenGpu::record_pack`] unless the network is frozen (its packed weights are current).
+    /// [`SirenGpu::record_eval_pack`] unless the network is frozen (its packed weights are
+    /// current).
     fn refresh_pack(&self, enc: &mut wgpu::CommandEncoder) {
         if !self.frozen {
-            self.record_pack(enc);
+            self.record_eval_pack(enc);
+        }
+    }
+
+    /// [`SirenGpu::record_pack`], and the f16 packing of the cooperative-matrix kernels,
+    /// which only evaluations read (training steps skip it).
+    fn record_eval_pack(&self, enc: &mut wgpu::CommandEncoder) {
+        self.record_pack(enc);
+        if let Some(c) = &self.coop {
+            c.record_pack(enc);
         }
     }
 
@@ -544,15 +554,12 @@ impl SirenGpu {
             && TiledKernels::fused_group_rows(gpu, &self.config).is_some()
     }
 
-    /// Records the copy of the weights into the row-blocked kernels' uniform windows, or their
-    /// f16 packing for the cooperative-matrix kernels; every submission that runs this
-    /// network's launches must start with it.
+    /// Records the copy of the weights into the row-blocked kernels' uniform windows; every
+    /// submission that runs this network's training launches must start with it (evaluations
+    /// pack through [`SirenGpu::record_eval_pack`], which also packs the f16 weights).
     pub(crate) fn record_pack(&self, enc: &mut wgpu::CommandEncoder) {
         if let Some(d) = &self.dense {
             d.record_pack(enc, &self.params);
-        }
-        if let Some(c) = &self.coop {
-            c.record_pack(enc);
         }
     }
 
