@@ -46,7 +46,7 @@ use super::gpu::{
 };
 use super::kernels::tiled::{RorOffsets, TiledEpilogue, TiledKernels};
 use super::{LayerLayout, LossWeights};
-use crate::gpu::{GpuContext, entry};
+use crate::gpu::{GpuContext, GpuError, entry};
 use crate::shaders;
 
 /// How a training step computes the loss's dependence on ∇ₓΦ.
@@ -106,6 +106,58 @@ pub(crate) struct RorPasses {
 enum Family<'a> {
     Tiled(&'a TiledKernels),
     RowBlocked(&'a DensePlan),
+}
+
+impl Family<'_> {
+    /// The launches of the product `io.a · W_lᵀ` (`transposed`) or `io.a · W_l` with
+    /// `epilogue`, on this family: one description of each product for both families.
+    #[allow(clippy::too_many_arguments)]
+    fn product(
+        &self,
+        gpu: &GpuContext,
+        layers: &[LayerLayout],
+        l: usize,
+        rows: u32,
+        transposed: bool,
+        epilogue: RorEpilogue,
+        io: &RorIo<'_>,
+        params: &wgpu::Buffer,
+    ) -> Result<Vec<Launch>, GpuError> {
+        match self {
+            Family::Tiled(t) => {
+                let uniforms = if transposed { times_wt } else { times_w };
+                let u = uniforms(&layers[l], rows, io.a_first, io.a_stride, io.stride);
+                let offsets = RorOffsets {
+                    out: io.out_first,
+                    out1: io.out1_first,
+                    z: io.z_first,
+                    t: io.t_first,
+                };
+                let p = io.aux;
+                let e = match epilogue {
+                    RorEpilogue::Forward { omega } => TiledEpilogue::RorForward {
+                        omega,
+                        act: p,
+                        offsets,
+                    },
+                    RorEpilogue::GradBackward { omega } => {
+                        TiledEpilogue::RorGradBackward { omega, p, offsets }
+                    }
+                    RorEpilogue::GradAdjoint { omega } => {
+                        TiledEpilogue::RorGradAdjoint { omega, p, offsets }
+                    }
+                    RorEpilogue::ValueAdjoint { omega } => {
+                        TiledEpilogue::RorValueAdjoint { omega, p, offsets }
+                    }
+                };
+                Ok(vec![t.gemm(gpu, &u, e, io.a, params, io.out)])
+            }
+            Family::RowBlocked(d) if transposed => {
+                d.ror_times_wt(gpu, l, rows, epilogue, io, params)
+            }
+            Family::RowBlocked(d) => d.ror_times_w(gpu, l, rows, epilogue, io),
+        }
+    }
 }
 
 /// Builds the step for `n` points (`n_surface` on the surface) reading the input streams
@@ -198,34 +250,20 @@ pub(crate) fn build(
         } else {
             (&x[l - 1], w2)
         };
-        let u = times_wt(&layers[l], n, 0, a_rs, w2);
-        match &family {
-            Family::Tiled(t) => {
-                let offsets = RorOffsets::default();
-                let e = TiledEpilogue::RorForward {
-                    omega,
-                    act: &x[l],
-                    offsets,
-                };
-                launches.push(t.gemm(gpu, &u, e, src, params, &p[l]));
-            }
-            Family::RowBlocked(d) => {
-                let io = RorIo {
-                    a: src,
-                    a_stride: a_rs,
-                    a_first: 0,
-                    out: &p[l],
-                    aux: &x[l],
-                    stride: w2,
-                    out_first: 0,
-                    out1_first: 0,
-                    z_first: 0,
-                    t_first: 0,
-                };
-                let e = RorEpilogue::Forward { omega };
-                launches.extend(d.ror_times_wt(gpu, l, n, e, &io, params)?);
-            }
-        }
+        let io = RorIo {
+            a: src,
+            a_stride: a_rs,
+            a_first: 0,
+            out: &p[l],
+            aux: &x[l],
+            stride: w2,
+            out_first: 0,
+            out1_first: 0,
+            z_first: 0,
+            t_first: 0,
+        };
+        let e = RorEpilogue::Forward { omega };
+        launches.extend(family.product(gpu, layers, l, n, true, e, &io, params)?);
     }
     // G_L = w, H_L = D(Z_L) ⊙ w.
     launches.push(Launch::flat(
@@ -242,39 +280,20 @@ pub(crate) fn build(
     ));
     // The input-gradient chain: G_{l-1} = H_l W_l into P_{l-1}, H_{l-1} into Y_{l-1}.
     for l in (1..l_hidden).rev() {
-        let u = times_w(&layers[l], n, width, w2, w2);
-        match &family {
-            Family::Tiled(t) => {
-                let offsets = RorOffsets {
-                    out: width,
-                    out1: width,
-                    z: 0,
-                    t: 0,
-                };
-                let e = TiledEpilogue::RorGradBackward {
-                    omega,
-                    p: &p[l - 1],
-                    offsets,
-                };
-                launches.push(t.gemm(gpu, &u, e, &y[l], params, &y[l - 1]));
-            }
-            Family::RowBlocked(d) => {
-                let io = RorIo {
-                    a: &y[l],
-                    a_stride: w2,
-                    a_first: width,
-                    out: &y[l - 1],
-                    aux: &p[l - 1],
-                    stride: w2,
-                    out_first: width,
-                    out1_first: width,
-                    z_first: 0,
-                    t_first: 0,
-                };
-                let e = RorEpilogue::GradBackward { omega };
-                launches.extend(d.ror_times_w(gpu, l, n, e, &io)?);
-            }
-        }
+        let io = RorIo {
+            a: &y[l],
+            a_stride: w2,
+            a_first: width,
+            out: &y[l - 1],
+            aux: &p[l - 1],
+            stride: w2,
+            out_first: width,
+            out1_first: width,
+            z_first: 0,
+            t_first: 0,
+        };
+        let e = RorEpilogue::GradBackward { omega };
+        launches.extend(family.product(gpu, layers, l, n, false, e, &io, params)?);
     }
     // Φ, ∇ₓΦ = H_1 W_1, the loss and its seeds φ̄ and ḡ.
     let loss_groups = n.div_ceil(WG);
@@ -302,39 +321,20 @@ pub(crate) fn build(
         } else {
             (&x[l - 1], width, w2)
         };
-        let u = times_wt(&layers[l], n, a_off, a_rs, w2);
-        match &family {
-            Family::Tiled(t) => {
-                let offsets = RorOffsets {
-                    out: width,
-                    out1: width,
-                    z: 0,
-                    t: 0,
-                };
-                let e = TiledEpilogue::RorGradAdjoint {
-                    omega,
-                    p: &p[l],
-                    offsets,
-                };
-                launches.push(t.gemm(gpu, &u, e, src, params, &x[l]));
-            }
-            Family::RowBlocked(d) => {
-                let io = RorIo {
-                    a: src,
-                    a_stride: a_rs,
-                    a_first: a_off,
-                    out: &x[l],
-                    aux: &p[l],
-                    stride: w2,
-                    out_first: width,
-                    out1_first: width,
-                    z_first: 0,
-                    t_first: 0,
-                };
-                let e = RorEpilogue::GradAdjoint { omega };
-                launches.extend(d.ror_times_wt(gpu, l, n, e, &io, params)?);
-            }
-        }
+        let io = RorIo {
+            a: src,
+            a_stride: a_rs,
+            a_first: a_off,
+            out: &x[l],
+            aux: &p[l],
+            stride: w2,
+            out_first: width,
+            out1_first: width,
+            z_first: 0,
+            t_first: 0,
+        };
+        let e = RorEpilogue::GradAdjoint { omega };
+        launches.extend(family.product(gpu, layers, l, n, true, e, &io, params)?);
     }
     // Z̄_L = D(Z_L) ⊙ φ̄ wᵀ + T_L.
     launches.push(Launch::flat(
@@ -421,39 +421,20 @@ pub(crate) fn build(
             }
         }
         if l > 0 {
-            let u = times_w(&layers[l], n, 0, w2, w2);
-            match &family {
-                Family::Tiled(t) => {
-                    let offsets = RorOffsets {
-                        out: 0,
-                        out1: 0,
-                        z: 0,
-                        t: width,
-                    };
-                    let e = TiledEpilogue::RorValueAdjoint {
-                        omega,
-                        p: &p[l - 1],
-                        offsets,
-                    };
-                    launches.push(t.gemm(gpu, &u, e, &y[l], params, &y[l - 1]));
-                }
-                Family::RowBlocked(d) => {
-                    let io = RorIo {
-                        a: &y[l],
-                        a_stride: w2,
-                        a_first: 0,
-                        out: &y[l - 1],
-                        aux: &p[l - 1],
-                        stride: w2,
-                        out_first: 0,
-                        out1_first: 0,
-                        z_first: 0,
-                        t_first: width,
-                    };
-                    let e = RorEpilogue::ValueAdjoint { omega };
-                    launches.extend(d.ror_times_w(gpu, l, n, e, &io)?);
-                }
-            }
+            let io = RorIo {
+                a: &y[l],
+                a_stride: w2,
+                a_first: 0,
+                out: &y[l - 1],
+                aux: &p[l - 1],
+                stride: w2,
+                out_first: 0,
+                out1_first: 0,
+                z_first: 0,
+                t_first: width,
+            };
+            let e = RorEpilogue::ValueAdjoint { omega };
+            launches.extend(family.product(gpu, layers, l, n, false, e, &io, params)?);
         }
     }
     keep.push(ru);
