@@ -784,29 +784,41 @@ fn small_preset_learns_the_sign_of_spot() {
     assert!(acc >= 0.98, "sign accuracy {acc}");
 }
 
-#[test]
-fn training_steps_reduce_the_loss_and_the_model_file_round_trips() {
-    // A short run that CI can afford: the loss must fall, the schedule and the readback must
-    // work, and the trained network must save and load bit for bit.
-    let gpu = gpu();
-    let siren = Siren::new(SirenConfig::small(), 5).unwrap();
-    let cfg = SirenTrainConfig {
+/// A short run that CI can afford: 200 surface and `box_per_step` box points per step, the
+/// loss read every 10 steps.
+fn short_run(box_per_step: usize) -> SirenTrainConfig {
+    SirenTrainConfig {
         surface_per_step: 200,
-        box_per_step: 200,
+        box_per_step,
         dataset_size: 5000,
         loss_every: 10,
         plateau_patience: 20,
         ..SirenTrainConfig::default()
-    };
-    let mut trainer = SirenTrainer::from_mesh(gpu, &siren, &icosphere(2), cfg).unwrap();
+    }
+}
+
+/// Runs 40 steps of `trainer`, checks that the four losses read are finite and that the loss
+/// falls, and returns them.
+fn losses_fall_over_40_steps(gpu: &GpuContext, trainer: &mut SirenTrainer) -> Vec<f32> {
     let mut losses = Vec::new();
     trainer
         .train(gpu, 40, |_, l| losses.push(l.total()))
         .unwrap();
+    assert!(losses.iter().all(|l| l.is_finite()), "{losses:?}");
+    assert!(losses[3] < losses[0], "loss falls: {losses:?}");
+    losses
+}
+
+#[test]
+fn training_steps_reduce_the_loss_and_the_model_file_round_trips() {
+    // The loss must fall, the schedule and the readback must work, and the trained network
+    // must save and load bit for bit.
+    let gpu = gpu();
+    let siren = Siren::new(SirenConfig::small(), 5).unwrap();
+    let mut trainer = SirenTrainer::from_mesh(gpu, &siren, &icosphere(2), short_run(200)).unwrap();
+    let losses = losses_fall_over_40_steps(gpu, &mut trainer);
     assert_eq!(trainer.steps_done(), 40);
     assert_eq!(losses.len(), 4);
-    assert!(losses.iter().all(|l| l.is_finite()));
-    assert!(losses[3] < losses[0], "loss falls: {losses:?}");
     let file = trainer.model_file(gpu).unwrap();
     let trained = trainer.siren(gpu).unwrap();
     assert_ne!(trained.params(), siren.params());
@@ -831,24 +843,11 @@ fn training_steps_reduce_the_loss_and_the_model_file_round_trips() {
 fn tiled_training_steps_reduce_the_loss() {
     let gpu = gpu();
     let siren = Siren::new(SirenConfig::small(), 5).unwrap();
-    let cfg = SirenTrainConfig {
-        surface_per_step: 200,
-        box_per_step: 200,
-        dataset_size: 5000,
-        loss_every: 10,
-        plateau_patience: 20,
-        ..SirenTrainConfig::default()
-    };
-    let mut trainer = SirenTrainer::from_mesh(gpu, &siren, &icosphere(2), cfg).unwrap();
+    let mut trainer = SirenTrainer::from_mesh(gpu, &siren, &icosphere(2), short_run(200)).unwrap();
     trainer.set_layer_kernels(gpu, LayerKernels::Tiled).unwrap();
     assert!(trainer.net().runs_tiled());
     assert_eq!(trainer.net().row_blocked_layers(), 0);
-    let mut losses = Vec::new();
-    trainer
-        .train(gpu, 40, |_, l| losses.push(l.total()))
-        .unwrap();
-    assert!(losses.iter().all(|l| l.is_finite()));
-    assert!(losses[3] < losses[0], "loss falls: {losses:?}");
+    losses_fall_over_40_steps(gpu, &mut trainer);
 }
 
 /// Training with each step forced on each family that has it: the loss falls and stays finite.
@@ -856,28 +855,16 @@ fn tiled_training_steps_reduce_the_loss() {
 fn reverse_over_reverse_training_steps_reduce_the_loss() {
     let gpu = gpu();
     let siren = Siren::new(SirenConfig::small(), 5).unwrap();
-    let cfg = SirenTrainConfig {
-        surface_per_step: 200,
-        box_per_step: 201,
-        dataset_size: 5000,
-        loss_every: 10,
-        plateau_patience: 20,
-        ..SirenTrainConfig::default()
-    };
     for kernels in [LayerKernels::Tiled, LayerKernels::RowBlocked] {
-        let mut trainer = SirenTrainer::from_mesh(gpu, &siren, &icosphere(2), cfg.clone()).unwrap();
+        let mut trainer =
+            SirenTrainer::from_mesh(gpu, &siren, &icosphere(2), short_run(201)).unwrap();
         trainer.set_layer_kernels(gpu, kernels).unwrap();
         trainer
             .set_train_step(gpu, TrainStep::ReverseOverReverse)
             .unwrap();
         assert!(trainer.net().runs_reverse_over_reverse());
-        let mut losses = Vec::new();
-        trainer
-            .train(gpu, 40, |_, l| losses.push(l.total()))
-            .unwrap();
+        let losses = losses_fall_over_40_steps(gpu, &mut trainer);
         eprintln!("{kernels:?}: losses {losses:?}");
-        assert!(losses.iter().all(|l| l.is_finite()));
-        assert!(losses[3] < losses[0], "loss falls: {losses:?}");
     }
 }
 
