@@ -170,6 +170,14 @@ pub(crate) struct RorIo<'a> {
     pub(crate) t_first: u32,
 }
 
+/// The buffers of a `first_fwd` / `dense_fwd` launch: its input, its output and the
+/// epilogue's second matrix (binding 10).
+struct FwdIo<'a> {
+    a: &'a wgpu::Buffer,
+    out: &'a wgpu::Buffer,
+    aux: &'a wgpu::Buffer,
+}
+
 /// The packed weight buffer and the layers that use it.
 #[derive(Debug)]
 pub(crate) struct DensePlan {
@@ -285,47 +293,81 @@ impl DensePlan {
     ) -> Result<Vec<Launch>, GpuError> {
         let p = self.layer(l);
         let (fan_in, fan_out) = (p.layout.fan_in as u32, p.layout.fan_out as u32);
-        let first = fan_in == 3;
-        let pipeline = if first {
-            let out4 = ("OUT4", f64::from(fan_out / 4));
-            gpu.pipeline(&shaders::SIREN_DENSE, "first_fwd", &[out4])?
-        } else {
-            gpu.pipeline(
-                &shaders::SIREN_DENSE,
-                "dense_fwd",
-                &[
-                    ("RED4", f64::from(fan_in / 4)),
-                    ("OUT4", f64::from(p.window_rows / 4)),
-                ],
-            )?
+        let (mode, omega, act_out) = match epilogue {
+            Epilogue::Sine { omega } => (1, omega, &self.dummy),
+            Epilogue::SineWithTangents { omega, act } => (2, omega, act),
         };
+        let io = FwdIo {
+            a: act,
+            out,
+            aux: act_out,
+        };
+        self.fwd_windows(
+            gpu,
+            l,
+            rows,
+            false,
+            "siren dense forward",
+            &io,
+            params,
+            |o0| DenseUniforms {
+                rows,
+                a_stride4: fan_in / 4,
+                a_first4: 0,
+                out_stride4: fan_out / 4,
+                out_first4: o0 / 4,
+                mode,
+                bias_off: p.layout.bias as u32 + o0,
+                omega,
+                ..Default::default()
+            },
+        )
+    }
+
+    /// The launches of `first_fwd` (the first layer) or `dense_fwd` for layer `l` over `rows`
+    /// rows, one per weight window, with the reverse-over-reverse epilogues compiled in when
+    /// `ror`; `uniforms(o0)` gives the window's uniforms from its first output `o0`.
+    #[allow(clippy::too_many_arguments)]
+    fn fwd_windows(
+        &self,
+        gpu: &GpuContext,
+        l: usize,
+        rows: u32,
+        ror: bool,
+        label: &str,
+        io: &FwdIo<'_>,
+        params: &wgpu::Buffer,
+        uniforms: impl Fn(u32) -> DenseUniforms,
+    ) -> Result<Vec<Launch>, GpuError> {
+        let p = self.layer(l);
+        let (fan_in, fan_out) = (p.layout.fan_in as u32, p.layout.fan_out as u32);
+        let first = fan_in == 3;
+        let mut constants = if first {
+            vec![("OUT4", f64::from(fan_out / 4))]
+        } else {
+            vec![
+                ("RED4", f64::from(fan_in / 4)),
+                ("OUT4", f64::from(p.window_rows / 4)),
+            ]
+        };
+        if ror {
+            constants.push(ROR);
+        }
+        let entry_point = if first { "first_fwd" } else { "dense_fwd" };
+        let pipeline = gpu.pipeline(&shaders::SIREN_DENSE, entry_point, &constants)?;
         Ok((0..p.windows())
             .map(|w| {
-                let o0 = w * p.window_rows;
-                let (mode, omega, act_out) = match epilogue {
-                    Epilogue::Sine { omega } => (1, omega, &self.dummy),
-                    Epilogue::SineWithTangents { omega, act } => (2, omega, act),
-                };
-                let u = gpu.uniform(
-                    "siren dense forward",
-                    &DenseUniforms {
-                        rows,
-                        a_stride4: fan_in / 4,
-                        a_first4: 0,
-                        out_stride4: fan_out / 4,
-                        out_first4: o0 / 4,
-                        mode,
-                        bias_off: p.layout.bias as u32 + o0,
-                        omega,
-                        ..Default::default()
-                    },
-                );
+                let u = gpu.uniform(label, &uniforms(w * p.window_rows));
                 // first_fwd reads the points as floats at binding 12.
-                let input = if first { entry(12, act) } else { entry(1, act) };
+                let input = if first {
+                    entry(12, io.a)
+                } else {
+                    entry(1, io.a)
+                };
                 Launch::new(
                     gpu,
                     &pipeline,
-                    "siren dense forward",
+                    label,
                     &[
                         entry(0, &u),
                         input,
@@ -333,9 +375,9 @@ impl DensePlan {
                             binding: 2,
                             resource: p.window_binding(&self.packed, w),
                         },
-                        entry(3, out),
+                        entry(3, io.out),
                         entry(4, params),
-                        entry(10, act_out),
+                        entry(10, io.aux),
                     ],
                     Self::groups(gpu, rows),
                 )
@@ -478,76 +520,46 @@ impl DensePlan {
         params: &wgpu::Buffer,
     ) -> Result<Vec<Launch>, GpuError> {
         let p = self.layer(l);
-        let (fan_in, fan_out) = (p.layout.fan_in as u32, p.layout.fan_out as u32);
-        let first = fan_in == 3;
+        let first = p.layout.fan_in == 3;
         let (mode, omega) = match epilogue {
             RorEpilogue::Forward { omega } => (3, omega),
             RorEpilogue::GradAdjoint { omega } => (4, omega),
             _ => unreachable!("ror_times_wt takes the Wᵀ epilogues"),
         };
-        let pipeline = if first {
-            let out4 = ("OUT4", f64::from(fan_out / 4));
-            gpu.pipeline(&shaders::SIREN_DENSE, "first_fwd", &[out4, ROR])?
+        // first_fwd reads the input as floats, dense_fwd as vec4.
+        let (a_stride4, a_first4) = if first {
+            (io.a_stride, io.a_first)
         } else {
-            gpu.pipeline(
-                &shaders::SIREN_DENSE,
-                "dense_fwd",
-                &[
-                    ("RED4", f64::from(fan_in / 4)),
-                    ("OUT4", f64::from(p.window_rows / 4)),
-                    ROR,
-                ],
-            )?
+            (io.a_stride / 4, io.a_first / 4)
         };
-        Ok((0..p.windows())
-            .map(|w| {
-                let o0 = w * p.window_rows;
-                let (a_stride4, a_first4) = if first {
-                    (io.a_stride, io.a_first)
-                } else {
-                    (io.a_stride / 4, io.a_first / 4)
-                };
-                let u = gpu.uniform(
-                    "siren dense ror fwd",
-                    &DenseUniforms {
-                        rows,
-                        a_stride4,
-                        a_first4,
-                        out_stride4: io.stride / 4,
-                        out_first4: (io.out_first + o0) / 4,
-                        mode,
-                        bias_off: p.layout.bias as u32 + o0,
-                        omega,
-                        out1_first4: (io.out1_first + o0) / 4,
-                        z_first4: (io.z_first + o0) / 4,
-                        t_first4: 0,
-                        _pad: 0,
-                    },
-                );
-                let input = if first {
-                    entry(12, io.a)
-                } else {
-                    entry(1, io.a)
-                };
-                Launch::new(
-                    gpu,
-                    &pipeline,
-                    "siren dense ror fwd",
-                    &[
-                        entry(0, &u),
-                        input,
-                        wgpu::BindGroupEntry {
-                            binding: 2,
-                            resource: p.window_binding(&self.packed, w),
-                        },
-                        entry(3, io.out),
-                        entry(4, params),
-                        entry(10, io.aux),
-                    ],
-                    Self::groups(gpu, rows),
-                )
-            })
-            .collect())
+        let fwd = FwdIo {
+            a: io.a,
+            out: io.out,
+            aux: io.aux,
+        };
+        self.fwd_windows(
+            gpu,
+            l,
+            rows,
+            true,
+            "siren dense ror fwd",
+            &fwd,
+            params,
+            |o0| DenseUniforms {
+                rows,
+                a_stride4,
+                a_first4,
+                out_stride4: io.stride / 4,
+                out_first4: (io.out_first + o0) / 4,
+                mode,
+                bias_off: p.layout.bias as u32 + o0,
+                omega,
+                out1_first4: (io.out1_first + o0) / 4,
+                z_first4: (io.z_first + o0) / 4,
+                t_first4: 0,
+                _pad: 0,
+            },
+        )
     }
 
     /// A reverse-over-reverse product `C = A W_l` of layer `l` over `rows` points:
