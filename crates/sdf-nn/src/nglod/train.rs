@@ -685,17 +685,7 @@ impl<'g> NglodTrainer<'g> {
                     }
                 }
                 gpu.wait()?;
-                let stats = EpochStats {
-                    epoch: e,
-                    steps,
-                    loss: (loss_sum / loss_reads.max(1) as f64) as f32,
-                    gpu_seconds: gpu_start.elapsed().as_secs_f64(),
-                    sampling_seconds: sampling,
-                    stall_seconds: stall,
-                    lr,
-                    levels: lod,
-                    planned: end_epoch - first_epoch,
-                };
+                let gpu_seconds = gpu_start.elapsed().as_secs_f64();
                 // A fresh run with a time budget plans its length after its first two epochs.
                 let fresh = first_epoch == 0 && e < 2;
                 if let Some(b) = config.time_budget.filter(|_| fresh && !stop && first >= n) {
@@ -706,8 +696,15 @@ impl<'g> NglodTrainer<'g> {
                     }
                 }
                 let stats = EpochStats {
+                    epoch: e,
+                    steps,
+                    loss: (loss_sum / loss_reads.max(1) as f64) as f32,
+                    gpu_seconds,
+                    sampling_seconds: sampling,
+                    stall_seconds: stall,
+                    lr,
+                    levels: lod,
                     planned: end_epoch - first_epoch,
-                    ..stats
                 };
                 stall = 0.0;
                 on_epoch(&stats);
