@@ -32,14 +32,10 @@ fn presets() -> Vec<(&'static str, SirenConfig)> {
 /// The family `SIREN_BENCH_KERNELS` names.
 fn kernels() -> LayerKernels {
     match std::env::var("SIREN_BENCH_KERNELS").as_deref() {
-        Err(_) | Ok("" | "auto") => LayerKernels::Auto,
-        Ok("row-blocked") => LayerKernels::RowBlocked,
-        Ok("gemm") => LayerKernels::Gemm,
-        Ok("tiled") => LayerKernels::Tiled,
-        Ok("coop") => LayerKernels::CoopF16,
-        Ok(other) => {
-            panic!("SIREN_BENCH_KERNELS={other}: expected auto, row-blocked, gemm, tiled or coop")
-        }
+        Err(_) | Ok("") => LayerKernels::Auto,
+        Ok(name) => name
+            .parse()
+            .unwrap_or_else(|e| panic!("SIREN_BENCH_KERNELS: {e}")),
     }
 }
 

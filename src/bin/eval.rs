@@ -37,8 +37,9 @@ struct Args {
     lod: Option<usize>,
     /// SIREN only: the kernels to evaluate on. `coop` runs on f16 cooperative matrices (tensor
     /// cores) where the adapter has them (`gpu-info` says), trading some accuracy for speed.
-    #[arg(long, value_enum, default_value_t = KernelsArg::Auto)]
-    siren_kernels: KernelsArg,
+    /// One of auto, row-blocked, gemm, tiled, coop.
+    #[arg(long, default_value = "auto")]
+    siren_kernels: LayerKernels,
     /// glTF: also follow buffer URIs outside the mesh's folder (absolute paths, `..`, symbolic links).
     #[arg(long)]
     allow_external_uris: bool,
@@ -55,28 +56,6 @@ fn main() -> ExitCode {
     }
 }
 
-/// `--siren-kernels`: a [`LayerKernels`] family.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
-enum KernelsArg {
-    Auto,
-    RowBlocked,
-    Gemm,
-    Tiled,
-    Coop,
-}
-
-impl From<KernelsArg> for LayerKernels {
-    fn from(k: KernelsArg) -> Self {
-        match k {
-            KernelsArg::Auto => LayerKernels::Auto,
-            KernelsArg::RowBlocked => LayerKernels::RowBlocked,
-            KernelsArg::Gemm => LayerKernels::Gemm,
-            KernelsArg::Tiled => LayerKernels::Tiled,
-            KernelsArg::Coop => LayerKernels::CoopF16,
-        }
-    }
-}
-
 fn eval(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
     if args.points == 0 {
         return Err("--points must be at least 1".into());
@@ -84,8 +63,8 @@ fn eval(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
     run::check_eval_points(args.points)?;
     let mut model = NeuralSdf::load(&args.model)?;
     model.set_lod(args.lod)?;
-    if args.siren_kernels != KernelsArg::Auto {
-        model.set_siren_kernels(args.siren_kernels.into())?;
+    if args.siren_kernels != LayerKernels::Auto {
+        model.set_siren_kernels(args.siren_kernels)?;
     }
     let file_bytes = std::fs::metadata(&args.model)?.len();
     let uris = hwsdf::geom::LoadOptions::with_external_uris(args.allow_external_uris);
@@ -101,7 +80,7 @@ fn eval(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
         );
     }
     let gpu = GpuContext::new()?;
-    if args.siren_kernels == KernelsArg::Coop && gpu.coop_f16_tile().is_none() {
+    if args.siren_kernels == LayerKernels::CoopF16 && gpu.coop_f16_tile().is_none() {
         eprintln!(
             "warning: {} has no f16 cooperative matrices; --siren-kernels coop evaluates on the tiled f32 kernels",
             gpu.describe()
@@ -128,7 +107,7 @@ fn eval(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
         "mesh": args.mesh.display().to_string(),
         "architecture": model.architecture(),
         "lod": model.lod(),
-        "siren_kernels": format!("{:?}", args.siren_kernels).to_lowercase(),
+        "siren_kernels": args.siren_kernels.name(),
         "params": model.param_count(),
         "file_bytes": file_bytes,
         "eval_points": args.points,

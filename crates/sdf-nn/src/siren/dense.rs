@@ -38,6 +38,27 @@ pub enum LayerKernels {
 }
 
 impl LayerKernels {
+    /// Every family, in the order of [`LayerKernels::name`]'s names.
+    pub const ALL: [LayerKernels; 5] = [
+        LayerKernels::Auto,
+        LayerKernels::RowBlocked,
+        LayerKernels::Gemm,
+        LayerKernels::Tiled,
+        LayerKernels::CoopF16,
+    ];
+
+    /// The name the command-line flags and bench variables use: `auto`, `row-blocked`,
+    /// `gemm`, `tiled` or `coop`.
+    pub fn name(self) -> &'static str {
+        match self {
+            LayerKernels::Auto => "auto",
+            LayerKernels::RowBlocked => "row-blocked",
+            LayerKernels::Gemm => "gemm",
+            LayerKernels::Tiled => "tiled",
+            LayerKernels::CoopF16 => "coop",
+        }
+    }
+
     /// Whether the row-blocked kernels are used on `gpu`.
     pub(crate) fn row_blocked(self, gpu: &GpuContext) -> bool {
         match self {
@@ -54,6 +75,21 @@ impl LayerKernels {
             LayerKernels::Tiled | LayerKernels::CoopF16 => true,
             LayerKernels::RowBlocked | LayerKernels::Gemm => false,
         }
+    }
+}
+
+impl std::str::FromStr for LayerKernels {
+    type Err = String;
+
+    /// A [`LayerKernels::name`].
+    fn from_str(s: &str) -> Result<Self, String> {
+        Self::ALL
+            .into_iter()
+            .find(|k| k.name() == s)
+            .ok_or_else(|| {
+                let names: Vec<&str> = Self::ALL.iter().map(|k| k.name()).collect();
+                format!("unknown kernels {s:?}: expected {}", names.join(", "))
+            })
     }
 }
 
