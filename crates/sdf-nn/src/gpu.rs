@@ -211,6 +211,14 @@ fn wanted_features() -> wgpu::Features {
         | wgpu::Features::MAPPABLE_PRIMARY_BUFFERS
 }
 
+/// Whether adapters of this type use the host's memory (CPU and integrated adapters).
+fn shares_host_memory(device_type: wgpu::DeviceType) -> bool {
+    matches!(
+        device_type,
+        wgpu::DeviceType::Cpu | wgpu::DeviceType::IntegratedGpu
+    )
+}
+
 /// The features of the f16 cooperative-matrix kernels: f16 arithmetic, subgroups, and wgpu's
 /// experimental cooperative matrices.
 const COOP_F16_FEATURES: wgpu::Features = wgpu::Features::EXPERIMENTAL_COOPERATIVE_MATRIX
@@ -324,10 +332,7 @@ impl GpuContext {
         let mut features = adapter.features() & wanted_features();
         // Mappable storage only where memory is the host's ([`GpuContext::maps_storage_cheaply`]):
         // elsewhere it is slow for kernels, and wgpu warns about it at every device creation.
-        if !matches!(
-            info.device_type,
-            wgpu::DeviceType::Cpu | wgpu::DeviceType::IntegratedGpu
-        ) {
+        if !shares_host_memory(info.device_type) {
             features.remove(wgpu::Features::MAPPABLE_PRIMARY_BUFFERS);
         }
         let request = |features: wgpu::Features, experimental: wgpu::ExperimentalFeatures| {
@@ -432,10 +437,7 @@ impl GpuContext {
         self.device
             .features()
             .contains(wgpu::Features::MAPPABLE_PRIMARY_BUFFERS)
-            && matches!(
-                self.adapter_info.device_type,
-                wgpu::DeviceType::Cpu | wgpu::DeviceType::IntegratedGpu
-            )
+            && shares_host_memory(self.adapter_info.device_type)
     }
 
     /// A zeroed storage buffer (as [`GpuContext::storage_zeroed`]) with extra `usage`, e.g.
