@@ -187,6 +187,28 @@ impl MapSlot {
         self.changed.notify_all();
     }
 
+    /// Asks for `slice` to be mapped for `mode`, the callback settling this slot.
+    fn request(self: &Arc<Self>, slice: wgpu::BufferSlice<'_>, mode: wgpu::MapMode) {
+        self.set(MapState::Pending);
+        let map = Arc::clone(self);
+        slice.map_async(mode, move |r| {
+            map.set(match r {
+                Ok(()) => MapState::Mapped,
+                Err(e) => MapState::Failed(e.to_string()),
+            });
+        });
+    }
+
+    /// Waits (up to 10 s, polling `device`) for the requested mapping: `Ok` once mapped, the
+    /// reason otherwise. The slot is left idle.
+    fn settle(&self, device: &wgpu::Device) -> Result<(), String> {
+        match self.take_settled(device, Duration::from_secs(10)) {
+            MapState::Mapped => Ok(()),
+            MapState::Failed(reason) => Err(reason),
+            MapState::Idle | MapState::Pending => Err("the mapping did not complete".into()),
+        }
+    }
+
     /// Takes the state once it is no longer [`MapState::Pending`], polling `device` between
     /// waits; [`MapState::Pending`] if that takes longer than `timeout`.
     fn take_settled(&self, device: &wgpu::Device, timeout: Duration) -> MapState {
@@ -441,25 +463,13 @@ impl QueryBuffers {
             reason,
         };
         let slice = self.points.slice(..bytes);
-        self.upload_map.set(MapState::Pending);
-        let map = Arc::clone(&self.upload_map);
-        slice.map_async(wgpu::MapMode::Write, move |r| {
-            map.set(match r {
-                Ok(()) => MapState::Mapped,
-                Err(e) => MapState::Failed(e.to_string()),
-            });
-        });
-        let settled = self
-            .upload_map
-            .take_settled(gpu.device(), Duration::from_secs(10));
-        let written = match settled {
-            MapState::Mapped => slice
+        self.upload_map.request(slice, wgpu::MapMode::Write);
+        let written = self.upload_map.settle(gpu.device()).and_then(|()| {
+            slice
                 .get_mapped_range_mut()
                 .map(|mut view| view.copy_from_slice(bytemuck::cast_slice(&self.host)))
-                .map_err(|e| e.to_string()),
-            MapState::Failed(reason) => Err(reason),
-            MapState::Idle | MapState::Pending => Err("the mapping did not complete".into()),
-        };
+                .map_err(|e| e.to_string())
+        });
         // Also on failure: unmapping cancels a mapping still pending, which would otherwise
         // land later and leave the buffer mapped for every later submission.
         self.points.unmap();
@@ -500,13 +510,7 @@ impl QueryBuffers {
                 })
                 .map_err(|e| error(e.to_string()))?;
             // The submission is done; its callback may still be running on another thread.
-            match self.map.take_settled(gpu.device(), Duration::from_secs(10)) {
-                MapState::Mapped => {}
-                MapState::Failed(reason) => return Err(error(reason).into()),
-                MapState::Idle | MapState::Pending => {
-                    return Err(error("the mapping did not complete".into()).into());
-                }
-            }
+            self.map.settle(gpu.device()).map_err(error)?;
             self.map.set(MapState::Mapped);
             Some(
                 self.staging
@@ -757,17 +761,9 @@ impl NeuralSdf {
         }
         buffers.generation += 1;
         if bytes > 0 {
-            buffers.map.set(MapState::Pending);
-            let map = Arc::clone(&buffers.map);
             buffers
-                .staging
-                .slice(..bytes)
-                .map_async(wgpu::MapMode::Read, move |r| {
-                    map.set(match r {
-                        Ok(()) => MapState::Mapped,
-                        Err(e) => MapState::Failed(e.to_string()),
-                    });
-                });
+                .map
+                .request(buffers.staging.slice(..bytes), wgpu::MapMode::Read);
         }
         buffers.in_flight = Some((buffers.generation, n));
         Ok(QueryTicket {
