@@ -123,6 +123,9 @@ pub(crate) struct ReduceUniforms {
     pub(crate) _pad1: u32,
 }
 
+/// The kernel families a [`LayerKernels`] choice sets up: row-blocked, tiled, cooperative-matrix.
+type Families = (Option<DensePlan>, Option<TiledKernels>, Option<CoopKernels>);
+
 /// Default of [`SirenGpu::set_fused_max_points`]: covers the latency-bound batches (the issue's
 /// 3000 points); where the per-layer tiled GEMM overtakes the fused kernel on a GPU is not
 /// measured yet.
@@ -365,17 +368,7 @@ impl SirenGpu {
         let grads = gpu.storage_zeroed("siren grads", padded.len() as u64 * 4)?;
         let layers = config.layers();
         let kernels = LayerKernels::default();
-        let dense = if kernels.row_blocked(gpu) {
-            DensePlan::new(gpu, &layers)?
-        } else {
-            None
-        };
-        let tiled = if kernels.tiled(gpu) {
-            TiledKernels::new(gpu)?
-        } else {
-            None
-        };
-        let coop = Self::coop_for(gpu, kernels, &config, &params)?;
+        let (dense, tiled, coop) = Self::families(gpu, kernels, &config, &layers, &params)?;
         Ok(SirenGpu {
             config,
             layers,
@@ -406,18 +399,31 @@ impl SirenGpu {
         Ok(net)
     }
 
-    /// The cooperative-matrix kernels where `kernels` asks for them and they apply.
-    fn coop_for(
+    /// The row-blocked, tiled and cooperative-matrix kernels that `kernels` asks for on
+    /// `gpu`, each where it applies.
+    fn families(
         gpu: &GpuContext,
         kernels: LayerKernels,
         config: &SirenConfig,
+        layers: &[LayerLayout],
         params: &wgpu::Buffer,
-    ) -> Result<Option<CoopKernels>, GpuError> {
-        if kernels == LayerKernels::CoopF16 {
-            CoopKernels::new(gpu, config, params)
+    ) -> Result<Families, GpuError> {
+        let dense = if kernels.row_blocked(gpu) {
+            DensePlan::new(gpu, layers)?
         } else {
-            Ok(None)
-        }
+            None
+        };
+        let tiled = if kernels.tiled(gpu) {
+            TiledKernels::new(gpu)?
+        } else {
+            None
+        };
+        let coop = if kernels == LayerKernels::CoopF16 {
+            CoopKernels::new(gpu, config, params)?
+        } else {
+            None
+        };
+        Ok((dense, tiled, coop))
     }
 
     /// Submits [`SirenGpu::record_pack`] on its own (a frozen network's weights changed).
@@ -493,17 +499,8 @@ impl SirenGpu {
         gpu: &GpuContext,
         kernels: LayerKernels,
     ) -> Result<(), SirenGpuError> {
-        self.dense = if kernels.row_blocked(gpu) {
-            DensePlan::new(gpu, &self.layers)?
-        } else {
-            None
-        };
-        self.tiled = if kernels.tiled(gpu) {
-            TiledKernels::new(gpu)?
-        } else {
-            None
-        };
-        self.coop = Self::coop_for(gpu, kernels, &self.config, &self.params)?;
+        (self.dense, self.tiled, self.coop) =
+            Self::families(gpu, kernels, &self.config, &self.layers, &self.params)?;
         self.kernels = kernels;
         self.eval = None;
         self.eval_grad = None;
