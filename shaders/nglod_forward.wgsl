@@ -2,7 +2,8 @@
 // grids, sum them, and run the MLP  out = W1 · relu(W0 · z + b0) + b1.
 //
 // Parameter layout (one flat f32 buffer, shared with Adam):
-//   grid l: (r_l+1)^3 vertices × F features, vertex (ix, iy, iz) at ((ix·(r+1) + iy)·(r+1) + iz)·F
+//   grid l: (r_l+1)^3 vertices × F features, vertex (ix, iy, iz) at ((ix·(r+1) + iy)·(r+1) + iz)·F,
+//   or for a sparse level its band's vertices only (nglod_grid.wgsl)
 //   then W0 (H×F row-major), b0 (H), W1 (H), b1 (1) starting at `mlp_offset`.
 //
 // One invocation per point.
@@ -12,7 +13,7 @@ struct Uniforms {
     lod: u32,
     mlp_offset: u32,
     _pad: u32,
-    // Per level: (resolution r, offset of the grid in params, unused, unused).
+    // Per level: (resolution r, offset in params, offset in `table`, 1 if sparse): nglod_grid.wgsl.
     levels: array<vec4<u32>, 8>,
     // The serving entry points (query, query_grad): xyz the mesh's centre, w its scale.
     query: vec4<f32>,
@@ -35,6 +36,9 @@ override H: u32 = 128u;
 // reads the same weight at the same time, which is what uniform memory serves best (on lavapipe
 // 3× faster than workgroup or storage memory, measured; a constant-cache broadcast on GPUs).
 @group(0) @binding(4) var<uniform> mlp: array<vec4<f32>, MAX_MLP_VEC4>;
+
+// The sparse levels' vertex tables (nglod_grid.wgsl); one unused entry when there are none.
+@group(0) @binding(5) var<storage, read> table: array<u32>;
 
 fn mlp_at(i: u32) -> f32 {
     return mlp[i / 4u][i % 4u];
@@ -64,7 +68,6 @@ fn value_at(p: vec3<f32>) -> f32 {
     for (var l = 0u; l < u.lod; l++) {
         let lv = u.levels[l];
         let res = lv.x;
-        let s = res + 1u;
         let r = f32(res);
         let uvw = clamp((p + 1.0) * 0.5 * r, vec3<f32>(0.0), vec3<f32>(r));
         // min() keeps the index in range even for NaN input (the shader runs without bounds checks).
@@ -74,8 +77,10 @@ fn value_at(p: vec3<f32>) -> f32 {
             let d = vec3<u32>((c >> 2u) & 1u, (c >> 1u) & 1u, c & 1u);
             let wv = select(1.0 - t, t, d == vec3<u32>(1u));
             let w = wv.x * wv.y * wv.z;
-            let v = i0 + d;
-            let base = lv.y + ((v.x * s + v.y) * s + v.z) * F;
+            let base = vertex_base(lv, i0 + d);
+            if base == NO_SLOT {
+                continue;
+            }
             for (var f = 0u; f < F; f++) {
                 z[f] += w * params[base + f];
             }
@@ -108,7 +113,6 @@ fn value_grad_at(p: vec3<f32>) -> vec4<f32> {
     for (var l = 0u; l < u.lod; l++) {
         let lv = u.levels[l];
         let res = lv.x;
-        let s = res + 1u;
         let r = f32(res);
         let uu = (p + 1.0) * 0.5 * r;
         let uvw = clamp(uu, vec3<f32>(0.0), vec3<f32>(r));
@@ -122,8 +126,10 @@ fn value_grad_at(p: vec3<f32>) -> vec4<f32> {
             let w = wv.x * wv.y * wv.z;
             let dw = select(vec3<f32>(-1.0), vec3<f32>(1.0), hi)
                 * vec3<f32>(wv.y * wv.z, wv.x * wv.z, wv.x * wv.y) * du;
-            let v = i0 + d;
-            let base = lv.y + ((v.x * s + v.y) * s + v.z) * F;
+            let base = vertex_base(lv, i0 + d);
+            if base == NO_SLOT {
+                continue;
+            }
             for (var f = 0u; f < F; f++) {
                 let g = params[base + f];
                 z[f] += w * g;

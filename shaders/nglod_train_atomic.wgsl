@@ -29,7 +29,7 @@ struct Uniforms {
     chunk: u32,
     n_chunks: u32,
     _pad: u32,
-    // Per level: (resolution r, offset of the grid in params, unused, unused).
+    // Per level: (resolution r, offset in params, offset in `table`, 1 if sparse): nglod_grid.wgsl.
     levels: array<vec4<u32>, 8>,
 }
 
@@ -47,6 +47,9 @@ override H: u32 = 128u;
 @group(0) @binding(4) var<storage, read_write> rows: array<f32>;
 // The MLP block of params (W0, b0, W1, b1), copied here before each step (see nglod_forward.wgsl).
 @group(0) @binding(6) var<uniform> mlp: array<vec4<f32>, MAX_MLP_VEC4>;
+
+// The sparse levels' vertex tables (nglod_grid.wgsl); one unused entry when there are none.
+@group(0) @binding(7) var<storage, read> table: array<u32>;
 
 fn mlp_at(i: u32) -> f32 {
     return mlp[i / 4u][i % 4u];
@@ -81,7 +84,6 @@ fn train_rows(
     for (var l = 0u; l < lod; l++) {
         let lv = u.levels[l];
         let res = lv.x;
-        let s = res + 1u;
         let r = f32(res);
         let uvw = clamp((p + 1.0) * 0.5 * r, vec3<f32>(0.0), vec3<f32>(r));
         let i0 = min(vec3<u32>(floor(uvw)), vec3<u32>(res - 1u));
@@ -90,8 +92,10 @@ fn train_rows(
             let d = vec3<u32>((c >> 2u) & 1u, (c >> 1u) & 1u, c & 1u);
             let wv = select(1.0 - t, t, d == vec3<u32>(1u));
             let w = wv.x * wv.y * wv.z;
-            let v = i0 + d;
-            let base = lv.y + ((v.x * s + v.y) * s + v.z) * F;
+            let base = vertex_base(lv, i0 + d);
+            if base == NO_SLOT {
+                continue;
+            }
             for (var f = 0u; f < F; f++) {
                 z[f] += w * params[base + f];
             }
@@ -138,7 +142,6 @@ fn train_rows(
     for (var l = 0u; l < lod; l++) {
         let lv = u.levels[l];
         let res = lv.x;
-        let s = res + 1u;
         let r = f32(res);
         let uvw = clamp((p + 1.0) * 0.5 * r, vec3<f32>(0.0), vec3<f32>(r));
         let i0 = min(vec3<u32>(floor(uvw)), vec3<u32>(res - 1u));
@@ -147,8 +150,10 @@ fn train_rows(
             let d = vec3<u32>((c >> 2u) & 1u, (c >> 1u) & 1u, c & 1u);
             let wv = select(1.0 - t, t, d == vec3<u32>(1u));
             let w = wv.x * wv.y * wv.z;
-            let v = i0 + d;
-            let base = lv.y + ((v.x * s + v.y) * s + v.z) * F;
+            let base = vertex_base(lv, i0 + d);
+            if base == NO_SLOT {
+                continue;
+            }
             for (var f = 0u; f < F; f++) {
                 grad_add(base + f, w * dz[f]);
             }

@@ -438,6 +438,7 @@ fn plane_model() -> ModelFile {
         feature_dim: 1,
         hidden: 1,
         seed: 0,
+        sparse_levels: 0,
     };
     // Grid `[ix, iy, iz, f]`, vertex ix at x = -1 + ix / 2.
     let mut params: Vec<f32> = (0..125)

@@ -5,8 +5,7 @@ use std::path::PathBuf;
 use std::process::{Command, Output};
 use std::sync::OnceLock;
 
-use glam::Vec3;
-use hwsdf::nn::{Nglod, NglodConfig, Normalization, Siren, SirenConfig};
+use hwsdf::nn::{Nglod, Normalization, Siren, SirenConfig};
 
 fn render() -> Command {
     Command::new(env!("CARGO_BIN_EXE_render"))
@@ -22,25 +21,8 @@ fn scratch(name: &str) -> PathBuf {
 fn sphere_model() -> &'static PathBuf {
     static PATH: OnceLock<PathBuf> = OnceLock::new();
     PATH.get_or_init(|| {
-        let config = NglodConfig {
-            resolutions: vec![16],
-            feature_dim: 1,
-            hidden: 1,
-            seed: 0,
-        };
-        let layout = config.layout();
-        let s = 17;
-        let mut params = vec![0f32; layout.len];
-        for (i, p) in params[..s * s * s].iter_mut().enumerate() {
-            let v = Vec3::new((i / (s * s)) as f32, ((i / s) % s) as f32, (i % s) as f32);
-            *p = (v / 8.0 - 1.0).length() - 0.5;
-        }
-        params[layout.w0] = 1.0;
-        params[layout.b0] = 10.0;
-        params[layout.w1] = 1.0;
-        params[layout.b1] = -10.0;
         let path = scratch("sphere.safetensors");
-        Nglod::from_params(config, params)
+        Nglod::from_sdf(16, |p| p.length() - 0.5)
             .unwrap()
             .to_model_file(Normalization::identity(), serde_json::Value::Null)
             .save(&path)

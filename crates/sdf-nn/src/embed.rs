@@ -15,7 +15,9 @@
 //! @group(G) @binding(0) var<storage, read> hwsdf_params: array<f32>;
 //! ```
 //!
-//! with `G` the group index the caller passes to [`NeuralSdf::wgsl`]. Every global the snippet
+//! with `G` the group index the caller passes to [`NeuralSdf::wgsl`]. An NGLOD model with sparse
+//! levels also reads its vertex tables from `@group(G) @binding(1) var<storage, read>
+//! hwsdf_table: array<u32>` ([`SdfBindGroup::table`]). Every global the snippet
 //! declares starts with `hwsdf_` / `HWSDF_`, so it cannot clash with the caller's names.
 //!
 //! Outside the normalised box the distance is `Φ(clamp(x)) + |x − clamp(x)|`, exactly as every
@@ -59,13 +61,16 @@ pub enum EmbedError {
 /// The model's weights on a caller's device, bound for the snippet of [`NeuralSdf::wgsl`].
 #[derive(Debug)]
 pub struct SdfBindGroup {
-    /// Layout: binding 0, a read-only storage buffer visible to compute and fragment shaders.
+    /// Layout: binding 0 (and 1 for a sparse NGLOD model), read-only storage buffers visible to
+    /// compute and fragment shaders.
     /// Put it at the group index passed to [`NeuralSdf::wgsl`] in the pipeline layout.
     pub layout: wgpu::BindGroupLayout,
     /// The bind group to set at that index.
     pub bind_group: wgpu::BindGroup,
     /// The weights (flat `f32`, the layout of the model's `params()`).
     pub buffer: wgpu::Buffer,
+    /// An NGLOD model's sparse-level vertex tables (binding 1); `None` for a dense model.
+    pub table: Option<wgpu::Buffer>,
 }
 
 impl NeuralSdf {
@@ -81,28 +86,37 @@ impl NeuralSdf {
     /// Uploads the weights to `device` and creates the bind group (and its layout) that the
     /// snippet of [`NeuralSdf::wgsl`] reads, visible to compute and fragment stages.
     pub fn bind_group(&self, device: &wgpu::Device) -> Result<SdfBindGroup, EmbedError> {
-        let params: &[f32] = match self.network() {
-            Network::Siren(s) => s.params(),
-            Network::Nglod(m) => m.params(),
+        let (params, tables): (&[f32], Vec<u32>) = match self.network() {
+            Network::Siren(s) => (s.params(), Vec::new()),
+            Network::Nglod(m) => (m.params(), sparse_tables(m)),
         };
-        let bytes = std::mem::size_of_val(params) as u64;
         let limits = device.limits();
         let limit = limits
             .max_storage_buffer_binding_size
             .min(limits.max_buffer_size);
-        if bytes > limit {
-            return Err(EmbedError::TooLarge { bytes, limit });
+        for bytes in [
+            std::mem::size_of_val(params) as u64,
+            std::mem::size_of_val(&tables[..]) as u64,
+        ] {
+            if bytes > limit {
+                return Err(EmbedError::TooLarge { bytes, limit });
+            }
         }
         use wgpu::util::DeviceExt;
-        let buffer = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
-            label: Some("hwsdf_params"),
-            contents: bytemuck::cast_slice(params),
-            usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST,
-        });
-        let layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
-            label: Some("hwsdf_params layout"),
-            entries: &[wgpu::BindGroupLayoutEntry {
-                binding: 0,
+        let storage = |label, contents: &[u8]| {
+            device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                label: Some(label),
+                contents,
+                usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST,
+            })
+        };
+        let buffer = storage("hwsdf_params", bytemuck::cast_slice(params));
+        let table =
+            (!tables.is_empty()).then(|| storage("hwsdf_table", bytemuck::cast_slice(&tables)));
+        let buffers: Vec<&wgpu::Buffer> = std::iter::once(&buffer).chain(&table).collect();
+        let layout_entries: Vec<_> = (0..buffers.len() as u32)
+            .map(|binding| wgpu::BindGroupLayoutEntry {
+                binding,
                 visibility: wgpu::ShaderStages::COMPUTE | wgpu::ShaderStages::FRAGMENT,
                 ty: wgpu::BindingType::Buffer {
                     ty: wgpu::BufferBindingType::Storage { read_only: true },
@@ -110,20 +124,30 @@ impl NeuralSdf {
                     min_binding_size: None,
                 },
                 count: None,
-            }],
+            })
+            .collect();
+        let layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+            label: Some("hwsdf_params layout"),
+            entries: &layout_entries,
         });
+        let entries: Vec<_> = buffers
+            .iter()
+            .enumerate()
+            .map(|(i, b)| wgpu::BindGroupEntry {
+                binding: i as u32,
+                resource: b.as_entire_binding(),
+            })
+            .collect();
         let bind_group = device.create_bind_group(&wgpu::BindGroupDescriptor {
             label: Some("hwsdf_params"),
             layout: &layout,
-            entries: &[wgpu::BindGroupEntry {
-                binding: 0,
-                resource: buffer.as_entire_binding(),
-            }],
+            entries: &entries,
         });
         Ok(SdfBindGroup {
             layout,
             bind_group,
             buffer,
+            table,
         })
     }
 }
@@ -167,7 +191,7 @@ fn generate(network: &Network, n: Normalization, lod: Option<usize>, group: u32)
                 .config()
                 .lod(lod)
                 .expect("NeuralSdf::set_lod validated the level of detail");
-            nglod(&mut s, m, k);
+            nglod(&mut s, m, k, group);
         }
     }
     s.push_str(COMMON);
@@ -307,12 +331,44 @@ fn hwsdf_phi_grad(x: vec3<f32>) -> vec4<f32> {
 }
 "#;
 
+/// Every sparse level's vertex table, one after the other (empty for a dense model).
+fn sparse_tables(m: &Nglod) -> Vec<u32> {
+    m.bands().iter().flat_map(|b| b.table()).copied().collect()
+}
+
+/// Where a level's features are: its resolution, its offset in the parameters, and for a
+/// sparse level the offset of its vertex table.
+struct LevelAt {
+    resolution: u32,
+    offset: usize,
+    table: Option<usize>,
+}
+
 /// NGLOD: one unrolled block per level in use (resolution and grid offset as literals), the
 /// summed features decoded by the ReLU MLP. The gradient differentiates the trilinear weights
 /// (zero along an axis where the point is clamped, as on the CPU) and the active ReLUs.
-fn nglod(s: &mut String, m: &Nglod, lod: usize) {
+fn nglod(s: &mut String, m: &Nglod, lod: usize, group: u32) {
     let c = m.config();
-    let layout = c.layout();
+    let layout = m.layout();
+    let mut table_offset = 0;
+    let levels: Vec<LevelAt> = (0..lod)
+        .map(|l| LevelAt {
+            resolution: c.resolutions[l],
+            offset: layout.grid_offsets[l],
+            table: c.is_sparse(l).then(|| {
+                let at = table_offset;
+                table_offset += m.bands()[l - c.dense_levels()].table().len();
+                at
+            }),
+        })
+        .collect();
+    if !m.bands().is_empty() {
+        let _ = writeln!(
+            s,
+            "// The sparse levels' vertex tables: each vertex's slot, or 0xffffffff outside the band.\n\
+             @group({group}) @binding(1) var<storage, read> hwsdf_table: array<u32>;"
+        );
+    }
     let _ = write!(
         s,
         "// NGLOD: {k} of {levels} levels (cells per axis {res:?}), F = {f}, H = {h}.\n\
@@ -333,11 +389,11 @@ fn nglod(s: &mut String, m: &Nglod, lod: usize) {
         b1 = layout.b1,
     );
     for grad in [false, true] {
-        nglod_fn(s, &c.resolutions[..lod], &layout.grid_offsets, grad);
+        nglod_fn(s, &levels, grad);
     }
 }
 
-fn nglod_fn(s: &mut String, resolutions: &[u32], offsets: &[usize], grad: bool) {
+fn nglod_fn(s: &mut String, levels: &[LevelAt], grad: bool) {
     if grad {
         s.push_str(
             "\n// The value and the gradient (x: value, yzw: gradient) at a point inside the box.\n\
@@ -351,7 +407,8 @@ fn nglod_fn(s: &mut String, resolutions: &[u32], offsets: &[usize], grad: bool) 
         );
     }
     s.push_str("    var z: array<f32, HWSDF_F>;\n");
-    for (l, (&res, &off)) in resolutions.iter().zip(offsets).enumerate() {
+    for (l, level) in levels.iter().enumerate() {
+        let (res, off) = (level.resolution, level.offset);
         let _ = write!(
             s,
             "    // Level {l}: {res} cells per axis.\n\
@@ -377,10 +434,25 @@ fn nglod_fn(s: &mut String, resolutions: &[u32], offsets: &[usize], grad: bool) 
              \x20           let hi = d == vec3<u32>(1u);\n\
              \x20           let wv = select(1.0 - t, t, hi);\n\
              \x20           let w = wv.x * wv.y * wv.z;\n\
-             \x20           let v = i0 + d;\n\
-             \x20           let base = {off}u + ((v.x * {s}u + v.y) * {s}u + v.z) * HWSDF_F;\n",
-            s = res + 1,
+             \x20           let v = i0 + d;\n",
         );
+        let linear = format!("(v.x * {s}u + v.y) * {s}u + v.z", s = res + 1);
+        match level.table {
+            None => {
+                let _ = writeln!(s, "            let base = {off}u + ({linear}) * HWSDF_F;");
+            }
+            // A vertex outside a sparse level's band has zero features.
+            Some(t) => {
+                let _ = write!(
+                    s,
+                    "            let slot = hwsdf_table[{t}u + {linear}];\n\
+                     \x20           if slot == 0xffffffffu {{\n\
+                     \x20               continue;\n\
+                     \x20           }}\n\
+                     \x20           let base = {off}u + slot * HWSDF_F;\n"
+                );
+            }
+        }
         if grad {
             s.push_str(
                 "            let dw = select(vec3<f32>(-1.0), vec3<f32>(1.0), hi)\n\

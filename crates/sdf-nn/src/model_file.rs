@@ -332,8 +332,33 @@ impl ModelFile {
 
     /// The values of tensor `name`, checked to have exactly `shape`.
     pub fn tensor(&self, name: &str, shape: &[usize]) -> Result<&[f32], ModelFileError> {
-        let t = self
-            .tensors
+        let t = self.find(name)?;
+        if t.shape != shape {
+            return Err(ModelFileError::ShapeMismatch {
+                name: name.to_owned(),
+                found: t.shape.clone(),
+                expected: shape.to_vec(),
+            });
+        }
+        Ok(&t.data)
+    }
+
+    /// The length of the one-dimensional tensor `name` (whose size the file, not the
+    /// configuration, decides: a sparse level's vertex list).
+    pub fn tensor_len(&self, name: &str) -> Result<usize, ModelFileError> {
+        let t = self.find(name)?;
+        match t.shape[..] {
+            [n] => Ok(n),
+            _ => Err(ModelFileError::ShapeMismatch {
+                name: name.to_owned(),
+                found: t.shape.clone(),
+                expected: vec![t.data.len()],
+            }),
+        }
+    }
+
+    fn find(&self, name: &str) -> Result<&Tensor, ModelFileError> {
+        self.tensors
             .iter()
             .find(|t| t.name == name)
             .ok_or_else(|| ModelFileError::MissingTensor {
@@ -344,15 +369,7 @@ impl ModelFile {
                     .map(|t| t.name.as_str())
                     .collect::<Vec<_>>()
                     .join(", "),
-            })?;
-        if t.shape != shape {
-            return Err(ModelFileError::ShapeMismatch {
-                name: name.to_owned(),
-                found: t.shape.clone(),
-                expected: shape.to_vec(),
-            });
-        }
-        Ok(&t.data)
+            })
     }
 
     /// Errors unless the file holds `architecture`.

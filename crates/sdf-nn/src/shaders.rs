@@ -49,14 +49,20 @@ macro_rules! shader {
 pub const ADAM: Shader = shader!("adam.wgsl", wgpu::Features::empty());
 
 /// NGLOD inference (grid interpolation + MLP).
-pub const NGLOD_FORWARD: Shader = shader!("nglod_forward.wgsl", wgpu::Features::empty());
+pub const NGLOD_FORWARD: Shader = shader!(
+    "nglod_forward.wgsl" with ["nglod_grid.wgsl"],
+    wgpu::Features::empty()
+);
 /// NGLOD forward + backward per row, grid scatter with native float atomics.
 pub const NGLOD_TRAIN_ATOMIC: Shader = shader!(
-    "nglod_train_atomic.wgsl",
+    "nglod_train_atomic.wgsl" with ["nglod_grid.wgsl"],
     wgpu::Features::SHADER_FLOAT32_ATOMIC
 );
 /// NGLOD forward + backward per row, grid scatter by compare-exchange (any adapter).
-pub const NGLOD_TRAIN_CAS: Shader = shader!("nglod_train_cas.wgsl", wgpu::Features::empty());
+pub const NGLOD_TRAIN_CAS: Shader = shader!(
+    "nglod_train_cas.wgsl" with ["nglod_grid.wgsl"],
+    wgpu::Features::empty()
+);
 /// NGLOD MLP-gradient and loss reduction.
 pub const NGLOD_REDUCE: Shader = shader!("nglod_reduce.wgsl", wgpu::Features::empty());
 
@@ -101,7 +107,7 @@ pub const SPHERE_TRACE: Shader = shader!("sphere_trace.wgsl", wgpu::Features::em
 
 /// Files of shared WGSL that the `shader!` macro prepends to the shaders that use them; they
 /// are validated as part of those.
-pub const SHARED_PARTS: &[&str] = &["siren_loss.wgsl", "siren_coop.wgsl"];
+pub const SHARED_PARTS: &[&str] = &["siren_loss.wgsl", "siren_coop.wgsl", "nglod_grid.wgsl"];
 
 /// Shaders that are completed by a model's WGSL snippet (prepended at group 1).
 pub const NEEDS_MODEL: &[&str] = &[SPHERE_TRACE.name];

@@ -30,10 +30,14 @@ fn siren(config: SirenConfig, seed: u64) -> NeuralSdf {
 }
 
 /// An NGLOD model whose grid features are large enough that the grids, not the biases, decide
-/// the output and many ReLUs are active.
+/// the output and many ReLUs are active. Sparse levels hold the band around a sphere of radius
+/// 0.5.
 fn nglod(config: NglodConfig, seed: u64, lod: Option<usize>) -> NeuralSdf {
     let mut m = Nglod::new(config).unwrap();
-    let w0 = m.config().layout().w0;
+    if m.needs_bands() {
+        m.place_bands(|p| (p.length() - 0.5).abs()).unwrap();
+    }
+    let w0 = m.layout().w0;
     let mut rng = Pcg64::seed_from_u64(seed);
     for p in &mut m.params_mut()[..w0] {
         *p = rng.random_range(-0.5..0.5);
@@ -86,12 +90,21 @@ fn validate(source: &str) -> naga::Module {
     module
 }
 
+/// The `small` preset with its finest level sparse.
+fn sparse_small() -> NglodConfig {
+    NglodConfig {
+        sparse_levels: 1,
+        ..NglodConfig::small()
+    }
+}
+
 fn shapes() -> Vec<(&'static str, NeuralSdf)> {
     let one_level = NglodConfig {
         resolutions: vec![3],
         feature_dim: 1,
         hidden: 1,
         seed: 3,
+        sparse_levels: 0,
     };
     vec![
         (
@@ -115,6 +128,10 @@ fn shapes() -> Vec<(&'static str, NeuralSdf)> {
             nglod(NglodConfig::default_preset(), 2, None),
         ),
         ("nglod 1 level F=1 H=1", nglod(one_level, 3, None)),
+        (
+            "nglod small, finest level sparse",
+            nglod(sparse_small(), 4, None),
+        ),
     ]
 }
 
@@ -405,6 +422,14 @@ fn nglod_snippet_matches_cpu_on_gpu() {
         1e-3,
         3,
     );
+    // The band's vertex table at binding 1, and points inside and outside the band.
+    check_against_cpu(
+        "nglod small, finest level sparse",
+        &nglod(sparse_small(), 5, None),
+        2e-5,
+        1e-3,
+        3,
+    );
 }
 
 /// `bind_group` on a device the caller created with plain wgpu and default limits, not through
@@ -425,6 +450,7 @@ fn bind_group_works_on_a_callers_own_device() {
             feature_dim: 2,
             hidden: 4,
             seed: 9,
+            sparse_levels: 0,
         },
         9,
         None,

@@ -32,7 +32,7 @@ fn gpu_and_timer() -> Option<(&'static GpuContext, GpuTimer)> {
 /// NGLOD's small configuration with random grid features, so the grids decide the output.
 fn model() -> Nglod {
     let mut m = Nglod::new(NglodConfig::small()).unwrap();
-    let w0 = m.config().layout().w0;
+    let w0 = m.layout().w0;
     let mut rng = Pcg64::seed_from_u64(3);
     for p in &mut m.params_mut()[..w0] {
         *p = rng.random_range(-0.5..0.5);

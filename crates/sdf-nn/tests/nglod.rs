@@ -19,10 +19,21 @@ fn gpu() -> &'static GpuContext {
 }
 
 /// A model whose features are large enough (0.3·N) that the grids, not just the biases, decide
-/// the output and many ReLUs are active.
+/// the output and many ReLUs are active. Sparse levels get the band around a sphere of radius
+/// 0.5: a shell, so that test points fall both inside and outside it.
 fn lively_model(config: NglodConfig, seed: u64) -> Nglod {
     let mut m = Nglod::new(config).unwrap();
-    let layout = m.config().layout();
+    if m.needs_bands() {
+        m.place_bands(|p| (p.length() - 0.5).abs()).unwrap();
+        let band = &m.bands()[0];
+        let level = (band_resolution(&m) as usize + 1).pow(3);
+        assert!(
+            band.len() > 8 && band.len() < level,
+            "the band holds {} of {level} vertices: not a partial band",
+            band.len()
+        );
+    }
+    let layout = m.layout().clone();
     let mut rng = Pcg64::seed_from_u64(seed);
     for p in &mut m.params_mut()[..layout.w0] {
         *p = rng.random_range(-0.5..0.5);
@@ -54,70 +65,94 @@ fn f64s(v: &[f32]) -> Vec<f64> {
     v.iter().map(|&x| f64::from(x)).collect()
 }
 
+fn band_resolution(m: &Nglod) -> u32 {
+    *m.config().resolutions.last().unwrap()
+}
+
+/// `config` with its finest level sparse.
+fn sparse(config: NglodConfig) -> NglodConfig {
+    NglodConfig {
+        sparse_levels: 1,
+        ..config
+    }
+}
+
 /// A tiny configuration for finite differences: every parameter is checked.
 fn tiny() -> NglodConfig {
     NglodConfig {
-        resolutions: vec![2, 3, 5],
+        resolutions: vec![2, 3, 8],
         feature_dim: 3,
         hidden: 6,
         seed: 7,
+        sparse_levels: 0,
     }
 }
 
 #[test]
 fn cpu_reference_gradient_matches_finite_differences() {
-    let config = tiny();
+    for config in [tiny(), sparse(tiny())] {
+        reference_gradient_matches_finite_differences(config);
+    }
+}
+
+fn reference_gradient_matches_finite_differences(config: NglodConfig) {
     let model = lively_model(config.clone(), 1);
     let params = f64s(model.params());
     let pts = points(24, 2);
     let y = targets(24, 3);
+    let sparse = config.sparse_levels;
     for objective in [Objective::Full, Objective::AllPrefixes] {
-        let (_, grad) = cpu::loss_and_gradient(&config, &params, &pts, &y, objective).unwrap();
+        let (_, grad) = cpu::loss_and_gradient(&model, &params, &pts, &y, objective).unwrap();
         let scale = grad.iter().fold(0.0f64, |m, g| m.max(g.abs()));
         let h = 1e-6;
         let mut p = params.clone();
         let mut worst = 0.0f64;
         for i in 0..params.len() {
             p[i] = params[i] + h;
-            let (lp, _) = cpu::loss_and_gradient(&config, &p, &pts, &y, objective).unwrap();
+            let (lp, _) = cpu::loss_and_gradient(&model, &p, &pts, &y, objective).unwrap();
             p[i] = params[i] - h;
-            let (lm, _) = cpu::loss_and_gradient(&config, &p, &pts, &y, objective).unwrap();
+            let (lm, _) = cpu::loss_and_gradient(&model, &p, &pts, &y, objective).unwrap();
             p[i] = params[i];
             let fd = (lp - lm) / (2.0 * h);
             worst = worst.max((fd - grad[i]).abs() / scale);
         }
         assert!(
             worst < 1e-6,
-            "{objective:?}: worst gradient error {worst:e} (relative to max |g| = {scale:e})"
+            "{sparse} sparse, {objective:?}: worst gradient error {worst:e} (relative to max \
+             |g| = {scale:e})"
         );
     }
 }
 
 #[test]
 fn prefix_objective_is_the_sum_of_prefix_losses() {
-    let config = tiny();
-    let model = lively_model(config.clone(), 4);
+    let model = lively_model(sparse(tiny()), 4);
     let params = f64s(model.params());
     let pts = points(10, 5);
     let y = targets(10, 6);
     let (all, _) =
-        cpu::loss_and_gradient(&config, &params, &pts, &y, Objective::AllPrefixes).unwrap();
+        cpu::loss_and_gradient(&model, &params, &pts, &y, Objective::AllPrefixes).unwrap();
     let mut sum = 0.0;
     for lod in 1..=3 {
         for (&p, &t) in pts.iter().zip(&y) {
-            let r = cpu::forward(&config, &params, p, lod).unwrap() - f64::from(t);
+            let r = cpu::forward(&model, &params, p, lod).unwrap() - f64::from(t);
             sum += r * r / pts.len() as f64;
         }
     }
     assert!((all - sum).abs() < 1e-12 * sum.max(1.0), "{all} vs {sum}");
-    let (full, _) = cpu::loss_and_gradient(&config, &params, &pts, &y, Objective::Full).unwrap();
+    let (full, _) = cpu::loss_and_gradient(&model, &params, &pts, &y, Objective::Full).unwrap();
     assert!(full < all);
 }
 
 #[test]
 fn cpu_f32_eval_and_spatial_gradient_match_reference() {
-    let config = tiny();
-    let model = lively_model(config.clone(), 8);
+    for config in [tiny(), sparse(tiny())] {
+        cpu_f32_matches_reference(config);
+    }
+}
+
+fn cpu_f32_matches_reference(config: NglodConfig) {
+    let model = lively_model(config, 8);
     let params = f64s(model.params());
     // Inside the box only: the spatial gradient is zero across the faces, where the grid clamps.
     let pts: Vec<Vec3> = points(200, 9)
@@ -129,7 +164,7 @@ fn cpu_f32_eval_and_spatial_gradient_match_reference() {
         let grads = model.gradient_cpu(&pts, Some(lod)).unwrap();
         let mut bad = 0;
         for ((&p, &v), &g) in pts.iter().zip(&got).zip(&grads) {
-            let want = cpu::forward(&config, &params, p, lod).unwrap();
+            let want = cpu::forward(&model, &params, p, lod).unwrap();
             assert!(
                 (f64::from(v) - want).abs() < 1e-5 * want.abs().max(1.0),
                 "{v} vs {want}"
@@ -140,8 +175,8 @@ fn cpu_f32_eval_and_spatial_gradient_match_reference() {
                     let mut e = Vec3::ZERO;
                     e[a] = h;
                     let (pp, pm) = (p + e, p - e);
-                    let fp = cpu::forward(&config, &params, pp, lod).unwrap();
-                    let fm = cpu::forward(&config, &params, pm, lod).unwrap();
+                    let fp = cpu::forward(&model, &params, pp, lod).unwrap();
+                    let fm = cpu::forward(&model, &params, pm, lod).unwrap();
                     // The step actually taken, after rounding the points to f32.
                     (fp - fm) / f64::from(pp[a] - pm[a])
                 })
@@ -166,8 +201,13 @@ fn cpu_f32_eval_and_spatial_gradient_match_reference() {
 
 #[test]
 fn gpu_forward_matches_cpu_at_every_lod() {
+    for config in [NglodConfig::small(), sparse(NglodConfig::small())] {
+        gpu_forward_matches_cpu(config);
+    }
+}
+
+fn gpu_forward_matches_cpu(config: NglodConfig) {
     let gpu = gpu();
-    let config = NglodConfig::small();
     let model = lively_model(config.clone(), 10);
     let params = f64s(model.params());
     let g = NglodGpu::new(gpu, &model, ScatterMode::Auto).unwrap();
@@ -180,11 +220,15 @@ fn gpu_forward_matches_cpu_at_every_lod() {
             .iter()
             .zip(&got)
             .map(|(&p, &v)| {
-                let want = cpu::forward(&config, &params, p, lod).unwrap();
+                let want = cpu::forward(&model, &params, p, lod).unwrap();
                 (f64::from(v) - want).abs() / want.abs().max(1.0)
             })
             .fold(0.0, f64::max);
-        assert!(worst < 1e-5, "lod {lod}: worst error {worst:e}");
+        assert!(
+            worst < 1e-5,
+            "{} sparse, lod {lod}: worst error {worst:e}",
+            config.sparse_levels
+        );
     }
     assert_eq!(
         g.eval(gpu, &pts[..5], None).unwrap(),
@@ -208,8 +252,13 @@ fn gpu_forward_matches_cpu_at_every_lod() {
 
 #[test]
 fn gpu_gradients_match_cpu_on_both_scatter_paths() {
+    for config in [NglodConfig::small(), sparse(NglodConfig::small())] {
+        gpu_gradients_match_cpu(config);
+    }
+}
+
+fn gpu_gradients_match_cpu(config: NglodConfig) {
     let gpu = gpu();
-    let config = NglodConfig::small();
     let model = lively_model(config.clone(), 12);
     let params = f64s(model.params());
     // 301 points: not a multiple of the workgroup; ×3 prefixes spans several reduction chunks.
@@ -227,7 +276,7 @@ fn gpu_gradients_match_cpu_on_both_scatter_paths() {
         for objective in [Objective::Full, Objective::AllPrefixes] {
             let (loss, grad) = g.loss_and_gradient(gpu, &pts, &y, objective).unwrap();
             let (want_loss, want) =
-                cpu::loss_and_gradient(&config, &params, &pts, &y, objective).unwrap();
+                cpu::loss_and_gradient(&model, &params, &pts, &y, objective).unwrap();
             assert!(
                 (loss - want_loss).abs() < 1e-5 * want_loss,
                 "{mode:?} {objective:?}: loss {loss} vs {want_loss}"
@@ -240,7 +289,9 @@ fn gpu_gradients_match_cpu_on_both_scatter_paths() {
                 .fold(0.0, f64::max);
             assert!(
                 worst < 1e-5,
-                "{mode:?} {objective:?}: worst gradient error {worst:e} of max |g| {scale:e}"
+                "{} sparse, {mode:?} {objective:?}: worst gradient error {worst:e} of max |g| \
+                 {scale:e}",
+                config.sparse_levels
             );
         }
         // The gradient buffer is left zeroed for the next caller.
@@ -410,6 +461,61 @@ fn model_file_round_trips_bit_for_bit() {
 }
 
 #[test]
+fn sparse_model_file_round_trips_and_rejects_bad_vertex_lists() {
+    let model = lively_model(sparse(NglodConfig::small()), 21);
+    let n = model.bands()[0].len();
+    let file = model.to_model_file(sdf_nn::Normalization::identity(), serde_json::Value::Null);
+    let names: Vec<&str> = file.tensors.iter().map(|t| t.name.as_str()).collect();
+    assert_eq!(
+        &names[..4],
+        ["grids.0", "grids.1", "grids.2", "grids.2.vertices"]
+    );
+    assert_eq!(file.tensors[2].shape, [n, 4]);
+    assert_eq!(file.tensors[3].shape, [n]);
+    let path = std::path::Path::new(env!("CARGO_TARGET_TMPDIR")).join("nglod_sparse.safetensors");
+    file.save(&path).unwrap();
+    let back = Nglod::from_model_file(&sdf_nn::ModelFile::load(&path).unwrap()).unwrap();
+    assert_eq!(back, model);
+    let pts = points(500, 22);
+    assert_eq!(
+        back.eval_cpu(&pts, None).unwrap(),
+        model.eval_cpu(&pts, None).unwrap()
+    );
+
+    // Vertex lists that are not increasing, out of range, or not integers; a length that does
+    // not match the features: typed errors.
+    let level = 17 * 17 * 17;
+    for (what, edit) in [
+        ("repeated", 0usize),
+        ("out of range", 1),
+        ("fractional", 2),
+        ("negative", 3),
+        ("one short", 4),
+    ] {
+        let mut bad = file.clone();
+        let v = &mut bad.tensors[3];
+        match edit {
+            0 => v.data[1] = v.data[0],
+            1 => *v.data.last_mut().unwrap() = level as f32,
+            2 => v.data[0] = 0.5,
+            3 => v.data[0] = -1.0,
+            _ => {
+                v.data.pop();
+                v.shape = vec![n - 1];
+            }
+        }
+        let err = Nglod::from_model_file(&bad);
+        assert!(
+            matches!(
+                err,
+                Err(NglodError::InvalidConfig(_) | NglodError::ModelFile(_))
+            ),
+            "{what}: {err:?}"
+        );
+    }
+}
+
+#[test]
 fn trains_with_the_compare_exchange_fallback() {
     let gpu = gpu();
     let mesh = icosphere(0.5, 2);
@@ -528,7 +634,7 @@ fn progressive_training_adds_levels_one_at_a_time() {
     let gpu = gpu();
     let mesh = icosphere(0.5, 2);
     let model = Nglod::new(NglodConfig::small()).unwrap();
-    let layout = model.config().layout();
+    let layout = model.layout();
     let config = NglodTrainConfig {
         epochs: 2,
         uniform_points: 1_000,

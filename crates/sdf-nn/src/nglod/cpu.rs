@@ -6,7 +6,7 @@
 
 use glam::Vec3;
 
-use super::{NglodConfig, NglodError, Objective, cell};
+use super::{Nglod, NglodError, Objective, cell};
 
 /// Per-point trace of one forward pass, kept for the backward pass.
 struct Trace {
@@ -17,8 +17,9 @@ struct Trace {
     out: f64,
 }
 
-fn forward_trace(config: &NglodConfig, params: &[f64], p: Vec3, lod: usize) -> Trace {
-    let layout = config.layout();
+fn forward_trace(model: &Nglod, params: &[f64], p: Vec3, lod: usize) -> Trace {
+    let config = model.config();
+    let layout = model.layout();
     let f = config.feature_dim as usize;
     let hd = config.hidden as usize;
     let pd = [f64::from(p.x), f64::from(p.y), f64::from(p.z)];
@@ -34,7 +35,10 @@ fn forward_trace(config: &NglodConfig, params: &[f64], p: Vec3, lod: usize) -> T
                 w *= if d[a] == 1 { t[a] } else { 1.0 - t[a] };
             }
             let v = [i0[0] + d[0], i0[1] + d[1], i0[2] + d[2]];
-            let base = layout.grid_offsets[l] + ((v[0] * s + v[1]) * s + v[2]) * f;
+            // A sparse level's vertex outside its band has zero features.
+            let Some(base) = model.vertex_base(l, (v[0] * s + v[1]) * s + v[2]) else {
+                continue;
+            };
             for (k, zk) in z.iter_mut().enumerate() {
                 *zk += w * params[base + k];
             }
@@ -54,24 +58,19 @@ fn forward_trace(config: &NglodConfig, params: &[f64], p: Vec3, lod: usize) -> T
     Trace { corners, z, h, out }
 }
 
-/// The model's output at `p` with the first `lod` levels, in f64.
-pub fn forward(
-    config: &NglodConfig,
-    params: &[f64],
-    p: Vec3,
-    lod: usize,
-) -> Result<f64, NglodError> {
-    check(config, params, lod)?;
-    Ok(forward_trace(config, params, p, lod).out)
+/// The output at `p` with the first `lod` levels, in f64, of `model`'s architecture (its
+/// configuration and sparse levels' bands) with the parameters `params`.
+pub fn forward(model: &Nglod, params: &[f64], p: Vec3, lod: usize) -> Result<f64, NglodError> {
+    check(model, params, lod)?;
+    Ok(forward_trace(model, params, p, lod).out)
 }
 
-fn check(config: &NglodConfig, params: &[f64], lod: usize) -> Result<(), NglodError> {
-    config.validate()?;
-    config.lod(Some(lod))?;
-    if params.len() != config.param_count() {
+fn check(model: &Nglod, params: &[f64], lod: usize) -> Result<(), NglodError> {
+    model.config().lod(Some(lod))?;
+    if params.len() != model.param_count() {
         return Err(NglodError::LengthMismatch {
             what: "NGLOD parameters",
-            expected: config.param_count(),
+            expected: model.param_count(),
             got: params.len(),
         });
     }
@@ -79,15 +78,16 @@ fn check(config: &NglodConfig, params: &[f64], lod: usize) -> Result<(), NglodEr
 }
 
 /// The loss `L = (1/N) Σ_i Σ_k (sdf_k(x_i) - y_i)²` over the prefixes `k` of `objective`, and
-/// its gradient dL/dparams.
+/// its gradient dL/dparams, for `model`'s architecture with the parameters `params`.
 pub fn loss_and_gradient(
-    config: &NglodConfig,
+    model: &Nglod,
     params: &[f64],
     points: &[Vec3],
     targets: &[f32],
     objective: Objective,
 ) -> Result<(f64, Vec<f64>), NglodError> {
-    check(config, params, config.levels())?;
+    let config = model.config();
+    check(model, params, config.levels())?;
     if points.len() != targets.len() {
         return Err(NglodError::LengthMismatch {
             what: "targets (one per point)",
@@ -95,7 +95,7 @@ pub fn loss_and_gradient(
             got: targets.len(),
         });
     }
-    let layout = config.layout();
+    let layout = model.layout();
     let f = config.feature_dim as usize;
     let (first, count) = objective.prefixes(config.levels());
     let n = points.len().max(1) as f64;
@@ -103,7 +103,7 @@ pub fn loss_and_gradient(
     let mut grad = vec![0.0; params.len()];
     for (&p, &y) in points.iter().zip(targets) {
         for lod in first..first + count {
-            let t = forward_trace(config, params, p, lod);
+            let t = forward_trace(model, params, p, lod);
             let r = t.out - f64::from(y);
             loss += r * r / n;
             let g = 2.0 * r / n;

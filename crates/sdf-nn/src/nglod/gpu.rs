@@ -6,7 +6,9 @@ use std::sync::Mutex;
 
 use glam::Vec3;
 
-use super::{MAX_LEVELS, MAX_MLP_FLOATS, Nglod, NglodConfig, NglodError, Objective, ParamLayout};
+use super::{
+    Band, MAX_LEVELS, MAX_MLP_FLOATS, Nglod, NglodConfig, NglodError, Objective, ParamLayout,
+};
 use crate::gpu::{GpuContext, GpuError, GpuTimer, entry};
 use crate::shaders;
 
@@ -77,11 +79,15 @@ pub(crate) struct NglodEvalBinding {
 }
 
 /// An NGLOD model on the GPU: the flat parameter buffer, its gradient buffer (the layout of
-/// [`NglodConfig::layout`], shared with [`crate::Adam`]) and the pipelines.
+/// [`Nglod::layout`], shared with [`crate::Adam`]), the sparse levels' vertex tables and the
+/// pipelines.
 pub struct NglodGpu {
     config: NglodConfig,
+    bands: Vec<Band>,
     layout: ParamLayout,
     params: wgpu::Buffer,
+    /// Every sparse level's vertex table, one after the other (`nglod_grid.wgsl`).
+    table: wgpu::Buffer,
     grads: wgpu::Buffer,
     /// Uniform copy of the MLP block of `params`, refreshed before every dispatch that reads it
     /// (unless `frozen`).
@@ -105,11 +111,23 @@ impl std::fmt::Debug for NglodGpu {
     }
 }
 
-fn level_table(config: &NglodConfig, layout: &ParamLayout) -> [[u32; 4]; MAX_LEVELS] {
+/// The kernels' per-level uniform: resolution, offset in the parameters, offset of the level's
+/// table in the concatenated vertex tables, and 1 for a sparse level.
+fn level_table(
+    config: &NglodConfig,
+    layout: &ParamLayout,
+    bands: &[Band],
+) -> [[u32; 4]; MAX_LEVELS] {
     let mut t = [[0u32; 4]; MAX_LEVELS];
+    let mut table_offset = 0;
+    let dense = config.dense_levels();
     for (l, &r) in config.resolutions.iter().enumerate() {
-        // validate() bounds the parameter count well below u32::MAX.
-        t[l] = [r, layout.grid_offsets[l] as u32, 0, 0];
+        // validate() bounds the parameter count and the tables well below u32::MAX.
+        t[l] = [r, layout.grid_offsets[l] as u32, table_offset, 0];
+        if l >= dense {
+            t[l][3] = 1;
+            table_offset += bands[l - dense].table().len() as u32;
+        }
     }
     t
 }
@@ -134,8 +152,17 @@ impl NglodGpu {
             }
             ScatterMode::CompareExchange => false,
         };
-        let layout = config.layout();
+        let layout = model.layout().clone();
         let params = gpu.storage_from_slice("nglod params", model.params())?;
+        let mut tables: Vec<u32> = model
+            .bands()
+            .iter()
+            .flat_map(|b| b.table())
+            .copied()
+            .collect();
+        // A binding cannot be empty.
+        tables.resize(tables.len().max(1), super::NO_SLOT);
+        let table = gpu.storage_from_slice("nglod vertex tables", &tables)?;
         let grads = gpu.storage_zeroed("nglod grads", layout.len as u64 * 4)?;
         let mlp = gpu.device().create_buffer(&wgpu::BufferDescriptor {
             label: Some("nglod mlp uniform"),
@@ -149,8 +176,10 @@ impl NglodGpu {
         ];
         Ok(NglodGpu {
             config,
+            bands: model.bands().to_vec(),
             layout,
             params,
+            table,
             grads,
             mlp,
             frozen: false,
@@ -209,9 +238,10 @@ impl NglodGpu {
 
     /// Replaces the parameters on the GPU with `model`'s (same configuration).
     pub fn upload(&self, gpu: &GpuContext, model: &Nglod) -> Result<(), NglodError> {
-        if model.config() != &self.config {
+        if model.config() != &self.config || model.bands() != self.bands {
             return Err(NglodError::InvalidConfig(
-                "upload: the model's configuration differs from the GPU model's".into(),
+                "upload: the model's configuration or sparse levels differ from the GPU model's"
+                    .into(),
             ));
         }
         gpu.write(&self.params, model.params())?;
@@ -224,7 +254,7 @@ impl NglodGpu {
     /// Reads the parameters back into a host model.
     pub fn to_model(&self, gpu: &GpuContext) -> Result<Nglod, NglodError> {
         let params: Vec<f32> = gpu.read_back_range(&self.params, 0, self.layout.len as u64)?;
-        Nglod::from_params(self.config.clone(), params)
+        Nglod::from_parts(self.config.clone(), self.bands.clone(), params)
     }
 
     /// Signed distances at `points` (normalised coordinates) with the first `lod` levels
@@ -284,6 +314,7 @@ impl NglodGpu {
                     entry(2, &pts),
                     entry(3, &out),
                     entry(4, &self.mlp),
+                    entry(5, &self.table),
                 ],
             });
             *guard = Some(EvalScratch {
@@ -354,6 +385,7 @@ impl NglodGpu {
                 entry(2, input),
                 entry(3, output),
                 entry(4, &self.mlp),
+                entry(5, &self.table),
             ],
         });
         Ok(NglodEvalBinding {
@@ -423,7 +455,7 @@ impl NglodGpu {
             lod: lod as u32,
             mlp_offset: self.layout.w0 as u32,
             _pad: 0,
-            levels: level_table(&self.config, &self.layout),
+            levels: level_table(&self.config, &self.layout, &self.bands),
             query: [0.0, 0.0, 0.0, 1.0],
         }
     }
@@ -531,7 +563,7 @@ impl TrainKernels {
             chunk: CHUNK,
             n_chunks: 0,
             _pad: 0,
-            levels: level_table(c, &model.layout),
+            levels: level_table(c, &model.layout, &model.bands),
         };
         let uniforms = gpu.uniform("nglod train uniforms", &base);
         let train_shader = if model.float_atomics {
@@ -554,6 +586,7 @@ impl TrainKernels {
                 entry(4, &rows),
                 entry(5, &model.grads),
                 entry(6, &model.mlp),
+                entry(7, &model.table),
             ],
         });
         let bg_partial = dev.create_bind_group(&wgpu::BindGroupDescriptor {

@@ -1,12 +1,16 @@
-//! NGLOD (Takikawa et al. 2021) with dense grids, as the design document specifies: K levels of
-//! dense 3D feature grids, each trilinearly interpolated, summed, and decoded by a one-hidden-layer
-//! ReLU MLP:
+//! NGLOD (Takikawa et al. 2021): K levels of 3D feature grids, each trilinearly interpolated,
+//! summed, and decoded by a one-hidden-layer ReLU MLP:
 //!
 //! `sdf(x) = W1 · relu(W0 · Σ_{l<k} Z_l(x) + b0) + b1`
 //!
 //! where `Z_l(x)` interpolates the `(r_l + 1)³` vertex features of level `l` (a grid of `r_l`
 //! cells per axis over the normalised box `[-1, 1]³`; points outside are clamped to the box) and
 //! `k ≤ K` is the level of detail: evaluating with the first `k` levels gives a coarser SDF.
+//!
+//! The coarse levels are dense, as the design document specifies. The finest
+//! [`NglodConfig::sparse_levels`] may be sparse, as in NGLOD's own octree: they keep features only
+//! at the vertices of the cells near the surface (a [`Band`], placed from the mesh before
+//! training), so a fine level costs storage in proportion to the surface's area.
 //!
 //! - [`Nglod`]: the model with its parameters in one flat `f32` vector (CPU evaluation, model files);
 //! - [`cpu`]: the f64 reference of the forward pass, loss and gradients;
@@ -16,8 +20,9 @@
 //! # Parameter layout
 //! One flat vector, in this order (the GPU buffer, Adam's state and the model file share it):
 //! grid 0, grid 1, …, grid K-1, then `W0` (`H×F`, row-major), `b0` (`H`), `W1` (`H`), `b1` (1).
-//! Grid `l` is `[r_l+1, r_l+1, r_l+1, F]` row-major, indexed `[ix, iy, iz, f]`: vertex `ix` sits
-//! at `x = -1 + 2·ix/r_l`.
+//! A dense grid `l` is `[r_l+1, r_l+1, r_l+1, F]` row-major, indexed `[ix, iy, iz, f]`: vertex `ix`
+//! sits at `x = -1 + 2·ix/r_l`. A sparse grid is `[n, F]` for the `n` vertices of its band, in
+//! the band's order.
 
 pub mod cpu;
 pub(crate) mod gpu;
@@ -43,6 +48,15 @@ pub const MAX_LEVELS: usize = 8;
 pub const MAX_FEATURE_DIM: u32 = 32;
 /// Largest MLP (`H·F + 2H + 1` floats) the kernels keep in workgroup memory (15 KiB).
 pub const MAX_MLP_FLOATS: u32 = 3840;
+/// Largest resolution of a sparse level: model files store its vertex indices as f32, which is
+/// exact below 2^24 = 256³.
+pub const MAX_SPARSE_RESOLUTION: u32 = 255;
+/// A sparse level's table entry for a vertex that holds no features (the kernels test for it).
+pub(crate) const NO_SLOT: u32 = u32::MAX;
+/// How far a sparse level reaches: the cells whose centre lies within this many cell widths plus
+/// half a cell diagonal of the surface hold features. With one cell, every point within a cell
+/// width of the surface interpolates eight real corners.
+pub const BAND_CELLS: f32 = 1.0;
 
 /// Errors of the NGLOD model, its kernels and its trainer.
 #[derive(Debug, thiserror::Error)]
@@ -105,6 +119,13 @@ pub struct NglodConfig {
     pub hidden: u32,
     /// Seed of the initialisation.
     pub seed: u64,
+    /// How many of the finest levels are sparse: they hold features only at the vertices of the
+    /// cells within about one cell of the surface (see [`Band`]), so a fine level costs storage
+    /// in proportion to the surface's area rather than the box's volume (the design document's
+    /// "possible improvement", and NGLOD's own sparse octree). Elsewhere a sparse level
+    /// contributes nothing. 0 (the default in older files): every level is dense.
+    #[serde(default)]
+    pub sparse_levels: usize,
 }
 
 impl Default for NglodConfig {
@@ -127,6 +148,7 @@ impl NglodConfig {
             feature_dim: 8,
             hidden: 128,
             seed: 0,
+            sparse_levels: 0,
         }
     }
 
@@ -138,6 +160,7 @@ impl NglodConfig {
             feature_dim: 4,
             hidden: 32,
             seed: 0,
+            sparse_levels: 0,
         }
     }
 
@@ -173,7 +196,23 @@ impl NglodConfig {
                 self.hidden, self.feature_dim
             ));
         }
-        // The kernels index params with u32.
+        if self.sparse_levels > self.resolutions.len() {
+            return bad(format!(
+                "{} sparse levels in a model of {} levels",
+                self.sparse_levels,
+                self.resolutions.len()
+            ));
+        }
+        // Model files store a sparse level's vertex indices as f32, exact below 2^24.
+        if let Some(r) = self.resolutions[self.dense_levels()..]
+            .iter()
+            .find(|&&r| r > MAX_SPARSE_RESOLUTION)
+        {
+            return bad(format!(
+                "sparse resolution {r}; sparse levels have at most {MAX_SPARSE_RESOLUTION} cells"
+            ));
+        }
+        // The kernels index params with u32; a sparse level holds at most every vertex.
         let total: u64 = self
             .resolutions
             .iter()
@@ -186,15 +225,29 @@ impl NglodConfig {
         Ok(())
     }
 
-    /// The parameter layout (offsets into the flat vector).
-    pub fn layout(&self) -> ParamLayout {
+    /// Levels stored densely (the coarsest ones); the rest are sparse.
+    pub fn dense_levels(&self) -> usize {
+        self.resolutions.len().saturating_sub(self.sparse_levels)
+    }
+
+    /// Whether level `l` is sparse.
+    pub fn is_sparse(&self, l: usize) -> bool {
+        l >= self.dense_levels()
+    }
+
+    /// The parameter layout when sparse level `l` holds `band_vertices(l)` vertices.
+    fn layout_with(&self, band_vertices: impl Fn(usize) -> usize) -> ParamLayout {
         let f = self.feature_dim as usize;
         let h = self.hidden as usize;
         let mut grid_offsets = Vec::with_capacity(self.resolutions.len());
         let mut off = 0;
-        for &r in &self.resolutions {
+        for (l, &r) in self.resolutions.iter().enumerate() {
             grid_offsets.push(off);
-            off += (r as usize + 1).pow(3) * f;
+            off += if self.is_sparse(l) {
+                band_vertices(l)
+            } else {
+                (r as usize + 1).pow(3)
+            } * f;
         }
         let w0 = off;
         let b0 = w0 + h * f;
@@ -208,11 +261,6 @@ impl NglodConfig {
             b1,
             len: b1 + 1,
         }
-    }
-
-    /// Total number of parameters.
-    pub fn param_count(&self) -> usize {
-        self.layout().len
     }
 
     /// Resolves a level of detail: `None` is all levels, `Some(k)` must be in `1..=levels`.
@@ -284,10 +332,124 @@ pub(crate) fn cell(p: [f64; 3], res: u32) -> ([usize; 3], [f64; 3]) {
     (i0, t)
 }
 
+/// The vertices of a sparse level that hold features, in increasing linear index
+/// `(ix·s + iy)·s + iz` (`s = r + 1`); the `k`-th of them holds the level's `k`-th feature vector.
+/// A vertex outside the band has zero features, so a sparse level's field stays continuous and
+/// fades to nothing within one cell of the band's edge.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct Band {
+    resolution: u32,
+    vertices: Vec<u32>,
+    /// One entry per vertex of the level: its slot, or [`NO_SLOT`].
+    table: Vec<u32>,
+}
+
+impl Band {
+    /// A band from its vertices' linear indices, which must increase and lie in the level.
+    pub fn new(resolution: u32, vertices: Vec<u32>) -> Result<Self, NglodError> {
+        if !(1..=MAX_SPARSE_RESOLUTION).contains(&resolution) {
+            return Err(NglodError::InvalidConfig(format!(
+                "sparse resolution {resolution}; must be in 1..={MAX_SPARSE_RESOLUTION}"
+            )));
+        }
+        let n = (resolution as usize + 1).pow(3);
+        let mut table = vec![NO_SLOT; n];
+        let mut last = None;
+        for (k, &v) in vertices.iter().enumerate() {
+            if (v as usize) >= n || last.is_some_and(|l| l >= v) {
+                return Err(NglodError::InvalidConfig(format!(
+                    "sparse level of {resolution} cells: vertex index {v} at position {k} is out \
+                     of range or not increasing"
+                )));
+            }
+            last = Some(v);
+            table[v as usize] = k as u32;
+        }
+        Ok(Band {
+            resolution,
+            vertices,
+            table,
+        })
+    }
+
+    /// An empty band: the level contributes nothing until [`Nglod::place_bands`] fills it.
+    fn empty(resolution: u32) -> Self {
+        Band::new(resolution, Vec::new()).expect("validated resolution")
+    }
+
+    /// The band around a surface: the vertices of every cell whose centre lies within
+    /// `(√3/2 + BAND_CELLS)` cell widths of it, by `distance` (unsigned, normalised units).
+    /// Blocks of 4³ cells that cannot reach the surface are skipped with one query each.
+    pub fn around(
+        resolution: u32,
+        distance: impl Fn(Vec3) -> f32 + Sync,
+    ) -> Result<Self, NglodError> {
+        const BLOCK: u32 = 4;
+        let r = resolution;
+        let h = 2.0 / r as f32;
+        let half_diag = 0.5 * 3f32.sqrt();
+        let reach = h * (half_diag + BAND_CELLS);
+        let centre = |c: [f32; 3]| Vec3::from_array(c.map(|i| -1.0 + (i + 0.5) * h));
+        let nb = r.div_ceil(BLOCK);
+        let cells: Vec<[u32; 3]> = (0..nb * nb * nb)
+            .into_par_iter()
+            .flat_map_iter(|b| {
+                let bi = [b / (nb * nb), (b / nb) % nb, b % nb];
+                // Every cell centre of the block is within (BLOCK-1)·h·√3/2 of its middle.
+                let mid = bi.map(|i| (i * BLOCK) as f32 + 0.5 * (BLOCK - 1) as f32);
+                let skip = distance(centre(mid)) - (BLOCK - 1) as f32 * h * half_diag > reach;
+                let lo = bi.map(|i| i * BLOCK);
+                let hi = bi.map(|i| ((i + 1) * BLOCK).min(r));
+                let distance = &distance;
+                (lo[0]..hi[0])
+                    .flat_map(move |x| (lo[1]..hi[1]).map(move |y| (x, y)))
+                    .flat_map(move |(x, y)| (lo[2]..hi[2]).map(move |z| [x, y, z]))
+                    .filter(move |c| !skip && distance(centre(c.map(|i| i as f32))) <= reach)
+            })
+            .collect();
+        let s = r as usize + 1;
+        let mut used = vec![false; s * s * s];
+        for c in cells {
+            for k in 0..8u32 {
+                let v =
+                    [c[0] + (k >> 2 & 1), c[1] + (k >> 1 & 1), c[2] + (k & 1)].map(|i| i as usize);
+                used[(v[0] * s + v[1]) * s + v[2]] = true;
+            }
+        }
+        let vertices = (0..used.len() as u32)
+            .filter(|&v| used[v as usize])
+            .collect();
+        Band::new(resolution, vertices)
+    }
+
+    /// The vertices' linear indices.
+    pub fn vertices(&self) -> &[u32] {
+        &self.vertices
+    }
+
+    /// Number of vertices holding features.
+    pub fn len(&self) -> usize {
+        self.vertices.len()
+    }
+
+    /// Whether no vertex holds features.
+    pub fn is_empty(&self) -> bool {
+        self.vertices.is_empty()
+    }
+
+    /// The slot of every vertex of the level, [`NO_SLOT`] outside the band (the GPU table).
+    pub(crate) fn table(&self) -> &[u32] {
+        &self.table
+    }
+}
+
 /// The NGLOD model with its parameters on the host.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Nglod {
     config: NglodConfig,
+    /// One per sparse level, coarse to fine.
+    bands: Vec<Band>,
+    layout: ParamLayout,
     params: Vec<f32>,
 }
 
@@ -305,9 +467,16 @@ fn normal(rng: &mut Pcg64) -> f64 {
 impl Nglod {
     /// A freshly initialised model: grid features `0.01·N(0, 1)`, MLP weights and biases
     /// `U(-1/√fan_in, 1/√fan_in)` (PyTorch's `nn.Linear` default), all from `config.seed`.
+    ///
+    /// Sparse levels start empty: [`Nglod::place_bands`] (which the trainer calls for a fresh
+    /// model) gives them the vertices near a mesh.
     pub fn new(config: NglodConfig) -> Result<Self, NglodError> {
         config.validate()?;
-        let layout = config.layout();
+        let bands: Vec<Band> = config.resolutions[config.dense_levels()..]
+            .iter()
+            .map(|&r| Band::empty(r))
+            .collect();
+        let layout = config.layout_with(|_| 0);
         let mut rng = Pcg64::seed_from_u64(config.seed);
         let mut params = vec![0f32; layout.len];
         for p in &mut params[..layout.w0] {
@@ -321,7 +490,118 @@ impl Nglod {
         for p in &mut params[layout.w1..] {
             *p = rng.random_range(-k1..k1) as f32;
         }
-        Ok(Nglod { config, params })
+        Ok(Nglod {
+            config,
+            bands,
+            layout,
+            params,
+        })
+    }
+
+    /// Whether the model has sparse levels that are all still empty (a fresh model that
+    /// [`Nglod::place_bands`] has not seen).
+    pub fn needs_bands(&self) -> bool {
+        !self.bands.is_empty() && self.bands.iter().all(Band::is_empty)
+    }
+
+    /// Gives every sparse level the band around the surface that `distance` (unsigned, in
+    /// normalised units) describes, with fresh features `0.01·N(0, 1)` from the seed; dense
+    /// levels and the MLP keep their values.
+    pub fn place_bands(&mut self, distance: impl Fn(Vec3) -> f32 + Sync) -> Result<(), NglodError> {
+        let bands = self.config.resolutions[self.config.dense_levels()..]
+            .iter()
+            .map(|&r| Band::around(r, &distance))
+            .collect::<Result<Vec<_>, _>>()?;
+        let mut rng = Pcg64::seed_from_u64(self.config.seed ^ 0x5ba7_5e1e);
+        let fresh = bands
+            .iter()
+            .map(|b| {
+                (0..b.len() * self.config.feature_dim as usize)
+                    .map(|_| (0.01 * normal(&mut rng)) as f32)
+                    .collect()
+            })
+            .collect();
+        self.replace_bands(bands, fresh)
+    }
+
+    /// Replaces the sparse levels' bands and their features (one vector per band, `len · F`).
+    fn replace_bands(
+        &mut self,
+        bands: Vec<Band>,
+        features: Vec<Vec<f32>>,
+    ) -> Result<(), NglodError> {
+        let c = &self.config;
+        let dense = c.dense_levels();
+        if bands.len() != c.sparse_levels
+            || bands
+                .iter()
+                .zip(&c.resolutions[dense..])
+                .any(|(b, &r)| b.resolution != r)
+        {
+            return Err(NglodError::InvalidConfig(
+                "the bands do not match the model's sparse levels".into(),
+            ));
+        }
+        let f = c.feature_dim as usize;
+        let layout = c.layout_with(|l| bands[l - dense].len());
+        let mut params = Vec::with_capacity(layout.len);
+        for l in 0..c.levels() {
+            if c.is_sparse(l) {
+                let feats = &features[l - dense];
+                if feats.len() != bands[l - dense].len() * f {
+                    return Err(NglodError::LengthMismatch {
+                        what: "sparse level features",
+                        expected: bands[l - dense].len() * f,
+                        got: feats.len(),
+                    });
+                }
+                params.extend_from_slice(feats);
+            } else {
+                let end = self
+                    .layout
+                    .grid_offsets
+                    .get(l + 1)
+                    .copied()
+                    .unwrap_or(self.layout.w0);
+                params.extend_from_slice(&self.params[self.layout.grid_offsets[l]..end]);
+            }
+        }
+        params.extend_from_slice(&self.params[self.layout.w0..]);
+        debug_assert_eq!(params.len(), layout.len);
+        self.bands = bands;
+        self.layout = layout;
+        self.params = params;
+        Ok(())
+    }
+
+    /// The sparse levels' bands, coarse to fine (empty for a dense model).
+    pub fn bands(&self) -> &[Band] {
+        &self.bands
+    }
+
+    /// The parameter layout (offsets into the flat vector).
+    pub fn layout(&self) -> &ParamLayout {
+        &self.layout
+    }
+
+    /// Total number of parameters.
+    pub fn param_count(&self) -> usize {
+        self.layout.len
+    }
+
+    /// Where vertex `v` (linear index) of level `l` keeps its first feature in the flat
+    /// parameters; `None` for a vertex of a sparse level outside its band.
+    #[inline]
+    pub(crate) fn vertex_base(&self, l: usize, v: usize) -> Option<usize> {
+        let f = self.config.feature_dim as usize;
+        let slot = match self.config.dense_levels() {
+            d if l < d => v,
+            d => match self.bands[l - d].table[v] {
+                NO_SLOT => return None,
+                k => k as usize,
+            },
+        };
+        Some(self.layout.grid_offsets[l] + slot * f)
     }
 
     /// A model that reproduces `sdf` without training: one level of `resolution` cells whose
@@ -337,9 +617,10 @@ impl Nglod {
             feature_dim: 1,
             hidden: 1,
             seed: 0,
+            sparse_levels: 0,
         };
         config.validate()?;
-        let layout = config.layout();
+        let layout = config.layout_with(|_| 0);
         let s = resolution as usize + 1;
         let mut params = vec![0f32; layout.len];
         params[..s * s * s]
@@ -358,18 +639,48 @@ impl Nglod {
         Nglod::from_params(config, params)
     }
 
-    /// A model from explicit parameters (in the layout of [`NglodConfig::layout`]).
+    /// A model from explicit parameters (in the layout of [`Nglod::layout`]), its sparse levels
+    /// (if any) empty.
     pub fn from_params(config: NglodConfig, params: Vec<f32>) -> Result<Self, NglodError> {
+        let bands = config.resolutions[config.dense_levels().min(config.resolutions.len())..]
+            .iter()
+            .map(|&r| Band::new(r, Vec::new()))
+            .collect::<Result<_, _>>()?;
+        Nglod::from_parts(config, bands, params)
+    }
+
+    /// A model from explicit parameters and one band per sparse level (coarse to fine).
+    pub fn from_parts(
+        config: NglodConfig,
+        bands: Vec<Band>,
+        params: Vec<f32>,
+    ) -> Result<Self, NglodError> {
         config.validate()?;
-        let expected = config.param_count();
-        if params.len() != expected {
+        let dense = config.dense_levels();
+        if bands.len() != config.sparse_levels
+            || bands
+                .iter()
+                .zip(&config.resolutions[dense..])
+                .any(|(b, &r)| b.resolution != r)
+        {
+            return Err(NglodError::InvalidConfig(
+                "the bands do not match the configuration's sparse levels".into(),
+            ));
+        }
+        let layout = config.layout_with(|l| bands[l - dense].len());
+        if params.len() != layout.len {
             return Err(NglodError::LengthMismatch {
                 what: "NGLOD parameters",
-                expected,
+                expected: layout.len,
                 got: params.len(),
             });
         }
-        Ok(Nglod { config, params })
+        Ok(Nglod {
+            config,
+            bands,
+            layout,
+            params,
+        })
     }
 
     /// The configuration.
@@ -391,7 +702,6 @@ impl Nglod {
     /// Jacobian rows d z_f / dp.
     fn features(&self, p: Vec3, lod: usize, z: &mut [f32], dz: Option<&mut [[f32; 3]]>) {
         let f = self.config.feature_dim as usize;
-        let layout = self.config.layout();
         z.fill(0.0);
         let mut dz = dz;
         if let Some(d) = dz.as_deref_mut() {
@@ -417,7 +727,9 @@ impl Nglod {
                     std::array::from_fn(|a| if d[a] == 1 { t[a] } else { 1.0 - t[a] });
                 let w = wv[0] * wv[1] * wv[2];
                 let v = [i0[0] + d[0], i0[1] + d[1], i0[2] + d[2]];
-                let base = layout.grid_offsets[l] + ((v[0] * s + v[1]) * s + v[2]) * f;
+                let Some(base) = self.vertex_base(l, (v[0] * s + v[1]) * s + v[2]) else {
+                    continue;
+                };
                 let feats = &self.params[base..base + f];
                 for (zf, &g) in z.iter_mut().zip(feats) {
                     *zf += w * g;
@@ -442,7 +754,7 @@ impl Nglod {
     fn eval_one(&self, p: Vec3, lod: usize, grad: bool) -> (f32, Vec3) {
         let f = self.config.feature_dim as usize;
         let h = self.config.hidden as usize;
-        let layout = self.config.layout();
+        let layout = &self.layout;
         let mut z = [0f32; MAX_FEATURE_DIM as usize];
         let mut dz = [[0f32; 3]; MAX_FEATURE_DIM as usize];
         self.features(p, lod, &mut z[..f], grad.then_some(&mut dz[..f]));
@@ -493,26 +805,44 @@ impl Nglod {
     /// The model as a model file. Tensors (PyTorch state-dict style, row-major):
     /// `grids.{l}` `[r_l+1, r_l+1, r_l+1, F]` indexed `[ix, iy, iz, f]`, `mlp.0.weight` `[H, F]`,
     /// `mlp.0.bias` `[H]`, `mlp.2.weight` `[1, H]`, `mlp.2.bias` `[1]` (an
-    /// `nn.Sequential(Linear(F, H), ReLU(), Linear(H, 1))`). The metadata `config` is the
-    /// [`NglodConfig`] as JSON.
+    /// `nn.Sequential(Linear(F, H), ReLU(), Linear(H, 1))`). A sparse level `l` is
+    /// `grids.{l}` `[n, F]` for its `n` band vertices, with `grids.{l}.vertices` `[n]` their
+    /// linear indices `(ix·s + iy)·s + iz` as f32 (exact: below 2^24). The metadata `config` is
+    /// the [`NglodConfig`] as JSON.
     pub fn to_model_file(
         &self,
         normalization: Normalization,
         training: serde_json::Value,
     ) -> ModelFile {
         let c = &self.config;
-        let layout = c.layout();
+        let layout = &self.layout;
         let f = c.feature_dim as usize;
         let h = c.hidden as usize;
-        let mut tensors = Vec::with_capacity(c.levels() + 4);
+        let dense = c.dense_levels();
+        let mut tensors = Vec::with_capacity(c.levels() + c.sparse_levels + 4);
         for (l, &r) in c.resolutions.iter().enumerate() {
             let s = r as usize + 1;
             let start = layout.grid_offsets[l];
-            tensors.push(Tensor {
-                name: format!("grids.{l}"),
-                shape: vec![s, s, s, f],
-                data: self.params[start..start + s * s * s * f].to_vec(),
-            });
+            if c.is_sparse(l) {
+                let band = &self.bands[l - dense];
+                let n = band.len();
+                tensors.push(Tensor {
+                    name: format!("grids.{l}"),
+                    shape: vec![n, f],
+                    data: self.params[start..start + n * f].to_vec(),
+                });
+                tensors.push(Tensor {
+                    name: format!("grids.{l}.vertices"),
+                    shape: vec![n],
+                    data: band.vertices.iter().map(|&v| v as f32).collect(),
+                });
+            } else {
+                tensors.push(Tensor {
+                    name: format!("grids.{l}"),
+                    shape: vec![s, s, s, f],
+                    data: self.params[start..start + s * s * s * f].to_vec(),
+                });
+            }
         }
         let mut push = |name: &str, shape: Vec<usize>, range: std::ops::Range<usize>| {
             tensors.push(Tensor {
@@ -546,18 +876,41 @@ impl Nglod {
         config.validate()?;
         let f = config.feature_dim as usize;
         let h = config.hidden as usize;
-        // The config's sizes come from the file: check them against its real tensors first.
-        file.ensure_holds(config.param_count() as u64)?;
-        let mut params = Vec::with_capacity(config.param_count());
+        // The config's sizes come from the file: check the dense part against its real tensors
+        // before allocating (a sparse level's size is its vertex tensor's, already read).
+        file.ensure_holds(config.layout_with(|_| 0).len as u64)?;
+        let mut bands = Vec::with_capacity(config.sparse_levels);
+        let mut params = Vec::new();
         for (l, &r) in config.resolutions.iter().enumerate() {
             let s = r as usize + 1;
-            params.extend_from_slice(file.tensor(&format!("grids.{l}"), &[s, s, s, f])?);
+            if config.is_sparse(l) {
+                let name = format!("grids.{l}.vertices");
+                let n = file.tensor_len(&name)?;
+                let vertices = file
+                    .tensor(&name, &[n])?
+                    .iter()
+                    .map(|&v| {
+                        // Exact integers only: anything else is a corrupt file.
+                        (v >= 0.0 && v.fract() == 0.0 && v < 16_777_216.0)
+                            .then_some(v as u32)
+                            .ok_or_else(|| {
+                                NglodError::InvalidConfig(format!(
+                                    "tensor `{name}` holds {v}, not a vertex index"
+                                ))
+                            })
+                    })
+                    .collect::<Result<Vec<u32>, _>>()?;
+                bands.push(Band::new(r, vertices)?);
+                params.extend_from_slice(file.tensor(&format!("grids.{l}"), &[n, f])?);
+            } else {
+                params.extend_from_slice(file.tensor(&format!("grids.{l}"), &[s, s, s, f])?);
+            }
         }
         params.extend_from_slice(file.tensor("mlp.0.weight", &[h, f])?);
         params.extend_from_slice(file.tensor("mlp.0.bias", &[h])?);
         params.extend_from_slice(file.tensor("mlp.2.weight", &[1, h])?);
         params.extend_from_slice(file.tensor("mlp.2.bias", &[1])?);
-        Nglod::from_params(config, params)
+        Nglod::from_parts(config, bands, params)
     }
 }
 
@@ -567,11 +920,14 @@ mod tests {
 
     #[test]
     fn presets_sizes() {
-        let d = NglodConfig::default_preset();
+        let d = Nglod::new(NglodConfig::default_preset()).unwrap();
         assert_eq!(d.param_count(), 146_601);
         assert!((d.param_count() * 4) < 600_000);
-        assert_eq!(NglodConfig::small().param_count(), 23_261);
-        d.validate().unwrap();
+        assert_eq!(
+            Nglod::new(NglodConfig::small()).unwrap().param_count(),
+            23_261
+        );
+        d.config().validate().unwrap();
         NglodConfig::small().validate().unwrap();
     }
 

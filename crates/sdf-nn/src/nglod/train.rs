@@ -406,6 +406,8 @@ impl std::fmt::Debug for NglodTrainer<'_> {
 impl<'g> NglodTrainer<'g> {
     /// A trainer for `model` on `mesh`, which must already be in normalised coordinates
     /// (`mesh.normalized()`); the model learns the SDF of the box `[-1, 1]³`.
+    /// A model whose sparse levels are all empty ([`Nglod::needs_bands`]) first gets the bands
+    /// around `mesh` ([`Nglod::place_bands`]).
     pub fn new(
         gpu: &'g GpuContext,
         model: &Nglod,
@@ -443,6 +445,16 @@ impl<'g> NglodTrainer<'g> {
             return Err(NglodError::BadMesh("it has no triangles with area".into()));
         }
         let sdf = SignedDistance::new(mesh)?;
+        // A fresh model's sparse levels take the band around this mesh.
+        let placed;
+        let model = if model.needs_bands() {
+            let mut m = model.clone();
+            m.place_bands(|p| sdf.unsigned_distance(p))?;
+            placed = m;
+            &placed
+        } else {
+            model
+        };
         let gm = NglodGpu::new(gpu, model, config.scatter)?;
         let adam = Adam::new(
             gpu,
