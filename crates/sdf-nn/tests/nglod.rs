@@ -515,6 +515,50 @@ fn sparse_model_file_round_trips_and_rejects_bad_vertex_lists() {
     }
 }
 
+/// The trainer gives a fresh sparse model the band around its mesh, and the model trains.
+#[test]
+fn a_sparse_model_takes_its_band_from_the_mesh_and_trains() {
+    let gpu = gpu();
+    let radius = 0.6;
+    let mesh = icosphere(radius, 3);
+    let model = Nglod::new(sparse(NglodConfig::small())).unwrap();
+    assert!(model.needs_bands());
+    let config = NglodTrainConfig {
+        epochs: 3,
+        uniform_points: 10_000,
+        near_points: 20_000,
+        surface_points: 20_000,
+        batch_size: 512,
+        seed: 4,
+        ..Default::default()
+    };
+    let mut trainer = NglodTrainer::new(gpu, &model, &mesh, config).unwrap();
+    let report = trainer.train().unwrap();
+    assert!(report.epochs[2].loss < report.epochs[0].loss);
+    let trained = trainer.model().unwrap();
+    assert!(!trained.needs_bands());
+    let band = &trained.bands()[0];
+    // The shell around a sphere of radius 0.6 at 16 cells: between a tenth and half the level.
+    assert!(
+        band.len() > 491 && band.len() < 2456,
+        "{} band vertices",
+        band.len()
+    );
+    assert_eq!(trained.param_count(), model.param_count() + band.len() * 4);
+    let test = sdf_geom::sample::uniform_box(20_000, 98);
+    let pred = trainer.gpu_model().eval(gpu, &test, None).unwrap();
+    let correct = test
+        .iter()
+        .zip(&pred)
+        .filter(|&(p, &d)| (p.length() < radius) == (d < 0.0))
+        .count();
+    let frac = correct as f64 / test.len() as f64;
+    assert!(frac >= 0.99, "correct sign on {frac} of box points");
+    // A trained sparse model continues training as it is: its band is kept.
+    let again = NglodTrainer::new(gpu, &trained, &mesh, NglodTrainConfig::default()).unwrap();
+    assert_eq!(again.model().unwrap().bands(), trained.bands());
+}
+
 #[test]
 fn trains_with_the_compare_exchange_fallback() {
     let gpu = gpu();

@@ -931,6 +931,62 @@ mod tests {
         NglodConfig::small().validate().unwrap();
     }
 
+    /// Every point within a cell width of the surface interpolates eight band vertices, and no
+    /// vertex far from it is in the band.
+    #[test]
+    fn band_covers_a_cell_around_the_surface_and_no_more() {
+        let r = 24u32;
+        let h = 2.0 / r as f32;
+        let sphere = |p: Vec3| (p.length() - 0.55).abs();
+        let band = Band::around(r, sphere).unwrap();
+        let s = r as usize + 1;
+        assert!(
+            band.len() > 100 && band.len() < s * s * s / 2,
+            "{}",
+            band.len()
+        );
+        let mut rng = Pcg64::seed_from_u64(5);
+        let mut checked = 0;
+        while checked < 3000 {
+            let p = Vec3::new(
+                rng.random_range(-1.0..1.0),
+                rng.random_range(-1.0..1.0),
+                rng.random_range(-1.0..1.0),
+            );
+            if sphere(p) > h {
+                continue;
+            }
+            checked += 1;
+            let (i0, _) = cell([p.x, p.y, p.z].map(f64::from), r);
+            for c in 0..8 {
+                let v = [i0[0] + (c >> 2 & 1), i0[1] + (c >> 1 & 1), i0[2] + (c & 1)];
+                let linear = (v[0] * s + v[1]) * s + v[2];
+                assert_ne!(
+                    band.table()[linear],
+                    NO_SLOT,
+                    "{p} near the surface, corner {v:?}"
+                );
+            }
+        }
+        // A band vertex is a corner of a cell whose centre is within the reach.
+        let reach = h * (0.5 * 3f32.sqrt() + BAND_CELLS) + h * 0.5 * 3f32.sqrt();
+        for &v in band.vertices() {
+            let v = v as usize;
+            let x = Vec3::new((v / (s * s)) as f32, ((v / s) % s) as f32, (v % s) as f32) * h - 1.0;
+            assert!(
+                sphere(x) <= reach * 1.0001,
+                "vertex {x} is {} away",
+                sphere(x)
+            );
+        }
+        assert!(matches!(
+            Band::new(r, vec![3, 3]),
+            Err(NglodError::InvalidConfig(_))
+        ));
+        assert!(Band::new(r, vec![(s * s * s) as u32]).is_err());
+        assert!(Band::new(MAX_SPARSE_RESOLUTION + 1, vec![]).is_err());
+    }
+
     #[test]
     fn invalid_configs_are_typed_errors() {
         let mut c = NglodConfig::small();
