@@ -1,6 +1,9 @@
 //! NGLOD on the GPU (lavapipe on the development machine): inference per point at a batch of
-//! 50 000 and the latency of a batch of 3000 (criterion), for the `default` and `small` presets;
-//! then two real training epochs of the design document's 5·10⁵ points on the bunny (or on
+//! 50 000 and the latency of a batch of 3000 (criterion), for the `default` preset (its sparse
+//! level holding the band around a sphere of radius 0.6, about the size of a real mesh's band),
+//! the design document's dense model (`design`, what `scripts/nglod_torch_bench.py` runs as
+//! `default`) and `small`; then two real training epochs of the design document's 5·10⁵ points on
+//! the bunny with the `default` preset (or on
 //! `tests/data/spot.obj` when `../shared/meshes` is absent), printing how each epoch's time splits
 //! between the GPU loop and the CPU sampling that overlaps it.
 //!
@@ -15,9 +18,13 @@ use sdf_nn::{GpuContext, Nglod, NglodConfig, NglodGpu, NglodTrainConfig, NglodTr
 fn inference(c: &mut Criterion, gpu: &GpuContext) {
     for (name, cfg) in [
         ("default", NglodConfig::default_preset()),
+        ("design", NglodConfig::design_document()),
         ("small", NglodConfig::small()),
     ] {
-        let model = Nglod::new(cfg).unwrap();
+        let mut model = Nglod::new(cfg).unwrap();
+        if model.needs_bands() {
+            model.place_bands(|p| (p.length() - 0.6).abs()).unwrap();
+        }
         let net = NglodGpu::new(gpu, &model, ScatterMode::Auto).unwrap();
         let mut g = c.benchmark_group(format!("nglod_{name}"));
         g.sample_size(10)

@@ -119,7 +119,11 @@ fn empty_roundtrip(c: &mut Criterion, gpu: &GpuContext) {
 
 fn nglod(c: &mut Criterion, gpu: &GpuContext) {
     for (name, cfg) in presets() {
-        let model = Nglod::new(cfg).unwrap();
+        let mut model = Nglod::new(cfg).unwrap();
+        // A sparse level holds the band around a sphere of about a real mesh's size.
+        if model.needs_bands() {
+            model.place_bands(|p| (p.length() - 0.6).abs()).unwrap();
+        }
         let net = NglodGpu::new(gpu, &model, ScatterMode::Auto).unwrap();
         let sdf = NeuralSdf::from_model_file(
             model.to_model_file(Normalization::identity(), serde_json::Value::Null),
@@ -221,7 +225,11 @@ fn interleaved(gpu: &GpuContext, rounds: usize) {
         ],
     });
     for (name, cfg) in presets() {
-        let model = Nglod::new(cfg).unwrap();
+        let mut model = Nglod::new(cfg).unwrap();
+        // A sparse level holds the band around a sphere of about a real mesh's size.
+        if model.needs_bands() {
+            model.place_bands(|p| (p.length() - 0.6).abs()).unwrap();
+        }
         let net = NglodGpu::new(gpu, &model, ScatterMode::Auto).unwrap();
         let sdf = NeuralSdf::from_model_file(
             model.to_model_file(Normalization::identity(), serde_json::Value::Null),

@@ -112,6 +112,9 @@ pub enum ModelFileError {
 
 pub use sdf_geom::Normalization;
 
+/// The name ending of tensors that hold indices (stored as exact f32 integers), not parameters.
+pub const INDEX_SUFFIX: &str = ".vertices";
+
 /// The JSON form of a normalisation in the file's metadata.
 fn normalization_json(n: &Normalization) -> String {
     serde_json::json!({"center": n.center.to_array(), "scale": n.scale}).to_string()
@@ -413,9 +416,14 @@ impl ModelFile {
         Ok(())
     }
 
-    /// Total number of parameters (values in all tensors).
+    /// Total number of parameters: the values of every tensor but the index tensors (names
+    /// ending in [`INDEX_SUFFIX`], a sparse NGLOD level's vertex list), which are not trained.
     pub fn param_count(&self) -> usize {
-        self.tensors.iter().map(|t| t.data.len()).sum()
+        self.tensors
+            .iter()
+            .filter(|t| !t.name.ends_with(INDEX_SUFFIX))
+            .map(|t| t.data.len())
+            .sum()
     }
 }
 

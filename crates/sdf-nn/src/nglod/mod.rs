@@ -35,7 +35,9 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use crate::gpu::GpuError;
-use crate::model_file::{ModelFile, ModelFileError, ModelMetadata, Normalization, Tensor};
+use crate::model_file::{
+    INDEX_SUFFIX, ModelFile, ModelFileError, ModelMetadata, Normalization, Tensor,
+};
 
 pub use gpu::{NglodGpu, ScatterMode};
 pub use train::{
@@ -135,14 +137,31 @@ impl Default for NglodConfig {
 }
 
 impl NglodConfig {
-    /// The design document's model: K = 3 levels of 6, 12 and 24 cells (7³ + 13³ + 25³ = 18165
-    /// vertices), F = 8 features, H = 128: 146 601 parameters, 0.586 MB in f32, against the
-    /// document's ~140k / 0.56 MB.
+    /// The default: [`NglodConfig::design_document`]'s three dense levels and a fourth, sparse
+    /// level of 48 cells around the surface. Its size depends on the mesh: 146 601 parameters
+    /// plus 8 per band vertex (measured: 0.25–0.37 M parameters, 1.0–1.5 MB, on spider,
+    /// armadillo and fandisk; 0.87 M, 3.5 MB, on cubegrid, a mesh of many small cubes).
+    ///
+    /// Why: the 24-cell finest grid cannot resolve parts thinner than a cell (0.08 of the box),
+    /// and near-surface F1 is limited by it. A dense 48-cell level raises near-surface F1 by
+    /// 0.02–0.08 but costs 1.09 M parameters; the sparse one does as well or better for a
+    /// quarter of that (BENCHMARKS.md, "Sparse levels").
+    pub fn default_preset() -> Self {
+        NglodConfig {
+            resolutions: vec![6, 12, 24, 48],
+            sparse_levels: 1,
+            ..Self::design_document()
+        }
+    }
+
+    /// The design document's model: K = 3 dense levels of 6, 12 and 24 cells (7³ + 13³ + 25³ =
+    /// 18165 vertices), F = 8 features, H = 128: 146 601 parameters, 0.586 MB in f32, against
+    /// the document's ~140k / 0.56 MB.
     ///
     /// Why these: resolutions double per level like octree levels; for a fixed budget, a finer
     /// finest grid with fewer features resolves more geometry than a 16³ grid with F = 24 (the
     /// other ~140k option), and a small F keeps the MLP (128·F) and the per-point work cheap.
-    pub fn default_preset() -> Self {
+    pub fn design_document() -> Self {
         NglodConfig {
             resolutions: vec![6, 12, 24],
             feature_dim: 8,
@@ -832,7 +851,7 @@ impl Nglod {
                     data: self.params[start..start + n * f].to_vec(),
                 });
                 tensors.push(Tensor {
-                    name: format!("grids.{l}.vertices"),
+                    name: format!("grids.{l}{INDEX_SUFFIX}"),
                     shape: vec![n],
                     data: band.vertices.iter().map(|&v| v as f32).collect(),
                 });
@@ -884,7 +903,7 @@ impl Nglod {
         for (l, &r) in config.resolutions.iter().enumerate() {
             let s = r as usize + 1;
             if config.is_sparse(l) {
-                let name = format!("grids.{l}.vertices");
+                let name = format!("grids.{l}{INDEX_SUFFIX}");
                 let n = file.tensor_len(&name)?;
                 let vertices = file
                     .tensor(&name, &[n])?
@@ -920,8 +939,13 @@ mod tests {
 
     #[test]
     fn presets_sizes() {
-        let d = Nglod::new(NglodConfig::default_preset()).unwrap();
+        let d = Nglod::new(NglodConfig::design_document()).unwrap();
         assert_eq!(d.param_count(), 146_601);
+        // The default adds a sparse level whose band the mesh decides: empty until placed.
+        let mut s = Nglod::new(NglodConfig::default_preset()).unwrap();
+        assert_eq!(s.param_count(), 146_601);
+        s.place_bands(|p| (p.length() - 0.5).abs()).unwrap();
+        assert_eq!(s.param_count(), 146_601 + 8 * s.bands()[0].len());
         assert!((d.param_count() * 4) < 600_000);
         assert_eq!(
             Nglod::new(NglodConfig::small()).unwrap().param_count(),
