@@ -29,6 +29,12 @@ def nglod(t, cfg, x):
     z = 0.0
     for level, r in enumerate(cfg["resolutions"]):
         g = t[f"grids.{level}"]  # [r+1, r+1, r+1, F], indexed [ix, iy, iz, f]
+        if f"grids.{level}.vertices" in t:
+            # A sparse level: [n, F] for the band's vertices, whose linear indices
+            # (ix·(r+1) + iy)·(r+1) + iz are listed; every other vertex has zero features.
+            dense = np.zeros(((r + 1) ** 3, g.shape[1]), dtype=g.dtype)
+            dense[t[f"grids.{level}.vertices"].astype(np.int64)] = g
+            g = dense.reshape(r + 1, r + 1, r + 1, g.shape[1])
         u = (x + 1.0) * 0.5 * r
         i0 = np.clip(np.floor(u).astype(int), 0, r - 1)
         f = u - i0
