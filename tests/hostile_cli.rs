@@ -334,7 +334,8 @@ impl Fixtures {
             "garbage.safetensors",
             b"\x10\x00\x00\x00\x00\x00\x00\x00not json at all!".to_vec(),
         );
-        // Shapes whose product overflows, offsets past the end, an f16 tensor.
+        // Shapes whose product overflows, offsets past the end, an i32 tensor (models hold
+        // F32, F16 and U32 ones).
         add(
             "shape_overflow.safetensors",
             safetensors_raw(
@@ -349,21 +350,17 @@ impl Fixtures {
                 4,
             ),
         );
-        let mut f16 = plane.to_bytes().unwrap();
-        let at = f16.windows(5).position(|w| w == b"\"F32\"").unwrap();
-        f16[at..at + 5].copy_from_slice(b"\"F16\"");
-        add("f16.safetensors", f16);
+        let mut i32 = plane.to_bytes().unwrap();
+        let at = i32.windows(5).position(|w| w == b"\"F32\"").unwrap();
+        i32[at..at + 5].copy_from_slice(b"\"I32\"");
+        add("i32.safetensors", i32);
 
         // Checkpoints: the plane model with optimiser moments and a run record.
         let n = plane.param_count();
         let checkpoint = |lr: f64, v: f32| {
             let mut c = plane.clone();
             for (name, value) in [("optimizer.m", 0.0), ("optimizer.v", v)] {
-                c.tensors.push(Tensor {
-                    name: name.into(),
-                    shape: vec![n],
-                    data: vec![value; n],
-                });
+                c.tensors.push(Tensor::f32(name, vec![n], vec![value; n]));
             }
             c.metadata.training = serde_json::json!({
                 "checkpoint": true, "adam_step": 1, "lr": lr, "done": 1,
@@ -772,9 +769,9 @@ fn cases() -> Vec<Case> {
             Error("safetensors"),
         ),
         case(
-            "model f16 tensor",
+            "model i32 tensor",
             "extract",
-            &["f16.safetensors", "--out", "o.obj"],
+            &["i32.safetensors", "--out", "o.obj"],
             Error("safetensors"),
         ),
         // Special files as models.

@@ -359,11 +359,8 @@ impl Trained {
             ("optimizer.m", &self.optimizer.m),
             ("optimizer.v", &self.optimizer.v),
         ] {
-            file.tensors.push(sdf_nn::model_file::Tensor {
-                name: name.into(),
-                shape: vec![n],
-                data: data.clone(),
-            });
+            file.tensors
+                .push(sdf_nn::model_file::Tensor::f32(name, vec![n], data.clone()));
         }
         let t = &mut file.metadata.training;
         t["checkpoint"] = true.into();

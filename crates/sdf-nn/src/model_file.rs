@@ -1,4 +1,6 @@
-//! Model files: safetensors with named f32 tensors and JSON metadata, shared by SIREN and NGLOD.
+//! Model files: safetensors with named tensors and JSON metadata, shared by SIREN and NGLOD.
+//! Weights are f32, NGLOD's grid features f16 (their rounding, a relative 2^-11, is far below a
+//! fit's error) and index tensors u32; in memory every value is an `f32`.
 //!
 //! A PyTorch user loads one with `safetensors.torch.load_file(path)` and gets tensors named and
 //! shaped like an `nn.Module`'s state dict (`net.0.weight` as `[out, in]`, row-major); the
@@ -150,15 +152,72 @@ pub struct ModelMetadata {
     pub hwsdf_version: String,
 }
 
-/// One named f32 tensor, row-major.
+/// How a tensor is stored in the file. In memory its values are `f32`s that this type holds
+/// exactly, so a model evaluates the same before and after a save and a load.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum TensorDtype {
+    /// 32-bit floats.
+    #[default]
+    F32,
+    /// IEEE 16-bit floats.
+    F16,
+    /// Unsigned integers below 2^24 (exact as `f32`): indices.
+    U32,
+}
+
+/// One named tensor, row-major.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Tensor {
     /// Name, PyTorch state-dict style (`net.0.weight`).
     pub name: String,
     /// Shape, outermost first.
     pub shape: Vec<usize>,
-    /// Values, row-major.
+    /// Values, row-major, exactly representable in `dtype`.
     pub data: Vec<f32>,
+    /// How the file stores the values.
+    pub dtype: TensorDtype,
+}
+
+/// The largest integer of a [`TensorDtype::U32`] tensor: every smaller one is exact in `f32`.
+pub const MAX_INDEX: u32 = (1 << 24) - 1;
+
+impl Tensor {
+    /// An f32 tensor.
+    pub fn f32(name: impl Into<String>, shape: Vec<usize>, data: Vec<f32>) -> Self {
+        Tensor {
+            name: name.into(),
+            shape,
+            data,
+            dtype: TensorDtype::F32,
+        }
+    }
+
+    /// A tensor stored as f16, its values rounded to the nearest f16 here. Values beyond f16's
+    /// range (±65504) would become infinities: such a tensor stays f32.
+    pub fn f16(name: impl Into<String>, shape: Vec<usize>, data: Vec<f32>) -> Self {
+        if data.iter().any(|v| v.abs() > f32::from(half::f16::MAX)) {
+            return Tensor::f32(name, shape, data);
+        }
+        Tensor {
+            name: name.into(),
+            shape,
+            data: data
+                .into_iter()
+                .map(|v| half::f16::from_f32(v).to_f32())
+                .collect(),
+            dtype: TensorDtype::F16,
+        }
+    }
+
+    /// A tensor of indices, each at most [`MAX_INDEX`] (larger ones are clamped to it).
+    pub fn indices(name: impl Into<String>, shape: Vec<usize>, data: &[u32]) -> Self {
+        Tensor {
+            name: name.into(),
+            shape,
+            data: data.iter().map(|&v| v.min(MAX_INDEX) as f32).collect(),
+            dtype: TensorDtype::U32,
+        }
+    }
 }
 
 /// A model file in memory.
@@ -183,10 +242,12 @@ impl ModelFile {
     ///
     /// The header is written here rather than by `safetensors::serialize`, whose metadata map
     /// has no fixed order: the same model always gives the same bytes. Tensors are laid out in
-    /// name order; keys in the JSON header are sorted.
+    /// name order, f16 ones last; keys in the JSON header are sorted.
     pub fn to_bytes(&self) -> Result<Vec<u8>, ModelFileError> {
         let mut tensors: Vec<&Tensor> = self.tensors.iter().collect();
-        tensors.sort_by(|a, b| a.name.cmp(&b.name));
+        // 4-byte tensors before the f16 ones, so that every tensor starts aligned to its type
+        // (the format forbids gaps to pad with), each group in name order.
+        tensors.sort_by_key(|t| (t.dtype == TensorDtype::F16, t.name.clone()));
         let m = &self.metadata;
         let mut header = serde_json::Map::new();
         header.insert(
@@ -209,10 +270,15 @@ impl ModelFile {
                     shape: t.shape.clone(),
                 });
             }
-            let end = offset + 4 * t.data.len();
+            let (dtype, size) = match t.dtype {
+                TensorDtype::F32 => ("F32", 4),
+                TensorDtype::F16 => ("F16", 2),
+                TensorDtype::U32 => ("U32", 4),
+            };
+            let end = offset + size * t.data.len();
             header.insert(
                 t.name.clone(),
-                serde_json::json!({"dtype": "F32", "shape": t.shape, "data_offsets": [offset, end]}),
+                serde_json::json!({"dtype": dtype, "shape": t.shape, "data_offsets": [offset, end]}),
             );
             offset = end;
         }
@@ -223,8 +289,14 @@ impl ModelFile {
         out.extend_from_slice(&(json.len() as u64).to_le_bytes());
         out.extend_from_slice(&json);
         for t in tensors {
-            for v in &t.data {
-                out.extend_from_slice(&v.to_le_bytes());
+            for &v in &t.data {
+                match t.dtype {
+                    TensorDtype::F32 => out.extend_from_slice(&v.to_le_bytes()),
+                    TensorDtype::F16 => {
+                        out.extend_from_slice(&half::f16::from_f32(v).to_le_bytes())
+                    }
+                    TensorDtype::U32 => out.extend_from_slice(&(v as u32).to_le_bytes()),
+                }
             }
         }
         Ok(out)
@@ -308,13 +380,31 @@ impl ModelFile {
         };
         let mut tensors = Vec::new();
         for (name, view) in st.tensors() {
-            if view.dtype() != Dtype::F32 {
-                return Err(corrupt(format!(
-                    "tensor `{name}` is {:?}; hwsdf models are f32",
-                    view.dtype()
-                )));
-            }
-            let data: Vec<f32> = bytemuck::pod_collect_to_vec(view.data());
+            let bytes = view.data();
+            let (data, dtype): (Vec<f32>, _) = match view.dtype() {
+                Dtype::F32 => (bytemuck::pod_collect_to_vec(bytes), TensorDtype::F32),
+                Dtype::F16 => (
+                    bytes
+                        .chunks_exact(2)
+                        .map(|b| half::f16::from_le_bytes([b[0], b[1]]).to_f32())
+                        .collect(),
+                    TensorDtype::F16,
+                ),
+                Dtype::U32 => {
+                    let ints: Vec<u32> = bytemuck::pod_collect_to_vec(bytes);
+                    if let Some(v) = ints.iter().find(|&&v| v > MAX_INDEX) {
+                        return Err(corrupt(format!(
+                            "tensor `{name}` holds the index {v}, above {MAX_INDEX}"
+                        )));
+                    }
+                    (ints.iter().map(|&v| v as f32).collect(), TensorDtype::U32)
+                }
+                other => {
+                    return Err(corrupt(format!(
+                        "tensor `{name}` is {other:?}; hwsdf models hold F32, F16 and U32 tensors"
+                    )));
+                }
+            };
             if let Some(index) = data.iter().position(|v| !v.is_finite()) {
                 return Err(ModelFileError::NonFinite {
                     path: path.to_owned(),
@@ -327,6 +417,7 @@ impl ModelFile {
                 shape: view.shape().to_vec(),
                 data,
                 name,
+                dtype,
             });
         }
         tensors.sort_by(|a, b| a.name.cmp(&b.name));
@@ -446,16 +537,19 @@ mod tests {
                 hwsdf_version: HWSDF_VERSION.into(),
             },
             tensors: vec![
-                Tensor {
-                    name: "net.0.bias".into(),
-                    shape: vec![4],
-                    data: vec![0.1, -0.2, f32::MIN_POSITIVE, -0.0],
-                },
-                Tensor {
-                    name: "net.0.weight".into(),
-                    shape: vec![4, 3],
-                    data: (0..12).map(|i| i as f32 * 0.37 - 1.0).collect(),
-                },
+                // Odd-sized f16 data: the f32 tensors must still start 4-byte aligned.
+                Tensor::f16("grids.0", vec![5], vec![0.1, -3.0e-7, 1.0e5, 65504.0, -0.0]),
+                Tensor::indices("grids.0.vertices", vec![3], &[0, 7, MAX_INDEX]),
+                Tensor::f32(
+                    "net.0.bias",
+                    vec![4],
+                    vec![0.1, -0.2, f32::MIN_POSITIVE, -0.0],
+                ),
+                Tensor::f32(
+                    "net.0.weight",
+                    vec![4, 3],
+                    (0..12).map(|i| i as f32 * 0.37 - 1.0).collect(),
+                ),
             ],
         }
     }
@@ -494,7 +588,61 @@ mod tests {
         let err = f.tensor("net.9.weight", &[1]).unwrap_err();
         assert!(err.to_string().contains("net.0.weight"), "{err}");
         assert!(f.expect_architecture("nglod").is_err());
-        assert_eq!(f.param_count(), 16);
+        // The index tensor is not counted.
+        assert_eq!(f.param_count(), 21);
+    }
+
+    #[test]
+    fn f16_and_index_tensors_keep_what_they_can_store() {
+        // 1e5 is beyond f16's range: that tensor stays f32 rather than holding an infinity.
+        let big = Tensor::f16("g", vec![2], vec![0.1, 1.0e5]);
+        assert_eq!(big.dtype, TensorDtype::F32);
+        assert_eq!(big.data, [0.1, 1.0e5]);
+        let t = Tensor::f16("g", vec![3], vec![0.1, 1.0 / 3.0, -2.5]);
+        assert_eq!(t.dtype, TensorDtype::F16);
+        assert_eq!(t.data[2], -2.5);
+        for (&stored, want) in t.data.iter().zip([0.1f32, 1.0 / 3.0]) {
+            assert!(stored != want && (stored - want).abs() <= want * 2f32.powi(-11));
+        }
+        let f = sample();
+        assert_eq!(
+            f.tensors[0].dtype,
+            TensorDtype::F32,
+            "1e5 kept the tensor f32"
+        );
+        assert_eq!(
+            Tensor::indices("i", vec![1], &[u32::MAX]).data,
+            [MAX_INDEX as f32]
+        );
+        // The bytes: f16 tensors last, each tensor's offset a multiple of its element size.
+        let mut g = sample();
+        g.tensors[0] = Tensor::f16("grids.0", vec![5], vec![0.5; 5]);
+        let bytes = g.to_bytes().unwrap();
+        let (_, header) = SafeTensors::read_metadata(&bytes).unwrap();
+        let infos = header.tensors();
+        let f16_start = infos["grids.0"].data_offsets.0;
+        for (name, info) in &infos {
+            let size = if name == "grids.0" { 2 } else { 4 };
+            assert_eq!(info.data_offsets.0 % size, 0, "{name}");
+            if name != "grids.0" {
+                assert!(
+                    info.data_offsets.1 <= f16_start,
+                    "{name} after the f16 tensor"
+                );
+            }
+        }
+        let back = ModelFile::from_bytes(&bytes, Path::new("g")).unwrap();
+        assert_eq!(back, g);
+        // A u32 index above 2^24 - 1 is not exact as f32: refused.
+        let mut over = bytes.clone();
+        let at = 8
+            + u64::from_le_bytes(over[..8].try_into().unwrap()) as usize
+            + infos["grids.0.vertices"].data_offsets.0;
+        over[at..at + 4].copy_from_slice(&(MAX_INDEX + 1).to_le_bytes());
+        assert!(matches!(
+            ModelFile::from_bytes(&over, Path::new("g")),
+            Err(ModelFileError::Corrupt { .. })
+        ));
     }
 
     #[test]
@@ -542,7 +690,7 @@ mod tests {
         let p = Path::new("x.safetensors");
         for bad in [f32::NAN, f32::INFINITY, f32::NEG_INFINITY] {
             let mut f = sample();
-            f.tensors[1].data[5] = bad;
+            f.tensors[3].data[5] = bad;
             let err = ModelFile::from_bytes(&f.to_bytes().unwrap(), p).unwrap_err();
             match &err {
                 ModelFileError::NonFinite { name, index, .. } => {
@@ -558,10 +706,10 @@ mod tests {
     #[test]
     fn declared_sizes_are_checked_against_the_tensors() {
         let f = sample();
-        f.ensure_holds(16).unwrap();
+        f.ensure_holds(21).unwrap();
         assert!(matches!(
             f.ensure_holds(4096 * 4096 * 64),
-            Err(ModelFileError::DeclaredSize { available: 16, .. })
+            Err(ModelFileError::DeclaredSize { available: 21, .. })
         ));
     }
 

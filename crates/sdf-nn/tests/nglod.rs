@@ -445,8 +445,19 @@ fn model_file_round_trips_bit_for_bit() {
     assert_eq!(loaded.metadata.architecture, "nglod");
     let back = Nglod::from_model_file(&loaded).unwrap();
     assert_eq!(back.config(), model.config());
+    // The file holds exactly what the in-memory file does: f32 MLP, grid features rounded to f16.
     let bits = |m: &Nglod| m.params().iter().map(|x| x.to_bits()).collect::<Vec<_>>();
-    assert_eq!(bits(&back), bits(&model));
+    assert_eq!(bits(&back), bits(&Nglod::from_model_file(&file).unwrap()));
+    let w0 = model.layout().w0;
+    assert_eq!(bits(&back)[w0..], bits(&model)[w0..]);
+    for (&stored, &trained) in back.params()[..w0].iter().zip(&model.params()[..w0]) {
+        assert!((stored - trained).abs() <= trained.abs() * 2f32.powi(-11) + 1e-7);
+    }
+    assert_eq!(file.tensors[0].dtype, sdf_nn::model_file::TensorDtype::F16);
+    assert_eq!(file.tensors[3].dtype, sdf_nn::model_file::TensorDtype::F32);
+    // Half the grid bytes of an all-f32 file.
+    let size = std::fs::metadata(&path).unwrap().len() as usize;
+    assert!(size < 4 * model.param_count() * 6 / 10, "{size} bytes");
 
     // Wrong shapes and architectures are typed errors, not panics.
     let mut bad = file.clone();
@@ -475,7 +486,10 @@ fn sparse_model_file_round_trips_and_rejects_bad_vertex_lists() {
     let path = std::path::Path::new(env!("CARGO_TARGET_TMPDIR")).join("nglod_sparse.safetensors");
     file.save(&path).unwrap();
     let back = Nglod::from_model_file(&sdf_nn::ModelFile::load(&path).unwrap()).unwrap();
+    // What the file holds: the grids rounded to f16 (model_file_round_trips_bit_for_bit).
+    let model = Nglod::from_model_file(&file).unwrap();
     assert_eq!(back, model);
+    assert_eq!(file.tensors[3].dtype, sdf_nn::model_file::TensorDtype::U32);
     // The vertex list is not counted as parameters (checkpoints size Adam's state by it).
     assert_eq!(file.param_count(), model.param_count());
     let pts = points(500, 22);

@@ -845,30 +845,26 @@ impl Nglod {
             if c.is_sparse(l) {
                 let band = &self.bands[l - dense];
                 let n = band.len();
-                tensors.push(Tensor {
-                    name: format!("grids.{l}"),
-                    shape: vec![n, f],
-                    data: self.params[start..start + n * f].to_vec(),
-                });
-                tensors.push(Tensor {
-                    name: format!("grids.{l}{INDEX_SUFFIX}"),
-                    shape: vec![n],
-                    data: band.vertices.iter().map(|&v| v as f32).collect(),
-                });
+                tensors.push(Tensor::f16(
+                    format!("grids.{l}"),
+                    vec![n, f],
+                    self.params[start..start + n * f].to_vec(),
+                ));
+                tensors.push(Tensor::indices(
+                    format!("grids.{l}{INDEX_SUFFIX}"),
+                    vec![n],
+                    &band.vertices,
+                ));
             } else {
-                tensors.push(Tensor {
-                    name: format!("grids.{l}"),
-                    shape: vec![s, s, s, f],
-                    data: self.params[start..start + s * s * s * f].to_vec(),
-                });
+                tensors.push(Tensor::f16(
+                    format!("grids.{l}"),
+                    vec![s, s, s, f],
+                    self.params[start..start + s * s * s * f].to_vec(),
+                ));
             }
         }
         let mut push = |name: &str, shape: Vec<usize>, range: std::ops::Range<usize>| {
-            tensors.push(Tensor {
-                name: name.to_owned(),
-                shape,
-                data: self.params[range].to_vec(),
-            })
+            tensors.push(Tensor::f32(name, shape, self.params[range].to_vec()))
         };
         push("mlp.0.weight", vec![h, f], layout.w0..layout.b0);
         push("mlp.0.bias", vec![h], layout.b0..layout.w1);

@@ -357,16 +357,16 @@ impl Siren {
     ) -> ModelFile {
         let mut tensors = Vec::new();
         for (i, lay) in self.config.layers().iter().enumerate() {
-            tensors.push(Tensor {
-                name: format!("net.{i}.weight"),
-                shape: vec![lay.fan_out, lay.fan_in],
-                data: self.params[lay.weight..lay.bias].to_vec(),
-            });
-            tensors.push(Tensor {
-                name: format!("net.{i}.bias"),
-                shape: vec![lay.fan_out],
-                data: self.params[lay.bias..lay.bias + lay.fan_out].to_vec(),
-            });
+            tensors.push(Tensor::f32(
+                format!("net.{i}.weight"),
+                vec![lay.fan_out, lay.fan_in],
+                self.params[lay.weight..lay.bias].to_vec(),
+            ));
+            tensors.push(Tensor::f32(
+                format!("net.{i}.bias"),
+                vec![lay.fan_out],
+                self.params[lay.bias..lay.bias + lay.fan_out].to_vec(),
+            ));
         }
         ModelFile {
             metadata: ModelMetadata {
