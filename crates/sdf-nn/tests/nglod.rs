@@ -300,6 +300,24 @@ fn gpu_gradients_match_cpu(config: NglodConfig) {
     }
 }
 
+/// The fraction of `test` points where `g`'s sign says inside exactly when the point is inside
+/// the sphere of `radius` about the origin.
+fn sphere_sign_accuracy(
+    gpu: &GpuContext,
+    g: &NglodGpu,
+    radius: f32,
+    test: &[Vec3],
+    lod: Option<usize>,
+) -> f64 {
+    let pred = g.eval(gpu, test, lod).unwrap();
+    let correct = test
+        .iter()
+        .zip(&pred)
+        .filter(|&(p, &d)| (p.length() < radius) == (d < 0.0))
+        .count();
+    correct as f64 / test.len() as f64
+}
+
 /// An icosphere of radius `r` (subdivided `levels` times).
 fn icosphere(r: f32, levels: usize) -> Mesh {
     Mesh::icosphere(r, levels as u32)
@@ -333,13 +351,7 @@ fn trains_a_sphere_with_correct_signs_at_every_lod() {
     let test = sdf_geom::sample::uniform_box(20_000, 99);
     let g = trainer.gpu_model();
     for lod in [3, 2, 1] {
-        let pred = g.eval(gpu, &test, Some(lod)).unwrap();
-        let correct = test
-            .iter()
-            .zip(&pred)
-            .filter(|&(p, &d)| (p.length() < radius) == (d < 0.0))
-            .count();
-        let frac = correct as f64 / test.len() as f64;
+        let frac = sphere_sign_accuracy(gpu, g, radius, &test, Some(lod));
         eprintln!(
             "lod {lod}: correct sign on {:.3}% of box points",
             frac * 100.0
@@ -562,13 +574,7 @@ fn a_sparse_model_takes_its_band_from_the_mesh_and_trains() {
     );
     assert_eq!(trained.param_count(), model.param_count() + band.len() * 4);
     let test = sdf_geom::sample::uniform_box(20_000, 98);
-    let pred = trainer.gpu_model().eval(gpu, &test, None).unwrap();
-    let correct = test
-        .iter()
-        .zip(&pred)
-        .filter(|&(p, &d)| (p.length() < radius) == (d < 0.0))
-        .count();
-    let frac = correct as f64 / test.len() as f64;
+    let frac = sphere_sign_accuracy(gpu, trainer.gpu_model(), radius, &test, None);
     assert!(frac >= 0.99, "correct sign on {frac} of box points");
     // A trained sparse model continues training as it is: its band is kept.
     let again = NglodTrainer::new(gpu, &trained, &mesh, NglodTrainConfig::default()).unwrap();

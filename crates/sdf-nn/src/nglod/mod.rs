@@ -254,6 +254,22 @@ impl NglodConfig {
         l >= self.dense_levels()
     }
 
+    /// The parameter layout with `bands` as the sparse levels' bands, which must match them.
+    fn layout_for(&self, bands: &[Band]) -> Result<ParamLayout, NglodError> {
+        let dense = self.dense_levels();
+        if bands.len() != self.sparse_levels
+            || bands
+                .iter()
+                .zip(&self.resolutions[dense..])
+                .any(|(b, &r)| b.resolution != r)
+        {
+            return Err(NglodError::InvalidConfig(
+                "the bands do not match the configuration's sparse levels".into(),
+            ));
+        }
+        Ok(self.layout_with(|l| bands[l - dense].len()))
+    }
+
     /// The parameter layout when sparse level `l` holds `band_vertices(l)` vertices.
     fn layout_with(&self, band_vertices: impl Fn(usize) -> usize) -> ParamLayout {
         let f = self.feature_dim as usize;
@@ -551,18 +567,8 @@ impl Nglod {
     ) -> Result<(), NglodError> {
         let c = &self.config;
         let dense = c.dense_levels();
-        if bands.len() != c.sparse_levels
-            || bands
-                .iter()
-                .zip(&c.resolutions[dense..])
-                .any(|(b, &r)| b.resolution != r)
-        {
-            return Err(NglodError::InvalidConfig(
-                "the bands do not match the model's sparse levels".into(),
-            ));
-        }
+        let layout = c.layout_for(&bands)?;
         let f = c.feature_dim as usize;
-        let layout = c.layout_with(|l| bands[l - dense].len());
         let mut params = Vec::with_capacity(layout.len);
         for l in 0..c.levels() {
             if c.is_sparse(l) {
@@ -675,18 +681,7 @@ impl Nglod {
         params: Vec<f32>,
     ) -> Result<Self, NglodError> {
         config.validate()?;
-        let dense = config.dense_levels();
-        if bands.len() != config.sparse_levels
-            || bands
-                .iter()
-                .zip(&config.resolutions[dense..])
-                .any(|(b, &r)| b.resolution != r)
-        {
-            return Err(NglodError::InvalidConfig(
-                "the bands do not match the configuration's sparse levels".into(),
-            ));
-        }
-        let layout = config.layout_with(|l| bands[l - dense].len());
+        let layout = config.layout_for(&bands)?;
         if params.len() != layout.len {
             return Err(NglodError::LengthMismatch {
                 what: "NGLOD parameters",
