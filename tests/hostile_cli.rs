@@ -318,6 +318,14 @@ impl Fixtures {
         let mut big = plane.clone();
         big.metadata.config["resolutions"] = serde_json::json!([500]);
         add("claims_grid500.safetensors", big.to_bytes().unwrap());
+        // Eight sparse levels of 255 cells: a few kB that would need 134 M table entries.
+        let mut tables = plane.clone();
+        tables.metadata.config["resolutions"] = serde_json::json!(vec![255; 8]);
+        tables.metadata.config["sparse_levels"] = serde_json::json!(8);
+        add(
+            "claims_sparse_tables.safetensors",
+            tables.to_bytes().unwrap(),
+        );
 
         let good = plane.to_bytes().unwrap();
         add("empty.safetensors", Vec::new());
@@ -718,6 +726,12 @@ fn cases() -> Vec<Case> {
             "extract",
             &["claims_grid500.safetensors", "--out", "o.obj"],
             Error("declares"),
+        ),
+        case(
+            "nglod claims eight sparse levels of 255 cells",
+            "extract",
+            &["claims_sparse_tables.safetensors", "--out", "o.obj"],
+            Error("tables"),
         ),
         // Malformed safetensors.
         case(

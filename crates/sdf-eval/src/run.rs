@@ -163,7 +163,8 @@ impl ModelKind {
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum Preset {
-    /// The design document's architecture.
+    /// The design document's architecture (for NGLOD with a sparse fourth level near the surface:
+    /// `NglodConfig::default_preset`).
     Default,
     /// A small network for CPU-only machines and tests.
     Small,

@@ -53,6 +53,9 @@ pub const MAX_MLP_FLOATS: u32 = 3840;
 /// Largest resolution of a sparse level: model files store its vertex indices as f32, which is
 /// exact below 2^24 = 256³.
 pub const MAX_SPARSE_RESOLUTION: u32 = 255;
+/// Most entries of all sparse levels' vertex tables together (128 MiB of u32): two levels of 255
+/// cells.
+pub const MAX_TABLE_ENTRIES: u64 = 1 << 25;
 /// A sparse level's table entry for a vertex that holds no features (the kernels test for it).
 pub(crate) const NO_SLOT: u32 = u32::MAX;
 /// How far a sparse level reaches: the cells whose centre lies within this many cell widths plus
@@ -229,6 +232,18 @@ impl NglodConfig {
         {
             return bad(format!(
                 "sparse resolution {r}; sparse levels have at most {MAX_SPARSE_RESOLUTION} cells"
+            ));
+        }
+        // A sparse level's vertex table has an entry per vertex of the level, whatever its band:
+        // bounded so that a small model file cannot make us allocate gigabytes.
+        let table: u64 = self.resolutions[self.dense_levels()..]
+            .iter()
+            .map(|&r| (u64::from(r) + 1).pow(3))
+            .sum();
+        if table > MAX_TABLE_ENTRIES {
+            return bad(format!(
+                "the sparse levels' vertex tables would hold {table} entries; at most \
+                 {MAX_TABLE_ENTRIES}"
             ));
         }
         // The kernels index params with u32; a sparse level holds at most every vertex.
@@ -1013,6 +1028,13 @@ mod tests {
         let mut c = NglodConfig::small();
         c.feature_dim = 33;
         assert!(c.validate().is_err());
+        // Eight sparse levels of 255 cells: 134 M table entries, refused.
+        let c = NglodConfig {
+            resolutions: vec![255; 8],
+            sparse_levels: 8,
+            ..NglodConfig::small()
+        };
+        assert!(matches!(c.validate(), Err(NglodError::InvalidConfig(m)) if m.contains("tables")));
         let mut c = NglodConfig::default_preset();
         c.feature_dim = 32;
         assert!(
