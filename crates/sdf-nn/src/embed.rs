@@ -88,7 +88,7 @@ impl NeuralSdf {
     pub fn bind_group(&self, device: &wgpu::Device) -> Result<SdfBindGroup, EmbedError> {
         let (params, tables): (&[f32], Vec<u32>) = match self.network() {
             Network::Siren(s) => (s.params(), Vec::new()),
-            Network::Nglod(m) => (m.params(), sparse_tables(m)),
+            Network::Nglod(m) => (m.params(), m.sparse_tables()),
         };
         let limits = device.limits();
         let limit = limits
@@ -330,11 +330,6 @@ fn hwsdf_phi_grad(x: vec3<f32>) -> vec4<f32> {
     return out + vec4<f32>(hwsdf_params[HWSDF_OUT_START + HWSDF_WIDTH], 0.0, 0.0, 0.0);
 }
 "#;
-
-/// Every sparse level's vertex table, one after the other (empty for a dense model).
-fn sparse_tables(m: &Nglod) -> Vec<u32> {
-    m.bands().iter().flat_map(|b| b.table()).copied().collect()
-}
 
 /// Where a level's features are: its resolution, its offset in the parameters, and for a
 /// sparse level the offset of its vertex table.

@@ -154,12 +154,7 @@ impl NglodGpu {
         };
         let layout = model.layout().clone();
         let params = gpu.storage_from_slice("nglod params", model.params())?;
-        let mut tables: Vec<u32> = model
-            .bands()
-            .iter()
-            .flat_map(|b| b.table())
-            .copied()
-            .collect();
+        let mut tables = model.sparse_tables();
         // A binding cannot be empty.
         tables.resize(tables.len().max(1), super::NO_SLOT);
         let table = gpu.storage_from_slice("nglod vertex tables", &tables)?;

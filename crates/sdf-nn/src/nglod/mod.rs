@@ -614,6 +614,12 @@ impl Nglod {
         Ok(())
     }
 
+    /// Every sparse level's vertex table, coarse to fine, one after the other (empty for a dense
+    /// model): what the kernels and the embedded WGSL index with a level's table offset.
+    pub(crate) fn sparse_tables(&self) -> Vec<u32> {
+        self.bands.iter().flat_map(Band::table).copied().collect()
+    }
+
     /// The sparse levels' bands, coarse to fine (empty for a dense model).
     pub fn bands(&self) -> &[Band] {
         &self.bands
