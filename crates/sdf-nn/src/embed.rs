@@ -345,16 +345,11 @@ struct LevelAt {
 fn nglod(s: &mut String, m: &Nglod, lod: usize, group: u32) {
     let c = m.config();
     let layout = m.layout();
-    let mut table_offset = 0;
     let levels: Vec<LevelAt> = (0..lod)
         .map(|l| LevelAt {
             resolution: c.resolutions[l],
             offset: layout.grid_offsets[l],
-            table: c.is_sparse(l).then(|| {
-                let at = table_offset;
-                table_offset += m.bands()[l - c.dense_levels()].table().len();
-                at
-            }),
+            table: c.table_offset(l),
         })
         .collect();
     if !m.bands().is_empty() {

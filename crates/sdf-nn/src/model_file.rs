@@ -114,7 +114,8 @@ pub enum ModelFileError {
 
 pub use sdf_geom::Normalization;
 
-/// The name ending of tensors that hold indices (stored as exact f32 integers), not parameters.
+/// The name ending of tensors that hold indices ([`TensorDtype::U32`] in files written now), not
+/// parameters.
 pub const INDEX_SUFFIX: &str = ".vertices";
 
 /// The JSON form of a normalisation in the file's metadata.

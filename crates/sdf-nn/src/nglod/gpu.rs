@@ -113,21 +113,17 @@ impl std::fmt::Debug for NglodGpu {
 
 /// The kernels' per-level uniform: resolution, offset in the parameters, offset of the level's
 /// table in the concatenated vertex tables, and 1 for a sparse level.
-fn level_table(
-    config: &NglodConfig,
-    layout: &ParamLayout,
-    bands: &[Band],
-) -> [[u32; 4]; MAX_LEVELS] {
+fn level_table(config: &NglodConfig, layout: &ParamLayout) -> [[u32; 4]; MAX_LEVELS] {
     let mut t = [[0u32; 4]; MAX_LEVELS];
-    let mut table_offset = 0;
-    let dense = config.dense_levels();
     for (l, &r) in config.resolutions.iter().enumerate() {
         // validate() bounds the parameter count and the tables well below u32::MAX.
-        t[l] = [r, layout.grid_offsets[l] as u32, table_offset, 0];
-        if l >= dense {
-            t[l][3] = 1;
-            table_offset += bands[l - dense].table().len() as u32;
-        }
+        let table = config.table_offset(l);
+        t[l] = [
+            r,
+            layout.grid_offsets[l] as u32,
+            table.unwrap_or(0) as u32,
+            u32::from(table.is_some()),
+        ];
     }
     t
 }
@@ -450,7 +446,7 @@ impl NglodGpu {
             lod: lod as u32,
             mlp_offset: self.layout.w0 as u32,
             _pad: 0,
-            levels: level_table(&self.config, &self.layout, &self.bands),
+            levels: level_table(&self.config, &self.layout),
             query: [0.0, 0.0, 0.0, 1.0],
         }
     }
@@ -558,7 +554,7 @@ impl TrainKernels {
             chunk: CHUNK,
             n_chunks: 0,
             _pad: 0,
-            levels: level_table(c, &model.layout, &model.bands),
+            levels: level_table(c, &model.layout),
         };
         let uniforms = gpu.uniform("nglod train uniforms", &base);
         let train_shader = if model.float_atomics {

@@ -36,7 +36,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::gpu::GpuError;
 use crate::model_file::{
-    INDEX_SUFFIX, ModelFile, ModelFileError, ModelMetadata, Normalization, Tensor,
+    INDEX_SUFFIX, MAX_INDEX, ModelFile, ModelFileError, ModelMetadata, Normalization, Tensor,
 };
 
 pub use gpu::{NglodGpu, ScatterMode};
@@ -50,8 +50,8 @@ pub const MAX_LEVELS: usize = 8;
 pub const MAX_FEATURE_DIM: u32 = 32;
 /// Largest MLP (`H·F + 2H + 1` floats) the kernels keep in workgroup memory (15 KiB).
 pub const MAX_MLP_FLOATS: u32 = 3840;
-/// Largest resolution of a sparse level: model files store its vertex indices as f32, which is
-/// exact below 2^24 = 256³.
+/// Largest resolution of a sparse level: a model file's tensors are f32 in memory, exact for
+/// vertex indices up to [`MAX_INDEX`] = 256³ − 1.
 pub const MAX_SPARSE_RESOLUTION: u32 = 255;
 /// Most entries of all sparse levels' vertex tables together (128 MiB of u32): two levels of 255
 /// cells.
@@ -225,7 +225,7 @@ impl NglodConfig {
                 self.resolutions.len()
             ));
         }
-        // Model files store a sparse level's vertex indices as f32, exact below 2^24.
+        // A model file's vertex indices are f32 in memory, exact up to MAX_INDEX.
         if let Some(r) = self.resolutions[self.dense_levels()..]
             .iter()
             .find(|&&r| r > MAX_SPARSE_RESOLUTION)
@@ -262,6 +262,26 @@ impl NglodConfig {
     /// Levels stored densely (the coarsest ones); the rest are sparse.
     pub fn dense_levels(&self) -> usize {
         self.resolutions.len().saturating_sub(self.sparse_levels)
+    }
+
+    /// One empty band per sparse level (a validated configuration).
+    fn empty_bands(&self) -> Vec<Band> {
+        self.resolutions[self.dense_levels()..]
+            .iter()
+            .map(|&r| Band::empty(r))
+            .collect()
+    }
+
+    /// Where sparse level `l`'s vertex table, one entry per vertex of the level, starts in the
+    /// sparse levels' tables laid one after the other ([`Nglod::sparse_tables`]); `None` for a
+    /// dense level.
+    pub(crate) fn table_offset(&self, l: usize) -> Option<usize> {
+        self.is_sparse(l).then(|| {
+            self.resolutions[self.dense_levels()..l]
+                .iter()
+                .map(|&r| (r as usize + 1).pow(3))
+                .sum()
+        })
     }
 
     /// Whether level `l` is sparse.
@@ -522,10 +542,7 @@ impl Nglod {
     /// model) gives them the vertices near a mesh.
     pub fn new(config: NglodConfig) -> Result<Self, NglodError> {
         config.validate()?;
-        let bands: Vec<Band> = config.resolutions[config.dense_levels()..]
-            .iter()
-            .map(|&r| Band::empty(r))
-            .collect();
+        let bands = config.empty_bands();
         let layout = config.layout_with(|_| 0);
         let mut rng = Pcg64::seed_from_u64(config.seed);
         let mut params = vec![0f32; layout.len];
@@ -562,48 +579,18 @@ impl Nglod {
             .iter()
             .map(|&r| Band::around(r, &distance))
             .collect::<Result<Vec<_>, _>>()?;
-        let mut rng = Pcg64::seed_from_u64(self.config.seed ^ 0x5ba7_5e1e);
-        let fresh = bands
-            .iter()
-            .map(|b| {
-                (0..b.len() * self.config.feature_dim as usize)
-                    .map(|_| (0.01 * normal(&mut rng)) as f32)
-                    .collect()
-            })
-            .collect();
-        self.replace_bands(bands, fresh)
-    }
-
-    /// Replaces the sparse levels' bands and their features (one vector per band, `len · F`).
-    fn replace_bands(
-        &mut self,
-        bands: Vec<Band>,
-        features: Vec<Vec<f32>>,
-    ) -> Result<(), NglodError> {
         let c = &self.config;
-        let dense = c.dense_levels();
         let layout = c.layout_for(&bands)?;
         let f = c.feature_dim as usize;
+        let mut rng = Pcg64::seed_from_u64(c.seed ^ 0x5ba7_5e1e);
         let mut params = Vec::with_capacity(layout.len);
-        for l in 0..c.levels() {
+        for (l, &r) in c.resolutions.iter().enumerate() {
             if c.is_sparse(l) {
-                let feats = &features[l - dense];
-                if feats.len() != bands[l - dense].len() * f {
-                    return Err(NglodError::LengthMismatch {
-                        what: "sparse level features",
-                        expected: bands[l - dense].len() * f,
-                        got: feats.len(),
-                    });
-                }
-                params.extend_from_slice(feats);
+                let n = bands[l - c.dense_levels()].len() * f;
+                params.extend((0..n).map(|_| (0.01 * normal(&mut rng)) as f32));
             } else {
-                let end = self
-                    .layout
-                    .grid_offsets
-                    .get(l + 1)
-                    .copied()
-                    .unwrap_or(self.layout.w0);
-                params.extend_from_slice(&self.params[self.layout.grid_offsets[l]..end]);
+                let start = self.layout.grid_offsets[l];
+                params.extend_from_slice(&self.params[start..start + (r as usize + 1).pow(3) * f]);
             }
         }
         params.extend_from_slice(&self.params[self.layout.w0..]);
@@ -688,10 +675,8 @@ impl Nglod {
     /// A model from explicit parameters (in the layout of [`Nglod::layout`]), its sparse levels
     /// (if any) empty.
     pub fn from_params(config: NglodConfig, params: Vec<f32>) -> Result<Self, NglodError> {
-        let bands = config.resolutions[config.dense_levels().min(config.resolutions.len())..]
-            .iter()
-            .map(|&r| Band::new(r, Vec::new()))
-            .collect::<Result<_, _>>()?;
+        config.validate()?;
+        let bands = config.empty_bands();
         Nglod::from_parts(config, bands, params)
     }
 
@@ -842,8 +827,8 @@ impl Nglod {
     /// `mlp.0.bias` `[H]`, `mlp.2.weight` `[1, H]`, `mlp.2.bias` `[1]` (an
     /// `nn.Sequential(Linear(F, H), ReLU(), Linear(H, 1))`). A sparse level `l` is
     /// `grids.{l}` `[n, F]` for its `n` band vertices, with `grids.{l}.vertices` `[n]` their
-    /// linear indices `(ix·s + iy)·s + iz` as f32 (exact: below 2^24). The metadata `config` is
-    /// the [`NglodConfig`] as JSON.
+    /// linear indices `(ix·s + iy)·s + iz` (u32). Grid features are stored as f16, the MLP as
+    /// f32. The metadata `config` is the [`NglodConfig`] as JSON.
     pub fn to_model_file(
         &self,
         normalization: Normalization,
@@ -922,7 +907,7 @@ impl Nglod {
                     .iter()
                     .map(|&v| {
                         // Exact integers only: anything else is a corrupt file.
-                        (v >= 0.0 && v.fract() == 0.0 && v < 16_777_216.0)
+                        (v >= 0.0 && v.fract() == 0.0 && v <= MAX_INDEX as f32)
                             .then_some(v as u32)
                             .ok_or_else(|| {
                                 NglodError::InvalidConfig(format!(
