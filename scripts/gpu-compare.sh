@@ -341,15 +341,22 @@ PY
 import glob, json, os, sys
 
 res = sys.argv[1]
-fits = sorted(glob.glob(os.path.join(res, "fit-*.json")))
+
+
+def reports(pattern):
+    """(path, report) for the JSON reports matching `pattern`; unreadable ones are skipped."""
+    for path in sorted(glob.glob(os.path.join(res, pattern))):
+        try:
+            yield path, json.load(open(path))
+        except (OSError, ValueError):
+            continue
+
+
+fits = list(reports("fit-*.json"))
 if fits:
     print("\n| fit on tests/data/spot.obj | preset | trained | training | wall in all | F1 box / near |")
     print("| --- | --- | --- | --- | --- | --- |")
-for path in fits:
-    try:
-        r = json.load(open(path))
-    except (OSError, ValueError):
-        continue
+for path, r in fits:
     wall = "—"
     try:
         lines = open(path[:-5] + ".txt").read().splitlines()
@@ -360,15 +367,11 @@ for path in fits:
     unit = "epochs" if r.get("model") == "nglod" else "steps"
     print(f"| {r.get('model')} | {r.get('preset')} | {r.get('trained')} {unit} | "
           f"{r.get('train_seconds', 0):.1f} s | {wall} | {f1('f1_bbox')} / {f1('f1_near_surface')} |")
-evals = sorted(glob.glob(os.path.join(res, "eval-siren-*.json")))
+evals = list(reports("eval-siren-*.json"))
 if evals:
     print("\n| SIREN fit through `eval` | kernels | F1 box / near | wall per point | wall per 3000 | GPU per point | GPU per 3000 |")
     print("| --- | --- | --- | --- | --- | --- | --- |")
-for path in evals:
-    try:
-        r = json.load(open(path))
-    except (OSError, ValueError):
-        continue
+for _, r in evals:
     g = lambda k, f: "—" if r.get(k) is None else f.format(r[k])
     print(f"| spot | {r.get('siren_kernels')} | {g('f1_bbox', '{:.4f}')} / {g('f1_near_surface', '{:.4f}')} | "
           f"{g('per_point_ns', '{:.1f} ns')} | {g('batch3000_us', '{:.0f} µs')} | "
