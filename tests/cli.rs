@@ -297,6 +297,22 @@ fn ctrl_c_writes_a_checkpoint_that_resume_continues() {
         .output()
         .unwrap();
     assert_clean_failure(&o, "checkpoint");
+    // So is another NGLOD architecture than the checkpoint's.
+    let o = bin("train")
+        .arg(data("suzanne.obj"))
+        .args([
+            "--model",
+            "nglod",
+            "--preset",
+            "default",
+            "--resolutions",
+            "4,8",
+        ])
+        .arg("--resume")
+        .arg(&checkpoint)
+        .output()
+        .unwrap();
+    assert_clean_failure(&o, "architecture differs: resolutions 4,8, not 6,12,24,48");
     // A plain model file is not a checkpoint.
     let (model, _) = trained();
     let o = bin("train")
@@ -371,6 +387,84 @@ fn siren_loss_and_learning_rate_flags_reach_the_model_file() {
     let o = train(&["--model", "nglod", "--epochs", "1", "--normal-weight", "1"]);
     assert_clean_failure(&o, "SIREN");
     assert!(!scratch("never.safetensors").exists());
+}
+
+#[test]
+fn nglod_architecture_flags_build_the_model_asked_for() {
+    let out = scratch("suzanne.custom.safetensors");
+    let report = scratch("suzanne.custom.json");
+    let o = bin("train")
+        .arg(data("suzanne.obj"))
+        .args(["--model", "nglod", "--epochs", "1", "--eval-points", "2000"])
+        .args(["--resolutions", "3,6", "--features", "2", "--hidden", "8"])
+        .arg("--out")
+        .arg(&out)
+        .arg("--report")
+        .arg(&report)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "train failed: {}", stderr(&o));
+    // The log names what differs from the preset.
+    assert!(
+        stderr(&o)
+            .contains("resolutions 3,6, not 6,12,24,48; features 2, not 8; hidden 8, not 128"),
+        "{}",
+        stderr(&o)
+    );
+    let json: serde_json::Value = serde_json::from_slice(&std::fs::read(&report).unwrap()).unwrap();
+    let a = &json["architecture"];
+    assert_eq!(a["resolutions"], serde_json::json!([3, 6]), "{json}");
+    // The preset's sparse finest level stays unless --sparse-levels says otherwise.
+    assert_eq!(a["sparse_levels"], 1, "{json}");
+    assert_eq!(
+        (a["feature_dim"].clone(), a["hidden"].clone()),
+        (2.into(), 8.into())
+    );
+    let model =
+        hwsdf::nn::Nglod::from_model_file(&hwsdf::nn::ModelFile::load(&out).unwrap()).unwrap();
+    let c = model.config();
+    assert_eq!(
+        (c.resolutions.as_slice(), c.sparse_levels),
+        (&[3, 6][..], 1)
+    );
+    // 4³ dense vertices and the band's, 2 features each, and an MLP of 8·2 + 2·8 + 1.
+    let band = model.bands()[0].len();
+    assert!(band > 0 && band < 7 * 7 * 7, "band of {band} vertices");
+    assert_eq!(json["params"], 2 * (64 + band) + 33, "{json}");
+
+    let fails = |extra: &[&str], needle: &str| {
+        let never = scratch("never-arch.safetensors");
+        let o = bin("train")
+            .arg(data("suzanne.obj"))
+            .arg("--out")
+            .arg(&never)
+            .args(extra)
+            .output()
+            .unwrap();
+        assert_clean_failure(&o, needle);
+        assert!(!never.exists(), "{extra:?} wrote a model");
+    };
+    fails(
+        &["--model", "siren", "--steps", "1", "--hidden", "64"],
+        "SIREN",
+    );
+    fails(
+        &["--epochs", "1", "--resolutions", "8,300"],
+        "at most 255 cells",
+    );
+    fails(
+        &[
+            "--epochs",
+            "1",
+            "--resolutions",
+            "4,8",
+            "--sparse-levels",
+            "3",
+        ],
+        "sparse levels",
+    );
+    fails(&["--epochs", "1", "--resolutions", "4,x"], "--resolutions");
+    fails(&["--epochs", "1", "--features", "0"], "feature_dim");
 }
 
 /// OBJ text of an open `n`×`n` grid over [-1, 1]² lifted by `z(x, y)`.

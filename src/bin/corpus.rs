@@ -222,6 +222,7 @@ fn corpus(args: &Args) -> Result<ExitCode, BoxError> {
                 grow_every: None,
                 distance: hwsdf::nn::DistanceMode::Signed,
                 pool: None,
+                nglod_architecture: Default::default(),
             };
             eprintln!("{rel} {tag}: training");
             let outcome = run::run(

@@ -15,7 +15,7 @@ use std::sync::atomic::{AtomicBool, Ordering};
 
 use clap::{Parser, ValueEnum};
 use hwsdf::eval::metrics::DEFAULT_EVAL_POINTS;
-use hwsdf::eval::run::{self, ModelKind, Preset, Progress, TrainOptions};
+use hwsdf::eval::run::{self, ModelKind, NglodArchitecture, Preset, Progress, TrainOptions};
 use hwsdf::geom::io;
 use hwsdf::nn::{DistanceMode, GpuContext, LossWeights, NeuralSdf};
 use indicatif::{ProgressBar, ProgressStyle};
@@ -94,6 +94,20 @@ struct Args {
     /// distance, not F1. NGLOD only.
     #[arg(long, value_enum, default_value = "signed")]
     distance: DistanceArg,
+    /// NGLOD: cells per axis of each level of detail, coarse to fine, comma-separated
+    /// (`default`: 6,12,24,48; `small`: 4,8,16).
+    #[arg(long, value_delimiter = ',', help_heading = "NGLOD architecture")]
+    resolutions: Option<Vec<u32>>,
+    /// NGLOD: how many of the finest levels keep features only near the surface, at most 255
+    /// cells each (`default`: 1; `small`: 0).
+    #[arg(long, help_heading = "NGLOD architecture")]
+    sparse_levels: Option<usize>,
+    /// NGLOD: features per grid vertex (`default`: 8; `small`: 4).
+    #[arg(long, help_heading = "NGLOD architecture")]
+    features: Option<u32>,
+    /// NGLOD: hidden width of the MLP (`default`: 128; `small`: 32).
+    #[arg(long, help_heading = "NGLOD architecture")]
+    hidden: Option<u32>,
     /// SIREN loss: weight of the on-surface |Φ| term (default 3000).
     #[arg(long, help_heading = "SIREN loss")]
     surface_weight: Option<f32>,
@@ -112,6 +126,16 @@ struct Args {
 }
 
 impl Args {
+    /// The NGLOD architecture flags given.
+    fn nglod_architecture(&self) -> NglodArchitecture {
+        NglodArchitecture {
+            resolutions: self.resolutions.clone(),
+            sparse_levels: self.sparse_levels,
+            feature_dim: self.features,
+            hidden: self.hidden,
+        }
+    }
+
     /// The SIREN loss weights, if any flag sets one (the others keep their defaults).
     fn siren_weights(&self) -> Option<LossWeights> {
         let flags = [
@@ -171,6 +195,22 @@ fn train(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
     if let Some(w) = args.siren_weights() {
         w.validate()?;
     }
+    let architecture = args.nglod_architecture();
+    if !architecture.is_preset() {
+        if model == ModelKind::Siren {
+            return Err(
+                "--resolutions, --sparse-levels, --features and --hidden set NGLOD's \
+                        architecture; SIREN's comes from --preset"
+                    .into(),
+            );
+        }
+        // NGLOD's preset is `default` on every adapter unless one is asked for.
+        let preset = match args.preset {
+            Some(PresetArg::Small) => Preset::Small,
+            _ => Preset::Default,
+        };
+        architecture.config(preset, args.seed)?;
+    }
     let out = args
         .out
         .clone()
@@ -202,13 +242,14 @@ fn train(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
             let preset = Preset::for_adapter(gpu.is_cpu(), model);
             if gpu.is_cpu() {
                 let length = match model {
-                    ModelKind::Nglod if args.epochs.is_none() => {
-                        "as many epochs as about a minute of training buys here"
+                    _ if args.epochs.is_some() || args.steps.is_some() => "",
+                    ModelKind::Nglod => {
+                        " and as many epochs as about a minute of training buys here"
                     }
-                    _ => "a shorter default run",
+                    ModelKind::Siren => " and a shorter default run",
                 };
                 eprintln!(
-                    "note: CPU adapter; using the `{}` preset and {length} (pass --preset/--epochs/--steps to override)",
+                    "note: CPU adapter; using the `{}` preset{length} (pass --preset/--epochs/--steps to override)",
                     preset.name()
                 );
             }
@@ -237,11 +278,20 @@ fn train(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
         grow_every: args.grow_every,
         distance: options_distance(args),
         pool: args.pool,
+        nglod_architecture: architecture,
+    };
+    // A changed architecture is named against its preset's: "resolutions 8,16,32, not 6,12,24".
+    let changed = match model {
+        ModelKind::Nglod => options
+            .nglod_architecture
+            .differences(&NglodArchitecture::default().config(preset, args.seed)?),
+        ModelKind::Siren => Vec::new(),
     };
     eprintln!(
-        "training {} ({}) on {} with {}",
+        "training {} ({}{}) on {} with {}",
         model.name(),
         preset.name(),
+        changed.iter().map(|c| format!("; {c}")).collect::<String>(),
         args.mesh.display(),
         gpu.describe()
     );

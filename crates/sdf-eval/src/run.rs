@@ -220,6 +220,94 @@ pub struct TrainOptions {
     /// NGLOD sample pool: `(blocks, refresh_every)` (`None`: the trainer's default; `(1, 1)`
     /// draws fresh points every epoch as before the pool).
     pub pool: Option<(usize, usize)>,
+    /// NGLOD: an architecture other than the preset's (each value given replaces the preset's).
+    /// An error for SIREN unless empty.
+    pub nglod_architecture: NglodArchitecture,
+}
+
+/// NGLOD architecture values over a preset (`train --resolutions --sparse-levels --features
+/// --hidden`): each one given replaces the preset's, the others stay. The result is checked
+/// by [`NglodConfig::validate`], so a bad combination is a typed error before any work.
+///
+/// ```
+/// use sdf_eval::run::{NglodArchitecture, Preset};
+///
+/// // Two sparse levels of 32 and 64 cells under dense ones of 8 and 16.
+/// let fine = NglodArchitecture {
+///     resolutions: Some(vec![8, 16, 32, 64]),
+///     sparse_levels: Some(2),
+///     ..Default::default()
+/// };
+/// let config = fine.config(Preset::Default, 0).unwrap();
+/// assert_eq!((config.feature_dim, config.hidden), (8, 128)); // the preset's
+/// ```
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
+pub struct NglodArchitecture {
+    /// Cells per axis of each level of detail, coarse to fine.
+    pub resolutions: Option<Vec<u32>>,
+    /// How many of the finest levels keep features only near the surface.
+    pub sparse_levels: Option<usize>,
+    /// Features per grid vertex, F.
+    pub feature_dim: Option<u32>,
+    /// Hidden width of the MLP, H.
+    pub hidden: Option<u32>,
+}
+
+impl NglodArchitecture {
+    /// Whether no value is given (the preset's architecture).
+    pub fn is_preset(&self) -> bool {
+        *self == Self::default()
+    }
+
+    /// The preset's configuration with these values over it, seeded and validated.
+    pub fn config(&self, preset: Preset, seed: u64) -> Result<NglodConfig, RunError> {
+        let base = match preset {
+            Preset::Default => NglodConfig::default_preset(),
+            Preset::Small => NglodConfig::small(),
+        };
+        let config = NglodConfig {
+            resolutions: self.resolutions.clone().unwrap_or(base.resolutions),
+            sparse_levels: self.sparse_levels.unwrap_or(base.sparse_levels),
+            feature_dim: self.feature_dim.unwrap_or(base.feature_dim),
+            hidden: self.hidden.unwrap_or(base.hidden),
+            seed,
+        };
+        config.validate()?;
+        Ok(config)
+    }
+
+    /// The values given that `config` does not have, as `name: asked, config's` lines (empty
+    /// when it agrees with every value given).
+    pub fn differences(&self, config: &NglodConfig) -> Vec<String> {
+        let mut out = Vec::new();
+        let mut check = |name: &str, asked: Option<String>, has: String| {
+            if let Some(a) = asked.filter(|a| *a != has) {
+                out.push(format!("{name} {a}, not {has}"));
+            }
+        };
+        let list = |r: &[u32]| r.iter().map(u32::to_string).collect::<Vec<_>>().join(",");
+        check(
+            "resolutions",
+            self.resolutions.as_deref().map(list),
+            list(&config.resolutions),
+        );
+        check(
+            "sparse levels",
+            self.sparse_levels.map(|s| s.to_string()),
+            config.sparse_levels.to_string(),
+        );
+        check(
+            "features",
+            self.feature_dim.map(|f| f.to_string()),
+            config.feature_dim.to_string(),
+        );
+        check(
+            "hidden",
+            self.hidden.map(|h| h.to_string()),
+            config.hidden.to_string(),
+        );
+        out
+    }
 }
 
 /// Progress of a training run, for progress bars and logs.
@@ -447,6 +535,13 @@ pub fn train(
     if options.model == ModelKind::Siren && options.distance == DistanceMode::Unsigned {
         return Err(RunError::UnsignedSiren);
     }
+    if options.model == ModelKind::Siren && !options.nglod_architecture.is_preset() {
+        return Err(RunError::Options(
+            "--resolutions, --sparse-levels, --features and --hidden set NGLOD's architecture; \
+             SIREN's comes from its preset"
+                .into(),
+        ));
+    }
     if options.model == ModelKind::Nglod && options.siren_weights.is_some() {
         return Err(RunError::Options(
             "loss weights apply to SIREN; NGLOD's loss is the squared error".into(),
@@ -546,13 +641,22 @@ pub fn train(
             })
         }
         ModelKind::Nglod => {
-            let mut config = match options.preset {
-                Preset::Default => NglodConfig::default_preset(),
-                Preset::Small => NglodConfig::small(),
-            };
-            config.seed = options.seed;
+            let config = options
+                .nglod_architecture
+                .config(options.preset, options.seed)?;
             let model = match resume {
-                Some(c) => Nglod::from_model_file(&c.model_file())?,
+                Some(c) => {
+                    // A checkpoint brings its own architecture; values asked for must agree.
+                    let model = Nglod::from_model_file(&c.model_file())?;
+                    let differences = options.nglod_architecture.differences(model.config());
+                    if !differences.is_empty() {
+                        return Err(RunError::Options(format!(
+                            "the checkpoint's architecture differs: {}",
+                            differences.join("; ")
+                        )));
+                    }
+                    model
+                }
                 None => Nglod::new(config)?,
             };
             let first = resume.map_or(0, Checkpoint::done).min(total);
@@ -793,6 +897,10 @@ pub struct Report {
     pub model: String,
     /// `"default"` or `"small"`.
     pub preset: String,
+    /// The model's hyperparameters as its file records them (the preset's, or the
+    /// [`NglodArchitecture`] asked for over it).
+    #[serde(default)]
+    pub architecture: serde_json::Value,
     /// Parameter count.
     pub params: usize,
     /// Model file size in bytes.
@@ -869,6 +977,7 @@ impl Report {
             mesh: mesh.display().to_string(),
             model: options.model.name().into(),
             preset: options.preset.name().into(),
+            architecture: trained.file.metadata.config.clone(),
             params: trained.file.param_count(),
             file_bytes,
             f1_bbox: s.f1_bbox,
@@ -953,4 +1062,83 @@ pub fn run(
         gpu.describe(),
     );
     Ok(RunOutcome::Finished(Box::new(report), Box::new(trained)))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn an_nglod_architecture_replaces_only_the_values_given() {
+        let none = NglodArchitecture::default();
+        assert!(none.is_preset());
+        let seeded = NglodConfig {
+            seed: 7,
+            ..NglodConfig::default_preset()
+        };
+        assert_eq!(none.config(Preset::Default, 7).unwrap(), seeded);
+        assert_eq!(none.config(Preset::Small, 0).unwrap(), NglodConfig::small());
+        let fine = NglodArchitecture {
+            resolutions: Some(vec![8, 16, 32, 64]),
+            sparse_levels: Some(2),
+            ..Default::default()
+        };
+        assert!(!fine.is_preset());
+        let c = fine.config(Preset::Small, 3).unwrap();
+        assert_eq!(c.resolutions, [8, 16, 32, 64]);
+        assert_eq!(
+            (c.sparse_levels, c.feature_dim, c.hidden, c.seed),
+            (2, 4, 32, 3)
+        );
+        // Agreeing with every value given is no difference; the values not given are free.
+        assert!(fine.differences(&c).is_empty());
+        assert!(
+            fine.differences(&NglodConfig {
+                hidden: 7,
+                ..c.clone()
+            })
+            .is_empty()
+        );
+        assert_eq!(
+            fine.differences(&NglodConfig::default_preset()),
+            [
+                "resolutions 8,16,32,64, not 6,12,24,48",
+                "sparse levels 2, not 1"
+            ]
+        );
+    }
+
+    #[test]
+    fn a_bad_nglod_architecture_is_a_typed_error() {
+        for bad in [
+            // More sparse levels than levels.
+            NglodArchitecture {
+                sparse_levels: Some(5),
+                ..Default::default()
+            },
+            // A sparse level above 255 cells (the default's finest level is sparse).
+            NglodArchitecture {
+                resolutions: Some(vec![8, 300]),
+                ..Default::default()
+            },
+            NglodArchitecture {
+                resolutions: Some(vec![]),
+                ..Default::default()
+            },
+            NglodArchitecture {
+                feature_dim: Some(0),
+                ..Default::default()
+            },
+            NglodArchitecture {
+                hidden: Some(0),
+                ..Default::default()
+            },
+        ] {
+            let e = bad.config(Preset::Default, 0).unwrap_err();
+            assert!(
+                matches!(e, RunError::Nglod(sdf_nn::NglodError::InvalidConfig(_))),
+                "{bad:?}: {e}"
+            );
+        }
+    }
 }
