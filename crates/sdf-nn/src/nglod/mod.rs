@@ -142,8 +142,9 @@ impl Default for NglodConfig {
 impl NglodConfig {
     /// The default: [`NglodConfig::design_document`]'s three dense levels and a fourth, sparse
     /// level of 48 cells around the surface. Its size depends on the mesh: 146 601 parameters
-    /// plus 8 per band vertex (measured: 0.25–0.37 M parameters, 1.0–1.5 MB, on spider,
-    /// armadillo and fandisk; 0.87 M, 3.5 MB, on cubegrid, a mesh of many small cubes).
+    /// plus 8 per band vertex. Measured on the 20 shared meshes: 0.21–0.39 M parameters
+    /// (0.46–0.91 MB as saved, f16 grids) on 17 of them, 0.56–0.79 M (1.3–1.9 MB) on the three
+    /// made of many boxes (many-cubes, boxframe, cubegrid), whose surface is large for their box.
     ///
     /// Why: the 24-cell finest grid cannot resolve parts thinner than a cell (0.08 of the box),
     /// and near-surface F1 is limited by it. A dense 48-cell level raises near-surface F1 by
