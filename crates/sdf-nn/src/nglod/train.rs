@@ -134,8 +134,9 @@ impl TimeBudget {
 impl Default for NglodTrainConfig {
     fn default() -> Self {
         NglodTrainConfig {
-            // 100: on an H100 at ff1c4ae, 100 epochs gained +0.03 to +0.27 near-surface F1 over
-            // 20 and 250 little more (issue 14); the pool makes 100 epochs cheap.
+            // 100: the default preset on the 20 shared meshes, 12 epochs 0.993 / 0.963 F1 (box /
+            // near the surface), 100 epochs 0.997 / 0.982; on six of them 50 epochs 0.969 near,
+            // 100 epochs 0.976 (BENCHMARKS.md, measured on lavapipe). The pool makes it cheap.
             epochs: 100,
             batch_size: 2048,
             adam: AdamConfig::default(),
