@@ -62,9 +62,10 @@ pub(crate) const NO_SLOT: u32 = u32::MAX;
 /// half a cell diagonal of the surface hold features. With one cell, every point within a cell
 /// width of the surface interpolates eight real corners.
 ///
-/// Why not 0 (only the cells the surface can pass through: 1.4–1.8× fewer band vertices, files
-/// 20–25 % smaller): on six meshes it gave the same F1 at 12 epochs, and at 100 on five, but lost
-/// 0.008 near the surface on the hardest, many-cubes (BENCHMARKS.md, "Band width").
+/// 0 (only the cells the surface can pass through) has 1.4–1.8× fewer band vertices and 20–25 %
+/// smaller files, and on six meshes it gave the same F1 as 1 within the seed-to-seed spread, at
+/// 12 and 100 epochs (BENCHMARKS.md, "Band width"). 1 stays until 0 is measured on every shared
+/// mesh at 100 epochs, as 1 is.
 pub const BAND_CELLS: f32 = 1.0;
 
 /// Errors of the NGLOD model, its kernels and its trainer.
