@@ -196,21 +196,12 @@ fn train(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
         w.validate()?;
     }
     let architecture = args.nglod_architecture();
-    if !architecture.is_preset() {
-        if model == ModelKind::Siren {
-            return Err(
-                "--resolutions, --sparse-levels, --features and --hidden set NGLOD's \
-                        architecture; SIREN's comes from --preset"
-                    .into(),
-            );
-        }
-        // NGLOD's preset is `default` on every adapter unless one is asked for.
-        let preset = match args.preset {
-            Some(PresetArg::Small) => Preset::Small,
-            _ => Preset::Default,
-        };
-        architecture.config(preset, args.seed)?;
-    }
+    // NGLOD's preset is `default` on every adapter unless one is asked for.
+    let nglod_preset = match args.preset {
+        Some(PresetArg::Small) => Preset::Small,
+        _ => Preset::Default,
+    };
+    architecture.check(model, nglod_preset)?;
     let out = args
         .out
         .clone()

@@ -259,6 +259,20 @@ impl NglodArchitecture {
         *self == Self::default()
     }
 
+    /// Checks these values for a run of `model` over `preset`: for SIREN none may be given, for
+    /// NGLOD the configuration they make must be valid.
+    pub fn check(&self, model: ModelKind, preset: Preset) -> Result<(), RunError> {
+        match model {
+            ModelKind::Siren if !self.is_preset() => Err(RunError::Options(
+                "--resolutions, --sparse-levels, --features and --hidden set NGLOD's \
+                 architecture; SIREN's comes from its preset"
+                    .into(),
+            )),
+            ModelKind::Siren => Ok(()),
+            ModelKind::Nglod => self.config(preset, 0).map(drop),
+        }
+    }
+
     /// The preset's configuration with these values over it, seeded and validated.
     pub fn config(&self, preset: Preset, seed: u64) -> Result<NglodConfig, RunError> {
         let base = match preset {
@@ -535,13 +549,9 @@ pub fn train(
     if options.model == ModelKind::Siren && options.distance == DistanceMode::Unsigned {
         return Err(RunError::UnsignedSiren);
     }
-    if options.model == ModelKind::Siren && !options.nglod_architecture.is_preset() {
-        return Err(RunError::Options(
-            "--resolutions, --sparse-levels, --features and --hidden set NGLOD's architecture; \
-             SIREN's comes from its preset"
-                .into(),
-        ));
-    }
+    options
+        .nglod_architecture
+        .check(options.model, options.preset)?;
     if options.model == ModelKind::Nglod && options.siren_weights.is_some() {
         return Err(RunError::Options(
             "loss weights apply to SIREN; NGLOD's loss is the squared error".into(),
@@ -641,9 +651,6 @@ pub fn train(
             })
         }
         ModelKind::Nglod => {
-            let config = options
-                .nglod_architecture
-                .config(options.preset, options.seed)?;
             let model = match resume {
                 Some(c) => {
                     // A checkpoint brings its own architecture; values asked for must agree.
@@ -657,7 +664,11 @@ pub fn train(
                     }
                     model
                 }
-                None => Nglod::new(config)?,
+                None => Nglod::new(
+                    options
+                        .nglod_architecture
+                        .config(options.preset, options.seed)?,
+                )?,
             };
             let first = resume.map_or(0, Checkpoint::done).min(total);
             let mut train_config = NglodTrainConfig {
@@ -1084,6 +1095,13 @@ mod tests {
             ..Default::default()
         };
         assert!(!fine.is_preset());
+        // SIREN takes no NGLOD architecture; NGLOD takes a valid one.
+        assert!(none.check(ModelKind::Siren, Preset::Small).is_ok());
+        assert!(matches!(
+            fine.check(ModelKind::Siren, Preset::Small),
+            Err(RunError::Options(_))
+        ));
+        assert!(fine.check(ModelKind::Nglod, Preset::Small).is_ok());
         let c = fine.config(Preset::Small, 3).unwrap();
         assert_eq!(c.resolutions, [8, 16, 32, 64]);
         assert_eq!(
@@ -1134,6 +1152,10 @@ mod tests {
                 ..Default::default()
             },
         ] {
+            assert!(
+                bad.check(ModelKind::Nglod, Preset::Default).is_err(),
+                "{bad:?}"
+            );
             let e = bad.config(Preset::Default, 0).unwrap_err();
             assert!(
                 matches!(e, RunError::Nglod(sdf_nn::NglodError::InvalidConfig(_))),
