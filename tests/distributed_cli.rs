@@ -106,7 +106,8 @@ fn sigterm_checkpoints_the_mesh_in_training_and_the_rerun_resumes_it() {
             .arg(&out);
         c
     };
-    let child = corpus("200").stderr(Stdio::piped()).spawn().unwrap();
+    // Eight epochs: long enough to be stopped in training, short enough to finish on resume.
+    let child = corpus("8").stderr(Stdio::piped()).spawn().unwrap();
     let (log, status) = signal_when(child, "sub/suzanne.obj nglod: training", "-TERM");
     assert_eq!(status.code(), Some(130), "{log}");
     assert!(log.contains("checkpoint written to"), "{log}");
@@ -127,8 +128,17 @@ fn sigterm_checkpoints_the_mesh_in_training_and_the_rerun_resumes_it() {
         !names.iter().any(|n| n.ends_with(".nglod.json")),
         "an interrupted fit leaves no result: {names:?}"
     );
+    // A rerun with other settings is refused before any work: it would mix them in one table.
+    let o = corpus("3").output().unwrap();
+    let err = stderr(&o);
+    assert!(!o.status.success(), "{err}");
+    assert!(
+        err.contains("holds results of other settings (nglod epochs 3, not 8)"),
+        "{err}"
+    );
+    assert!(state.join(checkpoint).exists(), "{err}");
     // The rerun resumes that mesh, finishes it and drops the checkpoint.
-    let o = corpus("2").output().unwrap();
+    let o = corpus("8").output().unwrap();
     let err = stderr(&o);
     assert!(o.status.success(), "{err}");
     assert!(err.contains("resuming from its checkpoint"), "{err}");
@@ -136,6 +146,11 @@ fn sigterm_checkpoints_the_mesh_in_training_and_the_rerun_resumes_it() {
     let table = std::fs::read_to_string(&out).unwrap();
     assert!(table.contains("| sub/suzanne.obj |"), "{table}");
     assert!(table.contains("1 of 1 done, 0 failed"), "{table}");
+    // The table states what produced it.
+    assert!(
+        table.contains("Settings: architecture resolutions 4,8,16, sparse levels 0, features 4, hidden 32; distance signed; epochs 8;"),
+        "{table}"
+    );
     // The merge needs no GPU and writes the same table.
     let merged = bin("corpus")
         .arg(&dir)
@@ -155,7 +170,7 @@ fn sigterm_checkpoints_the_mesh_in_training_and_the_rerun_resumes_it() {
                 .contains(rel)
         })
         .unwrap();
-    let o = corpus("2")
+    let o = corpus("8")
         .args(["--shard", &format!("{empty_shard}/2")])
         .output()
         .unwrap();

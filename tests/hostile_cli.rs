@@ -936,6 +936,42 @@ fn cases() -> Vec<Case> {
             Error("at least 1"),
         ),
         case(
+            "train siren --lr-final",
+            "train",
+            &["cube.obj", "--model", "siren", "--lr-final", "0.5"],
+            Error("apply to NGLOD"),
+        ),
+        case(
+            "train --lr-final nan",
+            "train",
+            &["cube.obj", "--lr-final", "nan"],
+            Error("--lr-final must be finite"),
+        ),
+        case(
+            "corpus --lr with both models",
+            "corpus",
+            &[".", "--lr", "1e-3"],
+            Error("--lr sets one model's learning rate"),
+        ),
+        case(
+            "corpus siren --epochs",
+            "corpus",
+            &[".", "--model", "siren", "--epochs", "3"],
+            Error("--epochs applies to NGLOD"),
+        ),
+        case(
+            "corpus --sparse-levels 9",
+            "corpus",
+            &[".", "--model", "nglod", "--sparse-levels", "9"],
+            Error("sparse"),
+        ),
+        case(
+            "corpus --eval-points 0",
+            "corpus",
+            &[".", "--eval-points", "0"],
+            Error("at least 1"),
+        ),
+        case(
             "eval --points 0",
             "eval",
             &["plane.safetensors", "cube.obj", "--points", "0"],

@@ -12,6 +12,10 @@
 //! `SLURM_ARRAY_TASK_ID`, or `JOB_COMPLETION_INDEX` with `--shards N`) takes one deterministic
 //! share of the meshes, and `--merge` builds the table from `<out>.d/` alone, without a GPU.
 //!
+//! Training takes `train`'s flags (`--preset`, `--epochs`, `--lr`, `--resolutions`, ...). The
+//! first run records them in `<out>.d/settings.json`; a later run or shard with other settings is
+//! refused before any work, so one table never mixes results of different settings.
+//!
 //! SIGINT, SIGTERM and SIGHUP (Ctrl-C, `scancel`, a time limit, preemption) stop the mesh in
 //! training at its next step, write its checkpoint to `<out>.d/`, and exit with 130; the next run
 //! resumes that mesh from the checkpoint and goes on with the rest.
@@ -22,23 +26,20 @@ use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 
 use clap::{Parser, ValueEnum};
-use hwsdf::eval::corpus::{self, CorpusMesh, Entry, Record, Shard, StateDir};
-use hwsdf::eval::metrics::DEFAULT_EVAL_POINTS;
-use hwsdf::eval::run::{self, Checkpoint, ModelKind, Preset, RunOutcome, TrainOptions};
+use hwsdf::eval::corpus::{self, CorpusMesh, CorpusSettings, Entry, Record, Shard, StateDir};
+use hwsdf::eval::run::{self, Checkpoint, ModelKind, RunOutcome};
 use hwsdf::geom::io::write_atomic;
 use hwsdf::nn::{GpuContext, GpuOptions};
+
+#[path = "common/flags.rs"]
+mod flags;
+use flags::TrainingFlags;
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
 enum Models {
     Siren,
     Nglod,
     Both,
-}
-
-#[derive(Clone, Copy, Debug, ValueEnum)]
-enum PresetArg {
-    Default,
-    Small,
 }
 
 /// Train and evaluate every OBJ, glTF and GLB mesh of a corpus.
@@ -54,24 +55,9 @@ struct Args {
     /// Which architectures.
     #[arg(long, value_enum, default_value = "both")]
     model: Models,
-    /// Size preset (default: `default` on a GPU, `small` on a CPU adapter).
-    #[arg(long, value_enum)]
-    preset: Option<PresetArg>,
-    /// SIREN steps per mesh (default: the preset's for the adapter).
-    #[arg(long)]
-    steps: Option<usize>,
-    /// NGLOD epochs per mesh (default: the preset's for the adapter).
-    #[arg(long)]
-    epochs: Option<usize>,
     /// Markdown table to write; per-mesh results go to `<out>.d/`.
     #[arg(long, default_value = "results.md")]
     out: PathBuf,
-    /// Points in each evaluation set.
-    #[arg(long, default_value_t = DEFAULT_EVAL_POINTS)]
-    eval_points: usize,
-    /// Seed of every run.
-    #[arg(long, default_value_t = 0)]
-    seed: u64,
     /// Take shard K of N (0-based), e.g. `--shard 3/8`. Without it, the engine's variables
     /// decide (`SLURM_ARRAY_TASK_ID`, `JOB_COMPLETION_INDEX`), else every mesh is taken.
     #[arg(long, conflicts_with = "merge")]
@@ -85,6 +71,9 @@ struct Args {
     /// Adapter: an index or PCI bus id from `gpu-info`, or part of a name (else `HWSDF_ADAPTER`).
     #[arg(long)]
     adapter: Option<String>,
+    /// Every mesh's training, as `train` takes it.
+    #[command(flatten)]
+    training: TrainingFlags,
 }
 
 type BoxError = Box<dyn std::error::Error>;
@@ -110,7 +99,6 @@ fn corpus(args: &Args) -> Result<ExitCode, BoxError> {
     // training, not after.
     let inputs: Vec<&std::path::Path> = meshes.iter().map(|m| m.path.as_path()).collect();
     hwsdf::geom::io::check_outputs(&inputs, &[&args.out])?;
-    run::check_eval_points(args.eval_points)?;
     let models: Vec<ModelKind> = match args.model {
         Models::Siren => vec![ModelKind::Siren],
         Models::Nglod => vec![ModelKind::Nglod],
@@ -120,6 +108,8 @@ fn corpus(args: &Args) -> Result<ExitCode, BoxError> {
     if args.merge {
         return merge(args, &state, &meshes, &models);
     }
+    let flags = &args.training;
+    flags.check(&models)?;
     // Every check that can fail runs before the GPU is opened or a mesh is trained.
     let shard = match &args.shard {
         Some(s) => Some((Shard::parse(s)?, "--shard".to_owned())),
@@ -141,19 +131,30 @@ fn corpus(args: &Args) -> Result<ExitCode, BoxError> {
     let gpu = GpuContext::with_options(
         &GpuOptions::from_env().with_adapter(args.adapter.as_deref(), "--adapter"),
     )?;
-    let preset = match args.preset {
-        Some(PresetArg::Default) => Preset::Default,
-        Some(PresetArg::Small) => Preset::Small,
-        // SIREN's CPU preset wins when both run: one preset for the whole table.
-        None => Preset::for_adapter(
-            gpu.is_cpu(),
-            if models.contains(&ModelKind::Siren) {
-                ModelKind::Siren
-            } else {
-                ModelKind::Nglod
-            },
-        ),
+    // SIREN's CPU preset wins when both run: one preset for the whole table.
+    let preset = flags.preset_for(
+        if models.contains(&ModelKind::Siren) {
+            ModelKind::Siren
+        } else {
+            ModelKind::Nglod
+        },
+        gpu.is_cpu(),
+    );
+    // Every model's options and their settings, checked against those the results folder was
+    // made with before any mesh is trained.
+    let mut options = Vec::new();
+    let mut settings = CorpusSettings {
+        eval_points: flags.eval_points,
+        ..Default::default()
     };
+    for &model in &models {
+        let o = flags.options(model, preset, &models)?;
+        settings
+            .models
+            .insert(model.name().to_owned(), o.settings(gpu.is_cpu())?);
+        options.push(o);
+    }
+    state.claim(&settings)?;
     let stop = Arc::new(AtomicBool::new(false));
     {
         let stop = stop.clone();
@@ -174,7 +175,8 @@ fn corpus(args: &Args) -> Result<ExitCode, BoxError> {
 
     let mut interrupted = false;
     'meshes: for mesh in &mine {
-        for &model in &models {
+        for options in &options {
+            let model = options.model;
             if stop.load(Ordering::Relaxed) {
                 interrupted = true;
                 break 'meshes;
@@ -210,27 +212,13 @@ fn corpus(args: &Args) -> Result<ExitCode, BoxError> {
             } else {
                 None
             };
-            let options = TrainOptions {
-                model,
-                preset,
-                steps: args.steps,
-                epochs: args.epochs,
-                seed: args.seed,
-                lr: None,
-                siren_weights: None,
-                lr_final: None,
-                grow_every: None,
-                distance: hwsdf::nn::DistanceMode::Signed,
-                pool: None,
-                nglod_architecture: Default::default(),
-            };
             eprintln!("{rel} {tag}: training");
             let outcome = run::run(
                 &gpu,
                 &mesh.path,
-                &options,
+                options,
                 &state.model_file(rel, model),
-                args.eval_points,
+                flags.eval_points,
                 checkpoint.as_ref(),
                 &stop,
                 |_| {},
@@ -310,6 +298,9 @@ fn merge(
     let m = corpus::merge(state, meshes, models);
     for why in &m.corrupt {
         eprintln!("warning: ignoring an unreadable result ({why}); its mesh will be redone");
+    }
+    if let Some(e) = &m.settings_error {
+        eprintln!("warning: {e}; the table does not state its settings");
     }
     let table = m.markdown();
     write_atomic(&args.out, table.as_bytes())

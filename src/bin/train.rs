@@ -14,28 +14,19 @@ use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 
 use clap::{Parser, ValueEnum};
-use hwsdf::eval::metrics::DEFAULT_EVAL_POINTS;
-use hwsdf::eval::run::{self, ModelKind, NglodArchitecture, Preset, Progress, TrainOptions};
+use hwsdf::eval::run::{self, ModelKind, NglodArchitecture, Progress};
 use hwsdf::geom::io;
-use hwsdf::nn::{DistanceMode, GpuContext, LossWeights, NeuralSdf};
+use hwsdf::nn::{DistanceMode, GpuContext, NeuralSdf};
 use indicatif::{ProgressBar, ProgressStyle};
+
+#[path = "common/flags.rs"]
+mod flags;
+use flags::TrainingFlags;
 
 #[derive(Clone, Copy, Debug, ValueEnum)]
 enum Model {
     Siren,
     Nglod,
-}
-
-#[derive(Clone, Copy, Debug, ValueEnum)]
-enum DistanceArg {
-    Signed,
-    Unsigned,
-}
-
-#[derive(Clone, Copy, Debug, ValueEnum)]
-enum PresetArg {
-    Default,
-    Small,
 }
 
 /// Fit a neural signed distance function to a mesh on the GPU.
@@ -50,18 +41,6 @@ struct Args {
     /// Architecture.
     #[arg(long, value_enum, default_value = "nglod")]
     model: Model,
-    /// Size preset (default: `default`).
-    #[arg(long, value_enum)]
-    preset: Option<PresetArg>,
-    /// SIREN training steps (default: 10000 on a GPU, a few hundred on a CPU adapter).
-    #[arg(long, conflicts_with = "epochs")]
-    steps: Option<usize>,
-    /// NGLOD epochs of 5·10^5 points (default: 100 on a GPU, 12 on a CPU adapter).
-    #[arg(long)]
-    epochs: Option<usize>,
-    /// Seed of initialisation and sampling.
-    #[arg(long, default_value_t = 0)]
-    seed: u64,
     /// Output model file (default: MESH's name with `.<model>.safetensors`).
     #[arg(long)]
     out: Option<PathBuf>,
@@ -71,92 +50,8 @@ struct Args {
     /// Continue from a checkpoint written by an interrupted run.
     #[arg(long)]
     resume: Option<PathBuf>,
-    /// Points in each evaluation set.
-    #[arg(long, default_value_t = DEFAULT_EVAL_POINTS)]
-    eval_points: usize,
-    /// Initial learning rate (default: 1e-4 for SIREN, 1e-3 for NGLOD).
-    #[arg(long)]
-    lr: Option<f32>,
-    /// NGLOD: final learning rate as a fraction of the first, by cosine decay over the run
-    /// (1 keeps it constant).
-    #[arg(long)]
-    lr_final: Option<f32>,
-    /// NGLOD: progressive levels of detail, one more every this many epochs (0: all at once).
-    #[arg(long)]
-    grow_every: Option<usize>,
-    /// NGLOD: blocks of one epoch's worth of labelled points in the sample pool, and epochs
-    /// between fresh blocks once it is full, as BLOCKS,EVERY (default 4,4; 1,1 samples fresh
-    /// points every epoch).
-    #[arg(long, value_parser = parse_pool)]
-    pool: Option<(usize, usize)>,
-    /// Fit the signed distance, or the unsigned one |d| for meshes without an inside (flat or
-    /// open sheets, two-sided triangle soups); unsigned is scored by distance error and Chamfer
-    /// distance, not F1. NGLOD only.
-    #[arg(long, value_enum, default_value = "signed")]
-    distance: DistanceArg,
-    /// NGLOD: cells per axis of each level of detail, coarse to fine, comma-separated
-    /// (`default`: 6,12,24,48; `small`: 4,8,16).
-    #[arg(long, value_delimiter = ',', help_heading = "NGLOD architecture")]
-    resolutions: Option<Vec<u32>>,
-    /// NGLOD: how many of the finest levels keep features only near the surface, at most 255
-    /// cells each (`default`: 1; `small`: 0).
-    #[arg(long, help_heading = "NGLOD architecture")]
-    sparse_levels: Option<usize>,
-    /// NGLOD: features per grid vertex (`default`: 8; `small`: 4).
-    #[arg(long, help_heading = "NGLOD architecture")]
-    features: Option<u32>,
-    /// NGLOD: hidden width of the MLP (`default`: 128; `small`: 32).
-    #[arg(long, help_heading = "NGLOD architecture")]
-    hidden: Option<u32>,
-    /// SIREN loss: weight of the on-surface |Φ| term (default 3000).
-    #[arg(long, help_heading = "SIREN loss")]
-    surface_weight: Option<f32>,
-    /// SIREN loss: weight of the off-surface exp(−α|Φ|) term (default 100).
-    #[arg(long, help_heading = "SIREN loss")]
-    off_surface_weight: Option<f32>,
-    /// SIREN loss: weight of the normal term 1 − cos(∇Φ, n) (default 100).
-    #[arg(long, help_heading = "SIREN loss")]
-    normal_weight: Option<f32>,
-    /// SIREN loss: weight of the eikonal term |‖∇Φ‖ − 1| (default 5; the SIREN code uses 50).
-    #[arg(long, help_heading = "SIREN loss")]
-    eikonal_weight: Option<f32>,
-    /// SIREN loss: sharpness α of the off-surface term (default 100).
-    #[arg(long, help_heading = "SIREN loss")]
-    alpha: Option<f32>,
-}
-
-impl Args {
-    /// The NGLOD architecture flags given.
-    fn nglod_architecture(&self) -> NglodArchitecture {
-        NglodArchitecture {
-            resolutions: self.resolutions.clone(),
-            sparse_levels: self.sparse_levels,
-            feature_dim: self.features,
-            hidden: self.hidden,
-        }
-    }
-
-    /// The SIREN loss weights, if any flag sets one (the others keep their defaults).
-    fn siren_weights(&self) -> Option<LossWeights> {
-        let flags = [
-            self.surface_weight,
-            self.off_surface_weight,
-            self.normal_weight,
-            self.eikonal_weight,
-            self.alpha,
-        ];
-        if flags.iter().all(Option::is_none) {
-            return None;
-        }
-        let d = LossWeights::default();
-        Some(LossWeights {
-            surface: self.surface_weight.unwrap_or(d.surface),
-            off_surface: self.off_surface_weight.unwrap_or(d.off_surface),
-            normal: self.normal_weight.unwrap_or(d.normal),
-            eikonal: self.eikonal_weight.unwrap_or(d.eikonal),
-            alpha: self.alpha.unwrap_or(d.alpha),
-        })
-    }
+    #[command(flatten)]
+    training: TrainingFlags,
 }
 
 fn main() -> ExitCode {
@@ -171,37 +66,12 @@ fn main() -> ExitCode {
 }
 
 fn train(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
-    if args.eval_points == 0 {
-        return Err("--eval-points must be at least 1".into());
-    }
-    if args.steps == Some(0) || args.epochs == Some(0) {
-        return Err("--steps and --epochs must be at least 1".into());
-    }
     let model = match args.model {
         Model::Siren => ModelKind::Siren,
         Model::Nglod => ModelKind::Nglod,
     };
-    if model == ModelKind::Siren && args.epochs.is_some() {
-        return Err("--epochs applies to NGLOD; SIREN trains for --steps".into());
-    }
-    if model == ModelKind::Nglod && args.steps.is_some() {
-        return Err("--steps applies to SIREN; NGLOD trains for --epochs".into());
-    }
-    run::check_eval_points(args.eval_points)?;
-    // The trainers check these again; here they fail before the mesh and the GPU are set up.
-    if let Some(lr) = args.lr {
-        hwsdf::nn::AdamConfig::check_lr(lr)?;
-    }
-    if let Some(w) = args.siren_weights() {
-        w.validate()?;
-    }
-    let architecture = args.nglod_architecture();
-    // NGLOD's preset is `default` on every adapter unless one is asked for.
-    let nglod_preset = match args.preset {
-        Some(PresetArg::Small) => Preset::Small,
-        _ => Preset::Default,
-    };
-    architecture.check(model, nglod_preset)?;
+    let flags = &args.training;
+    flags.check(&[model])?;
     let out = args
         .out
         .clone()
@@ -226,28 +96,20 @@ fn train(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
         None => None,
     };
     let gpu = GpuContext::new()?;
-    let preset = match args.preset {
-        Some(PresetArg::Default) => Preset::Default,
-        Some(PresetArg::Small) => Preset::Small,
-        None => {
-            let preset = Preset::for_adapter(gpu.is_cpu(), model);
-            if gpu.is_cpu() {
-                let length = match model {
-                    _ if args.epochs.is_some() || args.steps.is_some() => "",
-                    ModelKind::Nglod => {
-                        " and as many epochs as about a minute of training buys here"
-                    }
-                    ModelKind::Siren => " and a shorter default run",
-                };
-                eprintln!(
-                    "note: CPU adapter; using the `{}` preset{length} (pass --preset/--epochs/--steps to override)",
-                    preset.name()
-                );
-            }
-            preset
-        }
-    };
-    if options_distance(args) == DistanceMode::Signed
+    let preset = flags.preset_for(model, gpu.is_cpu());
+    if flags.preset.is_none() && gpu.is_cpu() {
+        let length = match model {
+            _ if flags.epochs.is_some() || flags.steps.is_some() => "",
+            ModelKind::Nglod => " and as many epochs as about a minute of training buys here",
+            ModelKind::Siren => " and a shorter default run",
+        };
+        eprintln!(
+            "note: CPU adapter; using the `{}` preset{length} (pass --preset/--epochs/--steps to override)",
+            preset.name()
+        );
+    }
+    let options = flags.options(model, preset, &[model])?;
+    if options.distance == DistanceMode::Signed
         && let Some(reason) = run::no_inside_check(&mesh)?
     {
         eprintln!(
@@ -257,25 +119,11 @@ fn train(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
             args.mesh.display()
         );
     }
-    let options = TrainOptions {
-        model,
-        preset,
-        steps: args.steps,
-        epochs: args.epochs,
-        seed: args.seed,
-        lr: args.lr,
-        siren_weights: args.siren_weights(),
-        lr_final: args.lr_final,
-        grow_every: args.grow_every,
-        distance: options_distance(args),
-        pool: args.pool,
-        nglod_architecture: architecture,
-    };
     // A changed architecture is named against its preset's: "resolutions 8,16,32, not 6,12,24".
     let changed = match model {
         ModelKind::Nglod => options
             .nglod_architecture
-            .differences(&NglodArchitecture::default().config(preset, args.seed)?),
+            .differences(&NglodArchitecture::default().config(preset, flags.seed)?),
         ModelKind::Siren => Vec::new(),
     };
     eprintln!(
@@ -348,7 +196,7 @@ fn train(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
         std::process::exit(130);
     }
     let sdf = NeuralSdf::from_model_file(trained.file.clone())?;
-    let eval = run::evaluate(&gpu, &sdf, &mesh, args.eval_points)?;
+    let eval = run::evaluate(&gpu, &sdf, &mesh, flags.eval_points)?;
     // The report's atomic write is not cut short by a late Ctrl-C.
     evaluating.store(false, Ordering::Relaxed);
     let report = run::Report::new(
@@ -381,24 +229,6 @@ fn train(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
     );
     eprintln!("report written to {}", report_path.display());
     Ok(())
-}
-
-fn options_distance(args: &Args) -> DistanceMode {
-    match args.distance {
-        DistanceArg::Signed => DistanceMode::Signed,
-        DistanceArg::Unsigned => DistanceMode::Unsigned,
-    }
-}
-
-fn parse_pool(s: &str) -> Result<(usize, usize), String> {
-    let (a, b) = s
-        .split_once(',')
-        .ok_or_else(|| format!("expected BLOCKS,EVERY, not {s:?}"))?;
-    let parse = |x: &str| match x.trim().parse::<usize>() {
-        Ok(v) if v > 0 => Ok(v),
-        _ => Err(format!("{x:?} is not a positive integer")),
-    };
-    Ok((parse(a)?, parse(b)?))
 }
 
 fn default_out(mesh: &Path, model: ModelKind) -> PathBuf {

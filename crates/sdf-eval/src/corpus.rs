@@ -27,7 +27,7 @@ use std::path::{Path, PathBuf};
 
 use serde::{Deserialize, Serialize};
 
-use crate::run::{ModelKind, Report};
+use crate::run::{ModelKind, Report, RunSettings};
 
 /// File extensions a corpus walk picks up (case-insensitive).
 pub const MESH_EXTENSIONS: [&str; 3] = ["obj", "gltf", "glb"];
@@ -56,6 +56,66 @@ pub enum CorpusError {
         /// Why it is refused.
         reason: String,
     },
+    /// The results folder holds results of other settings; one table never mixes them.
+    #[error(
+        "{} holds results of other settings ({}); give another --out, or delete that folder to start over",
+        .dir.display(), .differences.join("; ")
+    )]
+    OtherSettings {
+        /// The results folder.
+        dir: PathBuf,
+        /// `name asked, not recorded` for each setting that differs.
+        differences: Vec<String>,
+    },
+    /// The results folder's settings record does not parse.
+    #[error(
+        "{}: not a settings record ({reason}); delete it only if every result in its folder was made with this run's settings",
+        .path.display()
+    )]
+    BadSettings {
+        /// The record.
+        path: PathBuf,
+        /// The parse error.
+        reason: String,
+    },
+}
+
+/// What a corpus run asks for: the evaluation's size and each model's [`RunSettings`]. The first
+/// run or shard writes them into `<out>.d/settings.json` and every later one must ask for the
+/// same ([`StateDir::claim`]), so that a table never mixes results of different settings and a
+/// rerun with other flags cannot silently skip meshes as done.
+#[derive(Clone, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct CorpusSettings {
+    /// Points in each evaluation set.
+    pub eval_points: usize,
+    /// Each model's settings, by model name.
+    pub models: BTreeMap<String, RunSettings>,
+}
+
+impl CorpusSettings {
+    /// How these settings differ from `recorded`, as `name asked, not recorded` lines: the
+    /// evaluation, and each model both have (a model only one side has is no conflict: its
+    /// results are kept apart by name).
+    pub fn differences(&self, recorded: &CorpusSettings) -> Vec<String> {
+        let mut out = Vec::new();
+        if self.eval_points != recorded.eval_points {
+            out.push(format!(
+                "eval points {}, not {}",
+                self.eval_points, recorded.eval_points
+            ));
+        }
+        for (model, settings) in &self.models {
+            if let Some(theirs) = recorded.models.get(model) {
+                out.extend(
+                    settings
+                        .differences(theirs)
+                        .into_iter()
+                        .map(|d| format!("{model} {d}")),
+                );
+            }
+        }
+        out
+    }
 }
 
 /// One mesh of a corpus: where it is, and its path relative to the corpus root, which names it
@@ -406,6 +466,72 @@ impl StateDir {
         format!("{base}.{}", model.name())
     }
 
+    /// The record of the settings every result in the folder was made with.
+    pub fn settings_path(&self) -> PathBuf {
+        self.dir.join("settings.json")
+    }
+
+    /// The recorded settings, if any run has recorded them yet.
+    pub fn read_settings(&self) -> Result<Option<CorpusSettings>, CorpusError> {
+        let path = self.settings_path();
+        match std::fs::read(&path) {
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(None),
+            Err(source) => Err(CorpusError::Io { path, source }),
+            Ok(bytes) => {
+                serde_json::from_slice(&bytes)
+                    .map(Some)
+                    .map_err(|e| CorpusError::BadSettings {
+                        path,
+                        reason: e.to_string(),
+                    })
+            }
+        }
+    }
+
+    /// Records `settings` as the folder's, or checks them against those recorded: any
+    /// difference is [`CorpusError::OtherSettings`], and a model the record lacks is added to
+    /// it. Shards starting together agree on one record: the first is created without ever
+    /// replacing another's, and the rest are checked against it. A folder from before the
+    /// record existed takes the first settings claimed.
+    pub fn claim(&self, settings: &CorpusSettings) -> Result<(), CorpusError> {
+        let path = self.settings_path();
+        let io = |source| CorpusError::Io {
+            path: path.clone(),
+            source,
+        };
+        let json = |s: &CorpusSettings| serde_json::to_vec_pretty(s).expect("settings serialise");
+        // Twice at most: a shard that loses the race to create the record reads the winner's.
+        for _ in 0..2 {
+            let Some(recorded) = self.read_settings()? else {
+                match sdf_geom::io::create_atomic(&path, &json(settings)) {
+                    Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => continue,
+                    other => return other.map_err(io),
+                }
+            };
+            let differences = settings.differences(&recorded);
+            if !differences.is_empty() {
+                return Err(CorpusError::OtherSettings {
+                    dir: self.dir.clone(),
+                    differences,
+                });
+            }
+            let mut merged = recorded.clone();
+            for (model, s) in &settings.models {
+                merged
+                    .models
+                    .entry(model.clone())
+                    .or_insert_with(|| s.clone());
+            }
+            if merged != recorded {
+                sdf_geom::io::write_atomic(&path, &json(&merged)).map_err(io)?;
+            }
+            return Ok(());
+        }
+        Err(io(std::io::Error::other(
+            "the settings record was created and removed while being read",
+        )))
+    }
+
     /// The result file of `rel` × `model`.
     pub fn record(&self, rel: &str, model: ModelKind) -> PathBuf {
         self.dir.join(format!("{}.json", Self::stem(rel, model)))
@@ -455,6 +581,11 @@ pub struct Merge {
     pub missing: usize,
     /// Result files that do not parse (ignored; redone by the next run).
     pub corrupt: Vec<String>,
+    /// The settings the results were made with (`None` for a folder from before they were
+    /// recorded, or one whose record cannot be read).
+    pub settings: Option<CorpusSettings>,
+    /// Why the settings record cannot be read, if it cannot.
+    pub settings_error: Option<CorpusError>,
 }
 
 /// Reads every expected result of `meshes` × `models` from `state`.
@@ -464,7 +595,13 @@ pub fn merge(state: &StateDir, meshes: &[CorpusMesh], models: &[ModelKind]) -> M
         expected: meshes.len() * models.len(),
         missing: 0,
         corrupt: Vec::new(),
+        settings: None,
+        settings_error: None,
     };
+    match state.read_settings() {
+        Ok(settings) => m.settings = settings,
+        Err(e) => m.settings_error = Some(e),
+    }
     for mesh in meshes {
         for &model in models {
             match state.read(&mesh.rel, model) {
@@ -574,6 +711,11 @@ impl Merge {
                 continue;
             }
             let _ = writeln!(s, "### {}\n", model.to_uppercase());
+            if let Some(settings) = self.settings.as_ref() {
+                if let Some(m) = settings.models.get(model) {
+                    let _ = writeln!(s, "Settings: {m}; eval points {}.\n", settings.eval_points);
+                }
+            }
             let _ = writeln!(
                 s,
                 "| mesh | F1 in bounding box | F1 near surface | mean | train s | ns/point | µs/3000 | params | file bytes |"
@@ -899,6 +1041,87 @@ mod tests {
         );
         assert!(table.contains("| a.obj | failed: no triangles"), "{table}");
         assert!(!table.contains("b.obj"), "{table}");
+        std::fs::remove_dir_all(&root).unwrap();
+    }
+
+    #[test]
+    fn a_results_folder_keeps_one_set_of_settings() {
+        use crate::run::{Preset, TrainOptions};
+        let root =
+            std::env::temp_dir().join(format!("hwsdf-corpus-settings-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&root);
+        let state = StateDir::for_table(&root.join("results.md"));
+        state.create().unwrap();
+        let nglod = |epochs: Option<usize>, cpu: bool| {
+            TrainOptions {
+                epochs,
+                ..TrainOptions::new(ModelKind::Nglod, Preset::Default)
+            }
+            .settings(cpu)
+            .unwrap()
+        };
+        let siren = TrainOptions {
+            steps: Some(50),
+            ..TrainOptions::new(ModelKind::Siren, Preset::Small)
+        };
+        let with = |models: &[(&str, RunSettings)], points: usize| CorpusSettings {
+            eval_points: points,
+            models: models
+                .iter()
+                .map(|(m, s)| (m.to_string(), s.clone()))
+                .collect(),
+        };
+        let first = with(&[("nglod", nglod(Some(12), false))], 1000);
+        assert_eq!(state.read_settings().unwrap(), None);
+        state.claim(&first).unwrap();
+        assert_eq!(state.read_settings().unwrap().as_ref(), Some(&first));
+        // The same settings, however spelt, are welcome again: 100 epochs is a GPU's default.
+        state.claim(&first).unwrap();
+        let gpu_default = with(&[("nglod", nglod(None, false))], 1000);
+        let explicit = with(&[("nglod", nglod(Some(100), false))], 1000);
+        assert!(gpu_default.differences(&explicit).is_empty());
+        // Other settings are refused with what differs, and the record stays.
+        for (other, says) in [
+            (
+                with(&[("nglod", nglod(Some(30), false))], 1000),
+                "nglod epochs 30, not 12",
+            ),
+            (
+                with(&[("nglod", nglod(Some(12), false))], 999),
+                "eval points 999, not 1000",
+            ),
+            (gpu_default, "nglod epochs 100, not 12"),
+            (
+                with(&[("nglod", nglod(None, true))], 1000),
+                "nglod epochs about 55 s of training (12 to 100), not 12",
+            ),
+        ] {
+            let e = state.claim(&other).unwrap_err();
+            assert!(matches!(&e, CorpusError::OtherSettings { .. }), "{e}");
+            assert!(e.to_string().contains(says), "{e}");
+        }
+        assert_eq!(state.read_settings().unwrap().as_ref(), Some(&first));
+        // A model the record lacks is added to it; the merged table states each model's.
+        let siren_settings = siren.settings(true).unwrap();
+        state
+            .claim(&with(&[("siren", siren_settings.clone())], 1000))
+            .unwrap();
+        let both = with(
+            &[("nglod", nglod(Some(12), false)), ("siren", siren_settings)],
+            1000,
+        );
+        assert_eq!(state.read_settings().unwrap().as_ref(), Some(&both));
+        let table = merge(&state, &[], &[ModelKind::Siren]).settings;
+        assert_eq!(table.as_ref(), Some(&both));
+        // An unreadable record stops every run instead of being replaced.
+        std::fs::write(state.settings_path(), "{\"eval_poi").unwrap();
+        let e = state.claim(&first).unwrap_err();
+        assert!(matches!(e, CorpusError::BadSettings { .. }), "{e}");
+        assert!(
+            merge(&state, &[], &[ModelKind::Nglod])
+                .settings_error
+                .is_some()
+        );
         std::fs::remove_dir_all(&root).unwrap();
     }
 }

@@ -1,6 +1,7 @@
 //! One experiment, as `train` and `corpus` run it: load and normalise a mesh, train a model on
 //! the GPU, save it, evaluate it (F1, distance error, latency, storage) and write a JSON report.
 
+use std::collections::{BTreeMap, BTreeSet};
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -223,6 +224,175 @@ pub struct TrainOptions {
     /// NGLOD: an architecture other than the preset's (each value given replaces the preset's).
     /// An error for SIREN unless empty.
     pub nglod_architecture: NglodArchitecture,
+}
+
+impl TrainOptions {
+    /// A run of `model` over `preset` with every other option at its default (seed 0).
+    pub fn new(model: ModelKind, preset: Preset) -> Self {
+        TrainOptions {
+            model,
+            preset,
+            steps: None,
+            epochs: None,
+            seed: 0,
+            lr: None,
+            siren_weights: None,
+            lr_final: None,
+            grow_every: None,
+            distance: DistanceMode::Signed,
+            pool: None,
+            nglod_architecture: NglodArchitecture::default(),
+        }
+    }
+
+    /// Checks what can be checked without a mesh or a GPU, so that a bad option is a typed error
+    /// before any work: lengths of at least 1, every option given to the model it applies to, a
+    /// usable learning rate, final ratio, loss weights and NGLOD architecture. [`train`] runs it
+    /// too.
+    pub fn validate(&self) -> Result<(), RunError> {
+        let refuse = |why: &str| Err(RunError::Options(why.to_owned()));
+        if self.steps == Some(0) || self.epochs == Some(0) {
+            return refuse("--steps and --epochs must be at least 1");
+        }
+        match self.model {
+            ModelKind::Siren => {
+                if self.epochs.is_some() {
+                    return refuse("--epochs applies to NGLOD; SIREN trains for --steps");
+                }
+                if self.distance == DistanceMode::Unsigned {
+                    return Err(RunError::UnsignedSiren);
+                }
+                if self.lr_final.is_some() || self.grow_every.is_some() || self.pool.is_some() {
+                    return refuse(
+                        "--lr-final, --grow-every and --pool apply to NGLOD; SIREN trains at a \
+                         constant learning rate on fresh points every step",
+                    );
+                }
+                if let Some(w) = self.siren_weights {
+                    w.validate()?;
+                }
+            }
+            ModelKind::Nglod => {
+                if self.steps.is_some() {
+                    return refuse("--steps applies to SIREN; NGLOD trains for --epochs");
+                }
+                if self.siren_weights.is_some() {
+                    return refuse(
+                        "loss weights apply to SIREN; NGLOD's loss is the squared error",
+                    );
+                }
+                if let Some(f) = self.lr_final
+                    && !(f.is_finite() && f >= 0.0)
+                {
+                    return Err(RunError::Options(format!(
+                        "--lr-final must be finite and non-negative, not {f}"
+                    )));
+                }
+                if matches!(self.pool, Some((0, _) | (_, 0))) {
+                    return refuse("--pool takes two positive integers, BLOCKS,EVERY");
+                }
+            }
+        }
+        if let Some(lr) = self.lr {
+            sdf_nn::AdamConfig::check_lr(lr).map_err(RunError::Options)?;
+        }
+        self.nglod_architecture.check(self.model, self.preset)
+    }
+
+    /// What this run asks for, as `name → value` with every default resolved to what it stands
+    /// for, so that two runs that train alike have equal settings however their options were
+    /// spelt (`--epochs 100` on a GPU and no `--epochs` there are the same run). The length
+    /// defaults depend on the adapter, hence `cpu_adapter`. A corpus run keeps these beside its
+    /// results and refuses to mix results of other settings into one table.
+    pub fn settings(&self, cpu_adapter: bool) -> Result<RunSettings, RunError> {
+        self.validate()?;
+        let mut s = BTreeMap::new();
+        let mut put = |k: &str, v: String| s.insert(k.to_owned(), v);
+        put("preset", self.preset.name().to_owned());
+        put("seed", self.seed.to_string());
+        let asked = match self.model {
+            ModelKind::Siren => self.steps,
+            ModelKind::Nglod => self.epochs,
+        };
+        let length = match asked {
+            Some(n) => n.to_string(),
+            None if self.model == ModelKind::Nglod && cpu_adapter => format!(
+                "about {} s of training ({} to {})",
+                CPU_TIME_BUDGET.seconds,
+                default_length(self.model, self.preset, true),
+                CPU_TIME_BUDGET.max_epochs
+            ),
+            None => default_length(self.model, self.preset, cpu_adapter).to_string(),
+        };
+        match self.model {
+            ModelKind::Siren => {
+                let d = SirenTrainConfig::default();
+                let w = self.siren_weights.unwrap_or(d.weights);
+                put("steps", length);
+                put("lr", self.lr.unwrap_or(d.lr).to_string());
+                put(
+                    "loss weights",
+                    format!(
+                        "surface {}, off-surface {}, normal {}, eikonal {}, alpha {}",
+                        w.surface, w.off_surface, w.normal, w.eikonal, w.alpha
+                    ),
+                );
+            }
+            ModelKind::Nglod => {
+                let d = NglodTrainConfig::default();
+                let c = self.nglod_architecture.config(self.preset, self.seed)?;
+                let list = |r: &[u32]| r.iter().map(u32::to_string).collect::<Vec<_>>().join(",");
+                put("epochs", length);
+                put("lr", self.lr.unwrap_or(d.adam.lr).to_string());
+                let lr_final = self.lr_final.or(d.lr_final).unwrap_or(1.0);
+                put("lr final", lr_final.to_string());
+                let grow = self.grow_every.or(d.grow_every).unwrap_or(0);
+                put("grow every", grow.to_string());
+                let (blocks, every) = self.pool.unwrap_or((d.pool_blocks, d.refresh_every));
+                put("pool", format!("{blocks},{every}"));
+                put("distance", self.distance.name().to_owned());
+                put(
+                    "architecture",
+                    format!(
+                        "resolutions {}, sparse levels {}, features {}, hidden {}",
+                        list(&c.resolutions),
+                        c.sparse_levels,
+                        c.feature_dim,
+                        c.hidden
+                    ),
+                );
+            }
+        }
+        Ok(RunSettings(s))
+    }
+}
+
+/// What a run asks for: [`TrainOptions::settings`].
+#[derive(Clone, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(transparent)]
+pub struct RunSettings(pub BTreeMap<String, String>);
+
+impl RunSettings {
+    /// The settings these have that `recorded` has otherwise, as `name value, not recorded`
+    /// lines (empty when they agree; a name only one side has counts too).
+    pub fn differences(&self, recorded: &RunSettings) -> Vec<String> {
+        let names: BTreeSet<&String> = self.0.keys().chain(recorded.0.keys()).collect();
+        names
+            .into_iter()
+            .filter_map(|k| {
+                let (a, r) = (self.0.get(k), recorded.0.get(k));
+                let show = |v: Option<&String>| v.map_or("unset", String::as_str).to_owned();
+                (a != r).then(|| format!("{k} {}, not {}", show(a), show(r)))
+            })
+            .collect()
+    }
+}
+
+impl std::fmt::Display for RunSettings {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let parts: Vec<String> = self.0.iter().map(|(k, v)| format!("{k} {v}")).collect();
+        f.write_str(&parts.join("; "))
+    }
 }
 
 /// NGLOD architecture values over a preset (`train --resolutions --sparse-levels --features
@@ -546,17 +716,7 @@ pub fn train(
             )));
         }
     }
-    if options.model == ModelKind::Siren && options.distance == DistanceMode::Unsigned {
-        return Err(RunError::UnsignedSiren);
-    }
-    options
-        .nglod_architecture
-        .check(options.model, options.preset)?;
-    if options.model == ModelKind::Nglod && options.siren_weights.is_some() {
-        return Err(RunError::Options(
-            "loss weights apply to SIREN; NGLOD's loss is the squared error".into(),
-        ));
-    }
+    options.validate()?;
     let start = Instant::now();
     let asked = match options.model {
         ModelKind::Siren => options.steps,
@@ -1078,6 +1238,153 @@ pub fn run(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn options_go_to_the_model_they_apply_to() {
+        let siren = TrainOptions::new(ModelKind::Siren, Preset::Small);
+        let nglod = TrainOptions::new(ModelKind::Nglod, Preset::Default);
+        assert!(siren.validate().is_ok() && nglod.validate().is_ok());
+        let refused = |o: TrainOptions, says: &str| {
+            let e = o.validate().unwrap_err().to_string();
+            assert!(e.contains(says), "{says:?} not in {e:?}");
+        };
+        refused(
+            TrainOptions {
+                epochs: Some(3),
+                ..siren.clone()
+            },
+            "--epochs applies to NGLOD",
+        );
+        refused(
+            TrainOptions {
+                steps: Some(0),
+                ..siren.clone()
+            },
+            "at least 1",
+        );
+        refused(
+            TrainOptions {
+                pool: Some((2, 2)),
+                ..siren.clone()
+            },
+            "apply to NGLOD",
+        );
+        refused(
+            TrainOptions {
+                distance: DistanceMode::Unsigned,
+                ..siren.clone()
+            },
+            "NGLOD only",
+        );
+        refused(
+            TrainOptions {
+                lr: Some(f32::NAN),
+                ..siren.clone()
+            },
+            "learning rate",
+        );
+        refused(
+            TrainOptions {
+                steps: Some(10),
+                ..nglod.clone()
+            },
+            "--steps applies to SIREN",
+        );
+        refused(
+            TrainOptions {
+                siren_weights: Some(LossWeights::default()),
+                ..nglod.clone()
+            },
+            "loss weights apply to SIREN",
+        );
+        refused(
+            TrainOptions {
+                lr_final: Some(-0.5),
+                ..nglod.clone()
+            },
+            "--lr-final",
+        );
+        refused(
+            TrainOptions {
+                pool: Some((0, 4)),
+                ..nglod.clone()
+            },
+            "--pool",
+        );
+        refused(
+            TrainOptions {
+                nglod_architecture: NglodArchitecture {
+                    hidden: Some(0),
+                    ..Default::default()
+                },
+                ..nglod.clone()
+            },
+            "hidden",
+        );
+    }
+
+    #[test]
+    fn settings_resolve_every_default() {
+        let nglod = TrainOptions::new(ModelKind::Nglod, Preset::Default);
+        let spelt_out = TrainOptions {
+            epochs: Some(100),
+            lr: Some(1e-3),
+            lr_final: Some(0.1),
+            grow_every: Some(0),
+            pool: Some((4, 4)),
+            nglod_architecture: NglodArchitecture {
+                resolutions: Some(vec![6, 12, 24, 48]),
+                feature_dim: Some(8),
+                ..Default::default()
+            },
+            ..nglod.clone()
+        };
+        let gpu = nglod.settings(false).unwrap();
+        assert_eq!(gpu, spelt_out.settings(false).unwrap());
+        assert_eq!(
+            gpu.to_string(),
+            "architecture resolutions 6,12,24,48, sparse levels 1, features 8, hidden 128; \
+             distance signed; epochs 100; grow every 0; lr 0.001; lr final 0.1; pool 4,4; \
+             preset default; seed 0"
+        );
+        // The length a default stands for depends on the adapter.
+        let cpu = nglod.settings(true).unwrap();
+        assert_eq!(
+            cpu.differences(&gpu),
+            ["epochs about 55 s of training (12 to 100), not 100"]
+        );
+        let finer = TrainOptions {
+            nglod_architecture: NglodArchitecture {
+                hidden: Some(64),
+                ..Default::default()
+            },
+            seed: 1,
+            ..nglod
+        };
+        assert_eq!(
+            finer.settings(false).unwrap().differences(&gpu),
+            [
+                "architecture resolutions 6,12,24,48, sparse levels 1, features 8, hidden 64, \
+                 not resolutions 6,12,24,48, sparse levels 1, features 8, hidden 128",
+                "seed 1, not 0"
+            ]
+        );
+        let siren = TrainOptions::new(ModelKind::Siren, Preset::Small);
+        let s = siren.settings(true).unwrap().to_string();
+        assert!(s.contains("steps 300"), "{s}");
+        assert!(
+            s.contains(
+                "loss weights surface 3000, off-surface 100, normal 100, eikonal 5, alpha 100"
+            ),
+            "{s}"
+        );
+        // Invalid options have no settings.
+        let bad = TrainOptions {
+            epochs: Some(0),
+            ..TrainOptions::new(ModelKind::Nglod, Preset::Small)
+        };
+        assert!(bad.settings(false).is_err());
+    }
 
     #[test]
     fn an_nglod_architecture_replaces_only_the_values_given() {

@@ -11,6 +11,17 @@ use crate::Mesh;
 /// or the new one, never a partial write; a link planted under a guessable temporary name cannot
 /// redirect the write, and on error the temporary file is removed.
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
+    write_via_temp(path, bytes, true)
+}
+
+/// [`write_atomic`] that never replaces a file: it fails with
+/// [`std::io::ErrorKind::AlreadyExists`] if `path` exists, also when another process creates it
+/// at the same moment (the temporary file is linked into place, not renamed over it).
+pub fn create_atomic(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
+    write_via_temp(path, bytes, false)
+}
+
+fn write_via_temp(path: &Path, bytes: &[u8], replace: bool) -> std::io::Result<()> {
     let dir = parent_dir(path);
     let name = path.file_name().ok_or_else(|| {
         std::io::Error::new(std::io::ErrorKind::InvalidInput, "path has no file name")
@@ -27,7 +38,11 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
     let mut tmp = builder.tempfile_in(&dir)?;
     tmp.write_all(bytes)?;
     tmp.as_file().sync_all()?;
-    tmp.persist(path).map_err(|e| e.error)?;
+    if replace {
+        tmp.persist(path).map_err(|e| e.error)?;
+    } else {
+        tmp.persist_noclobber(path).map_err(|e| e.error)?;
+    }
     Ok(())
 }
 
@@ -268,6 +283,19 @@ mod tests {
         // Failing writes leave nothing behind either.
         assert!(write_atomic(&dir.join("missing/x.txt"), b"x").is_err());
         assert_eq!(std::fs::read_dir(&dir).unwrap().count(), 3);
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn create_atomic_never_replaces_a_file() {
+        let dir = scratch("create");
+        let out = dir.join("settings.json");
+        create_atomic(&out, b"first").unwrap();
+        let again = create_atomic(&out, b"second").unwrap_err();
+        assert_eq!(again.kind(), std::io::ErrorKind::AlreadyExists);
+        assert_eq!(std::fs::read(&out).unwrap(), b"first");
+        // The refused write left no temporary behind.
+        assert_eq!(std::fs::read_dir(&dir).unwrap().count(), 1);
         std::fs::remove_dir_all(&dir).unwrap();
     }
 

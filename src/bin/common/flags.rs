@@ -1,0 +1,214 @@
+//! The training flags `train` and `corpus` share: one definition, so that both binaries take the
+//! same options with the same meaning, defaults and checks. Each includes this file with
+//! `#[path = "common/flags.rs"] mod flags;`.
+
+use clap::ValueEnum;
+use hwsdf::eval::metrics::DEFAULT_EVAL_POINTS;
+use hwsdf::eval::run::{self, ModelKind, NglodArchitecture, Preset, RunError, TrainOptions};
+use hwsdf::nn::{DistanceMode, LossWeights};
+
+/// `--preset`.
+#[derive(Clone, Copy, Debug, ValueEnum)]
+pub enum PresetArg {
+    /// The design document's architectures.
+    Default,
+    /// Small networks for CPU-only machines and tests.
+    Small,
+}
+
+/// `--distance`.
+#[derive(Clone, Copy, Debug, ValueEnum)]
+pub enum DistanceArg {
+    /// The signed distance.
+    Signed,
+    /// The unsigned distance |d|.
+    Unsigned,
+}
+
+/// How long to train, on what, and with which architecture and loss.
+#[derive(clap::Args, Debug)]
+pub struct TrainingFlags {
+    /// Size preset (default: `default`; SIREN's is `small` on a CPU adapter).
+    #[arg(long, value_enum)]
+    pub preset: Option<PresetArg>,
+    /// SIREN training steps (default: 10000 on a GPU, a few hundred on a CPU adapter).
+    #[arg(long)]
+    pub steps: Option<usize>,
+    /// NGLOD epochs of 5·10^5 points (default: 100 on a GPU; on a CPU adapter as many as about
+    /// a minute of training buys, at least 12).
+    #[arg(long)]
+    pub epochs: Option<usize>,
+    /// Seed of initialisation and sampling.
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    /// Points in each evaluation set.
+    #[arg(long, default_value_t = DEFAULT_EVAL_POINTS)]
+    pub eval_points: usize,
+    /// Initial learning rate (default: 1e-4 for SIREN, 1e-3 for NGLOD).
+    #[arg(long)]
+    pub lr: Option<f32>,
+    /// NGLOD: final learning rate as a fraction of the first, by cosine decay over the run
+    /// (default 0.1; 1 keeps it constant).
+    #[arg(long)]
+    pub lr_final: Option<f32>,
+    /// NGLOD: progressive levels of detail, one more every this many epochs (0: all at once).
+    #[arg(long)]
+    pub grow_every: Option<usize>,
+    /// NGLOD: blocks of one epoch's worth of labelled points in the sample pool, and epochs
+    /// between fresh blocks once it is full, as BLOCKS,EVERY (default 4,4; 1,1 samples fresh
+    /// points every epoch).
+    #[arg(long, value_parser = parse_pool)]
+    pub pool: Option<(usize, usize)>,
+    /// Fit the signed distance, or the unsigned one |d| for meshes without an inside (flat or
+    /// open sheets, two-sided triangle soups); unsigned is scored by distance error and Chamfer
+    /// distance, not F1. NGLOD only.
+    #[arg(long, value_enum, default_value = "signed")]
+    pub distance: DistanceArg,
+    /// NGLOD: cells per axis of each level of detail, coarse to fine, comma-separated
+    /// (`default`: 6,12,24,48; `small`: 4,8,16).
+    #[arg(long, value_delimiter = ',', help_heading = "NGLOD architecture")]
+    pub resolutions: Option<Vec<u32>>,
+    /// NGLOD: how many of the finest levels keep features only near the surface, at most 255
+    /// cells each (`default`: 1; `small`: 0).
+    #[arg(long, help_heading = "NGLOD architecture")]
+    pub sparse_levels: Option<usize>,
+    /// NGLOD: features per grid vertex (`default`: 8; `small`: 4).
+    #[arg(long, help_heading = "NGLOD architecture")]
+    pub features: Option<u32>,
+    /// NGLOD: hidden width of the MLP (`default`: 128; `small`: 32).
+    #[arg(long, help_heading = "NGLOD architecture")]
+    pub hidden: Option<u32>,
+    /// SIREN loss: weight of the on-surface |Φ| term (default 3000).
+    #[arg(long, help_heading = "SIREN loss")]
+    pub surface_weight: Option<f32>,
+    /// SIREN loss: weight of the off-surface exp(−α|Φ|) term (default 100).
+    #[arg(long, help_heading = "SIREN loss")]
+    pub off_surface_weight: Option<f32>,
+    /// SIREN loss: weight of the normal term 1 − cos(∇Φ, n) (default 100).
+    #[arg(long, help_heading = "SIREN loss")]
+    pub normal_weight: Option<f32>,
+    /// SIREN loss: weight of the eikonal term |‖∇Φ‖ − 1| (default 5; the SIREN code uses 50).
+    #[arg(long, help_heading = "SIREN loss")]
+    pub eikonal_weight: Option<f32>,
+    /// SIREN loss: sharpness α of the off-surface term (default 100).
+    #[arg(long, help_heading = "SIREN loss")]
+    pub alpha: Option<f32>,
+}
+
+impl TrainingFlags {
+    /// The preset asked for, if any.
+    pub fn preset(&self) -> Option<Preset> {
+        self.preset.map(|p| match p {
+            PresetArg::Default => Preset::Default,
+            PresetArg::Small => Preset::Small,
+        })
+    }
+
+    /// The preset of `model`'s runs: the one asked for, else the adapter's.
+    pub fn preset_for(&self, model: ModelKind, cpu_adapter: bool) -> Preset {
+        self.preset()
+            .unwrap_or_else(|| Preset::for_adapter(cpu_adapter, model))
+    }
+
+    /// Checks every flag for a run of `models` before the GPU is opened or a mesh is read: the
+    /// evaluation's size, and [`Self::options`] of each model (the preset's exact choice waits
+    /// for the adapter; only NGLOD's checks depend on it, and its default is `default`).
+    pub fn check(&self, models: &[ModelKind]) -> Result<(), RunError> {
+        if self.eval_points == 0 {
+            return Err(RunError::Options("--eval-points must be at least 1".into()));
+        }
+        run::check_eval_points(self.eval_points)?;
+        for &model in models {
+            self.options(model, self.preset().unwrap_or(Preset::Default), models)?;
+        }
+        Ok(())
+    }
+
+    /// The options of `model`'s runs in a run of `models`, validated. A flag that applies to one
+    /// model only goes to that model when both run (`--steps` to SIREN, `--epochs` and the
+    /// NGLOD flags to NGLOD, the loss weights to SIREN), and is an error when only the other
+    /// runs. `--lr` is refused when both run: their defaults differ tenfold.
+    pub fn options(
+        &self,
+        model: ModelKind,
+        preset: Preset,
+        models: &[ModelKind],
+    ) -> Result<TrainOptions, RunError> {
+        let both = models.contains(&ModelKind::Siren) && models.contains(&ModelKind::Nglod);
+        if both && self.lr.is_some() {
+            return Err(RunError::Options(
+                "--lr sets one model's learning rate (SIREN's default is 1e-4, NGLOD's 1e-3); \
+                 with both models, run each with its own --model"
+                    .into(),
+            ));
+        }
+        // With both models, a flag of the other model is not this one's.
+        let keep = |of: ModelKind| !both || of == model;
+        let options = TrainOptions {
+            model,
+            preset,
+            steps: self.steps.filter(|_| keep(ModelKind::Siren)),
+            epochs: self.epochs.filter(|_| keep(ModelKind::Nglod)),
+            seed: self.seed,
+            lr: self.lr,
+            siren_weights: self.siren_weights().filter(|_| keep(ModelKind::Siren)),
+            lr_final: self.lr_final.filter(|_| keep(ModelKind::Nglod)),
+            grow_every: self.grow_every.filter(|_| keep(ModelKind::Nglod)),
+            distance: match self.distance {
+                DistanceArg::Signed => DistanceMode::Signed,
+                DistanceArg::Unsigned => DistanceMode::Unsigned,
+            },
+            pool: self.pool.filter(|_| keep(ModelKind::Nglod)),
+            nglod_architecture: if keep(ModelKind::Nglod) {
+                self.nglod_architecture()
+            } else {
+                NglodArchitecture::default()
+            },
+        };
+        options.validate()?;
+        Ok(options)
+    }
+
+    /// The NGLOD architecture flags given.
+    fn nglod_architecture(&self) -> NglodArchitecture {
+        NglodArchitecture {
+            resolutions: self.resolutions.clone(),
+            sparse_levels: self.sparse_levels,
+            feature_dim: self.features,
+            hidden: self.hidden,
+        }
+    }
+
+    /// The SIREN loss weights, if any flag sets one (the others keep their defaults).
+    fn siren_weights(&self) -> Option<LossWeights> {
+        let flags = [
+            self.surface_weight,
+            self.off_surface_weight,
+            self.normal_weight,
+            self.eikonal_weight,
+            self.alpha,
+        ];
+        if flags.iter().all(Option::is_none) {
+            return None;
+        }
+        let d = LossWeights::default();
+        Some(LossWeights {
+            surface: self.surface_weight.unwrap_or(d.surface),
+            off_surface: self.off_surface_weight.unwrap_or(d.off_surface),
+            normal: self.normal_weight.unwrap_or(d.normal),
+            eikonal: self.eikonal_weight.unwrap_or(d.eikonal),
+            alpha: self.alpha.unwrap_or(d.alpha),
+        })
+    }
+}
+
+fn parse_pool(s: &str) -> Result<(usize, usize), String> {
+    let (a, b) = s
+        .split_once(',')
+        .ok_or_else(|| format!("expected BLOCKS,EVERY, not {s:?}"))?;
+    let parse = |x: &str| match x.trim().parse::<usize>() {
+        Ok(v) if v > 0 => Ok(v),
+        _ => Err(format!("{x:?} is not a positive integer")),
+    };
+    Ok((parse(a)?, parse(b)?))
+}
