@@ -397,6 +397,7 @@ fn nglod_architecture_flags_build_the_model_asked_for() {
         .arg(data("suzanne.obj"))
         .args(["--model", "nglod", "--epochs", "1", "--eval-points", "2000"])
         .args(["--resolutions", "3,6", "--features", "2", "--hidden", "8"])
+        .args(["--band-cells", "0"])
         .arg("--out")
         .arg(&out)
         .arg("--report")
@@ -407,7 +408,7 @@ fn nglod_architecture_flags_build_the_model_asked_for() {
     // The log names what differs from the preset.
     assert!(
         stderr(&o)
-            .contains("resolutions 3,6, not 6,12,24,48; features 2, not 8; hidden 8, not 128"),
+            .contains("resolutions 3,6, not 6,12,24,48; features 2, not 8; hidden 8, not 128; band cells 0, not 1"),
         "{}",
         stderr(&o)
     );
@@ -431,6 +432,14 @@ fn nglod_architecture_flags_build_the_model_asked_for() {
     let band = model.bands()[0].len();
     assert!(band > 0 && band < 7 * 7 * 7, "band of {band} vertices");
     assert_eq!(json["params"], 2 * (64 + band) + 33, "{json}");
+    // The band is the cells the surface passes through, no outer ring: exactly the band that
+    // `--band-cells 0` places around the normalised mesh, and smaller than the default's.
+    assert_eq!((a["band_cells"].clone(), c.band_cells), (0.into(), 0));
+    let (mesh, _) = hwsdf::eval::run::load_normalized(&data("suzanne.obj")).unwrap();
+    let sdf = hwsdf::geom::SignedDistance::new(&mesh).unwrap();
+    let around = |b| hwsdf::nn::nglod::Band::around(6, b, |p| sdf.unsigned_distance(p)).unwrap();
+    assert_eq!(model.bands()[0].vertices(), around(0).vertices());
+    assert!(around(1).len() > band, "{} vs {band}", around(1).len());
 
     let fails = |extra: &[&str], needle: &str| {
         let never = scratch("never-arch.safetensors");
@@ -465,6 +474,7 @@ fn nglod_architecture_flags_build_the_model_asked_for() {
     );
     fails(&["--epochs", "1", "--resolutions", "4,x"], "--resolutions");
     fails(&["--epochs", "1", "--features", "0"], "feature_dim");
+    fails(&["--epochs", "1", "--band-cells", "5"], "a band of 5 cells");
 }
 
 /// OBJ text of an open `n`×`n` grid over [-1, 1]² lifted by `z(x, y)`.

@@ -444,6 +444,7 @@ fn plane_model() -> ModelFile {
         hidden: 1,
         seed: 0,
         sparse_levels: 0,
+        band_cells: 0,
     };
     // Grid `[ix, iy, iz, f]`, vertex ix at x = -1 + ix / 2.
     let mut params: Vec<f32> = (0..125)

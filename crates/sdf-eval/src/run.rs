@@ -354,9 +354,10 @@ impl TrainOptions {
                 put(
                     "architecture",
                     format!(
-                        "resolutions {}, sparse levels {}, features {}, hidden {}",
+                        "resolutions {}, sparse levels {}, band cells {}, features {}, hidden {}",
                         list(&c.resolutions),
                         c.sparse_levels,
+                        c.band_cells,
                         c.feature_dim,
                         c.hidden
                     ),
@@ -395,7 +396,7 @@ impl std::fmt::Display for RunSettings {
     }
 }
 
-/// NGLOD architecture values over a preset (`train --resolutions --sparse-levels --features
+/// NGLOD architecture values over a preset (`train --resolutions --sparse-levels --band-cells --features
 /// --hidden`): each one given replaces the preset's, the others stay. The result is checked
 /// by [`NglodConfig::validate`], so a bad combination is a typed error before any work.
 ///
@@ -421,6 +422,8 @@ pub struct NglodArchitecture {
     pub feature_dim: Option<u32>,
     /// Hidden width of the MLP, H.
     pub hidden: Option<u32>,
+    /// How far sparse levels reach beyond the cells the surface passes through, in cells.
+    pub band_cells: Option<u32>,
 }
 
 impl NglodArchitecture {
@@ -434,8 +437,8 @@ impl NglodArchitecture {
     pub fn check(&self, model: ModelKind, preset: Preset) -> Result<(), RunError> {
         match model {
             ModelKind::Siren if !self.is_preset() => Err(RunError::Options(
-                "--resolutions, --sparse-levels, --features and --hidden set NGLOD's \
-                 architecture; SIREN's comes from its preset"
+                "--resolutions, --sparse-levels, --band-cells, --features and --hidden set \
+                 NGLOD's architecture; SIREN's comes from its preset"
                     .into(),
             )),
             ModelKind::Siren => Ok(()),
@@ -455,6 +458,7 @@ impl NglodArchitecture {
             feature_dim: self.feature_dim.unwrap_or(base.feature_dim),
             hidden: self.hidden.unwrap_or(base.hidden),
             seed,
+            band_cells: self.band_cells.unwrap_or(base.band_cells),
         };
         config.validate()?;
         Ok(config)
@@ -489,6 +493,11 @@ impl NglodArchitecture {
             "hidden",
             self.hidden.map(|h| h.to_string()),
             config.hidden.to_string(),
+        );
+        check(
+            "band cells",
+            self.band_cells.map(|b| b.to_string()),
+            config.band_cells.to_string(),
         );
         out
     }
@@ -1343,7 +1352,8 @@ mod tests {
         assert_eq!(gpu, spelt_out.settings(false).unwrap());
         assert_eq!(
             gpu.to_string(),
-            "architecture resolutions 6,12,24,48, sparse levels 1, features 8, hidden 128; \
+            "architecture resolutions 6,12,24,48, sparse levels 1, band cells 1, features 8, \
+             hidden 128; \
              distance signed; epochs 100; grow every 0; lr 0.001; lr final 0.1; pool 4,4; \
              preset default; seed 0"
         );
@@ -1364,8 +1374,9 @@ mod tests {
         assert_eq!(
             finer.settings(false).unwrap().differences(&gpu),
             [
-                "architecture resolutions 6,12,24,48, sparse levels 1, features 8, hidden 64, \
-                 not resolutions 6,12,24,48, sparse levels 1, features 8, hidden 128",
+                "architecture resolutions 6,12,24,48, sparse levels 1, band cells 1, features 8, \
+                 hidden 64, not resolutions 6,12,24,48, sparse levels 1, band cells 1, features 8, \
+                 hidden 128",
                 "seed 1, not 0"
             ]
         );

@@ -105,6 +105,7 @@ fn shapes() -> Vec<(&'static str, NeuralSdf)> {
         hidden: 1,
         seed: 3,
         sparse_levels: 0,
+        band_cells: 0,
     };
     vec![
         (
@@ -451,6 +452,7 @@ fn bind_group_works_on_a_callers_own_device() {
             hidden: 4,
             seed: 9,
             sparse_levels: 0,
+            band_cells: 0,
         },
         9,
         None,

@@ -85,6 +85,7 @@ fn tiny() -> NglodConfig {
         hidden: 6,
         seed: 7,
         sparse_levels: 0,
+        band_cells: sdf_nn::nglod::DEFAULT_BAND_CELLS,
     }
 }
 

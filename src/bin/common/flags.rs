@@ -72,6 +72,10 @@ pub struct TrainingFlags {
     /// cells each (`default`: 1; `small`: 0).
     #[arg(long, help_heading = "NGLOD architecture")]
     pub sparse_levels: Option<usize>,
+    /// NGLOD: how far the sparse levels reach beyond the cells the surface passes through, in
+    /// cells, at most 4 (default 1; 0 makes files 20-25 % smaller, BENCHMARKS.md "band width").
+    #[arg(long, help_heading = "NGLOD architecture")]
+    pub band_cells: Option<u32>,
     /// NGLOD: features per grid vertex (`default`: 8; `small`: 4).
     #[arg(long, help_heading = "NGLOD architecture")]
     pub features: Option<u32>,
@@ -176,6 +180,7 @@ impl TrainingFlags {
             sparse_levels: self.sparse_levels,
             feature_dim: self.features,
             hidden: self.hidden,
+            band_cells: self.band_cells,
         }
     }
 

@@ -58,15 +58,19 @@ pub const MAX_SPARSE_RESOLUTION: u32 = 255;
 pub const MAX_TABLE_ENTRIES: u64 = 1 << 25;
 /// A sparse level's table entry for a vertex that holds no features (the kernels test for it).
 pub(crate) const NO_SLOT: u32 = u32::MAX;
-/// How far a sparse level reaches: the cells whose centre lies within this many cell widths plus
-/// half a cell diagonal of the surface hold features. With one cell, every point within a cell
-/// width of the surface interpolates eight real corners.
+/// How far a sparse level reaches by default ([`NglodConfig::band_cells`]): the cells whose
+/// centre lies within this many cell widths plus half a cell diagonal of the surface hold
+/// features. With one cell, every point within a cell width of the surface interpolates eight
+/// real corners.
 ///
 /// 0 (only the cells the surface can pass through) has 1.4–1.8× fewer band vertices and 20–25 %
 /// smaller files, and on six meshes it gave the same F1 as 1 within the seed-to-seed spread, at
 /// 12 and 100 epochs (BENCHMARKS.md, "Band width"). 1 stays until 0 is measured on every shared
 /// mesh at 100 epochs, as 1 is.
-pub const BAND_CELLS: f32 = 1.0;
+pub const DEFAULT_BAND_CELLS: u32 = 1;
+/// The widest band [`NglodConfig::validate`] accepts, in cells beyond those the surface can pass
+/// through: wider bands approach a dense level at a sparse level's per-vertex cost.
+pub const MAX_BAND_CELLS: u32 = 4;
 
 /// Errors of the NGLOD model, its kernels and its trainer.
 #[derive(Debug, thiserror::Error)]
@@ -136,6 +140,15 @@ pub struct NglodConfig {
     /// contributes nothing. 0 (the default in older files): every level is dense.
     #[serde(default)]
     pub sparse_levels: usize,
+    /// How far a sparse level reaches beyond the cells the surface can pass through, in cells
+    /// ([`DEFAULT_BAND_CELLS`]; every file from before it was a setting was made with 1). Dense
+    /// levels ignore it.
+    #[serde(default = "default_band_cells")]
+    pub band_cells: u32,
+}
+
+fn default_band_cells() -> u32 {
+    DEFAULT_BAND_CELLS
 }
 
 impl Default for NglodConfig {
@@ -177,6 +190,7 @@ impl NglodConfig {
             hidden: 128,
             seed: 0,
             sparse_levels: 0,
+            band_cells: DEFAULT_BAND_CELLS,
         }
     }
 
@@ -189,6 +203,7 @@ impl NglodConfig {
             hidden: 32,
             seed: 0,
             sparse_levels: 0,
+            band_cells: DEFAULT_BAND_CELLS,
         }
     }
 
@@ -229,6 +244,13 @@ impl NglodConfig {
                 "{} sparse levels in a model of {} levels",
                 self.sparse_levels,
                 self.resolutions.len()
+            ));
+        }
+        if self.band_cells > MAX_BAND_CELLS {
+            return bad(format!(
+                "a band of {} cells; at most {MAX_BAND_CELLS} (wider bands cost a dense level's \
+                 storage at a sparse level's price per vertex)",
+                self.band_cells
             ));
         }
         // A model file's vertex indices are f32 in memory, exact up to MAX_INDEX.
@@ -454,17 +476,18 @@ impl Band {
     }
 
     /// The band around a surface: the vertices of every cell whose centre lies within
-    /// `(√3/2 + BAND_CELLS)` cell widths of it, by `distance` (unsigned, normalised units).
+    /// `(√3/2 + band_cells)` cell widths of it, by `distance` (unsigned, normalised units).
     /// Blocks of 4³ cells that cannot reach the surface are skipped with one query each.
     pub fn around(
         resolution: u32,
+        band_cells: u32,
         distance: impl Fn(Vec3) -> f32 + Sync,
     ) -> Result<Self, NglodError> {
         const BLOCK: u32 = 4;
         let r = resolution;
         let h = 2.0 / r as f32;
         let half_diag = 0.5 * 3f32.sqrt();
-        let reach = h * (half_diag + BAND_CELLS);
+        let reach = h * (half_diag + band_cells as f32);
         let centre = |c: [f32; 3]| Vec3::from_array(c.map(|i| -1.0 + (i + 0.5) * h));
         let nb = r.div_ceil(BLOCK);
         let cells: Vec<[u32; 3]> = (0..nb * nb * nb)
@@ -583,7 +606,7 @@ impl Nglod {
     pub fn place_bands(&mut self, distance: impl Fn(Vec3) -> f32 + Sync) -> Result<(), NglodError> {
         let bands = self.config.resolutions[self.config.dense_levels()..]
             .iter()
-            .map(|&r| Band::around(r, &distance))
+            .map(|&r| Band::around(r, self.config.band_cells, &distance))
             .collect::<Result<Vec<_>, _>>()?;
         let c = &self.config;
         let layout = c.layout_for(&bands)?;
@@ -657,6 +680,7 @@ impl Nglod {
             hidden: 1,
             seed: 0,
             sparse_levels: 0,
+            band_cells: DEFAULT_BAND_CELLS,
         };
         config.validate()?;
         let layout = config.layout_with(|_| 0);
@@ -958,53 +982,67 @@ mod tests {
         NglodConfig::small().validate().unwrap();
     }
 
-    /// Every point within a cell width of the surface interpolates eight band vertices, and no
-    /// vertex far from it is in the band.
+    /// With a band of b cells, every point within b cell widths of the surface (on it, for
+    /// b = 0) interpolates eight band vertices, and no vertex far from it is in the band; wider
+    /// bands hold narrower ones.
     #[test]
-    fn band_covers_a_cell_around_the_surface_and_no_more() {
+    fn band_covers_its_cells_around_the_surface_and_no_more() {
         let r = 24u32;
         let h = 2.0 / r as f32;
-        let sphere = |p: Vec3| (p.length() - 0.55).abs();
-        let band = Band::around(r, sphere).unwrap();
+        let radius = 0.55;
+        let sphere = |p: Vec3| (p.length() - radius).abs();
         let s = r as usize + 1;
-        assert!(
-            band.len() > 100 && band.len() < s * s * s / 2,
-            "{}",
-            band.len()
-        );
         let mut rng = Pcg64::seed_from_u64(5);
-        let mut checked = 0;
-        while checked < 3000 {
-            let p = Vec3::new(
-                rng.random_range(-1.0..1.0),
-                rng.random_range(-1.0..1.0),
-                rng.random_range(-1.0..1.0),
+        let mut narrower: Option<Band> = None;
+        for b in 0..=2u32 {
+            let band = Band::around(r, b, sphere).unwrap();
+            assert!(
+                band.len() > 100 && band.len() < s * s * s / 2,
+                "{}",
+                band.len()
             );
-            if sphere(p) > h {
-                continue;
+            for _ in 0..3000 {
+                // A point at most b cells off the sphere.
+                let dir = Vec3::new(
+                    rng.random_range(-1.0..1.0),
+                    rng.random_range(-1.0..1.0),
+                    rng.random_range(-1.0..1.0f32),
+                )
+                .normalize_or(Vec3::X);
+                let off = b as f32 * h * rng.random_range(-1.0..=1.0f32);
+                let p = dir * (radius + off);
+                let (i0, _) = cell([p.x, p.y, p.z].map(f64::from), r);
+                for c in 0..8 {
+                    let v = [i0[0] + (c >> 2 & 1), i0[1] + (c >> 1 & 1), i0[2] + (c & 1)];
+                    let linear = (v[0] * s + v[1]) * s + v[2];
+                    assert_ne!(
+                        band.table()[linear],
+                        NO_SLOT,
+                        "b = {b}: {p} near the surface, corner {v:?}"
+                    );
+                }
             }
-            checked += 1;
-            let (i0, _) = cell([p.x, p.y, p.z].map(f64::from), r);
-            for c in 0..8 {
-                let v = [i0[0] + (c >> 2 & 1), i0[1] + (c >> 1 & 1), i0[2] + (c & 1)];
-                let linear = (v[0] * s + v[1]) * s + v[2];
-                assert_ne!(
-                    band.table()[linear],
-                    NO_SLOT,
-                    "{p} near the surface, corner {v:?}"
+            // A band vertex is a corner of a cell whose centre is within the reach.
+            let reach = h * (0.5 * 3f32.sqrt() + b as f32) + h * 0.5 * 3f32.sqrt();
+            for &v in band.vertices() {
+                let v = v as usize;
+                let x =
+                    Vec3::new((v / (s * s)) as f32, ((v / s) % s) as f32, (v % s) as f32) * h - 1.0;
+                assert!(
+                    sphere(x) <= reach * 1.0001,
+                    "b = {b}: vertex {x} is {} away",
+                    sphere(x)
                 );
             }
-        }
-        // A band vertex is a corner of a cell whose centre is within the reach.
-        let reach = h * (0.5 * 3f32.sqrt() + BAND_CELLS) + h * 0.5 * 3f32.sqrt();
-        for &v in band.vertices() {
-            let v = v as usize;
-            let x = Vec3::new((v / (s * s)) as f32, ((v / s) % s) as f32, (v % s) as f32) * h - 1.0;
-            assert!(
-                sphere(x) <= reach * 1.0001,
-                "vertex {x} is {} away",
-                sphere(x)
-            );
+            if let Some(n) = narrower {
+                assert!(n.len() < band.len(), "b = {b}");
+                assert!(
+                    n.vertices()
+                        .iter()
+                        .all(|&v| band.table()[v as usize] != NO_SLOT)
+                );
+            }
+            narrower = Some(band);
         }
         assert!(matches!(
             Band::new(r, vec![3, 3]),
@@ -1012,6 +1050,21 @@ mod tests {
         ));
         assert!(Band::new(r, vec![(s * s * s) as u32]).is_err());
         assert!(Band::new(MAX_SPARSE_RESOLUTION + 1, vec![]).is_err());
+    }
+
+    #[test]
+    fn configs_of_older_files_read_as_they_were_made() {
+        // Before sparse levels (all dense), and before the band width was a setting (1).
+        let old: NglodConfig = serde_json::from_str(
+            r#"{"resolutions": [6, 12, 24], "feature_dim": 8, "hidden": 128, "seed": 3}"#,
+        )
+        .unwrap();
+        assert_eq!((old.sparse_levels, old.band_cells), (0, 1));
+        let round = serde_json::to_string(&NglodConfig::default_preset()).unwrap();
+        assert_eq!(
+            serde_json::from_str::<NglodConfig>(&round).unwrap(),
+            NglodConfig::default_preset()
+        );
     }
 
     #[test]
@@ -1032,6 +1085,9 @@ mod tests {
             ..NglodConfig::small()
         };
         assert!(matches!(c.validate(), Err(NglodError::InvalidConfig(m)) if m.contains("tables")));
+        let mut c = NglodConfig::default_preset();
+        c.band_cells = MAX_BAND_CELLS + 1;
+        assert!(matches!(c.validate(), Err(NglodError::InvalidConfig(m)) if m.contains("band")));
         let mut c = NglodConfig::default_preset();
         c.feature_dim = 32;
         assert!(
