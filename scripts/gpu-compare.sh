@@ -30,7 +30,8 @@
 #   GPU_COMPARE_FITS=nglod,siren        which fits the `fit` stage times (default nglod; a default
 #                                       SIREN fit is 10⁴ steps, minutes before issue 12's kernels)
 #   GPU_COMPARE_MESHES=DIR              (pack) copy DIR's meshes into the pack for `corpus`
-#   GPU_COMPARE_CORPUS_ARGS="..."       extra `corpus` arguments (default: --model nglod)
+#   GPU_COMPARE_CORPUS_ARGS="..."       extra `corpus` arguments (default: --model nglod); each
+#                                       set keeps its own results (e.g. add --band-cells 0)
 #   GPU_COMPARE_TIMEOUT=240             seconds each fit and the corpus run may take (a lent
 #                                       machine's calls are limited; corpus resumes where a
 #                                       run stopped, so a second call finishes it)
@@ -40,7 +41,7 @@
 set -euo pipefail
 
 usage() {
-    sed -n '2,39p' "$0" | sed 's/^# \{0,1\}//'
+    sed -n '2,40p' "$0" | sed 's/^# \{0,1\}//'
     exit 2
 }
 
@@ -327,15 +328,19 @@ PY
         local t0 t1
         t0=$(date +%s.%N)
         # Outside results/ (which each run clears), so that a run stopped by the timeout
-        # resumes there: corpus keeps each mesh's result in corpus/corpus.md.d/.
-        mkdir -p "$dir/corpus"
+        # resumes there, and one folder per set of arguments: corpus refuses to mix settings
+        # in one results folder, and each set resumes in its own.
+        local cargs=${GPU_COMPARE_CORPUS_ARGS:---model nglod} cdir
+        cdir="$dir/corpus/$(printf '%s' "$cargs" | tr -c 'A-Za-z0-9.,=-' '_' | sed 's/^[-_]*//')"
+        mkdir -p "$cdir"
+        echo "corpus arguments: $cargs (results in $cdir)" | tee "$res/corpus.txt"
         # shellcheck disable=SC2086 # word splitting of the extra arguments is intended
         timeout "${GPU_COMPARE_TIMEOUT:-240}" \
-            bin/corpus meshes ${GPU_COMPARE_CORPUS_ARGS:---model nglod} --out "$dir/corpus/corpus.md" 2>&1 \
-            | tee "$res/corpus.txt" || echo "(failed)"
+            bin/corpus meshes $cargs --out "$cdir/corpus.md" 2>&1 \
+            | tee -a "$res/corpus.txt" || echo "(failed)"
         t1=$(date +%s.%N)
         echo "wall $(python3 -c "print(f'{$t1 - $t0:.1f}')") s" | tee -a "$res/corpus.txt"
-        [ -e "$dir/corpus/corpus.md" ] && cp "$dir/corpus/corpus.md" "$res/corpus.md"
+        [ -e "$cdir/corpus.md" ] && cp "$cdir/corpus.md" "$res/corpus.md"
     fi
     python3 - "$res" <<'PY' | tee -a "$res/table.md"
 import glob, json, os, sys
