@@ -397,7 +397,7 @@ fn nglod_architecture_flags_build_the_model_asked_for() {
         .arg(data("suzanne.obj"))
         .args(["--model", "nglod", "--epochs", "1", "--eval-points", "2000"])
         .args(["--resolutions", "3,6", "--features", "2", "--hidden", "8"])
-        .args(["--band-cells", "0"])
+        .args(["--band-cells", "1"])
         .arg("--out")
         .arg(&out)
         .arg("--report")
@@ -408,7 +408,7 @@ fn nglod_architecture_flags_build_the_model_asked_for() {
     // The log names what differs from the preset.
     assert!(
         stderr(&o)
-            .contains("resolutions 3,6, not 6,12,24,48; features 2, not 8; hidden 8, not 128; band cells 0, not 1"),
+            .contains("resolutions 3,6, not 6,12,24,48; features 2, not 8; hidden 8, not 128; band cells 1, not 0"),
         "{}",
         stderr(&o)
     );
@@ -432,14 +432,15 @@ fn nglod_architecture_flags_build_the_model_asked_for() {
     let band = model.bands()[0].len();
     assert!(band > 0 && band < 7 * 7 * 7, "band of {band} vertices");
     assert_eq!(json["params"], 2 * (64 + band) + 33, "{json}");
-    // The band is the cells the surface passes through, no outer ring: exactly the band that
-    // `--band-cells 0` places around the normalised mesh, and smaller than the default's.
-    assert_eq!((a["band_cells"].clone(), c.band_cells), (0.into(), 0));
+    // The band is the cells the surface passes through and a ring of one cell around them:
+    // exactly the band that `--band-cells 1` places around the normalised mesh, and larger than
+    // the default's.
+    assert_eq!((a["band_cells"].clone(), c.band_cells), (1.into(), 1));
     let (mesh, _) = hwsdf::eval::run::load_normalized(&data("suzanne.obj")).unwrap();
     let sdf = hwsdf::geom::SignedDistance::new(&mesh).unwrap();
     let around = |b| hwsdf::nn::nglod::Band::around(6, b, |p| sdf.unsigned_distance(p)).unwrap();
-    assert_eq!(model.bands()[0].vertices(), around(0).vertices());
-    assert!(around(1).len() > band, "{} vs {band}", around(1).len());
+    assert_eq!(model.bands()[0].vertices(), around(1).vertices());
+    assert!(around(0).len() < band, "{} vs {band}", around(0).len());
 
     let fails = |extra: &[&str], needle: &str| {
         let never = scratch("never-arch.safetensors");

@@ -1352,7 +1352,7 @@ mod tests {
         assert_eq!(gpu, spelt_out.settings(false).unwrap());
         assert_eq!(
             gpu.to_string(),
-            "architecture resolutions 6,12,24,48, sparse levels 1, band cells 1, features 8, \
+            "architecture resolutions 6,12,24,48, sparse levels 1, band cells 0, features 8, \
              hidden 128; \
              distance signed; epochs 100; grow every 0; lr 0.001; lr final 0.1; pool 4,4; \
              preset default; seed 0"
@@ -1374,8 +1374,8 @@ mod tests {
         assert_eq!(
             finer.settings(false).unwrap().differences(&gpu),
             [
-                "architecture resolutions 6,12,24,48, sparse levels 1, band cells 1, features 8, \
-                 hidden 64, not resolutions 6,12,24,48, sparse levels 1, band cells 1, features 8, \
+                "architecture resolutions 6,12,24,48, sparse levels 1, band cells 0, features 8, \
+                 hidden 64, not resolutions 6,12,24,48, sparse levels 1, band cells 0, features 8, \
                  hidden 128",
                 "seed 1, not 0"
             ]

@@ -60,14 +60,16 @@ pub const MAX_TABLE_ENTRIES: u64 = 1 << 25;
 pub(crate) const NO_SLOT: u32 = u32::MAX;
 /// How far a sparse level reaches by default ([`NglodConfig::band_cells`]): the cells whose
 /// centre lies within this many cell widths plus half a cell diagonal of the surface hold
-/// features. With one cell, every point within a cell width of the surface interpolates eight
-/// real corners.
+/// features. 0 keeps only the cells the surface can pass through, as NGLOD's own octree does:
+/// every point on the surface interpolates eight real corners, and points off it fall back on
+/// the dense levels sooner.
 ///
-/// 0 (only the cells the surface can pass through) has 1.4–1.8× fewer band vertices and 20–25 %
-/// smaller files, and on six meshes it gave the same F1 as 1 within the seed-to-seed spread, at
-/// 12 and 100 epochs (BENCHMARKS.md, "Band width"). 1 stays until 0 is measured on every shared
-/// mesh at 100 epochs, as 1 is.
-pub const DEFAULT_BAND_CELLS: u32 = 1;
+/// Why 0: over the 20 shared meshes at the GPU default's 100 epochs it fits within 0.001 of the
+/// old band of 1 on average (F1 0.9966 / 0.9814 against 0.9969 / 0.9820) for 15-30 % smaller
+/// files (median 0.56 MB against 0.71 MB), BENCHMARKS.md "Band width".
+pub const DEFAULT_BAND_CELLS: u32 = 0;
+/// The band of every model file written before the band width was a setting.
+const LEGACY_BAND_CELLS: u32 = 1;
 /// The widest band [`NglodConfig::validate`] accepts, in cells beyond those the surface can pass
 /// through: wider bands approach a dense level at a sparse level's per-vertex cost.
 pub const MAX_BAND_CELLS: u32 = 4;
@@ -134,21 +136,21 @@ pub struct NglodConfig {
     /// Seed of the initialisation.
     pub seed: u64,
     /// How many of the finest levels are sparse: they hold features only at the vertices of the
-    /// cells within about one cell of the surface (see [`Band`]), so a fine level costs storage
-    /// in proportion to the surface's area rather than the box's volume (the design document's
-    /// "possible improvement", and NGLOD's own sparse octree). Elsewhere a sparse level
-    /// contributes nothing. 0 (the default in older files): every level is dense.
+    /// cells the surface passes through, and [`Self::band_cells`] more (see [`Band`]), so a fine
+    /// level costs storage in proportion to the surface's area rather than the box's volume (the
+    /// design document's "possible improvement", and NGLOD's own sparse octree). Elsewhere a
+    /// sparse level contributes nothing. 0 (the default in older files): every level is dense.
     #[serde(default)]
     pub sparse_levels: usize,
     /// How far a sparse level reaches beyond the cells the surface can pass through, in cells
-    /// ([`DEFAULT_BAND_CELLS`]; every file from before it was a setting was made with 1). Dense
-    /// levels ignore it.
-    #[serde(default = "default_band_cells")]
+    /// ([`DEFAULT_BAND_CELLS`]; every file from before it was a setting was made with 1, and
+    /// reads so). Dense levels ignore it.
+    #[serde(default = "legacy_band_cells")]
     pub band_cells: u32,
 }
 
-fn default_band_cells() -> u32 {
-    DEFAULT_BAND_CELLS
+fn legacy_band_cells() -> u32 {
+    LEGACY_BAND_CELLS
 }
 
 impl Default for NglodConfig {
@@ -160,9 +162,10 @@ impl Default for NglodConfig {
 impl NglodConfig {
     /// The default: [`NglodConfig::design_document`]'s three dense levels and a fourth, sparse
     /// level of 48 cells around the surface. Its size depends on the mesh: 146 601 parameters
-    /// plus 8 per band vertex. Measured on the 20 shared meshes: 0.21–0.39 M parameters
-    /// (0.46–0.91 MB as saved, f16 grids) on 17 of them, 0.56–0.79 M (1.3–1.9 MB) on the three
-    /// made of many boxes (many-cubes, boxframe, cubegrid), whose surface is large for their box.
+    /// plus 8 per band vertex. Measured on the 20 shared meshes: 0.18–0.30 M parameters
+    /// (0.39–0.68 MB as saved, f16 grids; median 0.56 MB) on 17 of them, 0.44–0.59 M
+    /// (1.0–1.4 MB) on the three made of many boxes (many-cubes, boxframe, cubegrid), whose
+    /// surface is large for their box.
     ///
     /// Why: the 24-cell finest grid cannot resolve parts thinner than a cell (0.08 of the box),
     /// and near-surface F1 is limited by it. A dense 48-cell level raises near-surface F1 by

@@ -135,8 +135,9 @@ impl Default for NglodTrainConfig {
     fn default() -> Self {
         NglodTrainConfig {
             // 100: the default preset on the 20 shared meshes, 12 epochs 0.993 / 0.963 F1 (box /
-            // near the surface), 100 epochs 0.997 / 0.982; on six of them 50 epochs 0.969 near,
-            // 100 epochs 0.976 (BENCHMARKS.md, measured on lavapipe). The pool makes it cheap.
+            // near the surface), 100 epochs 0.997 / 0.982 (0.997 / 0.981 with today's band of
+            // 0 cells); on six of them 50 epochs 0.969 near, 100 epochs 0.976 (BENCHMARKS.md,
+            // measured on lavapipe). The pool makes it cheap.
             epochs: 100,
             batch_size: 2048,
             adam: AdamConfig::default(),
