@@ -299,7 +299,7 @@ fn merge(
     for why in &m.corrupt {
         eprintln!("warning: ignoring an unreadable result ({why}); its mesh will be redone");
     }
-    if let Some(e) = &m.settings_error {
+    if let Err(e) = &m.settings {
         eprintln!("warning: {e}; the table does not state its settings");
     }
     let table = m.markdown();

@@ -582,10 +582,8 @@ pub struct Merge {
     /// Result files that do not parse (ignored; redone by the next run).
     pub corrupt: Vec<String>,
     /// The settings the results were made with (`None` for a folder from before they were
-    /// recorded, or one whose record cannot be read).
-    pub settings: Option<CorpusSettings>,
-    /// Why the settings record cannot be read, if it cannot.
-    pub settings_error: Option<CorpusError>,
+    /// recorded), or why their record cannot be read.
+    pub settings: Result<Option<CorpusSettings>, CorpusError>,
 }
 
 /// Reads every expected result of `meshes` × `models` from `state`.
@@ -595,13 +593,8 @@ pub fn merge(state: &StateDir, meshes: &[CorpusMesh], models: &[ModelKind]) -> M
         expected: meshes.len() * models.len(),
         missing: 0,
         corrupt: Vec::new(),
-        settings: None,
-        settings_error: None,
+        settings: state.read_settings(),
     };
-    match state.read_settings() {
-        Ok(settings) => m.settings = settings,
-        Err(e) => m.settings_error = Some(e),
-    }
     for mesh in meshes {
         for &model in models {
             match state.read(&mesh.rel, model) {
@@ -711,7 +704,7 @@ impl Merge {
                 continue;
             }
             let _ = writeln!(s, "### {}\n", model.to_uppercase());
-            if let Some(settings) = self.settings.as_ref() {
+            if let Ok(Some(settings)) = &self.settings {
                 if let Some(m) = settings.models.get(model) {
                     let _ = writeln!(s, "Settings: {m}; eval points {}.\n", settings.eval_points);
                 }
@@ -1111,17 +1104,13 @@ mod tests {
             1000,
         );
         assert_eq!(state.read_settings().unwrap().as_ref(), Some(&both));
-        let table = merge(&state, &[], &[ModelKind::Siren]).settings;
+        let table = merge(&state, &[], &[ModelKind::Siren]).settings.unwrap();
         assert_eq!(table.as_ref(), Some(&both));
         // An unreadable record stops every run instead of being replaced.
         std::fs::write(state.settings_path(), "{\"eval_poi").unwrap();
         let e = state.claim(&first).unwrap_err();
         assert!(matches!(e, CorpusError::BadSettings { .. }), "{e}");
-        assert!(
-            merge(&state, &[], &[ModelKind::Nglod])
-                .settings_error
-                .is_some()
-        );
+        assert!(merge(&state, &[], &[ModelKind::Nglod]).settings.is_err());
         std::fs::remove_dir_all(&root).unwrap();
     }
 }

@@ -341,7 +341,6 @@ impl TrainOptions {
             ModelKind::Nglod => {
                 let d = NglodTrainConfig::default();
                 let c = self.nglod_architecture.config(self.preset, self.seed)?;
-                let list = |r: &[u32]| r.iter().map(u32::to_string).collect::<Vec<_>>().join(",");
                 put("epochs", length);
                 put("lr", self.lr.unwrap_or(d.adam.lr).to_string());
                 let lr_final = self.lr_final.or(d.lr_final).unwrap_or(1.0);
@@ -355,7 +354,7 @@ impl TrainOptions {
                     "architecture",
                     format!(
                         "resolutions {}, sparse levels {}, band cells {}, features {}, hidden {}",
-                        list(&c.resolutions),
+                        comma_list(&c.resolutions),
                         c.sparse_levels,
                         c.band_cells,
                         c.feature_dim,
@@ -396,9 +395,18 @@ impl std::fmt::Display for RunSettings {
     }
 }
 
-/// NGLOD architecture values over a preset (`train --resolutions --sparse-levels --band-cells --features
-/// --hidden`): each one given replaces the preset's, the others stay. The result is checked
-/// by [`NglodConfig::validate`], so a bad combination is a typed error before any work.
+/// Resolutions as the flags and the logs write them: `6,12,24,48`.
+fn comma_list(resolutions: &[u32]) -> String {
+    resolutions
+        .iter()
+        .map(u32::to_string)
+        .collect::<Vec<_>>()
+        .join(",")
+}
+
+/// NGLOD architecture values over a preset (`train --resolutions --sparse-levels --band-cells
+/// --features --hidden`): each one given replaces the preset's, the others stay. The result is
+/// checked by [`NglodConfig::validate`], so a bad combination is a typed error before any work.
 ///
 /// ```
 /// use sdf_eval::run::{NglodArchitecture, Preset};
@@ -473,11 +481,10 @@ impl NglodArchitecture {
                 out.push(format!("{name} {a}, not {has}"));
             }
         };
-        let list = |r: &[u32]| r.iter().map(u32::to_string).collect::<Vec<_>>().join(",");
         check(
             "resolutions",
-            self.resolutions.as_deref().map(list),
-            list(&config.resolutions),
+            self.resolutions.as_deref().map(comma_list),
+            comma_list(&config.resolutions),
         );
         check(
             "sparse levels",
