@@ -966,6 +966,13 @@ fn cases() -> Vec<Case> {
             &[".", "--model", "nglod", "--sparse-levels", "9"],
             Error("sparse"),
         ),
+        // The model is named once: "NGLOD: invalid configuration", not "NGLOD: invalid NGLOD ...".
+        case(
+            "train --resolutions 0,4",
+            "train",
+            &["cube.obj", "--resolutions", "0,4", "--out", "m.safetensors"],
+            Error("NGLOD: invalid configuration: resolution 0"),
+        ),
         case(
             "corpus --eval-points 0",
             "corpus",

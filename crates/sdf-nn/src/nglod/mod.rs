@@ -78,7 +78,7 @@ pub const MAX_BAND_CELLS: u32 = 4;
 #[derive(Debug, thiserror::Error)]
 pub enum NglodError {
     /// The configuration is outside what the model or the kernels support.
-    #[error("invalid NGLOD configuration: {0}")]
+    #[error("invalid configuration: {0}")]
     InvalidConfig(String),
     /// A level of detail outside `1..=levels`.
     #[error("level of detail {requested} is out of range: the model has levels 1..={levels}")]

@@ -146,7 +146,7 @@ pub enum TrainError {
     #[error(transparent)]
     Config(#[from] SirenConfigError),
     /// The training configuration is unusable.
-    #[error("invalid SIREN training configuration: {0}")]
+    #[error("invalid training configuration: {0}")]
     BadTrainConfig(String),
     /// No surface samples (a mesh without area, or an empty dataset).
     #[error("the training dataset has no surface points (does the mesh have any area?)")]
