@@ -11,7 +11,7 @@ import json
 import sys
 
 parser = argparse.ArgumentParser()
-parser.add_argument("--kind", help="only targets of this kind (bench, test, bin, ...)")
+parser.add_argument("--kind", help="only targets of these kinds (bench, test, bin, ...; comma-separated)")
 parser.add_argument("--name", help="only the target of this name")
 args = parser.parse_args()
 for line in sys.stdin:
@@ -22,7 +22,7 @@ for line in sys.stdin:
     if m.get("reason") != "compiler-artifact" or not m.get("executable"):
         continue
     target = m["target"]
-    if args.kind and args.kind not in target["kind"]:
+    if args.kind and not set(args.kind.split(",")) & set(target["kind"]):
         continue
     if args.name and target["name"] != args.name:
         continue

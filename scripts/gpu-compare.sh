@@ -12,7 +12,8 @@
 # the archive) to the host, then `bash DIR/gpu-compare.sh run DIR`.
 #
 # `run` finds the Vulkan loader (or unpacks DIR/debs/*.deb as root, or says how to get one),
-# prints the adapter, runs our benches (siren, nglod, and any other packed bench whose name
+# prints the adapter, first runs every packed kernel test binary against its CPU and f64
+# references on it (the `checks` stage: the table says whether they passed), runs our benches (siren, nglod, and any other packed bench whose name
 # starts with `query`) with criterion's results under DIR/results/criterion, runs the PyTorch
 # scripts for both presets, and prints one Markdown table of ours against PyTorch eager (and
 # torch.compile where it works) with the ratios. The table is also written to
@@ -25,8 +26,9 @@
 # binary, HWSDF_REQUIRE_COOP=1) and the SIREN eval bench on them (SIREN_BENCH_KERNELS=coop,
 # criterion's results under DIR/results/criterion-coop), and adds their rows. Environment:
 #   GPU_COMPARE_PRESETS=small,default   presets to run (both by default)
-#   GPU_COMPARE_STAGES=bench,coop,torch,fit,corpus
+#   GPU_COMPARE_STAGES=checks,bench,coop,torch,fit,corpus
 #                                       what to run (default all; split a session's runs with it)
+#   GPU_COMPARE_CHECK_TIMEOUT=300       seconds each kernel test binary may take (`checks`)
 #   GPU_COMPARE_FITS=nglod,siren        which fits the `fit` stage times (default nglod; a default
 #                                       SIREN fit is 10⁴ steps, minutes before issue 12's kernels)
 #   GPU_COMPARE_MESHES=DIR              (pack) copy DIR's meshes into the pack for `corpus`
@@ -40,8 +42,11 @@
 #   any variable the benches read (SIREN_BENCH_*, NGLOD_BENCH_EPOCHS, WGPU_ADAPTER_NAME, ...)
 set -euo pipefail
 
+# The `checks` stage's test binaries (target names).
+GPU_CHECKS="siren_gpu|nglod|adam|embed|render|gpu_timer|neural_sdf|serve_queries"
+
 usage() {
-    sed -n '2,40p' "$0" | sed 's/^# \{0,1\}//'
+    sed -n '2,42p' "$0" | sed 's/^# \{0,1\}//'
     exit 2
 }
 
@@ -60,17 +65,24 @@ pack() {
     echo "== building release binaries and bench executables"
     cargo build --release --bins
     cargo bench --no-run
-    local check
-    check=$(cargo test --release -p sdf-nn --test siren_gpu --no-run --message-format=json 2>/dev/null \
-        | python3 scripts/cargo_executables.py --name siren_gpu | cut -d' ' -f2-)
-    [ -n "$check" ] || { echo "the siren_gpu test binary was not built" >&2; exit 1; }
+    # The test binaries that run kernels against their CPU and f64 references (the `checks`
+    # stage): sdf-nn's GPU tests, the query API's and the serving example's.
+    local checks
+    checks=$({
+        cargo test --release -p sdf-nn --tests --no-run --message-format=json 2>/dev/null
+        cargo test --release -p hwsdf --test neural_sdf --example serve_queries --no-run \
+            --message-format=json 2>/dev/null
+    } | python3 scripts/cargo_executables.py --kind test,example | grep -E "^($GPU_CHECKS) ")
+    [ "$(wc -l <<<"$checks")" = "$(wc -w <<<"${GPU_CHECKS//|/ }")" ] \
+        || { echo "not every kernel test binary was built ($GPU_CHECKS): $checks" >&2; exit 1; }
     local benches
     benches=$(cargo bench --no-run --message-format=json 2>/dev/null \
         | python3 scripts/cargo_executables.py --kind bench)
     [ -n "$benches" ] || { echo "no bench executables were built" >&2; exit 1; }
     rm -rf "$dir/bin" "$dir/benches" "$dir/tests" "$dir/scripts" "$dir/checks"
     mkdir -p "$dir/bin" "$dir/benches" "$dir/tests" "$dir/scripts" "$dir/checks"
-    cp "$check" "$dir/checks/siren_gpu"
+    local name path
+    while read -r name path; do cp "$path" "$dir/checks/$name"; done <<<"$checks"
     local exe
     for exe in train eval corpus extract render sdf gpu-info; do
         cp "target/release/$exe" "$dir/bin/"
@@ -162,7 +174,7 @@ run() {
     fi
     export CRITERION_HOME="$res/criterion"
     export SIREN_BENCH_PRESETS=${GPU_COMPARE_PRESETS:-small,default}
-    local stages=",${GPU_COMPARE_STAGES:-bench,coop,torch,fit,corpus},"
+    local stages=",${GPU_COMPARE_STAGES:-checks,bench,coop,torch,fit,corpus},"
     local b
     for b in benches/*; do
         [[ $stages == *,bench,* ]] || break
@@ -175,6 +187,25 @@ run() {
         echo "== bench $name"
         "$b" --bench 2>&1 | tee "$res/bench-$name.txt"
     done
+    if [[ $stages == *,checks,* ]]; then
+        # Kernels designed on lavapipe meet a real GPU here: other subgroup sizes, real
+        # parallelism within a workgroup, other limits. Figures from kernels that fail their
+        # references are worth nothing, so these run first, and the table says how they went.
+        echo "== checks: every kernel test binary against its CPU / f64 references on this adapter"
+        local t name rc
+        : >"$res/checks.txt"
+        for t in checks/*; do
+            name=$(basename "$t")
+            rc=0
+            HWSDF_TEST_DATA="$dir/tests/data" timeout "${GPU_COMPARE_CHECK_TIMEOUT:-300}" "$t" \
+                >"$res/check-$name.txt" 2>&1 || rc=$?
+            {
+                printf '%s: %s; %s\n' "$name" "$([ $rc = 0 ] && echo passed || echo "FAILED (exit $rc)")" \
+                    "$(grep -E '^test result:' "$res/check-$name.txt" | tail -1 | cut -c14-)"
+                grep -E '^test .* FAILED$' "$res/check-$name.txt" | sed 's/^/    /' || true
+            } | tee -a "$res/checks.txt"
+        done
+    fi
     if [[ $stages == *,coop,* ]]; then
         if grep -q 'cooperative matrices (f32 accumulators): none' "$res/gpu-info.txt"; then
             echo "== no f16 cooperative matrices on this adapter: coop stage skipped" | tee "$res/coop-missing.txt"
@@ -253,6 +284,14 @@ def ratio(ours, theirs):
 
 gpu = open(os.path.join(res, "gpu-info.txt")).read().strip().splitlines()
 print(f"Adapter: {gpu[0] if gpu else 'unknown'}\n")
+try:
+    checks = open(os.path.join(res, "checks.txt")).read().rstrip()
+    failed = "FAILED" in checks
+    print(("**Some kernels FAILED their references on this adapter: the figures below are not "
+           "to be trusted.**" if failed else "Kernel checks on this adapter (all passed):")
+          + "\n\n" + "\n".join("    " + l for l in checks.splitlines()) + "\n")
+except OSError:
+    print("Kernel checks: not run (the `checks` stage).\n")
 print("| model | preset | measure | ours | PyTorch eager | eager / ours | torch.compile | compile / ours |")
 print("| --- | --- | --- | --- | --- | --- | --- | --- |")
 rows = []

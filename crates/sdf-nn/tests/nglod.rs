@@ -450,8 +450,7 @@ fn model_file_round_trips_bit_for_bit() {
     );
     assert_eq!(file.tensors[2].shape, [17, 17, 17, 4]);
     assert_eq!(file.tensors[3].shape, [32, 4]);
-    let path =
-        std::path::Path::new(env!("CARGO_TARGET_TMPDIR")).join("nglod_roundtrip.safetensors");
+    let path = scratch("roundtrip.safetensors");
     file.save(&path).unwrap();
     let loaded = sdf_nn::ModelFile::load(&path).unwrap();
     assert_eq!(loaded.metadata.normalization, norm);
@@ -496,7 +495,7 @@ fn sparse_model_file_round_trips_and_rejects_bad_vertex_lists() {
     );
     assert_eq!(file.tensors[2].shape, [n, 4]);
     assert_eq!(file.tensors[3].shape, [n]);
-    let path = std::path::Path::new(env!("CARGO_TARGET_TMPDIR")).join("nglod_sparse.safetensors");
+    let path = scratch("sparse.safetensors");
     file.save(&path).unwrap();
     let back = Nglod::from_model_file(&sdf_nn::ModelFile::load(&path).unwrap()).unwrap();
     // What the file holds: the grids rounded to f16 (model_file_round_trips_bit_for_bit).
@@ -733,4 +732,12 @@ fn progressive_training_adds_levels_one_at_a_time() {
         grid(&model, 2),
         "level 3 was never trained"
     );
+}
+
+/// `name` in this process's own folder under the temp folder: not cargo's target folder, so that
+/// the binary also runs where it was carried without its build tree (scripts/gpu-compare.sh).
+fn scratch(name: &str) -> std::path::PathBuf {
+    let dir = std::env::temp_dir().join(format!("hwsdf-nglod-test-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    dir.join(name)
 }

@@ -778,8 +778,7 @@ fn small_preset_learns_the_sign_of_a_sphere() {
 // (BENCHMARKS.md, SIREN); before it, 2000 steps gave 95.9% with this seed.
 #[test]
 fn small_preset_learns_the_sign_of_spot() {
-    let path = concat!(env!("CARGO_MANIFEST_DIR"), "/../../tests/data/spot.obj");
-    let (mesh, _) = sdf_geom::load_mesh(path).unwrap();
+    let (mesh, _) = sdf_geom::load_mesh(test_data("spot.obj")).unwrap();
     let acc = train_sign_accuracy("spot", &mesh, e2e_config(500), 12);
     assert!(acc >= 0.98, "sign accuracy {acc}");
 }
