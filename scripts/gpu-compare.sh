@@ -115,7 +115,11 @@ pack() {
     # One compressed file to carry (the folder is ~70 MB, the archive about a third of that).
     tar -C "$(dirname "$dir")" -czf "$dir.tar.gz" "$(basename "$dir")"
     echo "== packed $(du -sh "$dir" | cut -f1) into $dir, $(du -sh "$dir.tar.gz" | cut -f1) as $dir.tar.gz (commit $(cat "$dir/COMMIT"))"
-    echo "   benches: $(ls "$dir/benches" | tr '\n' ' ')"
+    echo "   benches: $(ls "$dir/benches" | tr '\n' ' '); checks: $(ls "$dir/checks" | tr '\n' ' ')"
+    # A lent GPU machine takes at most 64 MiB of carried files in all.
+    if [ "$(stat -c %s "$dir.tar.gz")" -gt $((60 * 1024 * 1024)) ]; then
+        echo "   warning: the archive is over 60 MiB; a lent machine that carries at most 64 MiB may refuse it" >&2
+    fi
     echo "   on the GPU host: tar xzf $(basename "$dir").tar.gz && bash $(basename "$dir")/gpu-compare.sh run $(basename "$dir")"
 }
 
