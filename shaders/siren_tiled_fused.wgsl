@@ -6,9 +6,13 @@
 // Per layer, invocation i < (group_rows / 4) · (width / 4) owns a 4 × 4 register block: four
 // rows (with tangents: one point's value and tangent rows, so the tangent epilogue
 // a_j = ω0 cos(ω0 z_v) z_j runs in registers) by four output features. It reads its rows from
-// workgroup memory and the weight rows as vec4 from the parameters (the same weights for every
-// workgroup: they stay in cache), then, after a barrier, overwrites its block with the layer's
-// activations in place.
+// workgroup memory (the same four rows for every invocation of a subgroup, a broadcast) and the
+// weights transposed, from `wt4` (written by `fused_pack` whenever the parameters change): at
+// input feature k, invocation i reads Wᵀ[k][4i..4i+3] as one vec4, so a subgroup's invocations
+// read consecutive vec4s (one coalesced 512-byte load on a 32-wide subgroup) where the
+// row-major weights had each invocation read a row of its own, a whole weight row apart. Every
+// workgroup reads the same weights: they stay in cache. After a barrier it overwrites its block
+// with the layer's activations in place.
 
 struct Fused {
     // Rows in all: points, or 4 × points with tangents.
@@ -32,6 +36,10 @@ struct Fused {
 @group(0) @binding(3) var<storage, read> params4: array<vec4<f32>>;
 // Φ per row: Φ per point, or (Φ, ∇Φ) per point with tangents.
 @group(0) @binding(4) var<storage, read_write> values: array<f32>;
+// The hidden layers after the first, transposed: layer l's Wᵀ[k][o] at (l - 1)·w² + k·w + o.
+@group(0) @binding(5) var<storage, read> wt4: array<vec4<f32>>;
+// The same buffer, written by `fused_pack`.
+@group(0) @binding(6) var<storage, read_write> wt_out: array<f32>;
 
 // [row][feature / 4] of the current layer's activations.
 var<workgroup> act: array<vec4<f32>, 1024>;
@@ -100,7 +108,8 @@ fn fused_forward(
     // Hidden layers 1..L-1: W at 4w + (l - 1)(w² + w), then b.
     for (var l = 1u; l < f.hidden_layers; l++) {
         let woff = 4u * w + (l - 1u) * (w * w + w);
-        let wrow4 = woff / 4u + o0 * w4;
+        // Wᵀ[k][o0..o0+3] of this layer at input feature k = 0.
+        let wt = (l - 1u) * w * w4 + cb;
         var c0 = vec4<f32>(0.0);
         var c1 = vec4<f32>(0.0);
         var c2 = vec4<f32>(0.0);
@@ -111,14 +120,28 @@ fn fused_forward(
                 let a1 = act[(r0 + 1u) * w4 + k4];
                 let a2 = act[(r0 + 2u) * w4 + k4];
                 let a3 = act[(r0 + 3u) * w4 + k4];
-                let q0 = params4[wrow4 + k4];
-                let q1 = params4[wrow4 + w4 + k4];
-                let q2 = params4[wrow4 + 2u * w4 + k4];
-                let q3 = params4[wrow4 + 3u * w4 + k4];
-                c0 += vec4<f32>(dot(a0, q0), dot(a0, q1), dot(a0, q2), dot(a0, q3));
-                c1 += vec4<f32>(dot(a1, q0), dot(a1, q1), dot(a1, q2), dot(a1, q3));
-                c2 += vec4<f32>(dot(a2, q0), dot(a2, q1), dot(a2, q2), dot(a2, q3));
-                c3 += vec4<f32>(dot(a3, q0), dot(a3, q1), dot(a3, q2), dot(a3, q3));
+                // Input features 4k4 .. 4k4 + 3, four outputs each.
+                let q = wt + 4u * k4 * w4;
+                let q0 = wt4[q];
+                let q1 = wt4[q + w4];
+                let q2 = wt4[q + 2u * w4];
+                let q3 = wt4[q + 3u * w4];
+                c0 = fma(vec4(a0.x), q0, c0);
+                c0 = fma(vec4(a0.y), q1, c0);
+                c0 = fma(vec4(a0.z), q2, c0);
+                c0 = fma(vec4(a0.w), q3, c0);
+                c1 = fma(vec4(a1.x), q0, c1);
+                c1 = fma(vec4(a1.y), q1, c1);
+                c1 = fma(vec4(a1.z), q2, c1);
+                c1 = fma(vec4(a1.w), q3, c1);
+                c2 = fma(vec4(a2.x), q0, c2);
+                c2 = fma(vec4(a2.y), q1, c2);
+                c2 = fma(vec4(a2.z), q2, c2);
+                c2 = fma(vec4(a2.w), q3, c2);
+                c3 = fma(vec4(a3.x), q0, c3);
+                c3 = fma(vec4(a3.y), q1, c3);
+                c3 = fma(vec4(a3.z), q2, c3);
+                c3 = fma(vec4(a3.w), q3, c3);
             }
         }
         // Every block is read before any is overwritten.
@@ -156,4 +179,23 @@ fn fused_forward(
         }
         values[row] = phi;
     }
+}
+
+// `wt4` from the parameters: one invocation per weight of the hidden layers after the first,
+// in 256-wide groups folded into 2D. Reads are strided, writes coalesced; it runs once per
+// change of the parameters, not per evaluation.
+@compute @workgroup_size(256)
+fn fused_pack(
+    @builtin(global_invocation_id) gid: vec3<u32>,
+    @builtin(num_workgroups) nwg: vec3<u32>,
+) {
+    let i = gid.y * nwg.x * 256u + gid.x;
+    let w = f.width;
+    if i >= (f.hidden_layers - 1u) * w * w {
+        return;
+    }
+    let l = 1u + i / (w * w);
+    let k = (i / w) % w;
+    let o = i % w;
+    wt_out[i] = params[4u * w + (l - 1u) * (w * w + w) + o * w + k];
 }

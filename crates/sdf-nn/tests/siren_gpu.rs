@@ -147,9 +147,6 @@ fn forward_and_input_gradient_match_cpu_reference() {
     );
 }
 
-/// The tiled family on ragged shapes: batches of 1, 7 and 1001 points (not multiples of the
-/// 64-row tiles), a width that is not a multiple of 4 (scalar loads, partial register blocks)
-/// and one that is.
 /// The worst |Φ − Φ₆₄| of `g.eval` over `pts` against `net`'s f64 reference.
 fn worst_value_error(g: &mut SirenGpu, net: &Siren, pts: &[Vec3]) -> f64 {
     let gpu = gpu();
@@ -313,6 +310,9 @@ fn coop_f16_on_a_trained_network() {
     assert!(worst_deg < 2.0, "normals {worst_deg}°");
 }
 
+/// The tiled family on ragged shapes: batches of 1, 7 and 1001 points (not multiples of the
+/// 64-row tiles), a width that is not a multiple of 4 (scalar loads, partial register blocks)
+/// and one that is.
 #[test]
 fn tiled_kernels_match_cpu_reference_on_ragged_shapes() {
     let gpu = gpu();
@@ -341,6 +341,49 @@ fn tiled_kernels_match_cpu_reference_on_ragged_shapes() {
             });
         }
     }
+}
+
+/// The fused kernel reads the hidden weights transposed (`fused_pack`): the copy follows every
+/// way the parameters change, on deeper networks (the layer offsets of Wᵀ past the first) and
+/// through the serving path, whose network is frozen.
+#[test]
+fn fused_kernel_weights_follow_the_parameters() {
+    let gpu = gpu();
+    let cfg = SirenConfig {
+        width: 24,
+        hidden_layers: 4,
+        omega0: 30.0,
+    };
+    let net = Siren::new(cfg, 31).unwrap();
+    let mut g = SirenGpu::new(gpu, &net).unwrap();
+    g.set_layer_kernels(gpu, LayerKernels::Tiled).unwrap();
+    let pts = sdf_geom::sample::uniform_box(203, 31);
+    assert!(g.runs_fused(gpu, pts.len() as u32));
+    let worst = worst_value_error(&mut g, &net, &pts);
+    eprintln!("fused {cfg:?}: |ΔΦ| ≤ {worst:e}");
+    assert!(worst < 1e-6, "fused: {worst:e}");
+    let other = Siren::new(cfg, 32).unwrap();
+    g.upload(gpu, &other).unwrap();
+    let worst = worst_value_error(&mut g, &other, &pts);
+    assert!(worst < 1e-6, "fused after upload: {worst:e}");
+
+    // Frozen: NeuralSdf packs at construction and when its kernels change.
+    let file = other.to_model_file(Normalization::identity(), serde_json::Value::Null);
+    let mut sdf = NeuralSdf::from_model_file(file).unwrap();
+    sdf.set_siren_kernels(LayerKernels::Tiled).unwrap();
+    let got = sdf.eval_with_normals(gpu, &pts).unwrap();
+    let want = sdf.eval_with_normals_cpu(&pts);
+    let (mut worst_d, mut worst_deg) = (0.0f32, 0.0f32);
+    for ((d, n), (wd, wn)) in got.iter().zip(&want) {
+        worst_d = worst_d.max((d - wd).abs());
+        worst_deg = worst_deg.max(n.angle_between(*wn).to_degrees());
+    }
+    eprintln!("fused through NeuralSdf: |Δd| ≤ {worst_d:e}, normals within {worst_deg:.4}°");
+    assert!(worst_d < 1e-5, "NeuralSdf on the fused kernel: {worst_d:e}");
+    assert!(
+        worst_deg < 0.05,
+        "NeuralSdf normals on the fused kernel: {worst_deg}°"
+    );
 }
 
 fn gradients_match(cfg: SirenConfig, n: usize, n_surface: usize, seed: u64) {
@@ -847,6 +890,13 @@ fn tiled_training_steps_reduce_the_loss() {
     assert!(trainer.net().runs_tiled());
     assert_eq!(trainer.net().row_blocked_layers(), 0);
     losses_fall_over_40_steps(gpu, &mut trainer);
+    // An evaluation after the steps sees the weights Adam wrote (the fused kernel's transposed
+    // copy is refreshed before it).
+    let trained = trainer.net().download(gpu).unwrap();
+    let pts = sdf_geom::sample::uniform_box(100, 5);
+    assert!(trainer.net().runs_fused(gpu, 100));
+    let worst = worst_value_error(trainer.net(), &trained, &pts);
+    assert!(worst < 1e-5, "fused after training: {worst:e}");
 }
 
 /// Training with each step forced on each family that has it: the loss falls and stays finite.

@@ -414,7 +414,7 @@ impl SirenGpu {
             None
         };
         let tiled = if kernels.tiled(gpu) {
-            TiledKernels::new(gpu)?
+            TiledKernels::new(gpu, config, params)?
         } else {
             None
         };
@@ -428,7 +428,7 @@ impl SirenGpu {
 
     /// Submits [`SirenGpu::record_pack`] on its own (a frozen network's weights changed).
     fn pack_now(&self, gpu: &GpuContext) {
-        if self.dense.is_some() || self.coop.is_some() {
+        if self.dense.is_some() || self.coop.is_some() || self.tiled.is_some() {
             let mut enc = gpu.device().create_command_encoder(&Default::default());
             self.record_eval_pack(&mut enc);
             gpu.queue().submit([enc.finish()]);
@@ -443,12 +443,16 @@ impl SirenGpu {
         }
     }
 
-    /// [`SirenGpu::record_pack`], and the f16 packing of the cooperative-matrix kernels,
-    /// which only evaluations read (training steps skip it).
+    /// [`SirenGpu::record_pack`], and the packings that only evaluations read (training steps
+    /// skip them): the cooperative-matrix kernels' f16 weights, the fused kernel's transposed
+    /// ones.
     fn record_eval_pack(&self, enc: &mut wgpu::CommandEncoder) {
         self.record_pack(enc);
         if let Some(c) = &self.coop {
             c.record_pack(enc);
+        }
+        if let Some(t) = &self.tiled {
+            t.record_pack(enc);
         }
     }
 

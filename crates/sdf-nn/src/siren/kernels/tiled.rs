@@ -93,21 +93,42 @@ pub(crate) struct TiledKernels {
     gemm: wgpu::ComputePipeline,
     /// `gemm` with the reverse-over-reverse epilogues (and the pairs' bias step) compiled in.
     gemm_ror: wgpu::ComputePipeline,
+    /// The fused inference kernel's transposed weights, where the network fits it.
+    fused: Option<FusedWeights>,
     /// Bound where a mode does not use a binding.
     dummy: wgpu::Buffer,
     dummy_rw: wgpu::Buffer,
 }
 
+/// The hidden layers' weights after the first, transposed for the fused kernel (`wt4` in the
+/// shader: a subgroup's invocations then read consecutive vec4s of one row of Wᵀ instead of
+/// one weight row each), and the launch that writes them from the parameters.
+#[derive(Debug)]
+struct FusedWeights {
+    transposed: wgpu::Buffer,
+    /// `None` with a single hidden layer (no width × width weights).
+    pack: Option<Launch>,
+}
+
 impl TiledKernels {
-    /// The kernels, or `None` when the device's limits do not fit them (read from the device,
-    /// which [`GpuContext`] opened with the adapter's limits).
-    pub(crate) fn new(gpu: &GpuContext) -> Result<Option<Self>, GpuError> {
+    /// The kernels for `cfg`, whose parameters are `params`, or `None` when the device's limits
+    /// do not fit them (read from the device, which [`GpuContext`] opened with the adapter's
+    /// limits).
+    pub(crate) fn new(
+        gpu: &GpuContext,
+        cfg: &SirenConfig,
+        params: &wgpu::Buffer,
+    ) -> Result<Option<Self>, GpuError> {
         let limits = gpu.limits();
         if limits.max_compute_workgroup_storage_size < GEMM_WORKGROUP_BYTES
             || limits.max_compute_invocations_per_workgroup < INVOCATIONS
         {
             return Ok(None);
         }
+        let fused = match Self::fused_group_rows(gpu, cfg) {
+            Some(_) => Some(FusedWeights::new(gpu, cfg, params)?),
+            None => None,
+        };
         Ok(Some(TiledKernels {
             gemm: gpu.pipeline(&shaders::SIREN_TILED_LAYER, "tiled_gemm", &[])?,
             gemm_ror: gpu.pipeline(
@@ -115,9 +136,22 @@ impl TiledKernels {
                 "tiled_gemm",
                 &[("ROR", 1.0), ("BIAS_STEP", 2.0)],
             )?,
+            fused,
             dummy: gpu.storage_zeroed("siren tiled dummy", 16)?,
             dummy_rw: gpu.storage_zeroed("siren tiled dummy rw", 16)?,
         }))
+    }
+
+    /// Records the transposition of the fused kernel's weights (after every change of the
+    /// parameters, before an evaluation that may run it).
+    pub(crate) fn record_pack(&self, enc: &mut wgpu::CommandEncoder) {
+        if let Some(pack) = self.fused.as_ref().and_then(|f| f.pack.as_ref()) {
+            let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                label: Some("siren fused pack"),
+                timestamp_writes: None,
+            });
+            pack.record(&mut pass);
+        }
     }
 
     /// Rows per workgroup of the fused inference kernel for `cfg`, or `None` when the
@@ -153,6 +187,11 @@ impl TiledKernels {
     ) -> Result<Launch, GpuError> {
         let group_rows =
             Self::fused_group_rows(gpu, cfg).expect("fused_forward only for networks that fit");
+        let transposed = &self
+            .fused
+            .as_ref()
+            .expect("built where the network fits")
+            .transposed;
         // Compiled on first use (the context caches pipelines).
         let pipeline = gpu.pipeline(&shaders::SIREN_TILED_FUSED, "fused_forward", &[])?;
         let u = gpu.uniform(
@@ -179,6 +218,7 @@ impl TiledKernels {
                 entry(2, params),
                 entry(3, params),
                 entry(4, values),
+                entry(5, transposed),
             ],
             (x, y, 1),
         ))
@@ -290,6 +330,36 @@ impl TiledKernels {
             ],
             (x, y, z),
         )
+    }
+}
+
+impl FusedWeights {
+    fn new(gpu: &GpuContext, cfg: &SirenConfig, params: &wgpu::Buffer) -> Result<Self, GpuError> {
+        let w = cfg.width as u64;
+        let weights = (cfg.hidden_layers as u64).saturating_sub(1) * w * w;
+        let transposed =
+            gpu.storage_zeroed("siren fused transposed weights", weights.max(4) * 4)?;
+        let pack = if weights == 0 {
+            None
+        } else {
+            let pipeline = gpu.pipeline(&shaders::SIREN_TILED_FUSED, "fused_pack", &[])?;
+            let u = gpu.uniform(
+                "siren fused pack uniforms",
+                &FusedUniforms {
+                    width: cfg.width as u32,
+                    hidden_layers: cfg.hidden_layers as u32,
+                    ..Default::default()
+                },
+            );
+            Some(Launch::flat(
+                gpu,
+                &pipeline,
+                "siren fused pack",
+                &[entry(0, &u), entry(2, params), entry(6, &transposed)],
+                weights as u32,
+            ))
+        };
+        Ok(FusedWeights { transposed, pack })
     }
 }
 
