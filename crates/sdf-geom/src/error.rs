@@ -51,6 +51,15 @@ pub enum GeomError {
         /// How many faces were found but dropped as degenerate or duplicate.
         dropped: usize,
     },
+    /// The mesh is so small (its longest half-extent below about 3e-39) that no f32 scale maps it
+    /// into [-1, 1]³: every distance about it would be computed on unscaled subnormal numbers.
+    #[error(
+        "the mesh spans only {half_extent:e} from its centre, too small to normalise in float32; scale it up first"
+    )]
+    TooSmall {
+        /// The longest half-extent of its bounding box.
+        half_extent: f64,
+    },
     /// A vertex has a NaN or infinite coordinate.
     #[error("vertex {vertex} has a non-finite coordinate {position:?}")]
     NonFiniteVertex {
@@ -136,8 +145,8 @@ pub enum GeomError {
         /// Why it is refused.
         reason: &'static str,
     },
-    /// A glTF scene expands to more instanced triangles, vertices or mesh instances than the stated
-    /// limit ([`crate::MAX_INSTANCED_TRIANGLES`], [`crate::MAX_INSTANCED_VERTICES`],
+    /// A glTF scene expands (or an OBJ file holds) more instanced triangles, vertices or mesh
+    /// instances than the stated limit ([`crate::MAX_INSTANCED_TRIANGLES`], [`crate::MAX_INSTANCED_VERTICES`],
     /// [`crate::MAX_INSTANCES`]); counted through shared nodes without expanding them.
     #[error("{path}: the scene has {count} {what}, more than the limit of {limit}")]
     SceneTooLarge {

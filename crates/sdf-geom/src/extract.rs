@@ -103,6 +103,17 @@ pub enum ExtractError<E: std::error::Error + 'static> {
         /// Values returned.
         got: usize,
     },
+    /// The distance function returned NaN or an infinity (a model whose weights overflow, for
+    /// example): no surface can be placed through it.
+    #[error(
+        "the distance function returned {value} at {point}: the model does not evaluate to finite values"
+    )]
+    NonFinite {
+        /// The first such point (in the extraction's coordinates).
+        point: Vec3,
+        /// Its value.
+        value: f32,
+    },
 }
 
 /// What the extraction did, for reports and benchmarks.
@@ -149,6 +160,13 @@ pub fn extract_surface<E: std::error::Error + 'static>(
                 return Err(ExtractError::EvalLength {
                     expected: points.len(),
                     got: v.len(),
+                });
+            }
+            // A NaN corner would count as outside, and its edge's crossing would be NaN.
+            if let Some(i) = v.iter().position(|x| !x.is_finite()) {
+                return Err(ExtractError::NonFinite {
+                    point: points[i],
+                    value: v[i],
                 });
             }
             Ok(v)
@@ -421,6 +439,26 @@ mod tests {
             extract_surface(short, &ExtractOptions::new(16)),
             Err(ExtractError::EvalLength { .. })
         ));
+        // NaN on one side of a surface: an error, not vertices at NaN.
+        let half_nan = |p: &[Vec3]| {
+            Ok::<_, Infallible>(
+                p.iter()
+                    .map(|p| {
+                        if p.x > 0.0 {
+                            f32::NAN
+                        } else {
+                            p.length() - 0.5
+                        }
+                    })
+                    .collect(),
+            )
+        };
+        match extract_surface(half_nan, &ExtractOptions::new(16)) {
+            Err(ExtractError::NonFinite { point, value }) => {
+                assert!(point.x > 0.0 && value.is_nan(), "{point} {value}")
+            }
+            other => panic!("{other:?}"),
+        }
     }
 
     /// The prediction made at block size 16 bounds the real cell count from above, by less than

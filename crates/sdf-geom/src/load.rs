@@ -7,8 +7,10 @@
 //! instanced size of a scene is bounded, and a panic in a dependency becomes [`GeomError::ReaderPanic`].
 
 use std::cell::RefCell;
+use std::collections::HashMap;
 use std::io::{Cursor, Read};
 use std::path::{Component, Path, PathBuf};
+use std::rc::Rc;
 
 use base64::Engine as _;
 use glam::{Mat4, Vec3};
@@ -243,24 +245,56 @@ pub(crate) fn read_file_within(path: &Path, max_bytes: u64) -> Result<Vec<u8>, G
 // OBJ
 
 /// OBJ text as `tobj` can take it: no byte-order mark, lossy UTF-8 (names in Latin-1 and the like
-/// only lose their odd characters; numbers are ASCII), and `#` comments cut off every line, since
-/// `tobj` only skips whole-line comments and reads a trailing one as vertex colours.
-fn obj_text(bytes: &[u8]) -> String {
+/// only lose their odd characters; numbers are ASCII), `#` comments cut off every line, since
+/// `tobj` only skips whole-line comments and reads a trailing one as vertex colours, and no
+/// polyline (`l`) or point (`p`) elements, which `tobj` would read as faces once they have three
+/// or more vertices, nor faces of fewer than three vertices. Removed lines stay as empty lines, so line numbers in errors still match the
+/// file.
+fn obj_text(bytes: &[u8]) -> (String, ObjCounts) {
     let bytes = bytes.strip_prefix(b"\xEF\xBB\xBF").unwrap_or(bytes);
     let text = String::from_utf8_lossy(bytes);
     let mut out = String::with_capacity(text.len());
+    let mut counts = ObjCounts::default();
     for line in text.split_inclusive('\n') {
-        match line.find('#') {
-            Some(i) => {
-                out.push_str(&line[..i]);
-                if line.ends_with('\n') {
-                    out.push('\n');
+        let content = match line.find('#') {
+            Some(i) => &line[..i],
+            None => line.strip_suffix('\n').unwrap_or(line),
+        };
+        let mut tokens = content.split_whitespace();
+        match tokens.next() {
+            Some("l" | "p") => counts.skipped_elements += 1,
+            Some("v") => {
+                counts.vertices += 1;
+                out.push_str(content);
+            }
+            Some("f") => {
+                // A face of one or two vertices encloses nothing either; tobj would keep its
+                // indices, and a list of triangles read three at a time would shift.
+                let corners = tokens.count() as u64;
+                if corners < 3 {
+                    counts.short_faces += 1;
+                } else {
+                    counts.triangles += corners - 2;
+                    out.push_str(content);
                 }
             }
-            None => out.push_str(line),
+            _ => out.push_str(content),
+        }
+        if line.ends_with('\n') {
+            out.push('\n');
         }
     }
-    out
+    (out, counts)
+}
+
+/// What [`obj_text`] saw: the vertices and (fan-triangulated) triangles that `tobj` will build,
+/// counted before it builds them, and the elements it removed.
+#[derive(Debug, Default)]
+struct ObjCounts {
+    vertices: u64,
+    triangles: u64,
+    skipped_elements: usize,
+    short_faces: usize,
 }
 
 fn load_obj(
@@ -268,11 +302,31 @@ fn load_obj(
     bytes: &[u8],
     dir: Option<&Path>,
 ) -> Result<(Mesh, LoadReport), GeomError> {
-    let text = obj_text(bytes);
+    let (text, counts) = obj_text(bytes);
     let mut report = LoadReport {
         format: "obj",
         ..Default::default()
     };
+    // The limits glTF scenes have: tobj's index lists cost about 16 bytes per file byte.
+    for (what, count, limit) in [
+        ("triangles", counts.triangles, MAX_INSTANCED_TRIANGLES),
+        ("vertices", counts.vertices, MAX_INSTANCED_VERTICES),
+    ] {
+        if count > limit {
+            return Err(GeomError::SceneTooLarge {
+                path: path.to_path_buf(),
+                what,
+                count,
+                limit,
+            });
+        }
+    }
+    if counts.skipped_elements > 0 {
+        report.warnings.push(format!(
+            "{} polyline (l) and point (p) elements ignored: they enclose nothing",
+            counts.skipped_elements
+        ));
+    }
     let options = tobj::LoadOptions {
         single_index: false,
         triangulate: false,
@@ -339,6 +393,12 @@ fn load_obj(
                 }
             }
         }
+    }
+    if counts.short_faces > 0 {
+        report.warnings.push(format!(
+            "{} faces with fewer than three vertices ignored",
+            counts.short_faces
+        ));
     }
     let mesh = clean(vertices, triangles, &mut report)?;
     Ok((mesh, report))
@@ -610,14 +670,34 @@ fn load_gltf(
     }
 
     // Buffers: GLB blob, data: URIs, or files inside the .gltf's folder. Images are never touched.
-    let mut buffers: Vec<Vec<u8>> = Vec::new();
+    // Only buffers that a buffer view uses are read; the BIN chunk is copied once and a file
+    // named by several buffers is read once, so a small file that lists thousands of buffers
+    // over the same bytes cannot multiply them in memory.
+    let mut used = vec![false; doc.buffers().len()];
+    for view in doc.views() {
+        used[view.buffer().index()] = true;
+    }
+    let mut bin: Option<Rc<[u8]>> = None;
+    let mut files: HashMap<PathBuf, Rc<[u8]>> = HashMap::new();
+    let mut buffers: Vec<Rc<[u8]>> = Vec::new();
     for buffer in doc.buffers() {
-        let data = match buffer.source() {
-            gltf::buffer::Source::Bin => blob
-                .ok_or_else(|| {
-                    parse_err("buffer refers to a GLB BIN chunk that is missing".into())
-                })?
-                .to_vec(),
+        if !used[buffer.index()] {
+            buffers.push(Rc::from(Vec::new()));
+            continue;
+        }
+        let data: Rc<[u8]> = match buffer.source() {
+            gltf::buffer::Source::Bin => match &bin {
+                Some(b) => b.clone(),
+                None => {
+                    let b: Rc<[u8]> = blob
+                        .ok_or_else(|| {
+                            parse_err("buffer refers to a GLB BIN chunk that is missing".into())
+                        })?
+                        .into();
+                    bin = Some(b.clone());
+                    b
+                }
+            },
             gltf::buffer::Source::Uri(uri) => {
                 if let Some(rest) = uri.strip_prefix("data:") {
                     let Some((_, payload)) = rest.split_once(";base64,") else {
@@ -631,16 +711,28 @@ fn load_gltf(
                         .map_err(|e| {
                             parse_err(format!("buffer {}: bad base64: {e}", buffer.index()))
                         })?
+                        .into()
                 } else {
                     let file = resolve_uri(path, dir, buffer.index(), uri, options)?;
-                    read_input_file(&file).map_err(|e| match e {
-                        GeomError::Io { source, .. } => GeomError::MissingBuffer {
-                            gltf: path.to_path_buf(),
-                            buffer: file.clone(),
-                            source,
-                        },
-                        e => e,
-                    })?
+                    // By canonical path: `a.bin`, `./a.bin` and `x/../a.bin` are one file.
+                    let key = std::fs::canonicalize(&file).unwrap_or_else(|_| file.clone());
+                    match files.get(&key) {
+                        Some(data) => data.clone(),
+                        None => {
+                            let data: Rc<[u8]> = read_input_file(&file)
+                                .map_err(|e| match e {
+                                    GeomError::Io { source, .. } => GeomError::MissingBuffer {
+                                        gltf: path.to_path_buf(),
+                                        buffer: file.clone(),
+                                        source,
+                                    },
+                                    e => e,
+                                })?
+                                .into();
+                            files.insert(key, data.clone());
+                            data
+                        }
+                    }
                 }
             }
         };
@@ -667,7 +759,7 @@ fn load_gltf(
                 .collect();
             stack.reverse();
             while let Some((node, parent)) = stack.pop() {
-                let local = Mat4::from_cols_array_2d(&node.transform().matrix());
+                let local = node_matrix(path, &node)?;
                 let world = parent * local;
                 if let Some(mesh) = node.mesh() {
                     report.instances += 1;
@@ -903,6 +995,48 @@ fn percent_decode(s: &str) -> String {
     String::from_utf8_lossy(&out).into_owned()
 }
 
+/// A node's local transform. glTF requires a unit quaternion and a matrix that decomposes into
+/// translation, rotation and scale; the `gltf` crate checks neither, and a quaternion of length 2
+/// would silently scale the mesh by 4. A quaternion within 1 % of unit length (rounded by an
+/// exporter) is normalised; anything else, and a projective matrix, is a parse error.
+fn node_matrix(path: &Path, node: &gltf::Node) -> Result<Mat4, GeomError> {
+    let bad = |message: String| GeomError::Parse {
+        path: path.to_path_buf(),
+        line: None,
+        message: format!("node {}: {message}", node.index()),
+    };
+    match node.transform() {
+        gltf::scene::Transform::Matrix { matrix } => {
+            let m = Mat4::from_cols_array_2d(&matrix);
+            let last = m.row(3);
+            if (last - glam::Vec4::W).abs().max_element() > 1e-6 {
+                return Err(bad(format!(
+                    "its matrix is projective (last row {last}, not 0 0 0 1)"
+                )));
+            }
+            Ok(m)
+        }
+        gltf::scene::Transform::Decomposed {
+            translation,
+            rotation,
+            scale,
+        } => {
+            let q = glam::Quat::from_array(rotation);
+            let len = q.length();
+            if !(len - 1.0).abs().le(&0.01) {
+                return Err(bad(format!(
+                    "its rotation {rotation:?} is not a unit quaternion (length {len})"
+                )));
+            }
+            Ok(Mat4::from_scale_rotation_translation(
+                Vec3::from_array(scale),
+                q / len,
+                Vec3::from_array(translation),
+            ))
+        }
+    }
+}
+
 /// The bytes of `count` elements of `elem` bytes, `offset` bytes into a buffer view, after checking
 /// the view against its buffer and the elements against the view (the checks the `gltf` crate's
 /// reader leaves to assertions).
@@ -911,7 +1045,7 @@ fn view_elements<'b>(
     offset: usize,
     count: usize,
     elem: usize,
-    buffers: &'b [Vec<u8>],
+    buffers: &'b [Rc<[u8]>],
     what: &str,
 ) -> Result<Vec<&'b [u8]>, String> {
     let stride = view.stride().unwrap_or(elem);
@@ -959,7 +1093,7 @@ fn view_elements<'b>(
 fn read_accessor<'b>(
     acc: &gltf::Accessor,
     elem: usize,
-    buffers: &'b [Vec<u8>],
+    buffers: &'b [Rc<[u8]>],
     what: &str,
 ) -> Result<Vec<&'b [u8]>, String> {
     static ZEROS: [u8; 16] = [0; 16];
@@ -1017,7 +1151,7 @@ fn add_gltf_mesh(
     path: &Path,
     mesh: &gltf::Mesh,
     world: Mat4,
-    buffers: &[Vec<u8>],
+    buffers: &[Rc<[u8]>],
     vertices: &mut Vec<Vec3>,
     triangles: &mut Vec<[u32; 3]>,
     report: &mut LoadReport,
@@ -1137,10 +1271,21 @@ fn add_gltf_mesh(
                     .map(|i| [indices[i + 1], indices[i + 2], indices[0]])
                     .collect()
             }
-            _ => indices
-                .chunks_exact(3)
-                .map(|c| [c[0], c[1], c[2]])
-                .collect(),
+            _ => {
+                if indices.len() % 3 != 0 {
+                    report.warnings.push(format!(
+                        "mesh {} primitive {}: {} indices, not a multiple of 3; the last {} ignored",
+                        mesh.index(),
+                        prim.index(),
+                        indices.len(),
+                        indices.len() % 3
+                    ));
+                }
+                indices
+                    .chunks_exact(3)
+                    .map(|c| [c[0], c[1], c[2]])
+                    .collect()
+            }
         };
         for (k, t) in local.iter().enumerate() {
             for &i in t {

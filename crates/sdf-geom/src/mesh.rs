@@ -447,10 +447,18 @@ pub(crate) fn clean(
     }
     report.triangles = kept.len();
     report.vertices = out_vertices.len();
-    Ok(Mesh {
+    let mesh = Mesh {
         vertices: out_vertices,
         triangles: kept,
-    })
+    };
+    // Normalization::from_bounds falls back to scale 1 where 1 / half-extent overflows f32.
+    let bounds = mesh.bounds();
+    let (lo, hi) = (bounds.min.as_dvec3(), bounds.max.as_dvec3());
+    let half_extent = ((hi - lo) * 0.5).max_element();
+    if !((1.0 / half_extent) as f32).is_finite() {
+        return Err(GeomError::TooSmall { half_extent });
+    }
+    Ok(mesh)
 }
 
 fn rotate_min_first(t: [u32; 3]) -> [u32; 3] {

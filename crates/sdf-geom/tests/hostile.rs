@@ -615,3 +615,225 @@ fn soup_timing() {
         );
     }
 }
+
+/// OBJ polylines (`l`) and points (`p`) enclose nothing: `tobj` would read one with three or more
+/// vertices as a face. They are dropped and counted, like faces of fewer than three vertices; a
+/// file of nothing else has no triangles. Line numbers in errors still count the dropped lines.
+#[test]
+fn obj_polylines_and_points_are_not_faces() {
+    let dir = temp_dir("objlines");
+    let quad = "v 0 0 0\nv 1 0 0\nv 0 1 0\nv 1 1 0\n";
+    let p = write(
+        &dir,
+        "face-and-line.obj",
+        format!("{quad}f 1 2 3\nl 2 4 3\np 1 2 4\nf 1 2\n"),
+    );
+    let (m, report) = load_mesh(&p).unwrap();
+    assert_eq!(m.triangles.len(), 1, "{report:?}");
+    let warnings = report.warnings.join("\n");
+    assert!(
+        warnings.contains("2 polyline (l) and point (p) elements ignored"),
+        "{warnings}"
+    );
+    assert!(
+        warnings.contains("1 faces with fewer than three vertices"),
+        "{warnings}"
+    );
+
+    let only = write(
+        &dir,
+        "only-lines.obj",
+        format!("{quad}l 1 2 3\nl 1 2 4 3\n"),
+    );
+    assert!(matches!(
+        load_mesh(only),
+        Err(GeomError::NoTriangles { .. })
+    ));
+
+    let bad = write(
+        &dir,
+        "bad-after-line.obj",
+        format!("{quad}l 1 2 3\nv 1 x 0\n"),
+    );
+    match load_mesh(bad) {
+        Err(GeomError::Parse { line: Some(6), .. }) => {}
+        other => panic!("expected a parse error at line 6, got {other:?}"),
+    }
+}
+
+/// glTF requires unit quaternions and matrices that decompose into TRS; the `gltf` crate checks
+/// neither. An exporter's rounding is normalised away; a quaternion of length 2 (which would
+/// scale the mesh by 4) or a projective matrix is an error naming the node.
+#[test]
+fn gltf_node_transforms_must_be_rigid_or_scaled() {
+    let dir = temp_dir("gtransform");
+    let b = cube_buffer(&[]);
+    let idx = r#"{"bufferView":1,"componentType":5125,"count":36,"type":"SCALAR"}"#;
+    let with_node = |node: &str| {
+        doc(
+            &data_uri(&b),
+            b.len(),
+            CUBE_VIEWS,
+            &format!("{POS},{idx}"),
+            Some(1),
+            node,
+            "0",
+        )
+    };
+    // 90° about z, written with 6 digits: within rounding of unit length.
+    let s = 0.707107;
+    let m = load_text(
+        &dir,
+        "rounded.gltf",
+        &with_node(&format!(r#"{{"mesh":0,"rotation":[0,0,{s},{s}]}}"#)),
+    )
+    .unwrap();
+    let b = m.bounds();
+    assert!(
+        (b.max - glam::Vec3::new(0.0, 1.0, 1.0)).abs().max_element() < 1e-5,
+        "{b:?}"
+    );
+    assert!(
+        (b.min - glam::Vec3::new(-1.0, 0.0, 0.0))
+            .abs()
+            .max_element()
+            < 1e-5,
+        "{b:?}"
+    );
+
+    for (name, node, words) in [
+        (
+            "long.gltf",
+            r#"{"mesh":0,"rotation":[1,1,1,1]}"#,
+            "not a unit quaternion",
+        ),
+        (
+            "zero.gltf",
+            r#"{"mesh":0,"rotation":[0,0,0,0]}"#,
+            "not a unit quaternion",
+        ),
+        (
+            "projective.gltf",
+            r#"{"mesh":0,"matrix":[1,0,0,0, 0,1,0,0, 0,0,1,5, 0,0,0,1]}"#,
+            "projective",
+        ),
+    ] {
+        let msg = parse_message(load_text(&dir, name, &with_node(node)));
+        assert!(
+            msg.contains("node 0") && msg.contains(words),
+            "{name}: {msg}"
+        );
+    }
+}
+
+/// A GLB that lists its BIN chunk as thousands of buffers, and a glTF that names one file
+/// thousands of times under different spellings, load with the bytes held once (they used to be
+/// copied per buffer: gigabytes from a few megabytes).
+#[test]
+fn gltf_buffers_are_read_once() {
+    let dir = temp_dir("gbuffers");
+    let mut bin = cube_buffer(&[]);
+    let cube_len = bin.len();
+    bin.resize(1 << 20, 0);
+    let copies = 3000;
+    let idx = r#"{"bufferView":1,"componentType":5125,"count":36,"type":"SCALAR"}"#;
+    // A view on every buffer, so that every one is read.
+    let views: Vec<String> = (1..copies)
+        .map(|i| format!(r#"{{"buffer":{i},"byteLength":{cube_len}}}"#))
+        .collect();
+    let views = format!("{CUBE_VIEWS},{}", views.join(","));
+    let glb_buffers = vec![format!(r#"{{"byteLength":{}}}"#, bin.len()); copies].join(",");
+    let json = format!(
+        r#"{{"asset":{{"version":"2.0"}},"scene":0,"scenes":[{{"nodes":[0]}}],"nodes":[{{"mesh":0}}],
+        "meshes":[{{"primitives":[{{"attributes":{{"POSITION":0}},"indices":1}}]}}],
+        "buffers":[{glb_buffers}],"bufferViews":[{views}],"accessors":[{POS},{idx}]}}"#
+    );
+    let p = write(&dir, "many.glb", glb(&json, &bin));
+    let peak = peak_rss_growth(|| {
+        let (m, _) = load_mesh(&p).unwrap();
+        assert_eq!(m.triangles.len(), 12);
+    });
+    // 3000 copies would be 3 GB.
+    assert!(peak < 1 << 30, "loading grew the heap by {} MB", peak >> 20);
+
+    write(&dir, "big.bin", &bin);
+    let spellings: Vec<String> = (0..copies)
+        .map(|i| {
+            format!(
+                r#"{{"byteLength":{},"uri":"{}big.bin"}}"#,
+                bin.len(),
+                "./".repeat(i % 50)
+            )
+        })
+        .collect();
+    let json = json.replace(&glb_buffers, &spellings.join(","));
+    let p = write(&dir, "many.gltf", json);
+    let peak = peak_rss_growth(|| {
+        let (m, _) = load_mesh(&p).unwrap();
+        assert_eq!(m.triangles.len(), 12);
+    });
+    assert!(peak < 1 << 30, "loading grew the heap by {} MB", peak >> 20);
+}
+
+/// A GLB container: the JSON chunk (padded with spaces) and the BIN chunk (padded with zeros).
+fn glb(json: &str, bin: &[u8]) -> Vec<u8> {
+    let mut j = json.as_bytes().to_vec();
+    j.resize(j.len().next_multiple_of(4), b' ');
+    let mut b = bin.to_vec();
+    b.resize(b.len().next_multiple_of(4), 0);
+    let total = 12 + 8 + j.len() + 8 + b.len();
+    let mut out = Vec::with_capacity(total);
+    out.extend_from_slice(b"glTF");
+    out.extend_from_slice(&2u32.to_le_bytes());
+    out.extend_from_slice(&(total as u32).to_le_bytes());
+    out.extend_from_slice(&(j.len() as u32).to_le_bytes());
+    out.extend_from_slice(b"JSON");
+    out.extend_from_slice(&j);
+    out.extend_from_slice(&(b.len() as u32).to_le_bytes());
+    out.extend_from_slice(b"BIN\0");
+    out.extend_from_slice(&b);
+    out
+}
+
+/// How much the process's peak resident set grew while `f` ran (Linux; 0 elsewhere).
+fn peak_rss_growth(f: impl FnOnce()) -> u64 {
+    let peak = || {
+        std::fs::read_to_string("/proc/self/status")
+            .ok()
+            .and_then(|s| {
+                s.lines()
+                    .find_map(|l| l.strip_prefix("VmHWM:"))
+                    .and_then(|v| v.trim().trim_end_matches("kB").trim().parse::<u64>().ok())
+            })
+            .map_or(0, |kb| kb << 10)
+    };
+    let before = peak();
+    f();
+    peak().saturating_sub(before)
+}
+
+/// A mesh whose extent is subnormal in f32 cannot be normalised (1 / half-extent overflows):
+/// a typed error instead of distances computed unscaled.
+#[test]
+fn meshes_too_small_to_normalise_are_errors() {
+    let dir = temp_dir("tiny");
+    let p = write(
+        &dir,
+        "tiny.obj",
+        "v 0 0 0\nv 1e-40 0 0\nv 0 1e-40 0\nf 1 2 3\n",
+    );
+    match load_mesh(p) {
+        Err(e @ GeomError::TooSmall { .. }) => {
+            assert!(e.to_string().contains("too small to normalise"), "{e}")
+        }
+        other => panic!("expected TooSmall, got {other:?}"),
+    }
+    // 1e-30 is small but normalisable.
+    let p = write(
+        &dir,
+        "small.obj",
+        "v 0 0 0\nv 1e-30 0 0\nv 0 1e-30 0\nf 1 2 3\n",
+    );
+    let (m, _) = load_mesh(p).unwrap();
+    assert_eq!(m.triangles.len(), 1);
+}
