@@ -1272,7 +1272,7 @@ fn add_gltf_mesh(
                     .collect()
             }
             _ => {
-                if indices.len() % 3 != 0 {
+                if !indices.len().is_multiple_of(3) {
                     report.warnings.push(format!(
                         "mesh {} primitive {}: {} indices, not a multiple of 3; the last {} ignored",
                         mesh.index(),
