@@ -681,11 +681,10 @@ fn gltf_node_transforms_must_be_rigid_or_scaled() {
         )
     };
     // 90° about z, written with 6 digits: within rounding of unit length.
-    let s = 0.707107;
     let m = load_text(
         &dir,
         "rounded.gltf",
-        &with_node(&format!(r#"{{"mesh":0,"rotation":[0,0,{s},{s}]}}"#)),
+        &with_node(r#"{"mesh":0,"rotation":[0,0,0.707107,0.707107]}"#),
     )
     .unwrap();
     let b = m.bounds();
