@@ -675,3 +675,48 @@ fn unsigned_mode_fits_a_flat_sheet_and_reports_distance_and_chamfer() {
         .unwrap();
     assert_clean_failure(&o, "unsigned distance is supported for NGLOD only");
 }
+
+/// A model that never changes sign (Φ ≡ 0.5: a SIREN with zero weights and a head bias) has no
+/// surface: `eval` still reports everything else, with the surface figures null and the reason
+/// given, instead of failing on the empty extracted mesh.
+#[test]
+fn eval_reports_a_model_without_a_surface() {
+    use hwsdf::nn::{Siren, SirenConfig};
+    let cfg = SirenConfig::small();
+    let mut params = vec![0.0; cfg.param_count()];
+    *params.last_mut().unwrap() = 0.5;
+    let file = Siren::from_params(cfg, params).unwrap().to_model_file(
+        hwsdf::geom::Normalization::identity(),
+        serde_json::json!({}),
+    );
+    let model = scratch("constant.safetensors");
+    file.save(&model).unwrap();
+    for json in [true, false] {
+        let mut cmd = bin("eval");
+        cmd.arg(&model).arg(data("suzanne.obj")).args([
+            "--points",
+            "500",
+            "--surface-resolution",
+            "16",
+        ]);
+        if json {
+            cmd.arg("--json");
+        }
+        let o = cmd.output().unwrap();
+        assert!(o.status.success(), "{}", stderr(&o));
+        let out = String::from_utf8_lossy(&o.stdout);
+        if json {
+            let report: serde_json::Value = serde_json::from_str(&out).unwrap();
+            assert!(report["chamfer_l1"].is_null(), "{report}");
+            assert!(report["normal_consistency"].is_null(), "{report}");
+            let reason = report["surface_null_reason"].as_str().unwrap();
+            assert!(reason.contains("does not change sign"), "{reason}");
+            assert_eq!(
+                report["sign_accuracy_bbox"].as_f64().map(|a| a > 0.0),
+                Some(true)
+            );
+        } else {
+            assert!(out.contains("surface          n/a:"), "{out}");
+        }
+    }
+}

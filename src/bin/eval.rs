@@ -89,16 +89,27 @@ fn eval(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
     let Evaluation {
         scores, latency, ..
     } = run::evaluate(&gpu, &model, &mesh, args.points)?;
+    // A model that never changes sign in the box (one trained for a few steps, say) has no
+    // surface to compare: its surface figures are null, with the reason, and the rest stands.
+    let mut surface_null_reason = None;
     let surface = if args.surface_resolution > 0 {
         let (extracted, _) = run::extract_mesh(&gpu, &model, args.surface_resolution)?;
-        // Compare in the normalised frame, like every other figure here.
-        let extracted = extracted.transformed(&model.normalization());
-        Some(SurfaceMetrics::between(
-            &extracted,
-            &mesh,
-            args.points.min(100_000),
-            EVAL_SEED,
-        )?)
+        if extracted.triangles.is_empty() {
+            surface_null_reason = Some(format!(
+                "the model's level set has no triangles at {}³: it does not change sign in the box",
+                args.surface_resolution
+            ));
+            None
+        } else {
+            // Compare in the normalised frame, like every other figure here.
+            let extracted = extracted.transformed(&model.normalization());
+            Some(SurfaceMetrics::between(
+                &extracted,
+                &mesh,
+                args.points.min(100_000),
+                EVAL_SEED,
+            )?)
+        }
     } else {
         None
     };
@@ -127,6 +138,7 @@ fn eval(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
         "gpu_batch3000_us": latency.gpu_batch3000_us,
         "chamfer_l1": surface.map(|s| s.chamfer_l1),
         "normal_consistency": surface.map(|s| s.normal_consistency),
+        "surface_null_reason": surface_null_reason,
         "surface_resolution": args.surface_resolution,
         "adapter": gpu.describe(),
     });
@@ -175,6 +187,9 @@ fn eval(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
                 "surface @{}³     Chamfer-L1 {:.5} (normalised units), normal consistency {:.4}",
                 args.surface_resolution, s.chamfer_l1, s.normal_consistency
             );
+        }
+        if let Some(reason) = &surface_null_reason {
+            println!("surface          n/a: {reason}");
         }
         println!("adapter          {}", gpu.describe());
     }
