@@ -83,9 +83,19 @@ const T4: u32 = 16u;
 // Mode 3: the pre-activations of the layer below ([M, ldc], like out0).
 @group(0) @binding(7) var<storage, read> z_in: array<f32>;
 
-// [k][m / 4] and [k][n / 4]: an invocation reads its four rows (columns) as one vec4.
+// [k][m / 4] and [k][n / 4]: an invocation reads its four rows (columns) as one vec4, at
+// `tile_at`.
 var<workgroup> tile_a: array<vec4<f32>, 256>;
 var<workgroup> tile_b: array<vec4<f32>, 256>;
+
+// Where the vec4 of columns 4·c4 .. 4·c4 + 3 at slice row k lives: the column is XORed with
+// 2·((k / 4) mod 4), so the transposing loads below (invocations with the same column and k
+// four apart: 64 floats apart without it, all in one of 32 four-byte banks) store to four
+// different banks instead of one, a 4-way conflict gone on GPUs. A permutation within each row,
+// so the reads of a row stay conflict-free, and the same for k and k + 1..3.
+fn tile_at(k: u32, c4: u32) -> u32 {
+    return k * T4 + (c4 ^ (2u * ((k >> 2u) & 3u)));
+}
 
 fn a_at(m: u32, k: u32, k_end: u32) -> f32 {
     if m < t.m && k < k_end {
@@ -116,7 +126,7 @@ fn load_a(m0: u32, k0: u32, k_end: u32, lid: u32) {
             v = vec4<f32>(a_at(m, k, k_end), a_at(m + 1u, k, k_end), a_at(m + 2u, k, k_end),
                 a_at(m + 3u, k, k_end));
         }
-        tile_a[kl * T4 + ml / 4u] = v;
+        tile_a[tile_at(kl, ml / 4u)] = v;
     } else {
         // Four consecutive k at one m.
         let ml = lid / 4u;
@@ -130,7 +140,8 @@ fn load_a(m0: u32, k0: u32, k_end: u32, lid: u32) {
             v = vec4<f32>(a_at(m, k, k_end), a_at(m, k + 1u, k_end), a_at(m, k + 2u, k_end),
                 a_at(m, k + 3u, k_end));
         }
-        let i = kl * T4 + ml / 4u;
+        // kl is a multiple of 4: rows kl .. kl + 3 share the swizzle.
+        let i = tile_at(kl, ml / 4u);
         let c = ml % 4u;
         tile_a[i][c] = v.x;
         tile_a[i + T4][c] = v.y;
@@ -154,7 +165,7 @@ fn load_b(n0: u32, k0: u32, k_end: u32, lid: u32) {
             v = vec4<f32>(b_at(k, n, k_end), b_at(k, n + 1u, k_end), b_at(k, n + 2u, k_end),
                 b_at(k, n + 3u, k_end));
         }
-        tile_b[kl * T4 + nl / 4u] = v;
+        tile_b[tile_at(kl, nl / 4u)] = v;
     } else {
         // Four consecutive k at one n.
         let nl = lid / 4u;
@@ -168,7 +179,7 @@ fn load_b(n0: u32, k0: u32, k_end: u32, lid: u32) {
             v = vec4<f32>(b_at(k, n, k_end), b_at(k + 1u, n, k_end), b_at(k + 2u, n, k_end),
                 b_at(k + 3u, n, k_end));
         }
-        let i = kl * T4 + nl / 4u;
+        let i = tile_at(kl, nl / 4u);
         let c = nl % 4u;
         tile_b[i][c] = v.x;
         tile_b[i + T4][c] = v.y;
@@ -328,8 +339,8 @@ fn tiled_gemm(
         load_b(n0, k0, k_end, lid);
         workgroupBarrier();
         for (var kk = 0u; kk < BK; kk++) {
-            let av = tile_a[kk * T4 + ty];
-            let bv = tile_b[kk * T4 + tx];
+            let av = tile_a[tile_at(kk, ty)];
+            let bv = tile_b[tile_at(kk, tx)];
             c0 = fma(vec4<f32>(av.x), bv, c0);
             c1 = fma(vec4<f32>(av.y), bv, c1);
             c2 = fma(vec4<f32>(av.z), bv, c2);
@@ -338,7 +349,7 @@ fn tiled_gemm(
         if sum_bias {
             // k0 is a multiple of 4: value rows sit at kk ≡ 0 (mod 4).
             for (var kk = 0u; kk < BK; kk += BIAS_STEP) {
-                bias_sum += tile_a[kk * T4 + ty];
+                bias_sum += tile_a[tile_at(kk, ty)];
             }
         }
         workgroupBarrier();
