@@ -3,7 +3,7 @@
 //! once.
 
 use glam::Vec3;
-use sdf_nn::siren::{LayerKernels, LossWeights, TrainStep, cpu};
+use sdf_nn::siren::{LayerKernels, LossWeights, SirenGpuError, TrainStep, cpu};
 use sdf_nn::{
     GpuContext, ModelFile, NeuralSdf, Normalization, Siren, SirenConfig, SirenGpu,
     SirenTrainConfig, SirenTrainer,
@@ -384,6 +384,50 @@ fn fused_kernel_weights_follow_the_parameters() {
         worst_deg < 0.05,
         "NeuralSdf normals on the fused kernel: {worst_deg}°"
     );
+}
+
+/// Layers wider than the GEMM's K chunk (it sweeps K 256 at a time): widths 498 (scalar loads),
+/// 500 and 512 (vec4 loads), and 1024. Auto and the tiled kernels (fused and per layer) match the
+/// f64 reference at every width. On a CPU adapter the GEMM is wrong from a fan-in of 500 on, so
+/// the families that would run it on such a layer (gemm, and row-blocked, whose uncovered layers
+/// fall to it) are refused with a typed error there; on a GPU they must match.
+#[test]
+fn wide_layers_match_cpu_reference() {
+    let gpu = gpu();
+    for width in [498, 500, 512, 1024] {
+        let cfg = SirenConfig {
+            width,
+            hidden_layers: 2,
+            omega0: 30.0,
+        };
+        let net = Siren::new(cfg, 7).unwrap();
+        for kernels in [
+            LayerKernels::Auto,
+            LayerKernels::Tiled,
+            LayerKernels::Gemm,
+            LayerKernels::RowBlocked,
+        ] {
+            let mut g = SirenGpu::new(gpu, &net).unwrap();
+            let chosen = g.set_layer_kernels(gpu, kernels);
+            let refused =
+                gpu.is_cpu() && matches!(kernels, LayerKernels::Gemm | LayerKernels::RowBlocked);
+            if refused {
+                match chosen {
+                    Err(e @ SirenGpuError::KernelsUnsupported { .. }) => {
+                        assert!(e.to_string().contains("tiled"), "{e}");
+                        continue;
+                    }
+                    other => panic!("{kernels:?} at width {width}: {other:?}"),
+                }
+            }
+            chosen.unwrap();
+            for fused_max in [u32::MAX, 0] {
+                g.set_fused_max_points(fused_max);
+                eprint!("{kernels:?} fused ≤ {fused_max}: ");
+                forward_matches_on(&mut g, cfg, &net, 37, 70 + width as u64, None);
+            }
+        }
+    }
 }
 
 fn gradients_match(cfg: SirenConfig, n: usize, n_surface: usize, seed: u64) {

@@ -33,7 +33,25 @@ pub enum SirenGpuError {
     /// The network configuration is unusable.
     #[error(transparent)]
     Config(#[from] SirenConfigError),
+    /// The kernels asked for are known to give wrong results for this network on this adapter.
+    #[error(
+        "the {kernels} kernels cannot evaluate this network on a CPU adapter: {reason}; use the tiled kernels (or auto)"
+    )]
+    KernelsUnsupported {
+        /// [`LayerKernels::name`] of the family asked for.
+        kernels: &'static str,
+        /// Why.
+        reason: String,
+    },
 }
+
+/// The widest hidden layer the GEMM (`siren_gemm.wgsl`) evaluates correctly on lavapipe: from a
+/// fan-in of 500 on (vec4 loads; 497–499 take scalar loads and pass) its results are wrong by
+/// 1e-2 and more on Mesa 22.3, with a threshold that moves with its K chunk (KC = 128 moved it
+/// between 1500 and 2000, KC = 64 between 1024 and 1500), which no bound in the shader explains.
+/// The tiled kernels are right at every width up to 4096 on the same driver. Measured in
+/// `wide_layers_match_cpu_reference`; whether GPUs share the problem is not known.
+pub(crate) const GEMM_CPU_MAX_FAN_IN: usize = 496;
 
 #[repr(C)]
 #[derive(Clone, Copy, Debug, Default, bytemuck::Pod, bytemuck::Zeroable)]
@@ -407,17 +425,40 @@ impl SirenGpu {
         config: &SirenConfig,
         layers: &[LayerLayout],
         params: &wgpu::Buffer,
-    ) -> Result<Families, GpuError> {
-        let dense = if kernels.row_blocked(gpu) {
+    ) -> Result<Families, SirenGpuError> {
+        let mut dense = if kernels.row_blocked(gpu) {
             DensePlan::new(gpu, layers)?
         } else {
             None
         };
-        let tiled = if kernels.tiled(gpu) {
+        let covers = |l: usize| dense.as_ref().is_some_and(|d| d.covers(l));
+        // On a CPU, Auto keeps the row-blocked kernels only where they cover every hidden
+        // layer; otherwise the tiled ones run every product, never the GEMM on a wide layer
+        // (GEMM_CPU_MAX_FAN_IN).
+        let auto_tiled =
+            kernels == LayerKernels::Auto && gpu.is_cpu() && !(0..config.hidden_layers).all(covers);
+        if auto_tiled {
+            dense = None;
+        }
+        let tiled = if kernels.tiled(gpu) || auto_tiled {
             TiledKernels::new(gpu, config, params)?
         } else {
             None
         };
+        let covers = |l: usize| dense.as_ref().is_some_and(|d| d.covers(l));
+        if gpu.is_cpu()
+            && tiled.is_none()
+            && config.width > GEMM_CPU_MAX_FAN_IN
+            && (1..config.hidden_layers).any(|l| !covers(l))
+        {
+            return Err(SirenGpuError::KernelsUnsupported {
+                kernels: kernels.name(),
+                reason: format!(
+                    "its {}-wide hidden layers would run on the GEMM, which is wrong above a fan-in of {GEMM_CPU_MAX_FAN_IN} there",
+                    config.width
+                ),
+            });
+        }
         let coop = if kernels == LayerKernels::CoopF16 {
             CoopKernels::new(gpu, config, params)?
         } else {

@@ -168,6 +168,9 @@ impl From<SirenGpuError> for TrainError {
         match e {
             SirenGpuError::Gpu(g) => TrainError::Gpu(g),
             SirenGpuError::Config(c) => TrainError::Config(c),
+            e @ SirenGpuError::KernelsUnsupported { .. } => {
+                TrainError::BadTrainConfig(e.to_string())
+            }
         }
     }
 }
