@@ -137,6 +137,19 @@ fn sigterm_checkpoints_the_mesh_in_training_and_the_rerun_resumes_it() {
         "{err}"
     );
     assert!(state.join(checkpoint).exists(), "{err}");
+    // A resumed fit that fails (here its model file cannot be written: a folder is in the way)
+    // keeps the checkpoint it started from: a failure must not cost the training already done.
+    let blocker = state.join(checkpoint.replace(".checkpoint.safetensors", ".safetensors"));
+    std::fs::create_dir(&blocker).unwrap();
+    let o = corpus("8").output().unwrap();
+    let err = stderr(&o);
+    assert!(err.contains("resuming from its checkpoint"), "{err}");
+    assert!(err.contains("sub/suzanne.obj nglod: failed"), "{err}");
+    assert!(
+        state.join(checkpoint).exists(),
+        "the checkpoint is kept: {err}"
+    );
+    std::fs::remove_dir(&blocker).unwrap();
     // The rerun resumes that mesh, finishes it and drops the checkpoint.
     let o = corpus("8").output().unwrap();
     let err = stderr(&o);

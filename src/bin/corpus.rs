@@ -252,10 +252,19 @@ fn corpus(args: &Args) -> Result<ExitCode, BoxError> {
                     }
                 }
             };
+            let done = matches!(entry, Entry::Done(_));
             state.write(rel, model, &entry)?;
             if checkpoint_path.exists() {
-                // The result supersedes the checkpoint it was resumed from.
-                let _ = std::fs::remove_file(&checkpoint_path);
+                if done {
+                    // The result supersedes the checkpoint it was resumed from.
+                    let _ = std::fs::remove_file(&checkpoint_path);
+                } else {
+                    // A failure (a full disk, a lost device) must not cost the training done.
+                    eprintln!(
+                        "{rel} {tag}: its checkpoint {} is kept for the next run",
+                        checkpoint_path.display()
+                    );
+                }
             }
         }
     }

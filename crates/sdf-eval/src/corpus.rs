@@ -186,12 +186,23 @@ pub fn walk(root: &Path) -> Result<Vec<CorpusMesh>, CorpusError> {
     Ok(out)
 }
 
+/// The largest mesh list [`read_list`] reads (about a million paths).
+pub const MAX_LIST_BYTES: u64 = 64 << 20;
+
 /// The meshes named in a list file: one path a line, relative to the list's folder (or
 /// absolute); blank lines and lines starting with `#` are skipped, repeats are dropped.
 pub fn read_list(list: &Path) -> Result<Vec<CorpusMesh>, CorpusError> {
-    let text = std::fs::read_to_string(list).map_err(|source| CorpusError::Io {
+    // A regular file of at most 64 MiB: a FIFO would block, /dev/zero would fill the memory.
+    let io = |source| CorpusError::Io {
         path: list.to_owned(),
         source,
+    };
+    let bytes = sdf_geom::io::read_regular_file(list, MAX_LIST_BYTES).map_err(io)?;
+    let text = String::from_utf8(bytes).map_err(|e| {
+        io(std::io::Error::new(
+            std::io::ErrorKind::InvalidData,
+            format!("not UTF-8 text: {e}"),
+        ))
     })?;
     let root = list.parent().unwrap_or(Path::new("."));
     let set: BTreeSet<CorpusMesh> = text
@@ -988,6 +999,25 @@ mod tests {
         assert_eq!(listed[0].rel, "b.GLB");
         assert_eq!(listed[0].path, root.join("sub/b.GLB"));
         assert_eq!(listed[1].rel, "deep/c.gltf");
+        // Special files are refused unread (a FIFO would block, /dev/zero fill the memory).
+        #[cfg(unix)]
+        {
+            let fifo = root.join("list.fifo");
+            let made = std::process::Command::new("mkfifo")
+                .arg(&fifo)
+                .status()
+                .unwrap()
+                .success();
+            assert!(made);
+            for special in [fifo.as_path(), Path::new("/dev/zero")] {
+                match read_list(special) {
+                    Err(e @ CorpusError::Io { .. }) => {
+                        assert!(e.to_string().contains("not a regular file"), "{e}")
+                    }
+                    other => panic!("{special:?}: {other:?}"),
+                }
+            }
+        }
         assert!(matches!(
             walk(&root.join("sub/deep/nothing")),
             Err(CorpusError::Io { .. })

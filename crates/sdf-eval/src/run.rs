@@ -552,6 +552,28 @@ impl Checkpoint {
         if let Some(lr) = c.lr() {
             sdf_nn::AdamConfig::check_lr(lr).map_err(bad)?;
         }
+        // Progress it claims: a resume must neither run for ever nor report an untrained model
+        // as finished.
+        let t = &c.file.metadata.training;
+        for key in ["done", "planned", "epoch_steps_done"] {
+            match &t[key] {
+                serde_json::Value::Null => {}
+                v if v.as_u64().is_some_and(|x| x <= MAX_CHECKPOINT_PROGRESS) => {}
+                v => {
+                    return Err(bad(format!(
+                        "{key} is {v}, not a count of at most {MAX_CHECKPOINT_PROGRESS}"
+                    )));
+                }
+            }
+        }
+        if let Some(planned) = c.planned()
+            && c.done() > planned
+        {
+            return Err(bad(format!(
+                "{} epochs done of {planned} planned",
+                c.done()
+            )));
+        }
         Ok(c)
     }
 
@@ -617,6 +639,9 @@ impl Checkpoint {
 }
 
 const OPTIMIZER_PREFIX: &str = "optimizer.";
+
+/// The most steps or epochs a checkpoint may claim done or planned.
+pub const MAX_CHECKPOINT_PROGRESS: u64 = 1 << 30;
 
 /// A trained model and what training cost.
 #[derive(Clone, Debug)]
@@ -1254,6 +1279,80 @@ pub fn run(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A checkpoint's claimed progress is checked when it loads: counts beyond any run, more
+    /// epochs done than planned, or an optimiser step at u32::MAX (which used to overflow on the
+    /// first resumed step) never reach training.
+    #[test]
+    fn checkpoints_claiming_impossible_progress_are_refused() {
+        let siren = sdf_nn::Siren::new(sdf_nn::SirenConfig::small(), 1).unwrap();
+        let n = siren.params().len();
+        let trained = Trained {
+            file: siren.to_model_file(
+                sdf_geom::Normalization::identity(),
+                serde_json::json!({"model": "siren", "preset": "small"}),
+            ),
+            train_seconds: 1.0,
+            done: 5,
+            final_loss: 0.1,
+            interrupted: true,
+            details: serde_json::Value::Null,
+            optimizer: AdamState {
+                m: vec![0.0; n],
+                v: vec![0.0; n],
+                step: 5,
+            },
+            lr: 1e-4,
+        };
+        let dir = std::env::temp_dir().join(format!("hwsdf-ckpt-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let save = |name: &str, edit: &dyn Fn(&mut serde_json::Value)| {
+            let mut c = trained.checkpoint();
+            edit(&mut c.file.metadata.training);
+            let path = dir.join(name);
+            c.save(&path).unwrap();
+            Checkpoint::load(&path)
+        };
+        let ok = save("ok.safetensors", &|_| {}).unwrap();
+        assert_eq!((ok.done(), ok.optimizer().unwrap().step), (5, 5));
+        // The step counter saturates instead of overflowing.
+        let max = save("step-max.safetensors", &|t| {
+            t["adam_step"] = u32::MAX.into()
+        })
+        .unwrap();
+        let mut adam = sdf_nn::AdamCpu::new(n, sdf_nn::AdamConfig::default());
+        adam.step = max.optimizer().unwrap().step;
+        let mut p = vec![0.0f64; n];
+        adam.step(&mut p, &vec![1.0; n], 1.0);
+        assert!(p.iter().all(|x| x.is_finite()));
+        for (name, edit, says) in [
+            (
+                "done-huge.safetensors",
+                &(|t: &mut serde_json::Value| t["done"] = u64::MAX.into())
+                    as &dyn Fn(&mut serde_json::Value),
+                "done is",
+            ),
+            (
+                "planned-huge.safetensors",
+                &|t: &mut serde_json::Value| t["planned"] = u64::MAX.into(),
+                "planned is",
+            ),
+            (
+                "done-past-planned.safetensors",
+                &|t: &mut serde_json::Value| t["planned"] = 3.into(),
+                "5 epochs done of 3 planned",
+            ),
+            (
+                "negative.safetensors",
+                &|t: &mut serde_json::Value| t["epoch_steps_done"] = (-1).into(),
+                "epoch_steps_done is -1",
+            ),
+        ] {
+            let e = save(name, edit).map(|_| ()).unwrap_err().to_string();
+            assert!(e.contains(says), "{name}: {e}");
+        }
+        let _ = std::fs::remove_dir_all(&dir);
+    }
 
     #[test]
     fn options_go_to_the_model_they_apply_to() {

@@ -212,7 +212,7 @@ impl Adam {
         encoder: &mut wgpu::CommandEncoder,
         grad_scale: f32,
     ) {
-        self.step += 1;
+        self.step = self.step.saturating_add(1);
         let u = self.uniforms_for_step(grad_scale);
         gpu.queue()
             .write_buffer(&self.uniforms, 0, bytemuck::bytes_of(&u));
@@ -286,7 +286,7 @@ impl AdamCpu {
 
     /// One step: updates `params` in place from `grads` scaled by `grad_scale`.
     pub fn step(&mut self, params: &mut [f64], grads: &[f64], grad_scale: f64) {
-        self.step += 1;
+        self.step = self.step.saturating_add(1);
         let c = &self.config;
         let (b1, b2) = (f64::from(c.beta1), f64::from(c.beta2));
         let t = f64::from(self.step);
