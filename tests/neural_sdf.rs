@@ -5,7 +5,7 @@
 use glam::Vec3;
 use hwsdf::eval::run::extract_mesh;
 use hwsdf::nn::{
-    GpuContext, NeuralSdf, NeuralSdfError, Nglod, NglodConfig, Normalization,
+    GpuContext, GpuError, NeuralSdf, NeuralSdfError, Nglod, NglodConfig, Normalization,
     QueryBuffersDescriptor, QueryError, QueryOutputs, QuerySpace, QueryTransfer, Siren,
     SirenConfig,
 };
@@ -192,6 +192,19 @@ fn serving_api_reuses_buffers_and_refuses_misuse() {
                 assert!((*na - *nb).length() < 1e-3, "{arch} {i}: {na} vs {nb}");
             }
         }
+        // Capacities whose buffers pass the device's limits are typed errors, whichever
+        // transfer (the staging buffer used to be made first, and wgpu panicked on it).
+        let huge = QueryBuffersDescriptor {
+            capacity: u32::MAX,
+            ..desc
+        };
+        assert!(
+            matches!(
+                model.create_query_buffers(gpu, &huge),
+                Err(NeuralSdfError::Gpu(GpuError::BufferTooLarge { .. }))
+            ),
+            "{arch} {transfer:?}"
+        );
         // Too many points, buffers of another model.
         assert!(matches!(
             model.submit_query(gpu, &mut buffers, &points(501)),
@@ -218,6 +231,14 @@ fn serving_api_reuses_buffers_and_refuses_misuse() {
             .map(|&p| normalization().to_normalized(p))
             .collect();
         let ticket = model.submit_query(gpu, &mut norm, &local).unwrap();
+        // A ticket belongs to the buffers that made it: another's in-flight query (here of
+        // fewer points, whose results it would have mapped out of bounds) is not it.
+        let other_ticket = model.submit_query(gpu, &mut buffers, &points(2)).unwrap();
+        assert!(!norm.is_ready(gpu, &other_ticket));
+        assert!(matches!(
+            norm.wait(gpu, other_ticket),
+            Err(NeuralSdfError::Query(QueryError::StaleTicket))
+        ));
         let mut d = Vec::new();
         norm.wait(gpu, ticket).unwrap().extend_values(&mut d);
         for (a, b) in d.iter().zip(model.eval_cpu_normalized(&local)) {

@@ -563,19 +563,22 @@ impl GpuContext {
         count: u64,
     ) -> Result<Vec<T>, GpuError> {
         let size = std::mem::size_of::<T>() as u64;
-        let offset = first * size;
-        let bytes = count * size;
         let label = format!("{:?}", buffer);
-        if offset + bytes > buffer.size() || !bytes.is_multiple_of(4) || !offset.is_multiple_of(4) {
+        let range = first
+            .checked_mul(size)
+            .zip(count.checked_mul(size))
+            .and_then(|(offset, bytes)| Some((offset, bytes, offset.checked_add(bytes)?)));
+        let Some((offset, bytes, _)) = range.filter(|&(offset, bytes, end)| {
+            end <= buffer.size() && bytes.is_multiple_of(4) && offset.is_multiple_of(4)
+        }) else {
             return Err(GpuError::Readback {
                 label,
                 reason: format!(
-                    "range {offset}..{} is outside the {}-byte buffer or not 4-byte aligned",
-                    offset + bytes,
+                    "elements {first}..+{count} of {size} bytes are outside the {}-byte buffer or not 4-byte aligned",
                     buffer.size()
                 ),
             });
-        }
+        };
         if bytes == 0 {
             return Ok(Vec::new());
         }

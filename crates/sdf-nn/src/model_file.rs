@@ -362,14 +362,20 @@ impl ModelFile {
                 detail: ": expected {\"center\": [x, y, z], \"scale\": s}".into(),
             }
         })?;
+        // The box [-1, 1]³ must map back to finite coordinates: a scale of 1e-45 or a centre
+        // near f32::MAX would put every extracted vertex and evaluated distance at infinity.
+        let half = 1.0 / normalization.scale;
+        let corner = normalization.center.abs() + glam::Vec3::splat(half);
         if !normalization.scale.is_finite()
             || normalization.scale <= 0.0
             || !normalization.center.is_finite()
+            || !half.is_finite()
+            || !corner.is_finite()
         {
             return Err(ModelFileError::Metadata {
                 path: path.to_owned(),
                 key: "normalization",
-                detail: ": center must be finite and scale finite and positive".into(),
+                detail: ": center must be finite, scale finite and positive, and the box they map [-1, 1]³ to finite in float32".into(),
             });
         }
         let metadata = ModelMetadata {
@@ -672,16 +678,27 @@ mod tests {
             ModelFile::from_bytes(&foreign, p),
             Err(ModelFileError::Metadata { key: "format", .. })
         ));
-        // Bad normalisation.
-        let mut f = sample();
-        f.metadata.normalization.scale = 0.0;
-        assert!(matches!(
-            ModelFile::from_bytes(&f.to_bytes().unwrap(), p),
-            Err(ModelFileError::Metadata {
-                key: "normalization",
-                ..
-            })
-        ));
+        // Bad normalisation: no scale, or a box [-1, 1]³ that maps to infinity (a subnormal
+        // scale, or a centre whose box passes f32::MAX).
+        for (center, scale) in [
+            (glam::Vec3::ZERO, 0.0),
+            (glam::Vec3::ZERO, 1e-45),
+            (glam::Vec3::new(3.4e38, 0.0, 0.0), 1e-38),
+        ] {
+            let mut f = sample();
+            f.metadata.normalization.scale = scale;
+            f.metadata.normalization.center = center;
+            assert!(
+                matches!(
+                    ModelFile::from_bytes(&f.to_bytes().unwrap(), p),
+                    Err(ModelFileError::Metadata {
+                        key: "normalization",
+                        ..
+                    })
+                ),
+                "{center} {scale}"
+            );
+        }
         let missing = ModelFile::load(Path::new("/nonexistent/model.safetensors")).unwrap_err();
         assert!(matches!(missing, ModelFileError::Io { .. }));
     }

@@ -512,12 +512,15 @@ impl QueryBuffers {
             // The submission is done; its callback may still be running on another thread.
             self.map.settle(gpu.device()).map_err(error)?;
             self.map.set(MapState::Mapped);
-            Some(
-                self.staging
-                    .slice(..bytes)
-                    .get_mapped_range()
-                    .map_err(|e| error(e.to_string()))?,
-            )
+            match self.staging.slice(..bytes).get_mapped_range() {
+                Ok(view) => Some(view),
+                Err(e) => {
+                    // Nothing will hold the mapping: release it, or the next submission fails.
+                    self.staging.unmap();
+                    self.map.set(MapState::Idle);
+                    return Err(error(e.to_string()).into());
+                }
+            }
         };
         Ok(QueryResults {
             view,
@@ -557,6 +560,9 @@ impl QueryBuffers {
         Ok(n as u32)
     }
 }
+
+/// The next query's generation: tickets carry it, and buffers take only their own in-flight one.
+static NEXT_GENERATION: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(1);
 
 /// The uniforms of `shaders/query.wgsl`.
 #[repr(C)]
@@ -615,17 +621,18 @@ impl NeuralSdf {
             let staging = results.clone();
             (points, results, staging)
         } else {
+            // The storage buffers first: their sizes are checked against the device's limits,
+            // and the staging buffer is no larger than the results (wgpu panics on a buffer
+            // above max_buffer_size).
+            let points = storage("points", cap * 16)?;
+            let results = storage("results", cap * out_floats * 4)?;
             let staging = gpu.device().create_buffer(&wgpu::BufferDescriptor {
                 label: Some(&format!("{label} staging")),
                 size: cap * out_floats * 4,
                 usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
                 mapped_at_creation: false,
             });
-            (
-                storage("points", cap * 16)?,
-                storage("results", cap * out_floats * 4)?,
-                staging,
-            )
+            (points, results, staging)
         };
         let transform = match desc.space {
             QuerySpace::Mesh => (self.normalization().center, self.normalization().scale),
@@ -759,7 +766,8 @@ impl NeuralSdf {
         if !buffers.mapped {
             buffers.belt.recall();
         }
-        buffers.generation += 1;
+        // Unique across every QueryBuffers, so a ticket is only ever taken by its own buffers.
+        buffers.generation = NEXT_GENERATION.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
         if bytes > 0 {
             buffers
                 .map

@@ -154,6 +154,13 @@ fn buffers_round_trip_and_zero() {
     gpu.zero(&b);
     assert!(gpu.read_back::<u32>(&b).unwrap().iter().all(|&x| x == 0));
     assert!(gpu.read_back_range::<u32>(&b, 1000, 2).is_err());
+    // Ranges whose byte offsets overflow u64 are typed errors, not overflow panics.
+    assert!(gpu.read_back_range::<u32>(&b, u64::MAX / 2, 1).is_err());
+    assert!(gpu.read_back_range::<u32>(&b, 0, u64::MAX / 2).is_err());
+    assert!(
+        gpu.read_back_range::<u32>(&b, u64::MAX / 8, u64::MAX / 8)
+            .is_err()
+    );
 }
 
 #[test]
