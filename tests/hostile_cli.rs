@@ -814,6 +814,23 @@ fn cases() -> Vec<Case> {
             &["nothing.safetensors", "--out", "o.obj"],
             Error("no such file"),
         ),
+        case(
+            "eval --surface-resolution 1",
+            "eval",
+            &["plane.safetensors", "cube.obj", "--surface-resolution", "1"],
+            Error("--surface-resolution 1 is out of range"),
+        ),
+        case(
+            "eval --surface-resolution 5000",
+            "eval",
+            &[
+                "plane.safetensors",
+                "cube.obj",
+                "--surface-resolution",
+                "5000",
+            ],
+            Error("out of range: 0 (skip) or 2 to 4096"),
+        ),
         // Memory budgets.
         case(
             "eval --points 1e9",

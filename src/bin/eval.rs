@@ -61,6 +61,15 @@ fn eval(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
         return Err("--points must be at least 1".into());
     }
     run::check_eval_points(args.points)?;
+    // Checked before the evaluation it would otherwise follow.
+    let max = hwsdf::geom::extract::MAX_RESOLUTION;
+    if args.surface_resolution == 1 || args.surface_resolution > max {
+        return Err(format!(
+            "--surface-resolution {} is out of range: 0 (skip) or 2 to {max}",
+            args.surface_resolution
+        )
+        .into());
+    }
     let mut model = NeuralSdf::load(&args.model)?;
     model.set_lod(args.lod)?;
     if args.siren_kernels != LayerKernels::Auto {

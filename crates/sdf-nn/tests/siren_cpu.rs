@@ -163,16 +163,13 @@ fn initialisation_follows_the_design_document() {
     let hidden_bias = &a.params()[layers[1].bias..layers[1].bias + 256];
     assert!(hidden_bias.iter().all(|b| b.abs() <= 1.0 / 16.0));
     assert!(Siren::new(SirenConfig { width: 0, ..cfg }, 0).is_err());
-    assert!(
-        Siren::new(
-            SirenConfig {
-                omega0: f32::NAN,
-                ..cfg
-            },
-            0
-        )
-        .is_err()
-    );
+    for omega0 in [f32::NAN, 0.0, -30.0, 1e30, f32::INFINITY] {
+        assert!(
+            Siren::new(SirenConfig { omega0, ..cfg }, 0).is_err(),
+            "{omega0}"
+        );
+    }
+    assert!(Siren::new(SirenConfig { omega0: 1e4, ..cfg }, 0).is_ok());
 }
 
 #[test]

@@ -35,6 +35,10 @@ pub use gpu::{SirenGpu, SirenGpuError};
 pub use ror::TrainStep;
 pub use train::{LossTerms, LossWeights, SirenTrainConfig, SirenTrainer, TrainError};
 
+/// The largest ω0 a SIREN may have: the paper's is 30; far beyond it sin(ω0 z) of f32 arguments
+/// is rounding noise, and the GPU and CPU paths disagree (0.13 at 1e30).
+pub const MAX_OMEGA0: f32 = 1e4;
+
 /// Architecture name in model files.
 pub const ARCHITECTURE: &str = "siren";
 
@@ -104,7 +108,7 @@ pub enum SirenConfigError {
         layers: usize,
     },
     /// ω0 is not a positive finite number.
-    #[error("SIREN omega0 must be positive and finite (got {0})")]
+    #[error("SIREN omega0 must be positive and at most {MAX_OMEGA0} (got {0})")]
     BadOmega(f32),
 }
 
@@ -140,7 +144,7 @@ impl SirenConfig {
                 layers: self.hidden_layers,
             });
         }
-        if !(self.omega0.is_finite() && self.omega0 > 0.0) {
+        if !(self.omega0 > 0.0 && self.omega0 <= MAX_OMEGA0) {
             return Err(SirenConfigError::BadOmega(self.omega0));
         }
         Ok(())
