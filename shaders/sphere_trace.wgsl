@@ -23,7 +23,8 @@ struct TraceUniforms {
     // The model's box in mesh coordinates; box_min.w: smallest hit tolerance (mesh units).
     box_min: vec4<f32>,
     box_max: vec4<f32>,
-    // x: width, y: height, z: maximum steps per ray.
+    // x: width, y: height, z: maximum steps per ray, w: the first row of this dispatch (the
+    // host splits large images into bands of rows, one submission each).
     size: vec4<u32>,
 }
 
@@ -47,13 +48,14 @@ fn trace_box(o: vec3<f32>, d: vec3<f32>) -> vec2<f32> {
 fn sphere_trace(@builtin(global_invocation_id) gid: vec3<u32>) {
     let width = trace.size.x;
     let height = trace.size.y;
-    if gid.x >= width || gid.y >= height {
+    let y = gid.y + trace.size.w;
+    if gid.x >= width || y >= height {
         return;
     }
     // Pixel centre on the image plane at distance 1 in front of the camera.
     let ndc = vec2<f32>(
         (f32(gid.x) + 0.5) / f32(width) * 2.0 - 1.0,
-        1.0 - (f32(gid.y) + 0.5) / f32(height) * 2.0,
+        1.0 - (f32(y) + 0.5) / f32(height) * 2.0,
     );
     let tan_half = trace.eye.w;
     let dir = normalize(
@@ -90,5 +92,5 @@ fn sphere_trace(@builtin(global_invocation_id) gid: vec3<u32>) {
             color = vec4<f32>(pow(clamp(linear, vec3<f32>(0.0), vec3<f32>(1.0)), vec3<f32>(1.0 / 2.2)), 1.0);
         }
     }
-    trace_image[gid.y * width + gid.x] = pack4x8unorm(color);
+    trace_image[y * width + gid.x] = pack4x8unorm(color);
 }

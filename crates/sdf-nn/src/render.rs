@@ -304,9 +304,32 @@ pub struct Renderer {
     frame_layout: wgpu::BindGroupLayout,
     sdf: SdfBindGroup,
     normalization: Normalization,
+    /// Parameters of the model: the multiply-adds of one evaluation, at most.
+    macs_per_eval: u64,
+    /// See [`Renderer::set_max_submission_macs`].
+    max_submission_macs: u64,
 }
 
 impl Renderer {
+    /// Rows of one submission for `options` (a multiple of the 8-row tile, at least one tile).
+    pub fn band_rows(&self, options: &RenderOptions) -> u32 {
+        let per_row = u64::from(options.width)
+            * u64::from(options.max_steps.max(1))
+            * self.macs_per_eval.max(1);
+        let rows = (self.max_submission_macs / per_row.max(1)) / u64::from(TILE) * u64::from(TILE);
+        rows.clamp(
+            u64::from(TILE),
+            u64::from(options.height.next_multiple_of(TILE)),
+        ) as u32
+    }
+
+    /// Bounds the worst-case multiply-adds of one submission (default 2^38; see
+    /// [`Renderer::band_rows`]): lower it for a driver with a shorter watchdog. Images are
+    /// traced in bands of rows, one submission each, with the same pixels whatever the bands.
+    pub fn set_max_submission_macs(&mut self, macs: u64) {
+        self.max_submission_macs = macs;
+    }
+
     /// Compiles the sphere tracer for `sdf` (its current level of detail) and uploads its
     /// weights. Compilation is the slow part (seconds on lavapipe): keep the renderer.
     pub fn new(gpu: &GpuContext, sdf: &NeuralSdf) -> Result<Self, RenderError> {
@@ -370,6 +393,8 @@ impl Renderer {
             frame_layout,
             sdf: sdf_group,
             normalization: sdf.normalization(),
+            macs_per_eval: sdf.param_count() as u64,
+            max_submission_macs: MAX_SUBMISSION_MACS,
         })
     }
 
@@ -408,35 +433,45 @@ impl Renderer {
         };
         let pixels_bytes = u64::from(w) * u64::from(h) * 4;
         let image = gpu.storage_zeroed("sphere_trace image", pixels_bytes)?;
-        let uniform = gpu.uniform("sphere_trace uniforms", &uniforms);
         let device = gpu.device();
-        let frame = device.create_bind_group(&wgpu::BindGroupDescriptor {
-            label: Some("sphere_trace frame"),
-            layout: &self.frame_layout,
-            entries: &[
-                wgpu::BindGroupEntry {
-                    binding: 0,
-                    resource: uniform.as_entire_binding(),
-                },
-                wgpu::BindGroupEntry {
-                    binding: 1,
-                    resource: image.as_entire_binding(),
-                },
-            ],
-        });
         let scope = device.push_error_scope(wgpu::ErrorFilter::Validation);
-        let mut enc = device.create_command_encoder(&Default::default());
-        {
-            let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
-                label: Some("sphere_trace"),
-                timestamp_writes: None,
+        // One submission per band of rows, so that no single submission runs long enough for a
+        // driver's watchdog (a desktop GPU resets after about 2 s) however large the image or
+        // the network.
+        let rows = self.band_rows(options);
+        for first in (0..h).step_by(rows as usize) {
+            let band = TraceUniforms {
+                size: [w, h, options.max_steps, first],
+                ..uniforms
+            };
+            let uniform = gpu.uniform("sphere_trace uniforms", &band);
+            let frame = device.create_bind_group(&wgpu::BindGroupDescriptor {
+                label: Some("sphere_trace frame"),
+                layout: &self.frame_layout,
+                entries: &[
+                    wgpu::BindGroupEntry {
+                        binding: 0,
+                        resource: uniform.as_entire_binding(),
+                    },
+                    wgpu::BindGroupEntry {
+                        binding: 1,
+                        resource: image.as_entire_binding(),
+                    },
+                ],
             });
-            pass.set_pipeline(&self.pipeline);
-            pass.set_bind_group(0, &frame, &[]);
-            pass.set_bind_group(SDF_GROUP, &self.sdf.bind_group, &[]);
-            pass.dispatch_workgroups(w.div_ceil(TILE), h.div_ceil(TILE), 1);
+            let mut enc = device.create_command_encoder(&Default::default());
+            {
+                let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                    label: Some("sphere_trace"),
+                    timestamp_writes: None,
+                });
+                pass.set_pipeline(&self.pipeline);
+                pass.set_bind_group(0, &frame, &[]);
+                pass.set_bind_group(SDF_GROUP, &self.sdf.bind_group, &[]);
+                pass.dispatch_workgroups(w.div_ceil(TILE), rows.min(h - first).div_ceil(TILE), 1);
+            }
+            gpu.queue().submit([enc.finish()]);
         }
-        gpu.queue().submit([enc.finish()]);
         if let Some(err) = pollster::block_on(scope.pop()) {
             return Err(GpuError::Wgpu {
                 context: "dispatching sphere_trace".into(),
@@ -452,6 +487,13 @@ impl Renderer {
         })
     }
 }
+
+/// Multiply-adds one submission of the sphere tracer may cost at most, counting every ray at
+/// its step limit and one multiply-add per parameter per evaluation (a SIREN's cost; an
+/// overestimate for NGLOD, which reads only a few of its grid features): 2^38, tens of
+/// milliseconds on a desktop GPU in that worst case, far below the watchdogs that reset a GPU
+/// after a long submission.
+const MAX_SUBMISSION_MACS: u64 = 1 << 38;
 
 /// The sphere tracer's full source for `sdf`: the model's snippet at group 1, then
 /// `shaders/sphere_trace.wgsl`.

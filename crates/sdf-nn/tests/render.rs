@@ -67,6 +67,8 @@ fn sphere_silhouette_and_shading_match_analytic() {
     let t = std::time::Instant::now();
     let renderer = Renderer::new(gpu, &sdf).unwrap();
     let compile = t.elapsed();
+    let mut banded = Renderer::new(gpu, &sdf).unwrap();
+    banded.set_max_submission_macs(1);
     for (width, height, yaw, pitch) in [(160u32, 120u32, 35.0f32, 20.0f32), (96, 128, -70.0, -45.0)]
     {
         let options = RenderOptions {
@@ -79,6 +81,10 @@ fn sphere_silhouette_and_shading_match_analytic() {
         };
         let t = std::time::Instant::now();
         let image = renderer.render(gpu, &options).unwrap();
+        assert_eq!(renderer.band_rows(&options), height.next_multiple_of(8));
+        // In bands of 8 rows, one submission each: the same pixels.
+        assert_eq!(banded.band_rows(&options), 8);
+        assert!(banded.render(gpu, &options).unwrap().pixels == image.pixels);
         eprintln!(
             "{width}x{height}: compile {compile:.2?}, render {:.2?}",
             t.elapsed()
