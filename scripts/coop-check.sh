@@ -5,7 +5,8 @@
 # Debian 13 root with the Mesa of trixie-backports (once; about 300 MB under DIR, default
 # target/coop-root, ignored by git), and runs the tests whose names contain `coop` inside it,
 # with HWSDF_REQUIRE_COOP=1 so that a driver without cooperative matrices fails instead of
-# skipping. CI runs it after `cargo test`. Needs root (or sudo) and Debian's mirror.
+# skipping; then the GEMM's wide-layer test (`wide_layers`), which this newer driver computes
+# right and Mesa 22.3 wrong. CI runs it after `cargo test`. Needs root (or sudo) and Debian's mirror.
 #
 #   scripts/coop-check.sh [DIR]
 set -euo pipefail
@@ -45,4 +46,8 @@ $SUDO cp -r tests/data "$root/tmp/data"
 echo "== driver: $($SUDO chroot "$root" dpkg-query -W -f '${Package} ${Version}' mesa-vulkan-drivers)"
 # The tests print the adapter at every step; the driver line above names it.
 $SUDO chroot "$root" env HWSDF_REQUIRE_COOP=1 HWSDF_TEST_DATA=/tmp/data /tmp/siren_gpu coop --nocapture 2>&1 \
+    | grep -v 'XDG_RUNTIME_DIR\|^adapter: '
+# The GEMM's wide layers: Debian 12's Mesa 22.3 computes them wrong (the test expects the typed
+# refusal there), Mesa 26.1 right (the test expects them to match the f64 reference here).
+$SUDO chroot "$root" env HWSDF_TEST_DATA=/tmp/data /tmp/siren_gpu wide_layers 2>&1 \
     | grep -v 'XDG_RUNTIME_DIR\|^adapter: '

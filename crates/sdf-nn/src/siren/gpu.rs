@@ -45,13 +45,29 @@ pub enum SirenGpuError {
     },
 }
 
-/// The widest hidden layer the GEMM (`siren_gemm.wgsl`) evaluates correctly on lavapipe: from a
-/// fan-in of 500 on (vec4 loads; 497–499 take scalar loads and pass) its results are wrong by
-/// 1e-2 and more on Mesa 22.3, with a threshold that moves with its K chunk (KC = 128 moved it
-/// between 1500 and 2000, KC = 64 between 1024 and 1500), which no bound in the shader explains.
-/// The tiled kernels are right at every width up to 4096 on the same driver. Measured in
-/// `wide_layers_match_cpu_reference`; whether GPUs share the problem is not known.
+/// The widest hidden layer the GEMM (`siren_gemm.wgsl`) evaluates correctly on Debian 12's
+/// lavapipe (Mesa 22.3, LLVM 15): from a fan-in of 500 on (vec4 loads; 497–499 take scalar loads
+/// and pass) its results are wrong by 1e-2 and more there, with a threshold that moves with its K
+/// chunk (KC = 128 moved it between 1500 and 2000, KC = 64 between 1024 and 1500). The same
+/// shader is right at every width to 2048 on Mesa 26.1 (LLVM 19), so it is the older driver's
+/// compiler; the tiled kernels are right on both. See [`gemm_trusted_wide`].
 pub(crate) const GEMM_CPU_MAX_FAN_IN: usize = 496;
+
+/// Whether the GEMM may run layers wider than [`GEMM_CPU_MAX_FAN_IN`] on `gpu`: on a GPU, and on
+/// llvmpipe built with LLVM 19 or newer (measured right); not on llvmpipe with an older or
+/// unknown LLVM (LLVM 15 measured wrong, 16–18 not measured).
+fn gemm_trusted_wide(gpu: &GpuContext) -> bool {
+    if !gpu.is_cpu() {
+        return true;
+    }
+    let info = &gpu.adapter_info().driver_info;
+    let llvm_major = info
+        .split("LLVM ")
+        .nth(1)
+        .and_then(|v| v.split('.').next())
+        .and_then(|m| m.parse::<u32>().ok());
+    llvm_major.is_some_and(|m| m >= 19)
+}
 
 #[repr(C)]
 #[derive(Clone, Copy, Debug, Default, bytemuck::Pod, bytemuck::Zeroable)]
@@ -446,16 +462,17 @@ impl SirenGpu {
             None
         };
         let covers = |l: usize| dense.as_ref().is_some_and(|d| d.covers(l));
-        if gpu.is_cpu()
-            && tiled.is_none()
+        if tiled.is_none()
             && config.width > GEMM_CPU_MAX_FAN_IN
             && (1..config.hidden_layers).any(|l| !covers(l))
+            && !gemm_trusted_wide(gpu)
         {
             return Err(SirenGpuError::KernelsUnsupported {
                 kernels: kernels.name(),
                 reason: format!(
-                    "its {}-wide hidden layers would run on the GEMM, which is wrong above a fan-in of {GEMM_CPU_MAX_FAN_IN} there",
-                    config.width
+                    "its {}-wide hidden layers would run on the GEMM, which is wrong above a fan-in of {GEMM_CPU_MAX_FAN_IN} on llvmpipe before LLVM 19 ({})",
+                    config.width,
+                    gpu.adapter_info().driver_info
                 ),
             });
         }
