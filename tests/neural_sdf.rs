@@ -241,6 +241,16 @@ fn serving_api_reuses_buffers_and_refuses_misuse() {
         ));
         let mut d = Vec::new();
         norm.wait(gpu, ticket).unwrap().extend_values(&mut d);
+        // A ticket not redeemed by its own buffers (`other_ticket` went to the wrong ones)
+        // keeps them busy until they abandon its query.
+        assert!(matches!(
+            model.submit_query(gpu, &mut buffers, &points(5)),
+            Err(NeuralSdfError::Query(QueryError::Busy))
+        ));
+        buffers.abandon(gpu).unwrap();
+        buffers.abandon(gpu).unwrap();
+        let again = model.submit_query(gpu, &mut buffers, &points(7)).unwrap();
+        assert_eq!(buffers.wait(gpu, again).unwrap().len(), 7);
         for (a, b) in d.iter().zip(model.eval_cpu_normalized(&local)) {
             assert!(
                 (a - b).abs() <= 1e-4 * b.abs().max(1.0),

@@ -300,7 +300,8 @@ struct Stages {
     bound: Option<(u32, Option<Vec<crate::siren::gpu::Launch>>)>,
 }
 
-/// A submitted query; redeem it with [`QueryBuffers::wait`].
+/// A submitted query; redeem it with [`QueryBuffers::wait`] (a ticket dropped unredeemed keeps
+/// its buffers busy until [`QueryBuffers::abandon`]).
 #[derive(Debug)]
 #[must_use = "a submitted query is read back with QueryBuffers::wait"]
 pub struct QueryTicket {
@@ -529,6 +530,32 @@ impl QueryBuffers {
             n: ticket.n as usize,
             outputs: self.outputs,
         })
+    }
+
+    /// Forgets the query in flight, whose ticket was dropped unredeemed (until then every
+    /// submission is refused with [`QueryError::Busy`]): waits for the device, releases the
+    /// results' mapping, and leaves the buffers ready for the next query. Nothing happens when
+    /// no query is in flight.
+    pub fn abandon(&mut self, gpu: &GpuContext) -> Result<(), NeuralSdfError> {
+        if self.in_flight.take().is_none() {
+            return Ok(());
+        }
+        let error = |reason: String| GpuError::Readback {
+            label: "abandoned query".into(),
+            reason,
+        };
+        gpu.device()
+            .poll(wgpu::PollType::wait_indefinitely())
+            .map_err(|e| error(e.to_string()))?;
+        // A query of no points requested no mapping: the slot is idle and stays so.
+        if matches!(
+            self.map.take_settled(gpu.device(), Duration::from_secs(10)),
+            MapState::Mapped
+        ) {
+            self.staging.unmap();
+        }
+        self.map.set(MapState::Idle);
+        Ok(())
     }
 
     /// Whether the staging (with mapped transfers: the results) buffer is mapped or being mapped.
