@@ -287,6 +287,22 @@ fn obj_text(bytes: &[u8]) -> (String, ObjCounts) {
     (out, counts)
 }
 
+/// [`GeomError::SceneTooLarge`] for the first `(what, count, limit)` whose count passes its limit.
+fn check_limits<const N: usize>(
+    path: &Path,
+    counts: [(&'static str, u64, u64); N],
+) -> Result<(), GeomError> {
+    match counts.into_iter().find(|&(_, count, limit)| count > limit) {
+        Some((what, count, limit)) => Err(GeomError::SceneTooLarge {
+            path: path.to_path_buf(),
+            what,
+            count,
+            limit,
+        }),
+        None => Ok(()),
+    }
+}
+
 /// What [`obj_text`] saw: the vertices and (fan-triangulated) triangles that `tobj` will build,
 /// counted before it builds them, and the elements it removed.
 #[derive(Debug, Default)]
@@ -308,19 +324,13 @@ fn load_obj(
         ..Default::default()
     };
     // The limits glTF scenes have: tobj's index lists cost about 16 bytes per file byte.
-    for (what, count, limit) in [
-        ("triangles", counts.triangles, MAX_INSTANCED_TRIANGLES),
-        ("vertices", counts.vertices, MAX_INSTANCED_VERTICES),
-    ] {
-        if count > limit {
-            return Err(GeomError::SceneTooLarge {
-                path: path.to_path_buf(),
-                what,
-                count,
-                limit,
-            });
-        }
-    }
+    check_limits(
+        path,
+        [
+            ("triangles", counts.triangles, MAX_INSTANCED_TRIANGLES),
+            ("vertices", counts.vertices, MAX_INSTANCED_VERTICES),
+        ],
+    )?;
     if counts.skipped_elements > 0 {
         report.warnings.push(format!(
             "{} polyline (l) and point (p) elements ignored: they enclose nothing",
@@ -654,20 +664,14 @@ fn load_gltf(
         tris = tris.saturating_add(uses.saturating_mul(t));
         verts = verts.saturating_add(uses.saturating_mul(v));
     }
-    for (what, count, limit) in [
-        ("mesh instances", instances, MAX_INSTANCES),
-        ("instanced triangles", tris, MAX_INSTANCED_TRIANGLES),
-        ("instanced vertices", verts, MAX_INSTANCED_VERTICES),
-    ] {
-        if count > limit {
-            return Err(GeomError::SceneTooLarge {
-                path: path.to_path_buf(),
-                what,
-                count,
-                limit,
-            });
-        }
-    }
+    check_limits(
+        path,
+        [
+            ("mesh instances", instances, MAX_INSTANCES),
+            ("instanced triangles", tris, MAX_INSTANCED_TRIANGLES),
+            ("instanced vertices", verts, MAX_INSTANCED_VERTICES),
+        ],
+    )?;
 
     // Buffers: GLB blob, data: URIs, or files inside the .gltf's folder. Images are never touched.
     // Only buffers that a buffer view uses are read; the BIN chunk is copied once and a file
