@@ -35,6 +35,49 @@ fn models() -> Vec<NeuralSdf> {
     ]
 }
 
+/// The parameter count is the network's: a file that also holds a checkpoint's optimiser
+/// moments (twice as many floats again) reports the same count as the plain model file.
+#[test]
+fn param_count_is_the_networks() {
+    let siren = Siren::new(SirenConfig::small(), 3).unwrap();
+    let nglod = Nglod::new(NglodConfig::small()).unwrap();
+    // The default preset has a sparse level, whose vertex lists are not parameters either.
+    let sparse = Nglod::new(NglodConfig::default()).unwrap();
+    for (file, n) in [
+        (
+            siren.to_model_file(normalization(), serde_json::Value::Null),
+            siren.params().len(),
+        ),
+        (
+            nglod.to_model_file(normalization(), serde_json::Value::Null),
+            nglod.param_count(),
+        ),
+        (
+            sparse.to_model_file(normalization(), serde_json::Value::Null),
+            sparse.param_count(),
+        ),
+    ] {
+        assert_eq!(file.param_count(), n);
+        let sdf = NeuralSdf::from_model_file(file.clone()).unwrap();
+        assert_eq!(sdf.param_count(), n);
+        let mut checkpoint = file;
+        for name in ["optimizer.m", "optimizer.v"] {
+            checkpoint.tensors.push(hwsdf::nn::model_file::Tensor::f32(
+                name,
+                vec![n],
+                vec![0.0; n],
+            ));
+        }
+        assert_eq!(checkpoint.param_count(), 3 * n);
+        assert_eq!(
+            NeuralSdf::from_model_file(checkpoint)
+                .unwrap()
+                .param_count(),
+            n
+        );
+    }
+}
+
 /// Points in mesh coordinates covering the model's box and beyond it.
 fn points(n: usize) -> Vec<Vec3> {
     let mut rng = Pcg64::seed_from_u64(7);

@@ -154,9 +154,13 @@ impl NeuralSdf {
         self.normalization
     }
 
-    /// Number of parameters.
+    /// Number of the network's parameters (a checkpoint's optimiser moments, which its file
+    /// also holds, are not parameters).
     pub fn param_count(&self) -> usize {
-        self.file.param_count()
+        match &self.network {
+            Network::Siren(s) => s.params().len(),
+            Network::Nglod(m) => m.param_count(),
+        }
     }
 
     /// Evaluates NGLOD models with only their first `lod` levels (`None`: all). An error for
