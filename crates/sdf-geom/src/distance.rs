@@ -568,7 +568,168 @@ fn solid_angle4(a: P4, b: P4, c: P4) -> Vec4 {
     Vec4::splat(2.0) * atan2_4(det, den)
 }
 
+/// Triangles per obvhs build: larger meshes are first split top-down at the median centroid of
+/// their longest axis until each part has at most this many. PLOC (obvhs's builder) merges only
+/// mutual nearest neighbours in each pass, and on triangles whose spacing shrinks geometrically
+/// that is one merge per pass: 60 000 such triangles took 13 s and a million would take about an
+/// hour. Parts of this size bound that worst case to a fraction of a second each.
+const PLOC_PART: usize = 1024;
+
+/// The BVH over `prims`: nodes (inner nodes' children adjacent, the root first) and the order of
+/// the triangles in its leaves.
+fn build_nodes(prims: &[Triangle], params: BvhBuildParams) -> (Vec<Node>, Vec<u32>) {
+    let mut nodes = vec![Node::default()];
+    let mut order = Vec::with_capacity(prims.len());
+    let mut indices: Vec<u32> = (0..prims.len() as u32).collect();
+    build_part(prims, params, &mut indices, 0, &mut nodes, &mut order);
+    (nodes, order)
+}
+
+/// Bins per axis of [`sah_split`].
+const SAH_BINS: usize = 16;
+
+/// Reorders `indices` into two non-empty halves at the returned position: the split of the
+/// triangles' centroids (bounds `lo`..`hi`) into [`SAH_BINS`] bins per axis with the least surface
+/// area cost (the count of each side times the area of its box), so that the top levels of the
+/// tree are as tight as PLOC's; the median of the longest axis where every centroid coincides.
+fn sah_split(prims: &[Triangle], indices: &mut [u32], lo: Vec3A, hi: Vec3A) -> usize {
+    let centroid = |k: u32| {
+        let t = &prims[k as usize];
+        (t.v0 + t.v1 + t.v2) / 3.0
+    };
+    let bounds = |k: u32| {
+        let t = &prims[k as usize];
+        (t.v0.min(t.v1).min(t.v2), t.v0.max(t.v1).max(t.v2))
+    };
+    let half_area = |(a, b): (Vec3A, Vec3A)| {
+        let d = (b - a).max(Vec3A::ZERO);
+        d.x * d.y + d.y * d.z + d.z * d.x
+    };
+    let empty = (Vec3A::splat(f32::INFINITY), Vec3A::splat(f32::NEG_INFINITY));
+    let union = |(a, b): (Vec3A, Vec3A), (c, d): (Vec3A, Vec3A)| (a.min(c), b.max(d));
+    let extent = hi - lo;
+    let bin_of = |k: u32, axis: usize| {
+        let f = (centroid(k)[axis] - lo[axis]) / extent[axis] * SAH_BINS as f32;
+        (f as usize).min(SAH_BINS - 1)
+    };
+    let mut best: Option<(f32, usize, usize)> = None;
+    for axis in 0..3 {
+        if extent[axis].is_nan() || extent[axis] <= 0.0 {
+            continue;
+        }
+        let mut count = [0usize; SAH_BINS];
+        let mut boxes = [empty; SAH_BINS];
+        for &k in indices.iter() {
+            let b = bin_of(k, axis);
+            count[b] += 1;
+            boxes[b] = union(boxes[b], bounds(k));
+        }
+        // Cost of splitting after bin i: left bins 0..=i, right the rest.
+        let mut right = [(0.0f32, 0usize); SAH_BINS];
+        let (mut acc, mut n) = (empty, 0);
+        for i in (1..SAH_BINS).rev() {
+            acc = union(acc, boxes[i]);
+            n += count[i];
+            right[i - 1] = (half_area(acc), n);
+        }
+        let (mut acc, mut n) = (empty, 0);
+        for i in 0..SAH_BINS - 1 {
+            acc = union(acc, boxes[i]);
+            n += count[i];
+            let (right_area, right_n) = right[i];
+            if n == 0 || right_n == 0 {
+                continue;
+            }
+            let cost = half_area(acc) * n as f32 + right_area * right_n as f32;
+            if best.is_none_or(|(c, _, _)| cost < c) {
+                best = Some((cost, axis, i));
+            }
+        }
+    }
+    match best {
+        Some((_, axis, bin)) => {
+            let mut left = 0;
+            for i in 0..indices.len() {
+                if bin_of(indices[i], axis) <= bin {
+                    indices.swap(i, left);
+                    left += 1;
+                }
+            }
+            left
+        }
+        None => {
+            let axis = extent.max_position();
+            let mid = indices.len() / 2;
+            indices.select_nth_unstable_by(mid, |&a, &b| {
+                centroid(a)[axis].total_cmp(&centroid(b)[axis])
+            });
+            mid
+        }
+    }
+}
+
+/// Fills `nodes[slot]` with the subtree over `indices`./// Fills `nodes[slot]` with the subtree over `indices`.
+fn build_part(
+    prims: &[Triangle],
+    params: BvhBuildParams,
+    indices: &mut [u32],
+    slot: usize,
+    nodes: &mut Vec<Node>,
+    order: &mut Vec<u32>,
+) {
+    let centroid = |k: u32| {
+        let t = &prims[k as usize];
+        (t.v0 + t.v1 + t.v2) / 3.0
+    };
+    if indices.len() > PLOC_PART {
+        let (lo, hi) = indices.iter().fold(
+            (Vec3A::splat(f32::INFINITY), Vec3A::splat(f32::NEG_INFINITY)),
+            |(lo, hi), &k| (lo.min(centroid(k)), hi.max(centroid(k))),
+        );
+        let mid = sah_split(prims, indices, lo, hi);
+        let first = nodes.len();
+        nodes.extend([Node::default(), Node::default()]);
+        let (left, right) = indices.split_at_mut(mid);
+        build_part(prims, params, left, first, nodes, order);
+        build_part(prims, params, right, first + 1, nodes, order);
+        let (l, r) = (nodes[first], nodes[first + 1]);
+        nodes[slot] = Node {
+            min: l.min.min(r.min),
+            first: first as u32,
+            max: l.max.max(r.max),
+            count: 0,
+        };
+        return;
+    }
+    let part: Vec<Triangle> = indices.iter().map(|&k| prims[k as usize]).collect();
+    let bvh = build_bvh2_from_tris(&part, params, &mut Duration::default());
+    // obvhs's root goes to `slot`, its other nodes after the existing ones (in their order, so
+    // siblings stay adjacent), its leaves' triangles after those already placed.
+    let base = nodes.len() - 1;
+    let at = |j: u32| if j == 0 { slot as u32 } else { base as u32 + j };
+    let first_triangle = order.len() as u32;
+    order.extend(bvh.primitive_indices.iter().map(|&k| indices[k as usize]));
+    for (j, n) in bvh.nodes.iter().enumerate() {
+        let node = Node {
+            min: n.aabb.min.into(),
+            first: if n.prim_count == 0 {
+                at(n.first_index)
+            } else {
+                first_triangle + n.first_index
+            },
+            max: n.aabb.max.into(),
+            count: n.prim_count,
+        };
+        if j == 0 {
+            nodes[slot] = node;
+        } else {
+            nodes.push(node);
+        }
+    }
+}
+
 impl SignedDistance {
+    /// Builds the BVH and the winding-number data with default options.impl SignedDistance {
     /// Builds the BVH and the winding-number data with default options.
     ///
     /// # Errors
@@ -622,31 +783,16 @@ impl SignedDistance {
         let mut params = BvhBuildParams::fast_build();
         params.pre_split = false; // one leaf per triangle: no double counting in winding sums
         params.max_prims_per_leaf = options.max_leaf_size.clamp(1, 255);
-        let bvh = build_bvh2_from_tris(&prims, params, &mut Duration::default());
+        let (nodes, order) = build_nodes(&prims, params);
 
-        let tris: Vec<[Vec3A; 3]> = bvh
-            .primitive_indices
+        let tris: Vec<[Vec3A; 3]> = order
             .iter()
             .map(|&k| {
                 let t = &prims[k as usize];
                 [t.v0, t.v1, t.v2]
             })
             .collect();
-        let tri_ids: Vec<u32> = bvh
-            .primitive_indices
-            .iter()
-            .map(|&k| ids[k as usize])
-            .collect();
-        let nodes: Vec<Node> = bvh
-            .nodes
-            .iter()
-            .map(|n| Node {
-                min: n.aabb.min.into(),
-                first: n.first_index,
-                max: n.aabb.max.into(),
-                count: n.prim_count,
-            })
-            .collect();
+        let tri_ids: Vec<u32> = order.iter().map(|&k| ids[k as usize]).collect();
 
         // Winding data, bottom-up over the nodes reachable from the root.
         let mut order = Vec::with_capacity(nodes.len());
@@ -764,7 +910,7 @@ impl SignedDistance {
             tri_ids,
             options,
             surface_eps: options.surface_tolerance.max(0.0) * diag,
-            stack_hint: (max_stack + 8).max(bvh.max_depth),
+            stack_hint: max_stack + 8,
         })
     }
 

@@ -328,3 +328,40 @@ fn fast_winding_number_error_is_bounded_on_real_meshes() {
         }
     }
 }
+
+/// Triangles whose spacing shrinks geometrically (the input on which PLOC merges one pair per
+/// pass, quadratic in their number) across several of the parts the BVH is built in: every
+/// triangle is in the tree and distances match brute force.
+#[test]
+fn geometric_chains_split_into_parts_match_brute_force() {
+    let n = 5000;
+    let mut vertices = Vec::with_capacity(3 * n);
+    let mut triangles = Vec::with_capacity(n);
+    let mut x = 1.0f32;
+    for i in 0..n as u32 {
+        let s = x * 0.2;
+        vertices.extend([
+            Vec3::new(x, 0.0, 0.0),
+            Vec3::new(x, s, 0.0),
+            Vec3::new(x, 0.0, s),
+        ]);
+        triangles.push([3 * i, 3 * i + 1, 3 * i + 2]);
+        x /= 1.002;
+    }
+    let mesh = Mesh {
+        vertices,
+        triangles,
+    };
+    let sdf = SignedDistance::new(&mesh).unwrap();
+    assert_eq!(sdf.triangle_count(), n);
+    let mut pts: Vec<Vec3> = sample::uniform_box(300, 5).into_iter().collect();
+    pts.extend(sample::surface(&mesh, 300, 6).points);
+    for p in pts {
+        let (d_ref, _) = brute_force_distance(&mesh, p);
+        let d = sdf.unsigned_distance(p);
+        assert!(
+            (f64::from(d) - d_ref).abs() <= 1e-6 * d_ref.max(1.0),
+            "at {p}: {d} vs brute force {d_ref}"
+        );
+    }
+}
