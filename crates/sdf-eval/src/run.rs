@@ -611,7 +611,10 @@ impl Checkpoint {
 
     /// The optimiser's moments and step counter.
     pub fn optimizer(&self) -> Result<AdamState, RunError> {
-        let n = self.model_file().param_count();
+        // The network's parameters, rebuilt from the file (which checks it): a tensor the
+        // network does not read is no parameter, and the moments are checked against the real
+        // count here, not first by the GPU.
+        let n = NeuralSdf::from_model_file(self.model_file())?.param_count();
         let m = self.file.tensor("optimizer.m", &[n])?.to_vec();
         let v = self.file.tensor("optimizer.v", &[n])?.to_vec();
         let step = self.file.metadata.training["adam_step"]
@@ -1314,6 +1317,16 @@ mod tests {
             Checkpoint::load(&path)
         };
         let ok = save("ok.safetensors", &|_| {}).unwrap();
+        // A tensor the network does not read changes nothing.
+        let mut extra = trained.checkpoint();
+        extra.file.tensors.push(sdf_nn::model_file::Tensor::f32(
+            "junk",
+            vec![4],
+            vec![0.0; 4],
+        ));
+        extra.save(&dir.join("extra.safetensors")).unwrap();
+        let extra = Checkpoint::load(&dir.join("extra.safetensors")).unwrap();
+        assert_eq!(extra.optimizer().unwrap().m.len(), n);
         assert_eq!((ok.done(), ok.optimizer().unwrap().step), (5, 5));
         // The step counter saturates instead of overflowing.
         let max = save("step-max.safetensors", &|t| {
