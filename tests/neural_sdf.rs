@@ -248,6 +248,25 @@ fn serving_api_reuses_buffers_and_refuses_misuse() {
             ),
             "{arch} {transfer:?}"
         );
+        // A NaN or infinite point is refused up front (kernels need not propagate NaN), for
+        // the serving calls and the plain ones alike.
+        let mut bad = points(9);
+        bad[4] = Vec3::new(0.1, f32::NAN, 0.0);
+        assert!(matches!(
+            model.submit_query(gpu, &mut buffers, &bad),
+            Err(NeuralSdfError::Query(QueryError::NonFinitePoint {
+                index: 4,
+                ..
+            }))
+        ));
+        bad[4] = Vec3::new(f32::INFINITY, 0.0, 0.0);
+        assert!(matches!(
+            model.eval_with_normals(gpu, &bad),
+            Err(NeuralSdfError::Query(QueryError::NonFinitePoint {
+                index: 4,
+                ..
+            }))
+        ));
         // Too many points, buffers of another model.
         assert!(matches!(
             model.submit_query(gpu, &mut buffers, &points(501)),

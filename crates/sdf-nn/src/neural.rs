@@ -6,7 +6,9 @@
 //! on, the distance is extended as `Φ(clamp(x)) + |x − clamp(x)|` (the distance to the box plus
 //! the model's value at the nearest box point): a sphere tracer coming from far away then steps
 //! safely up to the box instead of trusting an extrapolating network. Every path (GPU, CPU,
-//! WGSL) applies the same rule, so they agree.
+//! WGSL) applies the same rule, so they agree. The GPU calls refuse NaN and infinite points
+//! ([`crate::QueryError::NonFinitePoint`]): kernels need not propagate NaN, so their answer
+//! would be an arbitrary number, where the CPU's is NaN.
 
 use std::path::Path;
 use std::sync::Mutex;

@@ -152,6 +152,15 @@ pub enum QueryError {
     /// The capacity is zero or the buffers would exceed the device's limits.
     #[error("invalid query buffers: {0}")]
     Invalid(String),
+    /// A query point from the host is NaN or infinite (kernels need not propagate NaN, so its
+    /// result would be an arbitrary number rather than NaN).
+    #[error("query point {index} is not finite: {point}")]
+    NonFinitePoint {
+        /// Its index in the batch.
+        index: usize,
+        /// The point.
+        point: Vec3,
+    },
 }
 
 /// The state of the staging buffer's mapping.
@@ -571,6 +580,12 @@ impl QueryBuffers {
     /// Checks the count of `points` and writes them, padded to vec4, into the host copy.
     fn stage_host(&mut self, points: &[Vec3]) -> Result<u32, QueryError> {
         let n = self.check_count(points.len())?;
+        if let Some(index) = points.iter().position(|p| !p.is_finite()) {
+            return Err(QueryError::NonFinitePoint {
+                index,
+                point: points[index],
+            });
+        }
         self.host.clear();
         self.host
             .extend(points.iter().map(|p| [p.x, p.y, p.z, 1.0]));
