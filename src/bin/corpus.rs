@@ -196,8 +196,18 @@ fn corpus(args: &Args) -> Result<ExitCode, BoxError> {
             }
             let checkpoint_path = state.checkpoint(rel, model);
             let checkpoint = if checkpoint_path.exists() {
-                match Checkpoint::load(&checkpoint_path) {
-                    Ok(c) => {
+                match Checkpoint::load(&checkpoint_path)
+                    .and_then(|c| Ok((c.differences(options)?, c)))
+                {
+                    Ok((differences, _)) if !differences.is_empty() => {
+                        // Resuming it would put a fit of other settings in this table.
+                        eprintln!(
+                            "warning: {rel} {tag}: its checkpoint has other settings ({}); starting over",
+                            differences.join("; ")
+                        );
+                        None
+                    }
+                    Ok((_, c)) => {
                         eprintln!(
                             "{rel} {tag}: resuming from its checkpoint ({} done)",
                             c.done()

@@ -631,6 +631,41 @@ impl Checkpoint {
         (!v.is_null()).then(|| v.as_f64().map_or(f32::NAN, |x| x as f32))
     }
 
+    /// What of `options`' model, preset and architecture this checkpoint does not have, as
+    /// `name asked, not checkpoint's` lines (empty when a run of `options` may resume it). A
+    /// NGLOD checkpoint must have every value of the architecture `options` resolve to, not only
+    /// those given on the command line: `corpus` resumes into a table of one set of settings.
+    pub fn differences(&self, options: &TrainOptions) -> Result<Vec<String>, RunError> {
+        let mut out = Vec::new();
+        let (model, preset) = self.options();
+        for (name, asked, has) in [
+            ("model", options.model.name(), model),
+            ("preset", options.preset.name(), preset),
+        ] {
+            if has.as_deref() != Some(asked) {
+                out.push(format!(
+                    "{name} {asked}, not {}",
+                    has.as_deref().unwrap_or("unknown")
+                ));
+            }
+        }
+        if out.is_empty() && options.model == ModelKind::Nglod {
+            let resolved = options
+                .nglod_architecture
+                .config(options.preset, options.seed)?;
+            let every = NglodArchitecture {
+                resolutions: Some(resolved.resolutions),
+                sparse_levels: Some(resolved.sparse_levels),
+                feature_dim: Some(resolved.feature_dim),
+                hidden: Some(resolved.hidden),
+                band_cells: Some(resolved.band_cells),
+            };
+            let model = Nglod::from_model_file(&self.model_file())?;
+            out.extend(every.differences(model.config()));
+        }
+        Ok(out)
+    }
+
     /// Which architecture and preset it was trained with.
     pub fn options(&self) -> (Option<String>, Option<String>) {
         let t = &self.file.metadata.training;
@@ -1282,6 +1317,45 @@ pub fn run(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A checkpoint resumes only into a run of its own model, preset and whole architecture.
+    #[test]
+    fn checkpoint_differences_name_every_setting_it_lacks() {
+        let nglod = Nglod::new(NglodConfig::small()).unwrap();
+        let n = nglod.param_count();
+        let trained = Trained {
+            file: nglod.to_model_file(
+                sdf_geom::Normalization::identity(),
+                serde_json::json!({"model": "nglod", "preset": "small"}),
+            ),
+            train_seconds: 1.0,
+            done: 1,
+            final_loss: 0.1,
+            interrupted: true,
+            details: serde_json::Value::Null,
+            optimizer: AdamState {
+                m: vec![0.0; n],
+                v: vec![0.0; n],
+                step: 1,
+            },
+            lr: 1e-3,
+        };
+        let c = trained.checkpoint();
+        let small = TrainOptions::new(ModelKind::Nglod, Preset::Small);
+        assert!(c.differences(&small).unwrap().is_empty());
+        let default = TrainOptions::new(ModelKind::Nglod, Preset::Default);
+        assert_eq!(
+            c.differences(&default).unwrap(),
+            ["preset default, not small"]
+        );
+        let siren = TrainOptions::new(ModelKind::Siren, Preset::Small);
+        assert_eq!(c.differences(&siren).unwrap(), ["model siren, not nglod"]);
+        let mut wider = small.clone();
+        wider.nglod_architecture.hidden = Some(NglodConfig::small().hidden * 2);
+        let d = c.differences(&wider).unwrap();
+        assert_eq!(d.len(), 1, "{d:?}");
+        assert!(d[0].starts_with("hidden "), "{d:?}");
+    }
 
     /// A checkpoint's claimed progress is checked when it loads: counts beyond any run, more
     /// epochs done than planned, or an optimiser step at u32::MAX (which used to overflow on the
