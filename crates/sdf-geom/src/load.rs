@@ -244,12 +244,19 @@ pub(crate) fn read_file_within(path: &Path, max_bytes: u64) -> Result<Vec<u8>, G
 // ---------------------------------------------------------------------------------------------------
 // OBJ
 
-/// OBJ text as `tobj` can take it: no byte-order mark, lossy UTF-8 (names in Latin-1 and the like
-/// only lose their odd characters; numbers are ASCII), `#` comments cut off every line, since
-/// `tobj` only skips whole-line comments and reads a trailing one as vertex colours, and no
-/// polyline (`l`) or point (`p`) elements, which `tobj` would read as faces once they have three
-/// or more vertices, nor faces of fewer than three vertices. Removed lines stay as empty lines, so line numbers in errors still match the
-/// file.
+/// OBJ text as `tobj` can take it, keeping only what the geometry needs:
+/// - no byte-order mark, and lossy UTF-8 (names in Latin-1 and the like only lose their odd
+///   characters; numbers are ASCII);
+/// - `#` comments cut off every line (`tobj` only skips whole-line comments and reads a trailing
+///   one as vertex colours);
+/// - no polyline (`l`) or point (`p`) elements, which `tobj` would read as faces once they have
+///   three or more vertices, and no faces of fewer than three vertices;
+/// - no texture coordinates, normals or material uses (`vt`, `vn`, `vp`, `usemtl`), and faces
+///   reduced to their vertex indices: `tobj` refuses valid files over them (`vt 0.5`, a tab
+///   after `usemtl`, a bare `usemtl`, a texture index out of range) although no distance
+///   depends on them.
+///
+/// Removed lines stay as empty lines, so line numbers in errors still match the file.
 fn obj_text(bytes: &[u8]) -> (String, ObjCounts) {
     let bytes = bytes.strip_prefix(b"\xEF\xBB\xBF").unwrap_or(bytes);
     let text = String::from_utf8_lossy(bytes);
@@ -270,14 +277,19 @@ fn obj_text(bytes: &[u8]) -> (String, ObjCounts) {
             Some("f") => {
                 // A face of one or two vertices encloses nothing either; tobj would keep its
                 // indices, and a list of triangles read three at a time would shift.
-                let corners = tokens.count() as u64;
-                if corners < 3 {
+                let corners: Vec<&str> = tokens.collect();
+                if corners.len() < 3 {
                     counts.short_faces += 1;
                 } else {
-                    counts.triangles += corners - 2;
-                    out.push_str(content);
+                    counts.triangles += corners.len() as u64 - 2;
+                    out.push('f');
+                    for c in corners {
+                        out.push(' ');
+                        out.push_str(c.split('/').next().unwrap_or(c));
+                    }
                 }
             }
+            Some("vt" | "vn" | "vp" | "usemtl") => {}
             _ => out.push_str(content),
         }
         if line.ends_with('\n') {

@@ -836,3 +836,39 @@ fn meshes_too_small_to_normalise_are_errors() {
     let (m, _) = load_mesh(p).unwrap();
     assert_eq!(m.triangles.len(), 1);
 }
+
+/// Valid OBJ that `tobj` refused, over data no distance depends on: a tab after `usemtl`, a
+/// bare `usemtl`, one-component texture coordinates, texture or normal indices out of range, and
+/// `v/vt/vn`, `v//vn` and `v/vt` faces. Each loads its geometry.
+#[test]
+fn obj_texture_normal_and_material_oddities_load() {
+    let dir = temp_dir("objattrs");
+    for (name, body) in [
+        ("usemtl-tab.obj", "usemtl\tred\nf 1 2 3\n"),
+        ("usemtl-bare.obj", "usemtl\nf 1 2 3\n"),
+        ("vt-1d.obj", "vt 0.5\nf 1/1 2/1 3/1\n"),
+        ("vt-out-of-range.obj", "vt 0 0\nf 1/9 2/9 3/9\n"),
+        ("vn-out-of-range.obj", "vn 0 0 1\nf 1//7 2//7 3//7\n"),
+        ("all-three.obj", "vt 0 0\nvn 0 0 1\nf 1/1/1 2/1/1 3/1/1\n"),
+    ] {
+        let p = write(&dir, name, format!("{TRI_OBJ}{body}"));
+        match load_mesh(&p) {
+            Ok((m, _)) => assert_eq!(m.triangles.len(), 1, "{name}"),
+            Err(e) => panic!("{name}: {e}"),
+        }
+    }
+    // A vertex index out of range is still an error, on its line.
+    let p = write(
+        &dir,
+        "bad-vertex.obj",
+        format!("{TRI_OBJ}vt 0 0\nf 1/1 2/1 9/1\n"),
+    );
+    assert!(
+        matches!(
+            load_mesh(&p),
+            Err(GeomError::IndexOutOfRange { index: 9, .. })
+        ),
+        "{:?}",
+        load_mesh(&p)
+    );
+}
