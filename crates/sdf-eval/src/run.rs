@@ -1318,29 +1318,32 @@ pub fn run(
 mod tests {
     use super::*;
 
-    /// A checkpoint resumes only into a run of its own model, preset and whole architecture.
-    #[test]
-    fn checkpoint_differences_name_every_setting_it_lacks() {
-        let nglod = Nglod::new(NglodConfig::small()).unwrap();
-        let n = nglod.param_count();
-        let trained = Trained {
-            file: nglod.to_model_file(
-                sdf_geom::Normalization::identity(),
-                serde_json::json!({"model": "nglod", "preset": "small"}),
-            ),
+    /// A run of `model`'s `small` preset interrupted after `done` steps or epochs, with zero
+    /// optimiser moments for its `n` parameters.
+    fn interrupted(mut file: ModelFile, model: &str, n: usize, done: usize) -> Trained {
+        file.metadata.training = serde_json::json!({"model": model, "preset": "small"});
+        Trained {
+            file,
             train_seconds: 1.0,
-            done: 1,
+            done,
             final_loss: 0.1,
             interrupted: true,
             details: serde_json::Value::Null,
             optimizer: AdamState {
                 m: vec![0.0; n],
                 v: vec![0.0; n],
-                step: 1,
+                step: done as u32,
             },
             lr: 1e-3,
-        };
-        let c = trained.checkpoint();
+        }
+    }
+
+    /// A checkpoint resumes only into a run of its own model, preset and whole architecture.
+    #[test]
+    fn checkpoint_differences_name_every_setting_it_lacks() {
+        let nglod = Nglod::new(NglodConfig::small()).unwrap();
+        let file = nglod.to_model_file(sdf_geom::Normalization::identity(), Default::default());
+        let c = interrupted(file, "nglod", nglod.param_count(), 1).checkpoint();
         let small = TrainOptions::new(ModelKind::Nglod, Preset::Small);
         assert!(c.differences(&small).unwrap().is_empty());
         let default = TrainOptions::new(ModelKind::Nglod, Preset::Default);
@@ -1364,23 +1367,8 @@ mod tests {
     fn checkpoints_claiming_impossible_progress_are_refused() {
         let siren = sdf_nn::Siren::new(sdf_nn::SirenConfig::small(), 1).unwrap();
         let n = siren.params().len();
-        let trained = Trained {
-            file: siren.to_model_file(
-                sdf_geom::Normalization::identity(),
-                serde_json::json!({"model": "siren", "preset": "small"}),
-            ),
-            train_seconds: 1.0,
-            done: 5,
-            final_loss: 0.1,
-            interrupted: true,
-            details: serde_json::Value::Null,
-            optimizer: AdamState {
-                m: vec![0.0; n],
-                v: vec![0.0; n],
-                step: 5,
-            },
-            lr: 1e-4,
-        };
+        let file = siren.to_model_file(sdf_geom::Normalization::identity(), Default::default());
+        let trained = interrupted(file, "siren", n, 5);
         let dir = std::env::temp_dir().join(format!("hwsdf-ckpt-{}", std::process::id()));
         std::fs::create_dir_all(&dir).unwrap();
         let save = |name: &str, edit: &dyn Fn(&mut serde_json::Value)| {
