@@ -568,8 +568,8 @@ fn solid_angle4(a: P4, b: P4, c: P4) -> Vec4 {
     Vec4::splat(2.0) * atan2_4(det, den)
 }
 
-/// Triangles per obvhs build: larger meshes are first split top-down at the median centroid of
-/// their longest axis until each part has at most this many. PLOC (obvhs's builder) merges only
+/// Triangles per obvhs build: larger meshes are first split top-down ([`sah_split`]) until each
+/// part has at most this many. PLOC (obvhs's builder) merges only
 /// mutual nearest neighbours in each pass, and on triangles whose spacing shrinks geometrically
 /// that is one merge per pass: 60 000 such triangles took 13 s and a million would take about an
 /// hour. Parts of this size bound that worst case to a fraction of a second each.
@@ -589,14 +589,18 @@ fn build_nodes(prims: &[Triangle], params: BvhBuildParams) -> (Vec<Node>, Vec<u3
 const SAH_BINS: usize = 16;
 
 /// Reorders `indices` into two non-empty halves at the returned position: the split of the
-/// triangles' centroids (bounds `lo`..`hi`) into [`SAH_BINS`] bins per axis with the least surface
+/// triangles' centroids into [`SAH_BINS`] bins per axis with the least surface
 /// area cost (the count of each side times the area of its box), so that the top levels of the
 /// tree are as tight as PLOC's; the median of the longest axis where every centroid coincides.
-fn sah_split(prims: &[Triangle], indices: &mut [u32], lo: Vec3A, hi: Vec3A) -> usize {
+fn sah_split(prims: &[Triangle], indices: &mut [u32]) -> usize {
     let centroid = |k: u32| {
         let t = &prims[k as usize];
         (t.v0 + t.v1 + t.v2) / 3.0
     };
+    let (lo, hi) = indices.iter().fold(
+        (Vec3A::splat(f32::INFINITY), Vec3A::splat(f32::NEG_INFINITY)),
+        |(lo, hi), &k| (lo.min(centroid(k)), hi.max(centroid(k))),
+    );
     let bounds = |k: u32| {
         let t = &prims[k as usize];
         (t.v0.min(t.v1).min(t.v2), t.v0.max(t.v1).max(t.v2))
@@ -668,7 +672,7 @@ fn sah_split(prims: &[Triangle], indices: &mut [u32], lo: Vec3A, hi: Vec3A) -> u
     }
 }
 
-/// Fills `nodes[slot]` with the subtree over `indices`./// Fills `nodes[slot]` with the subtree over `indices`.
+/// Fills `nodes[slot]` with the subtree over `indices`.
 fn build_part(
     prims: &[Triangle],
     params: BvhBuildParams,
@@ -677,16 +681,8 @@ fn build_part(
     nodes: &mut Vec<Node>,
     order: &mut Vec<u32>,
 ) {
-    let centroid = |k: u32| {
-        let t = &prims[k as usize];
-        (t.v0 + t.v1 + t.v2) / 3.0
-    };
     if indices.len() > PLOC_PART {
-        let (lo, hi) = indices.iter().fold(
-            (Vec3A::splat(f32::INFINITY), Vec3A::splat(f32::NEG_INFINITY)),
-            |(lo, hi), &k| (lo.min(centroid(k)), hi.max(centroid(k))),
-        );
-        let mid = sah_split(prims, indices, lo, hi);
+        let mid = sah_split(prims, indices);
         let first = nodes.len();
         nodes.extend([Node::default(), Node::default()]);
         let (left, right) = indices.split_at_mut(mid);
@@ -729,7 +725,6 @@ fn build_part(
 }
 
 impl SignedDistance {
-    /// Builds the BVH and the winding-number data with default options.impl SignedDistance {
     /// Builds the BVH and the winding-number data with default options.
     ///
     /// # Errors
