@@ -44,6 +44,12 @@ struct Fused {
 // [row][feature / 4] of the current layer's activations.
 var<workgroup> act: array<vec4<f32>, 1024>;
 
+// Offset in `params` of layer l ≥ 1's weights (its bias follows them; l = hidden_layers is the
+// head), as in siren_coop.wgsl.
+fn hidden_offset(l: u32, w: u32) -> u32 {
+    return 4u * w + (l - 1u) * (w * w + w);
+}
+
 fn point_at(p: u32) -> vec3<f32> {
     let b = p * f.point_stride;
     return vec3<f32>(points[b], points[b + 1u], points[b + 2u]);
@@ -107,7 +113,7 @@ fn fused_forward(
 
     // Hidden layers 1..L-1: W at 4w + (l - 1)(w² + w), then b.
     for (var l = 1u; l < f.hidden_layers; l++) {
-        let woff = 4u * w + (l - 1u) * (w * w + w);
+        let woff = hidden_offset(l, w);
         // Wᵀ[k][o0..o0+3] of this layer at input feature k = 0.
         let wt = (l - 1u) * w * w4 + cb;
         var c0 = vec4<f32>(0.0);
@@ -168,7 +174,7 @@ fn fused_forward(
     // The linear head, one row per invocation; the bias only on value rows.
     let row = first_row + lid;
     if lid < f.group_rows && row < f.rows {
-        let woff4 = (4u * w + (f.hidden_layers - 1u) * (w * w + w)) / 4u;
+        let woff4 = hidden_offset(f.hidden_layers, w) / 4u;
         var s = vec4<f32>(0.0);
         for (var k4 = 0u; k4 < w4; k4++) {
             s = fma(act[lid * w4 + k4], params4[woff4 + k4], s);
@@ -197,5 +203,5 @@ fn fused_pack(
     let l = 1u + i / (w * w);
     let k = (i / w) % w;
     let o = i % w;
-    wt_out[i] = params[4u * w + (l - 1u) * (w * w + w) + o * w + k];
+    wt_out[i] = params[hidden_offset(l, w) + o * w + k];
 }

@@ -107,7 +107,7 @@ pub enum SirenConfigError {
         /// Requested number of hidden layers.
         layers: usize,
     },
-    /// ω0 is not a positive finite number.
+    /// ω0 is not a positive number of at most [`MAX_OMEGA0`].
     #[error("SIREN omega0 must be positive and at most {MAX_OMEGA0} (got {0})")]
     BadOmega(f32),
 }
