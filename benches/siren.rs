@@ -9,13 +9,14 @@
 //! `LayerKernels::Auto`), and `SIREN_BENCH_FUSED_MAX` the largest inference batch of
 //! the tiled family's fused all-layer kernel (`SirenGpu::set_fused_max_points`; 0 disables it).
 //! `SIREN_BENCH_TRAIN_STEP` forces the training step (`tangents` or `ror`, reverse over reverse;
-//! default: `TrainStep::Auto`).
+//! default: `TrainStep::Auto`), and `SIREN_BENCH_TILED_BLOCK` the tiled GEMM's register blocks
+//! (`4x4`, `8x4`, `4x8` or `8x8`; default: `TiledBlock::Auto`).
 
 use std::time::Duration;
 
 use criterion::{BenchmarkId, Criterion, Throughput, criterion_group, criterion_main};
 use glam::Vec3;
-use sdf_nn::siren::{LayerKernels, TrainStep};
+use sdf_nn::siren::{LayerKernels, TiledBlock, TrainStep};
 use sdf_nn::{GpuContext, Siren, SirenConfig, SirenGpu, SirenTrainConfig, SirenTrainer};
 
 fn presets() -> Vec<(&'static str, SirenConfig)> {
@@ -36,6 +37,16 @@ fn kernels() -> LayerKernels {
         Ok(name) => name
             .parse()
             .unwrap_or_else(|e| panic!("SIREN_BENCH_KERNELS: {e}")),
+    }
+}
+
+/// The register blocks `SIREN_BENCH_TILED_BLOCK` names.
+fn tiled_block() -> TiledBlock {
+    match std::env::var("SIREN_BENCH_TILED_BLOCK").as_deref() {
+        Err(_) | Ok("") => TiledBlock::Auto,
+        Ok(name) => name
+            .parse()
+            .unwrap_or_else(|e| panic!("SIREN_BENCH_TILED_BLOCK: {e}")),
     }
 }
 
@@ -61,12 +72,14 @@ fn bench(c: &mut Criterion) {
         let siren = Siren::new(cfg, 1).unwrap();
         let mut net = SirenGpu::new(gpu, &siren).unwrap();
         net.set_layer_kernels(gpu, kernels()).unwrap();
+        net.set_tiled_block(gpu, tiled_block()).unwrap();
         if let Ok(v) = std::env::var("SIREN_BENCH_FUSED_MAX") {
             net.set_fused_max_points(v.parse().expect("SIREN_BENCH_FUSED_MAX: a number"));
         }
         eprintln!(
-            "{name}: kernels {:?}, fused for 3000 points: {}, cooperative-matrix tiles: {:?}",
+            "{name}: kernels {:?} (tiled blocks {:?}), fused for 3000 points: {}, cooperative-matrix tiles: {:?}",
             net.layer_kernels(),
+            net.tiled_block(),
             net.runs_fused(gpu, 3000),
             net.coop_tile()
         );
@@ -104,6 +117,7 @@ fn bench(c: &mut Criterion) {
         };
         let mut trainer = SirenTrainer::from_mesh(gpu, &siren, &mesh, train).unwrap();
         trainer.set_layer_kernels(gpu, kernels()).unwrap();
+        trainer.set_tiled_block(gpu, tiled_block()).unwrap();
         trainer.set_train_step(gpu, train_step()).unwrap();
         eprintln!(
             "{name}: train step {:?}, reverse over reverse: {}",

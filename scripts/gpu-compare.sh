@@ -24,10 +24,14 @@
 # appends both to the table. Where the adapter has f16 cooperative matrices (`gpu-info` says
 # so), the `coop` stage runs their test against the f64 reference (the packed siren_gpu test
 # binary, HWSDF_REQUIRE_COOP=1) and the SIREN eval bench on them (SIREN_BENCH_KERNELS=coop,
-# criterion's results under DIR/results/criterion-coop), and adds their rows. Environment:
+# criterion's results under DIR/results/criterion-coop), and adds their rows. The `blocks` stage
+# runs the SIREN `default` bench on the tiled kernels once per forced register block of the
+# tiled GEMM (SIREN_BENCH_TILED_BLOCK; results under DIR/results/criterion-block-*), the figures
+# that set `TiledBlock::Auto`'s rule on GPUs, and adds their rows. Environment:
 #   GPU_COMPARE_PRESETS=small,default   presets to run (both by default)
-#   GPU_COMPARE_STAGES=checks,bench,coop,torch,fit,corpus
+#   GPU_COMPARE_STAGES=checks,bench,coop,blocks,torch,fit,corpus
 #                                       what to run (default all; split a session's runs with it)
+#   GPU_COMPARE_BLOCKS=4x4,8x8          register blocks the `blocks` stage forces
 #   GPU_COMPARE_CHECK_TIMEOUT=300       seconds each kernel test binary may take (`checks`)
 #   GPU_COMPARE_FITS=nglod,siren        which fits the `fit` stage times (default nglod; a default
 #                                       SIREN fit is 10⁴ steps, minutes before issue 12's kernels)
@@ -46,7 +50,7 @@ set -euo pipefail
 GPU_CHECKS="siren_gpu|nglod|adam|embed|render|gpu_timer|neural_sdf|serve_queries"
 
 usage() {
-    sed -n '2,42p' "$0" | sed 's/^# \{0,1\}//'
+    sed -n '2,46p' "$0" | sed 's/^# \{0,1\}//'
     exit 2
 }
 
@@ -178,7 +182,7 @@ run() {
     fi
     export CRITERION_HOME="$res/criterion"
     export SIREN_BENCH_PRESETS=${GPU_COMPARE_PRESETS:-small,default}
-    local stages=",${GPU_COMPARE_STAGES:-checks,bench,coop,torch,fit,corpus},"
+    local stages=",${GPU_COMPARE_STAGES:-checks,bench,coop,blocks,torch,fit,corpus},"
     local b
     for b in benches/*; do
         [[ $stages == *,bench,* ]] || break
@@ -222,6 +226,16 @@ run() {
             CRITERION_HOME="$res/criterion-coop" SIREN_BENCH_KERNELS=coop benches/siren --bench eval 2>&1 \
                 | tee "$res/bench-siren-coop.txt" || echo "(failed)"
         fi
+    fi
+    if [[ $stages == *,blocks,* ]]; then
+        local blk
+        for blk in $(echo "${GPU_COMPARE_BLOCKS:-4x4,8x8}" | tr ',' ' '); do
+            [ -n "$blk" ] || continue
+            echo "== bench siren default, tiled kernels, register blocks $blk (SIREN_BENCH_TILED_BLOCK=$blk)"
+            CRITERION_HOME="$res/criterion-block-$blk" SIREN_BENCH_PRESETS=default SIREN_BENCH_KERNELS=tiled \
+                SIREN_BENCH_TILED_BLOCK="$blk" benches/siren --bench 2>&1 \
+                | tee "$res/bench-siren-block-$blk.txt" || echo "(failed)"
+        done
     fi
     local presets=${GPU_COMPARE_PRESETS:-small,default}
     if [ "${GPU_COMPARE_SKIP_TORCH:-0}" != 1 ] && [[ $stages == *,torch,* ]]; then
@@ -313,6 +327,12 @@ for p in presets:
         if coop is not None:
             rows.append(("SIREN", p, label + ", f16 cooperative matrices", coop, eager.get(key),
                          comp.get(key), per))
+        for home in sorted(glob.glob(os.path.join(res, "criterion-block-*"))):
+            blk = os.path.basename(home)[len("criterion-block-"):]
+            forced = criterion(f"siren_{p}", fn, param, os.path.basename(home))
+            if forced is not None:
+                rows.append(("SIREN", p, f"{label}, tiled, {blk} register blocks", forced,
+                             eager.get(key), comp.get(key), per))
     t = torch_json("nglod", p)
     eager = t.get("eager", {})
     for label, param, key, per in [

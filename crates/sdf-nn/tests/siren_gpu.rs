@@ -3,7 +3,7 @@
 //! once.
 
 use glam::Vec3;
-use sdf_nn::siren::{LayerKernels, LossWeights, SirenGpuError, TrainStep, cpu};
+use sdf_nn::siren::{LayerKernels, LossWeights, SirenGpuError, TiledBlock, TrainStep, cpu};
 use sdf_nn::{
     GpuContext, ModelFile, NeuralSdf, Normalization, Siren, SirenConfig, SirenGpu,
     SirenTrainConfig, SirenTrainer,
@@ -338,6 +338,45 @@ fn tiled_kernels_match_cpu_reference_on_ragged_shapes() {
             }
             with_kernels(gpu, &net, &[LayerKernels::Tiled], |g| {
                 gradients_match_on(g, cfg, &net, n, n.div_ceil(2), 40 + n as u64)
+            });
+        }
+    }
+}
+
+/// Every register block of the tiled GEMM (`TiledBlock`) against the f64 reference: inference
+/// on the per-layer kernels, the tangent step and the reverse-over-reverse step. Widths 70
+/// (scalar loads, a partial second 64-column block) and 100 (vec4 loads), 1001 points (4004
+/// tangent rows: four split-K chunks, a partial last 128-row tile) and 7.
+#[test]
+fn tiled_register_blocks_match_cpu_reference() {
+    let gpu = gpu();
+    for width in [70, 100] {
+        let cfg = SirenConfig {
+            width,
+            hidden_layers: 2,
+            omega0: 30.0,
+        };
+        let net = Siren::new(cfg, 90 + width as u64).unwrap();
+        for block in [
+            TiledBlock::Block4x4,
+            TiledBlock::Block8x4,
+            TiledBlock::Block4x8,
+            TiledBlock::Block8x8,
+        ] {
+            with_kernels(gpu, &net, &[LayerKernels::Tiled], |g| {
+                g.set_tiled_block(gpu, block).unwrap();
+                assert_eq!(g.tiled_block(), block);
+                assert!(g.runs_tiled());
+                g.set_fused_max_points(0);
+                eprint!("{block:?}: ");
+                for n in [7, 1001] {
+                    forward_matches_on(g, cfg, &net, n, 91 + n as u64, None);
+                    for step in [TrainStep::Tangents, TrainStep::ReverseOverReverse] {
+                        g.set_train_step(step);
+                        let seed = 92 + n as u64;
+                        gradients_match_with(g, cfg, &net, n, n / 2, seed, &soft_weights());
+                    }
+                }
             });
         }
     }

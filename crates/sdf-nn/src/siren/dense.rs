@@ -93,6 +93,83 @@ impl std::str::FromStr for LayerKernels {
     }
 }
 
+/// The register block of each invocation of the tiled GEMM ([`LayerKernels::Tiled`], and
+/// `Auto` where it picks the tiled kernels): rows × columns of C. A workgroup's tile of C is
+/// 16 × 16 of these blocks.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash)]
+pub enum TiledBlock {
+    /// On GPUs, 8 × 8 for products that still make at least
+    /// [`TiledBlock::AUTO_LARGE_WORKGROUPS`] workgroups with it (about 17 000 rows and more
+    /// at width 256), 4 × 4 for smaller ones, whose fewer, larger workgroups would leave a
+    /// large GPU's cores idle. 8 × 8 for every product on CPU adapters, where it measured
+    /// faster at every size (lavapipe, width 256: 31 % less time at 50 000 points, 12 % less
+    /// per training step).
+    #[default]
+    Auto,
+    /// 4 × 4 (a 64 × 64 tile per workgroup; 8 KiB of workgroup memory).
+    Block4x4,
+    /// 8 × 4 (128 × 64).
+    Block8x4,
+    /// 4 × 8 (64 × 128).
+    Block4x8,
+    /// 8 × 8 (128 × 128; 16 KiB of workgroup memory): twice the FMAs per workgroup-memory
+    /// read of 4 × 4.
+    Block8x8,
+}
+
+impl TiledBlock {
+    /// Every choice, in the order of [`TiledBlock::name`]'s names.
+    pub const ALL: [TiledBlock; 5] = [
+        TiledBlock::Auto,
+        TiledBlock::Block4x4,
+        TiledBlock::Block8x4,
+        TiledBlock::Block4x8,
+        TiledBlock::Block8x8,
+    ];
+
+    /// Workgroups of 8 × 8 blocks a product must make for [`TiledBlock::Auto`] to give it
+    /// them on a GPU: two per multiprocessor of a 132-SM H100.
+    pub const AUTO_LARGE_WORKGROUPS: u32 = 264;
+
+    /// The name the bench variables use: `auto`, `4x4`, `8x4`, `4x8` or `8x8`.
+    pub fn name(self) -> &'static str {
+        match self {
+            TiledBlock::Auto => "auto",
+            TiledBlock::Block4x4 => "4x4",
+            TiledBlock::Block8x4 => "8x4",
+            TiledBlock::Block4x8 => "4x8",
+            TiledBlock::Block8x8 => "8x8",
+        }
+    }
+
+    /// 4-row and 4-column blocks per invocation (`MB`, `NB` in the shader); `None` for
+    /// [`TiledBlock::Auto`].
+    pub(crate) fn blocks(self) -> Option<(u32, u32)> {
+        match self {
+            TiledBlock::Auto => None,
+            TiledBlock::Block4x4 => Some((1, 1)),
+            TiledBlock::Block8x4 => Some((2, 1)),
+            TiledBlock::Block4x8 => Some((1, 2)),
+            TiledBlock::Block8x8 => Some((2, 2)),
+        }
+    }
+}
+
+impl std::str::FromStr for TiledBlock {
+    type Err = String;
+
+    /// A [`TiledBlock::name`].
+    fn from_str(s: &str) -> Result<Self, String> {
+        Self::ALL
+            .into_iter()
+            .find(|k| k.name() == s)
+            .ok_or_else(|| {
+                let names: Vec<&str> = Self::ALL.iter().map(|k| k.name()).collect();
+                format!("unknown tiled block {s:?}: expected {}", names.join(", "))
+            })
+    }
+}
+
 /// The uniform window size every device supports (WebGPU's minimum
 /// `max_uniform_buffer_binding_size`); the shader's `w` array has exactly this size.
 const WINDOW_BYTES: u64 = 16 * 1024;

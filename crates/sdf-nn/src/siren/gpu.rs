@@ -16,7 +16,7 @@
 
 use glam::Vec3;
 
-use super::dense::{DensePlan, Epilogue, LayerKernels, SPLITS};
+use super::dense::{DensePlan, Epilogue, LayerKernels, SPLITS, TiledBlock};
 use super::kernels::coop::CoopKernels;
 use super::kernels::tiled::{TiledEpilogue, TiledKernels};
 use super::ror::{self, TrainStep};
@@ -381,6 +381,8 @@ pub struct SirenGpu {
     coop: Option<CoopKernels>,
     /// Largest inference batch (per launch) for the fused all-layer kernel of the tiled family.
     fused_max_points: u32,
+    /// The tiled GEMM's register blocks.
+    tiled_block: TiledBlock,
     /// The parameters change only through [`SirenGpu::upload`] (a served model, see
     /// [`SirenGpu::new_frozen`]): the row-blocked kernels' packed weights are then copied when
     /// they change, not at the start of every evaluation.
@@ -402,7 +404,9 @@ impl SirenGpu {
         let grads = gpu.storage_zeroed("siren grads", padded.len() as u64 * 4)?;
         let layers = config.layers();
         let kernels = LayerKernels::default();
-        let (dense, tiled, coop) = Self::families(gpu, kernels, &config, &layers, &params)?;
+        let tiled_block = TiledBlock::default();
+        let (dense, tiled, coop) =
+            Self::families(gpu, kernels, tiled_block, &config, &layers, &params)?;
         Ok(SirenGpu {
             config,
             layers,
@@ -417,6 +421,7 @@ impl SirenGpu {
             tiled,
             coop,
             fused_max_points: DEFAULT_FUSED_MAX_POINTS,
+            tiled_block,
             frozen: false,
             train_step: TrainStep::default(),
         })
@@ -438,6 +443,7 @@ impl SirenGpu {
     fn families(
         gpu: &GpuContext,
         kernels: LayerKernels,
+        tiled_block: TiledBlock,
         config: &SirenConfig,
         layers: &[LayerLayout],
         params: &wgpu::Buffer,
@@ -457,7 +463,7 @@ impl SirenGpu {
             dense = None;
         }
         let tiled = if kernels.tiled(gpu) || auto_tiled {
-            TiledKernels::new(gpu, config, params)?
+            TiledKernels::new(gpu, config, params, tiled_block)?
         } else {
             None
         };
@@ -561,8 +567,14 @@ impl SirenGpu {
         gpu: &GpuContext,
         kernels: LayerKernels,
     ) -> Result<(), SirenGpuError> {
-        (self.dense, self.tiled, self.coop) =
-            Self::families(gpu, kernels, &self.config, &self.layers, &self.params)?;
+        (self.dense, self.tiled, self.coop) = Self::families(
+            gpu,
+            kernels,
+            self.tiled_block,
+            &self.config,
+            &self.layers,
+            &self.params,
+        )?;
         self.kernels = kernels;
         self.eval = None;
         self.eval_grad = None;
@@ -584,7 +596,25 @@ impl SirenGpu {
         })
     }
 
-    /// Whether the tiled kernels run every product (they need 8 KiB of workgroup memory and
+    /// Chooses the tiled GEMM's register blocks (default [`TiledBlock::Auto`]; they matter
+    /// only where the tiled kernels run, see [`SirenGpu::runs_tiled`]). Results agree to f32
+    /// rounding whichever block runs.
+    pub fn set_tiled_block(
+        &mut self,
+        gpu: &GpuContext,
+        block: TiledBlock,
+    ) -> Result<(), SirenGpuError> {
+        self.tiled_block = block;
+        self.set_layer_kernels(gpu, self.kernels)
+    }
+
+    /// The tiled GEMM's register blocks.
+    pub fn tiled_block(&self) -> TiledBlock {
+        self.tiled_block
+    }
+
+    /// Whether the tiled kernels run every product (they need 8 KiB of workgroup memory with
+    /// 4 × 4 blocks, 16 KiB with 8 × 8, and
     /// 256 invocations per workgroup; without them the GEMM runs instead).
     pub fn runs_tiled(&self) -> bool {
         self.tiled.is_some()

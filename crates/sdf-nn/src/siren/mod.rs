@@ -30,7 +30,7 @@ mod kernels;
 pub mod ror;
 pub mod train;
 
-pub use dense::LayerKernels;
+pub use dense::{LayerKernels, TiledBlock};
 pub use gpu::{SirenGpu, SirenGpuError};
 pub use ror::TrainStep;
 pub use train::{LossTerms, LossWeights, SirenTrainConfig, SirenTrainer, TrainError};

@@ -392,6 +392,18 @@ impl SirenTrainer {
         Ok(())
     }
 
+    /// Chooses the tiled GEMM's register blocks ([`SirenGpu::set_tiled_block`]) and rebuilds
+    /// the training passes.
+    pub fn set_tiled_block(
+        &mut self,
+        gpu: &GpuContext,
+        block: super::TiledBlock,
+    ) -> Result<(), TrainError> {
+        self.net.set_tiled_block(gpu, block)?;
+        self.passes = self.passes.rebuilt(gpu, &self.net, &self.config.weights)?;
+        Ok(())
+    }
+
     /// Chooses how the training step differentiates through ∇ₓΦ (default
     /// [`super::TrainStep::Auto`]) and rebuilds the training passes.
     pub fn set_train_step(

@@ -4,13 +4,17 @@
 
 use crate::gpu::{GpuContext, GpuError, entry};
 use crate::shaders;
-use crate::siren::SirenConfig;
 use crate::siren::gpu::{GemmUniforms, Launch};
+use crate::siren::{SirenConfig, TiledBlock};
 
-/// Rows and columns of C per workgroup of the tiled GEMM (`BM`, `BN` in the shader).
+/// Rows and columns of C per workgroup of the tiled GEMM with 4 × 4 register blocks (the
+/// tile is `TILE·MB` × `TILE·NB` in the shader).
 const TILE: u32 = 64;
-/// Workgroup memory of the tiled GEMM: two 64 × 16 f32 tiles.
-const GEMM_WORKGROUP_BYTES: u32 = 2 * 64 * 16 * 4;
+/// Workgroup memory of the tiled GEMM with `(MB, NB)` blocks: a (64·MB) × 16 and a
+/// 16 × (64·NB) f32 tile.
+fn gemm_workgroup_bytes((mb, nb): (u32, u32)) -> u32 {
+    (mb + nb) * TILE * 16 * 4
+}
 /// Invocations per workgroup of both kernels.
 const INVOCATIONS: u32 = 256;
 
@@ -87,12 +91,42 @@ struct FusedUniforms {
     _pad: u32,
 }
 
-/// The tiled kernels' pipelines.
+/// The tiled GEMM's pipelines for one register block.
 #[derive(Debug)]
-pub(crate) struct TiledKernels {
+struct GemmPipelines {
+    /// 4-row and 4-column blocks per invocation (`MB`, `NB`).
+    blocks: (u32, u32),
     gemm: wgpu::ComputePipeline,
     /// `gemm` with the reverse-over-reverse epilogues (and the pairs' bias step) compiled in.
     gemm_ror: wgpu::ComputePipeline,
+}
+
+impl GemmPipelines {
+    fn new(gpu: &GpuContext, (mb, nb): (u32, u32)) -> Result<Self, GpuError> {
+        let (mb_f, nb_f) = (f64::from(mb), f64::from(nb));
+        Ok(GemmPipelines {
+            blocks: (mb, nb),
+            gemm: gpu.pipeline(
+                &shaders::SIREN_TILED_LAYER,
+                "tiled_gemm",
+                &[("MB", mb_f), ("NB", nb_f)],
+            )?,
+            gemm_ror: gpu.pipeline(
+                &shaders::SIREN_TILED_LAYER,
+                "tiled_gemm",
+                &[("ROR", 1.0), ("BIAS_STEP", 2.0), ("MB", mb_f), ("NB", nb_f)],
+            )?,
+        })
+    }
+}
+
+/// The tiled kernels' pipelines.
+#[derive(Debug)]
+pub(crate) struct TiledKernels {
+    /// The GEMM's pipelines for the register blocks its [`TiledBlock`] may pick, smallest
+    /// first: the one it names, or for [`TiledBlock::Auto`] 4 × 4 and 8 × 8 on GPUs, the
+    /// larger of them that fits on CPUs.
+    gemms: Vec<GemmPipelines>,
     /// The fused inference kernel's transposed weights, where the network fits it.
     fused: Option<FusedWeights>,
     /// Bound where a mode does not use a binding.
@@ -118,11 +152,23 @@ impl TiledKernels {
         gpu: &GpuContext,
         cfg: &SirenConfig,
         params: &wgpu::Buffer,
+        block: TiledBlock,
     ) -> Result<Option<Self>, GpuError> {
         let limits = gpu.limits();
-        if limits.max_compute_workgroup_storage_size < GEMM_WORKGROUP_BYTES
-            || limits.max_compute_invocations_per_workgroup < INVOCATIONS
-        {
+        let mut blocks: Vec<(u32, u32)> = match block.blocks() {
+            Some(b) => vec![b],
+            None => vec![(1, 1), (2, 2)],
+        }
+        .into_iter()
+        .filter(|&b| gemm_workgroup_bytes(b) <= limits.max_compute_workgroup_storage_size)
+        .collect();
+        if block == TiledBlock::Auto && gpu.is_cpu() {
+            // CPUs: the largest block that fits, for every product (on lavapipe 8 × 8 beat
+            // 4 × 4 at every size measured), and a single pipeline, which lavapipe compiles at
+            // length.
+            blocks.drain(..blocks.len().saturating_sub(1));
+        }
+        if blocks.is_empty() || limits.max_compute_invocations_per_workgroup < INVOCATIONS {
             return Ok(None);
         }
         let fused = match Self::fused_group_rows(gpu, cfg) {
@@ -130,12 +176,10 @@ impl TiledKernels {
             None => None,
         };
         Ok(Some(TiledKernels {
-            gemm: gpu.pipeline(&shaders::SIREN_TILED_LAYER, "tiled_gemm", &[])?,
-            gemm_ror: gpu.pipeline(
-                &shaders::SIREN_TILED_LAYER,
-                "tiled_gemm",
-                &[("ROR", 1.0), ("BIAS_STEP", 2.0)],
-            )?,
+            gemms: blocks
+                .into_iter()
+                .map(|b| GemmPipelines::new(gpu, b))
+                .collect::<Result<_, _>>()?,
             fused,
             dummy: gpu.storage_zeroed("siren tiled dummy", 16)?,
             dummy_rw: gpu.storage_zeroed("siren tiled dummy rw", 16)?,
@@ -258,10 +302,17 @@ impl TiledKernels {
                 (8, omega, &self.dummy_rw, p, offsets)
             }
         };
-        let pipeline = if mode >= 5 || matches!(epilogue, TiledEpilogue::WeightGradientPairs) {
-            &self.gemm_ror
+        let z = if mode == 4 {
+            u.k.div_ceil(u.k_chunk).max(1)
         } else {
-            &self.gemm
+            1
+        };
+        let candidates: Vec<(u32, u32)> = self.gemms.iter().map(|g| g.blocks).collect();
+        let gemms = &self.gemms[pick_block(&candidates, u.m, u.n, z)];
+        let pipeline = if mode >= 5 || matches!(epilogue, TiledEpilogue::WeightGradientPairs) {
+            &gemms.gemm_ror
+        } else {
+            &gemms.gemm
         };
         let four = |x: u32| x.is_multiple_of(4);
         // Which way each operand is contiguous, and whether its vec4 loads are aligned.
@@ -307,13 +358,7 @@ impl TiledKernels {
         // The bias partial walks value rows as every fourth row of each 16-row slice.
         debug_assert!(mode != 4 || u.k_chunk.is_multiple_of(16));
         let ub = gpu.uniform("siren tiled uniforms", &uniforms);
-        let tiles = u.m.div_ceil(TILE) * u.n.div_ceil(TILE);
-        let (x, y) = gpu.dispatch_size(tiles.max(1));
-        let z = if mode == 4 {
-            u.k.div_ceil(u.k_chunk).max(1)
-        } else {
-            1
-        };
+        let (x, y) = gpu.dispatch_size(workgroups(gemms.blocks, u.m, u.n));
         Launch::new(
             gpu,
             pipeline,
@@ -331,6 +376,26 @@ impl TiledKernels {
             (x, y, z),
         )
     }
+}
+
+/// Workgroups of the tiled GEMM with `(MB, NB)` blocks over an `m` × `n` product (per split).
+fn workgroups((mb, nb): (u32, u32), m: u32, n: u32) -> u32 {
+    m.div_ceil(TILE * mb)
+        .saturating_mul(n.div_ceil(TILE * nb))
+        .max(1)
+}
+
+/// Which of `candidates` (register blocks, smallest first) runs an `m` × `n` product of
+/// `splits` splits: the largest that still makes [`TiledBlock::AUTO_LARGE_WORKGROUPS`]
+/// workgroups, else the smallest.
+fn pick_block(candidates: &[(u32, u32)], m: u32, n: u32, splits: u32) -> usize {
+    (0..candidates.len())
+        .rev()
+        .find(|&i| {
+            workgroups(candidates[i], m, n).saturating_mul(splits)
+                >= TiledBlock::AUTO_LARGE_WORKGROUPS
+        })
+        .unwrap_or(0)
 }
 
 impl FusedWeights {
@@ -387,4 +452,31 @@ struct TiledUniforms {
     out1_off: u32,
     z_off: u32,
     t_off: u32,
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The default preset's products (width 256) under `TiledBlock::Auto` on a GPU.
+    #[test]
+    fn auto_gives_large_products_the_large_block() {
+        let auto = [(1, 1), (2, 2)];
+        // Inference at 50 000 points: 391 × 2 workgroups of 8 × 8.
+        assert_eq!(pick_block(&auto, 50_000, 256, 1), 1);
+        // The tangent step at 10⁴ points (40 000 rows): 313 × 2.
+        assert_eq!(pick_block(&auto, 40_000, 256, 1), 1);
+        // Reverse over reverse at 10⁴ points: 79 × 2 = 158 with 8 × 8, so 4 × 4 (628).
+        assert_eq!(pick_block(&auto, 10_000, 256, 1), 0);
+        // A 256 × 256 weight gradient in 10 splits: 40 with 8 × 8.
+        assert_eq!(pick_block(&auto, 256, 256, 10), 0);
+        // ... in 70 splits: 280.
+        assert_eq!(pick_block(&auto, 256, 256, 70), 1);
+        // A forced block is the only candidate.
+        assert_eq!(pick_block(&[(2, 1)], 1, 1, 1), 0);
+        // Degenerate shapes still dispatch one workgroup.
+        assert_eq!(workgroups((2, 2), 0, 0), 1);
+        assert_eq!(workgroups((1, 2), 129, 65), 3);
+        assert_eq!(workgroups((2, 1), 129, 65), 4);
+    }
 }
