@@ -6,7 +6,9 @@
 # target/coop-root, ignored by git), and runs the tests whose names contain `coop` inside it,
 # with HWSDF_REQUIRE_COOP=1 so that a driver without cooperative matrices fails instead of
 # skipping; then the GEMM's wide-layer test (`wide_layers`), which this newer driver computes
-# right and Mesa 22.3 wrong. CI runs it after `cargo test`. Needs root (or sudo) and Debian's mirror.
+# right and Mesa 22.3 wrong, and the tiled GEMM's register blocks (`tiled_register_blocks`:
+# their workgroup tiles are sized by pipeline overrides, a second compiler checks them). CI runs
+# it after `cargo test`. Needs root (or sudo) and Debian's mirror.
 #
 #   scripts/coop-check.sh [DIR]
 set -euo pipefail
@@ -50,4 +52,7 @@ $SUDO chroot "$root" env HWSDF_REQUIRE_COOP=1 HWSDF_TEST_DATA=/tmp/data /tmp/sir
 # The GEMM's wide layers: Debian 12's Mesa 22.3 computes them wrong (the test expects the typed
 # refusal there), Mesa 26.1 right (the test expects them to match the f64 reference here).
 $SUDO chroot "$root" env HWSDF_TEST_DATA=/tmp/data /tmp/siren_gpu wide_layers 2>&1 \
+    | grep -v 'XDG_RUNTIME_DIR\|^adapter: '
+# Every register block of the tiled GEMM against the f64 reference on the newer compiler.
+$SUDO chroot "$root" env HWSDF_TEST_DATA=/tmp/data /tmp/siren_gpu tiled_register_blocks 2>&1 \
     | grep -v 'XDG_RUNTIME_DIR\|^adapter: '
