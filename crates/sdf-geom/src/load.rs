@@ -254,7 +254,10 @@ pub(crate) fn read_file_within(path: &Path, max_bytes: u64) -> Result<Vec<u8>, G
 /// - no texture coordinates, normals or material uses (`vt`, `vn`, `vp`, `usemtl`), and faces
 ///   reduced to their vertex indices: `tobj` refuses valid files over them (`vt 0.5`, a tab
 ///   after `usemtl`, a bare `usemtl`, a texture index out of range) although no distance
-///   depends on them.
+///   depends on them;
+/// - no vertex colours: `v x y z r g b` and `v x y z r g b a` (as exporters write them; `tobj`
+///   refuses the second) become `v x y z`. `v x y z w` stays, for `tobj` to divide by w; any
+///   other count is left for `tobj` to refuse and [`scan_obj`] to place.
 ///
 /// Removed lines stay as empty lines, so line numbers in errors still match the file.
 fn obj_text(bytes: &[u8]) -> (String, ObjCounts) {
@@ -272,7 +275,16 @@ fn obj_text(bytes: &[u8]) -> (String, ObjCounts) {
             Some("l" | "p") => counts.skipped_elements += 1,
             Some("v") => {
                 counts.vertices += 1;
-                out.push_str(content);
+                let numbers: Vec<&str> = tokens.collect();
+                if matches!(numbers.len(), 6 | 7) {
+                    out.push('v');
+                    for x in &numbers[..3] {
+                        out.push(' ');
+                        out.push_str(x);
+                    }
+                } else {
+                    out.push_str(content);
+                }
             }
             Some("f") => {
                 // A face of one or two vertices encloses nothing either; tobj would keep its
@@ -494,7 +506,14 @@ fn scan_obj(text: &str) -> Option<ScanIssue> {
         };
         match head {
             "v" => {
-                if !floats_ok(&rest, 3, 7) {
+                // As `obj_text` passes them on: x y z, x y z w (w ≠ 0), or x y z and three or
+                // four colour components, which it drops.
+                let ok = match rest.len() {
+                    3 | 6 | 7 => floats_ok(&rest[..3], 3, 3),
+                    4 => floats_ok(&rest, 4, 4) && rest[3].parse::<f32>().is_ok_and(|w| w != 0.0),
+                    _ => false,
+                };
+                if !ok {
                     return bad();
                 }
                 nv += 1;

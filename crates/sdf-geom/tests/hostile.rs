@@ -872,3 +872,76 @@ fn obj_texture_normal_and_material_oddities_load() {
         load_mesh(&p)
     );
 }
+
+/// Vertex lines as exporters write them: with a w, with RGB or RGBA colours (`tobj` refused
+/// RGBA). The colours are dropped and w divides; a count that means nothing (5, 8) or w = 0 is a
+/// parse error on its line.
+#[test]
+fn obj_vertex_colours_and_w_load_and_bad_vertex_lines_name_their_line() {
+    let dir = temp_dir("objvertex");
+    let faces = "f 1 2 3\nf 1 2 4\nf 1 3 4\nf 2 3 4\n";
+    let tet = [
+        [0.0, 0.0, 0.0],
+        [1.0, 0.0, 0.0],
+        [0.0, 1.0, 0.0],
+        [0.0, 0.0, 1.0],
+    ];
+    let plain: String = tet
+        .iter()
+        .map(|v| format!("v {} {} {}\n", v[0], v[1], v[2]))
+        .collect();
+    let (expected, _) = load_mesh(write(&dir, "plain.obj", format!("{plain}{faces}"))).unwrap();
+    let with = |extra: &dyn Fn(usize) -> String| -> String {
+        let vs: String = tet
+            .iter()
+            .enumerate()
+            .map(|(i, v)| format!("v {} {} {}{}\n", v[0], v[1], v[2], extra(i)))
+            .collect();
+        format!("{vs}{faces}")
+    };
+    for (name, body) in [
+        ("rgb.obj", with(&|i| format!(" 0.{i} 0.5 1"))),
+        ("rgba.obj", with(&|i| format!(" 0.{i} 0.5 1 0.25"))),
+        (
+            "mixed.obj",
+            with(&|i| {
+                if i % 2 == 0 {
+                    " 1 0 0".into()
+                } else {
+                    String::new()
+                }
+            }),
+        ),
+        ("w1.obj", with(&|_| " 1".into())),
+    ] {
+        let (m, _) = load_mesh(write(&dir, name, body)).unwrap_or_else(|e| panic!("{name}: {e}"));
+        assert_eq!(m.triangles, expected.triangles, "{name}");
+        assert_eq!(m.vertices, expected.vertices, "{name}");
+    }
+    // w = 2 halves the coordinates: the same shape, so the same normalised mesh.
+    let halved: String = tet
+        .iter()
+        .map(|v| format!("v {} {} {} 2\n", 2.0 * v[0], 2.0 * v[1], 2.0 * v[2]))
+        .collect();
+    let (m, _) = load_mesh(write(&dir, "w2.obj", format!("{halved}{faces}"))).unwrap();
+    assert_eq!(m.vertices, expected.vertices);
+    for (name, bad, line) in [
+        ("five.obj", "v 0 0 1 1 0", 4),
+        ("eight.obj", "v 0 0 1 1 0 0 1 1", 4),
+        ("w0.obj", "v 0 0 1 0", 4),
+        ("word.obj", "v 0 0 one", 4),
+    ] {
+        let body = format!("v 0 0 0\nv 1 0 0\nv 0 1 0\n{bad}\n{faces}");
+        match load_mesh(write(&dir, name, body)) {
+            Err(GeomError::Parse {
+                line: Some(l),
+                message,
+                ..
+            }) => {
+                assert_eq!(l, line, "{name}: {message}");
+                assert!(message.contains(bad), "{name}: {message}");
+            }
+            other => panic!("{name}: {other:?}"),
+        }
+    }
+}
