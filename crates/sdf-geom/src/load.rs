@@ -60,7 +60,9 @@ impl LoadOptions {
 /// Material libraries and textures are never read, so a missing or broken `.mtl` or image never stops
 /// the geometry from loading (a missing `.mtl` is noted in [`LoadReport::warnings`]). OBJ text may
 /// start with a UTF-8 byte-order mark, have trailing `#` comments, and contain names that are not
-/// UTF-8 (decoded lossily; geometry never depends on names).
+/// UTF-8 (decoded lossily; geometry never depends on names). glTF meshes are taken in their default
+/// pose: morph targets with their default weights (the node's, else the mesh's), and every instance
+/// of an `EXT_mesh_gpu_instancing` node.
 ///
 /// # Errors
 /// [`GeomError::UnknownExtension`], [`GeomError::Io`] (missing or unreadable file),
@@ -69,7 +71,7 @@ impl LoadOptions {
 /// [`GeomError::NonFiniteVertex`], [`GeomError::IndexOutOfRange`],
 /// [`GeomError::UnsupportedPrimitiveMode`] (glTF points and lines), [`GeomError::Unsupported`]
 /// (Draco, meshopt, quantised positions, and any required glTF extension other than appearance-only
-/// ones such as `KHR_materials_*`), [`GeomError::MissingBuffer`], [`GeomError::UriRefused`],
+/// ones such as `KHR_materials_*` and `EXT_mesh_gpu_instancing`), [`GeomError::MissingBuffer`], [`GeomError::UriRefused`],
 /// [`GeomError::SceneTooLarge`] and [`GeomError::ReaderPanic`].
 pub fn load_mesh(path: impl AsRef<Path>) -> Result<(Mesh, LoadReport), GeomError> {
     load_mesh_with(path, &LoadOptions::default())
@@ -615,10 +617,10 @@ fn load_gltf(
             });
         }
     }
-    // A required extension we do not read could change the geometry (quantised attributes,
-    // GPU instancing) or is unknown: refuse it by name rather than load something wrong.
-    // Extensions that only concern appearance do not touch the triangles.
-    let appearance_only = |e: &str| {
+    // A required extension we do not read could change the geometry (quantised attributes) or
+    // is unknown: refuse it by name rather than load something wrong. Extensions that only
+    // concern appearance do not touch the triangles; EXT_mesh_gpu_instancing is read.
+    let understood = |e: &str| {
         [
             "KHR_materials_",
             "KHR_texture_",
@@ -627,20 +629,19 @@ fn load_gltf(
         ]
         .iter()
         .any(|p| e.starts_with(p))
-            || matches!(e, "KHR_lights_punctual" | "KHR_xmp_json_ld")
+            || matches!(
+                e,
+                "KHR_lights_punctual" | "KHR_xmp_json_ld" | "EXT_mesh_gpu_instancing"
+            )
     };
-    if let Some(ext) = root
-        .extensions_required
-        .iter()
-        .find(|e| !appearance_only(e))
-    {
+    if let Some(ext) = root.extensions_required.iter().find(|e| !understood(e)) {
         return Err(GeomError::Unsupported {
             path: path.to_path_buf(),
             feature: format!("the required glTF extension {ext}"),
         });
     }
     // gltf's validation refuses required extensions it does not implement itself; the ones
-    // left are appearance only and are never read here.
+    // left are appearance only (never read here) or read here from the JSON.
     root.extensions_required.clear();
     // gltf-json's own validation indexes `accessors` with the POSITION index before checking it
     // (found by the gltf fuzz target: fuzz/regressions/gltf/position-index-out-of-range.gltf).
@@ -671,14 +672,23 @@ fn load_gltf(
         Some(scene) => Some(node_graph(path, &doc, scene)?),
         None => None,
     };
+    // Nodes drawn many times by EXT_mesh_gpu_instancing (validated here, read below).
+    let accessors: Vec<gltf::Accessor> = doc.accessors().collect();
+    let instancing: Vec<Option<GpuInstancing>> = doc
+        .nodes()
+        .map(|node| gpu_instancing(path, &accessors, &node))
+        .collect::<Result<_, _>>()?;
     // Which meshes are used, how often, and what they would add.
     let mut mesh_uses = vec![0u64; doc.meshes().len()];
     match &graph {
         Some(g) => {
             for node in doc.nodes() {
                 if let Some(mesh) = node.mesh() {
+                    let copies = instancing[node.index()]
+                        .as_ref()
+                        .map_or(1, |i| i.count as u64);
                     let m = &mut mesh_uses[mesh.index()];
-                    *m = m.saturating_add(g.multiplicity[node.index()]);
+                    *m = m.saturating_add(g.multiplicity[node.index()].saturating_mul(copies));
                 }
             }
         }
@@ -797,16 +807,28 @@ fn load_gltf(
                 let local = node_matrix(path, &node)?;
                 let world = parent * local;
                 if let Some(mesh) = node.mesh() {
-                    report.instances += 1;
-                    add_gltf_mesh(
-                        path,
-                        &mesh,
-                        world,
-                        &buffers,
-                        &mut vertices,
-                        &mut triangles,
-                        &mut report,
-                    )?;
+                    let weights = node.weights().or_else(|| mesh.weights());
+                    // The instances' transforms apply after the node's, and to its mesh only.
+                    let worlds = match &instancing[node.index()] {
+                        Some(inst) => instance_matrices(path, node.index(), inst, &buffers)?
+                            .into_iter()
+                            .map(|m| world * m)
+                            .collect(),
+                        None => vec![world],
+                    };
+                    for world in worlds {
+                        report.instances += 1;
+                        add_gltf_mesh(
+                            path,
+                            &mesh,
+                            world,
+                            weights.unwrap_or_default(),
+                            &buffers,
+                            &mut vertices,
+                            &mut triangles,
+                            &mut report,
+                        )?;
+                    }
                 }
                 let first = stack.len();
                 stack.extend(
@@ -827,6 +849,7 @@ fn load_gltf(
                     path,
                     &mesh,
                     Mat4::IDENTITY,
+                    mesh.weights().unwrap_or_default(),
                     &buffers,
                     &mut vertices,
                     &mut triangles,
@@ -1072,6 +1095,182 @@ fn node_matrix(path: &Path, node: &gltf::Node) -> Result<Mat4, GeomError> {
     }
 }
 
+/// A node's `EXT_mesh_gpu_instancing`: its mesh is drawn `count` times, each with the
+/// translation, rotation and scale of its index in these accessors (absent: none).
+struct GpuInstancing<'a> {
+    translation: Option<gltf::Accessor<'a>>,
+    rotation: Option<gltf::Accessor<'a>>,
+    scale: Option<gltf::Accessor<'a>>,
+    count: usize,
+}
+
+/// `node`'s [`GpuInstancing`], validated (accessors that exist, of the types the extension
+/// allows, of one count), if it has the extension. Reads no buffer.
+fn gpu_instancing<'a>(
+    path: &Path,
+    accessors: &[gltf::Accessor<'a>],
+    node: &gltf::Node,
+) -> Result<Option<GpuInstancing<'a>>, GeomError> {
+    use gltf::accessor::{DataType, Dimensions};
+    let Some(ext) = node.extension_value("EXT_mesh_gpu_instancing") else {
+        return Ok(None);
+    };
+    let bad = |message: String| GeomError::Parse {
+        path: path.to_path_buf(),
+        line: None,
+        message: format!("node {}: EXT_mesh_gpu_instancing: {message}", node.index()),
+    };
+    let attributes = ext
+        .get("attributes")
+        .and_then(|a| a.as_object())
+        .ok_or_else(|| bad("no `attributes` object".into()))?;
+    let accessor = |name: &str| -> Result<Option<gltf::Accessor<'a>>, GeomError> {
+        let Some(v) = attributes.get(name) else {
+            return Ok(None);
+        };
+        let i = v
+            .as_u64()
+            .ok_or_else(|| bad(format!("{name} is not an accessor index: {v}")))?;
+        usize::try_from(i)
+            .ok()
+            .and_then(|i| accessors.get(i))
+            .cloned()
+            .map(Some)
+            .ok_or_else(|| {
+                bad(format!(
+                    "{name} accessor {i} does not exist ({} accessors)",
+                    accessors.len()
+                ))
+            })
+    };
+    let (translation, rotation, scale) = (
+        accessor("TRANSLATION")?,
+        accessor("ROTATION")?,
+        accessor("SCALE")?,
+    );
+    let unsupported = |name: &str, acc: &gltf::Accessor| GeomError::Unsupported {
+        path: path.to_path_buf(),
+        feature: format!(
+            "EXT_mesh_gpu_instancing {name} of type {:?} {:?}{} (node {})",
+            acc.data_type(),
+            acc.dimensions(),
+            if acc.normalized() { " normalized" } else { "" },
+            node.index()
+        ),
+    };
+    for (name, acc) in [("TRANSLATION", &translation), ("SCALE", &scale)] {
+        if let Some(acc) = acc
+            && (acc.data_type() != DataType::F32 || acc.dimensions() != Dimensions::Vec3)
+        {
+            return Err(unsupported(name, acc));
+        }
+    }
+    if let Some(acc) = &rotation {
+        let ok_type = match acc.data_type() {
+            DataType::F32 => true,
+            DataType::I8 | DataType::I16 => acc.normalized(),
+            _ => false,
+        };
+        if !ok_type || acc.dimensions() != Dimensions::Vec4 {
+            return Err(unsupported("ROTATION", acc));
+        }
+    }
+    let counts: Vec<usize> = [&translation, &rotation, &scale]
+        .into_iter()
+        .flatten()
+        .map(|a| a.count())
+        .collect();
+    let Some(&count) = counts.first() else {
+        return Err(bad(
+            "none of TRANSLATION, ROTATION and SCALE is given".into()
+        ));
+    };
+    if counts.iter().any(|&c| c != count) {
+        return Err(bad(format!(
+            "its attributes have different counts {counts:?}"
+        )));
+    }
+    Ok(Some(GpuInstancing {
+        translation,
+        rotation,
+        scale,
+        count,
+    }))
+}
+
+/// The instances' matrices (translation · rotation · scale) of a node's [`GpuInstancing`].
+fn instance_matrices(
+    path: &Path,
+    node: usize,
+    inst: &GpuInstancing,
+    buffers: &[Rc<[u8]>],
+) -> Result<Vec<Mat4>, GeomError> {
+    use gltf::accessor::DataType;
+    let bad = |message: String| GeomError::Parse {
+        path: path.to_path_buf(),
+        line: None,
+        message: format!("node {node}: EXT_mesh_gpu_instancing: {message}"),
+    };
+    let vec3s = |acc: &Option<gltf::Accessor>, what: &str, default: Vec3| match acc {
+        Some(acc) => Ok(read_accessor(acc, 12, buffers, what)
+            .map_err(&bad)?
+            .into_iter()
+            .map(vec3_le)
+            .collect()),
+        None => Ok::<_, GeomError>(vec![default; inst.count]),
+    };
+    let translations = vec3s(&inst.translation, "TRANSLATION", Vec3::ZERO)?;
+    let scales = vec3s(&inst.scale, "SCALE", Vec3::ONE)?;
+    let rotations: Vec<glam::Quat> = match &inst.rotation {
+        None => vec![glam::Quat::IDENTITY; inst.count],
+        Some(acc) => {
+            // Normalised integers: c / max, clamped at -1 (the glTF rule).
+            let size = match acc.data_type() {
+                DataType::I8 => 4,
+                DataType::I16 => 8,
+                _ => 16,
+            };
+            let component = |b: &[u8], k: usize| match size {
+                4 => (f32::from(b[k] as i8) / 127.0).max(-1.0),
+                8 => (f32::from(i16::from_le_bytes([b[2 * k], b[2 * k + 1]])) / 32767.0).max(-1.0),
+                _ => f32::from_le_bytes([b[4 * k], b[4 * k + 1], b[4 * k + 2], b[4 * k + 3]]),
+            };
+            read_accessor(acc, size, buffers, "ROTATION")
+                .map_err(&bad)?
+                .into_iter()
+                .map(|b| {
+                    glam::Quat::from_xyzw(
+                        component(b, 0),
+                        component(b, 1),
+                        component(b, 2),
+                        component(b, 3),
+                    )
+                })
+                .collect()
+        }
+    };
+    // Quantised rotations round each component by up to 1/254 (bytes).
+    let tolerance = match inst.rotation.as_ref().map(|a| a.data_type()) {
+        Some(DataType::I8) => 0.02,
+        _ => 0.01,
+    };
+    translations
+        .into_iter()
+        .zip(rotations)
+        .zip(scales)
+        .enumerate()
+        .map(|(i, ((t, q), s))| {
+            let len = q.length();
+            if !(len - 1.0).abs().le(&tolerance) {
+                return Err(bad(format!(
+                    "instance {i}: rotation {q} is not a unit quaternion (length {len})"
+                )));
+            }
+            Ok(Mat4::from_scale_rotation_translation(s, q / len, t))
+        })
+        .collect()
+}
+
 /// The bytes of `count` elements of `elem` bytes, `offset` bytes into a buffer view, after checking
 /// the view against its buffer and the elements against the view (the checks the `gltf` crate's
 /// reader leaves to assertions).
@@ -1181,11 +1380,79 @@ fn read_accessor<'b>(
     Ok(out)
 }
 
+/// A little-endian f32 VEC3 element.
+fn vec3_le(b: &[u8]) -> Vec3 {
+    let f = |k: usize| f32::from_le_bytes([b[k], b[k + 1], b[k + 2], b[k + 3]]);
+    Vec3::new(f(0), f(4), f(8))
+}
+
+/// Adds `weights[i]` times morph target i's POSITION displacements to `positions` (the
+/// primitive's own, in mesh space): the default pose. Targets without POSITION, and weights of 0,
+/// change nothing; returns whether any position moved. Weights beyond the targets (or targets
+/// beyond the weights) are a warning, as the glTF specification wants the counts equal.
+fn morph(
+    prim: &gltf::Primitive,
+    weights: &[f32],
+    buffers: &[Rc<[u8]>],
+    positions: &mut [Vec3],
+    report: &mut LoadReport,
+) -> Result<bool, String> {
+    use gltf::accessor::{DataType, Dimensions};
+    let targets: Vec<_> = prim.morph_targets().collect();
+    if targets.is_empty() || weights.iter().all(|&w| w == 0.0) {
+        return Ok(false);
+    }
+    if targets.len() != weights.len() {
+        report.warnings.push(format!(
+            "primitive {}: {} morph targets but {} weights (the extra ones ignored)",
+            prim.index(),
+            targets.len(),
+            weights.len()
+        ));
+    }
+    let mut moved = false;
+    for (t, (target, &w)) in targets.iter().zip(weights).enumerate() {
+        if !w.is_finite() {
+            return Err(format!("morph target {t} has weight {w}"));
+        }
+        let Some(acc) = target.positions() else {
+            continue;
+        };
+        if w == 0.0 {
+            continue;
+        }
+        if acc.data_type() != DataType::F32 || acc.dimensions() != Dimensions::Vec3 {
+            return Err(format!(
+                "morph target {t}: POSITION accessor of type {:?} {:?} (only float32 VEC3)",
+                acc.data_type(),
+                acc.dimensions()
+            ));
+        }
+        if acc.count() != positions.len() {
+            return Err(format!(
+                "morph target {t}: {} POSITION displacements for {} vertices",
+                acc.count(),
+                positions.len()
+            ));
+        }
+        let what = format!("morph target {t} POSITION");
+        for (p, b) in positions
+            .iter_mut()
+            .zip(read_accessor(&acc, 12, buffers, &what)?)
+        {
+            *p += w * vec3_le(b);
+        }
+        moved = true;
+    }
+    Ok(moved)
+}
+
 #[allow(clippy::too_many_arguments)]
 fn add_gltf_mesh(
     path: &Path,
     mesh: &gltf::Mesh,
     world: Mat4,
+    morph_weights: &[f32],
     buffers: &[Rc<[u8]>],
     vertices: &mut Vec<Vec3>,
     triangles: &mut Vec<[u32; 3]>,
@@ -1282,11 +1549,14 @@ fn add_gltf_mesh(
                 .collect(),
             _ => (0..n as u32).collect(),
         };
+        let mut local_positions: Vec<Vec3> = positions.iter().map(|b| vec3_le(b)).collect();
+        if morph(&prim, morph_weights, buffers, &mut local_positions, report)
+            .map_err(|m| parse_err(prim.index(), m))?
+        {
+            report.morphed_primitives += 1;
+        }
         let base = vertices.len();
-        vertices.extend(positions.iter().map(|b| {
-            let f = |k: usize| f32::from_le_bytes([b[k], b[k + 1], b[k + 2], b[k + 3]]);
-            world.transform_point3(Vec3::new(f(0), f(4), f(8)))
-        }));
+        vertices.extend(local_positions.iter().map(|&p| world.transform_point3(p)));
         let local: Vec<[u32; 3]> = match mode {
             Mode::TriangleStrip => {
                 report.strips_fans_converted += 1;

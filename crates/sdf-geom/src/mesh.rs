@@ -182,6 +182,10 @@ pub struct LoadReport {
     pub strips_fans_converted: usize,
     /// glTF mesh instances (node → mesh references) in the scene; 0 for OBJ.
     pub instances: usize,
+    /// glTF primitive instances whose positions were moved by morph targets with non-zero
+    /// default weights (the node's `weights`, else the mesh's): the shape a viewer shows
+    /// before any animation.
+    pub morphed_primitives: usize,
     /// Non-fatal oddities, e.g. a missing material library or texture, a primitive without positions.
     pub warnings: Vec<String>,
 }

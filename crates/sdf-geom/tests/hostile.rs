@@ -945,3 +945,285 @@ fn obj_vertex_colours_and_w_load_and_bad_vertex_lines_name_their_line() {
         }
     }
 }
+
+/// A cube whose vertex 7 (1, 1, 1) one morph target moves by (0, 0, 1): the default pose is the
+/// base plus the weights (the node's, else the mesh's) times the displacements, as a viewer
+/// shows it before any animation.
+#[test]
+fn gltf_morph_targets_take_their_default_weights() {
+    let dir = temp_dir("gmorph");
+    let mut displacement = vec![0.0f32; 24];
+    displacement[7 * 3 + 2] = 1.0;
+    let extra: Vec<u8> = displacement.iter().flat_map(|x| x.to_le_bytes()).collect();
+    let b = cube_buffer(&extra);
+    let uri = data_uri(&b);
+    let morphed = |mesh_weights: &str, node_weights: &str, target_acc: &str, target: &str| {
+        format!(
+            r#"{{"asset":{{"version":"2.0"}},"scene":0,"scenes":[{{"nodes":[0]}}],
+            "nodes":[{{"mesh":0{node_weights}}}],
+            "meshes":[{{"primitives":[{{"attributes":{{"POSITION":0}},"indices":1,
+                "targets":[{{"POSITION":{target}}}]}}]{mesh_weights}}}],
+            "buffers":[{{"byteLength":{},"uri":"{uri}"}}],
+            "bufferViews":[{CUBE_VIEWS},{{"buffer":0,"byteOffset":240,"byteLength":96}}],
+            "accessors":[{POS},{{"bufferView":1,"componentType":5125,"count":36,"type":"SCALAR"}},
+                {target_acc}]}}"#,
+            b.len()
+        )
+    };
+    let target = r#"{"bufferView":2,"componentType":5126,"count":8,"type":"VEC3","min":[0,0,0],"max":[0,0,1]}"#;
+    // The cube with vertex 7's z at 1 + w, written out.
+    let moved = |w: f32| {
+        let (mut v, t) = cube();
+        v[7][2] += w;
+        let mut bytes: Vec<u8> = v.iter().flatten().flat_map(|x| x.to_le_bytes()).collect();
+        bytes.extend(t.iter().flat_map(|x| x.to_le_bytes()));
+        let json = doc(
+            &data_uri(&bytes),
+            bytes.len(),
+            CUBE_VIEWS,
+            &format!(r#"{POS},{{"bufferView":1,"componentType":5125,"count":36,"type":"SCALAR"}}"#),
+            Some(1),
+            r#"{"mesh":0}"#,
+            "0",
+        );
+        load_mesh(write(&dir, &format!("moved-{w}.gltf"), json))
+            .unwrap()
+            .0
+    };
+    for (name, mesh_w, node_w, w, morphed_count) in [
+        ("mesh-weight.gltf", r#","weights":[0.5]"#, "", 0.5, 1),
+        (
+            "node-weight.gltf",
+            r#","weights":[0.5]"#,
+            r#","weights":[1.0]"#,
+            1.0,
+            1,
+        ),
+        (
+            "node-zero.gltf",
+            r#","weights":[0.5]"#,
+            r#","weights":[0.0]"#,
+            0.0,
+            0,
+        ),
+        ("no-weights.gltf", "", "", 0.0, 0),
+    ] {
+        let (m, report) = load_mesh(write(&dir, name, morphed(mesh_w, node_w, target, "2")))
+            .unwrap_or_else(|e| panic!("{name}: {e}"));
+        let expected = moved(w);
+        assert_eq!(m.vertices, expected.vertices, "{name}");
+        assert_eq!(m.triangles, expected.triangles, "{name}");
+        assert_eq!(report.morphed_primitives, morphed_count, "{name}");
+    }
+    // More weights than targets: a warning, and the first weight applies.
+    let (m, report) = load_mesh(write(
+        &dir,
+        "extra-weight.gltf",
+        morphed(r#","weights":[0.5,2.0]"#, "", target, "2"),
+    ))
+    .unwrap();
+    assert_eq!(m.vertices, moved(0.5).vertices);
+    assert!(
+        report
+            .warnings
+            .iter()
+            .any(|w| w.contains("1 morph targets but 2 weights")),
+        "{:?}",
+        report.warnings
+    );
+    // Displacements that do not match the vertices, or of another type: parse errors.
+    let short = target.replace(r#""count":8"#, r#""count":7"#);
+    let msg = parse_message(load_text(
+        &dir,
+        "short.gltf",
+        &morphed(r#","weights":[0.5]"#, "", &short, "2"),
+    ));
+    assert!(
+        msg.contains("morph target 0: 7 POSITION displacements for 8 vertices"),
+        "{msg}"
+    );
+    let ints = target.replace("5126", "5123");
+    let msg = parse_message(load_text(
+        &dir,
+        "ints.gltf",
+        &morphed(r#","weights":[0.5]"#, "", &ints, "2"),
+    ));
+    assert!(msg.contains("only float32 VEC3"), "{msg}");
+    // A target naming an accessor that does not exist is an error, not a panic.
+    match load_text(
+        &dir,
+        "missing.gltf",
+        &morphed(r#","weights":[0.5]"#, "", target, "9"),
+    ) {
+        Err(GeomError::Parse { .. }) => {}
+        other => panic!("missing target accessor: {other:?}"),
+    }
+}
+
+/// `EXT_mesh_gpu_instancing`: a node's mesh drawn once per instance, each instance's
+/// translation · rotation · scale after the node's own transform, exactly as the same scene
+/// written with one child node per instance. Bad attributes are typed errors, and instance
+/// counts go into the scene limits before any buffer is read.
+#[test]
+fn gltf_gpu_instancing_draws_every_instance() {
+    let dir = temp_dir("ginst");
+    let h = std::f32::consts::FRAC_1_SQRT_2;
+    let t = [[0.0f32, 0.0, 0.0], [3.0, 0.0, 0.0]];
+    let r = [[0.0f32, 0.0, 0.0, 1.0], [0.0, 0.0, h, h]];
+    let s = [[1.0f32, 1.0, 1.0], [2.0, 0.5, 1.0]];
+    let mut extra: Vec<u8> = Vec::new();
+    for v in t
+        .iter()
+        .flatten()
+        .chain(r.iter().flatten())
+        .chain(s.iter().flatten())
+    {
+        extra.extend(v.to_le_bytes());
+    }
+    // The rotations again as normalised bytes (offset 320): 90 / 127 ≈ 0.709.
+    extra.extend([0u8, 0, 0, 127, 0, 0, 90, 90]);
+    let b = cube_buffer(&extra);
+    let uri = data_uri(&b);
+    let views = format!(
+        r#"{CUBE_VIEWS},{{"buffer":0,"byteOffset":240,"byteLength":24}},{{"buffer":0,"byteOffset":264,"byteLength":32}},{{"buffer":0,"byteOffset":296,"byteLength":24}},{{"buffer":0,"byteOffset":320,"byteLength":8}}"#
+    );
+    let idx = r#"{"bufferView":1,"componentType":5125,"count":36,"type":"SCALAR"}"#;
+    let acc = |view: u32, ty: &str, count: u32| {
+        format!(r#"{{"bufferView":{view},"componentType":5126,"count":{count},"type":"{ty}"}}"#)
+    };
+    let accessors = format!(
+        "{POS},{idx},{},{},{}",
+        acc(2, "VEC3", 2),
+        acc(3, "VEC4", 2),
+        acc(4, "VEC3", 2)
+    );
+    let scene = |nodes: &str, roots: &str, accessors: &str| {
+        format!(
+            r#"{{"asset":{{"version":"2.0"}},"extensionsUsed":["EXT_mesh_gpu_instancing"],
+            "scene":0,"scenes":[{{"nodes":[{roots}]}}],"nodes":[{nodes}],
+            "meshes":[{{"primitives":[{{"attributes":{{"POSITION":0}},"indices":1}}]}}],
+            "buffers":[{{"byteLength":{},"uri":"{uri}"}}],"bufferViews":[{views}],
+            "accessors":[{accessors}]}}"#,
+            b.len()
+        )
+    };
+    let instanced = |attributes: &str, accessors: &str| {
+        scene(
+            &format!(
+                r#"{{"mesh":0,"translation":[0,0,5],"extensions":{{"EXT_mesh_gpu_instancing":{{"attributes":{{{attributes}}}}}}}}}"#
+            ),
+            "0",
+            accessors,
+        )
+    };
+    let all = r#""TRANSLATION":2,"ROTATION":3,"SCALE":4"#;
+    let (m, report) = load_mesh(write(&dir, "instanced.gltf", instanced(all, &accessors))).unwrap();
+    let child = |i: usize| {
+        format!(
+            r#"{{"mesh":0,"translation":{:?},"rotation":{:?},"scale":{:?}}}"#,
+            t[i], r[i], s[i]
+        )
+    };
+    let explicit = scene(
+        &format!(
+            r#"{{"translation":[0,0,5],"children":[1,2]}},{},{}"#,
+            child(0),
+            child(1)
+        ),
+        "0",
+        &accessors,
+    );
+    let (e, _) = load_mesh(write(&dir, "explicit.gltf", explicit)).unwrap();
+    assert_eq!(report.instances, 2);
+    assert_eq!(m.triangles.len(), 24);
+    assert_eq!(m.triangles, e.triangles);
+    assert_eq!(m.vertices, e.vertices);
+    // Rotations as normalised bytes: the same scene, to their rounding.
+    let bytes = format!(
+        r#"{accessors},{{"bufferView":5,"componentType":5120,"normalized":true,"count":2,"type":"VEC4"}}"#
+    );
+    let (q, _) = load_mesh(write(
+        &dir,
+        "byte-rotations.gltf",
+        instanced(r#""TRANSLATION":2,"ROTATION":5,"SCALE":4"#, &bytes),
+    ))
+    .unwrap();
+    assert_eq!(q.triangles, e.triangles);
+    let worst = q
+        .vertices
+        .iter()
+        .zip(&e.vertices)
+        .map(|(a, b)| (*a - *b).abs().max_element())
+        .fold(0.0f32, f32::max);
+    assert!(worst < 1e-2, "byte rotations: worst vertex error {worst}");
+    // Translations only: the rotation and scale default to none.
+    let (m, _) = load_mesh(write(
+        &dir,
+        "translation-only.gltf",
+        instanced(r#""TRANSLATION":2"#, &accessors),
+    ))
+    .unwrap();
+    assert_eq!(m.triangles.len(), 24);
+
+    let parse = |name: &str, json: String| match load_mesh(write(&dir, name, json)) {
+        Err(GeomError::Parse { message, .. }) => message,
+        other => panic!("{name}: expected a parse error, got {other:?}"),
+    };
+    let msg = parse("missing.gltf", instanced(r#""TRANSLATION":9"#, &accessors));
+    assert!(
+        msg.contains("TRANSLATION accessor 9 does not exist"),
+        "{msg}"
+    );
+    let msg = parse("empty.gltf", instanced("", &accessors));
+    assert!(msg.contains("none of TRANSLATION"), "{msg}");
+    let one = format!(
+        "{POS},{idx},{},{},{}",
+        acc(2, "VEC3", 2),
+        acc(3, "VEC4", 1),
+        acc(4, "VEC3", 2)
+    );
+    let msg = parse("counts.gltf", instanced(all, &one));
+    assert!(msg.contains("different counts"), "{msg}");
+    // A rotation of length 2 (the scale would be 4 silently).
+    let mut long = extra.clone();
+    for (k, v) in [0.0f32, 0.0, 0.0, 2.0].iter().enumerate() {
+        long[24 + 4 * k..28 + 4 * k].copy_from_slice(&v.to_le_bytes());
+    }
+    let b2 = cube_buffer(&long);
+    let json = instanced(all, &accessors).replace(&uri, &data_uri(&b2));
+    let msg = parse("long-rotation.gltf", json);
+    assert!(
+        msg.contains("instance 0: rotation") && msg.contains("not a unit quaternion"),
+        "{msg}"
+    );
+    // A translation of another type is not supported, by name.
+    let vec4 = format!(
+        "{POS},{idx},{},{},{}",
+        acc(3, "VEC4", 2),
+        acc(3, "VEC4", 2),
+        acc(4, "VEC3", 2)
+    );
+    match load_mesh(write(&dir, "vec4.gltf", instanced(all, &vec4))) {
+        Err(GeomError::Unsupported { feature, .. }) => {
+            assert!(
+                feature.contains("EXT_mesh_gpu_instancing TRANSLATION"),
+                "{feature}"
+            )
+        }
+        other => panic!("vec4 translation: {other:?}"),
+    }
+    // 2^30 instances of the cube: refused by the limits before anything is read or built.
+    let huge = format!(
+        r#"{POS},{idx},{{"bufferView":2,"componentType":5126,"count":1073741824,"type":"VEC3"}}"#
+    );
+    let started = std::time::Instant::now();
+    match load_mesh(write(
+        &dir,
+        "huge.gltf",
+        instanced(r#""TRANSLATION":2"#, &huge),
+    )) {
+        Err(GeomError::SceneTooLarge { .. }) => {}
+        other => panic!("2^30 instances: {other:?}"),
+    }
+    assert!(started.elapsed().as_secs() < 5);
+}
