@@ -27,14 +27,13 @@ struct Header {
     shape: Vec<usize>,
 }
 
-/// Finds the value text after `'key':` in a Python dict literal.
+/// Finds the value text after `'key':` in a Python dict literal; of a key given twice, the last
+/// (Python's rule for dict literals, so what `numpy.load` reads).
 fn dict_value<'a>(h: &'a str, key: &str) -> Option<&'a str> {
     let pat1 = format!("'{key}'");
     let pat2 = format!("\"{key}\"");
-    let pos = h
-        .find(&pat1)
-        .map(|p| p + pat1.len())
-        .or_else(|| h.find(&pat2).map(|p| p + pat2.len()))?;
+    let last = |pat: &str| h.rfind(pat).map(|p| p + pat.len());
+    let pos = last(&pat1).max(last(&pat2))?;
     let rest = h[pos..].trim_start();
     Some(rest.strip_prefix(':')?.trim_start())
 }

@@ -136,3 +136,20 @@ fn bad_npy_files_get_clear_errors() {
     let err = npy::write_f32(temp_dir("w").join("no/such/dir.npy"), &[1.0]).unwrap_err();
     assert!(matches!(err, GeomError::Write { .. }));
 }
+
+/// A key given twice: the last one counts, as in Python's dict literals (what `numpy.load` reads).
+#[test]
+fn repeated_header_keys_take_the_last_value() {
+    let h = "{'descr': '<f8', 'fortran_order': False, 'shape': (2, 3), 'descr': '<f4', \"shape\": (1, 3), }\n";
+    let mut b = b"\x93NUMPY\x01\x00".to_vec();
+    b.extend((h.len() as u16).to_le_bytes());
+    b.extend(h.as_bytes());
+    for x in [1.0f32, 2.0, 3.0] {
+        b.extend(x.to_le_bytes());
+    }
+    let p = write(&temp_dir("npydup"), "dup.npy", &b);
+    assert_eq!(
+        npy::read_points(&p).unwrap(),
+        vec![Vec3::new(1.0, 2.0, 3.0)]
+    );
+}
