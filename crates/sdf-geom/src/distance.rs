@@ -5,6 +5,7 @@ use std::time::Duration;
 
 use glam::{BVec4A, DMat3, DVec3, Vec3, Vec3A, Vec4};
 use obvhs::BvhBuildParams;
+use obvhs::bvh2::Bvh2;
 use obvhs::bvh2::builder::build_bvh2_from_tris;
 use obvhs::triangle::Triangle;
 use rayon::prelude::*;
@@ -576,13 +577,118 @@ fn solid_angle4(a: P4, b: P4, c: P4) -> Vec4 {
 const PLOC_PART: usize = 1024;
 
 /// The BVH over `prims`: nodes (inner nodes' children adjacent, the root first) and the order of
-/// the triangles in its leaves.
+/// the triangles in its leaves. The parts are split off first, built by obvhs in parallel, and
+/// placed in the order a depth-first build would place them, so the tree does not depend on the
+/// thread count.
 fn build_nodes(prims: &[Triangle], params: BvhBuildParams) -> (Vec<Node>, Vec<u32>) {
+    let mut indices: Vec<u32> = (0..prims.len() as u32).collect();
+    let plan = plan_parts(prims, &mut indices, 0);
+    let mut ranges = Vec::new();
+    plan.leaves(&mut ranges);
+    let bvhs: Vec<Bvh2> = ranges
+        .par_iter()
+        .map(|r| {
+            let part: Vec<Triangle> = indices[r.clone()]
+                .iter()
+                .map(|&k| prims[k as usize])
+                .collect();
+            build_bvh2_from_tris(&part, params, &mut Duration::default())
+        })
+        .collect();
     let mut nodes = vec![Node::default()];
     let mut order = Vec::with_capacity(prims.len());
-    let mut indices: Vec<u32> = (0..prims.len() as u32).collect();
-    build_part(prims, params, &mut indices, 0, &mut nodes, &mut order);
+    let mut built = bvhs.iter();
+    place(&plan, &indices, 0, &mut nodes, &mut order, &mut built);
     (nodes, order)
+}
+
+/// How [`build_nodes`] splits the triangles: ranges of the reordered indices, each of at most
+/// [`PLOC_PART`], under a binary tree of [`sah_split`]s.
+enum PartPlan {
+    Part(std::ops::Range<usize>),
+    Split(Box<PartPlan>, Box<PartPlan>),
+}
+
+impl PartPlan {
+    /// The parts' ranges, depth first, left before right.
+    fn leaves(&self, out: &mut Vec<std::ops::Range<usize>>) {
+        match self {
+            PartPlan::Part(r) => out.push(r.clone()),
+            PartPlan::Split(l, r) => {
+                l.leaves(out);
+                r.leaves(out);
+            }
+        }
+    }
+}
+
+/// Splits `indices` (which start at `offset` in the whole list) until every part has at most
+/// [`PLOC_PART`] triangles; the two sides of a split are planned in parallel.
+fn plan_parts(prims: &[Triangle], indices: &mut [u32], offset: usize) -> PartPlan {
+    if indices.len() <= PLOC_PART {
+        return PartPlan::Part(offset..offset + indices.len());
+    }
+    let mid = sah_split(prims, indices);
+    let (left, right) = indices.split_at_mut(mid);
+    let (l, r) = rayon::join(
+        || plan_parts(prims, left, offset),
+        || plan_parts(prims, right, offset + mid),
+    );
+    PartPlan::Split(Box::new(l), Box::new(r))
+}
+
+/// Fills `nodes[slot]` with the subtree of `plan`, taking the parts' BVHs from `built` in the
+/// order of [`PartPlan::leaves`].
+fn place(
+    plan: &PartPlan,
+    indices: &[u32],
+    slot: usize,
+    nodes: &mut Vec<Node>,
+    order: &mut Vec<u32>,
+    built: &mut std::slice::Iter<Bvh2>,
+) {
+    let range = match plan {
+        PartPlan::Split(l, r) => {
+            let first = nodes.len();
+            nodes.extend([Node::default(), Node::default()]);
+            place(l, indices, first, nodes, order, built);
+            place(r, indices, first + 1, nodes, order, built);
+            let (l, r) = (nodes[first], nodes[first + 1]);
+            nodes[slot] = Node {
+                min: l.min.min(r.min),
+                first: first as u32,
+                max: l.max.max(r.max),
+                count: 0,
+            };
+            return;
+        }
+        PartPlan::Part(range) => range,
+    };
+    let bvh = built.next().expect("one BVH per part");
+    let part = &indices[range.clone()];
+    // obvhs's root goes to `slot`, its other nodes after the existing ones (in their order, so
+    // siblings stay adjacent), its leaves' triangles after those already placed.
+    let base = nodes.len() - 1;
+    let at = |j: u32| if j == 0 { slot as u32 } else { base as u32 + j };
+    let first_triangle = order.len() as u32;
+    order.extend(bvh.primitive_indices.iter().map(|&k| part[k as usize]));
+    for (j, n) in bvh.nodes.iter().enumerate() {
+        let node = Node {
+            min: n.aabb.min.into(),
+            first: if n.prim_count == 0 {
+                at(n.first_index)
+            } else {
+                first_triangle + n.first_index
+            },
+            max: n.aabb.max.into(),
+            count: n.prim_count,
+        };
+        if j == 0 {
+            nodes[slot] = node;
+        } else {
+            nodes.push(node);
+        }
+    }
 }
 
 /// Bins per axis of [`sah_split`].
@@ -668,58 +774,6 @@ fn sah_split(prims: &[Triangle], indices: &mut [u32]) -> usize {
                 centroid(a)[axis].total_cmp(&centroid(b)[axis])
             });
             mid
-        }
-    }
-}
-
-/// Fills `nodes[slot]` with the subtree over `indices`.
-fn build_part(
-    prims: &[Triangle],
-    params: BvhBuildParams,
-    indices: &mut [u32],
-    slot: usize,
-    nodes: &mut Vec<Node>,
-    order: &mut Vec<u32>,
-) {
-    if indices.len() > PLOC_PART {
-        let mid = sah_split(prims, indices);
-        let first = nodes.len();
-        nodes.extend([Node::default(), Node::default()]);
-        let (left, right) = indices.split_at_mut(mid);
-        build_part(prims, params, left, first, nodes, order);
-        build_part(prims, params, right, first + 1, nodes, order);
-        let (l, r) = (nodes[first], nodes[first + 1]);
-        nodes[slot] = Node {
-            min: l.min.min(r.min),
-            first: first as u32,
-            max: l.max.max(r.max),
-            count: 0,
-        };
-        return;
-    }
-    let part: Vec<Triangle> = indices.iter().map(|&k| prims[k as usize]).collect();
-    let bvh = build_bvh2_from_tris(&part, params, &mut Duration::default());
-    // obvhs's root goes to `slot`, its other nodes after the existing ones (in their order, so
-    // siblings stay adjacent), its leaves' triangles after those already placed.
-    let base = nodes.len() - 1;
-    let at = |j: u32| if j == 0 { slot as u32 } else { base as u32 + j };
-    let first_triangle = order.len() as u32;
-    order.extend(bvh.primitive_indices.iter().map(|&k| indices[k as usize]));
-    for (j, n) in bvh.nodes.iter().enumerate() {
-        let node = Node {
-            min: n.aabb.min.into(),
-            first: if n.prim_count == 0 {
-                at(n.first_index)
-            } else {
-                first_triangle + n.first_index
-            },
-            max: n.aabb.max.into(),
-            count: n.prim_count,
-        };
-        if j == 0 {
-            nodes[slot] = node;
-        } else {
-            nodes.push(node);
         }
     }
 }

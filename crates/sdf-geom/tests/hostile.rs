@@ -952,7 +952,7 @@ fn obj_vertex_colours_and_w_load_and_bad_vertex_lines_name_their_line() {
 #[test]
 fn gltf_morph_targets_take_their_default_weights() {
     let dir = temp_dir("gmorph");
-    let mut displacement = vec![0.0f32; 24];
+    let mut displacement = [0.0f32; 24];
     displacement[7 * 3 + 2] = 1.0;
     let extra: Vec<u8> = displacement.iter().flat_map(|x| x.to_le_bytes()).collect();
     let b = cube_buffer(&extra);
