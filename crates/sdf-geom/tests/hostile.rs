@@ -1227,3 +1227,34 @@ fn gltf_gpu_instancing_draws_every_instance() {
     }
     assert!(started.elapsed().as_secs() < 5);
 }
+
+/// `extras` may hold any JSON value (the glTF specification only recommends an object), on the
+/// asset and on every object: a number, a string, an array or null must not stop the geometry.
+#[test]
+fn gltf_extras_of_any_type_load() {
+    let dir = temp_dir("gextras");
+    let base =
+        cube_with_indices(r#"{"bufferView":1,"componentType":5125,"count":36,"type":"SCALAR"}"#);
+    for (name, extras) in [
+        ("number.gltf", "5"),
+        ("string.gltf", r#""made by hand""#),
+        ("array.gltf", "[1, {\"a\": 2}]"),
+        ("null.gltf", "null"),
+        ("object.gltf", r#"{"k": [true]}"#),
+    ] {
+        let json = base
+            .replacen(
+                r#"{"mesh":0}"#,
+                &format!(r#"{{"mesh":0,"extras":{extras}}}"#),
+                1,
+            )
+            .replacen(
+                r#"{"version":"2.0"}"#,
+                &format!(r#"{{"version":"2.0","extras":{extras}}}"#),
+                1,
+            );
+        assert_ne!(json, base);
+        let m = load_text(&dir, name, &json).unwrap_or_else(|e| panic!("{name}: {e}"));
+        assert_eq!(m.triangles.len(), 12, "{name}");
+    }
+}
