@@ -62,7 +62,8 @@ impl LoadOptions {
 /// start with a UTF-8 byte-order mark, have trailing `#` comments, and contain names that are not
 /// UTF-8 (decoded lossily; geometry never depends on names). glTF meshes are taken in their default
 /// pose: morph targets with their default weights (the node's, else the mesh's), and every instance
-/// of an `EXT_mesh_gpu_instancing` node.
+/// of an `EXT_mesh_gpu_instancing` node. Quantised positions (`KHR_mesh_quantization`: 8- or
+/// 16-bit integers, normalised or not, which node transforms scale back) are read.
 ///
 /// # Errors
 /// [`GeomError::UnknownExtension`], [`GeomError::Io`] (missing or unreadable file),
@@ -70,8 +71,9 @@ impl LoadOptions {
 /// [`GeomError::Parse`] (also every failed glTF validation), [`GeomError::NoTriangles`],
 /// [`GeomError::NonFiniteVertex`], [`GeomError::IndexOutOfRange`],
 /// [`GeomError::UnsupportedPrimitiveMode`] (glTF points and lines), [`GeomError::Unsupported`]
-/// (Draco, meshopt, quantised positions, and any required glTF extension other than appearance-only
-/// ones such as `KHR_materials_*` and `EXT_mesh_gpu_instancing`), [`GeomError::MissingBuffer`], [`GeomError::UriRefused`],
+/// (Draco, meshopt, positions of other types than float32 or 8- or 16-bit integers, and any
+/// required glTF extension other than appearance-only ones such as `KHR_materials_*`,
+/// `EXT_mesh_gpu_instancing` and `KHR_mesh_quantization`), [`GeomError::MissingBuffer`], [`GeomError::UriRefused`],
 /// [`GeomError::SceneTooLarge`] and [`GeomError::ReaderPanic`].
 pub fn load_mesh(path: impl AsRef<Path>) -> Result<(Mesh, LoadReport), GeomError> {
     load_mesh_with(path, &LoadOptions::default())
@@ -617,9 +619,9 @@ fn load_gltf(
             });
         }
     }
-    // A required extension we do not read could change the geometry (quantised attributes) or
-    // is unknown: refuse it by name rather than load something wrong. Extensions that only
-    // concern appearance do not touch the triangles; EXT_mesh_gpu_instancing is read.
+    // A required extension we do not read could change the geometry or is unknown: refuse it
+    // by name rather than load something wrong. Extensions that only concern appearance do not
+    // touch the triangles; EXT_mesh_gpu_instancing and KHR_mesh_quantization are read.
     let understood = |e: &str| {
         [
             "KHR_materials_",
@@ -631,7 +633,10 @@ fn load_gltf(
         .any(|p| e.starts_with(p))
             || matches!(
                 e,
-                "KHR_lights_punctual" | "KHR_xmp_json_ld" | "EXT_mesh_gpu_instancing"
+                "KHR_lights_punctual"
+                    | "KHR_xmp_json_ld"
+                    | "EXT_mesh_gpu_instancing"
+                    | "KHR_mesh_quantization"
             )
     };
     if let Some(ext) = root.extensions_required.iter().find(|e| !understood(e)) {
@@ -1158,9 +1163,10 @@ fn gpu_instancing<'a>(
             node.index()
         ),
     };
+    // Float, or with KHR_mesh_quantization 8- or 16-bit integers.
     for (name, acc) in [("TRANSLATION", &translation), ("SCALE", &scale)] {
         if let Some(acc) = acc
-            && (acc.data_type() != DataType::F32 || acc.dimensions() != Dimensions::Vec3)
+            && Vec3Format::of(acc).is_none()
         {
             return Err(unsupported(name, acc));
         }
@@ -1212,12 +1218,12 @@ fn instance_matrices(
         message: format!("node {node}: EXT_mesh_gpu_instancing: {message}"),
     };
     let vec3s = |acc: &Option<gltf::Accessor>, what: &str, default: Vec3| match acc {
-        Some(acc) => Ok(read_accessor(acc, 12, buffers, what)
-            .map_err(&bad)?
-            .into_iter()
-            .map(vec3_le)
-            .collect()),
-        None => Ok::<_, GeomError>(vec![default; inst.count]),
+        // Checked by `gpu_instancing`.
+        Some(acc) => match Vec3Format::of(acc) {
+            Some(format) => format.read(acc, buffers, what).map_err(&bad),
+            None => Err(bad(format!("{what} is not a VEC3 of a supported type"))),
+        },
+        None => Ok(vec![default; inst.count]),
     };
     let translations = vec3s(&inst.translation, "TRANSLATION", Vec3::ZERO)?;
     let scales = vec3s(&inst.scale, "SCALE", Vec3::ONE)?;
@@ -1380,10 +1386,88 @@ fn read_accessor<'b>(
     Ok(out)
 }
 
-/// A little-endian f32 VEC3 element.
-fn vec3_le(b: &[u8]) -> Vec3 {
-    let f = |k: usize| f32::from_le_bytes([b[k], b[k + 1], b[k + 2], b[k + 3]]);
-    Vec3::new(f(0), f(4), f(8))
+/// How a VEC3 accessor's elements decode: float32, or (`KHR_mesh_quantization`, as gltfpack
+/// writes by default) signed or unsigned 8- or 16-bit integers, normalised or not.
+#[derive(Clone, Copy, Debug)]
+struct Vec3Format {
+    ty: gltf::accessor::DataType,
+    normalized: bool,
+}
+
+impl Vec3Format {
+    /// `acc`'s format, if it is a VEC3 of one of those types.
+    fn of(acc: &gltf::Accessor) -> Option<Self> {
+        use gltf::accessor::{DataType, Dimensions};
+        let ty = acc.data_type();
+        (acc.dimensions() == Dimensions::Vec3
+            && matches!(
+                ty,
+                DataType::F32 | DataType::I8 | DataType::U8 | DataType::I16 | DataType::U16
+            ))
+        .then_some(Vec3Format {
+            ty,
+            normalized: acc.normalized() && ty != DataType::F32,
+        })
+    }
+
+    /// Bytes per element.
+    fn size(self) -> usize {
+        3 * self.ty.size()
+    }
+
+    /// One element (`size` little-endian bytes). Normalised integers map as glTF says: c / 127
+    /// clamped at -1, c / 255, c / 32767 clamped at -1, c / 65535; others are their value.
+    fn decode(self, b: &[u8]) -> Vec3 {
+        use gltf::accessor::DataType;
+        let n = self.normalized;
+        let c = |k: usize| -> f32 {
+            match self.ty {
+                DataType::I8 => {
+                    let v = f32::from(b[k] as i8);
+                    if n { (v / 127.0).max(-1.0) } else { v }
+                }
+                DataType::U8 => {
+                    let v = f32::from(b[k]);
+                    if n { v / 255.0 } else { v }
+                }
+                DataType::I16 => {
+                    let v = f32::from(i16::from_le_bytes([b[2 * k], b[2 * k + 1]]));
+                    if n { (v / 32767.0).max(-1.0) } else { v }
+                }
+                DataType::U16 => {
+                    let v = f32::from(u16::from_le_bytes([b[2 * k], b[2 * k + 1]]));
+                    if n { v / 65535.0 } else { v }
+                }
+                _ => f32::from_le_bytes([b[4 * k], b[4 * k + 1], b[4 * k + 2], b[4 * k + 3]]),
+            }
+        };
+        Vec3::new(c(0), c(1), c(2))
+    }
+
+    /// The elements of `acc` (whose format this is), decoded.
+    fn read(
+        self,
+        acc: &gltf::Accessor,
+        buffers: &[Rc<[u8]>],
+        what: &str,
+    ) -> Result<Vec<Vec3>, String> {
+        Ok(read_accessor(acc, self.size(), buffers, what)?
+            .into_iter()
+            .map(|b| self.decode(b))
+            .collect())
+    }
+}
+
+/// The [`Vec3Format`] of `acc`, or [`GeomError::Unsupported`] naming `what` and its type.
+fn vec3_format(path: &Path, acc: &gltf::Accessor, what: &str) -> Result<Vec3Format, GeomError> {
+    Vec3Format::of(acc).ok_or_else(|| GeomError::Unsupported {
+        path: path.to_path_buf(),
+        feature: format!(
+            "{what} accessor of type {:?} {:?} (only VEC3 of float32, or of 8- or 16-bit integers)",
+            acc.data_type(),
+            acc.dimensions()
+        ),
+    })
 }
 
 /// Adds `weights[i]` times morph target i's POSITION displacements to `positions` (the
@@ -1397,7 +1481,6 @@ fn morph(
     positions: &mut [Vec3],
     report: &mut LoadReport,
 ) -> Result<bool, String> {
-    use gltf::accessor::{DataType, Dimensions};
     let targets: Vec<_> = prim.morph_targets().collect();
     if targets.is_empty() || weights.iter().all(|&w| w == 0.0) {
         return Ok(false);
@@ -1421,13 +1504,13 @@ fn morph(
         if w == 0.0 {
             continue;
         }
-        if acc.data_type() != DataType::F32 || acc.dimensions() != Dimensions::Vec3 {
+        let Some(format) = Vec3Format::of(&acc) else {
             return Err(format!(
-                "morph target {t}: POSITION accessor of type {:?} {:?} (only float32 VEC3)",
+                "morph target {t}: POSITION accessor of type {:?} {:?} (only VEC3 of float32, or of 8- or 16-bit integers)",
                 acc.data_type(),
                 acc.dimensions()
             ));
-        }
+        };
         if acc.count() != positions.len() {
             return Err(format!(
                 "morph target {t}: {} POSITION displacements for {} vertices",
@@ -1436,11 +1519,8 @@ fn morph(
             ));
         }
         let what = format!("morph target {t} POSITION");
-        for (p, b) in positions
-            .iter_mut()
-            .zip(read_accessor(&acc, 12, buffers, &what)?)
-        {
-            *p += w * vec3_le(b);
+        for (p, d) in positions.iter_mut().zip(format.read(&acc, buffers, &what)?) {
+            *p += w * d;
         }
         moved = true;
     }
@@ -1491,16 +1571,7 @@ fn add_gltf_mesh(
             ));
             continue;
         };
-        if pos_acc.data_type() != DataType::F32 || pos_acc.dimensions() != Dimensions::Vec3 {
-            return Err(GeomError::Unsupported {
-                path: path.to_path_buf(),
-                feature: format!(
-                    "POSITION accessor of type {:?} {:?} (only float32 VEC3; quantised positions are not supported)",
-                    pos_acc.data_type(),
-                    pos_acc.dimensions()
-                ),
-            });
-        }
+        let pos_format = vec3_format(path, &pos_acc, "POSITION")?;
         if pos_acc.count() == 0 {
             continue;
         }
@@ -1534,9 +1605,10 @@ fn add_gltf_mesh(
             }
             None => None,
         };
-        let positions = read_accessor(&pos_acc, 12, buffers, "POSITION")
+        let mut local_positions = pos_format
+            .read(&pos_acc, buffers, "POSITION")
             .map_err(|m| parse_err(prim.index(), m))?;
-        let n = positions.len();
+        let n = local_positions.len();
         let indices: Vec<u32> = match (prim.indices(), index_size) {
             (Some(acc), Some(size)) => read_accessor(&acc, size, buffers, "indices")
                 .map_err(|m| parse_err(prim.index(), m))?
@@ -1549,7 +1621,6 @@ fn add_gltf_mesh(
                 .collect(),
             _ => (0..n as u32).collect(),
         };
-        let mut local_positions: Vec<Vec3> = positions.iter().map(|b| vec3_le(b)).collect();
         if morph(&prim, morph_weights, buffers, &mut local_positions, report)
             .map_err(|m| parse_err(prim.index(), m))?
         {

@@ -1042,13 +1042,13 @@ fn gltf_morph_targets_take_their_default_weights() {
         msg.contains("morph target 0: 7 POSITION displacements for 8 vertices"),
         "{msg}"
     );
-    let ints = target.replace("5126", "5123");
+    let ints = target.replace("5126", "5125");
     let msg = parse_message(load_text(
         &dir,
         "ints.gltf",
         &morphed(r#","weights":[0.5]"#, "", &ints, "2"),
     ));
-    assert!(msg.contains("only float32 VEC3"), "{msg}");
+    assert!(msg.contains("only VEC3 of float32"), "{msg}");
     // A target naming an accessor that does not exist is an error, not a panic.
     match load_text(
         &dir,
@@ -1256,5 +1256,84 @@ fn gltf_extras_of_any_type_load() {
         assert_ne!(json, base);
         let m = load_text(&dir, name, &json).unwrap_or_else(|e| panic!("{name}: {e}"));
         assert_eq!(m.triangles.len(), 12, "{name}");
+    }
+}
+
+/// `KHR_mesh_quantization` (what gltfpack writes by default): the cube's positions as 8- and
+/// 16-bit integers, normalised or not, with the strides glTF requires, load as the float cube;
+/// signed ones also mirrored (-c), normalised values at -max clamping to -1. A 32-bit integer
+/// position is still refused by name.
+#[test]
+fn gltf_quantized_positions_load() {
+    let dir = temp_dir("gquant");
+    let (v, t) = cube();
+    let float = load_text(
+        &dir,
+        "float.gltf",
+        &cube_with_indices(r#"{"bufferView":1,"componentType":5125,"count":36,"type":"SCALAR"}"#),
+    )
+    .unwrap();
+    // (component type, bytes, stride, largest value when normalised, signed)
+    let types = [
+        (5120, 1, 4, 127.0f32, true),
+        (5121, 1, 4, 255.0, false),
+        (5122, 2, 8, 32767.0, true),
+        (5123, 2, 8, 65535.0, false),
+    ];
+    let quantized = |ty: u32, size: usize, stride: usize, normalized: bool, scale: f32| {
+        let mut b = Vec::new();
+        for p in &v {
+            for &c in p {
+                let q = (c * scale) as i64;
+                b.extend(&q.to_le_bytes()[..size]);
+            }
+            b.resize(b.len() + stride - 3 * size, 0);
+        }
+        let idx_off = b.len();
+        b.extend(t.iter().flat_map(|x| x.to_le_bytes()));
+        let (lo, hi) = (scale.min(0.0), scale.max(0.0));
+        format!(
+            r#"{{"asset":{{"version":"2.0"}},"extensionsUsed":["KHR_mesh_quantization"],
+            "extensionsRequired":["KHR_mesh_quantization"],"scene":0,"scenes":[{{"nodes":[0]}}],
+            "nodes":[{{"mesh":0}}],"meshes":[{{"primitives":[{{"attributes":{{"POSITION":0}},"indices":1}}]}}],
+            "buffers":[{{"byteLength":{},"uri":"{}"}}],
+            "bufferViews":[{{"buffer":0,"byteOffset":0,"byteLength":{idx_off},"byteStride":{stride}}},
+                {{"buffer":0,"byteOffset":{idx_off},"byteLength":144}}],
+            "accessors":[{{"bufferView":0,"componentType":{ty},"normalized":{normalized},"count":8,"type":"VEC3",
+                "min":[{lo},{lo},{lo}],"max":[{hi},{hi},{hi}]}},
+                {{"bufferView":1,"componentType":5125,"count":36,"type":"SCALAR"}}]}}"#,
+            b.len(),
+            data_uri(&b)
+        )
+    };
+    for (ty, size, stride, max, signed) in types {
+        for normalized in [false, true] {
+            let scale = if normalized { max } else { 1.0 };
+            let name = format!("q{ty}-{normalized}.gltf");
+            let m = load_text(&dir, &name, &quantized(ty, size, stride, normalized, scale))
+                .unwrap_or_else(|e| panic!("{name}: {e}"));
+            assert_eq!(m.vertices, float.vertices, "{name}");
+            assert_eq!(m.triangles, float.triangles, "{name}");
+            if signed {
+                let name = format!("q{ty}-{normalized}-mirrored.gltf");
+                let m = load_text(
+                    &dir,
+                    &name,
+                    &quantized(ty, size, stride, normalized, -scale),
+                )
+                .unwrap_or_else(|e| panic!("{name}: {e}"));
+                let mirrored: Vec<_> = float.vertices.iter().map(|&p| -p).collect();
+                assert_eq!(m.vertices, mirrored, "{name}");
+            }
+        }
+    }
+    match load_text(&dir, "u32.gltf", &quantized(5125, 4, 12, false, 1.0)) {
+        Err(GeomError::Unsupported { feature, .. }) => {
+            assert!(
+                feature.contains("POSITION accessor of type U32"),
+                "{feature}"
+            )
+        }
+        other => panic!("u32 positions: {other:?}"),
     }
 }
