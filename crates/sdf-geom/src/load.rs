@@ -269,7 +269,8 @@ fn obj_text(bytes: &[u8]) -> (String, ObjCounts) {
     let text = String::from_utf8_lossy(bytes);
     let mut out = String::with_capacity(text.len());
     let mut counts = ObjCounts::default();
-    for line in text.split_inclusive('\n') {
+    for (i, line) in text.split_inclusive('\n').enumerate() {
+        let line_no = i + 1;
         let content = match line.find('#') {
             Some(i) => &line[..i],
             None => line.strip_suffix('\n').unwrap_or(line),
@@ -280,6 +281,15 @@ fn obj_text(bytes: &[u8]) -> (String, ObjCounts) {
             Some("v") => {
                 counts.vertices += 1;
                 let numbers: Vec<&str> = tokens.collect();
+                // tobj divides by w: an infinite one would silently put the vertex at 0.
+                if numbers.len() == 4
+                    && counts.bad_w.is_none()
+                    && numbers[3]
+                        .parse::<f32>()
+                        .is_ok_and(|w| !w.is_finite() || w == 0.0)
+                {
+                    counts.bad_w = Some((line_no, content.trim().chars().take(80).collect()));
+                }
                 if matches!(numbers.len(), 6 | 7) {
                     out.push('v');
                     for x in &numbers[..3] {
@@ -296,6 +306,10 @@ fn obj_text(bytes: &[u8]) -> (String, ObjCounts) {
                 let corners: Vec<&str> = tokens.collect();
                 if corners.len() < 3 {
                     counts.short_faces += 1;
+                } else if corners.iter().any(|c| c.starts_with('/')) {
+                    // A corner without its vertex index (`/1`): left as it is, for tobj to
+                    // refuse and `scan_obj` to place, rather than dropped with the vertex.
+                    out.push_str(content);
                 } else {
                     counts.triangles += corners.len() as u64 - 2;
                     out.push('f');
@@ -339,6 +353,8 @@ struct ObjCounts {
     triangles: u64,
     skipped_elements: usize,
     short_faces: usize,
+    /// The first vertex line whose w is infinite, NaN or 0, and its text.
+    bad_w: Option<(usize, String)>,
 }
 
 fn load_obj(
@@ -347,6 +363,13 @@ fn load_obj(
     dir: Option<&Path>,
 ) -> Result<(Mesh, LoadReport), GeomError> {
     let (text, counts) = obj_text(bytes);
+    if let Some((line, text)) = counts.bad_w {
+        return Err(GeomError::Parse {
+            path: path.to_path_buf(),
+            line: Some(line),
+            message: format!("a vertex's w must be a finite number other than 0: {text:?}"),
+        });
+    }
     let mut report = LoadReport {
         format: "obj",
         ..Default::default()
@@ -444,7 +467,9 @@ fn load_obj(
 
 /// Turns a `tobj` error into a typed error, finding the offending line by re-scanning the text.
 fn obj_error(path: &Path, text: &str, err: tobj::LoadError) -> GeomError {
-    let found = scan_obj(text);
+    // Only an index error is looked for among the indices: a face may use vertices defined
+    // after it (tobj checks them when the object ends), so another error lies elsewhere.
+    let found = scan_obj(text, err == tobj::LoadError::FaceVertexOutOfBounds);
     if err == tobj::LoadError::FaceVertexOutOfBounds {
         if let Some(ScanIssue::IndexOutOfRange {
             face,
@@ -487,12 +512,25 @@ enum ScanIssue {
     },
 }
 
-/// A light re-scan of an OBJ file that finds the first line `tobj` would have rejected.
-fn scan_obj(text: &str) -> Option<ScanIssue> {
+/// A light re-scan of an OBJ file that finds the first line `tobj` would have rejected. With
+/// `check_ranges`, vertex indices are checked as tobj does: a relative (negative) one against
+/// the vertices before it, a positive one against those defined when its object ends (the next
+/// `o` or `g`, or the end of the file).
+fn scan_obj(text: &str, check_ranges: bool) -> Option<ScanIssue> {
+    // It reads the text `obj_text` gave tobj: no texture coordinates or normals are left.
     let mut nv = 0usize;
-    let mut nvt = 0usize;
-    let mut nvn = 0usize;
     let mut faces = 0usize;
+    // The largest positive vertex index of the object so far: (index, line, face).
+    let mut pending: Option<(i64, usize, usize)> = None;
+    let out_of_range = |p: Option<(i64, usize, usize)>, nv: usize| {
+        p.filter(|&(v, _, _)| v as u64 > nv as u64)
+            .map(|(index, line, face)| ScanIssue::IndexOutOfRange {
+                line,
+                face,
+                index,
+                vertex_count: nv,
+            })
+    };
     let floats_ok = |rest: &[&str], min: usize, max: usize| {
         rest.len() >= min && rest.len() <= max && rest.iter().all(|t| t.parse::<f32>().is_ok())
     };
@@ -522,18 +560,6 @@ fn scan_obj(text: &str) -> Option<ScanIssue> {
                 }
                 nv += 1;
             }
-            "vt" => {
-                if !floats_ok(&rest, 1, 3) {
-                    return bad();
-                }
-                nvt += 1;
-            }
-            "vn" => {
-                if !floats_ok(&rest, 3, 3) {
-                    return bad();
-                }
-                nvn += 1;
-            }
             "f" => {
                 if rest.len() < 3 {
                     // tobj accepts these only with ignore_points / ignore_lines, which we set.
@@ -544,34 +570,42 @@ fn scan_obj(text: &str) -> Option<ScanIssue> {
                     if parts.is_empty() || parts.len() > 3 {
                         return bad();
                     }
-                    for (k, p) in parts.iter().enumerate() {
-                        if k > 0 && p.is_empty() {
-                            continue;
-                        }
+                    // Texture and normal indices never reach tobj (`obj_text`).
+                    if let Some(p) = parts.first() {
                         let Ok(v) = p.parse::<i64>() else {
                             return bad();
                         };
-                        let count = [nv, nvt, nvn][k];
-                        let ok = v != 0 && v.unsigned_abs() as usize <= count;
-                        if !ok {
-                            if k == 0 {
-                                return Some(ScanIssue::IndexOutOfRange {
-                                    line,
-                                    face: faces,
-                                    index: v,
-                                    vertex_count: nv,
-                                });
-                            }
+                        if v == 0 {
                             return bad();
+                        }
+                        if !check_ranges {
+                            continue;
+                        }
+                        if v > 0 {
+                            if pending.is_none_or(|(p, _, _)| v > p) {
+                                pending = Some((v, line, faces));
+                            }
+                        } else if v.unsigned_abs() > nv as u64 {
+                            return Some(ScanIssue::IndexOutOfRange {
+                                line,
+                                face: faces,
+                                index: v,
+                                vertex_count: nv,
+                            });
                         }
                     }
                 }
                 faces += 1;
             }
+            "o" | "g" => {
+                if let Some(issue) = out_of_range(pending.take(), nv) {
+                    return Some(issue);
+                }
+            }
             _ => {}
         }
     }
-    None
+    out_of_range(pending, nv)
 }
 
 // ---------------------------------------------------------------------------------------------------
@@ -799,6 +833,8 @@ fn load_gltf(
 
     let mut vertices: Vec<Vec3> = Vec::new();
     let mut triangles: Vec<[u32; 3]> = Vec::new();
+    // A mesh's warnings are given at its first instance only (a million instances, one warning).
+    let mut warned = vec![false; doc.meshes().len()];
     match (scene, graph) {
         (Some(scene), Some(graph)) => {
             // Expand instance paths, skipping subtrees without meshes: the counts above bound this.
@@ -828,6 +864,7 @@ fn load_gltf(
                             &mesh,
                             world,
                             weights.unwrap_or_default(),
+                            !std::mem::replace(&mut warned[mesh.index()], true),
                             &buffers,
                             &mut vertices,
                             &mut triangles,
@@ -855,6 +892,7 @@ fn load_gltf(
                     &mesh,
                     Mat4::IDENTITY,
                     mesh.weights().unwrap_or_default(),
+                    true,
                     &buffers,
                     &mut vertices,
                     &mut triangles,
@@ -955,12 +993,18 @@ fn mesh_size(mesh: &gltf::Mesh) -> (u64, u64) {
             Some(acc) => acc.count() as u64,
             None => pos.count() as u64,
         };
-        tris += match prim.mode() {
+        tris = tris.saturating_add(match prim.mode() {
             Mode::Triangles => n / 3,
             Mode::TriangleStrip | Mode::TriangleFan => n.saturating_sub(2),
             _ => 0,
-        };
-        verts += pos.count() as u64;
+        });
+        // Each morph target may be read in full for every instance: its positions count as
+        // vertices (at least one per target, so that empty targets are not free either).
+        let targets = prim.morph_targets().len() as u64;
+        let per_target = (pos.count() as u64).max(1);
+        verts = verts
+            .saturating_add(pos.count() as u64)
+            .saturating_add(targets.saturating_mul(per_target));
     }
     (tris, verts)
 }
@@ -1117,7 +1161,11 @@ fn gpu_instancing<'a>(
     node: &gltf::Node,
 ) -> Result<Option<GpuInstancing<'a>>, GeomError> {
     use gltf::accessor::{DataType, Dimensions};
-    let Some(ext) = node.extension_value("EXT_mesh_gpu_instancing") else {
+    // Only a node with a mesh is instanced; the extension means nothing on others.
+    let Some(ext) = node
+        .extension_value("EXT_mesh_gpu_instancing")
+        .filter(|_| node.mesh().is_some())
+    else {
         return Ok(None);
     };
     let bad = |message: String| GeomError::Parse {
@@ -1181,15 +1229,21 @@ fn gpu_instancing<'a>(
             return Err(unsupported("ROTATION", acc));
         }
     }
-    let counts: Vec<usize> = [&translation, &rotation, &scale]
+    // Custom attributes (`_ID` and the like) count the instances too, even alone.
+    let mut counts: Vec<usize> = [&translation, &rotation, &scale]
         .into_iter()
         .flatten()
         .map(|a| a.count())
         .collect();
+    for name in attributes.keys() {
+        if !matches!(name.as_str(), "TRANSLATION" | "ROTATION" | "SCALE")
+            && let Some(acc) = accessor(name)?
+        {
+            counts.push(acc.count());
+        }
+    }
     let Some(&count) = counts.first() else {
-        return Err(bad(
-            "none of TRANSLATION, ROTATION and SCALE is given".into()
-        ));
+        return Err(bad("its `attributes` are empty".into()));
     };
     if counts.iter().any(|&c| c != count) {
         return Err(bad(format!(
@@ -1338,6 +1392,15 @@ fn read_accessor<'b>(
 ) -> Result<Vec<&'b [u8]>, String> {
     static ZEROS: [u8; 16] = [0; 16];
     let count = acc.count();
+    // No accessor a loadable scene reads is longer (three indices per triangle at most); a
+    // longer one, which the sums of the scene limits may not catch, is refused before its
+    // element list is allocated.
+    if count as u64 > 3 * MAX_INSTANCED_TRIANGLES {
+        return Err(format!(
+            "{what}: count {count} is above the most any loadable scene reads ({})",
+            3 * MAX_INSTANCED_TRIANGLES
+        ));
+    }
     let mut out: Vec<&'b [u8]> = match acc.view() {
         Some(view) => view_elements(&view, acc.offset(), count, elem, buffers, what)?,
         // No view: zeros, normally replaced in part by sparse values.
@@ -1473,21 +1536,25 @@ fn vec3_format(path: &Path, acc: &gltf::Accessor, what: &str) -> Result<Vec3Form
 /// Adds `weights[i]` times morph target i's POSITION displacements to `positions` (the
 /// primitive's own, in mesh space): the default pose. Targets without POSITION, and weights of 0,
 /// change nothing; returns whether any position moved. Weights beyond the targets (or targets
-/// beyond the weights) are a warning, as the glTF specification wants the counts equal.
+/// beyond the weights) are a warning in `report`, if given, as the glTF specification wants the
+/// counts equal.
 fn morph(
     prim: &gltf::Primitive,
+    mesh: usize,
     weights: &[f32],
     buffers: &[Rc<[u8]>],
     positions: &mut [Vec3],
-    report: &mut LoadReport,
+    report: Option<&mut LoadReport>,
 ) -> Result<bool, String> {
-    let targets: Vec<_> = prim.morph_targets().collect();
-    if targets.is_empty() || weights.iter().all(|&w| w == 0.0) {
+    if weights.iter().all(|&w| w == 0.0) || prim.morph_targets().len() == 0 {
         return Ok(false);
     }
-    if targets.len() != weights.len() {
+    let targets: Vec<_> = prim.morph_targets().collect();
+    if let Some(report) = report
+        && targets.len() != weights.len()
+    {
         report.warnings.push(format!(
-            "primitive {}: {} morph targets but {} weights (the extra ones ignored)",
+            "mesh {mesh} primitive {}: {} morph targets but {} weights (the extra ones ignored)",
             prim.index(),
             targets.len(),
             weights.len()
@@ -1533,6 +1600,7 @@ fn add_gltf_mesh(
     mesh: &gltf::Mesh,
     world: Mat4,
     morph_weights: &[f32],
+    warn: bool,
     buffers: &[Rc<[u8]>],
     vertices: &mut Vec<Vec3>,
     triangles: &mut Vec<[u32; 3]>,
@@ -1564,6 +1632,9 @@ fn add_gltf_mesh(
             });
         }
         let Some(pos_acc) = prim.get(&gltf::Semantic::Positions) else {
+            if !warn {
+                continue;
+            }
             report.warnings.push(format!(
                 "mesh {} primitive {} has no POSITION attribute (skipped)",
                 mesh.index(),
@@ -1621,8 +1692,15 @@ fn add_gltf_mesh(
                 .collect(),
             _ => (0..n as u32).collect(),
         };
-        if morph(&prim, morph_weights, buffers, &mut local_positions, report)
-            .map_err(|m| parse_err(prim.index(), m))?
+        if morph(
+            &prim,
+            mesh.index(),
+            morph_weights,
+            buffers,
+            &mut local_positions,
+            warn.then_some(&mut *report),
+        )
+        .map_err(|m| parse_err(prim.index(), m))?
         {
             report.morphed_primitives += 1;
         }
@@ -1648,7 +1726,7 @@ fn add_gltf_mesh(
                     .collect()
             }
             _ => {
-                if !indices.len().is_multiple_of(3) {
+                if warn && !indices.len().is_multiple_of(3) {
                     report.warnings.push(format!(
                         "mesh {} primitive {}: {} indices, not a multiple of 3; the last {} ignored",
                         mesh.index(),

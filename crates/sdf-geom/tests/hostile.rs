@@ -1175,7 +1175,17 @@ fn gltf_gpu_instancing_draws_every_instance() {
         "{msg}"
     );
     let msg = parse("empty.gltf", instanced("", &accessors));
-    assert!(msg.contains("none of TRANSLATION"), "{msg}");
+    assert!(msg.contains("its `attributes` are empty"), "{msg}");
+    // Only a custom attribute: its count of instances, each without a transform of its own
+    // (so the second copy's triangles are exact duplicates, which the clean-up drops).
+    let (m, report) = load_mesh(write(
+        &dir,
+        "custom-only.gltf",
+        instanced(r#""_ID":2"#, &accessors),
+    ))
+    .unwrap();
+    assert_eq!((report.instances, m.triangles.len()), (2, 12));
+    assert_eq!(report.duplicate_faces, 12);
     let one = format!(
         "{POS},{idx},{},{},{}",
         acc(2, "VEC3", 2),
@@ -1335,5 +1345,175 @@ fn gltf_quantized_positions_load() {
             )
         }
         other => panic!("u32 positions: {other:?}"),
+    }
+}
+
+/// Crafted counts that once cost unbounded time or memory, or crashed (found in review): every
+/// one now ends quickly in a typed error, or loads with one warning per mesh, not per instance.
+#[test]
+fn gltf_crafted_counts_are_bounded() {
+    let dir = temp_dir("gcounts");
+    // A triangle's three indices, then three positions.
+    let mut b: Vec<u8> = [0u32, 1, 2].iter().flat_map(|x| x.to_le_bytes()).collect();
+    for v in [0.0f32, 0., 0., 1., 0., 0., 0., 1., 0.] {
+        b.extend(v.to_le_bytes());
+    }
+    let uri = data_uri(&b);
+    let views = r#"{"buffer":0,"byteOffset":0,"byteLength":12},{"buffer":0,"byteOffset":12,"byteLength":36}"#;
+    // A VEC3 accessor of `count` elements, zeros but for `n` sparse ones.
+    let sparse = |count: u64, n: u32| {
+        format!(
+            r#"{{"componentType":5126,"count":{count},"type":"VEC3","min":[0,0,0],"max":[1,1,1],"sparse":{{"count":{n},"indices":{{"bufferView":0,"componentType":5125}},"values":{{"bufferView":1}}}}}}"#
+        )
+    };
+    let doc = |nodes: &str, meshes: &str, accessors: &str| {
+        format!(
+            r#"{{"asset":{{"version":"2.0"}},"extensionsUsed":["EXT_mesh_gpu_instancing"],"scene":0,"scenes":[{{"nodes":[0]}}],"nodes":[{nodes}],"meshes":[{meshes}],"buffers":[{{"byteLength":{},"uri":"{uri}"}}],"bufferViews":[{views}],"accessors":[{accessors}]}}"#,
+            b.len()
+        )
+    };
+    let instanced = |acc: u32| {
+        format!(
+            r#"{{"mesh":0,"extensions":{{"EXT_mesh_gpu_instancing":{{"attributes":{{"TRANSLATION":{acc}}}}}}}}}"#
+        )
+    };
+    let quick = |name: &str, json: String| {
+        let started = std::time::Instant::now();
+        let r = load_mesh(write(&dir, name, json));
+        assert!(
+            started.elapsed().as_secs() < 5,
+            "{name}: {:?}",
+            started.elapsed()
+        );
+        r
+    };
+    // 64 primitives of 2^58 positions each: the vertex total wrapped to 0 in release builds
+    // (and overflowed in debug), then one accessor's element list aborted the process.
+    let prims = vec![r#"{"attributes":{"POSITION":0},"indices":1}"#; 64].join(",");
+    let idx = r#"{"bufferView":0,"componentType":5125,"count":3,"type":"SCALAR"}"#;
+    let wrap = doc(
+        r#"{"mesh":0}"#,
+        &format!(r#"{{"primitives":[{prims}]}}"#),
+        &format!("{},{idx}", sparse(1 << 58, 1)),
+    );
+    assert!(matches!(
+        quick("wrap.gltf", wrap),
+        Err(GeomError::SceneTooLarge { .. })
+    ));
+    // 100 000 empty morph targets on 20 000 instances: 2·10⁹ target visits.
+    let targets = vec!["{}"; 100_000].join(",");
+    let empty = doc(
+        &instanced(1),
+        &format!(r#"{{"primitives":[{{"attributes":{{"POSITION":0}},"targets":[{targets}]}}]}}"#),
+        &format!("{},{}", sparse(3, 3), sparse(20_000, 1)),
+    );
+    assert!(matches!(
+        quick("empty-targets.gltf", empty),
+        Err(GeomError::SceneTooLarge { .. })
+    ));
+    // 80 targets of 300 000 positions, all weighted: 24 M target positions read.
+    let targets = vec![r#"{"POSITION":0}"#; 80].join(",");
+    let weights = vec!["0.001"; 80].join(",");
+    let heavy = doc(
+        r#"{"mesh":0}"#,
+        &format!(
+            r#"{{"primitives":[{{"attributes":{{"POSITION":0}},"targets":[{targets}]}}],"weights":[{weights}]}}"#
+        ),
+        &sparse(300_000, 3),
+    );
+    assert!(matches!(
+        quick("heavy-targets.gltf", heavy),
+        Err(GeomError::SceneTooLarge { .. })
+    ));
+    // 20 000 instances of a mesh whose primitives each have a warning: one warning each.
+    let prims = vec![r#"{"attributes":{"POSITION":1},"targets":[{"POSITION":1}]}"#; 5].join(",");
+    let warn = doc(
+        &instanced(2),
+        &format!(r#"{{"primitives":[{{"attributes":{{"POSITION":0}}}},{prims}],"weights":[1,1]}}"#),
+        &format!("{},{},{}", sparse(3, 3), sparse(1, 1), sparse(20_000, 1)),
+    );
+    let (_, report) = quick("warnings.gltf", warn).unwrap();
+    assert_eq!(report.instances, 20_000);
+    assert!(
+        report.warnings.len() <= 10,
+        "{} warnings",
+        report.warnings.len()
+    );
+    assert!(
+        report
+            .warnings
+            .iter()
+            .any(|w| w.contains("mesh 0 primitive 1: 1 morph targets but 2 weights")),
+        "{:?}",
+        report.warnings
+    );
+}
+
+/// OBJ errors found in review: a face may use vertices defined after it (tobj checks indices
+/// when the object ends), so another error is placed on its own line and an index error names
+/// the index that is out of range; an infinite, NaN or zero w is an error on its line (tobj
+/// divided by it, putting the vertex at 0 silently); a corner without its vertex index
+/// (`f /1 2 3`) is an error on its line, not a dropped face.
+#[test]
+fn obj_forward_references_w_and_empty_corners() {
+    let dir = temp_dir("objreview");
+    let (m, _) = load_mesh(write(
+        &dir,
+        "forward.obj",
+        "f 1 2 3\nv 0 0 0\nv 1 0 0\nv 0 1 0\n",
+    ))
+    .unwrap();
+    assert_eq!(m.triangles.len(), 1);
+    for (name, body, line) in [
+        (
+            "forward-bad-v.obj",
+            "f 1 2 3\nv 0 0 0\nv 1 0 0\nv 0 1 0\nv 1 2\n",
+            5,
+        ),
+        (
+            "w-inf.obj",
+            "v 0 0 0\nv 1 0 0\nv 0 1 0\nv 5 5 5 inf\nf 1 2 3\nf 1 2 4\n",
+            4,
+        ),
+        ("w-nan.obj", "v 0 0 0\nv 1 0 0\nv 0 1 0 nan\nf 1 2 3\n", 3),
+        ("w-zero.obj", "v 0 0 0\nv 1 0 0\nv 0 1 0 0\nf 1 2 3\n", 3),
+        (
+            "empty-corner.obj",
+            "v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf /1 2 3\nf 1 2 4\n",
+            5,
+        ),
+    ] {
+        match load_mesh(write(&dir, name, body)) {
+            Err(GeomError::Parse {
+                line: Some(l),
+                message,
+                ..
+            }) => {
+                assert_eq!(l, line, "{name}: {message}")
+            }
+            other => panic!("{name}: {other:?}"),
+        }
+    }
+    // An index beyond the vertices its object ends with: the index named, on its face.
+    match load_mesh(write(
+        &dir,
+        "forward-oob.obj",
+        "f 1 2 4\nv 0 0 0\nv 1 0 0\nv 0 1 0\n",
+    )) {
+        Err(GeomError::IndexOutOfRange {
+            index: 4,
+            vertex_count: 3,
+            ..
+        }) => {}
+        other => panic!("forward-oob: {other:?}"),
+    }
+    // ... also when a later object would have defined it.
+    match load_mesh(write(
+        &dir,
+        "object-oob.obj",
+        "v 0 0 0\nv 1 0 0\nf 1 2 3\no b\nv 0 1 0\nf 1 2 3\n",
+    )) {
+        Err(GeomError::IndexOutOfRange { index: 3, .. }) => {}
+        other => panic!("object-oob: {other:?}"),
     }
 }
