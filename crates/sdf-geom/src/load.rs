@@ -1284,28 +1284,13 @@ fn instance_matrices(
     let rotations: Vec<glam::Quat> = match &inst.rotation {
         None => vec![glam::Quat::IDENTITY; inst.count],
         Some(acc) => {
-            // Normalised integers: c / max, clamped at -1 (the glTF rule).
-            let size = match acc.data_type() {
-                DataType::I8 => 4,
-                DataType::I16 => 8,
-                _ => 16,
-            };
-            let component = |b: &[u8], k: usize| match size {
-                4 => (f32::from(b[k] as i8) / 127.0).max(-1.0),
-                8 => (f32::from(i16::from_le_bytes([b[2 * k], b[2 * k + 1]])) / 32767.0).max(-1.0),
-                _ => f32::from_le_bytes([b[4 * k], b[4 * k + 1], b[4 * k + 2], b[4 * k + 3]]),
-            };
-            read_accessor(acc, size, buffers, "ROTATION")
+            // Float, or normalised bytes or shorts (checked by `gpu_instancing`).
+            let ty = acc.data_type();
+            let c = |b: &[u8], k: usize| component(ty, ty != DataType::F32, b, k);
+            read_accessor(acc, 4 * ty.size(), buffers, "ROTATION")
                 .map_err(&bad)?
                 .into_iter()
-                .map(|b| {
-                    glam::Quat::from_xyzw(
-                        component(b, 0),
-                        component(b, 1),
-                        component(b, 2),
-                        component(b, 3),
-                    )
-                })
+                .map(|b| glam::Quat::from_xyzw(c(b, 0), c(b, 1), c(b, 2), c(b, 3)))
                 .collect()
         }
     };
@@ -1478,32 +1463,9 @@ impl Vec3Format {
         3 * self.ty.size()
     }
 
-    /// One element (`size` little-endian bytes). Normalised integers map as glTF says: c / 127
-    /// clamped at -1, c / 255, c / 32767 clamped at -1, c / 65535; others are their value.
+    /// One element (`size` little-endian bytes; see [`component`]).
     fn decode(self, b: &[u8]) -> Vec3 {
-        use gltf::accessor::DataType;
-        let n = self.normalized;
-        let c = |k: usize| -> f32 {
-            match self.ty {
-                DataType::I8 => {
-                    let v = f32::from(b[k] as i8);
-                    if n { (v / 127.0).max(-1.0) } else { v }
-                }
-                DataType::U8 => {
-                    let v = f32::from(b[k]);
-                    if n { v / 255.0 } else { v }
-                }
-                DataType::I16 => {
-                    let v = f32::from(i16::from_le_bytes([b[2 * k], b[2 * k + 1]]));
-                    if n { (v / 32767.0).max(-1.0) } else { v }
-                }
-                DataType::U16 => {
-                    let v = f32::from(u16::from_le_bytes([b[2 * k], b[2 * k + 1]]));
-                    if n { v / 65535.0 } else { v }
-                }
-                _ => f32::from_le_bytes([b[4 * k], b[4 * k + 1], b[4 * k + 2], b[4 * k + 3]]),
-            }
-        };
+        let c = |k: usize| component(self.ty, self.normalized, b, k);
         Vec3::new(c(0), c(1), c(2))
     }
 
@@ -1519,6 +1481,27 @@ impl Vec3Format {
             .map(|b| self.decode(b))
             .collect())
     }
+}
+
+/// Component `k` of an accessor element `b` of type `ty` (little-endian; float32, or 8- or 16-bit
+/// integers). Normalised integers map as glTF says: c / 127 clamped at -1, c / 255, c / 32767
+/// clamped at -1, c / 65535; others are their value.
+fn component(ty: gltf::accessor::DataType, normalized: bool, b: &[u8], k: usize) -> f32 {
+    use gltf::accessor::DataType;
+    let (v, max) = match ty {
+        DataType::I8 => (f32::from(b[k] as i8), 127.0),
+        DataType::U8 => (f32::from(b[k]), 255.0),
+        DataType::I16 => (
+            f32::from(i16::from_le_bytes([b[2 * k], b[2 * k + 1]])),
+            32767.0,
+        ),
+        DataType::U16 => (
+            f32::from(u16::from_le_bytes([b[2 * k], b[2 * k + 1]])),
+            65535.0,
+        ),
+        _ => return f32::from_le_bytes([b[4 * k], b[4 * k + 1], b[4 * k + 2], b[4 * k + 3]]),
+    };
+    if normalized { (v / max).max(-1.0) } else { v }
 }
 
 /// The [`Vec3Format`] of `acc`, or [`GeomError::Unsupported`] naming `what` and its type.

@@ -1426,7 +1426,7 @@ fn gltf_crafted_counts_are_bounded() {
         Err(GeomError::SceneTooLarge { .. })
     ));
     // 20 000 instances of a mesh whose primitives each have a warning: one warning each.
-    let prims = vec![r#"{"attributes":{"POSITION":1},"targets":[{"POSITION":1}]}"#; 5].join(",");
+    let prims = [r#"{"attributes":{"POSITION":1},"targets":[{"POSITION":1}]}"#; 5].join(",");
     let warn = doc(
         &instanced(2),
         &format!(r#"{{"primitives":[{{"attributes":{{"POSITION":0}}}},{prims}],"weights":[1,1]}}"#),
