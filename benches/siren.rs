@@ -30,24 +30,22 @@ fn presets() -> Vec<(&'static str, SirenConfig)> {
     .collect()
 }
 
+/// The value variable `var` names (its `auto` when unset or empty).
+fn named<T: std::str::FromStr<Err = String> + Default>(var: &str) -> T {
+    match std::env::var(var).as_deref() {
+        Err(_) | Ok("") => T::default(),
+        Ok(name) => name.parse().unwrap_or_else(|e| panic!("{var}: {e}")),
+    }
+}
+
 /// The family `SIREN_BENCH_KERNELS` names.
 fn kernels() -> LayerKernels {
-    match std::env::var("SIREN_BENCH_KERNELS").as_deref() {
-        Err(_) | Ok("") => LayerKernels::Auto,
-        Ok(name) => name
-            .parse()
-            .unwrap_or_else(|e| panic!("SIREN_BENCH_KERNELS: {e}")),
-    }
+    named("SIREN_BENCH_KERNELS")
 }
 
 /// The register blocks `SIREN_BENCH_TILED_BLOCK` names.
 fn tiled_block() -> TiledBlock {
-    match std::env::var("SIREN_BENCH_TILED_BLOCK").as_deref() {
-        Err(_) | Ok("") => TiledBlock::Auto,
-        Ok(name) => name
-            .parse()
-            .unwrap_or_else(|e| panic!("SIREN_BENCH_TILED_BLOCK: {e}")),
-    }
+    named("SIREN_BENCH_TILED_BLOCK")
 }
 
 /// The training step `SIREN_BENCH_TRAIN_STEP` names.

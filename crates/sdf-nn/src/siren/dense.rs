@@ -83,14 +83,22 @@ impl std::str::FromStr for LayerKernels {
 
     /// A [`LayerKernels::name`].
     fn from_str(s: &str) -> Result<Self, String> {
-        Self::ALL
-            .into_iter()
-            .find(|k| k.name() == s)
-            .ok_or_else(|| {
-                let names: Vec<&str> = Self::ALL.iter().map(|k| k.name()).collect();
-                format!("unknown kernels {s:?}: expected {}", names.join(", "))
-            })
+        by_name(s, &Self::ALL, Self::name, "kernels")
     }
+}
+
+/// The one of `all` whose `name` is `s`, or an error that lists the names (`what`: what they
+/// name).
+fn by_name<T: Copy>(
+    s: &str,
+    all: &[T],
+    name: fn(T) -> &'static str,
+    what: &str,
+) -> Result<T, String> {
+    all.iter().copied().find(|&k| name(k) == s).ok_or_else(|| {
+        let names: Vec<&str> = all.iter().map(|&k| name(k)).collect();
+        format!("unknown {what} {s:?}: expected {}", names.join(", "))
+    })
 }
 
 /// The register block of each invocation of the tiled GEMM ([`LayerKernels::Tiled`], and
@@ -160,13 +168,7 @@ impl std::str::FromStr for TiledBlock {
 
     /// A [`TiledBlock::name`].
     fn from_str(s: &str) -> Result<Self, String> {
-        Self::ALL
-            .into_iter()
-            .find(|k| k.name() == s)
-            .ok_or_else(|| {
-                let names: Vec<&str> = Self::ALL.iter().map(|k| k.name()).collect();
-                format!("unknown tiled block {s:?}: expected {}", names.join(", "))
-            })
+        by_name(s, &Self::ALL, Self::name, "tiled block")
     }
 }
 
