@@ -1147,9 +1147,9 @@ fn node_matrix(path: &Path, node: &gltf::Node) -> Result<Mat4, GeomError> {
 /// A node's `EXT_mesh_gpu_instancing`: its mesh is drawn `count` times, each with the
 /// translation, rotation and scale of its index in these accessors (absent: none).
 struct GpuInstancing<'a> {
-    translation: Option<gltf::Accessor<'a>>,
+    translation: Option<(gltf::Accessor<'a>, Vec3Format)>,
     rotation: Option<gltf::Accessor<'a>>,
-    scale: Option<gltf::Accessor<'a>>,
+    scale: Option<(gltf::Accessor<'a>, Vec3Format)>,
     count: usize,
 }
 
@@ -1212,13 +1212,15 @@ fn gpu_instancing<'a>(
         ),
     };
     // Float, or with KHR_mesh_quantization 8- or 16-bit integers.
-    for (name, acc) in [("TRANSLATION", &translation), ("SCALE", &scale)] {
-        if let Some(acc) = acc
-            && Vec3Format::of(acc).is_none()
-        {
-            return Err(unsupported(name, acc));
-        }
-    }
+    let with_format = |name: &str, acc: Option<gltf::Accessor<'a>>| match acc {
+        None => Ok(None),
+        Some(acc) => match Vec3Format::of(&acc) {
+            Some(format) => Ok(Some((acc, format))),
+            None => Err(unsupported(name, &acc)),
+        },
+    };
+    let translation = with_format("TRANSLATION", translation)?;
+    let scale = with_format("SCALE", scale)?;
     if let Some(acc) = &rotation {
         let ok_type = match acc.data_type() {
             DataType::F32 => true,
@@ -1230,11 +1232,15 @@ fn gpu_instancing<'a>(
         }
     }
     // Custom attributes (`_ID` and the like) count the instances too, even alone.
-    let mut counts: Vec<usize> = [&translation, &rotation, &scale]
-        .into_iter()
-        .flatten()
-        .map(|a| a.count())
-        .collect();
+    let mut counts: Vec<usize> = [
+        translation.as_ref().map(|(a, _)| a),
+        rotation.as_ref(),
+        scale.as_ref().map(|(a, _)| a),
+    ]
+    .into_iter()
+    .flatten()
+    .map(|a| a.count())
+    .collect();
     for name in attributes.keys() {
         if !matches!(name.as_str(), "TRANSLATION" | "ROTATION" | "SCALE")
             && let Some(acc) = accessor(name)?
@@ -1271,13 +1277,11 @@ fn instance_matrices(
         line: None,
         message: format!("node {node}: EXT_mesh_gpu_instancing: {message}"),
     };
-    let vec3s = |acc: &Option<gltf::Accessor>, what: &str, default: Vec3| match acc {
-        // Checked by `gpu_instancing`.
-        Some(acc) => match Vec3Format::of(acc) {
-            Some(format) => format.read(acc, buffers, what).map_err(&bad),
-            None => Err(bad(format!("{what} is not a VEC3 of a supported type"))),
-        },
-        None => Ok(vec![default; inst.count]),
+    let vec3s = |attribute: &Option<(gltf::Accessor, Vec3Format)>, what: &str, default: Vec3| {
+        match attribute {
+            Some((acc, format)) => format.read(acc, buffers, what).map_err(&bad),
+            None => Ok(vec![default; inst.count]),
+        }
     };
     let translations = vec3s(&inst.translation, "TRANSLATION", Vec3::ZERO)?;
     let scales = vec3s(&inst.scale, "SCALE", Vec3::ONE)?;
@@ -1458,6 +1462,17 @@ impl Vec3Format {
         })
     }
 
+    /// [`Vec3Format::of`], or what `what` (an attribute) has that is not one.
+    fn described(acc: &gltf::Accessor, what: &str) -> Result<Self, String> {
+        Self::of(acc).ok_or_else(|| {
+            format!(
+                "{what} accessor of type {:?} {:?} (only VEC3 of float32, or of 8- or 16-bit integers)",
+                acc.data_type(),
+                acc.dimensions()
+            )
+        })
+    }
+
     /// Bytes per element.
     fn size(self) -> usize {
         3 * self.ty.size()
@@ -1506,13 +1521,9 @@ fn component(ty: gltf::accessor::DataType, normalized: bool, b: &[u8], k: usize)
 
 /// The [`Vec3Format`] of `acc`, or [`GeomError::Unsupported`] naming `what` and its type.
 fn vec3_format(path: &Path, acc: &gltf::Accessor, what: &str) -> Result<Vec3Format, GeomError> {
-    Vec3Format::of(acc).ok_or_else(|| GeomError::Unsupported {
+    Vec3Format::described(acc, what).map_err(|feature| GeomError::Unsupported {
         path: path.to_path_buf(),
-        feature: format!(
-            "{what} accessor of type {:?} {:?} (only VEC3 of float32, or of 8- or 16-bit integers)",
-            acc.data_type(),
-            acc.dimensions()
-        ),
+        feature,
     })
 }
 
@@ -1554,13 +1565,7 @@ fn morph(
         if w == 0.0 {
             continue;
         }
-        let Some(format) = Vec3Format::of(&acc) else {
-            return Err(format!(
-                "morph target {t}: POSITION accessor of type {:?} {:?} (only VEC3 of float32, or of 8- or 16-bit integers)",
-                acc.data_type(),
-                acc.dimensions()
-            ));
-        };
+        let format = Vec3Format::described(&acc, &format!("morph target {t}: POSITION"))?;
         if acc.count() != positions.len() {
             return Err(format!(
                 "morph target {t}: {} POSITION displacements for {} vertices",
