@@ -18,7 +18,7 @@ use sdf_nn::{
 use serde::{Deserialize, Serialize};
 
 use crate::metrics::{EVAL_SEED, EvalSets, Scores};
-use crate::timing::{Latency, measure_latency_timed};
+use crate::timing::{Latency, WARM_UP, measure_latency_timed};
 
 /// Errors of a run. Each names what failed so a corpus run can record it and go on.
 #[derive(Debug, thiserror::Error)]
@@ -1077,6 +1077,7 @@ pub fn evaluate(
     let latency = measure_latency_timed(
         &sets.bbox.points,
         10,
+        WARM_UP,
         |p| model.eval_normalized(gpu, p),
         |p| model.eval_normalized_timed(gpu, p),
     )?;

@@ -7,7 +7,7 @@
 //!   without uploads, readbacks or the host. Resolving and reading the timestamps costs a second
 //!   readback, so those calls are never the ones the wall clock times.
 
-use std::time::Instant;
+use std::time::{Duration, Instant};
 
 use glam::Vec3;
 use serde::{Deserialize, Serialize};
@@ -18,6 +18,12 @@ pub const PER_POINT_BATCH: usize = 50_000;
 pub const LATENCY_BATCH: usize = 3_000;
 /// Minimum repetitions behind each median.
 pub const MIN_REPS: usize = 10;
+/// How long the reports keep the model busy before they time it. A GPU left idle lowers its
+/// clocks and raises them only under sustained load, so the first calls after a pause run
+/// several times slower than the rest (see BENCHMARKS "Latency after a warm-up"); steady
+/// state is what a caller that queries all the time sees, and what criterion's warm-up
+/// measures too.
+pub const WARM_UP: Duration = Duration::from_millis(500);
 
 /// Latency figures, medians over repetitions. The wall times and the GPU times come from
 /// separate calls (see the module docs).
@@ -51,10 +57,26 @@ pub fn median(mut xs: Vec<f64>) -> f64 {
     }
 }
 
-/// Median wall time in seconds of `reps` calls of `f`, after one untimed warm-up call (which
-/// pays for pipeline compilation and buffer creation).
-pub fn median_seconds<E>(reps: usize, mut f: impl FnMut() -> Result<(), E>) -> Result<f64, E> {
-    f()?;
+/// Calls `f` until `duration` has passed, at least once (the call that pays for pipeline
+/// compilation and buffer creation); returns the number of calls.
+pub fn warm_up<E>(duration: Duration, mut f: impl FnMut() -> Result<(), E>) -> Result<usize, E> {
+    let start = Instant::now();
+    let mut calls = 0;
+    while calls == 0 || start.elapsed() < duration {
+        f()?;
+        calls += 1;
+    }
+    Ok(calls)
+}
+
+/// Median wall time in seconds of `reps` calls of `f`, after untimed calls for `warm` (at
+/// least one, which pays for pipeline compilation and buffer creation).
+pub fn median_seconds<E>(
+    reps: usize,
+    warm: Duration,
+    mut f: impl FnMut() -> Result<(), E>,
+) -> Result<f64, E> {
+    warm_up(warm, &mut f)?;
     let mut times = Vec::with_capacity(reps);
     for _ in 0..reps.max(1) {
         let t = Instant::now();
@@ -66,24 +88,27 @@ pub fn median_seconds<E>(reps: usize, mut f: impl FnMut() -> Result<(), E>) -> R
 
 /// Measures `eval` (a batch evaluation returning one value per point) on the first
 /// [`PER_POINT_BATCH`] and [`LATENCY_BATCH`] of `points`, `reps` times each (at least
-/// [`MIN_REPS`]). `points` is cycled if shorter. Wall times only: the GPU fields are `None`
-/// (see [`measure_latency_timed`]).
+/// [`MIN_REPS`]), after evaluating the large batch for `warm` (the reports use [`WARM_UP`]).
+/// `points` is cycled if shorter. Wall times only: the GPU fields are `None` (see
+/// [`measure_latency_timed`]).
 pub fn measure_latency<E>(
     points: &[Vec3],
     reps: usize,
+    warm: Duration,
     eval: impl FnMut(&[Vec3]) -> Result<Vec<f32>, E>,
 ) -> Result<Latency, E> {
-    measure_latency_timed(points, reps, eval, |_| Ok((Vec::new(), None)))
+    measure_latency_timed(points, reps, warm, eval, |_| Ok((Vec::new(), None)))
 }
 
 /// [`measure_latency`] with kernel times too: the wall figures time `eval` (the plain public
 /// call), and `timed` (e.g. `NeuralSdf::eval_normalized_timed`, returning the batch's GPU time
 /// in nanoseconds where it can) is called separately, `reps` times per batch after a warm-up,
-/// for the GPU figures. A GPU figure is `None` unless every timed repetition of its batch
+/// for the GPU figures. Both follow `warm` of evaluations of the large batch. A GPU figure is `None` unless every timed repetition of its batch
 /// reported a time.
 pub fn measure_latency_timed<E>(
     points: &[Vec3],
     reps: usize,
+    warm: Duration,
     mut eval: impl FnMut(&[Vec3]) -> Result<Vec<f32>, E>,
     mut timed: impl FnMut(&[Vec3]) -> Result<(Vec<f32>, Option<u64>), E>,
 ) -> Result<Latency, E> {
@@ -92,8 +117,8 @@ pub fn measure_latency_timed<E>(
     let big = batch(PER_POINT_BATCH);
     let small = batch(LATENCY_BATCH);
     let reps = reps.max(MIN_REPS);
-    let per_batch = median_seconds(reps, || eval(&big).map(|_| ()))?;
-    let latency = median_seconds(reps, || eval(&small).map(|_| ()))?;
+    let per_batch = median_seconds(reps, warm, || eval(&big).map(|_| ()))?;
+    let latency = median_seconds(reps, Duration::ZERO, || eval(&small).map(|_| ()))?;
     // Kernel times: a warm-up call, then `reps` timed ones, per batch.
     let mut gpu_median = |pts: &[Vec3]| -> Result<Option<f64>, E> {
         timed(pts)?;
@@ -128,12 +153,13 @@ mod tests {
     #[test]
     fn latency_calls_eval_on_the_documented_batches() {
         let mut sizes = Vec::new();
-        let lat = measure_latency(&[Vec3::ZERO; 7], 3, |p| {
+        let lat = measure_latency(&[Vec3::ZERO; 7], 3, Duration::ZERO, |p| {
             sizes.push(p.len());
             Ok::<_, ()>(vec![0.0; p.len()])
         })
         .unwrap();
-        // One warm-up plus MIN_REPS timed calls of each size.
+        // One warm-up (Duration::ZERO still makes one call) plus MIN_REPS timed calls of each
+        // size.
         assert_eq!(
             sizes.iter().filter(|&&n| n == PER_POINT_BATCH).count(),
             MIN_REPS + 1
@@ -148,7 +174,10 @@ mod tests {
 
     #[test]
     fn untimed_latency_has_no_gpu_time() {
-        let lat = measure_latency(&[Vec3::ZERO], 1, |p| Ok::<_, ()>(vec![0.0; p.len()])).unwrap();
+        let lat = measure_latency(&[Vec3::ZERO], 1, Duration::ZERO, |p| {
+            Ok::<_, ()>(vec![0.0; p.len()])
+        })
+        .unwrap();
         assert_eq!(lat.gpu_per_point_ns, None);
         assert_eq!(lat.gpu_batch3000_us, None);
     }
@@ -162,6 +191,7 @@ mod tests {
         let lat = measure_latency_timed(
             &[Vec3::ONE; 3],
             1,
+            Duration::ZERO,
             |p| {
                 plain += 1;
                 Ok::<_, ()>(vec![0.0; p.len()])
@@ -197,6 +227,7 @@ mod tests {
         let lat = measure_latency_timed(
             &[Vec3::ZERO],
             1,
+            Duration::ZERO,
             |p| Ok::<_, ()>(vec![0.0; p.len()]),
             |p| {
                 calls += 1;
@@ -210,8 +241,30 @@ mod tests {
     }
 
     #[test]
+    fn warm_up_runs_for_its_duration_and_at_least_once() {
+        let mut calls = 0;
+        let count = || {
+            calls += 1;
+            Ok::<_, ()>(())
+        };
+        assert_eq!(warm_up(Duration::ZERO, count), Ok(1));
+        assert_eq!(calls, 1);
+        let start = Instant::now();
+        let n = warm_up(Duration::from_millis(30), || {
+            std::thread::sleep(Duration::from_millis(5));
+            Ok::<_, ()>(())
+        })
+        .unwrap();
+        assert!(start.elapsed() >= Duration::from_millis(30));
+        // Six calls of ≥ 5 ms reach 30 ms; fewer only if the sleeps overshoot.
+        assert!((1..=6).contains(&n), "{n} calls");
+    }
+
+    #[test]
     fn errors_propagate() {
-        let r = measure_latency(&[Vec3::ZERO], 1, |_| Err::<Vec<f32>, _>("boom"));
+        let r = measure_latency(&[Vec3::ZERO], 1, Duration::ZERO, |_| {
+            Err::<Vec<f32>, _>("boom")
+        });
         assert_eq!(r.unwrap_err(), "boom");
     }
 }

@@ -106,12 +106,9 @@ fn by_name<T: Copy>(
 /// 16 × 16 of these blocks.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash)]
 pub enum TiledBlock {
-    /// On GPUs, 8 × 8 for products that still make at least
-    /// [`TiledBlock::AUTO_LARGE_WORKGROUPS`] workgroups with it (about 17 000 rows and more
-    /// at width 256), 4 × 4 for smaller ones, whose fewer, larger workgroups would leave a
-    /// large GPU's cores idle. 8 × 8 for every product on CPU adapters, where it measured
-    /// faster at every size (lavapipe, width 256: 31 % less time at 50 000 points, 12 % less
-    /// per training step).
+    /// 4 × 4 on GPUs, 8 × 8 on CPU adapters: the block measured fastest for every product of
+    /// the `default` preset on each (H100: 8 × 8 took 19 % more time for 50 000 points of
+    /// inference and 36 % more per training step; lavapipe: 31 % and 12 % less).
     #[default]
     Auto,
     /// 4 × 4 (a 64 × 64 tile per workgroup; 8 KiB of workgroup memory).
@@ -134,10 +131,6 @@ impl TiledBlock {
         TiledBlock::Block4x8,
         TiledBlock::Block8x8,
     ];
-
-    /// Workgroups of 8 × 8 blocks a product must make for [`TiledBlock::Auto`] to give it
-    /// them on a GPU: two per multiprocessor of a 132-SM H100.
-    pub const AUTO_LARGE_WORKGROUPS: u32 = 264;
 
     /// The name the bench variables use: `auto`, `4x4`, `8x4`, `4x8` or `8x8`.
     pub fn name(self) -> &'static str {

@@ -123,10 +123,9 @@ impl GemmPipelines {
 /// The tiled kernels' pipelines.
 #[derive(Debug)]
 pub(crate) struct TiledKernels {
-    /// The GEMM's pipelines for the register blocks its [`TiledBlock`] may pick, smallest
-    /// first: the one it names, or for [`TiledBlock::Auto`] 4 × 4 and 8 × 8 on GPUs, the
-    /// larger of them that fits on CPUs.
-    gemms: Vec<GemmPipelines>,
+    /// The GEMM's pipelines for the register blocks its [`TiledBlock`] names (for
+    /// [`TiledBlock::Auto`], 4 × 4 on GPUs and 8 × 8 on CPUs).
+    gemms: GemmPipelines,
     /// The fused inference kernel's transposed weights, where the network fits it.
     fused: Option<FusedWeights>,
     /// Bound where a mode does not use a binding.
@@ -155,20 +154,14 @@ impl TiledKernels {
         block: TiledBlock,
     ) -> Result<Option<Self>, GpuError> {
         let limits = gpu.limits();
-        let mut blocks: Vec<(u32, u32)> = match block.blocks() {
-            Some(b) => vec![b],
-            None => vec![(1, 1), (2, 2)],
-        }
-        .into_iter()
-        .filter(|&b| gemm_workgroup_bytes(b) <= limits.max_compute_workgroup_storage_size)
-        .collect();
-        if block == TiledBlock::Auto && gpu.is_cpu() {
-            // CPUs: the largest block that fits, for every product (on lavapipe 8 × 8 beat
-            // 4 × 4 at every size measured), and a single pipeline, which lavapipe compiles at
-            // length.
-            blocks.drain(..blocks.len().saturating_sub(1));
-        }
-        if blocks.is_empty() || limits.max_compute_invocations_per_workgroup < INVOCATIONS {
+        let Some(blocks) = register_blocks(
+            block,
+            gpu.is_cpu(),
+            limits.max_compute_workgroup_storage_size,
+        ) else {
+            return Ok(None);
+        };
+        if limits.max_compute_invocations_per_workgroup < INVOCATIONS {
             return Ok(None);
         }
         let fused = match Self::fused_group_rows(gpu, cfg) {
@@ -176,10 +169,7 @@ impl TiledKernels {
             None => None,
         };
         Ok(Some(TiledKernels {
-            gemms: blocks
-                .into_iter()
-                .map(|b| GemmPipelines::new(gpu, b))
-                .collect::<Result<_, _>>()?,
+            gemms: GemmPipelines::new(gpu, blocks)?,
             fused,
             dummy: gpu.storage_zeroed("siren tiled dummy", 16)?,
             dummy_rw: gpu.storage_zeroed("siren tiled dummy rw", 16)?,
@@ -307,8 +297,7 @@ impl TiledKernels {
         } else {
             1
         };
-        let candidates: Vec<(u32, u32)> = self.gemms.iter().map(|g| g.blocks).collect();
-        let gemms = &self.gemms[pick_block(&candidates, u.m, u.n, z)];
+        let gemms = &self.gemms;
         let pipeline = if mode >= 5 || matches!(epilogue, TiledEpilogue::WeightGradientPairs) {
             &gemms.gemm_ror
         } else {
@@ -385,17 +374,24 @@ fn workgroups((mb, nb): (u32, u32), m: u32, n: u32) -> u32 {
         .max(1)
 }
 
-/// Which of `candidates` (register blocks, smallest first) runs an `m` × `n` product of
-/// `splits` splits: the largest that still makes [`TiledBlock::AUTO_LARGE_WORKGROUPS`]
-/// workgroups, else the smallest.
-fn pick_block(candidates: &[(u32, u32)], m: u32, n: u32, splits: u32) -> usize {
-    (0..candidates.len())
-        .rev()
-        .find(|&i| {
-            workgroups(candidates[i], m, n).saturating_mul(splits)
-                >= TiledBlock::AUTO_LARGE_WORKGROUPS
-        })
-        .unwrap_or(0)
+/// The GEMM's register blocks `(MB, NB)` for `block` on a CPU or GPU adapter with
+/// `workgroup_bytes` of workgroup memory, or `None` where not even 4 × 4 fits.
+///
+/// [`TiledBlock::Auto`] is 4 × 4 on GPUs and 8 × 8 on CPUs, each measured fastest for every
+/// product of the `default` preset there (BENCHMARKS "Tiled GEMM register blocks"): on an H100,
+/// 8 × 8 took 19 % more time for 50 000 points of inference and 36 % more per training step
+/// (its fewer, larger workgroups keep fewer warps in flight per multiprocessor); on lavapipe it
+/// took 31 % and 12 % less. Auto falls back to 4 × 4 where 8 × 8's tiles do not fit; a forced
+/// block that does not fit gives `None`.
+fn register_blocks(block: TiledBlock, cpu: bool, workgroup_bytes: u32) -> Option<(u32, u32)> {
+    let candidates = match block.blocks() {
+        Some(forced) => vec![forced],
+        None if cpu => vec![(2, 2), (1, 1)],
+        None => vec![(1, 1)],
+    };
+    candidates
+        .into_iter()
+        .find(|&b| gemm_workgroup_bytes(b) <= workgroup_bytes)
 }
 
 impl FusedWeights {
@@ -458,22 +454,27 @@ struct TiledUniforms {
 mod tests {
     use super::*;
 
-    /// The default preset's products (width 256) under `TiledBlock::Auto` on a GPU.
     #[test]
-    fn auto_gives_large_products_the_large_block() {
-        let auto = [(1, 1), (2, 2)];
-        // Inference at 50 000 points: 391 × 2 workgroups of 8 × 8.
-        assert_eq!(pick_block(&auto, 50_000, 256, 1), 1);
-        // The tangent step at 10⁴ points (40 000 rows): 313 × 2.
-        assert_eq!(pick_block(&auto, 40_000, 256, 1), 1);
-        // Reverse over reverse at 10⁴ points: 79 × 2 = 158 with 8 × 8, so 4 × 4 (628).
-        assert_eq!(pick_block(&auto, 10_000, 256, 1), 0);
-        // A 256 × 256 weight gradient in 10 splits: 40 with 8 × 8.
-        assert_eq!(pick_block(&auto, 256, 256, 10), 0);
-        // ... in 70 splits: 280.
-        assert_eq!(pick_block(&auto, 256, 256, 70), 1);
-        // A forced block is the only candidate.
-        assert_eq!(pick_block(&[(2, 1)], 1, 1, 1), 0);
+    fn auto_blocks_are_the_measured_ones_and_fit() {
+        let (gpu, cpu) = (false, true);
+        let room = 48 * 1024;
+        assert_eq!(register_blocks(TiledBlock::Auto, gpu, room), Some((1, 1)));
+        assert_eq!(register_blocks(TiledBlock::Auto, cpu, room), Some((2, 2)));
+        // A forced block is kept on either adapter.
+        assert_eq!(
+            register_blocks(TiledBlock::Block8x4, gpu, room),
+            Some((2, 1))
+        );
+        assert_eq!(
+            register_blocks(TiledBlock::Block4x4, cpu, room),
+            Some((1, 1))
+        );
+        // Too little workgroup memory for 8 × 8 falls back to 4 × 4, and for 4 × 4 to none.
+        let small = gemm_workgroup_bytes((1, 1));
+        assert!(gemm_workgroup_bytes((2, 2)) > small);
+        assert_eq!(register_blocks(TiledBlock::Auto, cpu, small), Some((1, 1)));
+        assert_eq!(register_blocks(TiledBlock::Block8x8, gpu, small), None);
+        assert_eq!(register_blocks(TiledBlock::Auto, gpu, small - 1), None);
         // Degenerate shapes still dispatch one workgroup.
         assert_eq!(workgroups((2, 2), 0, 0), 1);
         assert_eq!(workgroups((1, 2), 129, 65), 3);
