@@ -100,7 +100,8 @@ fn presets() -> Vec<(&'static str, NglodConfig)> {
     .collect()
 }
 
-/// A submit of one 40-byte copy and its readback through a persistent mappable buffer.
+/// A submit of one 40-byte copy and its readback through a persistent mappable buffer, waited
+/// for by `GpuContext::wait` and by a plain blocking wait.
 fn empty_roundtrip(c: &mut Criterion, gpu: &GpuContext) {
     let src = gpu.storage_zeroed("bench src", 40).unwrap();
     let staging = readback_buffer(gpu, "bench staging", 40);
@@ -112,6 +113,23 @@ fn empty_roundtrip(c: &mut Criterion, gpu: &GpuContext) {
         b.iter(|| {
             let enc = gpu.device().create_command_encoder(&Default::default());
             submit_and_read(gpu, enc, &src, &staging)
+        })
+    });
+    // The same with a plain blocking wait, as `GpuContext::wait` did before it polled first
+    // (`SPIN_WAIT`): how much of the round trip is the blocking wait's wake-up.
+    g.bench_function("empty_blocking", |b| {
+        b.iter(|| {
+            let mut enc = gpu.device().create_command_encoder(&Default::default());
+            enc.copy_buffer_to_buffer(&src, 0, &staging, 0, staging.size());
+            gpu.queue().submit([enc.finish()]);
+            let slice = staging.slice(..);
+            slice.map_async(wgpu::MapMode::Read, |r| r.unwrap());
+            gpu.device()
+                .poll(wgpu::PollType::wait_indefinitely())
+                .unwrap();
+            let v: Vec<f32> = bytemuck::pod_collect_to_vec(&slice.get_mapped_range().unwrap());
+            staging.unmap();
+            v
         })
     });
     g.finish();

@@ -36,7 +36,7 @@ pub mod siren;
 
 pub use adam::{Adam, AdamConfig, AdamCpu, AdamState};
 pub use embed::{EmbedError, SdfBindGroup};
-pub use gpu::{GpuContext, GpuError, GpuOptions};
+pub use gpu::{GpuContext, GpuError, GpuOptions, SPIN_WAIT};
 pub use model_file::{ModelFile, ModelFileError, Normalization};
 pub use neural::{NeuralSdf, NeuralSdfError};
 pub use nglod::{

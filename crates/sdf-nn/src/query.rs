@@ -196,6 +196,11 @@ impl MapSlot {
         self.changed.notify_all();
     }
 
+    /// Whether the requested mapping's callback has not run yet.
+    fn is_pending(&self) -> bool {
+        matches!(*self.lock(), MapState::Pending)
+    }
+
     /// Asks for `slice` to be mapped for `mode`, the callback settling this slot.
     fn request(self: &Arc<Self>, slice: wgpu::BufferSlice<'_>, mode: wgpu::MapMode) {
         self.set(MapState::Pending);
@@ -513,12 +518,19 @@ impl QueryBuffers {
         let view = if bytes == 0 {
             None
         } else {
-            gpu.device()
-                .poll(wgpu::PollType::Wait {
-                    submission_index: Some(ticket.submission),
-                    timeout: None,
-                })
+            // Polling until the mapping's callback has run answers small queries sooner than
+            // a blocking wait wakes up ([`crate::SPIN_WAIT`]); longer work falls through to it.
+            let mapped = gpu
+                .spin_until(|_| !self.map.is_pending())
                 .map_err(|e| error(e.to_string()))?;
+            if !mapped {
+                gpu.device()
+                    .poll(wgpu::PollType::Wait {
+                        submission_index: Some(ticket.submission),
+                        timeout: None,
+                    })
+                    .map_err(|e| error(e.to_string()))?;
+            }
             // The submission is done; its callback may still be running on another thread.
             self.map.settle(gpu.device()).map_err(error)?;
             self.map.set(MapState::Mapped);
