@@ -398,6 +398,9 @@ fn fused_kernel_weights_follow_the_parameters() {
     g.set_layer_kernels(gpu, LayerKernels::Tiled).unwrap();
     let pts = sdf_geom::sample::uniform_box(203, 31);
     assert!(g.runs_fused(gpu, pts.len() as u32));
+    // Every batch on GPUs by default; up to DEFAULT_FUSED_MAX_POINTS on CPU adapters.
+    assert_eq!(g.runs_fused(gpu, 50_000), !gpu.is_cpu());
+    assert!(g.runs_fused(gpu, sdf_nn::siren::DEFAULT_FUSED_MAX_POINTS));
     let worst = worst_value_error(&mut g, &net, &pts);
     eprintln!("fused {cfg:?}: |ΔΦ| ≤ {worst:e}");
     assert!(worst < 1e-6, "fused: {worst:e}");

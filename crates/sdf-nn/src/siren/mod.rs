@@ -31,7 +31,7 @@ pub mod ror;
 pub mod train;
 
 pub use dense::{LayerKernels, TiledBlock};
-pub use gpu::{SirenGpu, SirenGpuError};
+pub use gpu::{DEFAULT_FUSED_MAX_POINTS, SirenGpu, SirenGpuError};
 pub use ror::TrainStep;
 pub use train::{LossTerms, LossWeights, SirenTrainConfig, SirenTrainer, TrainError};
 
