@@ -183,18 +183,6 @@ run() {
     export CRITERION_HOME="$res/criterion"
     export SIREN_BENCH_PRESETS=${GPU_COMPARE_PRESETS:-small,default}
     local stages=",${GPU_COMPARE_STAGES:-checks,bench,coop,blocks,torch,fit,corpus},"
-    local b
-    for b in benches/*; do
-        [[ $stages == *,bench,* ]] || break
-        local name
-        name=$(basename "$b")
-        case "$name" in
-            siren | nglod | query*) ;;
-            *) continue ;;
-        esac
-        echo "== bench $name"
-        "$b" --bench 2>&1 | tee "$res/bench-$name.txt"
-    done
     if [[ $stages == *,checks,* ]]; then
         # Kernels designed on lavapipe meet a real GPU here: other subgroup sizes, real
         # parallelism within a workgroup, other limits. Figures from kernels that fail their
@@ -214,6 +202,18 @@ run() {
             } | tee -a "$res/checks.txt"
         done
     fi
+    local b
+    for b in benches/*; do
+        [[ $stages == *,bench,* ]] || break
+        local name
+        name=$(basename "$b")
+        case "$name" in
+            siren | nglod | query*) ;;
+            *) continue ;;
+        esac
+        echo "== bench $name"
+        "$b" --bench 2>&1 | tee "$res/bench-$name.txt"
+    done
     if [[ $stages == *,coop,* ]]; then
         if grep -q 'cooperative matrices (f32 accumulators): none' "$res/gpu-info.txt"; then
             echo "== no f16 cooperative matrices on this adapter: coop stage skipped" | tee "$res/coop-missing.txt"
