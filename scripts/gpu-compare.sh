@@ -128,7 +128,7 @@ pack() {
 }
 
 find_vulkan() {
-    if ldconfig -p 2>/dev/null | grep -q 'libvulkan\.so\.1'; then
+    if ldconfig -p 2>/dev/null | grep 'libvulkan\.so\.1' >/dev/null; then
         return 0
     fi
     local debs=("$dir"/debs/*.deb "$dir"/../.gl/*.deb)
@@ -138,7 +138,7 @@ find_vulkan() {
         echo "== no Vulkan loader: unpacking the packed Debian packages"
         for f in "${debs[@]}"; do [ -e "$f" ] && dpkg -x "$f" /; done
         ldconfig
-        ldconfig -p | grep -q 'libvulkan\.so\.1' && return 0
+        ldconfig -p | grep 'libvulkan\.so\.1' >/dev/null && return 0
     fi
     cat >&2 <<'EOF'
 No Vulkan loader (libvulkan.so.1) on this host. Either install it
