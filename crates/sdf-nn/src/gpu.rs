@@ -13,6 +13,7 @@
 use std::borrow::Cow;
 use std::collections::HashMap;
 use std::fmt;
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Mutex, OnceLock};
 use std::time::{Duration, Instant};
 
@@ -163,11 +164,12 @@ struct PipelineKey {
     constants: Vec<(String, u64)>,
 }
 
-/// How long a wait for the GPU polls without blocking before it blocks (GPUs only). A
-/// blocking wait wakes up late: on an H100 through Vulkan an empty submit and readback took
-/// 62.7 µs blocking and 25.9 µs polling (BENCHMARKS "The query path"), which is most of a
-/// small query's wall time. Work that runs longer than this gets the blocking wait, so a long
-/// training step spins for at most this long per wait.
+/// How long a wait for the GPU polls without blocking before it blocks, by default (GPUs
+/// only; [`GpuContext::set_spin_wait`] changes it). A blocking wait wakes up late: on an H100
+/// through Vulkan an empty submit and readback took 62.7 µs blocking and 25.9 µs polling
+/// (BENCHMARKS "The query path"), which is most of a small query's wall time. Work that runs
+/// longer than this gets the blocking wait, so a long training step spins for at most this
+/// long per wait.
 pub const SPIN_WAIT: Duration = Duration::from_millis(2);
 
 /// One device and queue, the adapter they came from, and every pipeline compiled on them.
@@ -183,6 +185,8 @@ pub struct GpuContext {
     /// The side of the square f16 × f16 → f32 cooperative-matrix tiles the device runs (16 or
     /// 8; tensor cores), if any.
     coop_tile: Option<u32>,
+    /// How long a wait polls before it blocks, in nanoseconds ([`GpuContext::set_spin_wait`]).
+    spin_wait_ns: AtomicU64,
 }
 
 impl fmt::Debug for GpuContext {
@@ -388,6 +392,7 @@ impl GpuContext {
             pipelines: Mutex::new(HashMap::new()),
             max_dispatch,
             coop_tile,
+            spin_wait_ns: AtomicU64::new(SPIN_WAIT.as_nanos() as u64),
         })
     }
 
@@ -626,8 +631,22 @@ impl GpuContext {
         Ok(out)
     }
 
+    /// How long a wait polls without blocking before it blocks (default [`SPIN_WAIT`]; CPU
+    /// adapters never poll so).
+    pub fn spin_wait(&self) -> Duration {
+        Duration::from_nanos(self.spin_wait_ns.load(Ordering::Relaxed))
+    }
+
+    /// Sets [`GpuContext::spin_wait`] for every wait on this context from now on:
+    /// [`Duration::ZERO`] blocks at once, for an application that would rather give the core
+    /// to other work than have results a few tens of microseconds sooner.
+    pub fn set_spin_wait(&self, spin: Duration) {
+        let ns = u64::try_from(spin.as_nanos()).unwrap_or(u64::MAX);
+        self.spin_wait_ns.store(ns, Ordering::Relaxed);
+    }
+
     /// Blocks until all submitted work has finished: on GPUs it polls without blocking for up
-    /// to [`SPIN_WAIT`] first (see there), then blocks.
+    /// to [`GpuContext::spin_wait`] first (see [`SPIN_WAIT`]), then blocks.
     pub fn wait(&self) -> Result<(), GpuError> {
         let error = |e: wgpu::PollError| GpuError::Readback {
             label: "device".into(),
@@ -646,13 +665,15 @@ impl GpuContext {
     }
 
     /// Polls the device without blocking (which runs the callbacks of finished work) until
-    /// `done` holds for a poll's status, for at most [`SPIN_WAIT`]; `Ok(false)` when time ran
-    /// out, and at once on CPU adapters, whose driver needs the cores a spinning thread takes.
+    /// `done` holds for a poll's status, for at most [`GpuContext::spin_wait`]; `Ok(false)`
+    /// when time ran out, and at once on CPU adapters, whose driver needs the cores a spinning
+    /// thread takes.
     pub(crate) fn spin_until(
         &self,
         mut done: impl FnMut(wgpu::PollStatus) -> bool,
     ) -> Result<bool, wgpu::PollError> {
-        if self.is_cpu() {
+        let spin = self.spin_wait();
+        if self.is_cpu() || spin.is_zero() {
             return Ok(false);
         }
         let start = Instant::now();
@@ -660,7 +681,7 @@ impl GpuContext {
             if done(self.device.poll(wgpu::PollType::Poll)?) {
                 return Ok(true);
             }
-            if start.elapsed() >= SPIN_WAIT {
+            if start.elapsed() >= spin {
                 return Ok(false);
             }
             std::hint::spin_loop();

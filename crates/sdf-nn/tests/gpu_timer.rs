@@ -1,9 +1,10 @@
 //! GPU time from timestamp queries ([`GpuTimer`]): a timed NGLOD or SIREN evaluation returns exactly the
 //! values of the untimed one, and a GPU time above zero and within the wall time around the call,
 //! also when the input is split over several dispatches and through [`NeuralSdf`]. Skips (prints
-//! and passes) on adapters without timestamp queries. One test binary, one shared device.
+//! and passes) on adapters without timestamp queries. One test binary, one shared device. Also
+//! how results are waited for: [`GpuContext::set_spin_wait`] changes when, never what.
 
-use std::time::Instant;
+use std::time::{Duration, Instant};
 
 use glam::Vec3;
 use rand::{Rng, SeedableRng};
@@ -140,4 +141,24 @@ fn timed_siren_eval_matches_untimed_and_is_within_wall_time() {
         assert!(ns > 0 && ns <= wall, "GPU time {ns} ns, wall {wall} ns");
         eprintln!("SIREN {max_per_launch:?}: {ns} ns on the GPU, {wall} ns wall");
     }
+}
+
+/// Blocking at once, or polling for as long as the work takes, gives the same values; the
+/// setting reads back (a duration past u64 nanoseconds saturates).
+#[test]
+fn the_spin_wait_changes_when_results_arrive_not_what_they_are() {
+    let gpu = GpuContext::shared().expect("a GPU adapter (lavapipe in CI)");
+    assert_eq!(gpu.spin_wait(), sdf_nn::SPIN_WAIT);
+    let net = NglodGpu::new(gpu, &model(), ScatterMode::Auto).unwrap();
+    let pts = points(3000, 11);
+    let spun = net.eval(gpu, &pts, None).unwrap();
+    gpu.set_spin_wait(Duration::ZERO);
+    assert_eq!(gpu.spin_wait(), Duration::ZERO);
+    let blocked = net.eval(gpu, &pts, None).unwrap();
+    gpu.set_spin_wait(Duration::MAX);
+    assert_eq!(gpu.spin_wait(), Duration::from_nanos(u64::MAX));
+    let polled = net.eval(gpu, &pts, None).unwrap();
+    gpu.set_spin_wait(sdf_nn::SPIN_WAIT);
+    assert_eq!(bits(&spun), bits(&blocked));
+    assert_eq!(bits(&spun), bits(&polled));
 }
