@@ -53,18 +53,30 @@ fn normalized_buffers(gpu: &GpuContext, sdf: &NeuralSdf, n: usize) -> QueryBuffe
 }
 
 /// Copies the start of `src` into the whole of the mappable `staging` at the end of `enc`,
-/// submits, and reads `staging` back: the readback every row of this bench ends with.
+/// submits, and reads `staging` back after `GpuContext::wait`: the readback every row of this
+/// bench ends with.
 fn submit_and_read(
+    gpu: &GpuContext,
+    enc: wgpu::CommandEncoder,
+    src: &wgpu::Buffer,
+    staging: &wgpu::Buffer,
+) -> Vec<f32> {
+    submit_and_read_after(gpu, enc, src, staging, || gpu.wait().unwrap())
+}
+
+/// [`submit_and_read`], waiting for the submission with `wait`.
+fn submit_and_read_after(
     gpu: &GpuContext,
     mut enc: wgpu::CommandEncoder,
     src: &wgpu::Buffer,
     staging: &wgpu::Buffer,
+    wait: impl FnOnce(),
 ) -> Vec<f32> {
     enc.copy_buffer_to_buffer(src, 0, staging, 0, staging.size());
     gpu.queue().submit([enc.finish()]);
     let slice = staging.slice(..);
     slice.map_async(wgpu::MapMode::Read, |r| r.unwrap());
-    gpu.wait().unwrap();
+    wait();
     let v: Vec<f32> = bytemuck::pod_collect_to_vec(&slice.get_mapped_range().unwrap());
     staging.unmap();
     v
@@ -119,17 +131,12 @@ fn empty_roundtrip(c: &mut Criterion, gpu: &GpuContext) {
     // (`SPIN_WAIT`): how much of the round trip is the blocking wait's wake-up.
     g.bench_function("empty_blocking", |b| {
         b.iter(|| {
-            let mut enc = gpu.device().create_command_encoder(&Default::default());
-            enc.copy_buffer_to_buffer(&src, 0, &staging, 0, staging.size());
-            gpu.queue().submit([enc.finish()]);
-            let slice = staging.slice(..);
-            slice.map_async(wgpu::MapMode::Read, |r| r.unwrap());
-            gpu.device()
-                .poll(wgpu::PollType::wait_indefinitely())
-                .unwrap();
-            let v: Vec<f32> = bytemuck::pod_collect_to_vec(&slice.get_mapped_range().unwrap());
-            staging.unmap();
-            v
+            let enc = gpu.device().create_command_encoder(&Default::default());
+            submit_and_read_after(gpu, enc, &src, &staging, || {
+                gpu.device()
+                    .poll(wgpu::PollType::wait_indefinitely())
+                    .unwrap();
+            })
         })
     });
     g.finish();

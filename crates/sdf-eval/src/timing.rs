@@ -103,8 +103,8 @@ pub fn measure_latency<E>(
 /// [`measure_latency`] with kernel times too: the wall figures time `eval` (the plain public
 /// call), and `timed` (e.g. `NeuralSdf::eval_normalized_timed`, returning the batch's GPU time
 /// in nanoseconds where it can) is called separately, `reps` times per batch after a warm-up,
-/// for the GPU figures. Both follow `warm` of evaluations of the large batch. A GPU figure is `None` unless every timed repetition of its batch
-/// reported a time.
+/// for the GPU figures. Both follow `warm` of evaluations of the large batch. A GPU figure is
+/// `None` unless every timed repetition of its batch reported a time.
 pub fn measure_latency_timed<E>(
     points: &[Vec3],
     reps: usize,
