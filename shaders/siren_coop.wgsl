@@ -1,27 +1,30 @@
 // SIREN inference on cooperative matrices (`LayerKernels::CoopF16`: tensor cores from WGSL),
 // in one dispatch. Appended to a tile file (`siren_coop_16x16.wgsl`, `siren_coop_8x8.wgsl`)
 // that enables f16 and cooperative matrices and defines the tile types CA, CB, CC, their side
-// T, the activation buffer size ACT and the number of scratch SLOTS.
+// T, the activation buffer size ACT and the most subgroups a workgroup may have, SLOTS.
 //
-// A workgroup takes `group_rows` rows through every layer. A row is a point, or, with
+// A workgroup takes GROUP_ROWS = 4 T rows through every layer. A row is a point, or, with
 // tangents, one of a point's four rows: its value, then ∂/∂x, ∂/∂y, ∂/∂z (forward-mode input
 // gradient, as in `siren_tiled_fused.wgsl`; T is a multiple of 4, so a tile holds whole points).
 // - the first layer (3 → width) in f32 from the points, stored as f16 activations;
-// - each hidden layer as tiles of T points × T outputs: A = T points' activations (f16, row
-//   major in workgroup memory), B = T rows of ω0·W (f16, packed by `coop_pack`), accumulated
-//   in f32 over the width. The workgroup's SLOTS subgroups each take one tile at a time and
-//   store it to f32 scratch, then the whole workgroup adds ω0·b and takes the sine (value rows),
-//   or multiplies by the cosine of the value row's argument (tangent rows), and writes the f16
-//   activations of the next layer into the other half of `act`;
-// - the linear head in f32, one row per invocation (the bias only on value rows).
+// - each hidden layer as products of A = the group's activations (f16, row major in workgroup
+//   memory) and B = ω0·W (f16, packed by `coop_pack`), accumulated in f32 over the width.
+//   Subgroup s owns the output tiles of columns 2s and 2s + 1 for all four row tiles: eight
+//   accumulators in registers, so that each k step loads two B tiles from memory and four A
+//   tiles from workgroup memory for eight products (the previous design loaded one of each per
+//   product, and B once per tile of 16 points: it measured slower than f32 on the H100).
+//   With every accumulator of the layer in registers, the next layer's activations overwrite
+//   this layer's in place, so one activation buffer of 4 T rows fits beside the scratch.
+//   Each accumulator then goes through the subgroup's f32 scratch slot, where the subgroup's
+//   own lanes add ω0·b and take the sine (value rows), or multiply by the cosine of the value
+//   row's argument (tangent rows), and write the f16 activations;
+// - the linear head in f32, several invocations per row, summed through the scratch.
 // ω0 is folded into the packed weights so that tiny trained weights stay normal f16 numbers.
 
 struct Coop {
     // Rows in all: points, or 4 × points with tangents.
     rows: u32,
-    // A multiple of T with group_rows · act_stride ≤ ACT.
-    group_rows: u32,
-    // A multiple of T.
+    // A multiple of T, at most 2 T · SLOTS.
     width: u32,
     hidden_layers: u32,
     omega: f32,
@@ -29,8 +32,9 @@ struct Coop {
     // Floats per point in `points`: 3, or 12 with tangents (the point, then the unit axes).
     point_stride: u32,
     // f16s from one row of `act` to the next: the width plus a pad of 16 bytes, so that the
-    // rows of a tile start in different memory banks; group_rows · act_stride ≤ ACT.
+    // rows of a tile start in different memory banks; GROUP_ROWS · act_stride ≤ ACT.
     act_stride: u32,
+    _pad: u32,
 }
 
 @group(0) @binding(0) var<uniform> u: Coop;
@@ -45,9 +49,13 @@ struct Coop {
 // `packed`, written by `coop_pack`.
 @group(0) @binding(5) var<storage, read_write> packed_out: array<f16>;
 
-// A layer's input activations and its output, [row][feature] each, rows `act_stride` apart.
-var<workgroup> act: array<f16, 2u * ACT>;
-// The f32 products of the tiles in flight, T × T row major each.
+// Rows per workgroup: four row tiles, one per pair of accumulators.
+const GROUP_ROWS: u32 = 4u * T;
+
+// The group's activations, [row][feature], rows `act_stride` apart: a layer's input, then,
+// in place, its output.
+var<workgroup> act: array<f16, ACT>;
+// One T × T f32 tile per subgroup (row major), then the head's partial sums.
 var<workgroup> scratch: array<f32, SLOTS * T * T>;
 
 // Offset in `params` of hidden layer l ≥ 1's weights (its bias follows them).
@@ -55,8 +63,30 @@ fn hidden_offset(l: u32, w: u32) -> u32 {
     return 4u * w + (l - 1u) * (w * w + w);
 }
 
-// SLOTS subgroups: the host sets WG = SLOTS × the adapter's (fixed) subgroup size.
+// Subgroups of the workgroup: the host sets WG = ⌈tiles across the width / 2⌉ × the
+// adapter's (fixed) subgroup size.
 override WG: u32 = 256u;
+
+// Turns the accumulator of row tile `rt`, column tile `ct` into the next layer's activations
+// through subgroup `slot`'s scratch (`keep`: false for a subgroup's repeated last column tile,
+// whose tile another accumulator already wrote). Called by every subgroup the same number of
+// times, so the barriers stay in uniform control flow.
+fn finish_tile(acc: CC, slot: u32, lane: u32, lanes: u32, rt: u32, ct: u32, keep: bool, boff: u32) {
+    let s0 = slot * T * T;
+    coopStoreT(acc, &scratch[s0], T);
+    workgroupBarrier();
+    if keep {
+        for (var e = lane; e < T * T; e += lanes) {
+            let i = e / T;
+            let o = ct * T + e % T;
+            // A tangent row's value row is in the same tile, i % 4 rows up.
+            let j = select(0u, i % 4u, u.tangents != 0u);
+            let z = scratch[s0 + e - j * T] + u.omega * params[boff + o];
+            act[(rt * T + i) * u.act_stride + o] = f16(select(cos(z) * scratch[s0 + e], sin(z), j == 0u));
+        }
+    }
+    workgroupBarrier();
+}
 
 @compute @workgroup_size(WG)
 fn coop_forward(
@@ -64,22 +94,23 @@ fn coop_forward(
     @builtin(num_workgroups) nwg: vec3<u32>,
     @builtin(local_invocation_index) lid: u32,
     @builtin(subgroup_id) sg: u32,
+    @builtin(subgroup_invocation_id) lane: u32,
+    @builtin(subgroup_size) lanes: u32,
 ) {
     let group = wid.y * nwg.x + wid.x;
-    let first = group * u.group_rows;
+    let first = group * GROUP_ROWS;
     // Workgroup-uniform, so the barriers below stay in uniform control flow.
     if first >= u.rows {
         return;
     }
     let w = u.width;
     let ls = u.act_stride;
-    let gr = u.group_rows;
     let om = u.omega;
     let last = u.rows - 1u;
 
     // First layer, from the points (rows past the batch repeat its last row): z = ω0 (W0 x + b0)
     // gives sin(z) on a value row and cos(z) ω0 W0[o][j] on the tangent row of axis j.
-    for (var e = lid; e < gr * w; e += WG) {
+    for (var e = lid; e < GROUP_ROWS * w; e += WG) {
         let o = e % w;
         let row = min(first + e / w, last);
         let j = select(0u, row % 4u, u.tangents != 0u);
@@ -93,55 +124,80 @@ fn coop_forward(
     workgroupBarrier();
 
     let tiles_o = w / T;
-    let tiles = (gr / T) * tiles_o;
-    let rounds = (tiles + SLOTS - 1u) / SLOTS;
-    var acc = CC();
+    // This subgroup's two column tiles; past the width, the last one again (naga wants
+    // cooperative operations in uniform control flow: recompute rather than skip).
+    let c0 = min(2u * sg, tiles_o - 1u);
+    let c1 = min(2u * sg + 1u, tiles_o - 1u);
+    let keep0 = 2u * sg < tiles_o;
+    let keep1 = 2u * sg + 1u < tiles_o;
+    // Assigned, not declared, in the loop: naga hoists a declaration's initialiser.
+    var acc00 = CC();
+    var acc01 = CC();
+    var acc10 = CC();
+    var acc11 = CC();
+    var acc20 = CC();
+    var acc21 = CC();
+    var acc30 = CC();
+    var acc31 = CC();
     for (var l = 1u; l < u.hidden_layers; l++) {
-        let src = ((l - 1u) % 2u) * ACT;
-        let dst = (l % 2u) * ACT;
         let woff = (l - 1u) * w * w;
         let boff = hidden_offset(l, w) + w * w;
-        for (var r = 0u; r < rounds; r++) {
-            // Subgroup sg multiplies tile r·SLOTS + sg. naga wants cooperative operations in
-            // workgroup-uniform control flow, so a subgroup past the last tile recomputes it
-            // instead of skipping, and the epilogue ignores its slot.
-            let t = min(r * SLOTS + sg, tiles - 1u);
-            let a0 = src + (t / tiles_o) * T * ls;
-            let b0 = woff + (t % tiles_o) * T * w;
-            // Assigned, not declared, here: naga hoists a declaration's initialiser.
-            acc = CC();
-            for (var k = 0u; k < w; k += T) {
-                // A(i, kk) = act[a0 + i·ls + k + kk]; B(kk, j) = ω0·W[o0 + j][k + kk].
-                let a = coopLoadT<CA>(&act[a0 + k], ls);
-                let b = coopLoad<CB>(&packed[b0 + k], w);
-                acc = coopMultiplyAdd(a, b, acc);
-            }
-            coopStoreT(acc, &scratch[sg * T * T], T);
-            workgroupBarrier();
-            // The epilogue of every slot of this round, by the whole workgroup. A tangent row's
-            // value row is in the same tile, i % 4 rows up.
-            for (var e = lid; e < SLOTS * T * T; e += WG) {
-                let te = r * SLOTS + e / (T * T);
-                if te < tiles {
-                    let i = (e / T) % T;
-                    let o = (te % tiles_o) * T + e % T;
-                    let row = (te / tiles_o) * T + i;
-                    let j = select(0u, i % 4u, u.tangents != 0u);
-                    let z = scratch[e - j * T] + om * params[boff + o];
-                    act[dst + row * ls + o] = f16(select(cos(z) * scratch[e], sin(z), j == 0u));
-                }
-            }
-            workgroupBarrier();
+        let b0off = woff + c0 * T * w;
+        let b1off = woff + c1 * T * w;
+        acc00 = CC();
+        acc01 = CC();
+        acc10 = CC();
+        acc11 = CC();
+        acc20 = CC();
+        acc21 = CC();
+        acc30 = CC();
+        acc31 = CC();
+        for (var k = 0u; k < w; k += T) {
+            // A(i, kk) = act[(rt·T + i)·ls + k + kk]; B(kk, j) = ω0·W[c·T + j][k + kk].
+            let b0 = coopLoad<CB>(&packed[b0off + k], w);
+            let b1 = coopLoad<CB>(&packed[b1off + k], w);
+            var a = coopLoadT<CA>(&act[k], ls);
+            acc00 = coopMultiplyAdd(a, b0, acc00);
+            acc01 = coopMultiplyAdd(a, b1, acc01);
+            a = coopLoadT<CA>(&act[T * ls + k], ls);
+            acc10 = coopMultiplyAdd(a, b0, acc10);
+            acc11 = coopMultiplyAdd(a, b1, acc11);
+            a = coopLoadT<CA>(&act[2u * T * ls + k], ls);
+            acc20 = coopMultiplyAdd(a, b0, acc20);
+            acc21 = coopMultiplyAdd(a, b1, acc21);
+            a = coopLoadT<CA>(&act[3u * T * ls + k], ls);
+            acc30 = coopMultiplyAdd(a, b0, acc30);
+            acc31 = coopMultiplyAdd(a, b1, acc31);
         }
+        // Every subgroup has read this layer's activations: they may be overwritten.
+        workgroupBarrier();
+        finish_tile(acc00, sg, lane, lanes, 0u, c0, keep0, boff);
+        finish_tile(acc01, sg, lane, lanes, 0u, c1, keep1, boff);
+        finish_tile(acc10, sg, lane, lanes, 1u, c0, keep0, boff);
+        finish_tile(acc11, sg, lane, lanes, 1u, c1, keep1, boff);
+        finish_tile(acc20, sg, lane, lanes, 2u, c0, keep0, boff);
+        finish_tile(acc21, sg, lane, lanes, 2u, c1, keep1, boff);
+        finish_tile(acc30, sg, lane, lanes, 3u, c0, keep0, boff);
+        finish_tile(acc31, sg, lane, lanes, 3u, c1, keep1, boff);
     }
 
-    // The linear head, in f32; the bias only on value rows.
-    let fin = ((u.hidden_layers - 1u) % 2u) * ACT;
+    // The linear head, in f32: `parts` invocations per row sum every parts-th feature into
+    // the scratch, then one per row adds them up; the bias only on value rows.
     let hoff = hidden_offset(u.hidden_layers, w);
-    for (var r = lid; r < gr && first + r < u.rows; r += WG) {
+    let parts = max(WG / GROUP_ROWS, 1u);
+    for (var e = lid; e < GROUP_ROWS * parts; e += WG) {
+        let r = e / parts;
         var s = 0.0;
-        for (var k = 0u; k < w; k++) {
-            s = fma(f32(act[fin + r * ls + k]), params[hoff + k], s);
+        for (var k = e % parts; k < w; k += parts) {
+            s = fma(f32(act[r * ls + k]), params[hoff + k], s);
+        }
+        scratch[e] = s;
+    }
+    workgroupBarrier();
+    for (var r = lid; r < GROUP_ROWS && first + r < u.rows; r += WG) {
+        var s = 0.0;
+        for (var p = 0u; p < parts; p++) {
+            s += scratch[r * parts + p];
         }
         let value_row = u.tangents == 0u || (first + r) % 4u == 0u;
         values[first + r] = s + select(0.0, params[hoff + w], value_row);

@@ -1,6 +1,6 @@
 // The 16 × 16 tiles of `siren_coop.wgsl` (f16 × f16 → f32; NVIDIA tensor cores; AMD's drivers
 // report a range of subgroup sizes, which the host does not run these kernels on yet).
-// Workgroup memory: 2 × 16.5 KiB of activations and 8 KiB of scratch (41 KiB).
+// Workgroup memory: 33 KiB of activations (64 rows of width ≤ 256) and 8 KiB of scratch (41 KiB).
 enable f16;
 enable wgpu_cooperative_matrix;
 
@@ -9,7 +9,7 @@ alias CB = coop_mat16x16<f16, B>;
 alias CC = coop_mat16x16<f32, C>;
 // Side of a tile.
 const T: u32 = 16u;
-// f16 activations per buffer: 32 rows of width 256 (rows padded by 8).
-const ACT: u32 = 8448u;
-// Tiles multiplied at once: one per subgroup of 32 in a workgroup of 256.
+// f16 activations: 64 rows of width 256 (rows padded by 8).
+const ACT: u32 = 16896u;
+// Subgroups per workgroup at most: two column tiles each, 256 columns.
 const SLOTS: u32 = 8u;

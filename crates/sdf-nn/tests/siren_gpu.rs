@@ -189,7 +189,8 @@ fn test_data(name: &str) -> std::path::PathBuf {
 
 /// `LayerKernels::CoopF16` against the f64 reference where the adapter has f16 cooperative
 /// matrices (Mesa's lavapipe from 25.1 on: 8 × 8 tiles; NVIDIA and AMD GPUs: 16 × 16), with
-/// widths of one and several tiles, odd batches, a network uploaded after the first
+/// widths of one, two, three and 256 / tile tiles (an odd count leaves a subgroup's second
+/// column tile past the width), odd batches, a network uploaded after the first
 /// evaluation, and gradients (tangent rows). Elsewhere it says why it did nothing,
 /// unless `HWSDF_REQUIRE_COOP=1` (CI's Mesa 26 step), which makes that a failure.
 #[test]
@@ -198,7 +199,8 @@ fn coop_f16_inference_matches_cpu_reference() {
     let Some(tile) = coop_tile_or_skip(gpu) else {
         return;
     };
-    for (width, hidden_layers, seed) in [(16, 2, 1), (32, 3, 2), (256, 3, 3)] {
+    let t = tile as usize;
+    for (width, hidden_layers, seed) in [(t, 2, 1), (2 * t, 3, 2), (3 * t, 2, 4), (256, 4, 3)] {
         let cfg = SirenConfig {
             width,
             hidden_layers,

@@ -21,9 +21,9 @@ struct TileShape {
     shader: Shader,
     /// Side of a tile.
     tile: u32,
-    /// f16 activations per buffer (`ACT`).
+    /// f16 activations of a workgroup (`ACT`).
     act: u32,
-    /// Subgroups per workgroup, one tile each (`SLOTS`).
+    /// The most subgroups per workgroup, two column tiles each (`SLOTS`).
     slots: u32,
 }
 
@@ -33,22 +33,27 @@ impl TileShape {
             16 => Some(TileShape {
                 shader: shaders::SIREN_COOP_16,
                 tile,
-                act: 8448,
+                act: 16896,
                 slots: 8,
             }),
             8 => Some(TileShape {
                 shader: shaders::SIREN_COOP_8,
                 tile,
-                act: 4224,
-                slots: 32,
+                act: 8448,
+                slots: 16,
             }),
             _ => None,
         }
     }
 
-    /// Workgroup memory of the forward kernel: two activation buffers and the scratch.
+    /// Workgroup memory of the forward kernel: the activations and the scratch.
     fn workgroup_bytes(&self) -> u32 {
-        2 * self.act * 2 + self.slots * self.tile * self.tile * 4
+        self.act * 2 + self.slots * self.tile * self.tile * 4
+    }
+
+    /// Rows per workgroup (`GROUP_ROWS`): four row tiles.
+    fn group_rows(&self) -> u32 {
+        4 * self.tile
     }
 }
 
@@ -57,13 +62,13 @@ impl TileShape {
 #[derive(Clone, Copy, Debug, Default, bytemuck::Pod, bytemuck::Zeroable)]
 struct CoopUniforms {
     rows: u32,
-    group_rows: u32,
     width: u32,
     hidden_layers: u32,
     omega: f32,
     tangents: u32,
     point_stride: u32,
     act_stride: u32,
+    _pad: u32,
 }
 
 /// f16s of padding after each row of activations in workgroup memory (16 bytes: a tile's rows
@@ -74,8 +79,6 @@ const ACT_PAD: u32 = 8;
 #[derive(Debug)]
 pub(crate) struct CoopKernels {
     shape: TileShape,
-    /// Rows per workgroup (a multiple of the tile, so of 4: whole points with tangents).
-    group_rows: u32,
     forward: wgpu::ComputePipeline,
     /// Writes `packed` from the parameters; recorded before evaluations whenever they may
     /// have changed.
@@ -87,8 +90,8 @@ pub(crate) struct CoopKernels {
 impl CoopKernels {
     /// The kernels for `cfg` on `gpu`, or `None` where they do not apply: no f16 cooperative
     /// matrices, no fixed subgroup size, too little workgroup memory or too few invocations, a
-    /// width that is not a multiple of the tile or too wide for a tile of points, or no
-    /// hidden width × width layer.
+    /// width that is not a multiple of the tile or wider than the shader's activations
+    /// (256), or no hidden width × width layer.
     pub(crate) fn new(
         gpu: &GpuContext,
         cfg: &SirenConfig,
@@ -101,14 +104,17 @@ impl CoopKernels {
             return Ok(None);
         };
         let limits = gpu.limits();
-        let invocations = shape.slots * subgroup;
         let w = cfg.width as u32;
-        let group_rows = (shape.act / (w + ACT_PAD)) / shape.tile * shape.tile;
+        // A subgroup per two column tiles (the shader's eight accumulators).
+        let subgroups = (w / shape.tile).div_ceil(2);
+        let invocations = subgroups * subgroup;
         if limits.max_compute_workgroup_storage_size < shape.workgroup_bytes()
             || limits.max_compute_invocations_per_workgroup < invocations
             || limits.max_compute_workgroup_size_x < invocations
+            || w == 0
             || !w.is_multiple_of(shape.tile)
-            || group_rows == 0
+            || subgroups > shape.slots
+            || shape.group_rows() * (w + ACT_PAD) > shape.act
             || cfg.hidden_layers < 2
         {
             return Ok(None);
@@ -140,7 +146,6 @@ impl CoopKernels {
         );
         Ok(Some(CoopKernels {
             shape,
-            group_rows,
             forward,
             pack,
             packed,
@@ -180,16 +185,16 @@ impl CoopKernels {
             "siren coop uniforms",
             &CoopUniforms {
                 rows,
-                group_rows: self.group_rows,
                 width: cfg.width as u32,
                 hidden_layers: cfg.hidden_layers as u32,
                 omega: cfg.omega0,
                 tangents: u32::from(tangents),
                 point_stride: if tangents { 12 } else { 3 },
                 act_stride: cfg.width as u32 + ACT_PAD,
+                _pad: 0,
             },
         );
-        let (x, y) = gpu.dispatch_size(rows.div_ceil(self.group_rows).max(1));
+        let (x, y) = gpu.dispatch_size(rows.div_ceil(self.shape.group_rows()).max(1));
         Launch::new(
             gpu,
             &self.forward,
