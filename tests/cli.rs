@@ -263,9 +263,18 @@ fn ctrl_c_writes_a_checkpoint_that_resume_continues() {
         log.push('\n');
     }
     let status = child.wait().unwrap();
-    assert!(status.success(), "{log}");
+    // As a shell reports SIGINT: `train … && eval …` must not go on.
+    assert_eq!(status.code(), Some(130), "{log}");
     let checkpoint = out.with_extension("checkpoint.safetensors");
     assert!(log.contains("checkpoint written to"), "{log}");
+    // The command it prints continues the same run: every flag, its --out, the checkpoint.
+    let hint = format!(
+        "--eval-points 2000 --out {} --report {} --resume {}",
+        out.display(),
+        report.display(),
+        checkpoint.display()
+    );
+    assert!(log.contains(&hint), "{hint} not in\n{log}");
     assert!(checkpoint.exists(), "{log}");
     assert!(
         !out.exists(),
@@ -379,7 +388,10 @@ fn siren_loss_and_learning_rate_flags_reach_the_model_file() {
             .unwrap()
     };
     let o = train(&["--model", "siren", "--steps", "1", "--eikonal-weight=-1"]);
-    assert_clean_failure(&o, "loss weights");
+    assert_clean_failure(
+        &o,
+        "the eikonal loss weight must be finite and non-negative, not -1",
+    );
     let o = train(&["--model", "siren", "--steps", "1", "--lr", "0"]);
     assert_clean_failure(&o, "learning rate");
     let o = train(&["--model", "nglod", "--epochs", "1", "--lr", "0"]);

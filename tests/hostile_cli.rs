@@ -307,6 +307,23 @@ impl Fixtures {
             m.tensors[0].data[7] = v;
             add(name, m.to_bytes().unwrap());
         }
+        // Finite weights whose sums overflow f32: the model evaluates to ∞ or NaN everywhere.
+        let mut huge = plane.clone();
+        for t in &mut huge.tensors {
+            // The grids are stored as f16 (at most 65504), the MLP as f32.
+            let v = if t.name.starts_with("grids") {
+                6e4
+            } else {
+                3e38
+            };
+            t.data.iter_mut().for_each(|x| *x = v);
+        }
+        add("huge.safetensors", huge.to_bytes().unwrap());
+        // A model without a surface in its box: Φ ≥ 97 everywhere.
+        add(
+            "no_surface.safetensors",
+            plane_model_with_bias(100.0).to_bytes().unwrap(),
+        );
         // A 36 kB SIREN that claims width 4096 × 64 layers: 1.07 G parameters, 4.3 GB.
         let mut siren = Siren::new(SirenConfig::small(), 0)
             .unwrap()
@@ -379,6 +396,10 @@ impl Fixtures {
         add("negative_lr.checkpoint.safetensors", checkpoint(-1e-3, 0.0));
         add("nan_lr.checkpoint.safetensors", checkpoint(1e39, 0.0));
         add("negative_v.checkpoint.safetensors", checkpoint(1e-3, -1.0));
+        let mut done5: ModelFile =
+            ModelFile::from_bytes(&checkpoint(1e-3, 0.0), Path::new("done5")).unwrap();
+        done5.metadata.training["done"] = 5.into();
+        add("done5.checkpoint.safetensors", done5.to_bytes().unwrap());
 
         // Meshes that load today's readers must refuse.
         add("empty.obj", Vec::new());
@@ -438,6 +459,11 @@ fn identity() -> Normalization {
 }
 
 fn plane_model() -> ModelFile {
+    plane_model_with_bias(-2.3)
+}
+
+/// [`plane_model`] with another output bias: +100 puts the plane outside the box (no surface).
+fn plane_model_with_bias(bias: f32) -> ModelFile {
     let config = NglodConfig {
         resolutions: vec![4],
         feature_dim: 1,
@@ -450,7 +476,7 @@ fn plane_model() -> ModelFile {
     let mut params: Vec<f32> = (0..125)
         .map(|i| -1.0 + (i / 25) as f32 * 0.5 + 2.0)
         .collect();
-    params.extend_from_slice(&[1.0, 0.0, 1.0, -2.3]);
+    params.extend_from_slice(&[1.0, 0.0, 1.0, bias]);
     Nglod::from_params(config, params)
         .unwrap()
         .to_model_file(identity(), serde_json::json!({}))
@@ -660,6 +686,83 @@ fn cases() -> Vec<Case> {
             &["nan.safetensors", "cube.obj"],
             Error("finite"),
         ),
+        // Models that load but cannot be scored, shown or meshed.
+        case(
+            "eval overflowing weights",
+            "eval",
+            &["huge.safetensors", "cube.obj", "--points", "200"],
+            Error("finite distances"),
+        )
+        .gpu(),
+        case(
+            "render overflowing weights",
+            "render",
+            &["huge.safetensors", "--out", "h.png", "--size", "16x16"],
+            Error("finite distances"),
+        )
+        .gpu(),
+        case(
+            "extract a model without a surface",
+            "extract",
+            &[
+                "no_surface.safetensors",
+                "--resolution",
+                "8",
+                "--out",
+                "n.obj",
+            ],
+            Error("does not cross the box"),
+        )
+        .gpu(),
+        // Lengths and loss settings the checks must explain (negative numbers included: clap
+        // would call them unknown flags).
+        case(
+            "train --steps past the most",
+            "train",
+            &[
+                "cube.obj",
+                "--model",
+                "siren",
+                "--steps",
+                "18446744073709551615",
+            ],
+            Error("at most"),
+        ),
+        case(
+            "train --lr negative",
+            "train",
+            &["cube.obj", "--lr", "-0.5"],
+            Error("learning rate must be finite and positive, not -0.5"),
+        ),
+        case(
+            "train --alpha 0",
+            "train",
+            &["cube.obj", "--model", "siren", "--alpha", "0"],
+            Error("alpha, the sharpness"),
+        ),
+        case(
+            "train --eikonal-weight negative",
+            "train",
+            &["cube.obj", "--model", "siren", "--eikonal-weight", "-1"],
+            Error("eikonal loss weight must be finite and non-negative, not -1"),
+        ),
+        case(
+            "resume past the length asked",
+            "train",
+            &[
+                "cube.obj",
+                "--preset",
+                "small",
+                "--epochs",
+                "2",
+                "--resume",
+                "done5.checkpoint.safetensors",
+                "--out",
+                "m.safetensors",
+            ],
+            Error("has done 5 epochs already"),
+        )
+        .gpu(),
         // Checkpoint hyperparameters.
         case(
             "resume negative lr",
@@ -939,7 +1042,9 @@ fn cases() -> Vec<Case> {
                 "--out",
                 "m.safetensors",
             ],
-            Error("loss weights"),
+            Error(
+                "alpha, the sharpness of the off-surface term exp(−α|Φ|), must be finite and positive, not inf",
+            ),
         ),
         case(
             "train --steps 0",

@@ -70,6 +70,16 @@ fn extract(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
         ..ExtractOptions::new(args.resolution)
     };
     let (mesh, stats) = extract_mesh_with(&gpu, &model, &options)?;
+    if mesh.triangles.is_empty() {
+        // An empty OBJ would look like a result, and no loader takes it back.
+        return Err(format!(
+            "the model's surface does not cross the box at resolution {} ({} cells, {} distance \
+             evaluations): nothing to write (an untrained or diverged model, or a surface finer \
+             than the grid: try a higher --resolution)",
+            args.resolution, stats.cells, stats.evaluations
+        )
+        .into());
+    }
     hwsdf::geom::io::write_obj(&mesh, &args.out)
         .map_err(|e| format!("writing {}: {e}", args.out.display()))?;
     eprintln!(

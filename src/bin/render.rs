@@ -96,6 +96,13 @@ fn run(args: &Args) -> Result<(), String> {
 
     let gpu = GpuContext::new().map_err(|e| e.to_string())?;
     let start = std::time::Instant::now();
+    // A model whose sums overflow (NaN or ∞ everywhere) would sphere-trace every pixel to its
+    // step limit and save a blank image: refuse it, as `eval` and `extract` do.
+    let probe = probe_grid(PROBE_SIDE);
+    let values = sdf
+        .eval_normalized(&gpu, &probe)
+        .map_err(|e| e.to_string())?;
+    hwsdf::eval::run::finite_values(&probe, values).map_err(|e| e.to_string())?;
     let renderer = Renderer::new(&gpu, &sdf).map_err(|e| e.to_string())?;
     let image = renderer.render(&gpu, &options).map_err(|e| e.to_string())?;
     image.save_png(&args.out).map_err(|e| e.to_string())?;
@@ -114,4 +121,15 @@ fn run(args: &Args) -> Result<(), String> {
         args.out.display()
     );
     Ok(())
+}
+
+/// Points per axis of the grid a model is checked on before rendering.
+const PROBE_SIDE: usize = 8;
+
+/// A `side`³ grid over the normalised box [-1, 1]³, corners included.
+fn probe_grid(side: usize) -> Vec<glam::Vec3> {
+    let at = |i: usize| -1.0 + 2.0 * i as f32 / (side - 1) as f32;
+    (0..side * side * side)
+        .map(|i| glam::Vec3::new(at(i % side), at(i / side % side), at(i / (side * side))))
+        .collect()
 }

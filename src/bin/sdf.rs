@@ -44,7 +44,16 @@ fn run(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
     hwsdf::geom::io::check_outputs(&[&args.mesh, &args.points], &[&args.out])?;
     let t = Instant::now();
     let uris = LoadOptions::with_external_uris(args.allow_external_uris);
-    let (mesh, report) = load_mesh_with(&args.mesh, &uris)?;
+    // Name the mesh, as `train` and `eval` do: "the mesh has no triangles" alone says not which.
+    let in_mesh = |e: GeomError| {
+        let (mesh, e) = (args.mesh.display().to_string(), e.to_string());
+        if e.contains(&mesh) {
+            e
+        } else {
+            format!("mesh {mesh}: {e}")
+        }
+    };
+    let (mesh, report) = load_mesh_with(&args.mesh, &uris).map_err(in_mesh)?;
     for w in &report.warnings {
         eprintln!("warning: {}: {w}", args.mesh.display());
     }
@@ -64,7 +73,7 @@ fn run(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
         }
         .into());
     }
-    let sdf = SignedDistance::new(&mesh)?;
+    let sdf = SignedDistance::new(&mesh).map_err(in_mesh)?;
     let t_build = t.elapsed();
     let d = sdf.signed_distance_batch(&points);
     if args.verbose {

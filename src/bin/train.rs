@@ -7,6 +7,7 @@
 //! Ctrl-C stops after the current step (SIREN) or epoch (NGLOD) and saves what was learnt as a
 //! checkpoint next to the output; `--resume CHECKPOINT` continues from it.
 
+use std::ffi::OsString;
 use std::io::IsTerminal;
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
@@ -54,10 +55,15 @@ struct Args {
     training: TrainingFlags,
 }
 
+/// The exit status of a run stopped by Ctrl-C or SIGTERM (its checkpoint written), as a shell
+/// reports a process ended by SIGINT: `train … && eval …` must not go on.
+const INTERRUPTED: u8 = 130;
+
 fn main() -> ExitCode {
     let args = Args::parse();
     match train(&args) {
-        Ok(()) => ExitCode::SUCCESS,
+        Ok(Outcome::Finished) => ExitCode::SUCCESS,
+        Ok(Outcome::Interrupted) => ExitCode::from(INTERRUPTED),
         Err(e) => {
             eprintln!("error: {e}");
             ExitCode::FAILURE
@@ -65,7 +71,14 @@ fn main() -> ExitCode {
     }
 }
 
-fn train(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
+/// How a run without errors ended.
+enum Outcome {
+    Finished,
+    /// Stopped early; the checkpoint is written.
+    Interrupted,
+}
+
+fn train(args: &Args) -> Result<Outcome, Box<dyn std::error::Error>> {
     let model = match args.model {
         Model::Siren => ModelKind::Siren,
         Model::Nglod => ModelKind::Nglod,
@@ -146,11 +159,11 @@ fn train(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
                 eprintln!(
                     "\ninterrupted during the evaluation; the model is saved, no report written"
                 );
-                std::process::exit(130);
+                std::process::exit(INTERRUPTED.into());
             }
             if stop.swap(true, Ordering::Relaxed) {
                 // A second Ctrl-C means now.
-                std::process::exit(130);
+                std::process::exit(INTERRUPTED.into());
             }
             eprintln!("\nstopping after the current step; Ctrl-C again to abort without saving");
         })?;
@@ -171,7 +184,7 @@ fn train(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
     if trained.interrupted {
         trained.checkpoint().save(&checkpoint)?;
         eprintln!(
-            "interrupted after {} {}s; checkpoint written to {}. Continue with:\n  train {} --model {} --resume {}",
+            "interrupted after {} {}s; checkpoint written to {}. Continue with:\n  {}",
             trained.done,
             if model == ModelKind::Siren {
                 "step"
@@ -179,11 +192,9 @@ fn train(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
                 "epoch"
             },
             checkpoint.display(),
-            args.mesh.display(),
-            model.name(),
-            checkpoint.display()
+            resume_command(std::env::args_os(), &checkpoint)
         );
-        return Ok(());
+        return Ok(Outcome::Interrupted);
     }
 
     trained.file.save(&out)?;
@@ -193,7 +204,7 @@ fn train(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
     if stop.load(Ordering::Relaxed) {
         // Ctrl-C came after the last step but before the evaluation began.
         eprintln!("interrupted; the model is saved, no report written");
-        std::process::exit(130);
+        std::process::exit(INTERRUPTED.into());
     }
     let sdf = NeuralSdf::from_model_file(trained.file.clone())?;
     let eval = run::evaluate(&gpu, &sdf, &mesh, flags.eval_points)?;
@@ -228,7 +239,49 @@ fn train(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
         report.train_seconds
     );
     eprintln!("report written to {}", report_path.display());
-    Ok(())
+    Ok(Outcome::Finished)
+}
+
+/// The command that continues this run: its own arguments (every flag, `--out` and the preset
+/// included, so the resumed run trains and saves alike), any `--resume` replaced by
+/// `checkpoint`, each argument quoted for a POSIX shell where it needs to be.
+fn resume_command(argv: impl IntoIterator<Item = OsString>, checkpoint: &Path) -> String {
+    let mut argv = argv.into_iter();
+    let program = argv
+        .next()
+        .map(PathBuf::from)
+        .and_then(|p| p.file_name().map(|n| n.to_os_string()))
+        .unwrap_or_else(|| "train".into());
+    let mut words = vec![program];
+    let mut skip_value = false;
+    for a in argv {
+        if std::mem::take(&mut skip_value) {
+            continue;
+        }
+        match a.to_str() {
+            Some("--resume") => skip_value = true,
+            Some(s) if s.starts_with("--resume=") => {}
+            _ => words.push(a),
+        }
+    }
+    words.push("--resume".into());
+    words.push(checkpoint.as_os_str().to_os_string());
+    words
+        .iter()
+        .map(|w| shell_quote(&w.to_string_lossy()))
+        .collect::<Vec<_>>()
+        .join(" ")
+}
+
+/// `word` as one POSIX shell word: unchanged when it has only safe characters, else in single
+/// quotes (a `'` inside written as `'\''`).
+fn shell_quote(word: &str) -> String {
+    let safe = |c: char| c.is_ascii_alphanumeric() || "-_./=,:+@%".contains(c);
+    if !word.is_empty() && word.chars().all(safe) {
+        word.to_owned()
+    } else {
+        format!("'{}'", word.replace('\'', "'\\''"))
+    }
 }
 
 fn default_out(mesh: &Path, model: ModelKind) -> PathBuf {
@@ -287,5 +340,36 @@ impl Reporter {
         if let Some(bar) = self.bar.take() {
             bar.finish();
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_resume_command_keeps_every_flag_and_replaces_resume() {
+        let argv = [
+            "/usr/bin/train",
+            "my mesh.obj",
+            "--preset",
+            "small",
+            "--out",
+            "o/m.safetensors",
+            "--resume",
+            "old.ckpt",
+            "--resume=older.ckpt",
+            "--lr",
+            "1e-4",
+        ]
+        .map(OsString::from);
+        let got = resume_command(argv, Path::new("o/m.checkpoint.safetensors"));
+        assert_eq!(
+            got,
+            "train 'my mesh.obj' --preset small --out o/m.safetensors --lr 1e-4 \
+             --resume o/m.checkpoint.safetensors"
+        );
+        assert_eq!(shell_quote("it's"), "'it'\\''s'");
+        assert_eq!(shell_quote(""), "''");
     }
 }

@@ -86,6 +86,17 @@ pub enum RunError {
         /// What to do instead.
         hint: String,
     },
+    /// The model evaluates to NaN or ∞ somewhere (weights that overflow f32 in the sums):
+    /// nothing it predicts can be scored or shown.
+    #[error(
+        "the model evaluates to {value} at {point} (normalised coordinates): it does not give finite distances, so it cannot be scored"
+    )]
+    NonFiniteModel {
+        /// The first point with a non-finite value.
+        point: Vec3,
+        /// Its value.
+        value: f32,
+    },
     /// `--distance unsigned` with SIREN, whose loss (eikonal, normal alignment, the off-surface
     /// term pushing |Φ| up away from the surface) assumes a signed field.
     #[error(
@@ -96,6 +107,14 @@ pub enum RunError {
 }
 
 const GIB: f64 = (1u64 << 30) as f64;
+
+/// The most SIREN steps a run may ask for: a thousand times the default (about 4.5 hours on
+/// an H100), so that a mistyped length is refused instead of running for ever.
+pub const MAX_STEPS: usize = 10_000_000;
+
+/// The most NGLOD epochs a run may ask for: a thousand times the default (about 2 hours on an
+/// H100).
+pub const MAX_EPOCHS: usize = 100_000;
 
 /// Memory an evaluation holds per point of `--points` / `--eval-points`, in bytes: the two sets'
 /// points and truths, the Poisson-disk candidates of the near-surface set, predictions, and the
@@ -253,6 +272,13 @@ impl TrainOptions {
         let refuse = |why: &str| Err(RunError::Options(why.to_owned()));
         if self.steps == Some(0) || self.epochs == Some(0) {
             return refuse("--steps and --epochs must be at least 1");
+        }
+        if self.steps.is_some_and(|s| s > MAX_STEPS) || self.epochs.is_some_and(|e| e > MAX_EPOCHS)
+        {
+            return Err(RunError::Options(format!(
+                "--steps is at most {MAX_STEPS} and --epochs at most {MAX_EPOCHS} (a thousand \
+                 times the defaults: hours on a GPU)"
+            )));
         }
         match self.model {
             ModelKind::Siren => {
@@ -801,6 +827,19 @@ pub fn train(
         ModelKind::Siren => options.steps,
         ModelKind::Nglod => options.epochs,
     };
+    if let (Some(c), Some(asked)) = (resume, asked)
+        && asked < c.done()
+    {
+        let unit = match options.model {
+            ModelKind::Siren => "steps",
+            ModelKind::Nglod => "epochs",
+        };
+        return Err(RunError::Options(format!(
+            "the checkpoint has done {} {unit} already, more than the {asked} asked for: \
+             ask for more, or leave the length out to finish the run it planned",
+            c.done()
+        )));
+    }
     // A resumed run goes on to the length its first run planned.
     let total = asked
         .or_else(|| resume.and_then(Checkpoint::planned))
@@ -1058,10 +1097,11 @@ pub fn evaluate(
     })?;
     let sets = EvalSets::new(mesh, &sdf, points, EVAL_SEED);
     let unsigned = is_unsigned(model.model_file());
+    let predict = |p: &[Vec3]| finite_values(p, model.eval_normalized(gpu, p)?);
     let scores = if unsigned {
-        sets.score_unsigned(|p: &[Vec3]| model.eval_normalized(gpu, p))?
+        sets.score_unsigned(predict)?
     } else {
-        sets.score(|p: &[Vec3]| model.eval_normalized(gpu, p))?
+        sets.score(predict)?
     };
     let chamfer = if unsigned {
         let options = ExtractOptions::new(UNSIGNED_EXTRACT_RESOLUTION);
@@ -1087,6 +1127,18 @@ pub fn evaluate(
         eval_points: points,
         chamfer,
     })
+}
+
+/// `values` (of `points`), or [`RunError::NonFiniteModel`] at the first NaN or ∞: scores of
+/// such a model would count its NaNs as outside and say nothing true.
+pub fn finite_values(points: &[Vec3], values: Vec<f32>) -> Result<Vec<f32>, RunError> {
+    match values.iter().position(|v| !v.is_finite()) {
+        Some(i) => Err(RunError::NonFiniteModel {
+            point: points[i],
+            value: values[i],
+        }),
+        None => Ok(values),
+    }
 }
 
 /// Extracts the model's surface at `resolution` cells per axis, evaluating on the GPU, and

@@ -45,11 +45,13 @@ pub struct TrainingFlags {
     #[arg(long, default_value_t = DEFAULT_EVAL_POINTS)]
     pub eval_points: usize,
     /// Initial learning rate (default: 1e-4 for SIREN, 1e-3 for NGLOD).
-    #[arg(long)]
+    // The float flags take negative numbers, so that the checks say what is wrong with
+    // `--lr -1` (clap would read `-1` as an unknown flag).
+    #[arg(long, allow_negative_numbers = true)]
     pub lr: Option<f32>,
     /// NGLOD: final learning rate as a fraction of the first, by cosine decay over the run
     /// (default 0.1; 1 keeps it constant).
-    #[arg(long)]
+    #[arg(long, allow_negative_numbers = true)]
     pub lr_final: Option<f32>,
     /// NGLOD: progressive levels of detail, one more every this many epochs (0: all at once).
     #[arg(long)]
@@ -84,19 +86,19 @@ pub struct TrainingFlags {
     #[arg(long, help_heading = "NGLOD architecture")]
     pub hidden: Option<u32>,
     /// SIREN loss: weight of the on-surface |Φ| term (default 3000).
-    #[arg(long, help_heading = "SIREN loss")]
+    #[arg(long, help_heading = "SIREN loss", allow_negative_numbers = true)]
     pub surface_weight: Option<f32>,
     /// SIREN loss: weight of the off-surface exp(−α|Φ|) term (default 100).
-    #[arg(long, help_heading = "SIREN loss")]
+    #[arg(long, help_heading = "SIREN loss", allow_negative_numbers = true)]
     pub off_surface_weight: Option<f32>,
     /// SIREN loss: weight of the normal term 1 − cos(∇Φ, n) (default 100).
-    #[arg(long, help_heading = "SIREN loss")]
+    #[arg(long, help_heading = "SIREN loss", allow_negative_numbers = true)]
     pub normal_weight: Option<f32>,
     /// SIREN loss: weight of the eikonal term |‖∇Φ‖ − 1| (default 5; the SIREN code uses 50).
-    #[arg(long, help_heading = "SIREN loss")]
+    #[arg(long, help_heading = "SIREN loss", allow_negative_numbers = true)]
     pub eikonal_weight: Option<f32>,
     /// SIREN loss: sharpness α of the off-surface term (default 100).
-    #[arg(long, help_heading = "SIREN loss")]
+    #[arg(long, help_heading = "SIREN loss", allow_negative_numbers = true)]
     pub alpha: Option<f32>,
 }
 

@@ -123,13 +123,22 @@ impl LossWeights {
     /// Errors unless every weight is finite and non-negative and α finite and positive.
     pub fn validate(&self) -> Result<(), TrainError> {
         let w = self;
-        let weights = [w.surface, w.off_surface, w.normal, w.eikonal];
-        let usable = weights.iter().all(|x| x.is_finite() && *x >= 0.0)
-            && w.alpha.is_finite()
-            && w.alpha > 0.0;
-        if !usable {
+        for (name, x) in [
+            ("surface", w.surface),
+            ("off-surface", w.off_surface),
+            ("normal", w.normal),
+            ("eikonal", w.eikonal),
+        ] {
+            if !(x.is_finite() && x >= 0.0) {
+                return Err(TrainError::BadTrainConfig(format!(
+                    "the {name} loss weight must be finite and non-negative, not {x}"
+                )));
+            }
+        }
+        if !(w.alpha.is_finite() && w.alpha > 0.0) {
             return Err(TrainError::BadTrainConfig(format!(
-                "loss weights must be finite and non-negative, alpha positive: {w:?}"
+                "alpha, the sharpness of the off-surface term exp(−α|Φ|), must be finite and positive, not {}",
+                w.alpha
             )));
         }
         Ok(())
