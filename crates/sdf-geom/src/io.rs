@@ -9,7 +9,9 @@ use crate::Mesh;
 /// Writes `bytes` to `path` atomically: a temporary file with a random name, created exclusively
 /// (`O_EXCL`) in the target's folder, synced, then renamed over `path`. Readers see the old file
 /// or the new one, never a partial write; a link planted under a guessable temporary name cannot
-/// redirect the write, and on error the temporary file is removed.
+/// redirect the write, and on error the temporary file is removed. Through a symbolic link (a
+/// chain, or a dangling one) it writes the file the link leads to and keeps the link, as `cp`
+/// and a shell's `>` do.
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
     write_via_temp(path, bytes, true)
 }
@@ -22,15 +24,14 @@ pub fn create_atomic(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
 }
 
 fn write_via_temp(path: &Path, bytes: &[u8], replace: bool) -> std::io::Result<()> {
-    let dir = parent_dir(path);
-    let name = path.file_name().ok_or_else(|| {
-        std::io::Error::new(std::io::ErrorKind::InvalidInput, "path has no file name")
-    })?;
-    let mut prefix = std::ffi::OsString::from(".");
-    prefix.push(name);
-    prefix.push(".");
+    // Through a link, write its target and leave the link a link, as `cp` and `>` do.
+    let target =
+        write_target(path).map_err(|e| std::io::Error::new(std::io::ErrorKind::InvalidInput, e))?;
+    let dir = parent_dir(&target);
     let mut builder = tempfile::Builder::new();
-    builder.prefix(&prefix).suffix(".tmp");
+    // A short fixed prefix, not one built from the file name: the temporary must never need a
+    // longer name than the target, or a name [`check_outputs`] accepted would fail here.
+    builder.prefix(TEMP_PREFIX).suffix(".tmp");
     // tempfile creates files 0600; a model or a mesh is an ordinary file (0666 less the umask).
     #[cfg(unix)]
     builder.permissions(std::os::unix::fs::PermissionsExt::from_mode(0o666));
@@ -39,11 +40,59 @@ fn write_via_temp(path: &Path, bytes: &[u8], replace: bool) -> std::io::Result<(
     tmp.write_all(bytes)?;
     tmp.as_file().sync_all()?;
     if replace {
-        tmp.persist(path).map_err(|e| e.error)?;
+        tmp.persist(&target).map_err(|e| e.error)?;
     } else {
-        tmp.persist_noclobber(path).map_err(|e| e.error)?;
+        tmp.persist_noclobber(&target).map_err(|e| e.error)?;
     }
     Ok(())
+}
+
+/// How every temporary file of this module starts.
+const TEMP_PREFIX: &str = ".hwsdf-";
+
+/// The most links followed in a row, as Linux's own limit (`ELOOP`).
+const MAX_LINKS: usize = 40;
+
+/// The file a write to `path` creates or replaces: `path`, or where its chain of symbolic links
+/// ends (a target that does not exist yet is created). Relative targets are joined to the link's
+/// folder unnormalised, so the OS resolves `..` the way it does when following the link.
+fn write_target(path: &Path) -> Result<PathBuf, OutputPathError> {
+    let mut target = path.to_owned();
+    for _ in 0..=MAX_LINKS {
+        if target.file_name().is_none() {
+            return Err(OutputPathError::NoFileName(target));
+        }
+        // `x/` and `x/.` have the file name `x` but can only be folders.
+        if names_a_folder(&target) {
+            return Err(OutputPathError::FolderName(target));
+        }
+        match std::fs::symlink_metadata(&target) {
+            Ok(meta) if meta.file_type().is_symlink() => {}
+            // Not a link, or nothing there yet; or unreadable, which the checks after report.
+            _ => return Ok(target),
+        }
+        let link = std::fs::read_link(&target).map_err(|source| OutputPathError::ReadLink {
+            path: target.clone(),
+            source,
+        })?;
+        target = match target.parent() {
+            Some(dir) if !dir.as_os_str().is_empty() => dir.join(link),
+            _ => link,
+        };
+    }
+    Err(OutputPathError::LinkLoop(path.to_owned()))
+}
+
+/// Whether `path` ends with a separator or a `.` component.
+fn names_a_folder(path: &Path) -> bool {
+    let b = path.as_os_str().as_encoded_bytes();
+    let sep = |c: u8| std::path::is_separator(char::from(c));
+    match b {
+        [.., last] if sep(*last) => true,
+        [.., before, b'.'] => sep(*before),
+        [b'.'] => true,
+        _ => false,
+    }
 }
 
 /// The folder a file named by `path` lives in (`.` for a bare name).
@@ -97,6 +146,31 @@ pub enum OutputPathError {
     /// The output exists and is not a regular file (a folder, a FIFO, a device).
     #[error("cannot write {0}: it exists and is not a regular file")]
     NotAFile(PathBuf),
+    /// The path ends with `/` (or `/.`): it can only name a folder.
+    #[error("output {0} ends with '/' so it names a folder; give a file name")]
+    FolderName(PathBuf),
+    /// The file name is longer than the folder's filesystem allows (`NAME_MAX`, 255 bytes on
+    /// most): the final rename would fail after all the work.
+    #[error("cannot write {path}: file name too long ({len} bytes) for the filesystem of {dir}")]
+    NameTooLong {
+        /// The file that would be written (a link's target).
+        path: PathBuf,
+        /// Its file name's length in bytes.
+        len: usize,
+        /// Its folder.
+        dir: PathBuf,
+    },
+    /// The output is a symbolic link in a loop, or more than 40 links in a row.
+    #[error("cannot write {0}: too many levels of symbolic links (a link loop?)")]
+    LinkLoop(PathBuf),
+    /// A symbolic link on the output's way cannot be read.
+    #[error("cannot read the symbolic link {path}: {source}")]
+    ReadLink {
+        /// The link.
+        path: PathBuf,
+        /// The OS error.
+        source: std::io::Error,
+    },
 }
 
 /// Where a path leads: its canonical form, and for an existing file its device and inode (so
@@ -140,41 +214,45 @@ impl FileId {
 }
 
 /// Checks, before any work starts, that every output can be written and destroys nothing: its
-/// folder exists and accepts a new file, it is not an existing folder or special file, and it is
-/// not the same file as any input or as another output (canonical paths, and device and inode
-/// where the file exists).
+/// folder exists and accepts a new file with a name as long as the output's, it is not an
+/// existing folder or special file, and it is not the same file as any input or as another
+/// output (canonical paths, and device and inode where the file exists). An output that is a
+/// symbolic link is checked as the file it leads to, which is what [`write_atomic`] writes.
 pub fn check_outputs(inputs: &[&Path], outputs: &[&Path]) -> Result<(), OutputPathError> {
     let input_ids: Vec<(&Path, Option<FileId>)> =
         inputs.iter().map(|&p| (p, FileId::of(p))).collect();
     let mut seen: Vec<(&Path, FileId)> = Vec::new();
     for &out in outputs {
-        if out.file_name().is_none() {
-            return Err(OutputPathError::NoFileName(out.to_owned()));
-        }
-        let dir = parent_dir(out);
+        let target = write_target(out)?;
+        let dir = parent_dir(&target);
         if !dir.is_dir() {
             return Err(OutputPathError::MissingFolder {
                 path: out.to_owned(),
                 dir,
             });
         }
-        if let Ok(meta) = std::fs::metadata(out)
+        if let Ok(meta) = std::fs::metadata(&target)
             && !meta.is_file()
         {
             return Err(OutputPathError::NotAFile(out.to_owned()));
         }
-        // The only reliable test of writability is to create a file (ACLs, read-only mounts).
-        if let Err(source) = tempfile::Builder::new()
-            .prefix(".hwsdf-write-check.")
-            .tempfile_in(&dir)
-        {
+        // `write_target` returned a path with a file name.
+        let len = target.file_name().map_or(0, |n| n.len());
+        if let Err(source) = probe_folder(&dir, len) {
+            if source.kind() == std::io::ErrorKind::InvalidFilename {
+                return Err(OutputPathError::NameTooLong {
+                    path: target,
+                    len,
+                    dir,
+                });
+            }
             return Err(OutputPathError::NotWritable {
                 path: out.to_owned(),
                 dir,
                 source,
             });
         }
-        let Some(id) = FileId::of(out) else {
+        let Some(id) = FileId::of(&target) else {
             continue;
         };
         if let Some((input, _)) = input_ids
@@ -195,6 +273,19 @@ pub fn check_outputs(inputs: &[&Path], outputs: &[&Path]) -> Result<(), OutputPa
         seen.push((out, id));
     }
     Ok(())
+}
+
+/// Creates, then removes, a file in `dir` whose name is `name_len` bytes long (at least
+/// [`TEMP_PREFIX`] and six random characters). Only creating a file shows that the folder is
+/// writable (ACLs, read-only mounts) and that its filesystem takes a name that long; the name is
+/// random and created exclusively, so nothing is overwritten.
+fn probe_folder(dir: &Path, name_len: usize) -> std::io::Result<()> {
+    let random = name_len.saturating_sub(TEMP_PREFIX.len()).max(6);
+    tempfile::Builder::new()
+        .prefix(TEMP_PREFIX)
+        .rand_bytes(random)
+        .tempfile_in(dir)
+        .map(drop)
 }
 
 /// Reads a whole file that must be a regular file (not a FIFO, a device or a folder) of at most
@@ -366,8 +457,150 @@ mod tests {
             !e.unwrap()
                 .file_name()
                 .to_string_lossy()
-                .contains("write-check")
+                .starts_with(TEMP_PREFIX)
         }));
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    /// A file name of `len` bytes.
+    fn name_of_len(len: usize) -> String {
+        format!("{}.obj", "n".repeat(len - 4))
+    }
+
+    #[test]
+    fn a_name_too_long_for_the_filesystem_is_refused_before_any_work() {
+        // temp_dir() is on a filesystem with NAME_MAX 255 (ext4, tmpfs, xfs, btrfs).
+        let dir = scratch("long");
+        for len in [200, 250, 255] {
+            let out = dir.join(name_of_len(len));
+            assert!(check_outputs(&[], &[&out]).is_ok(), "{len} bytes");
+            // The temporary's name is short, so what the check accepts can be written.
+            write_atomic(&out, b"x").unwrap();
+            assert_eq!(std::fs::read(&out).unwrap(), b"x");
+        }
+        for len in [256, 300] {
+            let out = dir.join(name_of_len(len));
+            let err = check_outputs(&[], &[&out]).unwrap_err();
+            assert!(
+                matches!(&err, OutputPathError::NameTooLong { path, len: l, .. }
+                    if *path == out && *l == len),
+                "{err}"
+            );
+            assert!(err.to_string().contains("file name too long"), "{err}");
+            // The check agrees with the write itself.
+            assert!(write_atomic(&out, b"x").is_err());
+        }
+        // Only the three files written: no trial or temporary file left.
+        assert_eq!(std::fs::read_dir(&dir).unwrap().count(), 3);
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn a_path_ending_with_a_slash_is_refused() {
+        let dir = scratch("slash");
+        for out in ["x.obj/", "x.obj/."] {
+            let out = PathBuf::from(format!("{}/{out}", dir.display()));
+            assert!(
+                matches!(
+                    check_outputs(&[], &[&out]),
+                    Err(OutputPathError::FolderName(_))
+                ),
+                "{}",
+                out.display()
+            );
+            assert!(write_atomic(&out, b"x").is_err());
+        }
+        assert_eq!(std::fs::read_dir(&dir).unwrap().count(), 0);
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[cfg(unix)]
+    #[test]
+    fn writing_through_a_link_writes_its_target_and_keeps_the_link() {
+        use std::os::unix::fs::symlink;
+        let dir = scratch("link");
+        let real = dir.join("real.obj");
+        std::fs::write(&real, b"old").unwrap();
+        let link = dir.join("link.obj");
+        symlink("real.obj", &link).unwrap();
+        // A chain, with a target relative to the second link's own folder.
+        std::fs::create_dir(dir.join("sub")).unwrap();
+        let chain = dir.join("sub/chain.obj");
+        symlink("../link.obj", &chain).unwrap();
+        for (out, bytes) in [(&link, b"one"), (&chain, b"two")] {
+            check_outputs(&[], &[out]).unwrap();
+            write_atomic(out, bytes).unwrap();
+            assert_eq!(std::fs::read(&real).unwrap(), bytes);
+        }
+        assert_eq!(std::fs::read_link(&link).unwrap(), Path::new("real.obj"));
+        assert_eq!(
+            std::fs::read_link(&chain).unwrap(),
+            Path::new("../link.obj")
+        );
+        // The link's target exists, so creating through the link is refused.
+        let again = create_atomic(&link, b"three").unwrap_err();
+        assert_eq!(again.kind(), std::io::ErrorKind::AlreadyExists);
+        assert_eq!(std::fs::read(&real).unwrap(), b"two");
+        // Two outputs that reach the same file through links.
+        assert!(matches!(
+            check_outputs(&[], &[&real, &chain]),
+            Err(OutputPathError::SameOutput { .. })
+        ));
+        // real.obj, link.obj, sub: no temporary left.
+        assert_eq!(std::fs::read_dir(&dir).unwrap().count(), 3);
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[cfg(unix)]
+    #[test]
+    fn a_dangling_link_gets_its_target_created() {
+        use std::os::unix::fs::symlink;
+        let dir = scratch("dangling");
+        std::fs::create_dir(dir.join("sub")).unwrap();
+        let link = dir.join("link.obj");
+        symlink("sub/new.obj", &link).unwrap();
+        check_outputs(&[], &[&link]).unwrap();
+        write_atomic(&link, b"new").unwrap();
+        assert_eq!(std::fs::read(dir.join("sub/new.obj")).unwrap(), b"new");
+        assert!(
+            std::fs::symlink_metadata(&link)
+                .unwrap()
+                .file_type()
+                .is_symlink()
+        );
+        // create_atomic through a dangling link creates the target too.
+        let fresh = dir.join("fresh.obj");
+        symlink("sub/fresh.obj", &fresh).unwrap();
+        create_atomic(&fresh, b"fresh").unwrap();
+        assert_eq!(std::fs::read(dir.join("sub/fresh.obj")).unwrap(), b"fresh");
+        // A link into a missing folder is checked as its target.
+        let lost = dir.join("lost.obj");
+        symlink("missing/x.obj", &lost).unwrap();
+        assert!(matches!(
+            check_outputs(&[], &[&lost]),
+            Err(OutputPathError::MissingFolder { .. })
+        ));
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[cfg(unix)]
+    #[test]
+    fn a_link_loop_is_an_error_not_a_hang() {
+        use std::os::unix::fs::symlink;
+        let dir = scratch("loop");
+        let (a, b, own) = (dir.join("a.obj"), dir.join("b.obj"), dir.join("own.obj"));
+        symlink("b.obj", &a).unwrap();
+        symlink("a.obj", &b).unwrap();
+        symlink("own.obj", &own).unwrap();
+        for out in [&a, &own] {
+            assert!(matches!(
+                check_outputs(&[], &[out]),
+                Err(OutputPathError::LinkLoop(_))
+            ));
+            assert!(write_atomic(out, b"x").is_err());
+        }
+        // Nothing but the three links.
+        assert_eq!(std::fs::read_dir(&dir).unwrap().count(), 3);
         std::fs::remove_dir_all(&dir).unwrap();
     }
 
