@@ -68,7 +68,9 @@ pub enum GeomError {
         /// Its coordinates.
         position: [f32; 3],
     },
-    /// A triangle refers to a vertex that does not exist.
+    /// A triangle of a mesh built in memory ([`crate::Mesh::from_raw`]) refers to a vertex that
+    /// does not exist. Files have their own variants, which say where the index is written:
+    /// [`GeomError::ObjIndexOutOfRange`] and [`GeomError::GltfIndexOutOfRange`].
     #[error(
         "triangle {triangle} uses vertex index {index}, but there are only {vertex_count} vertices"
     )]
@@ -79,6 +81,69 @@ pub enum GeomError {
         index: u64,
         /// Number of vertices available.
         vertex_count: usize,
+    },
+    /// An OBJ face refers to a vertex that does not exist: a positive index beyond the vertices
+    /// its object ends with, or a negative (relative) one reaching before the first vertex.
+    #[error(
+        "{path}: line {line}: face {face} uses {}vertex index {index}, but {}",
+        if *.index < 0 { "relative " } else { "" },
+        if *.index < 0 {
+            format!("only {} vertices come before it", .vertex_count)
+        } else {
+            format!("there are only {} vertices", .vertex_count)
+        }
+    )]
+    ObjIndexOutOfRange {
+        /// The file.
+        path: PathBuf,
+        /// 1-based line of the face.
+        line: usize,
+        /// Index of the face among the file's faces (0-based).
+        face: usize,
+        /// The index as written: 1-based, or negative to count back from the last vertex read.
+        index: i64,
+        /// Vertices it may refer to: those read before the face for a negative index, else
+        /// those defined when its object ends.
+        vertex_count: usize,
+    },
+    /// A glTF primitive's indices refer to a vertex beyond its POSITION accessor.
+    #[error(
+        "{path}: mesh {mesh}{} primitive {primitive}: triangle {triangle} uses vertex index {index}, but the primitive has only {vertex_count} vertices",
+        .mesh_name.as_ref().map(|n| format!(" ({n:?})")).unwrap_or_default()
+    )]
+    GltfIndexOutOfRange {
+        /// The file.
+        path: PathBuf,
+        /// glTF mesh index.
+        mesh: usize,
+        /// The mesh's name, if it has one.
+        mesh_name: Option<String>,
+        /// Primitive index within the mesh.
+        primitive: usize,
+        /// Index of the triangle within the primitive (after strips and fans are converted).
+        triangle: usize,
+        /// The offending index (into the primitive's vertices).
+        index: u32,
+        /// Number of vertices of the primitive (its POSITION accessor's count).
+        vertex_count: usize,
+    },
+    /// A glTF node's transform is unusable: a component that is not finite, a rotation that is
+    /// not a unit quaternion, a projective matrix, or a transform that (composed with its
+    /// ancestors' and, with `EXT_mesh_gpu_instancing`, its instances') is not finite or takes a
+    /// vertex to a non-finite position.
+    #[error(
+        "{path}: node {node}{}: {reason}",
+        .name.as_ref().map(|n| format!(" ({n:?})")).unwrap_or_default()
+    )]
+    NodeTransform {
+        /// The file.
+        path: PathBuf,
+        /// glTF node index.
+        node: usize,
+        /// The node's name, if it has one.
+        name: Option<String>,
+        /// What is wrong.
+        reason: String,
     },
     /// A glTF primitive uses a mode other than triangles, triangle strips or triangle fans.
     #[error(
@@ -103,14 +168,35 @@ pub enum GeomError {
         feature: String,
     },
     /// A buffer (e.g. a `.bin` file) referenced by a glTF file is missing or unreadable.
-    #[error("{gltf}: cannot read buffer {buffer}: {source}")]
+    #[error("{gltf}: buffer {index} (uri {uri:?}): cannot read {buffer}: {source}")]
     MissingBuffer {
         /// The glTF file.
         gltf: PathBuf,
+        /// Index of the buffer.
+        index: usize,
+        /// The URI as written in the file (truncated to 200 characters).
+        uri: String,
         /// The buffer file it refers to.
         buffer: PathBuf,
         /// The underlying I/O error.
         source: std::io::Error,
+    },
+    /// A glTF buffer's `uri` names something other than a regular file (its folder, a FIFO, a
+    /// device): refused unread, as [`GeomError::NotARegularFile`] is for the files given.
+    #[error(
+        "{gltf}: buffer {index} (uri {uri:?}): {buffer} is not a regular file (it is a {kind})"
+    )]
+    BufferNotARegularFile {
+        /// The glTF file.
+        gltf: PathBuf,
+        /// Index of the buffer.
+        index: usize,
+        /// The URI as written in the file (truncated to 200 characters).
+        uri: String,
+        /// Where the URI leads (after following symbolic links).
+        buffer: PathBuf,
+        /// What it is instead, e.g. `"directory"` or `"FIFO"`.
+        kind: &'static str,
     },
     /// A path given as a mesh, points file or glTF buffer is not a regular file (a directory, FIFO,
     /// device, socket): reading it could block forever or never end, so it is refused unread.

@@ -69,11 +69,13 @@ impl LoadOptions {
 /// [`GeomError::UnknownExtension`], [`GeomError::Io`] (missing or unreadable file),
 /// [`GeomError::NotARegularFile`], [`GeomError::FileTooLarge`],
 /// [`GeomError::Parse`] (also every failed glTF validation), [`GeomError::NoTriangles`],
-/// [`GeomError::NonFiniteVertex`], [`GeomError::IndexOutOfRange`],
+/// [`GeomError::NonFiniteVertex`], [`GeomError::ObjIndexOutOfRange`],
+/// [`GeomError::GltfIndexOutOfRange`], [`GeomError::NodeTransform`],
 /// [`GeomError::UnsupportedPrimitiveMode`] (glTF points and lines), [`GeomError::Unsupported`]
 /// (Draco, meshopt, positions of other types than float32 or 8- or 16-bit integers, and any
 /// required glTF extension other than appearance-only ones such as `KHR_materials_*`,
-/// `EXT_mesh_gpu_instancing` and `KHR_mesh_quantization`), [`GeomError::MissingBuffer`], [`GeomError::UriRefused`],
+/// `EXT_mesh_gpu_instancing` and `KHR_mesh_quantization`), [`GeomError::MissingBuffer`],
+/// [`GeomError::BufferNotARegularFile`], [`GeomError::UriRefused`],
 /// [`GeomError::SceneTooLarge`] and [`GeomError::ReaderPanic`].
 pub fn load_mesh(path: impl AsRef<Path>) -> Result<(Mesh, LoadReport), GeomError> {
     load_mesh_with(path, &LoadOptions::default())
@@ -472,15 +474,17 @@ fn obj_error(path: &Path, text: &str, err: tobj::LoadError) -> GeomError {
     let found = scan_obj(text, err == tobj::LoadError::FaceVertexOutOfBounds);
     if err == tobj::LoadError::FaceVertexOutOfBounds {
         if let Some(ScanIssue::IndexOutOfRange {
+            line,
             face,
             index,
             vertex_count,
-            ..
         }) = found
         {
-            return GeomError::IndexOutOfRange {
-                triangle: face,
-                index: index.unsigned_abs(),
+            return GeomError::ObjIndexOutOfRange {
+                path: path.to_path_buf(),
+                line,
+                face,
+                index,
                 vertex_count,
             };
         }
@@ -765,7 +769,8 @@ fn load_gltf(
     let mut files: HashMap<PathBuf, Rc<[u8]>> = HashMap::new();
     let mut buffers: Vec<Rc<[u8]>> = Vec::new();
     for buffer in doc.buffers() {
-        if !used[buffer.index()] {
+        let buffer_index = buffer.index();
+        if !used[buffer_index] {
             buffers.push(Rc::from(Vec::new()));
             continue;
         }
@@ -803,13 +808,26 @@ fn load_gltf(
                     match files.get(&key) {
                         Some(data) => data.clone(),
                         None => {
+                            // Name the glTF and the buffer, not only the file it leads to.
+                            let written = || uri.chars().take(200).collect();
                             let data: Rc<[u8]> = read_input_file(&file)
                                 .map_err(|e| match e {
                                     GeomError::Io { source, .. } => GeomError::MissingBuffer {
                                         gltf: path.to_path_buf(),
+                                        index: buffer_index,
+                                        uri: written(),
                                         buffer: file.clone(),
                                         source,
                                     },
+                                    GeomError::NotARegularFile { path: buffer, kind } => {
+                                        GeomError::BufferNotARegularFile {
+                                            gltf: path.to_path_buf(),
+                                            index: buffer_index,
+                                            uri: written(),
+                                            buffer,
+                                            kind,
+                                        }
+                                    }
                                     e => e,
                                 })?
                                 .into();
@@ -847,20 +865,43 @@ fn load_gltf(
             while let Some((node, parent)) = stack.pop() {
                 let local = node_matrix(path, &node)?;
                 let world = parent * local;
+                if !world.is_finite() {
+                    return Err(node_error(
+                        path,
+                        &node,
+                        "its transform composed with its ancestors' is not finite in float32"
+                            .into(),
+                    ));
+                }
                 if let Some(mesh) = node.mesh() {
                     let weights = node.weights().or_else(|| mesh.weights());
                     // The instances' transforms apply after the node's, and to its mesh only.
                     let worlds = match &instancing[node.index()] {
                         Some(inst) => instance_matrices(path, node.index(), inst, &buffers)?
                             .into_iter()
-                            .map(|m| world * m)
-                            .collect(),
+                            .enumerate()
+                            .map(|(i, m)| {
+                                let w = world * m;
+                                if w.is_finite() {
+                                    Ok(w)
+                                } else {
+                                    Err(node_error(
+                                        path,
+                                        &node,
+                                        format!(
+                                            "EXT_mesh_gpu_instancing instance {i} composed with the node's transform is not finite in float32"
+                                        ),
+                                    ))
+                                }
+                            })
+                            .collect::<Result<_, _>>()?,
                         None => vec![world],
                     };
                     for world in worlds {
                         report.instances += 1;
                         add_gltf_mesh(
                             path,
+                            Some(&node),
                             &mesh,
                             world,
                             weights.unwrap_or_default(),
@@ -889,6 +930,7 @@ fn load_gltf(
                 report.instances += 1;
                 add_gltf_mesh(
                     path,
+                    None,
                     &mesh,
                     Mat4::IDENTITY,
                     mesh.weights().unwrap_or_default(),
@@ -1024,6 +1066,10 @@ fn resolve_uri(
         uri: uri.chars().take(200).collect(),
         reason,
     };
+    // An empty reference means the document itself (and joined to the folder, the folder).
+    if uri.is_empty() {
+        return Err(refuse("it is empty"));
+    }
     // A URI scheme: letters, digits, `+`, `-`, `.` before a `:`. (A Windows drive letter looks like
     // one too, and is an absolute path anyway.)
     if let Some((scheme, _)) = uri.split_once(':') {
@@ -1102,19 +1148,32 @@ fn percent_decode(s: &str) -> String {
     String::from_utf8_lossy(&out).into_owned()
 }
 
-/// A node's local transform. glTF requires a unit quaternion and a matrix that decomposes into
-/// translation, rotation and scale; the `gltf` crate checks neither, and a quaternion of length 2
-/// would silently scale the mesh by 4. A quaternion within 1 % of unit length (rounded by an
-/// exporter) is normalised; anything else, and a projective matrix, is a parse error.
-fn node_matrix(path: &Path, node: &gltf::Node) -> Result<Mat4, GeomError> {
-    let bad = |message: String| GeomError::Parse {
+/// [`GeomError::NodeTransform`] for `node`.
+fn node_error(path: &Path, node: &gltf::Node, reason: String) -> GeomError {
+    GeomError::NodeTransform {
         path: path.to_path_buf(),
-        line: None,
-        message: format!("node {}: {message}", node.index()),
-    };
+        node: node.index(),
+        name: node.name().map(|n| n.chars().take(200).collect()),
+        reason,
+    }
+}
+
+/// A node's local transform. glTF requires finite numbers, a unit quaternion and a matrix that
+/// decomposes into translation, rotation and scale; the `gltf` crate checks none of them (a
+/// scale of 1e39 reads as infinity), and a quaternion of length 2 would silently scale the mesh
+/// by 4. A quaternion within 1 % of unit length (rounded by an exporter) is normalised; anything
+/// else, a non-finite number and a projective matrix are [`GeomError::NodeTransform`].
+fn node_matrix(path: &Path, node: &gltf::Node) -> Result<Mat4, GeomError> {
+    let bad = |reason: String| node_error(path, node, reason);
     match node.transform() {
         gltf::scene::Transform::Matrix { matrix } => {
             let m = Mat4::from_cols_array_2d(&matrix);
+            if !m.is_finite() {
+                return Err(bad(format!(
+                    "its matrix {:?} has a component that is not finite",
+                    m.to_cols_array()
+                )));
+            }
             let last = m.row(3);
             if (last - glam::Vec4::W).abs().max_element() > 1e-6 {
                 return Err(bad(format!(
@@ -1128,6 +1187,15 @@ fn node_matrix(path: &Path, node: &gltf::Node) -> Result<Mat4, GeomError> {
             rotation,
             scale,
         } => {
+            for (what, v) in [
+                ("translation", &translation[..]),
+                ("rotation", &rotation[..]),
+                ("scale", &scale[..]),
+            ] {
+                if v.iter().any(|x| !x.is_finite()) {
+                    return Err(bad(format!("its {what} {v:?} is not finite")));
+                }
+            }
             let q = glam::Quat::from_array(rotation);
             let len = q.length();
             if !(len - 1.0).abs().le(&0.01) {
@@ -1309,6 +1377,11 @@ fn instance_matrices(
         .zip(scales)
         .enumerate()
         .map(|(i, ((t, q), s))| {
+            if !(t.is_finite() && q.is_finite() && s.is_finite()) {
+                return Err(bad(format!(
+                    "instance {i}: translation {t}, rotation {q}, scale {s}: not all finite"
+                )));
+            }
             let len = q.length();
             if !(len - 1.0).abs().le(&tolerance) {
                 return Err(bad(format!(
@@ -1585,6 +1658,7 @@ fn morph(
 #[allow(clippy::too_many_arguments)]
 fn add_gltf_mesh(
     path: &Path,
+    node: Option<&gltf::Node>,
     mesh: &gltf::Mesh,
     world: Mat4,
     morph_weights: &[f32],
@@ -1694,6 +1768,24 @@ fn add_gltf_mesh(
         }
         let base = vertices.len();
         vertices.extend(local_positions.iter().map(|&p| world.transform_point3(p)));
+        // A finite transform can still overflow a finite vertex: blame the transform, not the
+        // vertex data (a non-finite position in the data is left for `clean` to report).
+        if let Some(node) = node
+            && let Some(i) =
+                (0..n).find(|&i| local_positions[i].is_finite() && !vertices[base + i].is_finite())
+        {
+            return Err(node_error(
+                path,
+                node,
+                format!(
+                    "its transform takes mesh {} primitive {} vertex {i} from {} to {}, which is not finite in float32",
+                    mesh.index(),
+                    prim.index(),
+                    local_positions[i],
+                    vertices[base + i]
+                ),
+            ));
+        }
         let local: Vec<[u32; 3]> = match mode {
             Mode::TriangleStrip => {
                 report.strips_fans_converted += 1;
@@ -1732,9 +1824,13 @@ fn add_gltf_mesh(
         for (k, t) in local.iter().enumerate() {
             for &i in t {
                 if i as usize >= n {
-                    return Err(GeomError::IndexOutOfRange {
-                        triangle: triangles.len() + k,
-                        index: i as u64,
+                    return Err(GeomError::GltfIndexOutOfRange {
+                        path: path.to_path_buf(),
+                        mesh: mesh.index(),
+                        mesh_name: mesh.name().map(|n| n.chars().take(200).collect()),
+                        primitive: prim.index(),
+                        triangle: k,
+                        index: i,
                         vertex_count: n,
                     });
                 }

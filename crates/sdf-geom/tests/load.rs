@@ -289,14 +289,27 @@ fn gltf_index_out_of_range() {
             ..Default::default()
         },
     );
-    match load_mesh(&p) {
-        Err(GeomError::IndexOutOfRange {
+    // Named by file, mesh and primitive; the triangle and index are the primitive's own.
+    let err = load_mesh(&p).unwrap_err();
+    match &err {
+        GeomError::GltfIndexOutOfRange {
+            mesh: 0,
+            mesh_name: None,
+            primitive: 0,
             index: 8,
             vertex_count: 8,
             triangle: 1,
-        }) => {}
-        other => panic!("expected IndexOutOfRange, got {other:?}"),
+            ..
+        } => {}
+        other => panic!("expected GltfIndexOutOfRange, got {other:?}"),
     }
+    assert_eq!(
+        err.to_string(),
+        format!(
+            "{}: mesh 0 primitive 0: triangle 1 uses vertex index 8, but the primitive has only 8 vertices",
+            p.display()
+        )
+    );
 }
 
 #[test]
@@ -401,18 +414,44 @@ fn obj_index_out_of_range() {
     let dir = temp_dir("oidx");
     let p = write(&dir, "idx.obj", format!("{TRI_OBJ}f 1 2 3\nf 1 2 7\n"));
     match load_mesh(&p) {
-        Err(GeomError::IndexOutOfRange {
+        Err(GeomError::ObjIndexOutOfRange {
             index: 7,
             vertex_count: 3,
-            triangle: 1,
+            face: 1,
+            line: 5,
+            ..
         }) => {}
-        other => panic!("expected IndexOutOfRange, got {other:?}"),
+        other => panic!("expected ObjIndexOutOfRange, got {other:?}"),
     }
+    // A relative index keeps its sign, and its line.
     let p = write(&dir, "neg.obj", format!("{TRI_OBJ}f -1 -2 -4\n"));
-    assert!(matches!(
-        load_mesh(&p),
-        Err(GeomError::IndexOutOfRange { index: 4, .. })
-    ));
+    let err = load_mesh(&p).unwrap_err();
+    assert!(
+        matches!(
+            err,
+            GeomError::ObjIndexOutOfRange {
+                index: -4,
+                line: 4,
+                face: 0,
+                vertex_count: 3,
+                ..
+            }
+        ),
+        "{err:?}"
+    );
+    assert_eq!(
+        err.to_string(),
+        format!(
+            "{}: line 4: face 0 uses relative vertex index -4, but only 3 vertices come before it",
+            p.display()
+        )
+    );
+    let p = write(&dir, "neg99.obj", format!("{TRI_OBJ}f 1 2 -99\n"));
+    let msg = load_mesh(&p).unwrap_err().to_string();
+    assert!(
+        msg.contains("neg99.obj: line 4:") && msg.contains("relative vertex index -99"),
+        "{msg}"
+    );
 }
 
 #[test]

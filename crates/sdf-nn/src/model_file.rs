@@ -23,6 +23,12 @@ use std::path::{Path, PathBuf};
 use safetensors::{Dtype, SafeTensors};
 
 /// Errors reading or writing model files.
+///
+/// The variants found by checking a model file already in memory against an architecture
+/// ([`ModelFileError::MissingTensor`], [`ModelFileError::ShapeMismatch`],
+/// [`ModelFileError::WrongArchitecture`], [`ModelFileError::DeclaredSize`], a `config` that does
+/// not validate) name no file: [`crate::NeuralSdf::load`] adds it
+/// ([`crate::NeuralSdfError::InvalidModel`]).
 #[derive(Debug, thiserror::Error)]
 pub enum ModelFileError {
     /// The file could not be read or written.
@@ -42,9 +48,9 @@ pub enum ModelFileError {
         reason: String,
     },
     /// A metadata key is missing or malformed.
-    #[error("{path}: metadata `{key}` is missing or invalid{detail}")]
+    #[error("{}metadata `{key}` is missing or invalid{detail}", in_file(.path))]
     Metadata {
-        /// The file.
+        /// The file (empty for a model file in memory, whose messages then name none).
         path: PathBuf,
         /// The key.
         key: &'static str,
@@ -78,9 +84,12 @@ pub enum ModelFileError {
         expected: String,
     },
     /// A tensor holds NaN or an infinity: such a model evaluates to garbage everywhere.
-    #[error("{path}: tensor `{name}` value {index} is {value}; a model's weights must be finite")]
+    #[error(
+        "{}tensor `{name}` value {index} is {value}; a model's weights must be finite",
+        in_file(.path)
+    )]
     NonFinite {
-        /// The file.
+        /// The file (empty for a model in memory, whose messages then name none).
         path: PathBuf,
         /// The first tensor with a bad value.
         name: String,
@@ -110,6 +119,16 @@ pub enum ModelFileError {
         /// Declared shape.
         shape: Vec<usize>,
     },
+}
+
+/// `"path: "` before a message about a file, or nothing for a model file in memory (an empty
+/// path): never a bare `": "`.
+fn in_file(path: &Path) -> String {
+    if path.as_os_str().is_empty() {
+        String::new()
+    } else {
+        format!("{}: ", path.display())
+    }
 }
 
 pub use sdf_geom::Normalization;
@@ -719,6 +738,39 @@ mod tests {
             assert!(f.check_finite().is_err());
         }
         sample().check_finite().unwrap();
+    }
+
+    /// Errors about a model file in memory (no path) name no file, and do not start with the
+    /// `": "` an empty path used to leave; those about a file name it.
+    #[test]
+    fn messages_name_the_file_only_when_there_is_one() {
+        let mut f = sample();
+        f.tensors[2].data[1] = f32::NAN;
+        let msg = f.check_finite().unwrap_err().to_string();
+        assert!(
+            msg.starts_with("tensor `net.0.bias` value 1 is NaN"),
+            "{msg}"
+        );
+        let metadata = |path: &str| ModelFileError::Metadata {
+            path: PathBuf::from(path),
+            key: "config",
+            detail: ": width 0".into(),
+        };
+        assert_eq!(
+            metadata("").to_string(),
+            "metadata `config` is missing or invalid: width 0"
+        );
+        assert_eq!(
+            metadata("m.safetensors").to_string(),
+            "m.safetensors: metadata `config` is missing or invalid: width 0"
+        );
+        let msg = ModelFile::from_bytes(&f.to_bytes().unwrap(), Path::new("m.safetensors"))
+            .unwrap_err()
+            .to_string();
+        assert!(
+            msg.starts_with("m.safetensors: tensor `net.0.bias`"),
+            "{msg}"
+        );
     }
 
     #[test]

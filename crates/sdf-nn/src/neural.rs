@@ -10,7 +10,7 @@
 //! ([`crate::QueryError::NonFinitePoint`]): kernels need not propagate NaN, so their answer
 //! would be an arbitrary number, where the CPU's is NaN.
 
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use std::sync::Mutex;
 use std::sync::atomic::{AtomicU64, Ordering};
 
@@ -35,6 +35,16 @@ pub enum NeuralSdfError {
     /// The model file could not be read or is not a valid model.
     #[error(transparent)]
     ModelFile(#[from] ModelFileError),
+    /// [`NeuralSdf::load`] read a model file that holds no valid model (another architecture,
+    /// a configuration that does not validate, tensors that do not match it): `source` says
+    /// what, as [`NeuralSdf::from_model_file`] would, and the message names the file.
+    #[error("{path}: {source}")]
+    InvalidModel {
+        /// The model file.
+        path: PathBuf,
+        /// What is wrong with the model in it.
+        source: Box<NeuralSdfError>,
+    },
     /// The file's architecture is not one we know.
     #[error("unknown architecture `{0}` in the model file (expected `siren` or `nglod`)")]
     UnknownArchitecture(String),
@@ -109,9 +119,17 @@ impl std::fmt::Debug for NeuralSdf {
 }
 
 impl NeuralSdf {
-    /// Loads a model file written by `train`.
+    /// Loads a model file written by `train`. Every error names the file: those of reading it
+    /// ([`NeuralSdfError::ModelFile`]) do already, and those of the model in it come as
+    /// [`NeuralSdfError::InvalidModel`].
     pub fn load(path: impl AsRef<Path>) -> Result<Self, NeuralSdfError> {
-        Self::from_model_file(ModelFile::load(path.as_ref())?)
+        let path = path.as_ref();
+        Self::from_model_file(ModelFile::load(path)?).map_err(|source| {
+            NeuralSdfError::InvalidModel {
+                path: path.to_owned(),
+                source: Box::new(source),
+            }
+        })
     }
 
     /// A model from a model file in memory.
@@ -450,5 +468,156 @@ fn outward_normal(gradient: Vec3, p: Vec3, clamped: Vec3) -> Vec3 {
         away.normalize()
     } else {
         gradient.normalize_or_zero()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::nglod::NglodConfig;
+    use crate::siren::SirenConfig;
+
+    /// Model files that read fine but hold no valid model: every error of `load` names the file
+    /// once, at the start (it used to begin with an empty path, `: metadata ...`).
+    #[test]
+    fn load_errors_name_the_file() {
+        let dir = std::env::temp_dir().join(format!("hwsdf-neural-load-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let n = Normalization::identity();
+        let siren = Siren::new(SirenConfig::small(), 1)
+            .unwrap()
+            .to_model_file(n, serde_json::Value::Null);
+        let nglod = Nglod::new(NglodConfig::small())
+            .unwrap()
+            .to_model_file(n, serde_json::Value::Null);
+        let edit = |f: &ModelFile, e: &dyn Fn(&mut ModelFile)| {
+            let mut f = f.clone();
+            e(&mut f);
+            f
+        };
+        let config = |c: serde_json::Value| move |f: &mut ModelFile| f.metadata.config = c.clone();
+        let cases: Vec<(&str, ModelFile, &str)> = vec![
+            (
+                "layers0",
+                edit(
+                    &siren,
+                    &config(serde_json::json!({"width": 64, "hidden_layers": 0, "omega0": 10.0})),
+                ),
+                "metadata `config` is missing or invalid: SIREN needs",
+            ),
+            (
+                "width0",
+                edit(
+                    &siren,
+                    &config(serde_json::json!({"width": 0, "hidden_layers": 3, "omega0": 10.0})),
+                ),
+                "metadata `config` is missing or invalid: SIREN needs",
+            ),
+            (
+                "omega",
+                edit(
+                    &siren,
+                    &config(serde_json::json!({"width": 64, "hidden_layers": 3, "omega0": 1e30})),
+                ),
+                "omega0",
+            ),
+            (
+                "siren_with_nglod_config",
+                edit(&siren, &|f| {
+                    f.metadata.config = nglod.metadata.config.clone()
+                }),
+                "metadata `config` is missing or invalid: ",
+            ),
+            (
+                "shape",
+                edit(&siren, &|f| {
+                    let t = f
+                        .tensors
+                        .iter_mut()
+                        .find(|t| t.name == "net.0.bias")
+                        .unwrap();
+                    t.shape = vec![32, 2];
+                }),
+                "tensor `net.0.bias` has shape [32, 2], expected [64]",
+            ),
+            (
+                "missing",
+                edit(&siren, &|f| {
+                    let t = f
+                        .tensors
+                        .iter_mut()
+                        .find(|t| t.name == "net.1.weight")
+                        .unwrap();
+                    t.name = "net.1.weights".into();
+                }),
+                "model file has no tensor `net.1.weight`",
+            ),
+            (
+                "declared",
+                edit(
+                    &siren,
+                    &config(
+                        serde_json::json!({"width": 4096, "hidden_layers": 64, "omega0": 10.0}),
+                    ),
+                ),
+                "the `config` metadata declares",
+            ),
+            (
+                "architecture",
+                edit(&siren, &|f| f.metadata.architecture = "tree".into()),
+                "unknown architecture `tree`",
+            ),
+            (
+                "nglod_config",
+                edit(&nglod, &|f| {
+                    f.metadata.config["resolutions"] = serde_json::json!([0, 4]);
+                }),
+                "invalid configuration: resolution 0",
+            ),
+            (
+                "nglod_with_siren_config",
+                edit(&nglod, &|f| {
+                    f.metadata.config = siren.metadata.config.clone()
+                }),
+                "invalid configuration: model file `config` metadata",
+            ),
+        ];
+        for (name, file, words) in cases {
+            let path = dir.join(format!("{name}.safetensors"));
+            file.save(&path).unwrap();
+            let err = NeuralSdf::load(&path).unwrap_err();
+            assert!(
+                matches!(err, NeuralSdfError::InvalidModel { .. }),
+                "{name}: {err:?}"
+            );
+            let msg = err.to_string();
+            let want = format!("{}: ", path.display());
+            assert!(
+                msg.starts_with(&want) && !msg[want.len()..].starts_with(':'),
+                "{name}: {msg}"
+            );
+            assert!(msg.contains(words), "{name}: {msg}");
+            assert_eq!(
+                msg.matches(&*path.display().to_string()).count(),
+                1,
+                "{msg}"
+            );
+            // In memory there is no file to name, and no empty one either.
+            let msg = NeuralSdf::from_model_file(file).unwrap_err().to_string();
+            assert!(
+                !msg.starts_with(':') && msg.contains(words),
+                "{name}: {msg}"
+            );
+        }
+        // Errors of reading the file named it already: not twice.
+        let path = dir.join("garbage.safetensors");
+        std::fs::write(&path, b"garbage").unwrap();
+        let msg = NeuralSdf::load(&path).unwrap_err().to_string();
+        assert_eq!(
+            msg.matches(&*path.display().to_string()).count(),
+            1,
+            "{msg}"
+        );
+        std::fs::remove_dir_all(&dir).ok();
     }
 }
