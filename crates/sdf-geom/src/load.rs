@@ -72,8 +72,9 @@ impl LoadOptions {
 /// [`GeomError::NonFiniteVertex`], [`GeomError::ObjIndexOutOfRange`],
 /// [`GeomError::GltfIndexOutOfRange`], [`GeomError::NodeTransform`],
 /// [`GeomError::UnsupportedPrimitiveMode`] (glTF points and lines), [`GeomError::Unsupported`]
-/// (Draco, meshopt, positions of other types than float32 or 8- or 16-bit integers, and any
-/// required glTF extension other than appearance-only ones such as `KHR_materials_*`,
+/// (Draco and meshopt compression without an uncompressed fallback, positions of other types
+/// than float32 or 8- or 16-bit integers, and any required glTF extension other than
+/// appearance-only ones such as `KHR_materials_*`,
 /// `EXT_mesh_gpu_instancing` and `KHR_mesh_quantization`), [`GeomError::MissingBuffer`],
 /// [`GeomError::BufferNotARegularFile`], [`GeomError::UriRefused`],
 /// [`GeomError::SceneTooLarge`] and [`GeomError::ReaderPanic`].
@@ -268,7 +269,11 @@ pub(crate) fn read_file_within(path: &Path, max_bytes: u64) -> Result<Vec<u8>, G
 /// Removed lines stay as empty lines, so line numbers in errors still match the file.
 fn obj_text(bytes: &[u8]) -> (String, ObjCounts) {
     let bytes = bytes.strip_prefix(b"\xEF\xBB\xBF").unwrap_or(bytes);
-    let text = String::from_utf8_lossy(bytes);
+    let mut text = String::from_utf8_lossy(bytes);
+    // Classic Mac OS ended lines with a lone CR, which tobj reads as one line of garbage.
+    if text.contains('\r') {
+        text = text.replace("\r\n", "\n").replace('\r', "\n").into();
+    }
     let mut out = String::with_capacity(text.len());
     let mut counts = ObjCounts::default();
     for (i, line) in text.split_inclusive('\n').enumerate() {
@@ -615,6 +620,39 @@ fn scan_obj(text: &str, check_ranges: bool) -> Option<ScanIssue> {
 // ---------------------------------------------------------------------------------------------------
 // glTF / GLB
 
+/// Whether a glTF that lists the compression extension `ext` as used (not required) holds its
+/// geometry uncompressed too, as the specification asks of such files: with Draco, every
+/// compressed primitive's POSITION and index accessors still have a buffer view; with meshopt,
+/// no buffer is a `fallback` one (a placeholder without data). Anything else is refused.
+fn has_uncompressed_fallback(json: &[u8], ext: &str) -> bool {
+    let Ok(root) = serde_json::from_slice::<serde_json::Value>(json) else {
+        return false;
+    };
+    let list = |v: &serde_json::Value, key: &str| v[key].as_array().cloned().unwrap_or_default();
+    let compressed = |v: &serde_json::Value| !v["extensions"][ext].is_null();
+    if ext == "KHR_draco_mesh_compression" {
+        let accessors = list(&root, "accessors");
+        let stored = |i: &serde_json::Value| {
+            i.as_u64()
+                .and_then(|i| accessors.get(usize::try_from(i).ok()?))
+                .is_some_and(|a| !a["bufferView"].is_null())
+        };
+        list(&root, "meshes").iter().all(|mesh| {
+            list(mesh, "primitives")
+                .iter()
+                .filter(|p| compressed(p))
+                .all(|p| {
+                    stored(&p["attributes"]["POSITION"])
+                        && (p["indices"].is_null() || stored(&p["indices"]))
+                })
+        })
+    } else {
+        list(&root, "buffers")
+            .iter()
+            .all(|b| b["extensions"][ext]["fallback"] != serde_json::Value::Bool(true))
+    }
+}
+
 fn load_gltf(
     path: &Path,
     format: &'static str,
@@ -636,6 +674,9 @@ fn load_gltf(
     };
     let mut root: gltf::json::Root = gltf::json::deserialize::from_slice(json_bytes)
         .map_err(|e| parse_err(format!("bad glTF JSON: {e}")))?;
+    // Compressed geometry we cannot decode. Listed as used but not required, the file must
+    // also hold the geometry uncompressed (the glTF specification's fallback): read that.
+    let mut fallbacks = Vec::new();
     for ext in root
         .extensions_used
         .iter()
@@ -651,10 +692,16 @@ fn load_gltf(
             _ => None,
         };
         if let Some(what) = what {
-            return Err(GeomError::Unsupported {
-                path: path.to_path_buf(),
-                feature: what.to_string(),
-            });
+            let required = root.extensions_required.contains(ext);
+            if required || !has_uncompressed_fallback(json_bytes, ext) {
+                return Err(GeomError::Unsupported {
+                    path: path.to_path_buf(),
+                    feature: what.to_string(),
+                });
+            }
+            if !fallbacks.contains(&what) {
+                fallbacks.push(what);
+            }
         }
     }
     // A required extension we do not read could change the geometry or is unknown: refuse it
@@ -708,6 +755,12 @@ fn load_gltf(
         format,
         ..Default::default()
     };
+    for what in fallbacks {
+        report.warnings.push(format!(
+            "the file also holds its geometry without {what}, which is not supported: that \
+             uncompressed copy was read"
+        ));
+    }
 
     // The scene's shape first (cheap, no buffer is read): cycles, instance counts, limits.
     let scene = doc.default_scene().or_else(|| doc.scenes().next());

@@ -240,6 +240,22 @@ impl Tensor {
     }
 }
 
+/// What a file that is not a model looks like, from its first bytes: a mesh passed where the
+/// model goes is the likely mistake.
+fn looks_like(bytes: &[u8]) -> Option<&'static str> {
+    let text = bytes
+        .iter()
+        .take(512)
+        .all(|&b| b.is_ascii_graphic() || b.is_ascii_whitespace());
+    match bytes {
+        [] => Some("an empty file"),
+        [b'g', b'l', b'T', b'F', ..] => Some("a binary glTF (.glb) mesh"),
+        _ if bytes.trim_ascii_start().starts_with(b"{") => Some("JSON, a glTF mesh perhaps"),
+        _ if text => Some("a text file, an OBJ mesh perhaps"),
+        _ => None,
+    }
+}
+
 /// A model file in memory.
 #[derive(Clone, Debug, PartialEq)]
 pub struct ModelFile {
@@ -350,6 +366,17 @@ impl ModelFile {
             path: path.to_owned(),
             reason,
         };
+        // A safetensors file is an 8-byte header length, then the JSON header. Say what another
+        // kind of file looks like instead of "header too large" from its first 8 bytes.
+        if bytes.get(8) != Some(&b'{') {
+            return Err(corrupt(format!(
+                "not a safetensors model file{}",
+                match looks_like(bytes) {
+                    Some(kind) => format!(" (it looks like {kind})"),
+                    None => String::new(),
+                }
+            )));
+        }
         let (_, header) = SafeTensors::read_metadata(bytes).map_err(|e| corrupt(e.to_string()))?;
         let st = SafeTensors::deserialize(bytes).map_err(|e| corrupt(e.to_string()))?;
         let meta = header.metadata().clone().unwrap_or_default();
@@ -742,6 +769,37 @@ mod tests {
 
     /// Errors about a model file in memory (no path) name no file, and do not start with the
     /// `": "` an empty path used to leave; those about a file name it.
+    #[test]
+    fn a_mesh_passed_as_a_model_is_named_for_what_it_is() {
+        let p = Path::new("m.safetensors");
+        for (bytes, says) in [
+            (
+                &b"v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n"[..],
+                "a text file, an OBJ mesh perhaps",
+            ),
+            (
+                b"glTF\x02\x00\x00\x00\x10\x00\x00\x00",
+                "a binary glTF (.glb) mesh",
+            ),
+            (
+                b"  {\"asset\": {\"version\": \"2.0\"}}",
+                "JSON, a glTF mesh perhaps",
+            ),
+            (b"", "an empty file"),
+        ] {
+            let msg = ModelFile::from_bytes(bytes, p).unwrap_err().to_string();
+            assert!(msg.contains("not a safetensors model file"), "{msg}");
+            assert!(msg.contains(says), "{msg}");
+        }
+        let msg = ModelFile::from_bytes(&[0xff; 64], p)
+            .unwrap_err()
+            .to_string();
+        assert!(msg.ends_with("not a safetensors model file"), "{msg}");
+        // A real file still parses.
+        let f = sample();
+        assert!(ModelFile::from_bytes(&f.to_bytes().unwrap(), p).is_ok());
+    }
+
     #[test]
     fn messages_name_the_file_only_when_there_is_one() {
         let mut f = sample();
