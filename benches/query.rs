@@ -25,7 +25,9 @@
 //! median of each (no criterion). This mode adds rows that split a query's floor into its parts:
 //! `roundtrip/upload` (the empty round trip after a `Queue::write_buffer` of the points),
 //! `roundtrip/dispatch` (after one empty dispatch) and `serve_recorded` (`record_query` on points
-//! already on the GPU, a copy and a readback: a query without its upload).
+//! already on the GPU, a copy and a readback: a query without its upload), and runs SIREN's
+//! `kernel`, `neural_sdf` and `neural_sdf_timed` for the presets of
+//! `QUERY_BENCH_SIREN_PRESETS=small,default` (default `small`).
 
 use std::time::Duration;
 
@@ -349,8 +351,34 @@ fn interleaved(gpu: &GpuContext, rounds: usize) {
 /// SIREN `small`: its kernel path (`SirenGpu::eval`) against `NeuralSdf`'s wall path and timed
 /// call, in turn like [`interleaved`] (the issue's SIREN target: the wall path adds at most 50 µs
 /// to the kernel time).
+/// The SIREN presets of the interleaved mode: `QUERY_BENCH_SIREN_PRESETS=small,default`
+/// (default `small`; issue 13's SIREN target is on `default`).
+fn siren_presets() -> Vec<(&'static str, sdf_nn::SirenConfig)> {
+    let list = std::env::var("QUERY_BENCH_SIREN_PRESETS").unwrap_or_else(|_| "small".into());
+    let mut out = Vec::new();
+    for name in list.split(',').map(str::trim) {
+        match name {
+            "small" => out.push(("small", sdf_nn::SirenConfig::small())),
+            "default" => out.push(("default", sdf_nn::SirenConfig::default())),
+            other => panic!("QUERY_BENCH_SIREN_PRESETS: unknown preset {other:?}"),
+        }
+    }
+    out
+}
+
 fn interleaved_siren(gpu: &GpuContext, rounds: usize) {
-    let siren = sdf_nn::Siren::new(sdf_nn::SirenConfig::small(), 1).unwrap();
+    for (name, config) in siren_presets() {
+        interleaved_siren_preset(gpu, rounds, name, config);
+    }
+}
+
+fn interleaved_siren_preset(
+    gpu: &GpuContext,
+    rounds: usize,
+    preset: &str,
+    config: sdf_nn::SirenConfig,
+) {
+    let siren = sdf_nn::Siren::new(config, 1).unwrap();
     let mut net = sdf_nn::SirenGpu::new(gpu, &siren).unwrap();
     let sdf = NeuralSdf::from_model_file(
         siren.to_model_file(Normalization::identity(), serde_json::Value::Null),
@@ -381,12 +409,12 @@ fn interleaved_siren(gpu: &GpuContext, rounds: usize) {
                 }),
             ),
         ];
-        report_interleaved(&format!("siren_small n={n:5}"), &mut variants, rounds);
+        report_interleaved(&format!("siren_{preset} n={n:5}"), &mut variants, rounds);
         drop(variants);
         if !gpu_ns.is_empty() {
             gpu_ns.sort_by(f64::total_cmp);
             println!(
-                "siren_small n={n:5} kernel time (timestamps) median {:8.1} µs",
+                "siren_{preset} n={n:5} kernel time (timestamps) median {:8.1} µs",
                 gpu_ns[gpu_ns.len() / 2]
             );
         }

@@ -27,11 +27,16 @@
 # criterion's results under DIR/results/criterion-coop), and adds their rows. The `blocks` stage
 # runs the SIREN `default` bench on the tiled kernels once per forced register block of the
 # tiled GEMM (SIREN_BENCH_TILED_BLOCK; results under DIR/results/criterion-block-*), the figures
-# that set `TiledBlock::Auto`'s rule on GPUs, and adds their rows. Environment:
+# that set `TiledBlock::Auto`'s rule on GPUs, and adds their rows. The `split` stage runs the
+# query bench interleaved (QUERY_BENCH_INTERLEAVED): a query's wall time split into the empty
+# round trip, the upload, one launch and the kernel, for NGLOD and SIREN `small` and `default`
+# (issue 13: what SIREN's wall path adds to its kernel time); its log is
+# DIR/results/query-split.txt. Environment:
 #   GPU_COMPARE_PRESETS=small,default   presets to run (both by default)
-#   GPU_COMPARE_STAGES=checks,bench,coop,blocks,torch,fit,corpus
+#   GPU_COMPARE_STAGES=checks,bench,coop,blocks,split,torch,fit,corpus
 #                                       what to run (default all; split a session's runs with it)
 #   GPU_COMPARE_BLOCKS=4x4,8x8          register blocks the `blocks` stage forces
+#   GPU_COMPARE_SPLIT_ROUNDS=500        rounds of the `split` stage's interleaved query bench
 #   GPU_COMPARE_CHECK_TIMEOUT=300       seconds each kernel test binary may take (`checks`)
 #   GPU_COMPARE_FITS=nglod,siren        which fits the `fit` stage times (default nglod; a default
 #                                       SIREN fit is 10⁴ steps, minutes before issue 12's kernels)
@@ -182,7 +187,7 @@ run() {
     fi
     export CRITERION_HOME="$res/criterion"
     export SIREN_BENCH_PRESETS=${GPU_COMPARE_PRESETS:-small,default}
-    local stages=",${GPU_COMPARE_STAGES:-checks,bench,coop,blocks,torch,fit,corpus},"
+    local stages=",${GPU_COMPARE_STAGES:-checks,bench,coop,blocks,split,torch,fit,corpus},"
     if [[ $stages == *,checks,* ]]; then
         # Kernels designed on lavapipe meet a real GPU here: other subgroup sizes, real
         # parallelism within a workgroup, other limits. Figures from kernels that fail their
@@ -226,6 +231,11 @@ run() {
             CRITERION_HOME="$res/criterion-coop" SIREN_BENCH_KERNELS=coop benches/siren --bench eval 2>&1 \
                 | tee "$res/bench-siren-coop.txt" || echo "(failed)"
         fi
+    fi
+    if [[ $stages == *,split,* ]] && [ -x benches/query ]; then
+        echo "== the query path split into its parts (QUERY_BENCH_INTERLEAVED=${GPU_COMPARE_SPLIT_ROUNDS:-500})"
+        QUERY_BENCH_INTERLEAVED="${GPU_COMPARE_SPLIT_ROUNDS:-500}" QUERY_BENCH_SIREN_PRESETS=small,default \
+            benches/query 2>&1 | tee "$res/query-split.txt" || echo "(failed)"
     fi
     if [[ $stages == *,blocks,* ]]; then
         local blk
