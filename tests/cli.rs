@@ -154,6 +154,27 @@ fn corpus_records_failures_and_skips_finished_meshes() {
     assert!(stderr(&second).contains("suzanne.obj nglod: done earlier, skipped"));
 }
 
+/// A corpus in which every run fails still writes its table, and exits non-zero.
+#[test]
+fn corpus_where_every_run_fails_exits_non_zero() {
+    let dir = scratch("corpus-broken");
+    std::fs::create_dir_all(&dir).unwrap();
+    std::fs::write(dir.join("broken.obj"), "v 0 0 0\nf 1 2 3\n").unwrap();
+    std::fs::write(dir.join("empty.obj"), "").unwrap();
+    let out = scratch("corpus-broken.md");
+    let o = bin("corpus")
+        .arg(&dir)
+        .args(["--model", "nglod", "--epochs", "1", "--out"])
+        .arg(&out)
+        .output()
+        .unwrap();
+    assert_eq!(o.status.code(), Some(1), "{}", stderr(&o));
+    assert!(stderr(&o).contains("every run failed"), "{}", stderr(&o));
+    let table = std::fs::read_to_string(&out).unwrap();
+    assert!(table.contains("| broken.obj | failed:"), "{table}");
+    assert!(table.contains("| empty.obj | failed:"), "{table}");
+}
+
 #[test]
 fn bad_input_gives_clear_errors() {
     let missing = bin("train").arg("/nonexistent/mesh.obj").output().unwrap();
