@@ -686,6 +686,24 @@ fn cases() -> Vec<Case> {
             &["nan.safetensors", "cube.obj"],
             Error("finite"),
         ),
+        case(
+            "train --out x.json, the report's default name",
+            "train",
+            &["cube.obj", "--out", "m.json"],
+            Error("would also be the report's default name"),
+        ),
+        case(
+            "resume a checkpoint of the other model",
+            "train",
+            &[
+                "cube.obj",
+                "--model",
+                "siren",
+                "--resume",
+                "done5.checkpoint.safetensors",
+            ],
+            Error("is a checkpoint of a nglod model, not siren"),
+        ),
         // Models that load but cannot be scored, shown or meshed.
         case(
             "eval overflowing weights",

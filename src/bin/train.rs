@@ -93,6 +93,14 @@ fn train(args: &Args) -> Result<Outcome, Box<dyn std::error::Error>> {
         .report
         .clone()
         .unwrap_or_else(|| out.with_extension("json"));
+    if args.report.is_none() && report_path == out {
+        return Err(format!(
+            "--out {} would also be the report's default name (the model's with .json): give \
+             the model another name, or the report one with --report",
+            out.display()
+        )
+        .into());
+    }
     let checkpoint = checkpoint_path(&out);
     // Before any work: no output may replace the mesh, the checkpoint resumed from or another
     // output, and each folder must take a new file. The checkpoint an interrupted run writes
@@ -108,6 +116,19 @@ fn train(args: &Args) -> Result<Outcome, Box<dyn std::error::Error>> {
         Some(path) => Some(run::Checkpoint::load(path)?),
         None => None,
     };
+    // The model kind needs no adapter: refuse a checkpoint of the other one before opening it.
+    // (Its preset may: `run::train` checks that.)
+    if let Some(c) = &resume
+        && c.options().0.as_deref() != Some(model.name())
+    {
+        return Err(format!(
+            "{} is a checkpoint of a {} model, not {}",
+            args.resume.as_deref().unwrap_or(Path::new("")).display(),
+            c.options().0.as_deref().unwrap_or("unknown"),
+            model.name()
+        )
+        .into());
+    }
     let gpu = GpuContext::new()?;
     let preset = flags.preset_for(model, gpu.is_cpu());
     if flags.preset.is_none() && gpu.is_cpu() {

@@ -274,14 +274,16 @@ impl Shard {
         let (k, n) = value
             .split_once('/')
             .ok_or_else(|| bad("expected K/N, e.g. 0/8"))?;
-        let k = k
-            .trim()
-            .parse()
-            .map_err(|_| bad("K is not a whole number"))?;
-        let n = n
-            .trim()
-            .parse()
-            .map_err(|_| bad("N is not a whole number"))?;
+        // u32's own parse error says whether the number is not one or too large.
+        let whole = |x: &str, name: &str| {
+            x.trim().parse::<u32>().map_err(|e| match e.kind() {
+                std::num::IntErrorKind::PosOverflow => {
+                    bad(&format!("{name} is larger than {}", u32::MAX))
+                }
+                _ => bad(&format!("{name} is not a whole number")),
+            })
+        };
+        let (k, n) = (whole(k, "K")?, whole(n, "N")?);
         Self::checked(k, n, value, "--shard")
     }
 
@@ -435,6 +437,17 @@ impl StateDir {
 
     /// Creates the folder (and its parents) if needed.
     pub fn create(&self) -> Result<(), CorpusError> {
+        // "File exists (os error 17)" alone does not say that the state folder's name is taken.
+        if self.dir.exists() && !self.dir.is_dir() {
+            return Err(CorpusError::Io {
+                path: self.dir.clone(),
+                source: std::io::Error::new(
+                    std::io::ErrorKind::AlreadyExists,
+                    "a file has the name of the results' state folder (the table's name + .d); \
+                     move it or choose another --out",
+                ),
+            });
+        }
         std::fs::create_dir_all(&self.dir).map_err(|source| CorpusError::Io {
             path: self.dir.clone(),
             source,
@@ -858,11 +871,27 @@ mod tests {
             ("x/2", "whole number"),
             ("1", "K/N"),
             ("-1/4", "whole number"),
+            ("0/99999999999", "N is larger than 4294967295"),
         ] {
             let e = Shard::parse(value).unwrap_err().to_string();
             assert!(e.contains(needle), "{value}: {e}");
         }
         assert_eq!(Shard::parse(" 2/8 ").unwrap(), Shard { index: 2, count: 8 });
+    }
+
+    #[test]
+    fn a_file_in_the_state_folders_place_is_named() {
+        let dir = std::env::temp_dir().join(format!("hwsdf-statefile-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let out = dir.join("r.md");
+        std::fs::write(dir.join("r.md.d"), "not a folder").unwrap();
+        let e = StateDir::for_table(&out).create().unwrap_err().to_string();
+        assert!(e.contains("r.md.d"), "{e}");
+        assert!(
+            e.contains("a file has the name of the results' state folder"),
+            "{e}"
+        );
+        std::fs::remove_dir_all(&dir).unwrap();
     }
 
     #[test]
