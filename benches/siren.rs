@@ -11,10 +11,16 @@
 //! `SIREN_BENCH_TRAIN_STEP` forces the training step (`tangents` or `ror`, reverse over reverse;
 //! default: `TrainStep::Auto`), and `SIREN_BENCH_TILED_BLOCK` the tiled GEMM's register blocks
 //! (`4x4`, `8x4`, `4x8` or `8x8`; default: `TiledBlock::Auto`).
+//!
+//! `SIREN_BENCH_PROFILE=N` runs no criterion bench: for each preset it profiles N training
+//! steps (after a warm-up of about half a second), every launch in its own pass timed by GPU
+//! timestamps (`SirenTrainer::profile_step`), and prints each launch's median GPU time, its
+//! share, their sum, and the median wall time of a plain step beside it: where a step's time
+//! goes, for the issue's ≤ 2 ms.
 
 use std::time::Duration;
 
-use criterion::{BenchmarkId, Criterion, Throughput, criterion_group, criterion_main};
+use criterion::{BenchmarkId, Criterion, Throughput, criterion_group};
 use glam::Vec3;
 use sdf_nn::siren::{LayerKernels, TiledBlock, TrainStep};
 use sdf_nn::{GpuContext, Siren, SirenConfig, SirenGpu, SirenTrainConfig, SirenTrainer};
@@ -107,21 +113,7 @@ fn bench(c: &mut Criterion) {
             continue;
         }
 
-        let train = SirenTrainConfig {
-            surface_per_step: 5000,
-            box_per_step: 5000,
-            loss_every: 4096, // the loss is read back only every 4096 steps
-            ..SirenTrainConfig::default()
-        };
-        let mut trainer = SirenTrainer::from_mesh(gpu, &siren, &mesh, train).unwrap();
-        trainer.set_layer_kernels(gpu, kernels()).unwrap();
-        trainer.set_tiled_block(gpu, tiled_block()).unwrap();
-        trainer.set_train_step(gpu, train_step()).unwrap();
-        eprintln!(
-            "{name}: train step {:?}, reverse over reverse: {}",
-            trainer.net().train_step(),
-            trainer.net().runs_reverse_over_reverse()
-        );
+        let mut trainer = trainer(gpu, name, &siren, &mesh);
         trainer.step(gpu).unwrap();
         gpu.wait().unwrap();
         g.throughput(Throughput::Elements(10_000));
@@ -135,5 +127,101 @@ fn bench(c: &mut Criterion) {
     }
 }
 
+/// The bench's trainer: 5000 + 5000 points per step on `mesh`, the knobs' kernels and step.
+fn trainer(gpu: &GpuContext, name: &str, siren: &Siren, mesh: &sdf_geom::Mesh) -> SirenTrainer {
+    let train = SirenTrainConfig {
+        surface_per_step: 5000,
+        box_per_step: 5000,
+        loss_every: 4096, // the loss is read back only every 4096 steps
+        ..SirenTrainConfig::default()
+    };
+    let mut trainer = SirenTrainer::from_mesh(gpu, siren, mesh, train).unwrap();
+    trainer.set_layer_kernels(gpu, kernels()).unwrap();
+    trainer.set_tiled_block(gpu, tiled_block()).unwrap();
+    trainer.set_train_step(gpu, train_step()).unwrap();
+    eprintln!(
+        "{name}: train step {:?}, reverse over reverse: {}",
+        trainer.net().train_step(),
+        trainer.net().runs_reverse_over_reverse()
+    );
+    trainer
+}
+
+/// `SIREN_BENCH_PROFILE=steps`: the per-launch profile of a training step, per preset.
+fn profile(steps: usize) {
+    let gpu = GpuContext::shared().expect("a GPU adapter");
+    println!("adapter: {}", gpu.describe());
+    let Some(mut profiler) = sdf_nn::gpu::PassProfiler::new(gpu, 512) else {
+        println!(
+            "{} has no timestamp queries: nothing to profile",
+            gpu.describe()
+        );
+        return;
+    };
+    let (mesh, _) = sdf_geom::load_mesh("tests/data/spot.obj").expect("tests/data/spot.obj");
+    let median = |v: &mut Vec<f64>| {
+        v.sort_by(f64::total_cmp);
+        v[v.len() / 2]
+    };
+    for (name, cfg) in presets() {
+        let siren = Siren::new(cfg, 1).unwrap();
+        let mut trainer = trainer(gpu, name, &siren, &mesh);
+        // Warm up: compile, allocate, and raise an idle GPU's clocks.
+        let start = std::time::Instant::now();
+        while start.elapsed() < Duration::from_millis(500) {
+            trainer.step(gpu).unwrap();
+            gpu.wait().unwrap();
+        }
+        let mut rows: Vec<(String, Vec<f64>)> = Vec::new();
+        let mut wall = Vec::with_capacity(steps);
+        for _ in 0..steps.max(1) {
+            // A plain step's wall time, then a profiled one, in turn.
+            let t = std::time::Instant::now();
+            trainer.step(gpu).unwrap();
+            gpu.wait().unwrap();
+            wall.push(t.elapsed().as_secs_f64() * 1e6);
+            let times = trainer.profile_step(gpu, &mut profiler).unwrap();
+            if rows.is_empty() {
+                rows = times
+                    .iter()
+                    .map(|t| (t.label.clone(), Vec::new()))
+                    .collect();
+            }
+            for ((_, v), t) in rows.iter_mut().zip(&times) {
+                v.push(t.ns as f64 / 1e3);
+            }
+        }
+        let medians: Vec<(String, f64)> = rows
+            .into_iter()
+            .map(|(label, mut v)| (label, median(&mut v)))
+            .collect();
+        let total: f64 = medians.iter().map(|(_, m)| m).sum();
+        println!(
+            "siren_{name} training step of 10^4 points, {} launches, median of {steps} profiled steps:",
+            medians.len()
+        );
+        println!("| # | launch | GPU µs | share |\n| --- | --- | --- | --- |");
+        for (i, (label, m)) in medians.iter().enumerate() {
+            println!("| {i} | {label} | {m:.1} | {:.1} % |", 100.0 * m / total);
+        }
+        println!(
+            "| | sum of the launches (each in its own pass) | {total:.1} | |\n| | a plain step, wall (median of {steps}) | {:.1} | |",
+            median(&mut wall)
+        );
+    }
+}
+
 criterion_group!(benches, bench);
-criterion_main!(benches);
+
+fn main() {
+    if let Ok(steps) = std::env::var("SIREN_BENCH_PROFILE") {
+        profile(
+            steps
+                .parse()
+                .expect("SIREN_BENCH_PROFILE: a number of steps"),
+        );
+        return;
+    }
+    benches();
+    Criterion::default().configure_from_args().final_summary();
+}

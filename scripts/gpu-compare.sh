@@ -31,9 +31,11 @@
 # query bench interleaved (QUERY_BENCH_INTERLEAVED): a query's wall time split into the empty
 # round trip, the upload, one launch and the kernel, for NGLOD and SIREN `small` and `default`
 # (issue 13: what SIREN's wall path adds to its kernel time); its log is
-# DIR/results/query-split.txt. Environment:
+# DIR/results/query-split.txt. The `profile` stage prints where a SIREN `default` training step's
+# time goes, launch by launch, from GPU timestamps (SIREN_BENCH_PROFILE; issue 12's ≤ 2 ms per
+# step); its log is DIR/results/siren-profile.txt. Environment:
 #   GPU_COMPARE_PRESETS=small,default   presets to run (both by default)
-#   GPU_COMPARE_STAGES=checks,bench,coop,blocks,split,torch,fit,corpus
+#   GPU_COMPARE_STAGES=checks,bench,coop,blocks,split,profile,torch,fit,corpus
 #                                       what to run (default all; split a session's runs with it)
 #   GPU_COMPARE_BLOCKS=4x4,8x8          register blocks the `blocks` stage forces
 #   GPU_COMPARE_SPLIT_ROUNDS=500        rounds of the `split` stage's interleaved query bench
@@ -187,7 +189,7 @@ run() {
     fi
     export CRITERION_HOME="$res/criterion"
     export SIREN_BENCH_PRESETS=${GPU_COMPARE_PRESETS:-small,default}
-    local stages=",${GPU_COMPARE_STAGES:-checks,bench,coop,blocks,split,torch,fit,corpus},"
+    local stages=",${GPU_COMPARE_STAGES:-checks,bench,coop,blocks,split,profile,torch,fit,corpus},"
     if [[ $stages == *,checks,* ]]; then
         # Kernels designed on lavapipe meet a real GPU here: other subgroup sizes, real
         # parallelism within a workgroup, other limits. Figures from kernels that fail their
@@ -236,6 +238,11 @@ run() {
         echo "== the query path split into its parts (QUERY_BENCH_INTERLEAVED=${GPU_COMPARE_SPLIT_ROUNDS:-500})"
         QUERY_BENCH_INTERLEAVED="${GPU_COMPARE_SPLIT_ROUNDS:-500}" QUERY_BENCH_SIREN_PRESETS=small,default \
             benches/query 2>&1 | tee "$res/query-split.txt" || echo "(failed)"
+    fi
+    if [[ $stages == *,profile,* ]]; then
+        echo "== a SIREN default training step, launch by launch (SIREN_BENCH_PROFILE=20)"
+        SIREN_BENCH_PROFILE=20 SIREN_BENCH_PRESETS=default benches/siren 2>&1 \
+            | tee "$res/siren-profile.txt" || echo "(failed)"
     fi
     if [[ $stages == *,blocks,* ]]; then
         local blk

@@ -212,14 +212,25 @@ impl Adam {
         encoder: &mut wgpu::CommandEncoder,
         grad_scale: f32,
     ) {
-        self.step = self.step.saturating_add(1);
-        let u = self.uniforms_for_step(grad_scale);
-        gpu.queue()
-            .write_buffer(&self.uniforms, 0, bytemuck::bytes_of(&u));
         let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
             label: Some("adam"),
             timestamp_writes: None,
         });
+        self.record_step_in(gpu, &mut pass, grad_scale);
+    }
+
+    /// [`Adam::record_step`] into a compute pass of the caller's (one that a
+    /// [`crate::gpu::PassProfiler`] times, say).
+    pub fn record_step_in(
+        &mut self,
+        gpu: &GpuContext,
+        pass: &mut wgpu::ComputePass<'_>,
+        grad_scale: f32,
+    ) {
+        self.step = self.step.saturating_add(1);
+        let u = self.uniforms_for_step(grad_scale);
+        gpu.queue()
+            .write_buffer(&self.uniforms, 0, bytemuck::bytes_of(&u));
         pass.set_pipeline(&self.pipeline);
         pass.set_bind_group(0, &self.bind_group, &[]);
         let (x, y) = gpu.dispatch_size(self.len.div_ceil(WORKGROUP));

@@ -873,6 +873,124 @@ impl GpuTimer {
     }
 }
 
+/// The GPU time of every pass of a sequence of compute passes, each timed by its own pair of
+/// timestamps: a profile of a training step or a query, to find where its time goes. Every pass
+/// must be begun with [`PassProfiler::begin_pass`] (one per launch gives a profile per launch).
+/// Timing every pass adds a little to each; measure totals without it.
+pub struct PassProfiler {
+    queries: wgpu::QuerySet,
+    resolved: wgpu::Buffer,
+    readback: wgpu::Buffer,
+    period_ns: f64,
+    capacity: u32,
+    labels: Vec<String>,
+}
+
+/// One timed pass of a [`PassProfiler`].
+#[derive(Clone, Debug, PartialEq)]
+pub struct PassTime {
+    /// The pass's label.
+    pub label: String,
+    /// GPU nanoseconds from its start to its end.
+    pub ns: u64,
+}
+
+impl PassProfiler {
+    /// A profiler of up to `passes` passes (at most 2048: wgpu's limit is 4096 queries), or
+    /// `None` where the device lacks [`wgpu::Features::TIMESTAMP_QUERY`].
+    pub fn new(gpu: &GpuContext, passes: u32) -> Option<Self> {
+        if !gpu.has_timestamps() {
+            return None;
+        }
+        let capacity = passes.clamp(1, 2048);
+        let device = gpu.device();
+        let bytes = u64::from(capacity) * TIMER_BYTES;
+        let queries = device.create_query_set(&wgpu::QuerySetDescriptor {
+            label: Some("pass profiler"),
+            ty: wgpu::QueryType::Timestamp,
+            count: 2 * capacity,
+        });
+        let buffer = |label, usage| {
+            device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some(label),
+                size: bytes,
+                usage,
+                mapped_at_creation: false,
+            })
+        };
+        Some(PassProfiler {
+            queries,
+            resolved: buffer(
+                "pass profiler resolve",
+                wgpu::BufferUsages::QUERY_RESOLVE | wgpu::BufferUsages::COPY_SRC,
+            ),
+            readback: buffer(
+                "pass profiler readback",
+                wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+            ),
+            period_ns: f64::from(gpu.queue().get_timestamp_period()),
+            capacity,
+            labels: Vec::new(),
+        })
+    }
+
+    /// Begins a compute pass named `label`, timed while the profiler has room (the passes
+    /// beyond its capacity run untimed and are not reported).
+    pub fn begin_pass<'e>(
+        &mut self,
+        enc: &'e mut wgpu::CommandEncoder,
+        label: &str,
+    ) -> wgpu::ComputePass<'e> {
+        let i = self.labels.len() as u32;
+        let timed = i < self.capacity;
+        if timed {
+            self.labels.push(label.to_owned());
+        }
+        enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
+            label: Some(label),
+            timestamp_writes: timed.then_some(wgpu::ComputePassTimestampWrites {
+                query_set: &self.queries,
+                beginning_of_pass_write_index: Some(2 * i),
+                end_of_pass_write_index: Some(2 * i + 1),
+            }),
+        })
+    }
+
+    /// Records the resolution of every timestamp so far into `enc`, after the last pass.
+    /// Submit `enc` before calling [`PassProfiler::read`].
+    pub fn resolve(&self, enc: &mut wgpu::CommandEncoder) {
+        let n = self.labels.len() as u32;
+        if n > 0 {
+            enc.resolve_query_set(&self.queries, 0..2 * n, &self.resolved, 0);
+            enc.copy_buffer_to_buffer(
+                &self.resolved,
+                0,
+                &self.readback,
+                0,
+                u64::from(n) * TIMER_BYTES,
+            );
+        }
+    }
+
+    /// Waits for the submitted work and returns each timed pass in order, then forgets them
+    /// (the profiler can time another sequence).
+    pub fn read(&mut self, gpu: &GpuContext) -> Result<Vec<PassTime>, GpuError> {
+        let labels = std::mem::take(&mut self.labels);
+        if labels.is_empty() {
+            return Ok(Vec::new());
+        }
+        let ticks: Vec<u64> = gpu.map_read(&self.readback, "pass profiler")?;
+        Ok(labels
+            .into_iter()
+            .zip(ticks.chunks_exact(2))
+            .map(|(label, t)| PassTime {
+                label,
+                ns: (t[1].saturating_sub(t[0]) as f64 * self.period_ns).round() as u64,
+            })
+            .collect())
+    }
+}
+
 /// A bind-group entry that binds the whole of `buffer` at `binding`.
 pub(crate) fn entry(binding: u32, buffer: &wgpu::Buffer) -> wgpu::BindGroupEntry<'_> {
     wgpu::BindGroupEntry {

@@ -1027,3 +1027,52 @@ fn divergence_is_a_typed_error() {
         "{err}"
     );
 }
+
+/// `SirenTrainer::profile_step` times every launch of a step (sampling first, Adam last) and
+/// computes the same step as `step`: two trainers from one network, one stepping plainly and
+/// one through the profiler, hold bit-identical weights after two steps. On each kernel family
+/// the tests run (the CPU default and the GPUs' tiled kernels).
+#[test]
+fn profiled_steps_time_every_launch_and_train_alike() {
+    let gpu = gpu();
+    let Some(mut profiler) = sdf_nn::gpu::PassProfiler::new(gpu, 256) else {
+        eprintln!("skipped: {} has no timestamp queries", gpu.describe());
+        return;
+    };
+    let (mesh, _) = sdf_geom::load_mesh(test_data("spot.obj")).unwrap();
+    let cfg = SirenConfig {
+        width: 32,
+        hidden_layers: 3,
+        omega0: 10.0,
+    };
+    let init = Siren::new(cfg, 5).unwrap();
+    let train = SirenTrainConfig {
+        surface_per_step: 300,
+        box_per_step: 300,
+        dataset_size: 2000,
+        ..SirenTrainConfig::default()
+    };
+    for kernels in [LayerKernels::Auto, LayerKernels::Tiled] {
+        let mut plain = SirenTrainer::from_mesh(gpu, &init, &mesh, train.clone()).unwrap();
+        let mut profiled = SirenTrainer::from_mesh(gpu, &init, &mesh, train.clone()).unwrap();
+        plain.set_layer_kernels(gpu, kernels).unwrap();
+        profiled.set_layer_kernels(gpu, kernels).unwrap();
+        let mut times = Vec::new();
+        for _ in 0..2 {
+            plain.step(gpu).unwrap();
+            times = profiled.profile_step(gpu, &mut profiler).unwrap();
+        }
+        let labels: Vec<&str> = times.iter().map(|t| t.label.as_str()).collect();
+        eprintln!("{kernels:?}: {} launches timed: {labels:?}", times.len());
+        assert!(times.len() > 5, "{labels:?}");
+        assert!(labels[0].contains("sample"), "{labels:?}");
+        assert_eq!(labels.last(), Some(&"adam"));
+        assert!(times.iter().any(|t| t.ns > 0), "{times:?}");
+        let (a, b) = (
+            plain.siren(gpu).unwrap().params().to_vec(),
+            profiled.siren(gpu).unwrap().params().to_vec(),
+        );
+        assert_eq!(a, b, "{kernels:?}: the profiled steps trained differently");
+        assert_eq!(plain.steps_done(), profiled.steps_done());
+    }
+}

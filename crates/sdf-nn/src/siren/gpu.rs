@@ -309,6 +309,11 @@ impl Launch {
         Self::new(gpu, pipeline, label, entries, (x, y, 1))
     }
 
+    /// The label it was made with (a profile's row).
+    pub(crate) fn label(&self) -> &str {
+        &self.label
+    }
+
     pub(crate) fn record(&self, pass: &mut wgpu::ComputePass<'_>) {
         pass.set_pipeline(&self.pipeline);
         pass.set_bind_group(0, &self.bind_group, &[]);
@@ -1506,5 +1511,10 @@ impl TrainPasses {
         for l in &self.launches {
             l.record(pass);
         }
+    }
+
+    /// The launches [`TrainPasses::record`] records, in order.
+    pub(crate) fn launches(&self) -> &[Launch] {
+        &self.launches
     }
 }

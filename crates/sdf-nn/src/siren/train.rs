@@ -11,7 +11,7 @@ use serde::{Deserialize, Serialize};
 use super::gpu::{Launch, SirenGpu, SirenGpuError, TrainPasses};
 use super::{Siren, SirenConfigError};
 use crate::adam::{Adam, AdamConfig};
-use crate::gpu::{GpuContext, GpuError, entry};
+use crate::gpu::{GpuContext, GpuError, PassProfiler, PassTime, entry};
 use crate::model_file::{self, ModelFile};
 use crate::shaders;
 
@@ -459,24 +459,7 @@ impl SirenTrainer {
     /// plateau schedule and returns the window's mean loss.
     pub fn step(&mut self, gpu: &GpuContext) -> Result<Option<LossTerms>, TrainError> {
         let k = self.config.loss_every;
-        let slot = self.step % k;
-        gpu.write(
-            &self.sample_uniforms,
-            &[SampleUniforms {
-                n_points: self.passes.n,
-                n_surface: self.config.surface_per_step as u32,
-                n_data: (self._dataset[0].size() / 12) as u32,
-                seed: step_seed(self.config.seed, self.step),
-            }],
-        )?;
-        gpu.write(
-            &self.loss_uniforms,
-            &[LossReduceUniforms {
-                n_partials: self.passes.loss_groups,
-                slot: slot as u32,
-                _pad: [0; 2],
-            }],
-        )?;
+        let slot = self.write_step_uniforms(gpu)?;
         let mut enc = gpu.device().create_command_encoder(&Default::default());
         self.net.record_pack(&mut enc);
         {
@@ -495,6 +478,66 @@ impl SirenTrainer {
         if slot + 1 < k {
             return Ok(None);
         }
+        self.read_loss_window(gpu).map(Some)
+    }
+
+    /// One training step, as [`SirenTrainer::step`], with every launch in its own compute pass
+    /// timed by `profiler` (sampling, each product and elementwise kernel of the loss and its
+    /// gradient, the loss reduction, Adam; the row-blocked kernels' weight copy, where there
+    /// is one, runs untimed). It waits for the step and returns the launches' GPU times in
+    /// order. The step counts as one of training's; the loss of a window that ends on it is not
+    /// read back, so use it for profiles, not for training.
+    pub fn profile_step(
+        &mut self,
+        gpu: &GpuContext,
+        profiler: &mut PassProfiler,
+    ) -> Result<Vec<PassTime>, TrainError> {
+        self.write_step_uniforms(gpu)?;
+        let mut enc = gpu.device().create_command_encoder(&Default::default());
+        self.net.record_pack(&mut enc);
+        for l in std::iter::once(&self.sample)
+            .chain(self.passes.launches())
+            .chain([&self.loss_reduce])
+        {
+            l.record(&mut profiler.begin_pass(&mut enc, l.label()));
+        }
+        self.adam
+            .record_step_in(gpu, &mut profiler.begin_pass(&mut enc, "adam"), 1.0);
+        profiler.resolve(&mut enc);
+        gpu.queue().submit([enc.finish()]);
+        self.step += 1;
+        Ok(profiler.read(gpu)?)
+    }
+
+    /// Writes the per-step uniforms (the batch's seed, the loss history's slot) and returns
+    /// the slot.
+    fn write_step_uniforms(&self, gpu: &GpuContext) -> Result<usize, TrainError> {
+        let k = self.config.loss_every;
+        let slot = self.step % k;
+        gpu.write(
+            &self.sample_uniforms,
+            &[SampleUniforms {
+                n_points: self.passes.n,
+                n_surface: self.config.surface_per_step as u32,
+                n_data: (self._dataset[0].size() / 12) as u32,
+                seed: step_seed(self.config.seed, self.step),
+            }],
+        )?;
+        gpu.write(
+            &self.loss_uniforms,
+            &[LossReduceUniforms {
+                n_partials: self.passes.loss_groups,
+                slot: slot as u32,
+                _pad: [0; 2],
+            }],
+        )?;
+        Ok(slot)
+    }
+
+    /// Reads the loss history of the window that just ended, checks it for divergence, applies
+    /// the plateau schedule and returns the window's mean loss terms.
+    fn read_loss_window(&mut self, gpu: &GpuContext) -> Result<LossTerms, TrainError> {
+        let k = self.config.loss_every;
         let hist: Vec<f32> = gpu.read_back_range(&self.history, 0, k as u64 * 4)?;
         let mut mean = [0.0f32; 4];
         for (i, row) in hist.chunks_exact(4).enumerate() {
@@ -512,7 +555,7 @@ impl SirenTrainer {
         let terms = LossTerms::from_slice(&mean);
         self.plateau(terms.total());
         self.last_loss = Some(terms);
-        Ok(Some(terms))
+        Ok(terms)
     }
 
     /// Reduce-on-plateau: divides the learning rate by 10 after `plateau_patience` steps

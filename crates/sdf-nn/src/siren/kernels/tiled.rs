@@ -63,6 +63,23 @@ pub(crate) enum TiledEpilogue<'a> {
     },
 }
 
+impl TiledEpilogue<'_> {
+    /// A short name, for launch labels and profiles.
+    fn name(&self) -> &'static str {
+        match self {
+            TiledEpilogue::Sine { .. } => "sine",
+            TiledEpilogue::SineWithTangents { .. } => "sine with tangents",
+            TiledEpilogue::SineBelow { .. } => "sine below",
+            TiledEpilogue::WeightGradient => "weight gradient",
+            TiledEpilogue::WeightGradientPairs => "weight gradient (pairs)",
+            TiledEpilogue::RorForward { .. } => "ror forward",
+            TiledEpilogue::RorGradBackward { .. } => "ror input-gradient chain",
+            TiledEpilogue::RorGradAdjoint { .. } => "ror input-gradient adjoint",
+            TiledEpilogue::RorValueAdjoint { .. } => "ror forward's adjoint",
+        }
+    }
+}
+
 /// Element offsets of the reverse-over-reverse epilogues' matrices (all with row stride
 /// `ldc`): `out` of the output, `out1` of the second output (or of G / T in place), `z` and
 /// `t` of the auxiliary inputs.
@@ -348,10 +365,18 @@ impl TiledKernels {
         debug_assert!(mode != 4 || u.k_chunk.is_multiple_of(16));
         let ub = gpu.uniform("siren tiled uniforms", &uniforms);
         let (x, y) = gpu.dispatch_size(workgroups(gemms.blocks, u.m, u.n));
+        // Named by shape and epilogue: a profile's rows tell the products apart.
+        let label = format!(
+            "siren tiled gemm {}x{}x{} {}",
+            u.m,
+            u.n,
+            u.k,
+            epilogue.name()
+        );
         Launch::new(
             gpu,
             pipeline,
-            "siren tiled gemm",
+            &label,
             &[
                 entry(0, &ub),
                 entry(1, a),
