@@ -348,9 +348,6 @@ fn interleaved(gpu: &GpuContext, rounds: usize) {
     }
 }
 
-/// SIREN `small`: its kernel path (`SirenGpu::eval`) against `NeuralSdf`'s wall path and timed
-/// call, in turn like [`interleaved`] (the issue's SIREN target: the wall path adds at most 50 µs
-/// to the kernel time).
 /// The SIREN presets of the interleaved mode: `QUERY_BENCH_SIREN_PRESETS=small,default`
 /// (default `small`; issue 13's SIREN target is on `default`).
 fn siren_presets() -> Vec<(&'static str, sdf_nn::SirenConfig)> {
@@ -366,6 +363,9 @@ fn siren_presets() -> Vec<(&'static str, sdf_nn::SirenConfig)> {
     out
 }
 
+/// SIREN, each preset of [`siren_presets`]: its kernel path (`SirenGpu::eval`) against
+/// `NeuralSdf`'s wall path and timed call, in turn like [`interleaved`] (the issue's SIREN
+/// target: the wall path adds at most 50 µs to the kernel time).
 fn interleaved_siren(gpu: &GpuContext, rounds: usize) {
     for (name, config) in siren_presets() {
         interleaved_siren_preset(gpu, rounds, name, config);

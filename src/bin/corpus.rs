@@ -330,9 +330,9 @@ fn merge(
         eprintln!("  failed: {rel} {model}: {error}");
     }
     eprintln!("table written to {}", args.out.display());
-    // A table with some failed rows is a result; one in which every run failed is not, and a
-    // script running `corpus && …` must be able to tell.
-    if m.done() == 0 && !m.failed().is_empty() {
+    // A table with some failed rows is a result; a finished one in which every run failed is
+    // not, and a script running `corpus && …` must be able to tell.
+    if m.complete() && m.done() == 0 && !m.failed().is_empty() {
         eprintln!("error: every run failed; the table lists why");
         return Ok(ExitCode::FAILURE);
     }

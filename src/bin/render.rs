@@ -97,7 +97,7 @@ fn run(args: &Args) -> Result<(), String> {
     let gpu = GpuContext::new().map_err(|e| e.to_string())?;
     let start = std::time::Instant::now();
     // A model whose sums overflow (NaN or ∞ everywhere) would sphere-trace every pixel to its
-    // step limit and save a blank image: refuse it, as `eval` and `extract` do.
+    // step limit and save a blank image: refuse it, as `eval` does.
     let probe = probe_grid(PROBE_SIDE);
     let values = sdf
         .eval_normalized(&gpu, &probe)

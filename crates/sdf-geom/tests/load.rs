@@ -277,12 +277,21 @@ fn gltf_draco_and_meshopt_are_refused_unless_there_is_a_fallback() {
         std::fs::write(&p, serde_json::to_vec(&json).unwrap()).unwrap();
         load_mesh(&p)
     };
-    // Draco: the compressed primitive's POSITION accessor without a buffer view.
+    // Draco: a compressed primitive whose accessors keep their buffer views is read from them;
+    // without the POSITION accessor's buffer view there is nothing to read.
     let draco = "KHR_draco_mesh_compression";
+    let compress = |j: &mut serde_json::Value| {
+        j["meshes"][0]["primitives"][0]["extensions"] =
+            serde_json::json!({ draco: { "bufferView": 0, "attributes": { "POSITION": 0 } } });
+    };
+    let (m, r) = edit(draco, &compress).unwrap();
+    assert_eq!(m.triangles.len() * 3, t.len());
+    assert!(r.warnings.iter().any(|w| w.contains("Draco")), "{r:?}");
     let r = edit(draco, &|j| {
-        let prim = &mut j["meshes"][0]["primitives"][0];
-        prim["extensions"] = serde_json::json!({ draco: { "bufferView": 0, "attributes": {} } });
-        let pos = prim["attributes"]["POSITION"].as_u64().unwrap() as usize;
+        compress(j);
+        let pos = j["meshes"][0]["primitives"][0]["attributes"]["POSITION"]
+            .as_u64()
+            .unwrap() as usize;
         j["accessors"][pos]
             .as_object_mut()
             .unwrap()

@@ -369,13 +369,10 @@ impl ModelFile {
         // A safetensors file is an 8-byte header length, then the JSON header. Say what another
         // kind of file looks like instead of "header too large" from its first 8 bytes.
         if bytes.get(8) != Some(&b'{') {
-            return Err(corrupt(format!(
-                "not a safetensors model file{}",
-                match looks_like(bytes) {
-                    Some(kind) => format!(" (it looks like {kind})"),
-                    None => String::new(),
-                }
-            )));
+            return Err(corrupt(match looks_like(bytes) {
+                Some(kind) => format!("no safetensors header (it looks like {kind})"),
+                None => "no safetensors header".to_owned(),
+            }));
         }
         let (_, header) = SafeTensors::read_metadata(bytes).map_err(|e| corrupt(e.to_string()))?;
         let st = SafeTensors::deserialize(bytes).map_err(|e| corrupt(e.to_string()))?;
@@ -788,13 +785,16 @@ mod tests {
             (b"", "an empty file"),
         ] {
             let msg = ModelFile::from_bytes(bytes, p).unwrap_err().to_string();
-            assert!(msg.contains("not a safetensors model file"), "{msg}");
+            assert!(
+                msg.contains("no safetensors header (it looks like"),
+                "{msg}"
+            );
             assert!(msg.contains(says), "{msg}");
         }
         let msg = ModelFile::from_bytes(&[0xff; 64], p)
             .unwrap_err()
             .to_string();
-        assert!(msg.ends_with("not a safetensors model file"), "{msg}");
+        assert!(msg.ends_with("no safetensors header"), "{msg}");
         // A real file still parses.
         let f = sample();
         assert!(ModelFile::from_bytes(&f.to_bytes().unwrap(), p).is_ok());

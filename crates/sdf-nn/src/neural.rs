@@ -38,12 +38,12 @@ pub enum NeuralSdfError {
     /// [`NeuralSdf::load`] read a model file that holds no valid model (another architecture,
     /// a configuration that does not validate, tensors that do not match it): `source` says
     /// what, as [`NeuralSdf::from_model_file`] would, and the message names the file.
-    #[error("{path}: {source}")]
+    #[error("{path}: {reason}")]
     InvalidModel {
         /// The model file.
         path: PathBuf,
-        /// What is wrong with the model in it.
-        source: Box<NeuralSdfError>,
+        /// What is wrong with the model in it (in the message, so not also its `source()`).
+        reason: Box<NeuralSdfError>,
     },
     /// The file's architecture is not one we know.
     #[error("unknown architecture `{0}` in the model file (expected `siren` or `nglod`)")]
@@ -124,10 +124,10 @@ impl NeuralSdf {
     /// [`NeuralSdfError::InvalidModel`].
     pub fn load(path: impl AsRef<Path>) -> Result<Self, NeuralSdfError> {
         let path = path.as_ref();
-        Self::from_model_file(ModelFile::load(path)?).map_err(|source| {
+        Self::from_model_file(ModelFile::load(path)?).map_err(|reason| {
             NeuralSdfError::InvalidModel {
                 path: path.to_owned(),
-                source: Box::new(source),
+                reason: Box::new(reason),
             }
         })
     }

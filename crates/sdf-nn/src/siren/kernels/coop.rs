@@ -114,6 +114,8 @@ impl CoopKernels {
             || w == 0
             || !w.is_multiple_of(shape.tile)
             || subgroups > shape.slots
+            // The head's partial sums, one per invocation, go through the scratch.
+            || invocations > shape.slots * shape.tile * shape.tile
             || shape.group_rows() * (w + ACT_PAD) > shape.act
             || cfg.hidden_layers < 2
         {
