@@ -799,8 +799,18 @@ impl GpuContext {
 /// ```
 #[derive(Debug)]
 pub struct GpuTimer {
+    stamps: Timestamps,
+}
+
+/// Bytes of a pair of resolved `u64` timestamps.
+const TIMER_BYTES: u64 = 2 * std::mem::size_of::<u64>() as u64;
+
+/// A timestamp query set of `pairs` start/end pairs, where it is resolved to, and a host-mappable
+/// copy: what [`GpuTimer`] and [`PassProfiler`] share.
+#[derive(Debug)]
+struct Timestamps {
     queries: wgpu::QuerySet,
-    /// Where the two raw timestamps are resolved to (`QUERY_RESOLVE | COPY_SRC`).
+    /// Where the raw timestamps are resolved to (`QUERY_RESOLVE | COPY_SRC`).
     resolved: wgpu::Buffer,
     /// Host-mappable copy of `resolved`.
     readback: wgpu::Buffer,
@@ -808,68 +818,99 @@ pub struct GpuTimer {
     period_ns: f64,
 }
 
-/// Bytes of the two resolved `u64` timestamps.
-const TIMER_BYTES: u64 = 2 * std::mem::size_of::<u64>() as u64;
-
-impl GpuTimer {
-    /// A timer on `gpu`'s device, or `None` when the device lacks
-    /// [`wgpu::Features::TIMESTAMP_QUERY`] (see [`GpuContext::has_timestamps`]).
-    pub fn new(gpu: &GpuContext) -> Option<Self> {
+impl Timestamps {
+    /// `pairs` pairs, or `None` when the device lacks [`wgpu::Features::TIMESTAMP_QUERY`].
+    fn new(gpu: &GpuContext, label: &str, pairs: u32) -> Option<Self> {
         if !gpu.has_timestamps() {
             return None;
         }
         let device = gpu.device();
         let queries = device.create_query_set(&wgpu::QuerySetDescriptor {
-            label: Some("gpu timer"),
+            label: Some(label),
             ty: wgpu::QueryType::Timestamp,
-            count: 2,
+            count: 2 * pairs,
         });
         // A resolve destination is written at offsets aligned to QUERY_RESOLVE_BUFFER_ALIGNMENT
-        // (we resolve at 0); 16 bytes hold both timestamps.
-        let resolved = device.create_buffer(&wgpu::BufferDescriptor {
-            label: Some("gpu timer resolve"),
-            size: TIMER_BYTES,
-            usage: wgpu::BufferUsages::QUERY_RESOLVE | wgpu::BufferUsages::COPY_SRC,
-            mapped_at_creation: false,
-        });
-        let readback = device.create_buffer(&wgpu::BufferDescriptor {
-            label: Some("gpu timer readback"),
-            size: TIMER_BYTES,
-            usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
-            mapped_at_creation: false,
-        });
-        Some(GpuTimer {
+        // (we resolve at 0).
+        let buffer = |what: &str, usage| {
+            device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some(&format!("{label} {what}")),
+                size: u64::from(pairs) * TIMER_BYTES,
+                usage,
+                mapped_at_creation: false,
+            })
+        };
+        Some(Timestamps {
             queries,
-            resolved,
-            readback,
+            resolved: buffer(
+                "resolve",
+                wgpu::BufferUsages::QUERY_RESOLVE | wgpu::BufferUsages::COPY_SRC,
+            ),
+            readback: buffer(
+                "readback",
+                wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+            ),
             period_ns: f64::from(gpu.queue().get_timestamp_period()),
         })
+    }
+
+    /// The writes of pair `i`: its start when a pass begins (`first`), its end when a pass
+    /// ends (`last`).
+    fn writes(&self, i: u32, first: bool, last: bool) -> wgpu::ComputePassTimestampWrites<'_> {
+        wgpu::ComputePassTimestampWrites {
+            query_set: &self.queries,
+            beginning_of_pass_write_index: first.then_some(2 * i),
+            end_of_pass_write_index: last.then_some(2 * i + 1),
+        }
+    }
+
+    /// Records the resolution of the first `pairs` pairs into `enc`.
+    fn resolve(&self, enc: &mut wgpu::CommandEncoder, pairs: u32) {
+        enc.resolve_query_set(&self.queries, 0..2 * pairs, &self.resolved, 0);
+        enc.copy_buffer_to_buffer(
+            &self.resolved,
+            0,
+            &self.readback,
+            0,
+            u64::from(pairs) * TIMER_BYTES,
+        );
+    }
+
+    /// Waits for the submitted work and returns every pair's GPU nanoseconds from start to end
+    /// (0 if the driver reports the end before the start).
+    fn read_ns(&self, gpu: &GpuContext, label: &str) -> Result<Vec<u64>, GpuError> {
+        let ticks: Vec<u64> = gpu.map_read(&self.readback, label)?;
+        Ok(ticks
+            .chunks_exact(2)
+            .map(|t| (t[1].saturating_sub(t[0]) as f64 * self.period_ns).round() as u64)
+            .collect())
+    }
+}
+
+impl GpuTimer {
+    /// A timer on `gpu`'s device, or `None` when the device lacks
+    /// [`wgpu::Features::TIMESTAMP_QUERY`] (see [`GpuContext::has_timestamps`]).
+    pub fn new(gpu: &GpuContext) -> Option<Self> {
+        Timestamps::new(gpu, "gpu timer", 1).map(|stamps| GpuTimer { stamps })
     }
 
     /// The `timestamp_writes` of a compute pass: `first` writes the start timestamp when the
     /// pass begins, `last` the end timestamp when it ends. A single pass takes `(true, true)`;
     /// passes in between take no writes (`None` in their descriptor).
     pub fn writes(&self, first: bool, last: bool) -> wgpu::ComputePassTimestampWrites<'_> {
-        wgpu::ComputePassTimestampWrites {
-            query_set: &self.queries,
-            beginning_of_pass_write_index: first.then_some(0),
-            end_of_pass_write_index: last.then_some(1),
-        }
+        self.stamps.writes(0, first, last)
     }
 
     /// Records the resolution of both timestamps into `enc`, after the last timed pass. Submit
     /// `enc` before calling [`GpuTimer::read_ns`].
     pub fn resolve(&self, enc: &mut wgpu::CommandEncoder) {
-        enc.resolve_query_set(&self.queries, 0..2, &self.resolved, 0);
-        enc.copy_buffer_to_buffer(&self.resolved, 0, &self.readback, 0, TIMER_BYTES);
+        self.stamps.resolve(enc, 1);
     }
 
     /// Waits for the submitted work and returns the GPU nanoseconds between the start and the
     /// end timestamp (0 if the driver reports the end before the start).
     pub fn read_ns(&self, gpu: &GpuContext) -> Result<u64, GpuError> {
-        let ticks: Vec<u64> = gpu.map_read(&self.readback, "gpu timer")?;
-        let elapsed = ticks[1].saturating_sub(ticks[0]);
-        Ok((elapsed as f64 * self.period_ns).round() as u64)
+        Ok(self.stamps.read_ns(gpu, "gpu timer")?[0])
     }
 }
 
@@ -878,10 +919,7 @@ impl GpuTimer {
 /// must be begun with [`PassProfiler::begin_pass`] (one per launch gives a profile per launch).
 /// Timing every pass adds a little to each; measure totals without it.
 pub struct PassProfiler {
-    queries: wgpu::QuerySet,
-    resolved: wgpu::Buffer,
-    readback: wgpu::Buffer,
-    period_ns: f64,
+    stamps: Timestamps,
     capacity: u32,
     labels: Vec<String>,
 }
@@ -899,36 +937,9 @@ impl PassProfiler {
     /// A profiler of up to `passes` passes (at most 2048: wgpu's limit is 4096 queries), or
     /// `None` where the device lacks [`wgpu::Features::TIMESTAMP_QUERY`].
     pub fn new(gpu: &GpuContext, passes: u32) -> Option<Self> {
-        if !gpu.has_timestamps() {
-            return None;
-        }
         let capacity = passes.clamp(1, 2048);
-        let device = gpu.device();
-        let bytes = u64::from(capacity) * TIMER_BYTES;
-        let queries = device.create_query_set(&wgpu::QuerySetDescriptor {
-            label: Some("pass profiler"),
-            ty: wgpu::QueryType::Timestamp,
-            count: 2 * capacity,
-        });
-        let buffer = |label, usage| {
-            device.create_buffer(&wgpu::BufferDescriptor {
-                label: Some(label),
-                size: bytes,
-                usage,
-                mapped_at_creation: false,
-            })
-        };
-        Some(PassProfiler {
-            queries,
-            resolved: buffer(
-                "pass profiler resolve",
-                wgpu::BufferUsages::QUERY_RESOLVE | wgpu::BufferUsages::COPY_SRC,
-            ),
-            readback: buffer(
-                "pass profiler readback",
-                wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
-            ),
-            period_ns: f64::from(gpu.queue().get_timestamp_period()),
+        Timestamps::new(gpu, "pass profiler", capacity).map(|stamps| PassProfiler {
+            stamps,
             capacity,
             labels: Vec::new(),
         })
@@ -948,27 +959,15 @@ impl PassProfiler {
         }
         enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
             label: Some(label),
-            timestamp_writes: timed.then_some(wgpu::ComputePassTimestampWrites {
-                query_set: &self.queries,
-                beginning_of_pass_write_index: Some(2 * i),
-                end_of_pass_write_index: Some(2 * i + 1),
-            }),
+            timestamp_writes: timed.then(|| self.stamps.writes(i, true, true)),
         })
     }
 
     /// Records the resolution of every timestamp so far into `enc`, after the last pass.
     /// Submit `enc` before calling [`PassProfiler::read`].
     pub fn resolve(&self, enc: &mut wgpu::CommandEncoder) {
-        let n = self.labels.len() as u32;
-        if n > 0 {
-            enc.resolve_query_set(&self.queries, 0..2 * n, &self.resolved, 0);
-            enc.copy_buffer_to_buffer(
-                &self.resolved,
-                0,
-                &self.readback,
-                0,
-                u64::from(n) * TIMER_BYTES,
-            );
+        if !self.labels.is_empty() {
+            self.stamps.resolve(enc, self.labels.len() as u32);
         }
     }
 
@@ -979,14 +978,11 @@ impl PassProfiler {
         if labels.is_empty() {
             return Ok(Vec::new());
         }
-        let ticks: Vec<u64> = gpu.map_read(&self.readback, "pass profiler")?;
+        let ns = self.stamps.read_ns(gpu, "pass profiler")?;
         Ok(labels
             .into_iter()
-            .zip(ticks.chunks_exact(2))
-            .map(|(label, t)| PassTime {
-                label,
-                ns: (t[1].saturating_sub(t[0]) as f64 * self.period_ns).round() as u64,
-            })
+            .zip(ns)
+            .map(|(label, ns)| PassTime { label, ns })
             .collect())
     }
 }
