@@ -624,32 +624,34 @@ fn scan_obj(text: &str, check_ranges: bool) -> Option<ScanIssue> {
 /// geometry uncompressed too, as the specification asks of such files: with Draco, every
 /// compressed primitive's POSITION and index accessors still have a buffer view; with meshopt,
 /// no buffer is a `fallback` one (a placeholder without data). Anything else is refused.
-fn has_uncompressed_fallback(json: &[u8], ext: &str) -> bool {
-    let Ok(root) = serde_json::from_slice::<serde_json::Value>(json) else {
-        return false;
-    };
-    let list = |v: &serde_json::Value, key: &str| v[key].as_array().cloned().unwrap_or_default();
-    let compressed = |v: &serde_json::Value| !v["extensions"][ext].is_null();
+fn has_uncompressed_fallback(root: &gltf::json::Root, ext: &str) -> bool {
     if ext == "KHR_draco_mesh_compression" {
-        let accessors = list(&root, "accessors");
-        let stored = |i: &serde_json::Value| {
-            i.as_u64()
-                .and_then(|i| accessors.get(usize::try_from(i).ok()?))
-                .is_some_and(|a| !a["bufferView"].is_null())
+        let stored = |i: &gltf::json::Index<gltf::json::Accessor>| {
+            root.accessors
+                .get(i.value())
+                .is_some_and(|a| a.buffer_view.is_some())
         };
-        list(&root, "meshes").iter().all(|mesh| {
-            list(mesh, "primitives")
-                .iter()
-                .filter(|p| compressed(p))
-                .all(|p| {
-                    stored(&p["attributes"]["POSITION"])
-                        && (p["indices"].is_null() || stored(&p["indices"]))
-                })
-        })
-    } else {
-        list(&root, "buffers")
+        let positions = gltf::json::validation::Checked::Valid(gltf::Semantic::Positions);
+        root.meshes
             .iter()
-            .all(|b| b["extensions"][ext]["fallback"] != serde_json::Value::Bool(true))
+            .flat_map(|m| &m.primitives)
+            .filter(|p| {
+                p.extensions
+                    .as_ref()
+                    .is_some_and(|e| e.others.contains_key(ext))
+            })
+            .all(|p| {
+                p.attributes.get(&positions).is_some_and(stored)
+                    && p.indices.as_ref().is_none_or(stored)
+            })
+    } else {
+        root.buffers.iter().all(|b| {
+            let fallback = b
+                .extensions
+                .as_ref()
+                .and_then(|e| e.others.get(ext)?.get("fallback"));
+            fallback != Some(&gltf::json::Value::Bool(true))
+        })
     }
 }
 
@@ -693,7 +695,7 @@ fn load_gltf(
         };
         if let Some(what) = what {
             let required = root.extensions_required.contains(ext);
-            if required || !has_uncompressed_fallback(json_bytes, ext) {
+            if required || !has_uncompressed_fallback(&root, ext) {
                 return Err(GeomError::Unsupported {
                     path: path.to_path_buf(),
                     feature: what.to_string(),
@@ -862,13 +864,12 @@ fn load_gltf(
                         Some(data) => data.clone(),
                         None => {
                             // Name the glTF and the buffer, not only the file it leads to.
-                            let written = || uri.chars().take(200).collect();
                             let data: Rc<[u8]> = read_input_file(&file)
                                 .map_err(|e| match e {
                                     GeomError::Io { source, .. } => GeomError::MissingBuffer {
                                         gltf: path.to_path_buf(),
                                         index: buffer_index,
-                                        uri: written(),
+                                        uri: in_message(uri),
                                         buffer: file.clone(),
                                         source,
                                     },
@@ -876,7 +877,7 @@ fn load_gltf(
                                         GeomError::BufferNotARegularFile {
                                             gltf: path.to_path_buf(),
                                             index: buffer_index,
-                                            uri: written(),
+                                            uri: in_message(uri),
                                             buffer,
                                             kind,
                                         }
@@ -1116,7 +1117,7 @@ fn resolve_uri(
     let refuse = |reason: &'static str| GeomError::UriRefused {
         gltf: gltf.to_path_buf(),
         buffer,
-        uri: uri.chars().take(200).collect(),
+        uri: in_message(uri),
         reason,
     };
     // An empty reference means the document itself (and joined to the folder, the folder).
@@ -1201,12 +1202,18 @@ fn percent_decode(s: &str) -> String {
     String::from_utf8_lossy(&out).into_owned()
 }
 
+/// A name or uri from the file as errors quote it: at most 200 characters, so that a hostile
+/// file cannot fill a terminal.
+fn in_message(text: &str) -> String {
+    text.chars().take(200).collect()
+}
+
 /// [`GeomError::NodeTransform`] for `node`.
 fn node_error(path: &Path, node: &gltf::Node, reason: String) -> GeomError {
     GeomError::NodeTransform {
         path: path.to_path_buf(),
         node: node.index(),
-        name: node.name().map(|n| n.chars().take(200).collect()),
+        name: node.name().map(in_message),
         reason,
     }
 }
@@ -1880,7 +1887,7 @@ fn add_gltf_mesh(
                     return Err(GeomError::GltfIndexOutOfRange {
                         path: path.to_path_buf(),
                         mesh: mesh.index(),
-                        mesh_name: mesh.name().map(|n| n.chars().take(200).collect()),
+                        mesh_name: mesh.name().map(in_message),
                         primitive: prim.index(),
                         triangle: k,
                         index: i,

@@ -135,6 +135,21 @@ const CUBE_VIEWS: &str =
 const POS: &str =
     r#"{"bufferView":0,"componentType":5126,"count":8,"type":"VEC3","min":[0,0,0],"max":[1,1,1]}"#;
 
+/// The cube of `cube_buffer(&[])` with its buffer at `uri`, its u32 indices (accessor 1) and
+/// the nodes `nodes`, node 0 the scene's root.
+fn cube_doc(uri: &str, nodes: &str) -> String {
+    let idx = r#"{"bufferView":1,"componentType":5125,"count":36,"type":"SCALAR"}"#;
+    doc(
+        uri,
+        cube_buffer(&[]).len(),
+        CUBE_VIEWS,
+        &format!("{POS},{idx}"),
+        Some(1),
+        nodes,
+        "0",
+    )
+}
+
 /// The cube with index accessor `index_acc` (accessor 1), one node.
 fn cube_with_indices(index_acc: &str) -> String {
     let b = cube_buffer(&[]);
@@ -384,21 +399,7 @@ fn gltf_buffer_uris_stay_in_the_assets_folder() {
     secret.extend_from_slice(&[7u8; 1081]);
     write(&root, "secret.bin", &secret);
     write(&inside, "cube.bin", &b);
-    let acc = format!(
-        "{POS},{}",
-        r#"{"bufferView":1,"componentType":5125,"count":36,"type":"SCALAR"}"#
-    );
-    let gltf = |uri: &str| {
-        doc(
-            uri,
-            b.len(),
-            CUBE_VIEWS,
-            &acc,
-            Some(1),
-            r#"{"mesh":0}"#,
-            "0",
-        )
-    };
+    let gltf = |uri: &str| cube_doc(uri, r#"{"mesh":0}"#);
     let secret_abs = root.join("secret.bin").display().to_string();
     for (i, uri) in [
         "../secret.bin",
@@ -671,19 +672,8 @@ fn obj_polylines_and_points_are_not_faces() {
 #[test]
 fn gltf_node_transforms_must_be_rigid_or_scaled() {
     let dir = temp_dir("gtransform");
-    let b = cube_buffer(&[]);
-    let idx = r#"{"bufferView":1,"componentType":5125,"count":36,"type":"SCALAR"}"#;
-    let with_node = |node: &str| {
-        doc(
-            &data_uri(&b),
-            b.len(),
-            CUBE_VIEWS,
-            &format!("{POS},{idx}"),
-            Some(1),
-            node,
-            "0",
-        )
-    };
+    let uri = data_uri(&cube_buffer(&[]));
+    let with_node = |node: &str| cube_doc(&uri, node);
     // 90° about z, written with 6 digits: within rounding of unit length.
     let m = load_text(
         &dir,
@@ -1536,19 +1526,8 @@ fn obj_forward_references_w_and_empty_corners() {
 #[test]
 fn gltf_non_finite_node_transforms_name_the_node() {
     let dir = temp_dir("gnonfinite");
-    let b = cube_buffer(&[]);
-    let idx = r#"{"bufferView":1,"componentType":5125,"count":36,"type":"SCALAR"}"#;
-    let with_nodes = |nodes: &str| {
-        doc(
-            &data_uri(&b),
-            b.len(),
-            CUBE_VIEWS,
-            &format!("{POS},{idx}"),
-            Some(1),
-            nodes,
-            "0",
-        )
-    };
+    let uri = data_uri(&cube_buffer(&[]));
+    let with_nodes = |nodes: &str| cube_doc(&uri, nodes);
     for (name, nodes, node, node_name, words) in [
         (
             "scale.gltf",
@@ -1663,19 +1642,7 @@ fn gltf_index_out_of_range_names_mesh_and_primitive() {
 fn gltf_buffer_uris_that_are_not_files_name_the_buffer() {
     let dir = temp_dir("gbufdir");
     std::fs::create_dir_all(dir.join("sub")).unwrap();
-    let b = cube_buffer(&[]);
-    let idx = r#"{"bufferView":1,"componentType":5125,"count":36,"type":"SCALAR"}"#;
-    let gltf = |uri: &str| {
-        doc(
-            uri,
-            b.len(),
-            CUBE_VIEWS,
-            &format!("{POS},{idx}"),
-            Some(1),
-            r#"{"mesh":0}"#,
-            "0",
-        )
-    };
+    let gltf = |uri: &str| cube_doc(uri, r#"{"mesh":0}"#);
     // Empty: refused as it is written, whatever it would resolve to.
     for options in [
         LoadOptions::default(),
