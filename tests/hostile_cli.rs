@@ -702,7 +702,7 @@ fn cases() -> Vec<Case> {
                 "--resume",
                 "done5.checkpoint.safetensors",
             ],
-            Error("is a checkpoint of a nglod model, not siren"),
+            Error("done5.checkpoint.safetensors: the checkpoint is of a nglod model, not siren"),
         ),
         // Models that load but cannot be scored, shown or meshed.
         case(

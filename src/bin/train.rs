@@ -118,16 +118,9 @@ fn train(args: &Args) -> Result<Outcome, Box<dyn std::error::Error>> {
     };
     // The model kind needs no adapter: refuse a checkpoint of the other one before opening it.
     // (Its preset may: `run::train` checks that.)
-    if let Some(c) = &resume
-        && c.options().0.as_deref() != Some(model.name())
-    {
-        return Err(format!(
-            "{} is a checkpoint of a {} model, not {}",
-            args.resume.as_deref().unwrap_or(Path::new("")).display(),
-            c.options().0.as_deref().unwrap_or("unknown"),
-            model.name()
-        )
-        .into());
+    if let (Some(c), Some(path)) = (&resume, &args.resume) {
+        c.check_model(model)
+            .map_err(|e| format!("{}: {e}", path.display()))?;
     }
     let gpu = GpuContext::new()?;
     let preset = flags.preset_for(model, gpu.is_cpu());

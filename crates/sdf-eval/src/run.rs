@@ -657,6 +657,20 @@ impl Checkpoint {
         (!v.is_null()).then(|| v.as_f64().map_or(f32::NAN, |x| x as f32))
     }
 
+    /// Errors unless this checkpoint is of a `model` model: the check a resume can make before
+    /// the adapter (which may choose the preset) is open.
+    pub fn check_model(&self, model: ModelKind) -> Result<(), RunError> {
+        let has = self.options().0;
+        if has.as_deref() == Some(model.name()) {
+            return Ok(());
+        }
+        Err(RunError::Options(format!(
+            "the checkpoint is of a {} model, not {}",
+            has.as_deref().unwrap_or("unknown"),
+            model.name()
+        )))
+    }
+
     /// What of `options`' model, preset and architecture this checkpoint does not have, as
     /// `name asked, not checkpoint's` lines (empty when a run of `options` may resume it). A
     /// NGLOD checkpoint must have every value of the architecture `options` resolve to, not only
@@ -805,14 +819,8 @@ pub fn train(
     mut progress: impl FnMut(&Progress),
 ) -> Result<Trained, RunError> {
     if let Some(c) = resume {
-        let (model, preset) = c.options();
-        if model.as_deref() != Some(options.model.name()) {
-            return Err(RunError::Options(format!(
-                "the checkpoint is of a {} model, not {}",
-                model.as_deref().unwrap_or("unknown"),
-                options.model.name()
-            )));
-        }
+        c.check_model(options.model)?;
+        let preset = c.options().1;
         if preset.as_deref() != Some(options.preset.name()) {
             return Err(RunError::Options(format!(
                 "the checkpoint uses the {} preset, not {}",
