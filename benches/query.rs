@@ -27,7 +27,9 @@
 //! `roundtrip/dispatch` (after one empty dispatch) and `serve_recorded` (`record_query` on points
 //! already on the GPU, a copy and a readback: a query without its upload), and runs SIREN's
 //! `kernel`, `neural_sdf` and `neural_sdf_timed` for the presets of
-//! `QUERY_BENCH_SIREN_PRESETS=small,default` (default `small`).
+//! `QUERY_BENCH_SIREN_PRESETS=small,default` (default `small`) on the kernels of
+//! `QUERY_BENCH_SIREN_KERNELS` (default `auto`; `tiled` runs the fused kernel, whose queries take
+//! one dispatch, on any adapter).
 
 use std::time::Duration;
 
@@ -378,12 +380,20 @@ fn interleaved_siren_preset(
     preset: &str,
     config: sdf_nn::SirenConfig,
 ) {
+    let kernels: sdf_nn::siren::LayerKernels = match std::env::var("QUERY_BENCH_SIREN_KERNELS") {
+        Err(_) => Default::default(),
+        Ok(name) => name
+            .parse()
+            .unwrap_or_else(|e| panic!("QUERY_BENCH_SIREN_KERNELS: {e}")),
+    };
     let siren = sdf_nn::Siren::new(config, 1).unwrap();
     let mut net = sdf_nn::SirenGpu::new(gpu, &siren).unwrap();
-    let sdf = NeuralSdf::from_model_file(
+    net.set_layer_kernels(gpu, kernels).unwrap();
+    let mut sdf = NeuralSdf::from_model_file(
         siren.to_model_file(Normalization::identity(), serde_json::Value::Null),
     )
     .unwrap();
+    sdf.set_siren_kernels(kernels).unwrap();
     for n in batch_sizes() {
         let pts: Vec<Vec3> = sdf_geom::sample::uniform_box(n, 42);
         let mut gpu_ns = Vec::with_capacity(rounds);

@@ -159,8 +159,7 @@ fn value_grad_at(p: vec3<f32>) -> vec4<f32> {
 }
 
 // The serving path (crates/sdf-nn/src/query.rs) in one dispatch: `points` holds vec4 points in
-// mesh coordinates (xyz), `out` receives the distance in mesh units with NeuralSdf's rule outside
-// the box, d = (Φ(clamp(x)) + |x - clamp(x)|) / scale, for x the normalised point.
+// mesh coordinates (xyz), `out` receives the distance in mesh units (the rule of query_map.wgsl).
 @compute @workgroup_size(WG)
 fn query(
     @builtin(workgroup_id) wid: vec3<u32>,
@@ -171,13 +170,11 @@ fn query(
     if idx >= u.n_points {
         return;
     }
-    let x = (vec3<f32>(points[4u * idx], points[4u * idx + 1u], points[4u * idx + 2u]) - u.query.xyz) * u.query.w;
-    let c = clamp(x, vec3<f32>(-1.0), vec3<f32>(1.0));
-    out[idx] = (value_at(c) + length(x - c)) / u.query.w;
+    let x = query_normalized(vec3<f32>(points[4u * idx], points[4u * idx + 1u], points[4u * idx + 2u]), u.query);
+    out[idx] = query_distance(value_at(query_clamped(x)), x, u.query);
 }
 
-// `query` with normals: out[4 idx..] = (distance, unit normal), the normal pointing away from the
-// box outside it and along the normalised gradient inside.
+// `query` with normals: out[4 idx..] = (distance, unit normal).
 @compute @workgroup_size(WG)
 fn query_grad(
     @builtin(workgroup_id) wid: vec3<u32>,
@@ -188,21 +185,10 @@ fn query_grad(
     if idx >= u.n_points {
         return;
     }
-    let x = (vec3<f32>(points[4u * idx], points[4u * idx + 1u], points[4u * idx + 2u]) - u.query.xyz) * u.query.w;
-    let c = clamp(x, vec3<f32>(-1.0), vec3<f32>(1.0));
-    let away = x - c;
-    let outside = length(away);
-    let vg = value_grad_at(c);
-    var n = vec3<f32>(0.0);
-    if outside > 0.0 {
-        n = away / outside;
-    } else {
-        let len = length(vg.yzw);
-        if len > 0.0 {
-            n = vg.yzw / len;
-        }
-    }
-    out[4u * idx] = (vg.x + outside) / u.query.w;
+    let x = query_normalized(vec3<f32>(points[4u * idx], points[4u * idx + 1u], points[4u * idx + 2u]), u.query);
+    let vg = value_grad_at(query_clamped(x));
+    let n = query_normal(vg.yzw, x);
+    out[4u * idx] = query_distance(vg.x, x, u.query);
     out[4u * idx + 1u] = n.x;
     out[4u * idx + 2u] = n.y;
     out[4u * idx + 3u] = n.z;

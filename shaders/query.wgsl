@@ -3,9 +3,9 @@
 //            normalised, clamped to [-1, 1]^3, as 3 floats per point, or (SIREN with gradients)
 //            as four rows per point: the point and the unit tangents e_x, e_y, e_z;
 //   finish:  the network's output -> the caller's results, in mesh units, with the rule of
-//            NeuralSdf outside the box: d = (Φ(clamp(x)) + |x - clamp(x)|) / scale, and the normal
-//            pointing away from the box there, the normalised gradient inside.
-// One invocation per point.
+//            query_map.wgsl (prepended) outside the box.
+// One invocation per point. SIREN's one-dispatch kernels (tiled fused, cooperative matrices) apply
+// the same rule themselves and need neither.
 
 struct Query {
     n_points: u32,
@@ -26,7 +26,7 @@ const WG: u32 = 64u;
 @group(0) @binding(4) var<storage, read_write> results: array<f32>;
 
 fn normalized(idx: u32) -> vec3<f32> {
-    return (points[idx].xyz - q.center.xyz) * q.scale;
+    return query_normalized(points[idx].xyz, vec4<f32>(q.center.xyz, q.scale));
 }
 
 @compute @workgroup_size(WG)
@@ -39,7 +39,7 @@ fn prepare(
     if idx >= q.n_points {
         return;
     }
-    let c = clamp(normalized(idx), vec3<f32>(-1.0), vec3<f32>(1.0));
+    let c = query_clamped(normalized(idx));
     if q.streams == 0u {
         net_in[3u * idx] = c.x;
         net_in[3u * idx + 1u] = c.y;
@@ -67,24 +67,14 @@ fn finish(
         return;
     }
     let x = normalized(idx);
-    let away = x - clamp(x, vec3<f32>(-1.0), vec3<f32>(1.0));
-    let outside = length(away);
+    let map = vec4<f32>(q.center.xyz, q.scale);
     if q.normals == 0u {
-        results[idx] = (net_out[idx] + outside) / q.scale;
+        results[idx] = query_distance(net_out[idx], x, map);
         return;
     }
     let b = 4u * idx;
-    let g = vec3<f32>(net_out[b + 1u], net_out[b + 2u], net_out[b + 3u]);
-    var n = vec3<f32>(0.0);
-    if outside > 0.0 {
-        n = away / outside;
-    } else {
-        let len = length(g);
-        if len > 0.0 {
-            n = g / len;
-        }
-    }
-    results[b] = (net_out[b] + outside) / q.scale;
+    let n = query_normal(vec3<f32>(net_out[b + 1u], net_out[b + 2u], net_out[b + 3u]), x);
+    results[b] = query_distance(net_out[b], x, map);
     results[b + 1u] = n.x;
     results[b + 2u] = n.y;
     results[b + 3u] = n.z;

@@ -20,6 +20,8 @@
 //   row's argument (tangent rows), and write the f16 activations;
 // - the linear head in f32, several invocations per row, summed through the scratch.
 // ω0 is folded into the packed weights so that tiny trained weights stay normal f16 numbers.
+// With `query` set, it answers a caller's points in one dispatch, as siren_tiled_fused.wgsl does
+// (query_map.wgsl's rule, prepended after the tile file).
 
 struct Coop {
     // Rows in all: points, or 4 × points with tangents.
@@ -29,12 +31,17 @@ struct Coop {
     hidden_layers: u32,
     omega: f32,
     tangents: u32,
-    // Floats per point in `points`: 3, or 12 with tangents (the point, then the unit axes).
+    // Floats from one point to the next in `points` (the point first): 3, or 12 with tangents
+    // (the point, then the unit axes, which the kernel does not read); 4 with `query`.
     point_stride: u32,
     // f16s from one row of `act` to the next: the width plus a pad of 16 bytes, so that the
     // rows of a tile start in different memory banks; GROUP_ROWS · act_stride ≤ ACT.
     act_stride: u32,
-    _pad: u32,
+    // 1: `points` are a caller's vec4 points in mesh coordinates, and `values` receives their
+    // distances (and unit normals) instead of Φ (and ∇Φ).
+    query: u32,
+    // The query's map into the cube: xyz the mesh's centre, w its scale.
+    map: vec4<f32>,
 }
 
 @group(0) @binding(0) var<uniform> u: Coop;
@@ -44,7 +51,8 @@ struct Coop {
 @group(0) @binding(2) var<storage, read> params: array<f32>;
 // ω0 · W of hidden layers 1 .. L-1, each [width][width] row major (out, in).
 @group(0) @binding(3) var<storage, read> packed: array<f16>;
-// Φ per row: Φ per point, or (Φ, ∇Φ) per point with tangents.
+// Φ per row: Φ per point, or (Φ, ∇Φ) per point with tangents (with `query`: the distance, or
+// the distance and the unit normal).
 @group(0) @binding(4) var<storage, read_write> values: array<f32>;
 // `packed`, written by `coop_pack`.
 @group(0) @binding(5) var<storage, read_write> packed_out: array<f16>;
@@ -61,6 +69,20 @@ var<workgroup> scratch: array<f32, SLOTS * T * T>;
 // Offset in `params` of hidden layer l ≥ 1's weights (its bias follows them).
 fn hidden_offset(l: u32, w: u32) -> u32 {
     return 4u * w + (l - 1u) * (w * w + w);
+}
+
+// Point p as stored: normalised, or with `query` in mesh coordinates.
+fn stored_point(p: u32) -> vec3<f32> {
+    let b = p * u.point_stride;
+    return vec3<f32>(points[b], points[b + 1u], points[b + 2u]);
+}
+
+// The network's input for point p.
+fn point_at(p: u32) -> vec3<f32> {
+    if u.query != 0u {
+        return query_clamped(query_normalized(stored_point(p), u.map));
+    }
+    return stored_point(p);
 }
 
 // Subgroups of the workgroup: the host sets WG = ⌈tiles across the width / 2⌉ × the
@@ -114,9 +136,9 @@ fn coop_forward(
         let o = e % w;
         let row = min(first + e / w, last);
         let j = select(0u, row % 4u, u.tangents != 0u);
-        let q = u.point_stride * select(row, row / 4u, u.tangents != 0u);
-        let z = om * (params[3u * o] * points[q] + params[3u * o + 1u] * points[q + 1u]
-            + params[3u * o + 2u] * points[q + 2u] + params[3u * w + o]);
+        let x = point_at(select(row, row / 4u, u.tangents != 0u));
+        let z = om * (params[3u * o] * x.x + params[3u * o + 1u] * x.y
+            + params[3u * o + 2u] * x.z + params[3u * w + o]);
         // Both operands of `select` are evaluated: index a weight that exists on value rows.
         let wj = params[3u * o + max(j, 1u) - 1u];
         act[(e / w) * ls + o] = f16(select(cos(z) * om * wj, sin(z), j == 0u));
@@ -194,14 +216,38 @@ fn coop_forward(
         scratch[e] = s;
     }
     workgroupBarrier();
-    for (var r = lid; r < GROUP_ROWS && first + r < u.rows; r += WG) {
-        var s = 0.0;
-        for (var p = 0u; p < parts; p++) {
-            s += scratch[r * parts + p];
+    let bias = params[hoff + w];
+    if u.query == 0u {
+        for (var r = lid; r < GROUP_ROWS && first + r < u.rows; r += WG) {
+            let value_row = u.tangents == 0u || (first + r) % 4u == 0u;
+            values[first + r] = head_sum(r, parts) + select(0.0, bias, value_row);
         }
-        let value_row = u.tangents == 0u || (first + r) % 4u == 0u;
-        values[first + r] = s + select(0.0, params[hoff + w], value_row);
+    } else if u.tangents == 0u {
+        for (var r = lid; r < GROUP_ROWS && first + r < u.rows; r += WG) {
+            let x = query_normalized(stored_point(first + r), u.map);
+            values[first + r] = query_distance(head_sum(r, parts) + bias, x, u.map);
+        }
+    } else {
+        // One invocation per point: its value row and its three tangent rows.
+        for (var r = 4u * lid; r < GROUP_ROWS && first + r < u.rows; r += 4u * WG) {
+            let x = query_normalized(stored_point((first + r) / 4u), u.map);
+            let g = vec3<f32>(head_sum(r + 1u, parts), head_sum(r + 2u, parts), head_sum(r + 3u, parts));
+            let n = query_normal(g, x);
+            values[first + r] = query_distance(head_sum(r, parts) + bias, x, u.map);
+            values[first + r + 1u] = n.x;
+            values[first + r + 2u] = n.y;
+            values[first + r + 3u] = n.z;
+        }
     }
+}
+
+// Row r's head sum from its `parts` partial sums in the scratch.
+fn head_sum(r: u32, parts: u32) -> f32 {
+    var s = 0.0;
+    for (var p = 0u; p < parts; p++) {
+        s += scratch[r * parts + p];
+    }
+    return s;
 }
 
 // ω0 · W of every hidden layer after the first into `packed_out`, one weight per invocation.

@@ -13,6 +13,10 @@
 // row-major weights had each invocation read a row of its own, a whole weight row apart. Every
 // workgroup reads the same weights: they stay in cache. After a barrier it overwrites its block
 // with the layer's activations in place.
+//
+// With `query` set, it answers a caller's points in one dispatch (crates/sdf-nn/src/query.rs):
+// `points` holds vec4 points in mesh coordinates, mapped into the cube and clamped on load, and
+// `values` receives the distances (and normals) of query_map.wgsl's rule instead of Φ (and ∇Φ).
 
 struct Fused {
     // Rows in all: points, or 4 × points with tangents.
@@ -23,10 +27,14 @@ struct Fused {
     width: u32,
     hidden_layers: u32,
     tangents: u32,
-    // Floats per point in `points`: 3, or 12 with tangents (the point, then e_x, e_y, e_z).
+    // Floats from one point to the next in `points` (the point first): 3, or 12 with tangents
+    // (the point, then e_x, e_y, e_z, which the kernel does not read); 4 with `query`.
     point_stride: u32,
     omega: f32,
-    _pad: u32,
+    // 1: `points` are a caller's mesh-space points, `values` its results (see above).
+    query: u32,
+    // The query's map into the cube: xyz the mesh's centre, w its scale.
+    map: vec4<f32>,
 }
 
 @group(0) @binding(0) var<uniform> f: Fused;
@@ -34,7 +42,8 @@ struct Fused {
 @group(0) @binding(2) var<storage, read> params: array<f32>;
 // The same buffer as vec4 (every weight row starts 16-byte aligned when width % 4 = 0).
 @group(0) @binding(3) var<storage, read> params4: array<vec4<f32>>;
-// Φ per row: Φ per point, or (Φ, ∇Φ) per point with tangents.
+// Φ per row: Φ per point, or (Φ, ∇Φ) per point with tangents (with `query`: the distance, or
+// the distance and the unit normal).
 @group(0) @binding(4) var<storage, read_write> values: array<f32>;
 // The hidden layers after the first, transposed: layer l's Wᵀ[k][o] at (l - 1)·w² + k·w + o.
 @group(0) @binding(5) var<storage, read> wt4: array<vec4<f32>>;
@@ -50,9 +59,18 @@ fn hidden_offset(l: u32, w: u32) -> u32 {
     return 4u * w + (l - 1u) * (w * w + w);
 }
 
-fn point_at(p: u32) -> vec3<f32> {
+// Point p as stored: normalised, or with `query` in mesh coordinates.
+fn stored_point(p: u32) -> vec3<f32> {
     let b = p * f.point_stride;
     return vec3<f32>(points[b], points[b + 1u], points[b + 2u]);
+}
+
+// The network's input for point p.
+fn point_at(p: u32) -> vec3<f32> {
+    if f.query != 0u {
+        return query_clamped(query_normalized(stored_point(p), f.map));
+    }
+    return stored_point(p);
 }
 
 // Row o of the first layer's W ([width, 3]).
@@ -173,17 +191,44 @@ fn fused_forward(
 
     // The linear head, one row per invocation; the bias only on value rows.
     let row = first_row + lid;
-    if lid < f.group_rows && row < f.rows {
+    let has_row = lid < f.group_rows && row < f.rows;
+    var phi = 0.0;
+    if has_row {
         let woff4 = hidden_offset(f.hidden_layers, w) / 4u;
         var s = vec4<f32>(0.0);
         for (var k4 = 0u; k4 < w4; k4++) {
             s = fma(act[lid * w4 + k4], params4[woff4 + k4], s);
         }
-        var phi = s.x + s.y + s.z + s.w;
+        phi = s.x + s.y + s.z + s.w;
         if f.tangents == 0u || lid % 4u == 0u {
             phi += params[4u * woff4 + w];
         }
-        values[row] = phi;
+    }
+    if f.query == 0u {
+        if has_row {
+            values[row] = phi;
+        }
+        return;
+    }
+    if f.tangents == 0u {
+        if has_row {
+            values[row] = query_distance(phi, query_normalized(stored_point(row), f.map), f.map);
+        }
+        return;
+    }
+    // A point's four rows meet in workgroup memory (every row of `act` has been read).
+    workgroupBarrier();
+    if has_row {
+        act[lid].x = phi;
+    }
+    workgroupBarrier();
+    if has_row && lid % 4u == 0u {
+        let x = query_normalized(stored_point(row / 4u), f.map);
+        let n = query_normal(vec3<f32>(act[lid + 1u].x, act[lid + 2u].x, act[lid + 3u].x), x);
+        values[row] = query_distance(phi, x, f.map);
+        values[row + 1u] = n.x;
+        values[row + 2u] = n.y;
+        values[row + 3u] = n.z;
     }
 }
 

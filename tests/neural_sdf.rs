@@ -7,7 +7,7 @@ use hwsdf::eval::run::extract_mesh;
 use hwsdf::nn::{
     GpuContext, GpuError, NeuralSdf, NeuralSdfError, Nglod, NglodConfig, Normalization,
     QueryBuffersDescriptor, QueryError, QueryOutputs, QuerySpace, QueryTransfer, Siren,
-    SirenConfig,
+    SirenConfig, siren::LayerKernels,
 };
 use rand::{Rng, SeedableRng};
 use rand_pcg::Pcg64;
@@ -24,14 +24,27 @@ fn normalization() -> Normalization {
     }
 }
 
+/// A SIREN on the adapter's own kernels, an NGLOD, and the SIREN again on the two ways a
+/// SIREN query runs whatever the adapter: the tiled fused kernel, which answers in one dispatch
+/// (the mapping into the cube and the rule outside it inside the kernel), and the row-blocked
+/// kernels between `query.wgsl`'s two ends.
 fn models() -> Vec<NeuralSdf> {
     let siren = Siren::new(SirenConfig::small(), 3).unwrap();
     let nglod = Nglod::new(NglodConfig::small()).unwrap();
+    let siren_on = |kernels: LayerKernels| {
+        let mut sdf = NeuralSdf::from_model_file(
+            siren.to_model_file(normalization(), serde_json::Value::Null),
+        )
+        .unwrap();
+        sdf.set_siren_kernels(kernels).unwrap();
+        sdf
+    };
     vec![
-        NeuralSdf::from_model_file(siren.to_model_file(normalization(), serde_json::Value::Null))
-            .unwrap(),
+        siren_on(LayerKernels::Auto),
         NeuralSdf::from_model_file(nglod.to_model_file(normalization(), serde_json::Value::Null))
             .unwrap(),
+        siren_on(LayerKernels::Tiled),
+        siren_on(LayerKernels::RowBlocked),
     ]
 }
 
@@ -106,18 +119,23 @@ fn gpu_and_cpu_agree_for_both_architectures() {
         for (i, (a, b)) in g.iter().zip(&c).enumerate() {
             assert!(
                 (a - b).abs() <= 1e-4 * b.abs().max(1.0),
-                "{} point {i}: GPU {a} vs CPU {b}",
-                model.architecture()
+                "{} {:?} point {i}: GPU {a} vs CPU {b}",
+                model.architecture(),
+                model.siren_kernels()
             );
         }
         let gn = model.eval_with_normals(gpu, &pts).unwrap();
         let cn = model.eval_with_normals_cpu(&pts);
         for (i, ((da, na), (db, nb))) in gn.iter().zip(&cn).enumerate() {
+            let what = format!("{} {:?}", model.architecture(), model.siren_kernels());
             assert!(
                 (da - db).abs() <= 1e-4 * db.abs().max(1.0),
-                "{i}: {da} vs {db}"
+                "{what} {i}: {da} vs {db}"
             );
-            assert!((*na - *nb).length() < 1e-3, "{i}: normal {na} vs {nb}");
+            assert!(
+                (*na - *nb).length() < 1e-3,
+                "{what} {i}: normal {na} vs {nb}"
+            );
             assert!(na.length() < 1.0 + 1e-4);
         }
         // Distances are in mesh units: outside the box the distance-to-box term dominates,
@@ -185,7 +203,7 @@ fn serving_api_reuses_buffers_and_refuses_misuse() {
         .iter()
         .flat_map(|m| [(m, QueryTransfer::Staged), (m, QueryTransfer::Mapped)])
     {
-        let arch = model.architecture();
+        let arch = format!("{} {:?}", model.architecture(), model.siren_kernels());
         let desc = QueryBuffersDescriptor {
             label: Some("test"),
             capacity: 500,
@@ -272,7 +290,11 @@ fn serving_api_reuses_buffers_and_refuses_misuse() {
             model.submit_query(gpu, &mut buffers, &points(501)),
             Err(NeuralSdfError::Query(QueryError::Capacity { .. }))
         ));
-        let other = &models[if arch == "siren" { 1 } else { 0 }];
+        let other = &models[if model.architecture() == "siren" {
+            1
+        } else {
+            0
+        }];
         assert!(matches!(
             other.submit_query(gpu, &mut buffers, &points(3)),
             Err(NeuralSdfError::Query(QueryError::Foreign))

@@ -60,6 +60,7 @@ use crate::gpu::{GpuContext, GpuError, GpuTimer, entry};
 use crate::neural::{GpuNetwork, NeuralSdf, NeuralSdfError};
 use crate::nglod::gpu::NglodEvalBinding;
 use crate::shaders;
+use crate::siren::gpu::QueryLaunch;
 
 /// Invocations per workgroup of `shaders/query.wgsl`.
 const WG: u32 = 64;
@@ -294,6 +295,9 @@ impl std::fmt::Debug for QueryBuffers {
 enum Kernels {
     /// NGLOD: one dispatch of its serving kernel, straight from `points` to `results`.
     Nglod(NglodEvalBinding),
+    /// SIREN on a kernel family that runs an inference in one dispatch (tiled fused,
+    /// cooperative matrices): the same, straight from `points` to `results`.
+    Siren(QueryLaunch),
     /// SIREN: `prepare` (points to the network's input rows), the network's launches bound to
     /// `net_in` and `net_out`, `finish` (its values and gradients to distances and normals).
     Staged(Box<Stages>),
@@ -692,14 +696,17 @@ impl NeuralSdf {
             QuerySpace::Mesh => (self.normalization().center, self.normalization().scale),
             QuerySpace::Normalized => (Vec3::ZERO, 1.0),
         };
-        let nglod = self.with_gpu(gpu, |net, _| match net {
-            GpuNetwork::Nglod(m) => Ok(Some(
+        let map = transform.0.extend(transform.1);
+        let one_dispatch = self.with_gpu(gpu, |net, _| match net {
+            GpuNetwork::Nglod(m) => Ok(Some(Kernels::Nglod(
                 m.eval_binding(gpu, &points, &results, normals, transform)?,
-            )),
-            GpuNetwork::Siren(_) => Ok(None),
+            ))),
+            GpuNetwork::Siren(s) => Ok(s
+                .query_launch(gpu, &points, &results, desc.capacity, normals, map)?
+                .map(Kernels::Siren)),
         })?;
-        let kernels = match nglod {
-            Some(binding) => Kernels::Nglod(binding),
+        let kernels = match one_dispatch {
+            Some(kernels) => kernels,
             None => {
                 // SIREN takes its gradient as three tangent rows per point.
                 let in_floats = if normals { 12 } else { 3 };
@@ -879,6 +886,14 @@ impl NeuralSdf {
                 (GpuNetwork::Nglod(m), Kernels::Nglod(binding)) => {
                     m.record_eval(gpu, enc, binding, n, lod, timer)?
                 }
+                (GpuNetwork::Siren(s), Kernels::Siren(launch)) => {
+                    s.refresh_pack(enc);
+                    let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                        label: Some("hwsdf query"),
+                        timestamp_writes: timer.map(|t| t.writes(true, true)),
+                    });
+                    launch.record(gpu, &mut pass, n);
+                }
                 (GpuNetwork::Siren(s), Kernels::Staged(st)) => {
                     if st.written != Some(n) {
                         // n_points is the first field of the uniforms.
@@ -1041,6 +1056,66 @@ mod tests {
                 "{i}: {da} vs {db}"
             );
             assert!((*na - *nb).length() < 1e-3, "{i}: {na} vs {nb}");
+        }
+    }
+
+    /// A SIREN whose kernels run an inference in one dispatch answers queries in that one
+    /// dispatch, points to results (the tiled fused kernel here; the cooperative-matrix one is
+    /// checked where the adapter has it, in `tests/siren_gpu.rs`); the row-blocked kernels, and
+    /// a capacity beyond the fused kernel's batches, go through `query.wgsl`'s two ends. Both
+    /// answer alike, in mesh coordinates, inside the box and beyond it.
+    #[test]
+    fn siren_queries_take_one_dispatch_where_the_kernels_allow() {
+        let gpu = gpu();
+        let norm = Normalization {
+            center: Vec3::new(-2.0, 0.5, 1.0),
+            scale: 0.25,
+        };
+        let siren = Siren::new(SirenConfig::small(), 5).unwrap();
+        let pts: Vec<Vec3> = points().iter().map(|&p| norm.to_original(p)).collect();
+        for (kernels, capacity, one_dispatch) in [
+            (crate::siren::LayerKernels::Tiled, 400, true),
+            (crate::siren::LayerKernels::RowBlocked, 400, false),
+            // Past the fused kernel's batches on a CPU adapter; GPUs fuse every batch.
+            (crate::siren::LayerKernels::Tiled, 10_000, !gpu.is_cpu()),
+        ] {
+            let mut served = sdf(siren.to_model_file(norm, serde_json::Value::Null));
+            served.set_siren_kernels(kernels).unwrap();
+            for outputs in [
+                crate::QueryOutputs::Values,
+                crate::QueryOutputs::ValuesAndNormals,
+            ] {
+                let desc = crate::QueryBuffersDescriptor {
+                    capacity,
+                    outputs,
+                    ..Default::default()
+                };
+                let mut buffers = served.create_query_buffers(gpu, &desc).unwrap();
+                assert_eq!(
+                    matches!(buffers.kernels, super::Kernels::Siren(_)),
+                    one_dispatch,
+                    "{kernels:?} capacity {capacity}"
+                );
+                let what = format!("{kernels:?} {outputs:?} capacity {capacity}");
+                let values = served.eval_cpu(&pts);
+                let normals = served.eval_with_normals_cpu(&pts);
+                // Counts that change between queries: the one dispatch rewrites its row count.
+                for n in [301, 17, 300] {
+                    let ticket = served.submit_query(gpu, &mut buffers, &pts[..n]).unwrap();
+                    let got = buffers.wait(gpu, ticket).unwrap().floats();
+                    let what = format!("{what} n={n}");
+                    if outputs == crate::QueryOutputs::Values {
+                        assert_close(&got, &values[..n], &what);
+                        continue;
+                    }
+                    assert_eq!(got.len(), 4 * n, "{what}");
+                    for (i, (g, (d, n))) in got.chunks_exact(4).zip(&normals).enumerate() {
+                        assert!((g[0] - d).abs() <= 1e-4 * d.abs().max(1.0), "{what} {i}");
+                        let gn = Vec3::new(g[1], g[2], g[3]);
+                        assert!((gn - *n).length() < 1e-3, "{what} {i}: {gn} vs {n}");
+                    }
+                }
+            }
         }
     }
 

@@ -50,7 +50,7 @@ pub const ADAM: Shader = shader!("adam.wgsl", wgpu::Features::empty());
 
 /// NGLOD inference (grid interpolation + MLP).
 pub const NGLOD_FORWARD: Shader = shader!(
-    "nglod_forward.wgsl" with ["nglod_grid.wgsl"],
+    "nglod_forward.wgsl" with ["nglod_grid.wgsl", "query_map.wgsl"],
     wgpu::Features::empty()
 );
 /// NGLOD forward + backward per row, grid scatter with native float atomics.
@@ -75,16 +75,25 @@ pub const SIREN_DENSE: Shader = shader!("siren_dense.wgsl", wgpu::Features::empt
 pub const SIREN_TILED_LAYER: Shader = shader!("siren_tiled_layer.wgsl", wgpu::Features::empty());
 /// SIREN inference in one dispatch for GPUs: every layer of a tile of points, activations in
 /// workgroup memory.
-pub const SIREN_TILED_FUSED: Shader = shader!("siren_tiled_fused.wgsl", wgpu::Features::empty());
+pub const SIREN_TILED_FUSED: Shader = shader!(
+    "siren_tiled_fused.wgsl" with ["query_map.wgsl"],
+    wgpu::Features::empty()
+);
 /// The features of the cooperative-matrix kernels.
 const COOP: wgpu::Features = wgpu::Features::EXPERIMENTAL_COOPERATIVE_MATRIX
     .union(wgpu::Features::SHADER_F16)
     .union(wgpu::Features::SUBGROUP);
 /// SIREN inference on f16 16 × 16 cooperative matrices (tensor cores), every layer in one
 /// dispatch.
-pub const SIREN_COOP_16: Shader = shader!("siren_coop_16x16.wgsl" then ["siren_coop.wgsl"], COOP);
+pub const SIREN_COOP_16: Shader = shader!(
+    "siren_coop_16x16.wgsl" then ["query_map.wgsl", "siren_coop.wgsl"],
+    COOP
+);
 /// [`SIREN_COOP_16`] on 8 × 8 tiles.
-pub const SIREN_COOP_8: Shader = shader!("siren_coop_8x8.wgsl" then ["siren_coop.wgsl"], COOP);
+pub const SIREN_COOP_8: Shader = shader!(
+    "siren_coop_8x8.wgsl" then ["query_map.wgsl", "siren_coop.wgsl"],
+    COOP
+);
 /// SIREN's output layer, loss and its derivative.
 pub const SIREN_HEAD: Shader = shader!(
     "siren_head.wgsl" with ["siren_loss.wgsl"],
@@ -99,7 +108,7 @@ pub const SIREN_ROR: Shader = shader!(
 pub const SIREN_TRAIN: Shader = shader!("siren_train.wgsl", wgpu::Features::empty());
 
 /// The serving path's ends: points to network input, network output to distances and normals.
-pub const QUERY: Shader = shader!("query.wgsl", wgpu::Features::empty());
+pub const QUERY: Shader = shader!("query.wgsl" with ["query_map.wgsl"], wgpu::Features::empty());
 
 /// The sphere tracer of [`mod@crate::render`]. It calls `hwsdf_distance` / `hwsdf_normal`, so it
 /// compiles only after a model's [`crate::NeuralSdf::wgsl`] snippet (listed in [`NEEDS_MODEL`]).
@@ -107,7 +116,12 @@ pub const SPHERE_TRACE: Shader = shader!("sphere_trace.wgsl", wgpu::Features::em
 
 /// Files of shared WGSL that the `shader!` macro prepends to the shaders that use them; they
 /// are validated as part of those.
-pub const SHARED_PARTS: &[&str] = &["siren_loss.wgsl", "siren_coop.wgsl", "nglod_grid.wgsl"];
+pub const SHARED_PARTS: &[&str] = &[
+    "siren_loss.wgsl",
+    "siren_coop.wgsl",
+    "nglod_grid.wgsl",
+    "query_map.wgsl",
+];
 
 /// Shaders that are completed by a model's WGSL snippet (prepended at group 1).
 pub const NEEDS_MODEL: &[&str] = &[SPHERE_TRACE.name];

@@ -315,9 +315,62 @@ impl Launch {
     }
 
     pub(crate) fn record(&self, pass: &mut wgpu::ComputePass<'_>) {
+        self.record_groups(pass, self.groups);
+    }
+
+    /// Records it with another workgroup grid.
+    fn record_groups(&self, pass: &mut wgpu::ComputePass<'_>, groups: (u32, u32, u32)) {
         pass.set_pipeline(&self.pipeline);
         pass.set_bind_group(0, &self.bind_group, &[]);
-        pass.dispatch_workgroups(self.groups.0, self.groups.1, self.groups.2);
+        pass.dispatch_workgroups(groups.0, groups.1, groups.2);
+    }
+}
+
+/// A launch of a one-dispatch inference kernel (tiled fused, cooperative matrices), with its
+/// uniforms, whose first field is the row count.
+#[derive(Debug)]
+pub(crate) struct OneDispatch {
+    pub(crate) launch: Launch,
+    pub(crate) uniforms: wgpu::Buffer,
+    /// Rows per workgroup.
+    pub(crate) group_rows: u32,
+}
+
+/// Floats from one point to the next in a one-dispatch kernel's input: a caller's vec4 points
+/// for a query, else the network's rows (the point, and with tangents the three unit axes).
+pub(crate) fn point_stride(query: bool, tangents: bool) -> u32 {
+    match (query, tangents) {
+        (true, _) => 4,
+        (false, true) => 12,
+        (false, false) => 3,
+    }
+}
+
+/// A network's one-dispatch kernel bound to a caller's query buffers
+/// ([`SirenGpu::query_launch`]): a query of any count up to the buffers' capacity writes the
+/// count into the uniforms (through the queue, when it changes) instead of building a new
+/// launch.
+#[derive(Debug)]
+pub(crate) struct QueryLaunch {
+    kernel: OneDispatch,
+    /// Rows per point: 1, or 4 with normals.
+    rows_per_point: u32,
+    /// The row count the uniforms hold.
+    written: u32,
+}
+
+impl QueryLaunch {
+    /// Records the query of `n` points into `pass`; a new count takes effect at the next
+    /// submission, so record it at most once per submission.
+    pub(crate) fn record(&mut self, gpu: &GpuContext, pass: &mut wgpu::ComputePass<'_>, n: u32) {
+        let rows = n * self.rows_per_point;
+        if rows != self.written {
+            gpu.queue()
+                .write_buffer(&self.kernel.uniforms, 0, bytemuck::bytes_of(&rows));
+            self.written = rows;
+        }
+        let (x, y) = gpu.dispatch_size(rows.div_ceil(self.kernel.group_rows).max(1));
+        self.kernel.launch.record_groups(pass, (x, y, 1));
     }
 }
 
@@ -512,7 +565,7 @@ impl SirenGpu {
 
     /// [`SirenGpu::record_eval_pack`] unless the network is frozen (its packed weights are
     /// current).
-    fn refresh_pack(&self, enc: &mut wgpu::CommandEncoder) {
+    pub(crate) fn refresh_pack(&self, enc: &mut wgpu::CommandEncoder) {
         if !self.frozen {
             self.record_eval_pack(enc);
         }
@@ -869,6 +922,73 @@ impl SirenGpu {
         Ok(Some(launches?))
     }
 
+    /// The one-dispatch kernel over `n` points where this network runs one for them: the
+    /// cooperative-matrix kernel where it is set up, else the tiled fused kernel where
+    /// [`SirenGpu::runs_fused`]. Its input and output are those of
+    /// [`TiledKernels::fused_forward`] (`query`: the map into the cube of a caller's points).
+    fn one_dispatch(
+        &self,
+        gpu: &GpuContext,
+        n: u32,
+        tangents: bool,
+        query: Option<glam::Vec4>,
+        input: &wgpu::Buffer,
+        output: &wgpu::Buffer,
+    ) -> Result<Option<OneDispatch>, GpuError> {
+        let cfg = &self.config;
+        let rows = if tangents { 4 * n } else { n };
+        if let Some(c) = &self.coop {
+            return Ok(Some(c.forward(
+                gpu,
+                cfg,
+                rows,
+                tangents,
+                query,
+                input,
+                &self.params,
+                output,
+            )));
+        }
+        match self.tiled.as_ref().filter(|_| self.runs_fused(gpu, n)) {
+            Some(t) => Ok(Some(t.fused_forward(
+                gpu,
+                cfg,
+                rows,
+                tangents,
+                query,
+                input,
+                &self.params,
+                output,
+            )?)),
+            None => Ok(None),
+        }
+    }
+
+    /// This network's query kernel in one dispatch, bound to a caller's `points` (vec4, mesh
+    /// coordinates) and `results` (the distance per point, or with `normals` the distance and
+    /// the unit normal) for up to `capacity` points mapped into the cube by `map` (the centre
+    /// in xyz, the scale in w): NGLOD's serving path, for the kernel families that run an
+    /// inference in one dispatch. `None` for the others, whose queries go through the two ends
+    /// of `query.wgsl` around [`SirenGpu::bound_eval`]'s launches. Record it after
+    /// [`SirenGpu::refresh_pack`].
+    pub(crate) fn query_launch(
+        &self,
+        gpu: &GpuContext,
+        points: &wgpu::Buffer,
+        results: &wgpu::Buffer,
+        capacity: u32,
+        normals: bool,
+        map: glam::Vec4,
+    ) -> Result<Option<QueryLaunch>, SirenGpuError> {
+        let rows_per_point = if normals { 4 } else { 1 };
+        let kernel = self.one_dispatch(gpu, capacity, normals, Some(map), points, results)?;
+        Ok(kernel.map(|kernel| QueryLaunch {
+            kernel,
+            rows_per_point,
+            written: capacity * rows_per_point,
+        }))
+    }
+
     /// Records `launches` (from [`SirenGpu::bound_eval`]) into `enc` in one compute pass, after
     /// the weight packing they need.
     pub(crate) fn record_launches(&self, enc: &mut wgpu::CommandEncoder, launches: &[Launch]) {
@@ -985,14 +1105,8 @@ impl SirenGpu {
     ) -> Result<Vec<Launch>, GpuError> {
         let cfg = &self.config;
         let rows = if ws.tangents { 4 * n } else { n };
-        if let Some(c) = &self.coop {
-            let launch = c.forward(gpu, cfg, rows, ws.tangents, input, &self.params, values);
-            return Ok(vec![launch]);
-        }
-        if let Some(t) = self.tiled.as_ref().filter(|_| self.runs_fused(gpu, n)) {
-            let fused =
-                t.fused_forward(gpu, cfg, rows, ws.tangents, input, &self.params, values)?;
-            return Ok(vec![fused]);
+        if let Some(one) = self.one_dispatch(gpu, n, ws.tangents, None, input, values)? {
+            return Ok(vec![one.launch]);
         }
         let p = &self.pipelines;
         let mut launches = Vec::new();

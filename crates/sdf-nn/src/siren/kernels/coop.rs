@@ -13,7 +13,7 @@
 use crate::gpu::{GpuContext, GpuError, entry};
 use crate::shaders::{self, Shader};
 use crate::siren::SirenConfig;
-use crate::siren::gpu::Launch;
+use crate::siren::gpu::{Launch, OneDispatch, point_stride};
 
 /// What each tile file fixes (see `siren_coop_16x16.wgsl`, `siren_coop_8x8.wgsl`).
 #[derive(Clone, Copy, Debug)]
@@ -68,7 +68,8 @@ struct CoopUniforms {
     tangents: u32,
     point_stride: u32,
     act_stride: u32,
-    _pad: u32,
+    query: u32,
+    map: [f32; 4],
 }
 
 /// f16s of padding after each row of activations in workgroup memory (16 bytes: a tile's rows
@@ -169,9 +170,10 @@ impl CoopKernels {
     }
 
     /// The inference launch over `rows` rows (points, or four rows per point with `tangents`)
-    /// from `input` (three floats per point, or twelve with tangents: the point and the unit
-    /// axes) into `values` (one float per row), reading the first layer, the biases and the
-    /// head from `params`.
+    /// from `input` into `values` (one float per row), reading the first layer, the biases and
+    /// the head from `params`. `input` and `values` are as in the tiled fused kernel's
+    /// `fused_forward`: the network's rows, or with `query` (the map into the cube) a caller's
+    /// points and `NeuralSdf`'s answers.
     #[allow(clippy::too_many_arguments)]
     pub(crate) fn forward(
         &self,
@@ -179,10 +181,11 @@ impl CoopKernels {
         cfg: &SirenConfig,
         rows: u32,
         tangents: bool,
+        query: Option<glam::Vec4>,
         input: &wgpu::Buffer,
         params: &wgpu::Buffer,
         values: &wgpu::Buffer,
-    ) -> Launch {
+    ) -> OneDispatch {
         let u = gpu.uniform(
             "siren coop uniforms",
             &CoopUniforms {
@@ -191,13 +194,15 @@ impl CoopKernels {
                 hidden_layers: cfg.hidden_layers as u32,
                 omega: cfg.omega0,
                 tangents: u32::from(tangents),
-                point_stride: if tangents { 12 } else { 3 },
+                point_stride: point_stride(query.is_some(), tangents),
                 act_stride: cfg.width as u32 + ACT_PAD,
-                _pad: 0,
+                query: u32::from(query.is_some()),
+                map: query.unwrap_or(glam::Vec4::W).to_array(),
             },
         );
-        let (x, y) = gpu.dispatch_size(rows.div_ceil(self.shape.group_rows()).max(1));
-        Launch::new(
+        let group_rows = self.shape.group_rows();
+        let (x, y) = gpu.dispatch_size(rows.div_ceil(group_rows).max(1));
+        let launch = Launch::new(
             gpu,
             &self.forward,
             "siren coop forward",
@@ -209,6 +214,11 @@ impl CoopKernels {
                 entry(4, values),
             ],
             (x, y, 1),
-        )
+        );
+        OneDispatch {
+            launch,
+            uniforms: u,
+            group_rows,
+        }
     }
 }

@@ -4,7 +4,7 @@
 
 use crate::gpu::{GpuContext, GpuError, entry};
 use crate::shaders;
-use crate::siren::gpu::{GemmUniforms, Launch};
+use crate::siren::gpu::{GemmUniforms, Launch, OneDispatch, point_stride};
 use crate::siren::{SirenConfig, TiledBlock};
 
 /// Rows and columns of C per workgroup of the tiled GEMM with 4 × 4 register blocks (the
@@ -105,7 +105,8 @@ struct FusedUniforms {
     tangents: u32,
     point_stride: u32,
     omega: f32,
-    _pad: u32,
+    query: u32,
+    map: [f32; 4],
 }
 
 /// The tiled GEMM's pipelines for one register block.
@@ -223,8 +224,11 @@ impl TiledKernels {
     }
 
     /// The fused inference launch over `rows` rows (points, or four rows per point with
-    /// `tangents`) from `input` (three floats per point, or twelve with tangents: the point and
-    /// the unit tangents) into `values` (one float per row).
+    /// `tangents`) from `input` into `values` (one float per row). Without `query`, `input`
+    /// holds the network's rows (three floats per point, or twelve with tangents: the point and
+    /// the unit tangents) and `values` receives Φ (and ∇Φ); with `query` (the map into the
+    /// cube: the centre in xyz, the scale in w), `input` holds a caller's vec4 points in mesh
+    /// coordinates and `values` receives `NeuralSdf`'s distances (and unit normals).
     #[allow(clippy::too_many_arguments)]
     pub(crate) fn fused_forward(
         &self,
@@ -232,10 +236,11 @@ impl TiledKernels {
         cfg: &SirenConfig,
         rows: u32,
         tangents: bool,
+        query: Option<glam::Vec4>,
         input: &wgpu::Buffer,
         params: &wgpu::Buffer,
         values: &wgpu::Buffer,
-    ) -> Result<Launch, GpuError> {
+    ) -> Result<OneDispatch, GpuError> {
         let group_rows =
             Self::fused_group_rows(gpu, cfg).expect("fused_forward only for networks that fit");
         let transposed = &self
@@ -253,13 +258,14 @@ impl TiledKernels {
                 width: cfg.width as u32,
                 hidden_layers: cfg.hidden_layers as u32,
                 tangents: u32::from(tangents),
-                point_stride: if tangents { 12 } else { 3 },
+                point_stride: point_stride(query.is_some(), tangents),
                 omega: cfg.omega0,
-                _pad: 0,
+                query: u32::from(query.is_some()),
+                map: query.unwrap_or(glam::Vec4::W).to_array(),
             },
         );
         let (x, y) = gpu.dispatch_size(rows.div_ceil(group_rows).max(1));
-        Ok(Launch::new(
+        let launch = Launch::new(
             gpu,
             &pipeline,
             "siren fused forward",
@@ -272,7 +278,12 @@ impl TiledKernels {
                 entry(5, transposed),
             ],
             (x, y, 1),
-        ))
+        );
+        Ok(OneDispatch {
+            launch,
+            uniforms: u,
+            group_rows,
+        })
     }
 
     /// The launch of the product `u` describes (operands `a`, `b` as in
