@@ -342,7 +342,14 @@ fn ctrl_c_writes_a_checkpoint_that_resume_continues() {
         .arg(&checkpoint)
         .output()
         .unwrap();
-    assert_clean_failure(&o, "architecture differs: resolutions 4,8, not 6,12,24,48");
+    // Named with its file: `train` may be one of many runs of a corpus script.
+    assert_clean_failure(
+        &o,
+        &format!(
+            "{}: the checkpoint's architecture differs: resolutions 4,8, not 6,12,24,48",
+            checkpoint.display()
+        ),
+    );
     // A plain model file is not a checkpoint.
     let (model, _) = trained();
     let o = bin("train")

@@ -778,7 +778,7 @@ fn cases() -> Vec<Case> {
                 "--out",
                 "m.safetensors",
             ],
-            Error("has done 5 epochs already"),
+            Error("done5.checkpoint.safetensors: the checkpoint has done 5 epochs already"),
         )
         .gpu(),
         // Checkpoint hyperparameters.

@@ -118,9 +118,8 @@ fn train(args: &Args) -> Result<Outcome, Box<dyn std::error::Error>> {
     };
     // The model kind needs no adapter: refuse a checkpoint of the other one before opening it.
     // (Its preset may: `run::train` checks that.)
-    if let (Some(c), Some(path)) = (&resume, &args.resume) {
-        c.check_model(model)
-            .map_err(|e| format!("{}: {e}", path.display()))?;
+    if let Some(c) = &resume {
+        c.check_model(model)?;
     }
     let gpu = GpuContext::new()?;
     let preset = flags.preset_for(model, gpu.is_cpu());

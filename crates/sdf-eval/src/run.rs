@@ -559,6 +559,8 @@ pub struct Progress {
 #[derive(Clone, Debug)]
 pub struct Checkpoint {
     file: ModelFile,
+    /// The file it was loaded from, which its refusals name.
+    path: Option<std::path::PathBuf>,
 }
 
 impl Checkpoint {
@@ -571,7 +573,10 @@ impl Checkpoint {
                 path.display()
             )));
         }
-        let c = Checkpoint { file };
+        let c = Checkpoint {
+            file,
+            path: Some(path.to_owned()),
+        };
         // The hyperparameters it carries get the checks the command line's get.
         let bad = |e: String| RunError::Options(format!("checkpoint {}: {e}", path.display()));
         c.optimizer()?.validate().map_err(bad)?;
@@ -646,7 +651,7 @@ impl Checkpoint {
         let step = self.file.metadata.training["adam_step"]
             .as_u64()
             .and_then(|s| u32::try_from(s).ok())
-            .ok_or_else(|| RunError::Options("checkpoint has no optimiser step count".into()))?;
+            .ok_or_else(|| self.refusal("the checkpoint has no optimiser step count".into()))?;
         Ok(AdamState { m, v, step })
     }
 
@@ -664,11 +669,19 @@ impl Checkpoint {
         if has.as_deref() == Some(model.name()) {
             return Ok(());
         }
-        Err(RunError::Options(format!(
+        Err(self.refusal(format!(
             "the checkpoint is of a {} model, not {}",
             has.as_deref().unwrap_or("unknown"),
             model.name()
         )))
+    }
+
+    /// A refusal to resume from this checkpoint, naming its file where it was loaded from one.
+    fn refusal(&self, why: String) -> RunError {
+        RunError::Options(match &self.path {
+            Some(path) => format!("{}: {why}", path.display()),
+            None => why,
+        })
     }
 
     /// What of `options`' model, preset and architecture this checkpoint does not have, as
@@ -761,7 +774,7 @@ impl Trained {
         t["adam_step"] = self.optimizer.step.into();
         t["lr"] = f64::from(self.lr).into();
         t["done"] = self.done.into();
-        Checkpoint { file }
+        Checkpoint { file, path: None }
     }
 }
 
@@ -822,7 +835,7 @@ pub fn train(
         c.check_model(options.model)?;
         let preset = c.options().1;
         if preset.as_deref() != Some(options.preset.name()) {
-            return Err(RunError::Options(format!(
+            return Err(c.refusal(format!(
                 "the checkpoint uses the {} preset, not {}",
                 preset.as_deref().unwrap_or("unknown"),
                 options.preset.name()
@@ -842,7 +855,7 @@ pub fn train(
             ModelKind::Siren => "steps",
             ModelKind::Nglod => "epochs",
         };
-        return Err(RunError::Options(format!(
+        return Err(c.refusal(format!(
             "the checkpoint has done {} {unit} already, more than the {asked} asked for: \
              ask for more, or leave the length out to finish the run it planned",
             c.done()
@@ -943,7 +956,7 @@ pub fn train(
                     let model = Nglod::from_model_file(&c.model_file())?;
                     let differences = options.nglod_architecture.differences(model.config());
                     if !differences.is_empty() {
-                        return Err(RunError::Options(format!(
+                        return Err(c.refusal(format!(
                             "the checkpoint's architecture differs: {}",
                             differences.join("; ")
                         )));
