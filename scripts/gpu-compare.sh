@@ -24,7 +24,9 @@
 # appends both to the table. Where the adapter has f16 cooperative matrices (`gpu-info` says
 # so), the `coop` stage runs their test against the f64 reference (the packed siren_gpu test
 # binary, HWSDF_REQUIRE_COOP=1) and the SIREN eval bench on them (SIREN_BENCH_KERNELS=coop,
-# criterion's results under DIR/results/criterion-coop), and adds their rows. The `blocks` stage
+# criterion's results under DIR/results/criterion-coop), and adds their rows; it also times SIREN
+# queries through NeuralSdf on them (the query bench, QUERY_BENCH_SIREN_KERNELS=coop, at 10, 3000
+# and 50 000 points; DIR/results/query-coop.txt). The `blocks` stage
 # runs the SIREN `default` bench on the tiled kernels once per forced register block of the
 # tiled GEMM (SIREN_BENCH_TILED_BLOCK; results under DIR/results/criterion-block-*), the figures
 # that set `TiledBlock::Auto`'s rule on GPUs, and adds their rows. The `split` stage runs the
@@ -232,6 +234,13 @@ run() {
             echo "== bench siren on cooperative matrices (SIREN_BENCH_KERNELS=coop)"
             CRITERION_HOME="$res/criterion-coop" SIREN_BENCH_KERNELS=coop benches/siren --bench eval 2>&1 \
                 | tee "$res/bench-siren-coop.txt" || echo "(failed)"
+            if [ -x benches/query ]; then
+                echo "== SIREN queries through NeuralSdf on cooperative matrices (one dispatch)"
+                QUERY_BENCH_INTERLEAVED="${GPU_COMPARE_SPLIT_ROUNDS:-500}" QUERY_BENCH_PRESETS=small \
+                    QUERY_BENCH_SIREN_KERNELS=coop QUERY_BENCH_SIREN_PRESETS=small,default \
+                    QUERY_BENCH_POINTS=10,3000,50000 benches/query 2>&1 \
+                    | tee "$res/query-coop.txt" || echo "(failed)"
+            fi
         fi
     fi
     if [[ $stages == *,split,* ]] && [ -x benches/query ]; then

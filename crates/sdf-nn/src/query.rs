@@ -7,7 +7,7 @@
 //!   ([`QueryBuffers::points`], `array<vec4<f32>>`, xyz used), a results buffer
 //!   ([`QueryBuffers::results`]: `array<f32>` of distances, or with
 //!   [`QueryOutputs::ValuesAndNormals`] `array<vec4<f32>>` of (distance, normal)), the network's
-//!   scratch, and a mappable staging buffer (or, on CPU and integrated adapters, mappable points
+//!   scratch where it needs any, and a mappable staging buffer (or, on CPU and integrated adapters, mappable points
 //!   and results buffers instead: [`QueryTransfer`]). Create it once, reuse it for every query.
 //! - [`NeuralSdf::record_query`] records a query of the first `n` points into your encoder.
 //!   The results stay on the GPU: bind [`QueryBuffers::results`] in your next pass. Your own
@@ -17,6 +17,10 @@
 //!   [`QueryBuffers::is_ready`] then `wait`) maps the results and hands them out as a
 //!   [`QueryResults`] guard that unmaps on drop. One submission per [`QueryBuffers`] is in
 //!   flight at a time: keep two to overlap a query with the host's work on the last one.
+//!
+//! A query is one kernel launch from points to results for NGLOD, and for SIREN on the kernels
+//! GPUs run (the tiled fused kernel and the cooperative-matrix one); SIREN on the row-blocked
+//! and GEMM kernels adds a launch before and after the network's own.
 //!
 //! Distances and normals follow [`NeuralSdf`]'s rule outside the model's box, and are in mesh
 //! units and coordinates (or, with [`QuerySpace::Normalized`], in the model's cube). Every
@@ -842,7 +846,7 @@ impl NeuralSdf {
         })
     }
 
-    /// The GPU nanoseconds of the last timed query's passes (prepare to finish), from this
+    /// The GPU nanoseconds of the last timed query's passes (first to last), from this
     /// model's timer; `None` without timestamp queries. Call after its ticket was waited on.
     pub(crate) fn read_query_ns(&self, gpu: &GpuContext) -> Result<Option<u64>, NeuralSdfError> {
         self.with_gpu(gpu, |_, timer| match timer {
