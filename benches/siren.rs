@@ -7,7 +7,9 @@
 //! `SIREN_BENCH_KERNELS` forces a layer-kernel family (`row-blocked`, `gemm`, `tiled` or
 //! `coop`, inference on f16 cooperative matrices where the adapter has them; default:
 //! `LayerKernels::Auto`), and `SIREN_BENCH_FUSED_MAX` the largest inference batch of
-//! the tiled family's fused all-layer kernel (`SirenGpu::set_fused_max_points`; 0 disables it).
+//! the tiled family's fused all-layer kernel (`SirenGpu::set_fused_max_points`; 0 disables it)
+//! and `SIREN_BENCH_FUSED_ROW_BLOCKS` its register blocks of rows per invocation (1 to 3,
+//! `SirenGpu::set_fused_row_blocks`; default 1).
 //! `SIREN_BENCH_TRAIN_STEP` forces the training step (`tangents` or `ror`, reverse over reverse;
 //! default: `TrainStep::Auto`), and `SIREN_BENCH_TILED_BLOCK` the tiled GEMM's register blocks
 //! (`4x4`, `8x4`, `4x8` or `8x8`; default: `TiledBlock::Auto`).
@@ -80,11 +82,15 @@ fn bench(c: &mut Criterion) {
         if let Ok(v) = std::env::var("SIREN_BENCH_FUSED_MAX") {
             net.set_fused_max_points(v.parse().expect("SIREN_BENCH_FUSED_MAX: a number"));
         }
+        if let Ok(v) = std::env::var("SIREN_BENCH_FUSED_ROW_BLOCKS") {
+            net.set_fused_row_blocks(v.parse().expect("SIREN_BENCH_FUSED_ROW_BLOCKS: 1, 2 or 3"));
+        }
         eprintln!(
-            "{name}: kernels {:?} (tiled blocks {:?}), fused for 3000 points: {}, cooperative-matrix tiles: {:?}",
+            "{name}: kernels {:?} (tiled blocks {:?}), fused for 3000 points: {} (row blocks {:?}), cooperative-matrix tiles: {:?}",
             net.layer_kernels(),
             net.tiled_block(),
             net.runs_fused(gpu, 3000),
+            net.fused_row_blocks(gpu),
             net.coop_tile()
         );
         let macs = cfg.forward_macs();

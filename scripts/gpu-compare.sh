@@ -29,7 +29,9 @@
 # and 50 000 points; DIR/results/query-coop.txt). The `blocks` stage
 # runs the SIREN `default` bench on the tiled kernels once per forced register block of the
 # tiled GEMM (SIREN_BENCH_TILED_BLOCK; results under DIR/results/criterion-block-*), the figures
-# that set `TiledBlock::Auto`'s rule on GPUs, and adds their rows. The `split` stage runs the
+# that set `TiledBlock::Auto`'s rule on GPUs, and the eval bench with the fused kernel's 2 and
+# 3 register blocks of rows per invocation (SIREN_BENCH_FUSED_ROW_BLOCKS; criterion-rows-*),
+# which decide its default, and adds their rows. The `split` stage runs the
 # query bench interleaved (QUERY_BENCH_INTERLEAVED): a query's wall time split into the empty
 # round trip, the upload, one launch and the kernel, for NGLOD and SIREN `small` and `default`
 # (issue 13: what SIREN's wall path adds to its kernel time); its log is
@@ -40,6 +42,7 @@
 #   GPU_COMPARE_STAGES=checks,bench,coop,blocks,split,profile,torch,fit,corpus
 #                                       what to run (default all; split a session's runs with it)
 #   GPU_COMPARE_BLOCKS=4x4,8x8          register blocks the `blocks` stage forces
+#   GPU_COMPARE_ROW_BLOCKS=2,3          the fused kernel's row blocks it forces too
 #   GPU_COMPARE_SPLIT_ROUNDS=500        rounds of the `split` stage's interleaved query bench
 #   GPU_COMPARE_CHECK_TIMEOUT=300       seconds each kernel test binary may take (`checks`)
 #   GPU_COMPARE_FITS=nglod,siren        which fits the `fit` stage times (default nglod; a default
@@ -262,6 +265,14 @@ run() {
                 SIREN_BENCH_TILED_BLOCK="$blk" benches/siren --bench 2>&1 \
                 | tee "$res/bench-siren-block-$blk.txt" || echo "(failed)"
         done
+        local rb
+        for rb in $(echo "${GPU_COMPARE_ROW_BLOCKS:-2,3}" | tr ',' ' '); do
+            [ -n "$rb" ] || continue
+            echo "== bench siren eval, fused kernel with $rb row blocks per invocation (SIREN_BENCH_FUSED_ROW_BLOCKS=$rb)"
+            CRITERION_HOME="$res/criterion-rows-$rb" SIREN_BENCH_KERNELS=tiled \
+                SIREN_BENCH_FUSED_ROW_BLOCKS="$rb" benches/siren --bench eval 2>&1 \
+                | tee "$res/bench-siren-rows-$rb.txt" || echo "(failed)"
+        done
     fi
     local presets=${GPU_COMPARE_PRESETS:-small,default}
     if [ "${GPU_COMPARE_SKIP_TORCH:-0}" != 1 ] && [[ $stages == *,torch,* ]]; then
@@ -358,6 +369,12 @@ for p in presets:
             forced = criterion(f"siren_{p}", fn, param, os.path.basename(home))
             if forced is not None:
                 rows.append(("SIREN", p, f"{label}, tiled, {blk} register blocks", forced,
+                             eager.get(key), comp.get(key), per))
+        for home in sorted(glob.glob(os.path.join(res, "criterion-rows-*"))):
+            rb = os.path.basename(home)[len("criterion-rows-"):]
+            forced = criterion(f"siren_{p}", fn, param, os.path.basename(home))
+            if forced is not None:
+                rows.append(("SIREN", p, f"{label}, fused kernel, {rb} row blocks", forced,
                              eager.get(key), comp.get(key), per))
     t = torch_json("nglod", p)
     eager = t.get("eager", {})

@@ -1,11 +1,15 @@
-// SIREN inference in one dispatch (`LayerKernels::Tiled`, batches bound by latency): a
-// workgroup takes `group_rows` rows (points, or four rows per point with tangents) through
-// the first layer, every hidden layer and the linear head, keeping their activations in
-// workgroup memory (at most 16 KiB, every device has it); only Φ (and ∇Φ) reach global memory.
+// SIREN inference in one dispatch (`LayerKernels::Tiled`): a workgroup takes `group_rows` rows
+// (points, or four rows per point with tangents) through the first layer, every hidden layer
+// and the linear head, keeping their activations in workgroup memory (16 KiB at RB = 1); only
+// Φ (and ∇Φ) reach global memory.
 //
-// Per layer, invocation i < (group_rows / 4) · (width / 4) owns a 4 × 4 register block: four
-// rows (with tangents: one point's value and tangent rows, so the tangent epilogue
-// a_j = ω0 cos(ω0 z_v) z_j runs in registers) by four output features. It reads its rows from
+// Per layer, invocation i < (group_rows / 4 / RB) · (width / 4) owns RB 4 × 4 register blocks
+// of the same four output features: four rows each (with tangents: one point's value and
+// tangent rows, so the tangent epilogue a_j = ω0 cos(ω0 z_v) z_j runs in registers), the
+// blocks group_rows / RB rows apart. RB = 1 needs 16 KiB of workgroup memory (every device has
+// it) and makes the most workgroups, for batches bound by latency; RB = 2 or 3 loads each
+// weight once for 2 or 3 times the rows, for large batches, where every workgroup streaming
+// all the weights from the cache is what bounds the kernel. It reads its rows from
 // workgroup memory (the same four rows for every invocation of a subgroup, a broadcast) and the
 // weights transposed, from `wt4` (written by `fused_pack` whenever the parameters change): at
 // input feature k, invocation i reads Wᵀ[k][4i..4i+3] as one vec4, so a subgroup's invocations
@@ -21,7 +25,8 @@
 struct Fused {
     // Rows in all: points, or 4 × points with tangents.
     rows: u32,
-    // Rows per workgroup: a multiple of 4 with group_rows · width ≤ 4096 and ≤ 256.
+    // Rows per workgroup: RB times a multiple of 4 with (group_rows / RB) · width ≤ 4096 and
+    // group_rows / RB ≤ 256, and group_rows · width / 4 ≤ ACT4.
     group_rows: u32,
     // A multiple of 4.
     width: u32,
@@ -50,8 +55,14 @@ struct Fused {
 // The same buffer, written by `fused_pack`.
 @group(0) @binding(6) var<storage, read_write> wt_out: array<f32>;
 
+// Register blocks (of four rows) per invocation: 1, 2 or 3 (a pipeline constant).
+override RB: u32 = 1u;
+// vec4s of `act`: group_rows · width / 4, set by the host within the device's limit (16 KiB
+// at RB = 1).
+override ACT4: u32 = 1024u;
+
 // [row][feature / 4] of the current layer's activations.
-var<workgroup> act: array<vec4<f32>, 1024>;
+var<workgroup> act: array<vec4<f32>, ACT4>;
 
 // Offset in `params` of layer l ≥ 1's weights (its bias follows them; l = hidden_layers is the
 // head), as in siren_coop.wgsl.
@@ -78,6 +89,59 @@ fn w0_row(o: u32) -> vec3<f32> {
     return vec3<f32>(params[3u * o], params[3u * o + 1u], params[3u * o + 2u]);
 }
 
+// The first layer's activations of the four rows from r0 at output features o0 .. o0 + 3
+// (block column cb), straight from the points.
+fn first_layer_block(first_row: u32, r0: u32, cb: u32, w4: u32) {
+    let w = f.width;
+    let o0 = 4u * cb;
+    let om = f.omega;
+    var b = vec4<f32>(0.0);
+    var wx = vec4<f32>(0.0);
+    var wy = vec4<f32>(0.0);
+    var wz = vec4<f32>(0.0);
+    for (var c = 0u; c < 4u; c++) {
+        let wr = w0_row(o0 + c);
+        wx[c] = wr.x;
+        wy[c] = wr.y;
+        wz[c] = wr.z;
+        b[c] = params[3u * w + o0 + c];
+    }
+    let last = f.rows - 1u;
+    if f.tangents != 0u {
+        let p = point_at(min(first_row + r0, last) / 4u);
+        let zv = b + p.x * wx + p.y * wy + p.z * wz;
+        let wc = om * cos(om * zv);
+        act[r0 * w4 + cb] = sin(om * zv);
+        act[(r0 + 1u) * w4 + cb] = wc * wx;
+        act[(r0 + 2u) * w4 + cb] = wc * wy;
+        act[(r0 + 3u) * w4 + cb] = wc * wz;
+    } else {
+        for (var i = 0u; i < 4u; i++) {
+            let p = point_at(min(first_row + r0 + i, last));
+            act[(r0 + i) * w4 + cb] = sin(om * (b + p.x * wx + p.y * wy + p.z * wz));
+        }
+    }
+}
+
+// A hidden layer's activations of the block at rows r0 .. r0 + 3, column cb, from its sums
+// c0 .. c3 (one per row) and the layer's bias b, in place.
+fn store_block(r0: u32, cb: u32, w4: u32, b: vec4<f32>, c0: vec4<f32>, c1: vec4<f32>, c2: vec4<f32>, c3: vec4<f32>) {
+    let om = f.omega;
+    if f.tangents != 0u {
+        let zv = c0 + b;
+        let wc = om * cos(om * zv);
+        act[r0 * w4 + cb] = sin(om * zv);
+        act[(r0 + 1u) * w4 + cb] = wc * c1;
+        act[(r0 + 2u) * w4 + cb] = wc * c2;
+        act[(r0 + 3u) * w4 + cb] = wc * c3;
+    } else {
+        act[r0 * w4 + cb] = sin(om * (c0 + b));
+        act[(r0 + 1u) * w4 + cb] = sin(om * (c1 + b));
+        act[(r0 + 2u) * w4 + cb] = sin(om * (c2 + b));
+        act[(r0 + 3u) * w4 + cb] = sin(om * (c3 + b));
+    }
+}
+
 @compute @workgroup_size(256)
 fn fused_forward(
     @builtin(workgroup_id) wid: vec3<u32>,
@@ -92,39 +156,22 @@ fn fused_forward(
     }
     let w = f.width;
     let w4 = w / 4u;
-    let owns_block = lid < (f.group_rows / 4u) * w4;
+    // Rows between an invocation's blocks.
+    let span = f.group_rows / RB;
+    let owns_block = lid < (span / 4u) * w4;
     let r0 = 4u * (lid / w4);
+    let r1 = r0 + span;
+    let r2 = r1 + span;
     let cb = lid % w4;
-    let o0 = 4u * cb;
-    let om = f.omega;
 
     // First layer, straight from the points.
     if owns_block {
-        var b = vec4<f32>(0.0);
-        var wx = vec4<f32>(0.0);
-        var wy = vec4<f32>(0.0);
-        var wz = vec4<f32>(0.0);
-        for (var c = 0u; c < 4u; c++) {
-            let wr = w0_row(o0 + c);
-            wx[c] = wr.x;
-            wy[c] = wr.y;
-            wz[c] = wr.z;
-            b[c] = params[3u * w + o0 + c];
+        first_layer_block(first_row, r0, cb, w4);
+        if RB > 1u {
+            first_layer_block(first_row, r1, cb, w4);
         }
-        let last = f.rows - 1u;
-        if f.tangents != 0u {
-            let p = point_at(min(first_row + r0, last) / 4u);
-            let zv = b + p.x * wx + p.y * wy + p.z * wz;
-            let wc = om * cos(om * zv);
-            act[r0 * w4 + cb] = sin(om * zv);
-            act[(r0 + 1u) * w4 + cb] = wc * wx;
-            act[(r0 + 2u) * w4 + cb] = wc * wy;
-            act[(r0 + 3u) * w4 + cb] = wc * wz;
-        } else {
-            for (var i = 0u; i < 4u; i++) {
-                let p = point_at(min(first_row + r0 + i, last));
-                act[(r0 + i) * w4 + cb] = sin(om * (b + p.x * wx + p.y * wy + p.z * wz));
-            }
+        if RB > 2u {
+            first_layer_block(first_row, r2, cb, w4);
         }
     }
     workgroupBarrier();
@@ -134,102 +181,165 @@ fn fused_forward(
         let woff = hidden_offset(l, w);
         // Wᵀ[k][o0..o0+3] of this layer at input feature k = 0.
         let wt = (l - 1u) * w * w4 + cb;
+        // c: the block at r0; d: at r1 (RB > 1); e: at r2 (RB > 2). Blocks an RB leaves out
+        // are constant branches once the pipeline is specialised, and vanish.
         var c0 = vec4<f32>(0.0);
         var c1 = vec4<f32>(0.0);
         var c2 = vec4<f32>(0.0);
         var c3 = vec4<f32>(0.0);
+        var d0 = vec4<f32>(0.0);
+        var d1 = vec4<f32>(0.0);
+        var d2 = vec4<f32>(0.0);
+        var d3 = vec4<f32>(0.0);
+        var e0 = vec4<f32>(0.0);
+        var e1 = vec4<f32>(0.0);
+        var e2 = vec4<f32>(0.0);
+        var e3 = vec4<f32>(0.0);
         if owns_block {
             for (var k4 = 0u; k4 < w4; k4++) {
-                let a0 = act[r0 * w4 + k4];
-                let a1 = act[(r0 + 1u) * w4 + k4];
-                let a2 = act[(r0 + 2u) * w4 + k4];
-                let a3 = act[(r0 + 3u) * w4 + k4];
                 // Input features 4k4 .. 4k4 + 3, four outputs each.
                 let q = wt + 4u * k4 * w4;
                 let q0 = wt4[q];
                 let q1 = wt4[q + w4];
                 let q2 = wt4[q + 2u * w4];
                 let q3 = wt4[q + 3u * w4];
-                c0 = fma(vec4(a0.x), q0, c0);
-                c0 = fma(vec4(a0.y), q1, c0);
-                c0 = fma(vec4(a0.z), q2, c0);
-                c0 = fma(vec4(a0.w), q3, c0);
-                c1 = fma(vec4(a1.x), q0, c1);
-                c1 = fma(vec4(a1.y), q1, c1);
-                c1 = fma(vec4(a1.z), q2, c1);
-                c1 = fma(vec4(a1.w), q3, c1);
-                c2 = fma(vec4(a2.x), q0, c2);
-                c2 = fma(vec4(a2.y), q1, c2);
-                c2 = fma(vec4(a2.z), q2, c2);
-                c2 = fma(vec4(a2.w), q3, c2);
-                c3 = fma(vec4(a3.x), q0, c3);
-                c3 = fma(vec4(a3.y), q1, c3);
-                c3 = fma(vec4(a3.z), q2, c3);
-                c3 = fma(vec4(a3.w), q3, c3);
+                var a = act[r0 * w4 + k4];
+                c0 = fma(vec4(a.w), q3, fma(vec4(a.z), q2, fma(vec4(a.y), q1, fma(vec4(a.x), q0, c0))));
+                a = act[(r0 + 1u) * w4 + k4];
+                c1 = fma(vec4(a.w), q3, fma(vec4(a.z), q2, fma(vec4(a.y), q1, fma(vec4(a.x), q0, c1))));
+                a = act[(r0 + 2u) * w4 + k4];
+                c2 = fma(vec4(a.w), q3, fma(vec4(a.z), q2, fma(vec4(a.y), q1, fma(vec4(a.x), q0, c2))));
+                a = act[(r0 + 3u) * w4 + k4];
+                c3 = fma(vec4(a.w), q3, fma(vec4(a.z), q2, fma(vec4(a.y), q1, fma(vec4(a.x), q0, c3))));
+                if RB > 1u {
+                    a = act[r1 * w4 + k4];
+                    d0 = fma(vec4(a.w), q3, fma(vec4(a.z), q2, fma(vec4(a.y), q1, fma(vec4(a.x), q0, d0))));
+                    a = act[(r1 + 1u) * w4 + k4];
+                    d1 = fma(vec4(a.w), q3, fma(vec4(a.z), q2, fma(vec4(a.y), q1, fma(vec4(a.x), q0, d1))));
+                    a = act[(r1 + 2u) * w4 + k4];
+                    d2 = fma(vec4(a.w), q3, fma(vec4(a.z), q2, fma(vec4(a.y), q1, fma(vec4(a.x), q0, d2))));
+                    a = act[(r1 + 3u) * w4 + k4];
+                    d3 = fma(vec4(a.w), q3, fma(vec4(a.z), q2, fma(vec4(a.y), q1, fma(vec4(a.x), q0, d3))));
+                }
+                if RB > 2u {
+                    a = act[r2 * w4 + k4];
+                    e0 = fma(vec4(a.w), q3, fma(vec4(a.z), q2, fma(vec4(a.y), q1, fma(vec4(a.x), q0, e0))));
+                    a = act[(r2 + 1u) * w4 + k4];
+                    e1 = fma(vec4(a.w), q3, fma(vec4(a.z), q2, fma(vec4(a.y), q1, fma(vec4(a.x), q0, e1))));
+                    a = act[(r2 + 2u) * w4 + k4];
+                    e2 = fma(vec4(a.w), q3, fma(vec4(a.z), q2, fma(vec4(a.y), q1, fma(vec4(a.x), q0, e2))));
+                    a = act[(r2 + 3u) * w4 + k4];
+                    e3 = fma(vec4(a.w), q3, fma(vec4(a.z), q2, fma(vec4(a.y), q1, fma(vec4(a.x), q0, e3))));
+                }
             }
         }
         // Every block is read before any is overwritten.
         workgroupBarrier();
         if owns_block {
-            let b = params4[(woff + w * w + o0) / 4u];
-            if f.tangents != 0u {
-                let zv = c0 + b;
-                let wc = om * cos(om * zv);
-                act[r0 * w4 + cb] = sin(om * zv);
-                act[(r0 + 1u) * w4 + cb] = wc * c1;
-                act[(r0 + 2u) * w4 + cb] = wc * c2;
-                act[(r0 + 3u) * w4 + cb] = wc * c3;
-            } else {
-                act[r0 * w4 + cb] = sin(om * (c0 + b));
-                act[(r0 + 1u) * w4 + cb] = sin(om * (c1 + b));
-                act[(r0 + 2u) * w4 + cb] = sin(om * (c2 + b));
-                act[(r0 + 3u) * w4 + cb] = sin(om * (c3 + b));
+            let b = params4[(woff + w * w) / 4u + cb];
+            store_block(r0, cb, w4, b, c0, c1, c2, c3);
+            if RB > 1u {
+                store_block(r1, cb, w4, b, d0, d1, d2, d3);
+            }
+            if RB > 2u {
+                store_block(r2, cb, w4, b, e0, e1, e2, e3);
             }
         }
         workgroupBarrier();
     }
 
-    // The linear head, one row per invocation; the bias only on value rows.
-    let row = first_row + lid;
-    let has_row = lid < f.group_rows && row < f.rows;
-    var phi = 0.0;
-    if has_row {
-        let woff4 = hidden_offset(f.hidden_layers, w) / 4u;
-        var s = vec4<f32>(0.0);
-        for (var k4 = 0u; k4 < w4; k4++) {
-            s = fma(act[lid * w4 + k4], params4[woff4 + k4], s);
-        }
-        phi = s.x + s.y + s.z + s.w;
-        if f.tangents == 0u || lid % 4u == 0u {
-            phi += params[4u * woff4 + w];
-        }
+    // The linear head, one row per invocation (RB rows, 256 apart).
+    let woff4 = hidden_offset(f.hidden_layers, w) / 4u;
+    let phi0 = head_row(first_row, lid, woff4);
+    var phi1 = 0.0;
+    var phi2 = 0.0;
+    if RB > 1u {
+        phi1 = head_row(first_row, lid + 256u, woff4);
     }
+    if RB > 2u {
+        phi2 = head_row(first_row, lid + 512u, woff4);
+    }
+    if f.query == 0u || f.tangents == 0u {
+        write_row(first_row, lid, phi0);
+        if RB > 1u {
+            write_row(first_row, lid + 256u, phi1);
+        }
+        if RB > 2u {
+            write_row(first_row, lid + 512u, phi2);
+        }
+        return;
+    }
+    // A query with normals: a point's four rows meet in workgroup memory (every row of `act`
+    // has been read).
+    workgroupBarrier();
+    if has_row(first_row, lid) {
+        act[lid].x = phi0;
+    }
+    if RB > 1u && has_row(first_row, lid + 256u) {
+        act[lid + 256u].x = phi1;
+    }
+    if RB > 2u && has_row(first_row, lid + 512u) {
+        act[lid + 512u].x = phi2;
+    }
+    workgroupBarrier();
+    finish_point(first_row, lid, phi0);
+    if RB > 1u {
+        finish_point(first_row, lid + 256u, phi1);
+    }
+    if RB > 2u {
+        finish_point(first_row, lid + 512u, phi2);
+    }
+}
+
+// Whether the workgroup's row r (from first_row) is one of the batch's.
+fn has_row(first_row: u32, r: u32) -> bool {
+    return r < f.group_rows && first_row + r < f.rows;
+}
+
+// The head's Φ of the workgroup's row r (0 past the batch): the last activations times the
+// output weights, the bias only on value rows.
+fn head_row(first_row: u32, r: u32, woff4: u32) -> f32 {
+    if !has_row(first_row, r) {
+        return 0.0;
+    }
+    let w4 = f.width / 4u;
+    var s = vec4<f32>(0.0);
+    for (var k4 = 0u; k4 < w4; k4++) {
+        s = fma(act[r * w4 + k4], params4[woff4 + k4], s);
+    }
+    var phi = s.x + s.y + s.z + s.w;
+    if f.tangents == 0u || r % 4u == 0u {
+        phi += params[4u * woff4 + f.width];
+    }
+    return phi;
+}
+
+// Writes row r's Φ (or ∇Φ's component), or with `query` and no tangents its distance.
+fn write_row(first_row: u32, r: u32, phi: f32) {
+    if !has_row(first_row, r) {
+        return;
+    }
+    let row = first_row + r;
     if f.query == 0u {
-        if has_row {
-            values[row] = phi;
-        }
+        values[row] = phi;
+    } else {
+        values[row] = query_distance(phi, query_normalized(stored_point(row), f.map), f.map);
+    }
+}
+
+// A query with normals: at a point's value row r, its distance and unit normal from its value
+// `phi` and its tangent rows' Φ in `act`.
+fn finish_point(first_row: u32, r: u32, phi: f32) {
+    if !has_row(first_row, r) || r % 4u != 0u {
         return;
     }
-    if f.tangents == 0u {
-        if has_row {
-            values[row] = query_distance(phi, query_normalized(stored_point(row), f.map), f.map);
-        }
-        return;
-    }
-    // A point's four rows meet in workgroup memory (every row of `act` has been read).
-    workgroupBarrier();
-    if has_row {
-        act[lid].x = phi;
-    }
-    workgroupBarrier();
-    if has_row && lid % 4u == 0u {
-        let x = query_normalized(stored_point(row / 4u), f.map);
-        let n = query_normal(vec3<f32>(act[lid + 1u].x, act[lid + 2u].x, act[lid + 3u].x), x);
-        values[row] = query_distance(phi, x, f.map);
-        values[row + 1u] = n.x;
-        values[row + 2u] = n.y;
-        values[row + 3u] = n.z;
-    }
+    let row = first_row + r;
+    let x = query_normalized(stored_point(row / 4u), f.map);
+    let n = query_normal(vec3<f32>(act[r + 1u].x, act[r + 2u].x, act[r + 3u].x), x);
+    values[row] = query_distance(phi, x, f.map);
+    values[row + 1u] = n.x;
+    values[row + 2u] = n.y;
+    values[row + 3u] = n.z;
 }
 
 // `wt4` from the parameters: one invocation per weight of the hidden layers after the first,

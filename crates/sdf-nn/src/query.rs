@@ -1123,6 +1123,58 @@ mod tests {
         }
     }
 
+    /// The fused kernel's query mode with several register blocks of rows per invocation: a
+    /// narrow network's workgroup then holds more rows than invocations, and the head and the
+    /// normals' finish handle two or three rows each.
+    #[test]
+    fn siren_one_dispatch_queries_with_row_blocks() {
+        let gpu = gpu();
+        let norm = Normalization {
+            center: Vec3::new(0.5, 1.0, -1.5),
+            scale: 2.0,
+        };
+        let cfg = SirenConfig {
+            width: 20,
+            hidden_layers: 2,
+            omega0: 30.0,
+        };
+        let siren = Siren::new(cfg, 8).unwrap();
+        let pts: Vec<Vec3> = points().iter().map(|&p| norm.to_original(p)).collect();
+        for blocks in 1..=3 {
+            let mut served = sdf(siren.to_model_file(norm, serde_json::Value::Null));
+            served
+                .set_siren_kernels(crate::siren::LayerKernels::Tiled)
+                .unwrap();
+            served
+                .with_gpu(gpu, |net, _| {
+                    if let GpuNetwork::Siren(s) = net {
+                        s.set_fused_row_blocks(blocks);
+                        assert_eq!(s.fused_row_blocks(gpu), Some(blocks));
+                    }
+                    Ok(())
+                })
+                .unwrap();
+            let what = format!("{blocks} row blocks");
+            assert_close(
+                &served.eval(gpu, &pts).unwrap(),
+                &served.eval_cpu(&pts),
+                &what,
+            );
+            let got = served.eval_with_normals(gpu, &pts).unwrap();
+            for (i, ((d, n), (wd, wn))) in got
+                .iter()
+                .zip(served.eval_with_normals_cpu(&pts))
+                .enumerate()
+            {
+                assert!(
+                    (d - wd).abs() <= 1e-4 * wd.abs().max(1.0),
+                    "{what} {i}: {d} vs {wd}"
+                );
+                assert!((*n - wn).length() < 1e-3, "{what} {i}: {n} vs {wn}");
+            }
+        }
+    }
+
     /// Changing a SIREN's kernels rebuilds its GPU side under a new identity: query buffers
     /// made before are refused, new ones answer on the new kernels. NGLOD has no kernels to
     /// choose.

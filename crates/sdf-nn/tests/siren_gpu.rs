@@ -397,6 +397,39 @@ fn tiled_register_blocks_match_cpu_reference() {
     }
 }
 
+/// The fused kernel with 1, 2 and 3 register blocks of rows per invocation (the blocks a
+/// workgroup's rows apart): values and input gradients against the f64 reference on ragged
+/// batches, at a width whose workgroup holds more rows than it has invocations (the head's
+/// second and third rows per invocation), a middle one, and the `default` preset's 256, whose
+/// rows per block shrink to fit the device's workgroup memory.
+#[test]
+fn fused_kernel_row_blocks_match_cpu_reference() {
+    let gpu = gpu();
+    for (width, hidden_layers, sizes) in [
+        (20, 2, &[7usize, 1001][..]),
+        (64, 3, &[1, 333][..]),
+        (256, 2, &[50][..]),
+    ] {
+        let cfg = SirenConfig {
+            width,
+            hidden_layers,
+            omega0: 30.0,
+        };
+        let net = Siren::new(cfg, 61).unwrap();
+        for blocks in 1..=3 {
+            with_kernels(gpu, &net, &[LayerKernels::Tiled], |g| {
+                g.set_fused_row_blocks(blocks);
+                assert_eq!(g.fused_row_blocks(gpu), Some(blocks), "{cfg:?}");
+                for &n in sizes {
+                    assert!(g.runs_fused(gpu, n as u32));
+                    eprint!("{blocks} row blocks: ");
+                    forward_matches_on(g, cfg, &net, n, 70 + n as u64, None);
+                }
+            });
+        }
+    }
+}
+
 /// The fused kernel reads the hidden weights transposed (`fused_pack`): the copy follows every
 /// way the parameters change, on deeper networks (the layer offsets of Wᵀ past the first) and
 /// through the serving path, whose network is frozen.

@@ -441,6 +441,8 @@ pub struct SirenGpu {
     coop: Option<CoopKernels>,
     /// Largest inference batch (per launch) for the fused all-layer kernel of the tiled family.
     fused_max_points: u32,
+    /// Register blocks per invocation the fused kernel may use ([`SirenGpu::set_fused_row_blocks`]).
+    fused_row_blocks: u32,
     /// The tiled GEMM's register blocks.
     tiled_block: TiledBlock,
     /// The parameters change only through [`SirenGpu::upload`] (a served model, see
@@ -485,6 +487,7 @@ impl SirenGpu {
             } else {
                 u32::MAX
             },
+            fused_row_blocks: 1,
             tiled_block,
             frozen: false,
             train_step: TrainStep::default(),
@@ -693,6 +696,22 @@ impl SirenGpu {
         self.fused_max_points = points;
         self.eval = None;
         self.eval_grad = None;
+    }
+
+    /// Register blocks of four rows per invocation of the fused kernel, 1 to 3 (default 1):
+    /// more load each weight once for more rows, and fill fewer workgroups. The device's
+    /// workgroup memory may allow fewer ([`SirenGpu::fused_row_blocks`] says how many run):
+    /// every block takes 16 KiB at widths of 64 and more.
+    pub fn set_fused_row_blocks(&mut self, blocks: u32) {
+        self.fused_row_blocks = blocks.clamp(1, 3);
+        self.eval = None;
+        self.eval_grad = None;
+    }
+
+    /// The register blocks per invocation the fused kernel runs with on `gpu` (`None` where the
+    /// network does not fit it).
+    pub fn fused_row_blocks(&self, gpu: &GpuContext) -> Option<u32> {
+        TiledKernels::fused_layout(gpu, &self.config, self.fused_row_blocks).map(|l| l.row_blocks)
     }
 
     /// The side of the cooperative-matrix tiles that run inference of values
@@ -949,10 +968,12 @@ impl SirenGpu {
                 output,
             )));
         }
-        match self.tiled.as_ref().filter(|_| self.runs_fused(gpu, n)) {
-            Some(t) => Ok(Some(t.fused_forward(
+        let layout = TiledKernels::fused_layout(gpu, cfg, self.fused_row_blocks);
+        match (self.tiled.as_ref(), layout) {
+            (Some(t), Some(layout)) if self.runs_fused(gpu, n) => Ok(Some(t.fused_forward(
                 gpu,
                 cfg,
+                layout,
                 rows,
                 tangents,
                 query,
@@ -960,7 +981,7 @@ impl SirenGpu {
                 &self.params,
                 output,
             )?)),
-            None => Ok(None),
+            _ => Ok(None),
         }
     }
 

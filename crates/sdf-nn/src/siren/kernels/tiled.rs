@@ -91,7 +91,8 @@ pub(crate) struct RorOffsets {
     pub(crate) t: u32,
 }
 
-/// Floats of activations the fused kernel keeps in workgroup memory (`act` in the shader).
+/// Floats of activations the fused kernel keeps in workgroup memory per register block of its
+/// invocations (`act` in the shader holds `RB` times as many): 16 KiB, what every device has.
 const FUSED_ACT_FLOATS: u32 = 4096;
 
 /// The fused kernel's `Fused` uniforms.
@@ -107,6 +108,17 @@ struct FusedUniforms {
     omega: f32,
     query: u32,
     map: [f32; 4],
+}
+
+/// How the fused inference kernel splits a batch ([`TiledKernels::fused_layout`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(crate) struct FusedLayout {
+    /// Register blocks of four rows per invocation (`RB`).
+    pub(crate) row_blocks: u32,
+    /// Rows per workgroup.
+    pub(crate) group_rows: u32,
+    /// Workgroup memory of the activations, in vec4s (`ACT4`).
+    act_vec4s: u32,
 }
 
 /// The tiled GEMM's pipelines for one register block.
@@ -206,10 +218,22 @@ impl TiledKernels {
         }
     }
 
-    /// Rows per workgroup of the fused inference kernel for `cfg`, or `None` when the
-    /// network does not fit it (width not a multiple of 4, or too wide for 4 rows of
-    /// activations in its workgroup memory, or the device's workgroup memory too small).
+    /// Rows per workgroup of the fused inference kernel for `cfg` with one register block per
+    /// invocation, or `None` when the network does not fit it (width not a multiple of 4, or
+    /// too wide for 4 rows of activations in its workgroup memory, or the device's workgroup
+    /// memory too small).
     pub(crate) fn fused_group_rows(gpu: &GpuContext, cfg: &SirenConfig) -> Option<u32> {
+        Self::fused_layout(gpu, cfg, 1).map(|l| l.group_rows)
+    }
+
+    /// The fused kernel's layout for `cfg` with up to `row_blocks` (1 to 3) register blocks per
+    /// invocation: the most that fit the device's workgroup memory, fewer where they do not.
+    /// `None` where not even one does (see [`TiledKernels::fused_group_rows`]).
+    pub(crate) fn fused_layout(
+        gpu: &GpuContext,
+        cfg: &SirenConfig,
+        row_blocks: u32,
+    ) -> Option<FusedLayout> {
         let limits = gpu.limits();
         let w = cfg.width as u32;
         if !w.is_multiple_of(4)
@@ -218,9 +242,19 @@ impl TiledKernels {
         {
             return None;
         }
-        // group_rows · width ≤ the buffer, one 4 × 4 block per invocation, one head row each.
-        let rows = (FUSED_ACT_FLOATS / w / 4 * 4).min(INVOCATIONS);
-        (rows >= 4).then_some(rows)
+        // Rows between an invocation's blocks: group_rows / RB · width ≤ 4096 (one 4 × 4 block
+        // per invocation in each), at most one head row per invocation, and the activations of
+        // all the blocks within the device's workgroup memory.
+        let bytes_per_row = w * 4;
+        (1..=row_blocks.clamp(1, 3)).rev().find_map(|rb| {
+            let fits = limits.max_compute_workgroup_storage_size / (bytes_per_row * rb);
+            let span = (FUSED_ACT_FLOATS / w).min(INVOCATIONS).min(fits) / 4 * 4;
+            (span >= 4).then(|| FusedLayout {
+                row_blocks: rb,
+                group_rows: span * rb,
+                act_vec4s: span * rb * w / 4,
+            })
+        })
     }
 
     /// The fused inference launch over `rows` rows (points, or four rows per point with
@@ -234,6 +268,7 @@ impl TiledKernels {
         &self,
         gpu: &GpuContext,
         cfg: &SirenConfig,
+        layout: FusedLayout,
         rows: u32,
         tangents: bool,
         query: Option<glam::Vec4>,
@@ -241,15 +276,21 @@ impl TiledKernels {
         params: &wgpu::Buffer,
         values: &wgpu::Buffer,
     ) -> Result<OneDispatch, GpuError> {
-        let group_rows =
-            Self::fused_group_rows(gpu, cfg).expect("fused_forward only for networks that fit");
+        let group_rows = layout.group_rows;
         let transposed = &self
             .fused
             .as_ref()
             .expect("built where the network fits")
             .transposed;
         // Compiled on first use (the context caches pipelines).
-        let pipeline = gpu.pipeline(&shaders::SIREN_TILED_FUSED, "fused_forward", &[])?;
+        let pipeline = gpu.pipeline(
+            &shaders::SIREN_TILED_FUSED,
+            "fused_forward",
+            &[
+                ("RB", f64::from(layout.row_blocks)),
+                ("ACT4", f64::from(layout.act_vec4s)),
+            ],
+        )?;
         let u = gpu.uniform(
             "siren fused uniforms",
             &FusedUniforms {
