@@ -364,18 +364,14 @@ for p in presets:
         if coop is not None:
             rows.append(("SIREN", p, label + ", f16 cooperative matrices", coop, eager.get(key),
                          comp.get(key), per))
-        for home in sorted(glob.glob(os.path.join(res, "criterion-block-*"))):
-            blk = os.path.basename(home)[len("criterion-block-"):]
-            forced = criterion(f"siren_{p}", fn, param, os.path.basename(home))
-            if forced is not None:
-                rows.append(("SIREN", p, f"{label}, tiled, {blk} register blocks", forced,
-                             eager.get(key), comp.get(key), per))
-        for home in sorted(glob.glob(os.path.join(res, "criterion-rows-*"))):
-            rb = os.path.basename(home)[len("criterion-rows-"):]
-            forced = criterion(f"siren_{p}", fn, param, os.path.basename(home))
-            if forced is not None:
-                rows.append(("SIREN", p, f"{label}, fused kernel, {rb} row blocks", forced,
-                             eager.get(key), comp.get(key), per))
+        # The `blocks` stage's forced register blocks of the tiled GEMM and of the fused kernel.
+        for prefix, what in [("criterion-block-", "tiled, {} register blocks"),
+                             ("criterion-rows-", "fused kernel, {} row blocks")]:
+            for home in sorted(glob.glob(os.path.join(res, prefix + "*"))):
+                forced = criterion(f"siren_{p}", fn, param, os.path.basename(home))
+                if forced is not None:
+                    rows.append(("SIREN", p, f"{label}, " + what.format(os.path.basename(home)[len(prefix):]),
+                                 forced, eager.get(key), comp.get(key), per))
     t = torch_json("nglod", p)
     eager = t.get("eager", {})
     for label, param, key, per in [

@@ -123,22 +123,45 @@ fn first_layer_block(first_row: u32, r0: u32, cb: u32, w4: u32) {
     }
 }
 
-// A hidden layer's activations of the block at rows r0 .. r0 + 3, column cb, from its sums
-// c0 .. c3 (one per row) and the layer's bias b, in place.
-fn store_block(r0: u32, cb: u32, w4: u32, b: vec4<f32>, c0: vec4<f32>, c1: vec4<f32>, c2: vec4<f32>, c3: vec4<f32>) {
+// A register block: the sums of four rows at four output features.
+struct RowBlock {
+    r0: vec4<f32>,
+    r1: vec4<f32>,
+    r2: vec4<f32>,
+    r3: vec4<f32>,
+}
+
+// `acc` plus the products of the block's rows from r0, at input features 4k4 .. 4k4 + 3, with
+// those features' transposed weights q0 .. q3.
+fn block_mac(acc: RowBlock, r0: u32, k4: u32, w4: u32, q0: vec4<f32>, q1: vec4<f32>, q2: vec4<f32>, q3: vec4<f32>) -> RowBlock {
+    var out = acc;
+    out.r0 = row_mac(out.r0, act[r0 * w4 + k4], q0, q1, q2, q3);
+    out.r1 = row_mac(out.r1, act[(r0 + 1u) * w4 + k4], q0, q1, q2, q3);
+    out.r2 = row_mac(out.r2, act[(r0 + 2u) * w4 + k4], q0, q1, q2, q3);
+    out.r3 = row_mac(out.r3, act[(r0 + 3u) * w4 + k4], q0, q1, q2, q3);
+    return out;
+}
+
+fn row_mac(acc: vec4<f32>, a: vec4<f32>, q0: vec4<f32>, q1: vec4<f32>, q2: vec4<f32>, q3: vec4<f32>) -> vec4<f32> {
+    return fma(vec4(a.w), q3, fma(vec4(a.z), q2, fma(vec4(a.y), q1, fma(vec4(a.x), q0, acc))));
+}
+
+// A hidden layer's activations of the block at rows r0 .. r0 + 3, column cb, from its sums and
+// the layer's bias b, in place.
+fn store_block(r0: u32, cb: u32, w4: u32, b: vec4<f32>, c: RowBlock) {
     let om = f.omega;
     if f.tangents != 0u {
-        let zv = c0 + b;
+        let zv = c.r0 + b;
         let wc = om * cos(om * zv);
         act[r0 * w4 + cb] = sin(om * zv);
-        act[(r0 + 1u) * w4 + cb] = wc * c1;
-        act[(r0 + 2u) * w4 + cb] = wc * c2;
-        act[(r0 + 3u) * w4 + cb] = wc * c3;
+        act[(r0 + 1u) * w4 + cb] = wc * c.r1;
+        act[(r0 + 2u) * w4 + cb] = wc * c.r2;
+        act[(r0 + 3u) * w4 + cb] = wc * c.r3;
     } else {
-        act[r0 * w4 + cb] = sin(om * (c0 + b));
-        act[(r0 + 1u) * w4 + cb] = sin(om * (c1 + b));
-        act[(r0 + 2u) * w4 + cb] = sin(om * (c2 + b));
-        act[(r0 + 3u) * w4 + cb] = sin(om * (c3 + b));
+        act[r0 * w4 + cb] = sin(om * (c.r0 + b));
+        act[(r0 + 1u) * w4 + cb] = sin(om * (c.r1 + b));
+        act[(r0 + 2u) * w4 + cb] = sin(om * (c.r2 + b));
+        act[(r0 + 3u) * w4 + cb] = sin(om * (c.r3 + b));
     }
 }
 
@@ -183,18 +206,9 @@ fn fused_forward(
         let wt = (l - 1u) * w * w4 + cb;
         // c: the block at r0; d: at r1 (RB > 1); e: at r2 (RB > 2). Blocks an RB leaves out
         // are constant branches once the pipeline is specialised, and vanish.
-        var c0 = vec4<f32>(0.0);
-        var c1 = vec4<f32>(0.0);
-        var c2 = vec4<f32>(0.0);
-        var c3 = vec4<f32>(0.0);
-        var d0 = vec4<f32>(0.0);
-        var d1 = vec4<f32>(0.0);
-        var d2 = vec4<f32>(0.0);
-        var d3 = vec4<f32>(0.0);
-        var e0 = vec4<f32>(0.0);
-        var e1 = vec4<f32>(0.0);
-        var e2 = vec4<f32>(0.0);
-        var e3 = vec4<f32>(0.0);
+        var c = RowBlock();
+        var d = RowBlock();
+        var e = RowBlock();
         if owns_block {
             for (var k4 = 0u; k4 < w4; k4++) {
                 // Input features 4k4 .. 4k4 + 3, four outputs each.
@@ -203,33 +217,12 @@ fn fused_forward(
                 let q1 = wt4[q + w4];
                 let q2 = wt4[q + 2u * w4];
                 let q3 = wt4[q + 3u * w4];
-                var a = act[r0 * w4 + k4];
-                c0 = fma(vec4(a.w), q3, fma(vec4(a.z), q2, fma(vec4(a.y), q1, fma(vec4(a.x), q0, c0))));
-                a = act[(r0 + 1u) * w4 + k4];
-                c1 = fma(vec4(a.w), q3, fma(vec4(a.z), q2, fma(vec4(a.y), q1, fma(vec4(a.x), q0, c1))));
-                a = act[(r0 + 2u) * w4 + k4];
-                c2 = fma(vec4(a.w), q3, fma(vec4(a.z), q2, fma(vec4(a.y), q1, fma(vec4(a.x), q0, c2))));
-                a = act[(r0 + 3u) * w4 + k4];
-                c3 = fma(vec4(a.w), q3, fma(vec4(a.z), q2, fma(vec4(a.y), q1, fma(vec4(a.x), q0, c3))));
+                c = block_mac(c, r0, k4, w4, q0, q1, q2, q3);
                 if RB > 1u {
-                    a = act[r1 * w4 + k4];
-                    d0 = fma(vec4(a.w), q3, fma(vec4(a.z), q2, fma(vec4(a.y), q1, fma(vec4(a.x), q0, d0))));
-                    a = act[(r1 + 1u) * w4 + k4];
-                    d1 = fma(vec4(a.w), q3, fma(vec4(a.z), q2, fma(vec4(a.y), q1, fma(vec4(a.x), q0, d1))));
-                    a = act[(r1 + 2u) * w4 + k4];
-                    d2 = fma(vec4(a.w), q3, fma(vec4(a.z), q2, fma(vec4(a.y), q1, fma(vec4(a.x), q0, d2))));
-                    a = act[(r1 + 3u) * w4 + k4];
-                    d3 = fma(vec4(a.w), q3, fma(vec4(a.z), q2, fma(vec4(a.y), q1, fma(vec4(a.x), q0, d3))));
+                    d = block_mac(d, r1, k4, w4, q0, q1, q2, q3);
                 }
                 if RB > 2u {
-                    a = act[r2 * w4 + k4];
-                    e0 = fma(vec4(a.w), q3, fma(vec4(a.z), q2, fma(vec4(a.y), q1, fma(vec4(a.x), q0, e0))));
-                    a = act[(r2 + 1u) * w4 + k4];
-                    e1 = fma(vec4(a.w), q3, fma(vec4(a.z), q2, fma(vec4(a.y), q1, fma(vec4(a.x), q0, e1))));
-                    a = act[(r2 + 2u) * w4 + k4];
-                    e2 = fma(vec4(a.w), q3, fma(vec4(a.z), q2, fma(vec4(a.y), q1, fma(vec4(a.x), q0, e2))));
-                    a = act[(r2 + 3u) * w4 + k4];
-                    e3 = fma(vec4(a.w), q3, fma(vec4(a.z), q2, fma(vec4(a.y), q1, fma(vec4(a.x), q0, e3))));
+                    e = block_mac(e, r2, k4, w4, q0, q1, q2, q3);
                 }
             }
         }
@@ -237,12 +230,12 @@ fn fused_forward(
         workgroupBarrier();
         if owns_block {
             let b = params4[(woff + w * w) / 4u + cb];
-            store_block(r0, cb, w4, b, c0, c1, c2, c3);
+            store_block(r0, cb, w4, b, c);
             if RB > 1u {
-                store_block(r1, cb, w4, b, d0, d1, d2, d3);
+                store_block(r1, cb, w4, b, d);
             }
             if RB > 2u {
-                store_block(r2, cb, w4, b, e0, e1, e2, e3);
+                store_block(r2, cb, w4, b, e);
             }
         }
         workgroupBarrier();
