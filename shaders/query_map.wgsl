@@ -14,6 +14,15 @@ fn query_clamped(x: vec3<f32>) -> vec3<f32> {
     return clamp(x, vec3<f32>(-1.0), vec3<f32>(1.0));
 }
 
+// A one-dispatch kernel's network input for a point as stored: with `query` (non-zero) a
+// caller's point in mesh coordinates, mapped into the cube and clamped; else already normalised.
+fn network_input(stored: vec3<f32>, query: u32, map: vec4<f32>) -> vec3<f32> {
+    if query != 0u {
+        return query_clamped(query_normalized(stored, map));
+    }
+    return stored;
+}
+
 // The distance in mesh units for the network's value `phi` at clamp(x).
 fn query_distance(phi: f32, x: vec3<f32>, map: vec4<f32>) -> f32 {
     return (phi + length(x - query_clamped(x))) / map.w;

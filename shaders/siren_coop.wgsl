@@ -79,10 +79,7 @@ fn stored_point(p: u32) -> vec3<f32> {
 
 // The network's input for point p.
 fn point_at(p: u32) -> vec3<f32> {
-    if u.query != 0u {
-        return query_clamped(query_normalized(stored_point(p), u.map));
-    }
-    return stored_point(p);
+    return network_input(stored_point(p), u.query, u.map);
 }
 
 // Subgroups of the workgroup: the host sets WG = ⌈tiles across the width / 2⌉ × the

@@ -78,10 +78,7 @@ fn stored_point(p: u32) -> vec3<f32> {
 
 // The network's input for point p.
 fn point_at(p: u32) -> vec3<f32> {
-    if f.query != 0u {
-        return query_clamped(query_normalized(stored_point(p), f.map));
-    }
-    return stored_point(p);
+    return network_input(stored_point(p), f.query, f.map);
 }
 
 // Row o of the first layer's W ([width, 3]).
