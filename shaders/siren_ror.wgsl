@@ -11,6 +11,10 @@
 // ror_top_back: Z̄_L = D(Z_L) ⊙ (dL/dΦ w) + T_L into Y_L's first stream.
 // ror_out_grad: split partials of the output layer's gradient w̄ = Σ_p dphi_p A_L[p] + Ḡ_L[p],
 //               b̄ = Σ_p dphi_p, in the layout `reduce_wgrad` reads (M = 1).
+// ror_first_wgrad: split partials of the first layer's weight gradient (fan-in 3) from the
+//               stacked rows W̄_1 = [Z̄_1; H_1]ᵀ [x; ḡ], b̄_1 = Σ_p Z̄_1[p], one invocation per
+//               (split, output feature), in the layout `reduce_wgrad` reads: a 3-column product
+//               that the tiled GEMM would pad to 64 columns.
 
 struct Ror {
     n_points: u32,
@@ -167,4 +171,44 @@ fn ror_out_grad(
         }
         partial[r.pbias_off + split] = s;
     }
+}
+
+// Rows of the stacked first-layer product per split of `ror_first_wgrad`: small, so that the
+// width × splits invocations fill a GPU (a hidden layer's split-K GEMM has tiles to do that).
+const FIRST_WGRAD_ROWS: u32 = 128u;
+
+// One invocation per (split, output feature o): `r.splits` splits of FIRST_WGRAD_ROWS stacked
+// rows each. Stacked row 2p is (Z̄_1[p], x[p]), row 2p + 1 is (H_1[p], ḡ[p]): Y_1's and X_0's
+// rows as they lie (row strides `width` and 3).
+@compute @workgroup_size(256)
+fn ror_first_wgrad(
+    @builtin(workgroup_id) wid: vec3<u32>,
+    @builtin(num_workgroups) nwg: vec3<u32>,
+    @builtin(local_invocation_index) lid: u32,
+) {
+    let t = flat_id(wid, nwg, lid);
+    let w = r.width;
+    if t >= r.splits * w {
+        return;
+    }
+    let split = t / w;
+    let o = t % w;
+    let first = split * FIRST_WGRAD_ROWS;
+    let end = min(first + FIRST_WGRAD_ROWS, 2u * r.n_points);
+    var g = vec3<f32>(0.0);
+    var b = 0.0;
+    // Rows in pairs (`first` is even): the bias takes the first of each.
+    for (var row = first; row < end; row += 2u) {
+        let zbar = y_first[row * w + o];
+        let h = y_first[(row + 1u) * w + o];
+        let q = 3u * row;
+        g = fma(vec3<f32>(zbar), vec3<f32>(x0[q], x0[q + 1u], x0[q + 2u]), g);
+        g = fma(vec3<f32>(h), vec3<f32>(x0[q + 3u], x0[q + 4u], x0[q + 5u]), g);
+        b += zbar;
+    }
+    let base = split * w * 3u + o * 3u;
+    partial[base] = g.x;
+    partial[base + 1u] = g.y;
+    partial[base + 2u] = g.z;
+    partial[r.pbias_off + split * w + o] = b;
 }

@@ -70,6 +70,9 @@ pub enum TrainStep {
 
 /// Splits of the output layer's gradient.
 const OUT_SPLITS: u32 = 64;
+/// Stacked rows per split of the first layer's weight gradient on the tiled family
+/// (`FIRST_WGRAD_ROWS` in `siren_ror.wgsl`).
+const FIRST_WGRAD_ROWS: u32 = 128;
 /// Invocations per workgroup of `siren_ror.wgsl`.
 const WG: u32 = 256;
 
@@ -200,6 +203,7 @@ pub(crate) fn build(
     let x0 = gpu.storage_zeroed("siren ror X0", u64::from(n) * 6 * 4)?;
     let dphi = gpu.storage_zeroed("siren ror dphi", u64::from(n) * 4)?;
     let rows2 = 2 * n;
+    let first_splits = rows2.div_ceil(FIRST_WGRAD_ROWS);
     let wgrads: Vec<GemmUniforms> = layers[..l_hidden]
         .iter()
         .map(|l| gemm_wgrad(l, rows2))
@@ -211,31 +215,41 @@ pub(crate) fn build(
             Family::RowBlocked(d) => d.partial_len(l),
             Family::Tiled(_) => u64::from(u.pbias_off) + u64::from(splits_for(rows2) * u.m),
         })
-        .chain([u64::from(OUT_SPLITS) * u64::from(width + 1)])
+        .chain([
+            u64::from(OUT_SPLITS) * u64::from(width + 1),
+            u64::from(first_splits) * u64::from(width) * 4,
+        ])
         .max()
         .unwrap_or(1);
     let partial = gpu.storage_zeroed("siren ror wgrad partial", partial_len * 4)?;
     let reduce = gpu.pipeline(&shaders::SIREN_TRAIN, "reduce_wgrad", &[])?;
     let last = layers.last().expect("at least one layer");
-    let ru = gpu.uniform(
-        "siren ror uniforms",
+    let ror_uniforms = RorUniforms {
+        n_points: n,
+        n_surface,
+        width,
+        w_out_off: last.weight as u32,
+        b_out_off: last.bias as u32,
+        w1_off: layers[0].weight as u32,
+        splits: OUT_SPLITS,
+        pbias_off: OUT_SPLITS * width,
+        w_surface: weights.surface,
+        w_off_surface: weights.off_surface,
+        w_normal: weights.normal,
+        w_eikonal: weights.eikonal,
+        alpha: weights.alpha,
+        inv_n: 1.0 / n as f32,
+        omega,
+        _pad: 0.0,
+    };
+    let ru = gpu.uniform("siren ror uniforms", &ror_uniforms);
+    // The first layer's weight gradient on the tiled family: its own splits.
+    let ru_first = gpu.uniform(
+        "siren ror first-layer uniforms",
         &RorUniforms {
-            n_points: n,
-            n_surface,
-            width,
-            w_out_off: last.weight as u32,
-            b_out_off: last.bias as u32,
-            w1_off: layers[0].weight as u32,
-            splits: OUT_SPLITS,
-            pbias_off: OUT_SPLITS * width,
-            w_surface: weights.surface,
-            w_off_surface: weights.off_surface,
-            w_normal: weights.normal,
-            w_eikonal: weights.eikonal,
-            alpha: weights.alpha,
-            inv_n: 1.0 / n as f32,
-            omega,
-            _pad: 0.0,
+            splits: first_splits,
+            pbias_off: first_splits * width * 3,
+            ..ror_uniforms
         },
     );
     let pipe = |name: &str| gpu.pipeline(&shaders::SIREN_ROR, name, &[]);
@@ -401,6 +415,28 @@ pub(crate) fn build(
     for l in (0..l_hidden).rev() {
         let below = if l == 0 { &x0 } else { &x[l - 1] };
         match &family {
+            // Fan-in 3: a GEMM tile would compute 64 columns for 3.
+            Family::Tiled(_) if l == 0 => {
+                launches.push(Launch::flat(
+                    gpu,
+                    &pipe("ror_first_wgrad")?,
+                    "siren ror first-layer weight gradient",
+                    &[
+                        entry(0, &ru_first),
+                        entry(5, &y[0]),
+                        entry(8, &x0),
+                        entry(12, &partial),
+                    ],
+                    first_splits * width,
+                ));
+                push_reduce(
+                    &mut launches,
+                    &mut keep,
+                    &layers[0],
+                    first_splits,
+                    first_splits * width * 3,
+                );
+            }
             Family::Tiled(t) => {
                 let u = wgrads[l];
                 let e = TiledEpilogue::WeightGradientPairs;
@@ -438,6 +474,7 @@ pub(crate) fn build(
         }
     }
     keep.push(ru);
+    keep.push(ru_first);
     keep.extend(p);
     keep.extend(x);
     keep.extend(y);
