@@ -699,9 +699,10 @@ impl SirenGpu {
     }
 
     /// Register blocks of four rows per invocation of the fused kernel, 1 to 3 (default 1):
-    /// more load each weight once for more rows, and fill fewer workgroups. The device's
-    /// workgroup memory may allow fewer ([`SirenGpu::fused_row_blocks`] says how many run):
-    /// every block takes 16 KiB at widths of 64 and more.
+    /// more load each weight once for more rows, and fill fewer workgroups. A full block takes
+    /// 16 KiB of workgroup memory at widths of 64 and more; where the device has less, the
+    /// blocks get fewer rows, and only where not even 4 rows fit are there fewer blocks
+    /// ([`SirenGpu::fused_row_blocks`] says how many run).
     pub fn set_fused_row_blocks(&mut self, blocks: u32) {
         self.fused_row_blocks = blocks.clamp(1, 3);
         self.eval = None;

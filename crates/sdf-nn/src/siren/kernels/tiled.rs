@@ -227,8 +227,11 @@ impl TiledKernels {
     }
 
     /// The fused kernel's layout for `cfg` with up to `row_blocks` (1 to 3) register blocks per
-    /// invocation: the most that fit the device's workgroup memory, fewer where they do not.
-    /// `None` where not even one does (see [`TiledKernels::fused_group_rows`]).
+    /// invocation. Where the device's workgroup memory holds fewer than `row_blocks` full
+    /// blocks, each block gets fewer rows (and some invocations idle: on 32 KiB at width 256,
+    /// 3 blocks of 8 rows, which lavapipe still ran faster than 2 of 16); fewer blocks only
+    /// where not even 4 rows each fit. `None` where one block does not (see
+    /// [`TiledKernels::fused_group_rows`]).
     pub(crate) fn fused_layout(
         gpu: &GpuContext,
         cfg: &SirenConfig,
