@@ -3,7 +3,9 @@
 // to both. The formulas are the CPU reference's (siren::cpu::point_loss).
 
 const NORM_EPS: f32 = 1e-12;
-const LOSS_WG: u32 = 256u;
+// Invocations per workgroup of the kernels that sum the loss (a pipeline constant; a power of
+// two).
+override LOSS_WG: u32 = 256u;
 
 // The four weighted terms (surface |Φ|, off-surface exp(−α|Φ|), normal 1 − cos, eikonal) and
 // their derivatives with respect to Φ and ∇Φ.

@@ -98,7 +98,7 @@ fn ror_top_back(
     y_last[i] = r.omega * cos(r.omega * p_last[i]) * abar + p_last[i + r.width];
 }
 
-@compute @workgroup_size(256)
+@compute @workgroup_size(LOSS_WG)
 fn ror_head(
     @builtin(workgroup_id) wid: vec3<u32>,
     @builtin(num_workgroups) nwg: vec3<u32>,
@@ -106,10 +106,10 @@ fn ror_head(
 ) {
     let group = wid.y * nwg.x + wid.x;
     // Workgroup-uniform: the groups a folded 2D dispatch adds past the end write nothing.
-    if group * WG >= r.n_points {
+    if group * LOSS_WG >= r.n_points {
         return;
     }
-    let p = group * WG + lid;
+    let p = group * LOSS_WG + lid;
     var terms = vec4<f32>(0.0);
     if p < r.n_points {
         let row = 2u * p * r.width;

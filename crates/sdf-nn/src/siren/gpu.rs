@@ -1369,7 +1369,12 @@ impl TrainPasses {
         let normals =
             gpu.storage_zeroed("siren batch normals", u64::from(n_surface.max(1)) * 3 * 4)?;
         let loss_partial =
-            gpu.storage_zeroed("siren loss partial", u64::from(n.div_ceil(WG)) * 16)?;
+            // A sum per workgroup of the head, whichever step: the reverse-over-reverse head's
+            // workgroups are the smaller.
+            gpu.storage_zeroed(
+                "siren loss partial",
+                u64::from(n.div_ceil(WG.min(ror::HEAD_WG))) * 16,
+            )?;
         Self::with_io(
             gpu,
             net,
