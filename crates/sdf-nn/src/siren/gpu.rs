@@ -1372,13 +1372,10 @@ impl TrainPasses {
         let x_streams = gpu.storage_zeroed("siren x streams", u64::from(4 * n) * 3 * 4)?;
         let normals =
             gpu.storage_zeroed("siren batch normals", u64::from(n_surface.max(1)) * 3 * 4)?;
-        let loss_partial =
-            // A sum per workgroup of the head, whichever step: the reverse-over-reverse head's
-            // workgroups are the smaller.
-            gpu.storage_zeroed(
-                "siren loss partial",
-                u64::from(n.div_ceil(WG.min(ror::HEAD_WG))) * 16,
-            )?;
+        // A sum per workgroup of the head, whichever step: the reverse-over-reverse head's
+        // workgroups are the smaller.
+        let head_groups = n.div_ceil(WG.min(ror::HEAD_WG));
+        let loss_partial = gpu.storage_zeroed("siren loss partial", u64::from(head_groups) * 16)?;
         Self::with_io(
             gpu,
             net,
