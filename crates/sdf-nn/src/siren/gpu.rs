@@ -16,10 +16,11 @@
 
 use glam::Vec3;
 
-use super::dense::{DensePlan, Epilogue, LayerKernels, SPLITS, TiledBlock};
+use super::dense::{DensePlan, Epilogue, LayerKernels, TiledBlock};
 use super::kernels::coop::CoopKernels;
 use super::kernels::tiled::{TiledEpilogue, TiledKernels};
 use super::ror::{self, TrainStep};
+use super::tangents;
 use super::{LayerLayout, Siren, SirenConfig, SirenConfigError};
 use crate::gpu::{GpuContext, GpuError, GpuTimer, entry};
 use crate::shaders;
@@ -174,7 +175,7 @@ const ROW_BLOCKED_AUTO_ROR: bool = true;
 
 /// Rows per GEMM workgroup (see `siren_gemm.wgsl`).
 const GEMM_ROWS: u32 = 64;
-const WG: u32 = 256;
+pub(crate) const WG: u32 = 256;
 /// Batch rows per split of a weight-gradient GEMM (a multiple of 4). 512: a `default` step's
 /// 256 × 256 weight gradient over 2·10⁴ stacked rows makes 640 tiled workgroups, not 320, so
 /// that they spread evenly over a GPU's SMs (on the H100 the step measured 36 % slower with
@@ -236,7 +237,12 @@ pub(crate) fn times_w(
 }
 
 /// Z = A_prev · Wᵀ (mode 0), or with `fused_sine` the inference activations sin(ω0 (Z + b)).
-fn gemm_forward(lay: &LayerLayout, rows: u32, fused_sine: bool, omega: f32) -> GemmUniforms {
+pub(crate) fn gemm_forward(
+    lay: &LayerLayout,
+    rows: u32,
+    fused_sine: bool,
+    omega: f32,
+) -> GemmUniforms {
     let (fan_in, fan_out) = (lay.fan_in as u32, lay.fan_out as u32);
     GemmUniforms {
         mode: fused_sine as u32,
@@ -246,7 +252,7 @@ fn gemm_forward(lay: &LayerLayout, rows: u32, fused_sine: bool, omega: f32) -> G
 }
 
 /// Ā_{l-1} = Z̄_l · W_l.
-fn gemm_backward(lay: &LayerLayout, rows: u32) -> GemmUniforms {
+pub(crate) fn gemm_backward(lay: &LayerLayout, rows: u32) -> GemmUniforms {
     times_w(lay, rows, 0, lay.fan_out as u32, lay.fan_in as u32)
 }
 
@@ -390,10 +396,10 @@ pub(crate) struct Pipelines {
     gemm: wgpu::ComputePipeline,
     sine_forward: wgpu::ComputePipeline,
     sine_backward: wgpu::ComputePipeline,
-    head_forward: wgpu::ComputePipeline,
+    pub(crate) head_forward: wgpu::ComputePipeline,
     /// `head_forward` without the loss reduction, for inference.
     head_eval: wgpu::ComputePipeline,
-    head_backward: wgpu::ComputePipeline,
+    pub(crate) head_backward: wgpu::ComputePipeline,
 }
 
 impl Pipelines {
@@ -428,11 +434,11 @@ struct EvalWorkspace {
 /// A SIREN's parameters (and gradients) on the GPU, with its kernels.
 #[derive(Debug)]
 pub struct SirenGpu {
-    config: SirenConfig,
-    layers: Vec<LayerLayout>,
-    params: wgpu::Buffer,
-    grads: wgpu::Buffer,
-    pipelines: Pipelines,
+    pub(crate) config: SirenConfig,
+    pub(crate) layers: Vec<LayerLayout>,
+    pub(crate) params: wgpu::Buffer,
+    pub(crate) grads: wgpu::Buffer,
+    pub(crate) pipelines: Pipelines,
     eval: Option<EvalWorkspace>,
     eval_grad: Option<EvalWorkspace>,
     max_chunk: u32,
@@ -440,7 +446,7 @@ pub struct SirenGpu {
     /// The hidden layers on the row-blocked kernels, if any.
     dense: Option<DensePlan>,
     /// The tiled kernels, when they run every product.
-    tiled: Option<TiledKernels>,
+    pub(crate) tiled: Option<TiledKernels>,
     /// The cooperative-matrix kernels, when they run inference of values.
     coop: Option<CoopKernels>,
     /// Largest inference batch (per launch) for the fused all-layer kernel of the tiled family.
@@ -741,7 +747,7 @@ impl SirenGpu {
         }
     }
 
-    fn dense_for(&self, l: usize) -> Option<&DensePlan> {
+    pub(crate) fn dense_for(&self, l: usize) -> Option<&DensePlan> {
         self.dense.as_ref().filter(|d| d.covers(l))
     }
 
@@ -1198,7 +1204,7 @@ impl SirenGpu {
         Ok(launches)
     }
 
-    fn gemm_launch(
+    pub(crate) fn gemm_launch(
         &self,
         gpu: &GpuContext,
         u: &GemmUniforms,
@@ -1238,7 +1244,7 @@ impl SirenGpu {
         )
     }
 
-    fn sine_forward_launch(
+    pub(crate) fn sine_forward_launch(
         &self,
         gpu: &GpuContext,
         l: usize,
@@ -1261,7 +1267,7 @@ impl SirenGpu {
         )
     }
 
-    fn sine_backward_launch(
+    pub(crate) fn sine_backward_launch(
         &self,
         gpu: &GpuContext,
         l: usize,
@@ -1344,6 +1350,14 @@ impl SirenGpu {
 /// A point's four input rows: the point, then the unit tangents e_x, e_y, e_z.
 fn stream_rows(p: Vec3) -> [f32; 12] {
     [p.x, p.y, p.z, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]
+}
+
+/// The launches of one training step's loss and gradient (from [`ror::build`] or
+/// [`tangents::build`]), the buffers they use, and the loss partials' count.
+pub(crate) struct StepLaunches {
+    pub(crate) launches: Vec<Launch>,
+    pub(crate) keep: Vec<wgpu::Buffer>,
+    pub(crate) loss_groups: u32,
 }
 
 /// The buffers and recorded launches of one training step's forward and backward passes for a
@@ -1441,210 +1455,25 @@ impl TrainPasses {
                 _keep: r.keep,
             });
         }
-        let cfg = net.config;
-        let layers = &net.layers;
-        let p = &net.pipelines;
-        let rows = 4 * n;
-        let width = cfg.width as u64;
-        let l_hidden = cfg.hidden_layers;
-        let act_bytes = u64::from(rows) * width * 4;
-        let mut z = Vec::new();
-        let mut act = Vec::new();
-        for _ in 0..l_hidden {
-            z.push(gpu.storage_zeroed("siren z", act_bytes)?);
-            act.push(gpu.storage_zeroed("siren act", act_bytes)?);
-        }
-        let zbar = [
-            gpu.storage_zeroed("siren zbar 0", act_bytes)?,
-            gpu.storage_zeroed("siren zbar 1", act_bytes)?,
-        ];
-        let values = gpu.storage_zeroed("siren values", u64::from(n) * 16)?;
-        let dout = gpu.storage_zeroed("siren dout", u64::from(n) * 16)?;
-        let loss_groups = n.div_ceil(WG);
-        let wgrads: Vec<GemmUniforms> = layers.iter().map(|l| gemm_wgrad(l, rows)).collect();
-        let partial_len = wgrads
-            .iter()
-            .enumerate()
-            .map(|(l, u)| match net.dense_for(l) {
-                Some(d) => d.partial_len(l),
-                None => u64::from(u.pbias_off) + u64::from(splits_for(rows) * u.m),
-            })
-            .max()
-            .unwrap_or(1);
-        let partial = gpu.storage_zeroed("siren wgrad partial", partial_len * 4)?;
-        let reduce = gpu.pipeline(&shaders::SIREN_TRAIN, "reduce_wgrad", &[])?;
-
-        let mut launches = Vec::new();
-        let mut keep = Vec::new();
-        // Forward: Z_l = A_{l-1} W_lᵀ, then bias, sine and tangents.
-        for l in 0..l_hidden {
-            let src = if l == 0 { &x_streams } else { &act[l - 1] };
-            if let Some(d) = net.dense_for(l) {
-                let epilogue = Epilogue::SineWithTangents {
-                    omega: cfg.omega0,
-                    act: &act[l],
-                };
-                launches.extend(d.forward(gpu, l, rows, epilogue, src, &net.params, &z[l])?);
-            } else if let Some(t) = &net.tiled {
-                let u = gemm_forward(&layers[l], rows, false, cfg.omega0);
-                let epilogue = TiledEpilogue::SineWithTangents {
-                    omega: cfg.omega0,
-                    act: &act[l],
-                };
-                launches.push(t.gemm(gpu, &u, epilogue, src, &net.params, &z[l]));
-            } else {
-                let u = gemm_forward(&layers[l], rows, false, cfg.omega0);
-                launches.push(net.gemm_launch(gpu, &u, src, &net.params, &z[l]));
-                launches.push(net.sine_forward_launch(gpu, l, n, &z[l], &act[l]));
-            }
-        }
-        let last = layers.last().expect("at least one layer");
-        let head = HeadUniforms {
-            mode: 2,
-            n_points: n,
-            n_surface,
-            width: cfg.width as u32,
-            w_off: last.weight as u32,
-            b_off: last.bias as u32,
-            w_surface: weights.surface,
-            w_off_surface: weights.off_surface,
-            w_normal: weights.normal,
-            w_eikonal: weights.eikonal,
-            alpha: weights.alpha,
-            inv_n: 1.0 / n as f32,
-            omega: cfg.omega0,
-            ..Default::default()
-        };
-        let hu = gpu.uniform("siren head train", &head);
-        launches.push(Launch::flat(
+        let t = tangents::build(
             gpu,
-            &p.head_forward,
-            "siren head fwd",
-            &[
-                entry(0, &hu),
-                entry(1, &act[l_hidden - 1]),
-                entry(2, &net.params),
-                entry(3, &normals),
-                entry(4, &values),
-                entry(5, &dout),
-                entry(6, &loss_partial),
-            ],
+            net,
             n,
-        ));
-        // Backward: the output layer gives Z̄ of the last sine layer.
-        launches.push(Launch::flat(
-            gpu,
-            &p.head_backward,
-            "siren head bwd",
-            &[
-                entry(0, &hu),
-                entry(2, &net.params),
-                entry(7, &dout),
-                entry(8, &z[l_hidden - 1]),
-                entry(9, &zbar[(l_hidden - 1) % 2]),
-            ],
-            n * cfg.width as u32,
-        ));
-        let push_wgrad = |launches: &mut Vec<Launch>,
-                          keep: &mut Vec<wgpu::Buffer>,
-                          l: usize,
-                          a: &wgpu::Buffer,
-                          b: &wgpu::Buffer|
-         -> Result<(), GpuError> {
-            let val = wgrads[l];
-            let (splits, pbias_off) = match net.dense_for(l) {
-                Some(d) => {
-                    let (launch, pbias_off) =
-                        d.weight_gradient(gpu, l, n, a, b, &partial, false)?;
-                    launches.push(launch);
-                    (SPLITS, pbias_off)
-                }
-                None => {
-                    launches.push(match &net.tiled {
-                        Some(t) => t.gemm(gpu, &val, TiledEpilogue::WeightGradient, a, b, &partial),
-                        None => net.gemm_launch(gpu, &val, a, b, &partial),
-                    });
-                    (splits_for(rows), val.pbias_off)
-                }
-            };
-            let ru = ReduceUniforms {
-                m: val.m,
-                n: val.n,
-                splits,
-                w_off: layers[l].weight as u32,
-                b_off: layers[l].bias as u32,
-                pbias_off,
-                ..Default::default()
-            };
-            let rub = gpu.uniform("siren reduce", &ru);
-            launches.push(Launch::flat(
-                gpu,
-                &reduce,
-                "siren reduce wgrad",
-                &[entry(5, &rub), entry(6, &partial), entry(7, &net.grads)],
-                val.m * val.n + val.m,
-            ));
-            keep.push(rub);
-            Ok(())
-        };
-        push_wgrad(
-            &mut launches,
-            &mut keep,
-            l_hidden,
-            &dout,
-            &act[l_hidden - 1],
+            n_surface,
+            weights,
+            &x_streams,
+            &normals,
+            &loss_partial,
         )?;
-        for l in (0..l_hidden).rev() {
-            let src = if l == 0 { &x_streams } else { &act[l - 1] };
-            push_wgrad(&mut launches, &mut keep, l, &zbar[l % 2], src)?;
-            if l > 0 {
-                if let Some(d) = net.dense_for(l) {
-                    let below = Some((cfg.omega0, &z[l - 1]));
-                    let (src, dst) = (&zbar[l % 2], &zbar[(l - 1) % 2]);
-                    launches.extend(d.backward(gpu, l, rows, src, dst, below)?);
-                } else if let Some(t) = &net.tiled {
-                    let u = gemm_backward(&layers[l], rows);
-                    let epilogue = TiledEpilogue::SineBelow {
-                        omega: cfg.omega0,
-                        z: &z[l - 1],
-                    };
-                    let (src, dst) = (&zbar[l % 2], &zbar[(l - 1) % 2]);
-                    launches.push(t.gemm(gpu, &u, epilogue, src, &net.params, dst));
-                } else {
-                    let u = gemm_backward(&layers[l], rows);
-                    launches.push(net.gemm_launch(
-                        gpu,
-                        &u,
-                        &zbar[l % 2],
-                        &net.params,
-                        &zbar[(l - 1) % 2],
-                    ));
-                    launches.push(net.sine_backward_launch(
-                        gpu,
-                        l - 1,
-                        n,
-                        &zbar[(l - 1) % 2],
-                        &z[l - 1],
-                    ));
-                }
-            }
-        }
-        keep.push(hu);
-        keep.extend(z);
-        keep.extend(act);
-        keep.extend(zbar);
-        keep.push(dout);
-        keep.push(values);
-        keep.push(partial);
         Ok(TrainPasses {
             n,
             n_surface,
             x_streams,
             normals,
             loss_partial,
-            loss_groups,
-            launches,
-            _keep: keep,
+            loss_groups: t.loss_groups,
+            launches: t.launches,
+            _keep: t.keep,
         })
     }
 

@@ -28,6 +28,7 @@ mod dense;
 pub mod gpu;
 mod kernels;
 pub mod ror;
+mod tangents;
 pub mod train;
 
 pub use dense::{LayerKernels, TiledBlock};

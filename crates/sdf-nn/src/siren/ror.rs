@@ -41,8 +41,8 @@
 
 use super::dense::{DensePlan, RorEpilogue, RorIo, SPLITS};
 use super::gpu::{
-    GemmUniforms, Launch, ReduceUniforms, SirenGpu, SirenGpuError, gemm_wgrad, splits_for, times_w,
-    times_wt,
+    GemmUniforms, Launch, ReduceUniforms, SirenGpu, SirenGpuError, StepLaunches, gemm_wgrad,
+    splits_for, times_w, times_wt,
 };
 use super::kernels::tiled::{RorOffsets, TiledEpilogue, TiledKernels};
 use super::{LayerLayout, LossWeights};
@@ -100,13 +100,6 @@ struct RorUniforms {
     inv_n: f32,
     omega: f32,
     _pad: f32,
-}
-
-/// The launches and buffers of one reverse-over-reverse step.
-pub(crate) struct RorPasses {
-    pub(crate) launches: Vec<Launch>,
-    pub(crate) keep: Vec<wgpu::Buffer>,
-    pub(crate) loss_groups: u32,
 }
 
 /// Which kernels run the hidden layers' products.
@@ -179,7 +172,7 @@ pub(crate) fn build(
     x_streams: &wgpu::Buffer,
     normals: &wgpu::Buffer,
     loss_partial: &wgpu::Buffer,
-) -> Result<RorPasses, SirenGpuError> {
+) -> Result<StepLaunches, SirenGpuError> {
     let family = match (net.tiled_kernels(), net.dense_ror_plan()) {
         (Some(t), _) => Family::Tiled(t),
         (None, Some(d)) => Family::RowBlocked(d),
@@ -491,7 +484,7 @@ pub(crate) fn build(
     keep.push(x0);
     keep.push(dphi);
     keep.push(partial);
-    Ok(RorPasses {
+    Ok(StepLaunches {
         launches,
         keep,
         loss_groups,
