@@ -319,7 +319,7 @@ struct Stages {
     /// The network's launches from `net_in` to `net_out` and the point count they were built
     /// for; `None` inside when the count exceeds one launch (the network then splits it and
     /// copies through its own workspace).
-    bound: Option<(u32, Option<Vec<crate::siren::gpu::Launch>>)>,
+    bound: Option<(u32, Option<Vec<crate::siren::kernels::Launch>>)>,
 }
 
 /// A submitted query; redeem it with [`QueryBuffers::wait`] (a ticket dropped unredeemed keeps

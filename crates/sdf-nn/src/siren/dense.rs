@@ -10,7 +10,7 @@
 use std::num::NonZeroU64;
 
 use super::LayerLayout;
-use super::gpu::Launch;
+use super::kernels::Launch;
 use crate::gpu::{GpuContext, GpuError, entry};
 use crate::shaders;
 

@@ -26,7 +26,7 @@ use crate::model_file::{
 pub mod cpu;
 mod dense;
 pub mod gpu;
-mod kernels;
+pub(crate) mod kernels;
 pub mod ror;
 mod tangents;
 pub mod train;

@@ -40,10 +40,9 @@
 //! `X_l = (A_l, Ḡ_l)`, `Y_l = (Z̄_l, H_l)`; `X_0 = (x, ḡ)`, six floats per point.
 
 use super::dense::{DensePlan, RorEpilogue, RorIo, SPLITS};
-use super::gpu::{
-    GemmUniforms, Launch, ReduceUniforms, SirenGpu, SirenGpuError, StepLaunches, gemm_wgrad,
-    splits_for, times_w, times_wt,
-};
+use super::gpu::{ReduceUniforms, SirenGpu, SirenGpuError, StepLaunches};
+use super::kernels::Launch;
+use super::kernels::products::{GemmUniforms, gemm_wgrad, splits_for, times_w, times_wt};
 use super::kernels::tiled::{RorOffsets, TiledEpilogue, TiledKernels};
 use super::{LayerLayout, LossWeights};
 use crate::gpu::{GpuContext, GpuError, entry};

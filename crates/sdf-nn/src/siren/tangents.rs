@@ -5,11 +5,10 @@
 //! (see [`super::ror::TrainStep`]).
 
 use super::dense::{Epilogue, SPLITS};
-use super::gpu::{
-    GemmUniforms, HeadUniforms, Launch, ReduceUniforms, SirenGpu, SirenGpuError, StepLaunches, WG,
-    gemm_backward, gemm_forward, gemm_wgrad, splits_for,
-};
+use super::gpu::{HeadUniforms, ReduceUniforms, SirenGpu, SirenGpuError, StepLaunches};
+use super::kernels::products::{GemmUniforms, gemm_backward, gemm_forward, gemm_wgrad, splits_for};
 use super::kernels::tiled::TiledEpilogue;
+use super::kernels::{Launch, WG};
 use crate::gpu::{GpuContext, GpuError, entry};
 use crate::shaders;
 

@@ -8,7 +8,8 @@ use std::time::{Duration, Instant};
 use glam::Vec3;
 use serde::{Deserialize, Serialize};
 
-use super::gpu::{Launch, SirenGpu, SirenGpuError, TrainPasses};
+use super::gpu::{SirenGpu, SirenGpuError, TrainPasses};
+use super::kernels::Launch;
 use super::{Siren, SirenConfigError};
 use crate::adam::{Adam, AdamConfig};
 use crate::gpu::{GpuContext, GpuError, PassProfiler, PassTime, entry};

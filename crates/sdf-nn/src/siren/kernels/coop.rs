@@ -10,10 +10,10 @@
 //! sums, the first layer, the sines' arguments and the head are f32. The tests state the
 //! error against the f64 reference.
 
+use super::{Launch, OneDispatch, point_stride};
 use crate::gpu::{GpuContext, GpuError, entry};
 use crate::shaders::{self, Shader};
 use crate::siren::SirenConfig;
-use crate::siren::gpu::{Launch, OneDispatch, point_stride};
 
 /// What each tile file fixes (see `siren_coop_16x16.wgsl`, `siren_coop_8x8.wgsl`).
 #[derive(Clone, Copy, Debug)]

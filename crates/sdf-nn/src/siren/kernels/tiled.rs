@@ -2,9 +2,10 @@
 //! `shaders/siren_tiled_layer.wgsl` (one tiled GEMM per layer product, epilogues fused) and
 //! `shaders/siren_tiled_fused.wgsl` (every layer of an inference in one dispatch).
 
+use super::products::GemmUniforms;
+use super::{Launch, OneDispatch, point_stride};
 use crate::gpu::{GpuContext, GpuError, entry};
 use crate::shaders;
-use crate::siren::gpu::{GemmUniforms, Launch, OneDispatch, point_stride};
 use crate::siren::{SirenConfig, TiledBlock};
 
 /// Rows and columns of C per workgroup of the tiled GEMM with 4 × 4 register blocks (the
