@@ -16,11 +16,12 @@
 
 use glam::Vec3;
 
-use super::dense::{DensePlan, Epilogue, LayerKernels, TiledBlock};
 use super::kernels::coop::CoopKernels;
 use super::kernels::products::{GemmUniforms, gemm_forward, splits_for};
+use super::kernels::row_blocked::{Epilogue, RowBlockedPlan};
 use super::kernels::tiled::{TiledEpilogue, TiledKernels};
 use super::kernels::{Launch, OneDispatch, WG};
+use super::kernels::{LayerKernels, TiledBlock};
 use super::ror::{self, TrainStep};
 use super::tangents;
 use super::{LayerLayout, Siren, SirenConfig, SirenConfigError};
@@ -118,7 +119,11 @@ pub(crate) struct ReduceUniforms {
 }
 
 /// The kernel families a [`LayerKernels`] choice sets up: row-blocked, tiled, cooperative-matrix.
-type Families = (Option<DensePlan>, Option<TiledKernels>, Option<CoopKernels>);
+type Families = (
+    Option<RowBlockedPlan>,
+    Option<TiledKernels>,
+    Option<CoopKernels>,
+);
 
 /// Default of [`SirenGpu::set_fused_max_points`] on CPU adapters: the latency-bound batches
 /// (the 3000 points). GPUs run every inference batch on the fused kernel: on an H100
@@ -223,7 +228,7 @@ pub struct SirenGpu {
     max_chunk: u32,
     kernels: LayerKernels,
     /// The hidden layers on the row-blocked kernels, if any.
-    dense: Option<DensePlan>,
+    dense: Option<RowBlockedPlan>,
     /// The tiled kernels, when they run every product.
     pub(crate) tiled: Option<TiledKernels>,
     /// The cooperative-matrix kernels, when they run inference of values.
@@ -305,7 +310,7 @@ impl SirenGpu {
         params: &wgpu::Buffer,
     ) -> Result<Families, SirenGpuError> {
         let mut dense = if kernels.row_blocked(gpu) {
-            DensePlan::new(gpu, layers)?
+            RowBlockedPlan::new(gpu, layers)?
         } else {
             None
         };
@@ -407,8 +412,8 @@ impl SirenGpu {
 
     /// The row-blocked kernels, when they cover every hidden layer (what the
     /// reverse-over-reverse step needs of them).
-    pub(crate) fn dense_ror_plan(&self) -> Option<&DensePlan> {
-        let covers_all = |d: &DensePlan| (0..self.config.hidden_layers).all(|l| d.covers(l));
+    pub(crate) fn dense_ror_plan(&self) -> Option<&RowBlockedPlan> {
+        let covers_all = |d: &RowBlockedPlan| (0..self.config.hidden_layers).all(|l| d.covers(l));
         self.dense.as_ref().filter(|d| covers_all(d))
     }
 
@@ -526,7 +531,7 @@ impl SirenGpu {
         }
     }
 
-    pub(crate) fn dense_for(&self, l: usize) -> Option<&DensePlan> {
+    pub(crate) fn dense_for(&self, l: usize) -> Option<&RowBlockedPlan> {
         self.dense.as_ref().filter(|d| d.covers(l))
     }
 

@@ -24,15 +24,14 @@ use crate::model_file::{
 };
 
 pub mod cpu;
-mod dense;
 pub mod gpu;
 pub(crate) mod kernels;
 pub mod ror;
 mod tangents;
 pub mod train;
 
-pub use dense::{LayerKernels, TiledBlock};
 pub use gpu::{DEFAULT_FUSED_MAX_POINTS, SirenGpu, SirenGpuError};
+pub use kernels::{LayerKernels, TiledBlock};
 pub use ror::TrainStep;
 pub use train::{LossTerms, LossWeights, SirenTrainConfig, SirenTrainer, TrainError};
 

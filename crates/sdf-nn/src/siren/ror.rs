@@ -39,10 +39,10 @@
 //! stacked operands of the weight gradient are contiguous: `P_l = (Z_l, G_l → T_l)`,
 //! `X_l = (A_l, Ḡ_l)`, `Y_l = (Z̄_l, H_l)`; `X_0 = (x, ḡ)`, six floats per point.
 
-use super::dense::{DensePlan, RorEpilogue, RorIo, SPLITS};
 use super::gpu::{ReduceUniforms, SirenGpu, SirenGpuError, StepLaunches};
 use super::kernels::Launch;
 use super::kernels::products::{GemmUniforms, gemm_wgrad, splits_for, times_w, times_wt};
+use super::kernels::row_blocked::{RorEpilogue, RorIo, RowBlockedPlan, SPLITS};
 use super::kernels::tiled::{RorOffsets, TiledEpilogue, TiledKernels};
 use super::{LayerLayout, LossWeights};
 use crate::gpu::{GpuContext, GpuError, entry};
@@ -104,7 +104,7 @@ struct RorUniforms {
 /// Which kernels run the hidden layers' products.
 enum Family<'a> {
     Tiled(&'a TiledKernels),
-    RowBlocked(&'a DensePlan),
+    RowBlocked(&'a RowBlockedPlan),
 }
 
 impl Family<'_> {

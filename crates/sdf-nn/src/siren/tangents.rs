@@ -4,9 +4,9 @@
 //! reverse-over-reverse step of [`super::ror`] does it in 6n and is the default wherever it runs
 //! (see [`super::ror::TrainStep`]).
 
-use super::dense::{Epilogue, SPLITS};
 use super::gpu::{HeadUniforms, ReduceUniforms, SirenGpu, SirenGpuError, StepLaunches};
 use super::kernels::products::{GemmUniforms, gemm_backward, gemm_forward, gemm_wgrad, splits_for};
+use super::kernels::row_blocked::{Epilogue, SPLITS};
 use super::kernels::tiled::TiledEpilogue;
 use super::kernels::{Launch, WG};
 use crate::gpu::{GpuContext, GpuError, entry};

@@ -9,161 +9,10 @@
 
 use std::num::NonZeroU64;
 
-use super::LayerLayout;
-use super::kernels::Launch;
+use super::Launch;
 use crate::gpu::{GpuContext, GpuError, entry};
 use crate::shaders;
-
-/// Which kernels run SIREN's hidden layers.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
-pub enum LayerKernels {
-    /// Row-blocked kernels on CPU adapters (lavapipe), where they measured ~20x faster than
-    /// the GEMM; the tiled kernels on every other adapter (designed for GPUs: the row-blocked
-    /// and GEMM layouts keep per-invocation arrays that live in slow local memory there).
-    #[default]
-    Auto,
-    /// The row-blocked kernels of `siren_dense.wgsl` for every layer that qualifies.
-    RowBlocked,
-    /// The strided GEMM of `siren_gemm.wgsl` everywhere.
-    Gemm,
-    /// The tiled kernels of `siren_tiled_layer.wgsl` (workgroup-memory tiles, 4 × 4 register
-    /// blocks, fused sine epilogues) for every product, and `siren_tiled_fused.wgsl` for
-    /// inference batches that fit it.
-    Tiled,
-    /// Inference (values, and gradients as tangent rows) on f16 cooperative matrices with f32
-    /// accumulators (tensor cores; `siren_coop.wgsl`, every layer in one dispatch), where the
-    /// device has them and the network fits; training, and devices or networks they do not
-    /// fit, on [`LayerKernels::Tiled`]. Opt-in: its f16 rounding costs accuracy (see the tests).
-    CoopF16,
-}
-
-impl LayerKernels {
-    /// Every family, in the order of [`LayerKernels::name`]'s names.
-    pub const ALL: [LayerKernels; 5] = [
-        LayerKernels::Auto,
-        LayerKernels::RowBlocked,
-        LayerKernels::Gemm,
-        LayerKernels::Tiled,
-        LayerKernels::CoopF16,
-    ];
-
-    /// The name the command-line flags and bench variables use: `auto`, `row-blocked`,
-    /// `gemm`, `tiled` or `coop`.
-    pub fn name(self) -> &'static str {
-        match self {
-            LayerKernels::Auto => "auto",
-            LayerKernels::RowBlocked => "row-blocked",
-            LayerKernels::Gemm => "gemm",
-            LayerKernels::Tiled => "tiled",
-            LayerKernels::CoopF16 => "coop",
-        }
-    }
-
-    /// Whether the row-blocked kernels are used on `gpu`.
-    pub(crate) fn row_blocked(self, gpu: &GpuContext) -> bool {
-        match self {
-            LayerKernels::Auto => gpu.is_cpu(),
-            LayerKernels::RowBlocked => true,
-            LayerKernels::Gemm | LayerKernels::Tiled | LayerKernels::CoopF16 => false,
-        }
-    }
-
-    /// Whether the tiled kernels are used on `gpu`.
-    pub(crate) fn tiled(self, gpu: &GpuContext) -> bool {
-        match self {
-            LayerKernels::Auto => !gpu.is_cpu(),
-            LayerKernels::Tiled | LayerKernels::CoopF16 => true,
-            LayerKernels::RowBlocked | LayerKernels::Gemm => false,
-        }
-    }
-}
-
-impl std::str::FromStr for LayerKernels {
-    type Err = String;
-
-    /// A [`LayerKernels::name`].
-    fn from_str(s: &str) -> Result<Self, String> {
-        by_name(s, &Self::ALL, Self::name, "kernels")
-    }
-}
-
-/// The one of `all` whose `name` is `s`, or an error that lists the names (`what`: what they
-/// name).
-fn by_name<T: Copy>(
-    s: &str,
-    all: &[T],
-    name: fn(T) -> &'static str,
-    what: &str,
-) -> Result<T, String> {
-    all.iter().copied().find(|&k| name(k) == s).ok_or_else(|| {
-        let names: Vec<&str> = all.iter().map(|&k| name(k)).collect();
-        format!("unknown {what} {s:?}: expected {}", names.join(", "))
-    })
-}
-
-/// The register block of each invocation of the tiled GEMM ([`LayerKernels::Tiled`], and
-/// `Auto` where it picks the tiled kernels): rows × columns of C. A workgroup's tile of C is
-/// 16 × 16 of these blocks.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash)]
-pub enum TiledBlock {
-    /// 4 × 4 on GPUs, 8 × 8 on CPU adapters: the block measured fastest for every product of
-    /// the `default` preset on each (H100: 8 × 8 took 19 % more time for 50 000 points of
-    /// inference and 36 % more per training step; lavapipe: 31 % and 12 % less).
-    #[default]
-    Auto,
-    /// 4 × 4 (a 64 × 64 tile per workgroup; 8 KiB of workgroup memory).
-    Block4x4,
-    /// 8 × 4 (128 × 64).
-    Block8x4,
-    /// 4 × 8 (64 × 128).
-    Block4x8,
-    /// 8 × 8 (128 × 128; 16 KiB of workgroup memory): twice the FMAs per workgroup-memory
-    /// read of 4 × 4.
-    Block8x8,
-}
-
-impl TiledBlock {
-    /// Every choice, in the order of [`TiledBlock::name`]'s names.
-    pub const ALL: [TiledBlock; 5] = [
-        TiledBlock::Auto,
-        TiledBlock::Block4x4,
-        TiledBlock::Block8x4,
-        TiledBlock::Block4x8,
-        TiledBlock::Block8x8,
-    ];
-
-    /// The name the bench variables use: `auto`, `4x4`, `8x4`, `4x8` or `8x8`.
-    pub fn name(self) -> &'static str {
-        match self {
-            TiledBlock::Auto => "auto",
-            TiledBlock::Block4x4 => "4x4",
-            TiledBlock::Block8x4 => "8x4",
-            TiledBlock::Block4x8 => "4x8",
-            TiledBlock::Block8x8 => "8x8",
-        }
-    }
-
-    /// 4-row and 4-column blocks per invocation (`MB`, `NB` in the shader); `None` for
-    /// [`TiledBlock::Auto`].
-    pub(crate) fn blocks(self) -> Option<(u32, u32)> {
-        match self {
-            TiledBlock::Auto => None,
-            TiledBlock::Block4x4 => Some((1, 1)),
-            TiledBlock::Block8x4 => Some((2, 1)),
-            TiledBlock::Block4x8 => Some((1, 2)),
-            TiledBlock::Block8x8 => Some((2, 2)),
-        }
-    }
-}
-
-impl std::str::FromStr for TiledBlock {
-    type Err = String;
-
-    /// A [`TiledBlock::name`].
-    fn from_str(s: &str) -> Result<Self, String> {
-        by_name(s, &Self::ALL, Self::name, "tiled block")
-    }
-}
+use crate::siren::LayerLayout;
 
 /// The uniform window size every device supports (WebGPU's minimum
 /// `max_uniform_buffer_binding_size`); the shader's `w` array has exactly this size.
@@ -288,7 +137,7 @@ struct FwdIo<'a> {
 
 /// The packed weight buffer and the layers that use it.
 #[derive(Debug)]
-pub(crate) struct DensePlan {
+pub(crate) struct RowBlockedPlan {
     packed: wgpu::Buffer,
     /// Bound where an entry point declares a buffer that a launch does not use.
     dummy: wgpu::Buffer,
@@ -298,7 +147,7 @@ pub(crate) struct DensePlan {
     layers: Vec<Option<PackedLayer>>,
 }
 
-impl DensePlan {
+impl RowBlockedPlan {
     /// The plan for `layers`, or `None` when no layer qualifies.
     pub(crate) fn new(gpu: &GpuContext, layers: &[LayerLayout]) -> Result<Option<Self>, GpuError> {
         let align = u64::from(gpu.limits().min_uniform_buffer_offset_alignment).max(4);
@@ -348,7 +197,7 @@ impl DensePlan {
             usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
             mapped_at_creation: false,
         });
-        Ok(Some(DensePlan {
+        Ok(Some(RowBlockedPlan {
             packed: buffer,
             dummy: gpu.storage_zeroed("siren dense dummy", 16)?,
             dummy_rw: gpu.storage_zeroed("siren dense dummy rw", 16)?,
@@ -742,7 +591,7 @@ impl DensePlan {
             .collect())
     }
 
-    /// Floats of the partial buffer [`DensePlan::weight_gradient`] needs for layer `l`.
+    /// Floats of the partial buffer [`RowBlockedPlan::weight_gradient`] needs for layer `l`.
     pub(crate) fn partial_len(&self, l: usize) -> u64 {
         let p = self.layer(l);
         u64::from(SPLITS) * (p.layout.fan_out as u64) * (p.layout.fan_in as u64 + 1)
