@@ -94,8 +94,17 @@ fn eval_and_extract_use_the_trained_model() {
         .unwrap();
     assert!(o.status.success(), "{}", stderr(&o));
     let json: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
-    // Same model, same evaluation sets: the same F1.
+    // Same model, same evaluation sets: the same F1, and the same sign errors, which are
+    // exactly the signs the accuracy counts wrong.
     assert_eq!(json["f1_bbox"], report["f1_bbox"]);
+    assert_eq!(json["sign_errors_bbox"], report["sign_errors_bbox"]);
+    for set in ["bbox", "near_surface"] {
+        let errors: hwsdf::eval::SignErrors =
+            serde_json::from_value(json[format!("sign_errors_{set}")].clone()).unwrap();
+        let accuracy = json[format!("sign_accuracy_{set}")].as_f64().unwrap();
+        let wrong = ((1.0 - accuracy) * 3000.0).round() as u64;
+        assert_eq!(errors.total(), wrong, "{set}: {json}");
+    }
     let chamfer = json["chamfer_l1"].as_f64().unwrap();
     assert!(chamfer > 0.0 && chamfer < 0.1, "{json}");
 
@@ -678,7 +687,9 @@ fn unsigned_mode_fits_a_flat_sheet_and_reports_distance_and_chamfer() {
     let json: serde_json::Value = serde_json::from_slice(&std::fs::read(&report).unwrap()).unwrap();
     assert_eq!(json["distance"], "unsigned", "{json}");
     assert!(
-        json["f1_bbox"].is_null() && json["sign_accuracy_bbox"].is_null(),
+        json["f1_bbox"].is_null()
+            && json["sign_accuracy_bbox"].is_null()
+            && json["sign_errors_bbox"].is_null(),
         "{json}"
     );
     assert!(

@@ -136,6 +136,8 @@ fn eval(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
         "f1_mean": scores.f1_mean,
         "sign_accuracy_bbox": scores.sign_accuracy_bbox,
         "sign_accuracy_near_surface": scores.sign_accuracy_near_surface,
+        "sign_errors_bbox": scores.sign_errors_bbox,
+        "sign_errors_near_surface": scores.sign_errors_near_surface,
         "f1_null_reason": scores.f1_null_reason,
         "inside_fraction_bbox": scores.inside_fraction_bbox,
         "bbox_mean_abs_error": scores.bbox_error.mean_abs,
@@ -177,6 +179,12 @@ fn eval(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
             f4(scores.sign_accuracy_bbox),
             f4(scores.sign_accuracy_near_surface)
         );
+        if let Some(e) = scores.sign_errors_bbox {
+            println!("sign errors box  {e}");
+        }
+        if let Some(e) = scores.sign_errors_near_surface {
+            println!("sign errors near {e}");
+        }
         println!(
             "|Φ−SDF| near     mean {:.5}, max {:.5} (normalised units)",
             scores.near_surface_error.mean_abs, scores.near_surface_error.max_abs

@@ -251,6 +251,9 @@ fn train(args: &Args) -> Result<Outcome, Box<dyn std::error::Error>> {
         report.file_bytes,
         report.train_seconds
     );
+    if let Some(e) = report.sign_errors_bbox.filter(|e| e.total() > 0) {
+        println!("sign errors in the box: {e}");
+    }
     eprintln!("report written to {}", report_path.display());
     Ok(Outcome::Finished)
 }

@@ -16,5 +16,7 @@ pub mod metrics;
 pub mod run;
 pub mod timing;
 
-pub use metrics::{Confusion, DistanceError, EvalSets, Scores, SurfaceMetrics};
+pub use metrics::{
+    Confusion, DepthBands, DistanceError, EvalSets, Scores, SignErrors, SurfaceMetrics,
+};
 pub use timing::Latency;

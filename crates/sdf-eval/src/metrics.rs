@@ -119,6 +119,107 @@ impl Confusion {
     }
 }
 
+/// Sign errors counted by the exact distance of their points to the surface (normalised
+/// units), in bands whose upper bounds are [`SIGN_ERROR_BANDS`].
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct DepthBands {
+    /// |d| ≤ 0.01 (the near-surface set's σ): the surface a little off.
+    pub within_0_01: u64,
+    /// 0.01 < |d| ≤ 0.05.
+    pub within_0_05: u64,
+    /// 0.05 < |d| ≤ 0.2.
+    pub within_0_2: u64,
+    /// |d| > 0.2: far from any surface, a region with the wrong sign (a spurious surface, or
+    /// an inside the fit never carved).
+    pub beyond_0_2: u64,
+}
+
+/// The upper bounds of [`DepthBands`]' first three bands.
+pub const SIGN_ERROR_BANDS: [f32; 3] = [0.01, 0.05, 0.2];
+
+impl DepthBands {
+    fn add(&mut self, depth: f32) {
+        let [a, b, c] = SIGN_ERROR_BANDS;
+        match depth {
+            d if d <= a => self.within_0_01 += 1,
+            d if d <= b => self.within_0_05 += 1,
+            d if d <= c => self.within_0_2 += 1,
+            _ => self.beyond_0_2 += 1,
+        }
+    }
+
+    /// Errors in every band.
+    pub fn total(&self) -> u64 {
+        self.within_0_01 + self.within_0_05 + self.within_0_2 + self.beyond_0_2
+    }
+
+    /// Errors farther than 0.05 from the surface: wrong regions rather than a surface a little
+    /// off.
+    pub fn beyond_0_05(&self) -> u64 {
+        self.within_0_2 + self.beyond_0_2
+    }
+}
+
+/// Where a set's sign errors lie: which way each is wrong, and how far its point is from the
+/// surface. F1 says how many signs are wrong; this says what kind of failure they are. Errors
+/// within 0.01 are the surface slightly displaced; far *false inside* points are spurious
+/// surfaces in empty space; far *false outside* points are an inside the fit did not carve.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct SignErrors {
+    /// Predicted inside where the point is outside (false positives of the inside class).
+    pub false_inside: DepthBands,
+    /// Predicted outside (or NaN) where the point is inside (false negatives).
+    pub false_outside: DepthBands,
+}
+
+impl SignErrors {
+    /// The errors of `predicted` against exact signed distances `truth` (same length), with
+    /// [`Confusion::from_distances`]' rule: negative is inside, NaN counts as outside.
+    pub fn from_distances(predicted: &[f32], truth: &[f32]) -> Self {
+        assert_eq!(predicted.len(), truth.len(), "one prediction per point");
+        let mut e = SignErrors::default();
+        for (&p, &t) in predicted.iter().zip(truth) {
+            match (t < 0.0, p < 0.0) {
+                (false, true) => e.false_inside.add(t.abs()),
+                (true, false) => e.false_outside.add(t.abs()),
+                _ => {}
+            }
+        }
+        e
+    }
+
+    /// Every wrong sign.
+    pub fn total(&self) -> u64 {
+        self.false_inside.total() + self.false_outside.total()
+    }
+}
+
+impl std::fmt::Display for DepthBands {
+    /// `N (a / b / c / d by |d| ≤ 0.01, ≤ 0.05, ≤ 0.2, > 0.2)`.
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "{} ({} / {} / {} / {} at |d| ≤ 0.01, ≤ 0.05, ≤ 0.2, > 0.2)",
+            self.total(),
+            self.within_0_01,
+            self.within_0_05,
+            self.within_0_2,
+            self.beyond_0_2
+        )
+    }
+}
+
+impl std::fmt::Display for SignErrors {
+    /// One line: the false inside and false outside counts by band.
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "false inside {}, false outside {}",
+            self.false_inside, self.false_outside
+        )
+    }
+}
+
 /// Mean and max of |predicted − exact|.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct DistanceError {
@@ -255,6 +356,12 @@ pub struct Scores {
     pub sign_accuracy_bbox: Option<f64>,
     /// Sign accuracy on the near-surface set.
     pub sign_accuracy_near_surface: Option<f64>,
+    /// Where the box set's sign errors lie (`None` for an unsigned field).
+    #[serde(default)]
+    pub sign_errors_bbox: Option<SignErrors>,
+    /// Where the near-surface set's sign errors lie.
+    #[serde(default)]
+    pub sign_errors_near_surface: Option<SignErrors>,
     /// Fraction of the box set inside the mesh (exact).
     pub inside_fraction_bbox: f64,
     /// Fraction of the near-surface set inside the mesh (exact).
@@ -282,6 +389,8 @@ impl Scores {
             f1_null_reason: None,
             sign_accuracy_bbox: Some(cb.accuracy()),
             sign_accuracy_near_surface: Some(cn.accuracy()),
+            sign_errors_bbox: Some(SignErrors::from_distances(pred_bbox, truth_bbox)),
+            sign_errors_near_surface: Some(SignErrors::from_distances(pred_near, truth_near)),
             inside_fraction_bbox: inside_fraction(truth_bbox),
             inside_fraction_near_surface: inside_fraction(truth_near),
             near_surface_error: DistanceError::between(pred_near, truth_near),
@@ -317,6 +426,8 @@ impl Scores {
             f1_null_reason: Some(UNSIGNED_REASON.into()),
             sign_accuracy_bbox: None,
             sign_accuracy_near_surface: None,
+            sign_errors_bbox: None,
+            sign_errors_near_surface: None,
             inside_fraction_bbox: inside_fraction(truth_bbox),
             inside_fraction_near_surface: inside_fraction(truth_near),
             near_surface_error: DistanceError::between(pred_near, &abs(truth_near)),
@@ -418,6 +529,53 @@ mod tests {
         );
         // Zero is the surface: counted outside, as the "< 0 is inside" rule says.
         assert_eq!(Confusion::from_distances(&[0.0], &[-1.0]).false_neg, 1);
+    }
+
+    #[test]
+    fn sign_errors_by_depth() {
+        // Exact distances in each band on both sides; predictions wrong on some of them.
+        let truth = [
+            0.005, 0.03, 0.1, 0.5, // outside: one per band
+            -0.01, -0.05, -0.2, -0.9, // inside: each at a band's upper bound, then beyond
+            0.3, -0.3, // right
+        ];
+        // Three false inside (bands 0.01, 0.05 and beyond), four false outside (NaN and 0
+        // among them), two right.
+        let nan = f32::NAN;
+        let pred = [-0.1, -0.1, 0.2, -0.4, 0.1, nan, 0.0, 0.1, 0.3, -0.3];
+        let e = SignErrors::from_distances(&pred, &truth);
+        assert_eq!(
+            e.false_inside,
+            DepthBands {
+                within_0_01: 1,
+                within_0_05: 1,
+                within_0_2: 0,
+                beyond_0_2: 1
+            }
+        );
+        assert_eq!(
+            e.false_outside,
+            DepthBands {
+                within_0_01: 1,
+                within_0_05: 1,
+                within_0_2: 1,
+                beyond_0_2: 1
+            }
+        );
+        assert_eq!(e.false_inside.beyond_0_05(), 1);
+        // The same errors the confusion counts, and the accuracy they imply.
+        let c = Confusion::from_distances(&pred, &truth);
+        assert_eq!(e.false_inside.total(), c.false_pos);
+        assert_eq!(e.false_outside.total(), c.false_neg);
+        let s = Scores::from_predictions(&pred, &truth, &truth, &truth);
+        assert_eq!(s.sign_errors_bbox, Some(e));
+        assert_eq!(s.sign_errors_near_surface.unwrap().total(), 0);
+        let n = truth.len() as f64;
+        assert!((s.sign_accuracy_bbox.unwrap() - (n - e.total() as f64) / n).abs() < 1e-12);
+        assert_eq!(
+            Scores::unsigned(&pred, &truth, &pred, &truth).sign_errors_bbox,
+            None
+        );
         // NaN is never a correct inside.
         assert_eq!(Confusion::from_distances(&[f32::NAN], &[-1.0]).false_neg, 1);
     }

@@ -290,8 +290,9 @@ impl TrainOptions {
                 }
                 if self.lr_final.is_some() || self.grow_every.is_some() || self.pool.is_some() {
                     return refuse(
-                        "--lr-final, --grow-every and --pool apply to NGLOD; SIREN trains at a \
-                         constant learning rate on fresh points every step",
+                        "--lr-final, --grow-every and --pool apply to NGLOD; SIREN draws fresh \
+                         points every step and divides its learning rate by 10 when its loss \
+                         plateaus",
                     );
                 }
                 if let Some(w) = self.siren_weights {
@@ -1245,6 +1246,13 @@ pub struct Report {
     pub sign_accuracy_bbox: Option<f64>,
     /// Sign accuracy, near-surface points.
     pub sign_accuracy_near_surface: Option<f64>,
+    /// Where the box points' sign errors lie: which way each is wrong and how far from the
+    /// surface (null for an unsigned field, and in reports written before it existed).
+    #[serde(default)]
+    pub sign_errors_bbox: Option<crate::SignErrors>,
+    /// Where the near-surface points' sign errors lie.
+    #[serde(default)]
+    pub sign_errors_near_surface: Option<crate::SignErrors>,
     /// Exact fraction of the box points inside the mesh.
     #[serde(default)]
     pub inside_fraction_bbox: f64,
@@ -1311,6 +1319,8 @@ impl Report {
             distance: Some(options.distance),
             sign_accuracy_bbox: s.sign_accuracy_bbox,
             sign_accuracy_near_surface: s.sign_accuracy_near_surface,
+            sign_errors_bbox: s.sign_errors_bbox,
+            sign_errors_near_surface: s.sign_errors_near_surface,
             inside_fraction_bbox: s.inside_fraction_bbox,
             bbox_mean_abs_error: s.bbox_error.mean_abs,
             chamfer_l1: eval.chamfer.map(|c| c.chamfer_l1),
