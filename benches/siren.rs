@@ -96,9 +96,16 @@ fn bench(c: &mut Criterion) {
         let macs = cfg.forward_macs();
 
         let mut g = c.benchmark_group(format!("siren_{name}"));
-        g.sample_size(10)
+        // An iteration of `default` takes seconds on lavapipe; on a GPU it takes milliseconds,
+        // and 3 s of samples are thousands of them (a lent GPU's minutes are few).
+        let seconds = match (gpu.is_cpu(), name) {
+            (true, "default") => 20,
+            (true, _) => 5,
+            (false, _) => 3,
+        };
+        g.sample_size(if gpu.is_cpu() { 10 } else { 30 })
             .warm_up_time(Duration::from_secs(1))
-            .measurement_time(Duration::from_secs(if name == "default" { 20 } else { 5 }));
+            .measurement_time(Duration::from_secs(seconds));
         let full =
             !gpu.is_cpu() || name == "small" || std::env::var_os("SIREN_BENCH_FULL").is_some();
         let sizes: &[usize] = if full { &[50_000, 3000] } else { &[3000] };

@@ -41,28 +41,43 @@
 #   GPU_COMPARE_PRESETS=small,default   presets to run (both by default)
 #   GPU_COMPARE_STAGES=checks,bench,coop,blocks,split,profile,torch,fit,corpus
 #                                       what to run (default all; split a session's runs with it)
-#   GPU_COMPARE_BLOCKS=4x4,8x8          register blocks the `blocks` stage forces
+#   GPU_COMPARE_BLOCKS=                 register blocks of the tiled GEMM the `blocks` stage
+#                                       forces (e.g. 4x4,8x8; none by default: session 13's
+#                                       H100 run set TiledBlock::Auto's rule)
 #   GPU_COMPARE_ROW_BLOCKS=2,3          the fused kernel's row blocks it forces too
 #   GPU_COMPARE_SPLIT_ROUNDS=500        rounds of the `split` stage's interleaved query bench
 #   GPU_COMPARE_CHECK_TIMEOUT=300       seconds each kernel test binary may take (`checks`)
-#   GPU_COMPARE_FITS=nglod,siren        which fits the `fit` stage times (default nglod; a default
-#                                       SIREN fit is 10⁴ steps, minutes before issue 12's kernels)
+#   GPU_COMPARE_FITS=nglod,siren        which fits the `fit` stage times (default both: about
+#                                       10 s and 30 s on an H100)
 #   GPU_COMPARE_MESHES=DIR              (pack) copy DIR's meshes into the pack for `corpus`
 #   GPU_COMPARE_CORPUS_ARGS="..."       extra `corpus` arguments (default: --model nglod); each
 #                                       set keeps its own results (e.g. add --band-cells 0)
 #   GPU_COMPARE_TIMEOUT=240             seconds each fit and the corpus run may take (a lent
 #                                       machine's calls are limited; corpus resumes where a
 #                                       run stopped, so a second call finishes it)
+#   GPU_COMPARE_RESULTS=DIR             where the logs, criterion's results and the table go
+#                                       (default DIR/results, cleared first; a folder named
+#                                       here must be new or empty). Point it at the
+#                                       folder a lent machine sends back, so that a call cut
+#                                       off by its time limit still returns what it measured
 #   GPU_COMPARE_ALLOW_CPU=1             run even if the adapter is a CPU (lavapipe): a dry run
 #   GPU_COMPARE_SKIP_TORCH=1            only our side (same as leaving `torch` out of the stages)
 #   any variable the benches read (SIREN_BENCH_*, NGLOD_BENCH_EPOCHS, WGPU_ADAPTER_NAME, ...)
+#
+# A lent machine has minutes, not hours: pick the stages (they run in the order checks, bench,
+# coop, split, profile, blocks, torch, fit, corpus), send the results straight to the folder
+# that comes back, and stop the run before the call's limit:
+#   GPU_COMPARE_RESULTS=$OUT/results GPU_COMPARE_STAGES=checks,bench,profile,split,blocks,coop,torch,fit \
+#       timeout 540 bash gpu-compare.sh run .
+# and leave `corpus` (about 3 minutes on an H100) for a call of its own. On a GPU the SIREN
+# bench samples 3 s per figure (20 s on lavapipe).
 set -euo pipefail
 
 # The `checks` stage's test binaries (target names).
 GPU_CHECKS="siren_gpu|nglod|adam|embed|render|gpu_timer|neural_sdf|serve_queries"
 
 usage() {
-    sed -n '2,46p' "$0" | sed 's/^# \{0,1\}//'
+    awk 'NR > 1 && !/^#/ { exit } NR > 1 { sub(/^# ?/, ""); print }' "$0"
     exit 2
 }
 
@@ -183,9 +198,18 @@ run() {
     [ -x bin/gpu-info ] || { echo "$dir holds no pack (run 'gpu-compare.sh pack' first)" >&2; exit 1; }
     find_vulkan
     find_icd
-    local res="$dir/results"
-    rm -rf "$res"
-    mkdir -p "$res"
+    local res
+    if [ -n "${GPU_COMPARE_RESULTS:-}" ]; then
+        # The caller's folder is never cleared: it must be new or empty.
+        res=$GPU_COMPARE_RESULTS
+        mkdir -p "$res"
+        [ -z "$(ls -A "$res")" ] || { echo "GPU_COMPARE_RESULTS=$res is not empty" >&2; exit 1; }
+    else
+        res="$dir/results"
+        rm -rf "$res"
+        mkdir -p "$res"
+    fi
+    res=$(cd "$res" && pwd)
     echo "== adapter (commit $(cat COMMIT 2>/dev/null || echo unknown))"
     bin/gpu-info | tee "$res/gpu-info.txt"
     if grep -qi 'llvmpipe\|(Cpu,' "$res/gpu-info.txt" && [ "${GPU_COMPARE_ALLOW_CPU:-0}" != 1 ]; then
@@ -258,7 +282,7 @@ run() {
     fi
     if [[ $stages == *,blocks,* ]]; then
         local blk
-        for blk in $(echo "${GPU_COMPARE_BLOCKS:-4x4,8x8}" | tr ',' ' '); do
+        for blk in $(echo "${GPU_COMPARE_BLOCKS:-}" | tr ',' ' '); do
             [ -n "$blk" ] || continue
             echo "== bench siren default, tiled kernels, register blocks $blk (SIREN_BENCH_TILED_BLOCK=$blk)"
             CRITERION_HOME="$res/criterion-block-$blk" SIREN_BENCH_PRESETS=default SIREN_BENCH_KERNELS=tiled \
@@ -400,7 +424,7 @@ for est in sorted(glob.glob(os.path.join(res, "criterion*", "**", "new", "estima
 PY
     if [[ $stages == *,fit,* ]]; then
         local m
-        for m in $(echo "${GPU_COMPARE_FITS:-nglod}" | tr ',' ' '); do
+        for m in $(echo "${GPU_COMPARE_FITS:-nglod,siren}" | tr ',' ' '); do
             echo "== fit: $m on tests/data/spot.obj (the GPU default run)"
             local t0 t1
             t0=$(date +%s.%N)
@@ -461,8 +485,9 @@ def reports(pattern):
 
 fits = list(reports("fit-*.json"))
 if fits:
-    print("\n| fit on tests/data/spot.obj | preset | trained | training | wall in all | F1 box / near |")
-    print("| --- | --- | --- | --- | --- | --- |")
+    print("\n| fit on tests/data/spot.obj | preset | trained | training | wall in all | F1 box / near "
+          "| box sign errors > 0.05 from the surface: false inside / false outside |")
+    print("| --- | --- | --- | --- | --- | --- | --- |")
 for path, r in fits:
     wall = "—"
     try:
@@ -472,8 +497,15 @@ for path, r in fits:
         pass
     f1 = lambda k: "n/a" if r.get(k) is None else f"{r[k]:.4f}"
     unit = "epochs" if r.get("model") == "nglod" else "steps"
+    far = "—"
+    e = r.get("sign_errors_bbox")
+    if e:
+        # Far errors are regions of the wrong sign: spurious surfaces (false inside) or an
+        # inside never carved (false outside); the near ones are the surface a little off.
+        beyond = lambda b: b["within_0_2"] + b["beyond_0_2"]
+        far = f"{beyond(e['false_inside'])} / {beyond(e['false_outside'])}"
     print(f"| {r.get('model')} | {r.get('preset')} | {r.get('trained')} {unit} | "
-          f"{r.get('train_seconds', 0):.1f} s | {wall} | {f1('f1_bbox')} / {f1('f1_near_surface')} |")
+          f"{r.get('train_seconds', 0):.1f} s | {wall} | {f1('f1_bbox')} / {f1('f1_near_surface')} | {far} |")
 evals = list(reports("eval-siren-*.json"))
 if evals:
     print("\n| SIREN fit through `eval` | kernels | F1 box / near | wall per point | wall per 3000 | GPU per point | GPU per 3000 |")
