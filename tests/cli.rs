@@ -65,6 +65,7 @@ fn train_writes_a_model_and_a_complete_report() {
         "per_point_ns",
         "batch3000_us",
         "train_seconds",
+        "final_lr",
         "adapter",
     ] {
         assert!(report.get(key).is_some(), "report lacks {key}: {report}");
@@ -75,6 +76,9 @@ fn train_writes_a_model_and_a_complete_report() {
         report["file_bytes"].as_u64().unwrap(),
         std::fs::metadata(model).unwrap().len()
     );
+    // NGLOD's rate decays from 1e-3 along a cosine.
+    let lr = report["final_lr"].as_f64().unwrap();
+    assert!(lr > 0.0 && lr < 1e-3, "{report}");
     // Two epochs of the small NGLOD already get most of the box right.
     let f1 = report["f1_bbox"].as_f64().unwrap();
     assert!(f1 > 0.8 && f1 <= 1.0, "{report}");

@@ -1083,6 +1083,18 @@ fn cases() -> Vec<Case> {
             Error("apply to NGLOD"),
         ),
         case(
+            "train nglod --plateau-patience",
+            "train",
+            &["cube.obj", "--plateau-patience", "100"],
+            Error("--plateau-patience applies to SIREN"),
+        ),
+        case(
+            "train siren --plateau-patience ten",
+            "train",
+            &["cube.obj", "--model", "siren", "--plateau-patience", "ten"],
+            Error("--plateau-patience"),
+        ),
+        case(
             "train --lr-final nan",
             "train",
             &["cube.obj", "--lr-final", "nan"],

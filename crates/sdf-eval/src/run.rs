@@ -229,6 +229,9 @@ pub struct TrainOptions {
     pub lr: Option<f32>,
     /// SIREN loss weights (`None`: the design document's). An error for NGLOD.
     pub siren_weights: Option<LossWeights>,
+    /// SIREN: steps without progress of the loss before the learning rate is divided by 10
+    /// (`None`: the trainer's 500; 0 keeps it constant). An error for NGLOD.
+    pub plateau_patience: Option<usize>,
     /// NGLOD: final learning rate as a fraction of the first, reached by cosine decay (`None`:
     /// the trainer's default; 1 keeps it constant).
     pub lr_final: Option<f32>,
@@ -256,6 +259,7 @@ impl TrainOptions {
             seed: 0,
             lr: None,
             siren_weights: None,
+            plateau_patience: None,
             lr_final: None,
             grow_every: None,
             distance: DistanceMode::Signed,
@@ -292,7 +296,7 @@ impl TrainOptions {
                     return refuse(
                         "--lr-final, --grow-every and --pool apply to NGLOD; SIREN draws fresh \
                          points every step and divides its learning rate by 10 when its loss \
-                         plateaus",
+                         plateaus (--plateau-patience)",
                     );
                 }
                 if let Some(w) = self.siren_weights {
@@ -306,6 +310,12 @@ impl TrainOptions {
                 if self.siren_weights.is_some() {
                     return refuse(
                         "loss weights apply to SIREN; NGLOD's loss is the squared error",
+                    );
+                }
+                if self.plateau_patience.is_some() {
+                    return refuse(
+                        "--plateau-patience applies to SIREN; NGLOD's learning rate decays \
+                         along a cosine (--lr-final)",
                     );
                 }
                 if let Some(f) = self.lr_final
@@ -357,6 +367,12 @@ impl TrainOptions {
                 let w = self.siren_weights.unwrap_or(d.weights);
                 put("steps", length);
                 put("lr", self.lr.unwrap_or(d.lr).to_string());
+                put(
+                    "plateau patience",
+                    self.plateau_patience
+                        .unwrap_or(d.plateau_patience)
+                        .to_string(),
+                );
                 put(
                     "loss weights",
                     format!(
@@ -897,6 +913,9 @@ pub fn train(
                 seed: options.seed,
                 lr: options.lr.unwrap_or(defaults.lr),
                 weights: options.siren_weights.unwrap_or(defaults.weights),
+                plateau_patience: options
+                    .plateau_patience
+                    .unwrap_or(defaults.plateau_patience),
                 ..defaults
             };
             let per_step = (train_config.surface_per_step + train_config.box_per_step) as f64;
@@ -1284,6 +1303,9 @@ pub struct Report {
     pub trained: usize,
     /// Final training loss.
     pub final_loss: f32,
+    /// Learning rate at the end of training (null in reports written before it existed).
+    #[serde(default)]
+    pub final_lr: Option<f32>,
     /// Points per evaluation set.
     pub eval_points: usize,
     /// Adapter the run used.
@@ -1333,6 +1355,7 @@ impl Report {
             train_seconds: trained.train_seconds,
             trained: trained.done,
             final_loss: trained.final_loss,
+            final_lr: Some(trained.lr),
             eval_points: eval.eval_points,
             adapter,
             hwsdf_version: sdf_nn::model_file::HWSDF_VERSION.into(),
@@ -1573,6 +1596,21 @@ mod tests {
         );
         refused(
             TrainOptions {
+                plateau_patience: Some(500),
+                ..nglod.clone()
+            },
+            "--plateau-patience applies to SIREN",
+        );
+        assert!(
+            TrainOptions {
+                plateau_patience: Some(0),
+                ..siren.clone()
+            }
+            .validate()
+            .is_ok()
+        );
+        refused(
+            TrainOptions {
                 lr_final: Some(-0.5),
                 ..nglod.clone()
             },
@@ -1648,6 +1686,18 @@ mod tests {
         let siren = TrainOptions::new(ModelKind::Siren, Preset::Small);
         let s = siren.settings(true).unwrap().to_string();
         assert!(s.contains("steps 300"), "{s}");
+        assert!(s.contains("plateau patience 500"), "{s}");
+        let constant = TrainOptions {
+            plateau_patience: Some(0),
+            ..siren.clone()
+        };
+        assert_eq!(
+            constant
+                .settings(true)
+                .unwrap()
+                .differences(&siren.settings(true).unwrap()),
+            ["plateau patience 0, not 500"]
+        );
         assert!(
             s.contains(
                 "loss weights surface 3000, off-surface 100, normal 100, eikonal 5, alpha 100"

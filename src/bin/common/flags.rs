@@ -53,6 +53,10 @@ pub struct TrainingFlags {
     /// (default 0.1; 1 keeps it constant).
     #[arg(long, allow_negative_numbers = true)]
     pub lr_final: Option<f32>,
+    /// SIREN: steps without a 0.1 % improvement of the loss before the learning rate is
+    /// divided by 10 (default 500; 0 keeps it constant, as the SIREN reference code trains).
+    #[arg(long)]
+    pub plateau_patience: Option<usize>,
     /// NGLOD: progressive levels of detail, one more every this many epochs (0: all at once).
     #[arg(long)]
     pub grow_every: Option<usize>,
@@ -159,6 +163,7 @@ impl TrainingFlags {
             seed: self.seed,
             lr: self.lr,
             siren_weights: self.siren_weights().filter(|_| keep(ModelKind::Siren)),
+            plateau_patience: self.plateau_patience.filter(|_| keep(ModelKind::Siren)),
             lr_final: self.lr_final.filter(|_| keep(ModelKind::Nglod)),
             grow_every: self.grow_every.filter(|_| keep(ModelKind::Nglod)),
             distance: match self.distance {
