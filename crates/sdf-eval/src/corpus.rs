@@ -793,10 +793,77 @@ impl Merge {
                     0.5 * (rb + rn)
                 );
             }
+            let done: Vec<(&str, &Report)> = rows
+                .iter()
+                .filter_map(|((_, mesh), e)| match e {
+                    Entry::Done(r) => Some((mesh.as_str(), r.as_ref())),
+                    Entry::Failed { .. } => None,
+                })
+                .collect();
+            if let Some(line) = wrong_regions(&done) {
+                let _ = writeln!(s, "\n{line}");
+            }
             let _ = writeln!(s);
         }
         s
     }
+}
+
+/// Meshes listed by name in [`wrong_regions`]' line.
+const WRONG_REGIONS_LISTED: usize = 5;
+
+/// What kind of sign errors a model's `done` results have, as one line under its table: the
+/// meshes with box points of the wrong sign more than 0.05 from the surface (whole regions of
+/// the wrong sign, not a displaced surface), the worst first. `None` when no result has the
+/// counts (results written before they existed).
+fn wrong_regions(done: &[(&str, &Report)]) -> Option<String> {
+    let counted: Vec<(&str, u64, u64)> = done
+        .iter()
+        .filter_map(|(mesh, r)| {
+            r.sign_errors_bbox.map(|e| {
+                (
+                    *mesh,
+                    e.false_inside.beyond_0_05(),
+                    e.false_outside.beyond_0_05(),
+                )
+            })
+        })
+        .collect();
+    if counted.is_empty() {
+        return None;
+    }
+    let uncounted = done.len() - counted.len();
+    let mut far: Vec<_> = counted.iter().filter(|c| c.1 + c.2 > 0).collect();
+    far.sort_by_key(|c| std::cmp::Reverse(c.1 + c.2));
+    let mut line = if far.is_empty() {
+        format!(
+            "Wrong-sign regions: none on {} mesh(es); every box point of the wrong sign lies within \
+             0.05 of the surface (a surface a little off, not a region of the wrong sign).",
+            counted.len()
+        )
+    } else {
+        let listed: Vec<String> = far
+            .iter()
+            .take(WRONG_REGIONS_LISTED)
+            .map(|(mesh, fi, fo)| format!("{mesh} {fi} / {fo}"))
+            .collect();
+        format!(
+            "Wrong-sign regions (box points of the wrong sign more than 0.05 from the surface, \
+             false inside / false outside): {} of {} mesh(es); {}{}.",
+            far.len(),
+            counted.len(),
+            listed.join(", "),
+            if far.len() > WRONG_REGIONS_LISTED {
+                ", ..."
+            } else {
+                ""
+            }
+        )
+    };
+    if uncounted > 0 {
+        line += &format!(" ({uncounted} result(s) predate these counts.)");
+    }
+    Some(line)
 }
 
 #[cfg(test)]
@@ -1057,6 +1124,70 @@ mod tests {
             Err(CorpusError::Empty(_))
         ));
         std::fs::remove_dir_all(&root).unwrap();
+    }
+
+    /// A finished NGLOD result on `mesh` whose box sign errors are `(false inside, false
+    /// outside)` counts by band (`None`: a result from before the counts).
+    fn report(mesh: &str, errors: Option<([u64; 4], [u64; 4])>) -> Report {
+        let bands = |b: [u64; 4]| {
+            serde_json::json!({
+                "within_0_01": b[0], "within_0_05": b[1], "within_0_2": b[2], "beyond_0_2": b[3]
+            })
+        };
+        let mut r = serde_json::json!({
+            "mesh": mesh, "model": "nglod", "preset": "small", "params": 1, "file_bytes": 1,
+            "f1_bbox": 0.99, "f1_near_surface": 0.95, "f1_mean": 0.97,
+            "sign_accuracy_bbox": 0.99, "sign_accuracy_near_surface": 0.95,
+            "near_surface_mean_abs_error": 0.001, "near_surface_max_abs_error": 0.01,
+            "per_point_ns": 1.0, "batch3000_us": 1.0, "gpu_per_point_ns": null,
+            "train_seconds": 1.0, "trained": 1, "final_loss": 0.0, "eval_points": 1000,
+            "adapter": "test", "hwsdf_version": "0", "training": null
+        });
+        if let Some((fi, fo)) = errors {
+            r["sign_errors_bbox"] =
+                serde_json::json!({ "false_inside": bands(fi), "false_outside": bands(fo) });
+        }
+        serde_json::from_value(r).unwrap()
+    }
+
+    #[test]
+    fn wrong_regions_name_the_meshes_with_far_sign_errors() {
+        let near_only = report("near.obj", Some(([5, 2, 0, 0], [3, 0, 0, 0])));
+        let ghost = report("ghost.obj", Some(([1, 0, 4, 30], [0, 0, 0, 0])));
+        let hollow = report("hollow.obj", Some(([0, 0, 0, 0], [0, 1, 2, 1])));
+        let old = report("old.obj", None);
+        assert_eq!(wrong_regions(&[("old.obj", &old)]), None);
+        assert_eq!(
+            wrong_regions(&[("near.obj", &near_only)]).unwrap(),
+            "Wrong-sign regions: none on 1 mesh(es); every box point of the wrong sign lies \
+             within 0.05 of the surface (a surface a little off, not a region of the wrong sign)."
+        );
+        // The worst first; the errors within 0.05 do not count.
+        let line = wrong_regions(&[
+            ("hollow.obj", &hollow),
+            ("near.obj", &near_only),
+            ("ghost.obj", &ghost),
+            ("old.obj", &old),
+        ])
+        .unwrap();
+        assert_eq!(
+            line,
+            "Wrong-sign regions (box points of the wrong sign more than 0.05 from the surface, \
+             false inside / false outside): 2 of 3 mesh(es); ghost.obj 34 / 0, hollow.obj 0 / 3. \
+             (1 result(s) predate these counts.)"
+        );
+        // Past five meshes the list ends in an ellipsis.
+        let many: Vec<Report> = (0..7)
+            .map(|i| report(&format!("m{i}.obj"), Some(([0, 0, 0, i + 1], [0; 4]))))
+            .collect();
+        let names: Vec<String> = (0..7).map(|i| format!("m{i}.obj")).collect();
+        let rows: Vec<(&str, &Report)> = names.iter().map(String::as_str).zip(&many).collect();
+        let line = wrong_regions(&rows).unwrap();
+        assert!(
+            line.contains("7 of 7 mesh(es); m6.obj 7 / 0, m5.obj 6 / 0"),
+            "{line}"
+        );
+        assert!(line.ends_with("m2.obj 3 / 0, ...."), "{line}");
     }
 
     #[test]
