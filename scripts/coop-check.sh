@@ -39,7 +39,10 @@ if [ ! -e "$root/.ready" ]; then
 fi
 
 echo "== building the SIREN GPU tests"
-exe=$(cargo test -q -p sdf-nn --test siren_gpu --no-run --message-format=json 2>/dev/null \
+# `--workspace`, not `-p sdf-nn`: the features then unify as in `cargo test --workspace`, whose
+# binary CI has just built and this reuses; `-p sdf-nn` resolves other features and rebuilds
+# sdf-nn and its dependencies (3.5 minutes of a CI run).
+exe=$(cargo test -q --workspace --test siren_gpu --no-run --message-format=json 2>/dev/null \
     | python3 scripts/cargo_executables.py --name siren_gpu | cut -d' ' -f2-)
 [ -n "$exe" ] || { echo "the siren_gpu test binary was not built" >&2; exit 1; }
 $SUDO cp "$exe" "$root/tmp/siren_gpu"
