@@ -739,9 +739,11 @@ impl Merge {
             );
             let _ = writeln!(s, "| --- | --- | --- | --- | --- | --- | --- | --- | --- |");
             let (mut fb, mut fnr, mut n, mut left_out) = (0.0, 0.0, 0usize, 0usize);
+            let mut done: Vec<(&str, &Report)> = Vec::new();
             for ((_, mesh), e) in &rows {
                 match e {
                     Entry::Done(r) => {
+                        done.push((mesh.as_str(), r.as_ref()));
                         let _ = writeln!(
                             s,
                             "| {mesh} | {} | {} | {} | {:.0} | {:.0} | {:.0} | {} | {} |",
@@ -793,13 +795,6 @@ impl Merge {
                     0.5 * (rb + rn)
                 );
             }
-            let done: Vec<(&str, &Report)> = rows
-                .iter()
-                .filter_map(|((_, mesh), e)| match e {
-                    Entry::Done(r) => Some((mesh.as_str(), r.as_ref())),
-                    Entry::Failed { .. } => None,
-                })
-                .collect();
             if let Some(line) = wrong_regions(&done) {
                 let _ = writeln!(s, "\n{line}");
             }

@@ -81,14 +81,26 @@ pub struct Confusion {
     pub true_neg: u64,
 }
 
+/// `(truly inside, predicted inside, exact distance)` for each point of predicted and exact
+/// signed distances (same length): negative is inside, and a NaN prediction counts as outside,
+/// never as a correct inside. The one rule [`Confusion`] and [`SignErrors`] count by.
+fn signs<'a>(
+    predicted: &'a [f32],
+    truth: &'a [f32],
+) -> impl Iterator<Item = (bool, bool, f32)> + 'a {
+    assert_eq!(predicted.len(), truth.len(), "one prediction per point");
+    predicted
+        .iter()
+        .zip(truth)
+        .map(|(&p, &t)| (t < 0.0, p < 0.0, t))
+}
+
 impl Confusion {
     /// Counts from predicted and exact signed distances (same length).
     pub fn from_distances(predicted: &[f32], truth: &[f32]) -> Self {
-        assert_eq!(predicted.len(), truth.len(), "one prediction per point");
         let mut c = Confusion::default();
-        for (&p, &t) in predicted.iter().zip(truth) {
-            // NaN predictions count as outside: never as a correct inside.
-            match (t < 0.0, p < 0.0) {
+        for (inside, predicted_inside, _) in signs(predicted, truth) {
+            match (inside, predicted_inside) {
                 (true, true) => c.true_pos += 1,
                 (false, true) => c.false_pos += 1,
                 (true, false) => c.false_neg += 1,
@@ -176,10 +188,9 @@ impl SignErrors {
     /// The errors of `predicted` against exact signed distances `truth` (same length), with
     /// [`Confusion::from_distances`]' rule: negative is inside, NaN counts as outside.
     pub fn from_distances(predicted: &[f32], truth: &[f32]) -> Self {
-        assert_eq!(predicted.len(), truth.len(), "one prediction per point");
         let mut e = SignErrors::default();
-        for (&p, &t) in predicted.iter().zip(truth) {
-            match (t < 0.0, p < 0.0) {
+        for (inside, predicted_inside, t) in signs(predicted, truth) {
+            match (inside, predicted_inside) {
                 (false, true) => e.false_inside.add(t.abs()),
                 (true, false) => e.false_outside.add(t.abs()),
                 _ => {}
