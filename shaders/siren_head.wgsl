@@ -25,7 +25,7 @@ struct Head {
     alpha: f32,
     inv_n: f32,
     omega: f32,
-    _pad2: f32,
+    w_sign: f32,
 }
 
 const WG: u32 = 256u;
@@ -105,12 +105,10 @@ fn head_forward(
             let gr = y.yzw;
             if h.mode == 2u {
                 let on_surface = p < h.n_surface;
-                var n = vec3<f32>(0.0);
-                if on_surface {
-                    n = vec3<f32>(normals[3u * p], normals[3u * p + 1u], normals[3u * p + 2u]);
-                }
+                // On the surface the normal, off it the known side in `.x`.
+                let n = vec3<f32>(normals[3u * p], normals[3u * p + 1u], normals[3u * p + 2u]);
                 let weights = vec4<f32>(h.w_surface, h.w_off_surface, h.w_normal, h.w_eikonal);
-                let l = point_loss(phi, gr, on_surface, n, weights, h.alpha);
+                let l = point_loss(phi, gr, on_surface, n, weights, h.alpha, h.w_sign);
                 terms = l.terms;
                 dout[4u * p] = l.dphi * h.inv_n;
                 dout[4u * p + 1u] = l.dgrad.x * h.inv_n;

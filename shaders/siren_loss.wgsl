@@ -7,15 +7,17 @@ const NORM_EPS: f32 = 1e-12;
 // two).
 override LOSS_WG: u32 = 256u;
 
-// The four weighted terms (surface |Φ|, off-surface exp(−α|Φ|), normal 1 − cos, eikonal) and
-// their derivatives with respect to Φ and ∇Φ.
+// The four weighted terms (surface |Φ|, off-surface exp(−α|Φ|) plus the sign term, normal
+// 1 − cos, eikonal) and their derivatives with respect to Φ and ∇Φ.
 struct PointLoss {
     terms: vec4<f32>,
     dphi: f32,
     dgrad: vec3<f32>,
 }
 
-// `weights`: (surface, off-surface, normal, eikonal); `n` is read only on the surface.
+// `weights`: (surface, off-surface, normal, eikonal). `n` is the normal on the surface; off
+// it, `n.x` is the point's known side (+1 outside, −1 inside, 0 unknown), and a point on the
+// wrong side adds `w_sign` |Φ| to the off-surface term.
 fn point_loss(
     phi: f32,
     gr: vec3<f32>,
@@ -23,6 +25,7 @@ fn point_loss(
     n: vec3<f32>,
     weights: vec4<f32>,
     alpha: f32,
+    w_sign: f32,
 ) -> PointLoss {
     var out: PointLoss;
     let gn = length(gr);
@@ -40,6 +43,11 @@ fn point_loss(
         let e = exp(-alpha * abs(phi));
         out.terms.y = weights.y * e;
         out.dphi = -weights.y * alpha * sign(phi) * e;
+        // w_sign relu(−s Φ): zero on the right side, w_sign |Φ| on the wrong one.
+        if n.x * phi < 0.0 {
+            out.terms.y += w_sign * abs(phi);
+            out.dphi -= w_sign * n.x;
+        }
     }
     return out;
 }

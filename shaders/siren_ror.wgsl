@@ -32,7 +32,7 @@ struct Ror {
     alpha: f32,
     inv_n: f32,
     omega: f32,
-    _pad: f32,
+    w_sign: f32,
 }
 
 const WG: u32 = 256u;
@@ -122,12 +122,10 @@ fn ror_head(
             gr = fma(vec3<f32>(h), vec3<f32>(params[w1], params[w1 + 1u], params[w1 + 2u]), gr);
         }
         let on_surface = p < r.n_surface;
-        var n = vec3<f32>(0.0);
-        if on_surface {
-            n = vec3<f32>(normals[3u * p], normals[3u * p + 1u], normals[3u * p + 2u]);
-        }
+        // On the surface the normal, off it the known side in `.x`.
+        let n = vec3<f32>(normals[3u * p], normals[3u * p + 1u], normals[3u * p + 2u]);
         let weights = vec4<f32>(r.w_surface, r.w_off_surface, r.w_normal, r.w_eikonal);
-        let l = point_loss(phi, gr, on_surface, n, weights, r.alpha);
+        let l = point_loss(phi, gr, on_surface, n, weights, r.alpha, r.w_sign);
         terms = l.terms;
         let d = l.dphi;
         let dg = l.dgrad;

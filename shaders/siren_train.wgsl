@@ -6,6 +6,11 @@ struct Sample {
     n_surface: u32,
     n_data: u32,
     seed: u32,
+    // Box points with their known side, drawn from instead of the uniform box when not 0.
+    n_pool: u32,
+    _pad0: u32,
+    _pad1: u32,
+    _pad2: u32,
 }
 
 struct Reduce {
@@ -33,7 +38,10 @@ const WG: u32 = 256u;
 @group(0) @binding(2) var<storage, read> data_normals: array<f32>;
 // Four rows of three per point: the point, then the unit tangents e_x, e_y, e_z.
 @group(0) @binding(3) var<storage, read_write> x_streams: array<f32>;
+// On the surface the normal; off it (the known side, 0, 0).
 @group(0) @binding(4) var<storage, read_write> batch_normals: array<f32>;
+// (x, y, z, side): +1 outside, −1 inside, 0 unknown.
+@group(0) @binding(11) var<storage, read> box_pool: array<vec4<f32>>;
 
 @group(0) @binding(5) var<uniform> red: Reduce;
 @group(0) @binding(6) var<storage, read> partial: array<f32>;
@@ -72,10 +80,19 @@ fn sample(
         batch_normals[3u * p] = data_normals[3u * i];
         batch_normals[3u * p + 1u] = data_normals[3u * i + 1u];
         batch_normals[3u * p + 2u] = data_normals[3u * i + 2u];
+    } else if smp.n_pool > 0u {
+        let b = box_pool[h0 % smp.n_pool];
+        x = b.xyz;
+        batch_normals[3u * p] = b.w;
+        batch_normals[3u * p + 1u] = 0.0;
+        batch_normals[3u * p + 2u] = 0.0;
     } else {
         let h1 = pcg(h0);
         let h2 = pcg(h1);
         x = vec3<f32>(unit(h0), unit(h1), unit(h2)) * 2.0 - 1.0;
+        batch_normals[3u * p] = 0.0;
+        batch_normals[3u * p + 1u] = 0.0;
+        batch_normals[3u * p + 2u] = 0.0;
     }
     let o = 12u * p;
     x_streams[o] = x.x;

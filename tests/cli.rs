@@ -381,6 +381,7 @@ fn siren_loss_and_learning_rate_flags_reach_the_model_file() {
         .arg(data("spot.obj"))
         .args(["--model", "siren", "--preset", "small", "--steps", "2"])
         .args(["--lr", "5e-4", "--eikonal-weight", "50", "--alpha", "80"])
+        .args(["--sign-weight", "20"])
         .args(["--eval-points", "3000", "--out"])
         .arg(&out)
         .output()
@@ -391,6 +392,7 @@ fn siren_loss_and_learning_rate_flags_reach_the_model_file() {
     let weights = &t["config"]["weights"];
     assert_eq!(weights["eikonal"], 50.0, "{t}");
     assert_eq!(weights["alpha"], 80.0, "{t}");
+    assert_eq!(weights["sign"], 20.0, "{t}");
     assert_eq!(weights["surface"], 3000.0, "{t}");
     assert_eq!(t["config"]["lr"].as_f64().unwrap() as f32, 5e-4, "{t}");
     // The run's own record sits beside the trainer's.

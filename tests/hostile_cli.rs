@@ -765,6 +765,12 @@ fn cases() -> Vec<Case> {
             Error("eikonal loss weight must be finite and non-negative, not -1"),
         ),
         case(
+            "train --sign-weight NaN",
+            "train",
+            &["cube.obj", "--model", "siren", "--sign-weight", "NaN"],
+            Error("sign loss weight must be finite and non-negative, not NaN"),
+        ),
+        case(
             "resume past the length asked",
             "train",
             &[

@@ -294,7 +294,7 @@ impl TrainOptions {
                 }
                 if self.lr_final.is_some() || self.grow_every.is_some() || self.pool.is_some() {
                     return refuse(
-                        "--lr-final, --grow-every and --pool apply to NGLOD; SIREN draws fresh \
+                        "--lr-final, --grow-every and --pool apply to NGLOD; SIREN draws new \
                          points every step and divides its learning rate by 10 when its loss \
                          plateaus (--plateau-patience)",
                     );
@@ -376,8 +376,8 @@ impl TrainOptions {
                 put(
                     "loss weights",
                     format!(
-                        "surface {}, off-surface {}, normal {}, eikonal {}, alpha {}",
-                        w.surface, w.off_surface, w.normal, w.eikonal, w.alpha
+                        "surface {}, off-surface {}, normal {}, eikonal {}, alpha {}, sign {}",
+                        w.surface, w.off_surface, w.normal, w.eikonal, w.alpha, w.sign
                     ),
                 );
             }
@@ -1700,7 +1700,7 @@ mod tests {
         );
         assert!(
             s.contains(
-                "loss weights surface 3000, off-surface 100, normal 100, eikonal 5, alpha 100"
+                "loss weights surface 3000, off-surface 100, normal 100, eikonal 5, alpha 100, sign 1000"
             ),
             "{s}"
         );

@@ -73,15 +73,29 @@ fn every_parameter_gradient_of_the_loss_matches_finite_differences() {
         normal: 1.5,
         eikonal: 0.7,
         alpha: 4.0,
+        sign: 2.5,
     };
-    let (terms, grad) = cpu::loss_and_gradient(&cfg, &p64, &points, &normals, &weights);
-    let terms2 = cpu::loss(&cfg, &p64, &points, &normals, &weights);
+    // Off-surface sides: three on the wrong side of the initial Φ, two on the right one, one
+    // unknown, so the sign term is active and also off.
+    let sides: Vec<f64> = points[normals.len()..]
+        .iter()
+        .zip([-1.0, -1.0, 1.0, 0.0, -1.0, 1.0])
+        .map(|(&x, flip)| flip * cpu::forward_with_gradient(&cfg, &p64, x).0.signum())
+        .collect();
+    let (terms, grad) = cpu::loss_and_gradient(&cfg, &p64, &points, &normals, &sides, &weights);
+    let terms2 = cpu::loss(&cfg, &p64, &points, &normals, &sides, &weights);
     for t in 0..4 {
         assert!(terms[t] > 0.0, "term {t} is active");
         assert!((terms[t] - terms2[t]).abs() < 1e-12);
     }
+    let unsigned = LossWeights {
+        sign: 0.0,
+        ..weights
+    };
+    let without = cpu::loss(&cfg, &p64, &points, &normals, &sides, &unsigned);
+    assert!(terms[1] > without[1] + 1e-3, "the sign term is active");
     let total = |p: &[f64]| {
-        cpu::loss(&cfg, p, &points, &normals, &weights)
+        cpu::loss(&cfg, p, &points, &normals, &sides, &weights)
             .iter()
             .sum::<f64>()
     };

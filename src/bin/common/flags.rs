@@ -104,6 +104,11 @@ pub struct TrainingFlags {
     /// SIREN loss: sharpness α of the off-surface term (default 100).
     #[arg(long, help_heading = "SIREN loss", allow_negative_numbers = true)]
     pub alpha: Option<f32>,
+    /// SIREN loss: weight of the sign term max(0, −s Φ) on box points, s = −1 inside and +1
+    /// outside by the ground truth's winding number (default 1000; 0 trains on the design
+    /// document's four terms alone).
+    #[arg(long, help_heading = "SIREN loss", allow_negative_numbers = true)]
+    pub sign_weight: Option<f32>,
 }
 
 impl TrainingFlags {
@@ -200,6 +205,7 @@ impl TrainingFlags {
             self.normal_weight,
             self.eikonal_weight,
             self.alpha,
+            self.sign_weight,
         ];
         if flags.iter().all(Option::is_none) {
             return None;
@@ -211,6 +217,7 @@ impl TrainingFlags {
             normal: self.normal_weight.unwrap_or(d.normal),
             eikonal: self.eikonal_weight.unwrap_or(d.eikonal),
             alpha: self.alpha.unwrap_or(d.alpha),
+            sign: self.sign_weight.unwrap_or(d.sign),
         })
     }
 }

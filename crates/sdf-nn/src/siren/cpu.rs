@@ -4,11 +4,12 @@
 //! is checked against finite differences.
 //!
 //! The loss of a batch of `N` points, the first `n_surface` of which lie on the surface with
-//! normals `n`, is the mean over all `N` points (as in the SIREN reference code):
+//! normals `n`, the others off it on a known side `s` (+1 outside, −1 inside, 0 unknown), is
+//! the mean over all `N` points (as in the SIREN reference code, plus the sign term):
 //!
 //! ```text
 //! L = 1/N Σ_surface [ w_s |Φ| + w_n (1 − cos(∇Φ, n)) ]
-//!   + 1/N Σ_off     [ w_o exp(−α |Φ|) ]
+//!   + 1/N Σ_off     [ w_o exp(−α |Φ|) + w_sign max(0, −s Φ) ]
 //!   + 1/N Σ_all     [ w_e | ‖∇Φ‖ − 1 | ]
 //! ```
 
@@ -81,11 +82,14 @@ pub fn forward_with_gradient(config: &SirenConfig, params: &[f64], p: [f64; 3]) 
 }
 
 /// One point's weighted loss terms `[surface, off_surface, normal, eikonal]` (not yet divided by
-/// N) and the derivatives of their sum with respect to Φ and ∇Φ.
+/// N) and the derivatives of their sum with respect to Φ and ∇Φ. `normal` is the normal of a
+/// surface point; an off-surface point (`None`) is on side `side` (+1 outside, −1 inside, 0
+/// unknown), which the sign term counts in `off_surface`.
 pub fn point_loss(
     phi: f64,
     g: [f64; 3],
     normal: Option<[f64; 3]>,
+    side: f64,
     w: &LossWeights,
 ) -> ([f64; 4], f64, [f64; 3]) {
     let (ws, wo, wn, we, alpha) = (
@@ -97,7 +101,7 @@ pub fn point_loss(
     );
     let gn = (g[0] * g[0] + g[1] * g[1] + g[2] * g[2]).sqrt();
     let mut terms = [0.0; 4];
-    let dphi;
+    let mut dphi;
     let mut dg = [0.0; 3];
     // Eikonal on every point: d|‖g‖ − 1|/dg = sign(‖g‖ − 1) g / ‖g‖.
     terms[3] = we * (gn - 1.0).abs();
@@ -124,6 +128,11 @@ pub fn point_loss(
             let e = (-alpha * phi.abs()).exp();
             terms[1] = wo * e;
             dphi = -wo * alpha * sign(phi) * e;
+            if side * phi < 0.0 {
+                let wsign = f64::from(w.sign);
+                terms[1] += wsign * phi.abs();
+                dphi -= wsign * side;
+            }
         }
     }
     (terms, dphi, dg)
@@ -140,20 +149,32 @@ fn sign(x: f64) -> f64 {
     }
 }
 
+/// The known side of point `i` of a batch whose first `n_surface` points are on the surface
+/// and whose next `sides.len()` have `sides` (the rest: unknown).
+fn side_of(i: usize, n_surface: usize, sides: &[f64]) -> f64 {
+    i.checked_sub(n_surface)
+        .and_then(|k| sides.get(k))
+        .copied()
+        .unwrap_or(0.0)
+}
+
 /// The batch loss terms `[surface, off_surface, normal, eikonal]` (each already weighted and
-/// divided by the number of points). `normals` belong to the first `normals.len()` points.
+/// divided by the number of points). `normals` belong to the first `normals.len()` points,
+/// `sides` to the off-surface points after them.
 pub fn loss(
     config: &SirenConfig,
     params: &[f64],
     points: &[[f64; 3]],
     normals: &[[f64; 3]],
+    sides: &[f64],
     weights: &LossWeights,
 ) -> [f64; 4] {
     let inv_n = 1.0 / points.len().max(1) as f64;
     let mut total = [0.0; 4];
     for (i, &p) in points.iter().enumerate() {
         let (phi, g) = forward_with_gradient(config, params, p);
-        let (t, _, _) = point_loss(phi, g, normals.get(i).copied(), weights);
+        let side = side_of(i, normals.len(), sides);
+        let (t, _, _) = point_loss(phi, g, normals.get(i).copied(), side, weights);
         for k in 0..4 {
             total[k] += t[k] * inv_n;
         }
@@ -168,6 +189,7 @@ pub fn loss_and_gradient(
     params: &[f64],
     points: &[[f64; 3]],
     normals: &[[f64; 3]],
+    sides: &[f64],
     weights: &LossWeights,
 ) -> ([f64; 4], Vec<f64>) {
     let w0 = f64::from(config.omega0);
@@ -177,7 +199,8 @@ pub fn loss_and_gradient(
     let mut total = [0.0; 4];
     for (i, &p) in points.iter().enumerate() {
         let (trace, phi, g) = forward_trace(config, params, p);
-        let (t, dphi, dg) = point_loss(phi, g, normals.get(i).copied(), weights);
+        let side = side_of(i, normals.len(), sides);
+        let (t, dphi, dg) = point_loss(phi, g, normals.get(i).copied(), side, weights);
         for k in 0..4 {
             total[k] += t[k] * inv_n;
         }

@@ -101,7 +101,7 @@ pub(crate) struct HeadUniforms {
     pub(crate) alpha: f32,
     pub(crate) inv_n: f32,
     pub(crate) omega: f32,
-    pub(crate) _pad2: f32,
+    pub(crate) w_sign: f32,
 }
 
 #[repr(C)]
@@ -1069,7 +1069,8 @@ impl SirenGpu {
     }
 
     /// The loss of one batch (the first `normals.len()` points on the surface with those
-    /// normals, the rest off the surface) and its gradient with respect to every parameter,
+    /// normals, the rest off the surface, the first `sides.len()` of those on a known side:
+    /// +1 outside, −1 inside, 0 unknown) and its gradient with respect to every parameter,
     /// computed by the training kernels without an optimiser step. For tests and diagnostics:
     /// it allocates the training buffers on each call.
     pub fn loss_and_gradient(
@@ -1077,6 +1078,7 @@ impl SirenGpu {
         gpu: &GpuContext,
         points: &[Vec3],
         normals: &[Vec3],
+        sides: &[f32],
         weights: &super::LossWeights,
     ) -> Result<(super::LossTerms, Vec<f32>), SirenGpuError> {
         let n = points.len().max(1) as u32;
@@ -1084,7 +1086,13 @@ impl SirenGpu {
         let passes = TrainPasses::new(gpu, self, n, n_surface, weights)?;
         let streams: Vec<f32> = points.iter().flat_map(|p| stream_rows(*p)).collect();
         gpu.write(&passes.x_streams, &streams)?;
-        let flat_n: Vec<f32> = normals.iter().flat_map(|v| v.to_array()).collect();
+        let off = points.len() - n_surface as usize;
+        let flat_n: Vec<f32> = normals
+            .iter()
+            .take(n_surface as usize)
+            .flat_map(|v| v.to_array())
+            .chain(sides.iter().take(off).flat_map(|&s| [s, 0.0, 0.0]))
+            .collect();
         gpu.write(&passes.normals, &flat_n)?;
         let mut enc = gpu.device().create_command_encoder(&Default::default());
         self.record_pack(&mut enc);
@@ -1172,8 +1180,8 @@ impl TrainPasses {
         weights: &super::LossWeights,
     ) -> Result<Self, SirenGpuError> {
         let x_streams = gpu.storage_zeroed("siren x streams", u64::from(4 * n) * 3 * 4)?;
-        let normals =
-            gpu.storage_zeroed("siren batch normals", u64::from(n_surface.max(1)) * 3 * 4)?;
+        // Every point's: the normal on the surface, (side, 0, 0) off it.
+        let normals = gpu.storage_zeroed("siren batch normals", u64::from(n) * 3 * 4)?;
         // A sum per workgroup of the head, whichever step: the reverse-over-reverse head's
         // workgroups are the smaller.
         let head_groups = n.div_ceil(WG.min(ror::HEAD_WG));

@@ -1,6 +1,10 @@
 //! SIREN (Sitzmann et al. 2020): an MLP with sine activations, `sin(ω0·(W x + b))`, and a linear
 //! output layer, fitted to a mesh's signed distance with the on-surface, off-surface, normal and
-//! eikonal losses of the design document.
+//! eikonal losses of the design document, and by default a sign term: those four never say
+//! which side of the surface a box point is on, so a region can settle on the wrong sign far
+//! from the surface. We have the mesh, so box points carry their side by the ground truth's
+//! winding number, and a point on the wrong side costs `w |Φ|` ([`LossWeights::sign`]; 0 gives
+//! the design document's loss alone).
 //!
 //! - [`Siren`]: the model on the host (flat `f32` parameters, seeded initialisation, f32 CPU
 //!   evaluation, model files).
@@ -33,7 +37,9 @@ pub mod train;
 pub use gpu::{DEFAULT_FUSED_MAX_POINTS, SirenGpu, SirenGpuError};
 pub use kernels::{LayerKernels, TiledBlock};
 pub use ror::TrainStep;
-pub use train::{LossTerms, LossWeights, SirenTrainConfig, SirenTrainer, TrainError};
+pub use train::{
+    LossTerms, LossWeights, SirenTrainConfig, SirenTrainer, TrainError, sided_box_points,
+};
 
 /// The largest ω0 a SIREN may have: the paper's is 30; far beyond it sin(ω0 z) of f32 arguments
 /// is rounding noise, and the GPU and CPU paths disagree (0.13 at 1e30).

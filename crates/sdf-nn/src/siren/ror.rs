@@ -98,7 +98,7 @@ struct RorUniforms {
     alpha: f32,
     inv_n: f32,
     omega: f32,
-    _pad: f32,
+    w_sign: f32,
 }
 
 /// Which kernels run the hidden layers' products.
@@ -236,7 +236,7 @@ pub(crate) fn build(
         alpha: weights.alpha,
         inv_n: 1.0 / n as f32,
         omega,
-        _pad: 0.0,
+        w_sign: weights.sign,
     };
     let ru = gpu.uniform("siren ror uniforms", &ror_uniforms);
     // The first layer's weight gradient on the tiled family: its own splits.

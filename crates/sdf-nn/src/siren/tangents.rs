@@ -98,6 +98,7 @@ pub(crate) fn build(
         alpha: weights.alpha,
         inv_n: 1.0 / n as f32,
         omega: cfg.omega0,
+        w_sign: weights.sign,
         ..Default::default()
     };
     let hu = gpu.uniform("siren head train", &head);

@@ -1,11 +1,11 @@
-//! Training a SIREN on the GPU: the dataset (Poisson-disk surface samples with normals) is
-//! uploaded once; every step samples its batch on the GPU, runs forward, loss and double
+//! Training a SIREN on the GPU: the dataset (Poisson-disk surface samples with normals, and box
+//! points with their side of the surface) is uploaded once; every step samples its batch on the GPU, runs forward, loss and double
 //! backward, then Adam, all in one command buffer. The loss goes into a small history buffer
 //! that the host reads only every [`SirenTrainConfig::loss_every`] steps.
 
 use std::time::{Duration, Instant};
 
-use glam::Vec3;
+use glam::{Vec3, Vec4};
 use serde::{Deserialize, Serialize};
 
 use super::gpu::{SirenGpu, SirenGpuError, TrainPasses};
@@ -16,7 +16,7 @@ use crate::gpu::{GpuContext, GpuError, PassProfiler, PassTime, entry};
 use crate::model_file::{self, ModelFile};
 use crate::shaders;
 
-/// Weights of the four loss terms and the off-surface sharpness α.
+/// Weights of the four loss terms, the off-surface sharpness α and the sign term.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct LossWeights {
     /// On-surface |Φ| (3000).
@@ -29,6 +29,12 @@ pub struct LossWeights {
     pub eikonal: f32,
     /// α of the off-surface term (100).
     pub alpha: f32,
+    /// The sign term `w relu(−s Φ)` on off-surface points whose side `s` (+1 outside, −1
+    /// inside) is known: zero where Φ has the right sign, `w |Φ|` where it has the wrong one.
+    /// Counted in [`LossTerms::off_surface`]. The design document's loss has no such term (0),
+    /// and model files written before it existed read as 0.
+    #[serde(default)]
+    pub sign: f32,
 }
 
 impl Default for LossWeights {
@@ -39,6 +45,7 @@ impl Default for LossWeights {
             normal: 100.0,
             eikonal: 5.0,
             alpha: 100.0,
+            sign: SIGN_WEIGHT,
         }
     }
 }
@@ -48,7 +55,7 @@ impl Default for LossWeights {
 pub struct LossTerms {
     /// On-surface |Φ| term.
     pub surface: f32,
-    /// Off-surface exp(−α|Φ|) term.
+    /// Off-surface exp(−α|Φ|) term, with the sign term where sides are known.
     pub off_surface: f32,
     /// Normal-alignment term.
     pub normal: f32,
@@ -85,6 +92,12 @@ pub struct SirenTrainConfig {
     pub box_per_step: usize,
     /// Poisson-disk surface samples in the dataset (10^5).
     pub dataset_size: usize,
+    /// Box points whose side of the surface [`SirenTrainer::from_mesh`] labels once, for the
+    /// sign term; each step draws its box points from them (at most `steps × box_per_step`
+    /// are labelled). 0, or a sign weight of 0, draws fresh uniform points of unknown side
+    /// instead (no sign term); so do the configurations of model files written before it.
+    #[serde(default)]
+    pub box_pool: usize,
     /// Loss weights.
     pub weights: LossWeights,
     /// Initial Adam learning rate (1e-4).
@@ -111,6 +124,7 @@ impl Default for SirenTrainConfig {
             surface_per_step: 5000,
             box_per_step: 5000,
             dataset_size: 100_000,
+            box_pool: BOX_POOL,
             weights: LossWeights::default(),
             lr: 1e-4,
             plateau_patience: 500,
@@ -131,6 +145,7 @@ impl LossWeights {
             ("off-surface", w.off_surface),
             ("normal", w.normal),
             ("eikonal", w.eikonal),
+            ("sign", w.sign),
         ] {
             if !(x.is_finite() && x >= 0.0) {
                 return Err(TrainError::BadTrainConfig(format!(
@@ -154,6 +169,9 @@ pub enum TrainError {
     /// The device failed.
     #[error(transparent)]
     Gpu(#[from] GpuError),
+    /// The mesh cannot be queried for the sides of the box points.
+    #[error(transparent)]
+    Geom(#[from] sdf_geom::GeomError),
     /// The network configuration is unusable.
     #[error(transparent)]
     Config(#[from] SirenConfigError),
@@ -194,6 +212,28 @@ struct SampleUniforms {
     n_surface: u32,
     n_data: u32,
     seed: u32,
+    n_pool: u32,
+    _pad: [u32; 3],
+}
+
+/// Default of [`LossWeights::sign`].
+pub const SIGN_WEIGHT: f32 = 1000.0;
+
+/// Default of [`SirenTrainConfig::box_pool`]: 2^20 points, one per 0.02³ of the cube, each
+/// drawn about 50 times in 10⁴ steps of 5000.
+pub const BOX_POOL: usize = 1 << 20;
+
+/// Box points in `[-1, 1]³` with their side of the surface of the normalised mesh `sdf` was
+/// built on: `(x, y, z, s)` with `s` = −1 inside (a winding number of at least 1/2), +1
+/// outside: the sign the evaluation's ground truth gives, also on open meshes.
+pub fn sided_box_points(sdf: &sdf_geom::SignedDistance, n: usize, seed: u64) -> Vec<Vec4> {
+    let points = sdf_geom::sample::uniform_box(n, seed);
+    let winding = sdf.winding_number_batch(&points);
+    points
+        .iter()
+        .zip(winding)
+        .map(|(p, w)| p.extend(if w >= 0.5 { -1.0 } else { 1.0 }))
+        .collect()
 }
 
 #[repr(C)]
@@ -229,11 +269,13 @@ pub struct SirenTrainer {
     loss_reduce: Launch,
     loss_uniforms: wgpu::Buffer,
     history: wgpu::Buffer,
-    _dataset: [wgpu::Buffer; 2],
+    _dataset: [wgpu::Buffer; 3],
     normalization: model_file::Normalization,
     step: usize,
     plateau: Plateau,
     last_loss: Option<LossTerms>,
+    /// Points in the box pool (0: uniform box points).
+    n_pool: u32,
 }
 
 /// Reduce-on-plateau over the windowed loss ([`SirenTrainConfig::plateau_patience`]).
@@ -293,16 +335,37 @@ impl SirenTrainer {
         let (normalized, norm) = mesh.normalized();
         let samples =
             sdf_geom::sample::poisson_disk(&normalized, config.dataset_size, config.seed).samples;
-        Self::new(gpu, siren, &samples.points, &samples.normals, norm, config)
+        // Never more points than the run will draw: a short run labels fewer.
+        let pool_size = config
+            .box_pool
+            .min(config.steps.saturating_mul(config.box_per_step));
+        let pool = if pool_size > 0 && config.weights.sign > 0.0 {
+            let sdf = sdf_geom::SignedDistance::new(&normalized)?;
+            sided_box_points(&sdf, pool_size, config.seed ^ 0x51DE)
+        } else {
+            Vec::new()
+        };
+        Self::new(
+            gpu,
+            siren,
+            &samples.points,
+            &samples.normals,
+            &pool,
+            norm,
+            config,
+        )
     }
 
     /// A trainer for `siren` on a dataset of surface points and unit normals, already in the
-    /// normalised cube (the box points are drawn from `[-1, 1]³`).
+    /// normalised cube. The box points are drawn from `box_pool` (points with their side, as
+    /// [`sided_box_points`] makes them), or, where it is empty, uniformly from `[-1, 1]³` with
+    /// no sign term.
     pub fn new(
         gpu: &GpuContext,
         siren: &Siren,
         points: &[Vec3],
         normals: &[Vec3],
+        box_pool: &[Vec4],
         normalization: model_file::Normalization,
         config: SirenTrainConfig,
     ) -> Result<Self, TrainError> {
@@ -351,6 +414,21 @@ impl SirenTrainer {
         let flat_n: Vec<f32> = normals.iter().flat_map(|p| p.to_array()).collect();
         let data_p = gpu.storage_from_slice("siren dataset points", &flat_p)?;
         let data_n = gpu.storage_from_slice("siren dataset normals", &flat_n)?;
+        if box_pool.len() > u32::MAX as usize
+            || box_pool
+                .iter()
+                .any(|b| !b.is_finite() || ![-1.0, 0.0, 1.0].contains(&b.w))
+        {
+            return Err(TrainError::BadTrainConfig(
+                "the box pool's points must be finite, with sides −1, 0 or +1".into(),
+            ));
+        }
+        let pool_data: Vec<f32> = if box_pool.is_empty() {
+            vec![0.0; 4]
+        } else {
+            box_pool.iter().flat_map(|b| b.to_array()).collect()
+        };
+        let pool = gpu.storage_from_slice("siren box pool", &pool_data)?;
         let sample_uniforms = gpu.uniform(
             "siren sample",
             &SampleUniforms {
@@ -358,6 +436,8 @@ impl SirenTrainer {
                 n_surface: config.surface_per_step as u32,
                 n_data: points.len() as u32,
                 seed: 0,
+                n_pool: box_pool.len() as u32,
+                _pad: [0; 3],
             },
         );
         let sample_pipeline = gpu.pipeline(&shaders::SIREN_TRAIN, "sample", &[])?;
@@ -371,6 +451,7 @@ impl SirenTrainer {
                 entry(2, &data_n),
                 entry(3, &passes.x_streams),
                 entry(4, &passes.normals),
+                entry(11, &pool),
             ],
             n as u32,
         );
@@ -398,11 +479,12 @@ impl SirenTrainer {
             loss_reduce,
             loss_uniforms,
             history,
-            _dataset: [data_p, data_n],
+            _dataset: [data_p, data_n, pool],
             normalization,
             step: 0,
             plateau: Plateau::new(),
             last_loss: None,
+            n_pool: box_pool.len() as u32,
         })
     }
 
@@ -558,6 +640,8 @@ impl SirenTrainer {
                 n_surface: self.config.surface_per_step as u32,
                 n_data: (self._dataset[0].size() / 12) as u32,
                 seed: step_seed(self.config.seed, self.step),
+                n_pool: self.n_pool,
+                _pad: [0; 3],
             }],
         )?;
         gpu.write(
@@ -698,6 +782,44 @@ mod tests {
         // A window that beats the best by more than the threshold restarts the count.
         let r = rates(&c, &[1.0, 1.0, 1.0, 1.0, 0.9, 0.9, 0.9, 0.9]);
         assert!(r.iter().all(|&x| x == 1e-4), "{r:?}");
+    }
+
+    #[test]
+    fn box_points_take_the_side_that_the_ground_truth_gives() {
+        let sphere = sdf_geom::SignedDistance::new(&sdf_geom::Mesh::icosphere(0.5, 3)).unwrap();
+        let pool = sided_box_points(&sphere, 4000, 3);
+        assert_eq!(pool.len(), 4000);
+        let mut inside = 0;
+        for b in &pool {
+            assert!(b.truncate().abs().max_element() <= 1.0);
+            let r = b.truncate().length();
+            // The icosphere lies between radius 0.49 and 0.5.
+            if r < 0.48 {
+                assert_eq!(b.w, -1.0, "{b}");
+            } else if r > 0.51 {
+                assert_eq!(b.w, 1.0, "{b}");
+            }
+            inside += usize::from(b.w == -1.0);
+        }
+        // A sphere of radius 1/2 fills 6.5 % of the cube.
+        assert!((150..400).contains(&inside), "{inside} inside");
+        // An open mesh, a cup (the sphere's lower half): its generalised winding number is
+        // fractional, and the side is what the evaluation takes, inside from 1/2 on.
+        let mut cup = sdf_geom::Mesh::icosphere(0.8, 3);
+        cup.triangles
+            .retain(|t| t.iter().all(|&v| cup.vertices[v as usize].z < 0.1));
+        let cup = sdf_geom::SignedDistance::new(&cup).unwrap();
+        let pool = sided_box_points(&cup, 4000, 4);
+        let inside = pool.iter().filter(|b| b.w == -1.0).count();
+        assert!(inside > 100, "{inside} inside the cup");
+        for b in &pool {
+            let truth = if cup.is_inside(b.truncate()) {
+                -1.0
+            } else {
+                1.0
+            };
+            assert_eq!(b.w, truth, "{b}");
+        }
     }
 
     #[test]
