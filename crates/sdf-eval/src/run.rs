@@ -294,8 +294,8 @@ impl TrainOptions {
                 }
                 if self.lr_final.is_some() || self.grow_every.is_some() || self.pool.is_some() {
                     return refuse(
-                        "--lr-final, --grow-every and --pool apply to NGLOD; SIREN draws new \
-                         points every step and divides its learning rate by 10 when its loss \
+                        "--lr-final, --grow-every and --pool apply to NGLOD; SIREN samples its \
+                         batch every step and divides its learning rate by 10 when its loss \
                          plateaus (--plateau-patience)",
                     );
                 }

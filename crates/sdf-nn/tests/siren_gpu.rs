@@ -1080,6 +1080,43 @@ fn the_sign_term_carves_the_inside_that_the_box_pool_labels() {
     assert!(unlabelled.iter().all(|&l| l == 0.0), "{unlabelled:?}");
 }
 
+/// `from_mesh` labels as many box points as the run draws, and none where the sign term is
+/// off or where the mesh has no inside (every label would say "outside").
+#[test]
+fn the_box_pool_is_sized_by_the_run_and_left_out_without_an_inside() {
+    let gpu = gpu();
+    let siren = Siren::new(SirenConfig::small(), 5).unwrap();
+    let cfg = SirenTrainConfig {
+        steps: 10,
+        ..short_run(200)
+    };
+    let pool = |mesh: &sdf_geom::Mesh, cfg: SirenTrainConfig| {
+        SirenTrainer::from_mesh(gpu, &siren, mesh, cfg)
+            .unwrap()
+            .box_pool_len()
+    };
+    assert_eq!(pool(&icosphere(2), cfg.clone()), 10 * 200);
+    let off = SirenTrainConfig {
+        weights: LossWeights {
+            sign: 0.0,
+            ..LossWeights::default()
+        },
+        ..cfg.clone()
+    };
+    assert_eq!(pool(&icosphere(2), off), 0);
+    // A two-sided sheet (each triangle twice, opposite ways): winding number 0 everywhere.
+    let soup = sdf_geom::Mesh {
+        vertices: vec![
+            Vec3::new(-1.0, -1.0, 0.0),
+            Vec3::new(1.0, -1.0, 0.0),
+            Vec3::new(1.0, 1.0, 0.1),
+            Vec3::new(-1.0, 1.0, 0.1),
+        ],
+        triangles: vec![[0, 1, 2], [0, 2, 3], [0, 2, 1], [0, 3, 2]],
+    };
+    assert_eq!(pool(&soup, cfg), 0);
+}
+
 #[test]
 fn training_steps_reduce_the_loss_and_the_model_file_round_trips() {
     // The loss must fall, the schedule and the readback must work, and the trained network

@@ -84,7 +84,7 @@ pub fn forward_with_gradient(config: &SirenConfig, params: &[f64], p: [f64; 3]) 
 /// One point's weighted loss terms `[surface, off_surface, normal, eikonal]` (not yet divided by
 /// N) and the derivatives of their sum with respect to Φ and ∇Φ. `normal` is the normal of a
 /// surface point; an off-surface point (`None`) is on side `side` (+1 outside, −1 inside, 0
-/// unknown), which the sign term counts in `off_surface`.
+/// unknown; no other value), which the sign term counts in `off_surface`.
 pub fn point_loss(
     phi: f64,
     g: [f64; 3],

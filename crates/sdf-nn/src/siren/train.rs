@@ -88,14 +88,15 @@ pub struct SirenTrainConfig {
     pub steps: usize,
     /// Surface points per step (5000).
     pub surface_per_step: usize,
-    /// Uniform box points per step (5000).
+    /// Box points per step (5000).
     pub box_per_step: usize,
     /// Poisson-disk surface samples in the dataset (10^5).
     pub dataset_size: usize,
     /// Box points whose side of the surface [`SirenTrainer::from_mesh`] labels once, for the
     /// sign term; each step draws its box points from them (at most `steps × box_per_step`
-    /// are labelled). 0, or a sign weight of 0, draws fresh uniform points of unknown side
-    /// instead (no sign term); so do the configurations of model files written before it.
+    /// are labelled). 0, a sign weight of 0 or a mesh without an inside draws fresh uniform
+    /// points of unknown side instead (no sign term); so do the configurations of model files
+    /// written before it.
     #[serde(default)]
     pub box_pool: usize,
     /// Loss weights.
@@ -339,12 +340,17 @@ impl SirenTrainer {
         let pool_size = config
             .box_pool
             .min(config.steps.saturating_mul(config.box_per_step));
-        let pool = if pool_size > 0 && config.weights.sign > 0.0 {
+        let mut pool = if pool_size > 0 && config.weights.sign > 0.0 {
             let sdf = sdf_geom::SignedDistance::new(&normalized)?;
             sided_box_points(&sdf, pool_size, config.seed ^ 0x51DE)
         } else {
             Vec::new()
         };
+        // A mesh with no inside (a sheet, a two-sided soup): "outside" everywhere would fight
+        // the zero crossing the surface terms make, so it trains on the design's loss alone.
+        if !pool.iter().any(|b| b.w < 0.0) {
+            pool.clear();
+        }
         Self::new(
             gpu,
             siren,
@@ -501,6 +507,12 @@ impl SirenTrainer {
     /// The current learning rate.
     pub fn lr(&self) -> f32 {
         self.adam.config.lr
+    }
+
+    /// Box points in the labelled pool that steps draw from (0: uniform box points of unknown
+    /// side, no sign term; see [`SirenTrainConfig::box_pool`]).
+    pub fn box_pool_len(&self) -> usize {
+        self.n_pool as usize
     }
 
     /// The most recent loss read back (mean over the last window).
