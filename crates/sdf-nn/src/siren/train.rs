@@ -1,7 +1,8 @@
 //! Training a SIREN on the GPU: the dataset (Poisson-disk surface samples with normals, and box
-//! points with their side of the surface) is uploaded once; every step samples its batch on the GPU, runs forward, loss and double
-//! backward, then Adam, all in one command buffer. The loss goes into a small history buffer
-//! that the host reads only every [`SirenTrainConfig::loss_every`] steps.
+//! points with their side of the surface) is uploaded once; every step samples its batch on the
+//! GPU, runs forward, loss and double backward, then Adam, all in one command buffer. The loss
+//! goes into a small history buffer that the host reads only every
+//! [`SirenTrainConfig::loss_every`] steps.
 
 use std::time::{Duration, Instant};
 
