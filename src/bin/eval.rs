@@ -88,6 +88,7 @@ fn eval(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
             args.mesh.display()
         );
     }
+    let truth = run::GroundTruth::new(mesh)?;
     let gpu = GpuContext::new()?;
     if args.siren_kernels == LayerKernels::CoopF16 && gpu.coop_f16_tile().is_none() {
         eprintln!(
@@ -97,7 +98,7 @@ fn eval(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
     }
     let Evaluation {
         scores, latency, ..
-    } = run::evaluate(&gpu, &model, &mesh, args.points)?;
+    } = run::evaluate(&gpu, &model, &truth, args.points)?;
     // A model that never changes sign in the box (one trained for a few steps, say) has no
     // surface to compare: its surface figures are null, with the reason, and the rest stands.
     let mut surface_null_reason = None;
@@ -114,7 +115,8 @@ fn eval(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
             let extracted = extracted.transformed(&model.normalization());
             Some(SurfaceMetrics::between(
                 &extracted,
-                &mesh,
+                &truth.mesh,
+                &truth.sdf,
                 args.points.min(100_000),
                 EVAL_SEED,
             )?)

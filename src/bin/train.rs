@@ -112,6 +112,8 @@ fn train(args: &Args) -> Result<Outcome, Box<dyn std::error::Error>> {
     // Load the mesh and the checkpoint before the GPU: bad input is reported at once.
     let uris = hwsdf::geom::LoadOptions::with_external_uris(args.allow_external_uris);
     let (mesh, normalization) = run::load_normalized_with(&args.mesh, &uris)?;
+    // The exact SDF once, for the check below, the trainer's samples and the evaluation.
+    let truth = run::GroundTruth::new(mesh)?;
     let resume = match &args.resume {
         Some(path) => Some(run::Checkpoint::load(path)?),
         None => None,
@@ -136,7 +138,7 @@ fn train(args: &Args) -> Result<Outcome, Box<dyn std::error::Error>> {
     }
     let options = flags.options(model, preset, &[model])?;
     if options.distance == DistanceMode::Signed
-        && let Some(reason) = run::no_inside_check(&mesh)?
+        && let Some(reason) = run::no_inside_check(&truth)
     {
         eprintln!(
             "warning: {}: {reason}. Its F1 will be reported as null (n/a); sign accuracy and \
@@ -185,7 +187,7 @@ fn train(args: &Args) -> Result<Outcome, Box<dyn std::error::Error>> {
     let mut reporter = Reporter::new();
     let trained = run::train(
         &gpu,
-        &mesh,
+        &truth,
         normalization,
         &options,
         resume.as_ref(),
@@ -220,7 +222,7 @@ fn train(args: &Args) -> Result<Outcome, Box<dyn std::error::Error>> {
         std::process::exit(INTERRUPTED.into());
     }
     let sdf = NeuralSdf::from_model_file(trained.file.clone())?;
-    let eval = run::evaluate(&gpu, &sdf, &mesh, flags.eval_points)?;
+    let eval = run::evaluate(&gpu, &sdf, &truth, flags.eval_points)?;
     // The report's atomic write is not cut short by a late Ctrl-C.
     evaluating.store(false, Ordering::Relaxed);
     let report = run::Report::new(

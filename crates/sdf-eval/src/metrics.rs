@@ -463,16 +463,17 @@ pub struct SurfaceMetrics {
 }
 
 impl SurfaceMetrics {
-    /// Compares `extracted` with `original` using `samples` points on each.
+    /// Compares `extracted` with `original` (whose signed distance `to_original` is) using
+    /// `samples` points on each.
     pub fn between(
         extracted: &Mesh,
         original: &Mesh,
+        to_original: &SignedDistance,
         samples: usize,
         seed: u64,
     ) -> Result<Self, sdf_geom::GeomError> {
-        let to_original = SignedDistance::new(original)?;
         let to_extracted = SignedDistance::new(extracted)?;
-        let (d_ab, n_ab) = one_way(extracted, original, &to_original, samples, seed);
+        let (d_ab, n_ab) = one_way(extracted, original, to_original, samples, seed);
         let (d_ba, n_ba) = one_way(original, extracted, &to_extracted, samples, seed ^ 0xA5A5);
         Ok(SurfaceMetrics {
             chamfer_l1: 0.5 * (d_ab + d_ba),
@@ -641,7 +642,8 @@ mod tests {
     #[test]
     fn surface_metrics_of_identical_and_shifted_meshes() {
         let cube = unit_cube();
-        let same = SurfaceMetrics::between(&cube, &cube, 2000, 1).unwrap();
+        let to_cube = SignedDistance::new(&cube).unwrap();
+        let same = SurfaceMetrics::between(&cube, &cube, &to_cube, 2000, 1).unwrap();
         assert!(same.chamfer_l1 < 1e-6, "{same:?}");
         assert!((same.normal_consistency - 1.0).abs() < 1e-6, "{same:?}");
         // A copy shifted by 0.1 along x: the x faces are 0.1 apart; other faces mostly overlap.
@@ -649,7 +651,7 @@ mod tests {
             vertices: cube.vertices.iter().map(|v| *v + Vec3::X * 0.1).collect(),
             triangles: cube.triangles.clone(),
         };
-        let m = SurfaceMetrics::between(&shifted, &cube, 4000, 2).unwrap();
+        let m = SurfaceMetrics::between(&shifted, &cube, &to_cube, 4000, 2).unwrap();
         // Each direction: the 2 x faces (1/3 of the area) are 0.1 away, the rest 0 (overlap)
         // except the 0.1-wide strip that sticks out: expected about 0.1/3 + small.
         assert!(m.chamfer_l1 > 0.03 && m.chamfer_l1 < 0.05, "{m:?}");

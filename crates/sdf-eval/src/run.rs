@@ -837,11 +837,36 @@ pub fn load_normalized_with(
     Ok(mesh.normalized())
 }
 
-/// Trains `options.model` on a normalised mesh. `stop` is polled between steps or epochs: when
+/// A normalised mesh with its exact signed distance, built once per run: the no-inside check,
+/// the trainers' samplers and the evaluation all read the same BVH (1.3–1.6 s to build for a
+/// 1.4 M-triangle scan on 2 cores, once instead of three times).
+#[derive(Clone, Debug)]
+pub struct GroundTruth {
+    /// The mesh, in the normalised cube.
+    pub mesh: Mesh,
+    /// Its exact signed distance.
+    pub sdf: Arc<SignedDistance>,
+}
+
+impl GroundTruth {
+    /// Builds the signed distance of `mesh` (already normalised, as [`load_normalized`] gives it).
+    pub fn new(mesh: Mesh) -> Result<Self, RunError> {
+        let sdf = SignedDistance::new(&mesh).map_err(|source| RunError::Mesh {
+            path: PathBuf::from("<normalised mesh>"),
+            source,
+        })?;
+        Ok(GroundTruth {
+            mesh,
+            sdf: Arc::new(sdf),
+        })
+    }
+}
+
+/// Trains `options.model` on a normalised mesh and its ground truth. `stop` is polled between steps or epochs: when
 /// it is set the run ends early and what was learnt so far is returned.
 pub fn train(
     gpu: &GpuContext,
-    mesh: &Mesh,
+    truth: &GroundTruth,
     normalization: sdf_geom::Normalization,
     options: &TrainOptions,
     resume: Option<&Checkpoint>,
@@ -919,7 +944,13 @@ pub fn train(
                 ..defaults
             };
             let per_step = (train_config.surface_per_step + train_config.box_per_step) as f64;
-            let mut trainer = SirenTrainer::from_mesh(gpu, &siren, mesh, train_config)?;
+            let mut trainer = SirenTrainer::with_ground_truth(
+                gpu,
+                &siren,
+                &truth.mesh,
+                &truth.sdf,
+                train_config,
+            )?;
             if let Some(c) = resume {
                 let lr = c.lr().unwrap_or(trainer.lr());
                 trainer.resume(gpu, &c.optimizer()?, c.done(), lr)?;
@@ -1013,7 +1044,13 @@ pub fn train(
             let per_epoch = (train_config.uniform_points
                 + train_config.near_points
                 + train_config.surface_points) as f64;
-            let mut trainer = NglodTrainer::new(gpu, &model, mesh, train_config)?;
+            let mut trainer = NglodTrainer::with_ground_truth(
+                gpu,
+                &model,
+                &truth.mesh,
+                truth.sdf.clone(),
+                train_config,
+            )?;
             trainer.set_stop_flag(stop.clone());
             if let Some(c) = resume {
                 trainer.resume(&c.optimizer()?, first, c.epoch_steps_done())?;
@@ -1102,17 +1139,14 @@ pub fn is_unsigned(file: &ModelFile) -> bool {
         == Some(DistanceMode::Unsigned.name())
 }
 
-/// Why F1 would be undefined for `mesh` (normalised): (almost) no inside among a quick sample
+/// Why F1 would be undefined for `truth`'s mesh: (almost) no inside among a quick sample
 /// of box and near-surface points (same bounds as the evaluation,
 /// [`crate::metrics::no_inside_reason`]). For a warning before training.
-pub fn no_inside_check(mesh: &Mesh) -> Result<Option<String>, RunError> {
-    let sdf = SignedDistance::new(mesh).map_err(|source| RunError::Mesh {
-        path: PathBuf::from("<normalised mesh>"),
-        source,
-    })?;
+pub fn no_inside_check(truth: &GroundTruth) -> Option<String> {
+    let (mesh, sdf) = (&truth.mesh, &truth.sdf);
     let clear = |points: Vec<Vec3>| {
-        let truth = sdf.signed_distance_batch(&points);
-        crate::metrics::clear_inside_fraction(&sdf, &points, &truth)
+        let signed = sdf.signed_distance_batch(&points);
+        crate::metrics::clear_inside_fraction(sdf, &points, &signed)
     };
     let b = clear(sdf_geom::sample::uniform_box(20_000, EVAL_SEED));
     let n = clear(sdf_geom::sample::near_surface(
@@ -1121,22 +1155,19 @@ pub fn no_inside_check(mesh: &Mesh) -> Result<Option<String>, RunError> {
         crate::metrics::NEAR_SURFACE_SIGMA,
         EVAL_SEED ^ 1,
     ));
-    Ok(crate::metrics::no_inside_reason(b, n))
+    crate::metrics::no_inside_reason(b, n)
 }
 
-/// Scores and times `model` against the exact SDF of the normalised `mesh`.
+/// Scores and times `model` against `truth`, the exact SDF of the normalised mesh.
 pub fn evaluate(
     gpu: &GpuContext,
     model: &NeuralSdf,
-    mesh: &Mesh,
+    truth: &GroundTruth,
     points: usize,
 ) -> Result<Evaluation, RunError> {
     check_eval_points(points)?;
-    let sdf = SignedDistance::new(mesh).map_err(|source| RunError::Mesh {
-        path: PathBuf::from("<normalised mesh>"),
-        source,
-    })?;
-    let sets = EvalSets::new(mesh, &sdf, points, EVAL_SEED);
+    let mesh = &truth.mesh;
+    let sets = EvalSets::new(mesh, &truth.sdf, points, EVAL_SEED);
     let unsigned = is_unsigned(model.model_file());
     let predict = |p: &[Vec3]| finite_values(p, model.eval_normalized(gpu, p)?);
     let scores = if unsigned {
@@ -1148,8 +1179,14 @@ pub fn evaluate(
         let options = ExtractOptions::new(UNSIGNED_EXTRACT_RESOLUTION);
         let (level_set, _) = extract_normalized(gpu, model, &options)?;
         // An empty level set (the model never gets that close to 0) has no Chamfer distance.
-        crate::metrics::SurfaceMetrics::between(&level_set, mesh, points.min(20_000), EVAL_SEED)
-            .ok()
+        crate::metrics::SurfaceMetrics::between(
+            &level_set,
+            mesh,
+            &truth.sdf,
+            points.min(20_000),
+            EVAL_SEED,
+        )
+        .ok()
     } else {
         None
     };
@@ -1397,7 +1434,8 @@ pub fn run(
     progress: impl FnMut(&Progress),
 ) -> Result<RunOutcome, RunError> {
     let (mesh, normalization) = load_normalized(mesh_path)?;
-    let trained = train(gpu, &mesh, normalization, options, resume, stop, progress)?;
+    let truth = GroundTruth::new(mesh)?;
+    let trained = train(gpu, &truth, normalization, options, resume, stop, progress)?;
     if trained.interrupted {
         return Ok(RunOutcome::Interrupted(Box::new(trained)));
     }
@@ -1409,7 +1447,7 @@ pub fn run(
         })?
         .len();
     let model = NeuralSdf::from_model_file(trained.file.clone())?;
-    let eval = evaluate(gpu, &model, &mesh, eval_points)?;
+    let eval = evaluate(gpu, &model, &truth, eval_points)?;
     let report = Report::new(
         mesh_path,
         options,

@@ -334,6 +334,31 @@ impl SirenTrainer {
         mesh: &sdf_geom::Mesh,
         config: SirenTrainConfig,
     ) -> Result<Self, TrainError> {
+        Self::sampled(gpu, siren, mesh, None, config)
+    }
+
+    /// [`SirenTrainer::from_mesh`] with the exact signed distance of `mesh` already built: `sdf`
+    /// must be `SignedDistance::new(mesh)`'s. It labels the box pool, so a caller that also
+    /// evaluates against the mesh builds its BVH once.
+    pub fn with_ground_truth(
+        gpu: &GpuContext,
+        siren: &Siren,
+        mesh: &sdf_geom::Mesh,
+        sdf: &sdf_geom::SignedDistance,
+        config: SirenTrainConfig,
+    ) -> Result<Self, TrainError> {
+        Self::sampled(gpu, siren, mesh, Some(sdf), config)
+    }
+
+    /// The dataset and the box pool sampled from `mesh` (the pool labelled by `sdf`, or by one
+    /// built here where it is `None` and the run needs a pool).
+    fn sampled(
+        gpu: &GpuContext,
+        siren: &Siren,
+        mesh: &sdf_geom::Mesh,
+        sdf: Option<&sdf_geom::SignedDistance>,
+        config: SirenTrainConfig,
+    ) -> Result<Self, TrainError> {
         let (normalized, norm) = mesh.normalized();
         let samples =
             sdf_geom::sample::poisson_disk(&normalized, config.dataset_size, config.seed).samples;
@@ -342,8 +367,15 @@ impl SirenTrainer {
             .box_pool
             .min(config.steps.saturating_mul(config.box_per_step));
         let mut pool = if pool_size > 0 && config.weights.sign > 0.0 {
-            let sdf = sdf_geom::SignedDistance::new(&normalized)?;
-            sided_box_points(&sdf, pool_size, config.seed ^ 0x51DE)
+            let built;
+            let sdf = match sdf {
+                Some(sdf) => sdf,
+                None => {
+                    built = sdf_geom::SignedDistance::new(&normalized)?;
+                    &built
+                }
+            };
+            sided_box_points(sdf, pool_size, config.seed ^ 0x51DE)
         } else {
             Vec::new()
         };
