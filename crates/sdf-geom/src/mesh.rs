@@ -1,6 +1,6 @@
 //! The triangle mesh type, its bounding box, normalisation and clean-up.
 
-use std::collections::{HashMap, HashSet};
+use foldhash::{HashMap, HashMapExt, HashSet, HashSetExt};
 
 use glam::{DVec3, Vec3};
 
