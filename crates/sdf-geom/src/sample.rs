@@ -116,9 +116,10 @@ fn sample_surface_with(mesh: &Mesh, n: usize, r: &mut Pcg64Mcg) -> SurfaceSample
     if total.is_nan() || total <= 0.0 || n == 0 {
         return out;
     }
+    let guide = GuideTable::new(&cdf);
     for _ in 0..n {
         let u = r.random::<f64>() * total;
-        let ti = cdf.partition_point(|&c| c <= u).min(cdf.len() - 1);
+        let ti = guide.partition_point(&cdf, u).min(cdf.len() - 1);
         // Skip back over zero-area triangles at the end (u can round up to `total`).
         let ti = if normals[ti] == Vec3::ZERO {
             cdf.partition_point(|&c| c < cdf[ti]).min(cdf.len() - 1)
@@ -136,6 +137,47 @@ fn sample_surface_with(mesh: &Mesh, n: usize, r: &mut Pcg64Mcg) -> SurfaceSample
         out.triangles.push(ti as u32);
     }
     out
+}
+
+/// Where to start looking for a value in a cumulative table (Chen and Asau's guide table): the
+/// table's range split into as many equal buckets as it has entries, each bucket's first entry
+/// above its start. A draw then searches one bucket instead of the whole table: a binary search
+/// of a 1.4 M-entry table made 10⁶ surface samples take 2 s, most of it cache misses.
+struct GuideTable {
+    /// `first[j]`: the entries at most bucket `j`'s start, `j · total / buckets`.
+    first: Vec<u32>,
+    /// Buckets per unit of the table's range.
+    scale: f64,
+}
+
+impl GuideTable {
+    /// The guide of `cdf` (non-decreasing, finite, with a positive last entry).
+    fn new(cdf: &[f64]) -> Self {
+        let total = cdf[cdf.len() - 1];
+        let buckets = cdf.len();
+        let scale = buckets as f64 / total;
+        let mut first = Vec::with_capacity(buckets + 1);
+        let mut i = 0;
+        for j in 0..=buckets {
+            let start = j as f64 / scale;
+            while i < cdf.len() && cdf[i] <= start {
+                i += 1;
+            }
+            first.push(i as u32);
+        }
+        GuideTable { first, scale }
+    }
+
+    /// `cdf.partition_point(|&c| c <= u)` for `u` in `[0, total]`. Bucket edges are found
+    /// with rounding of an ulp or so either way, so the search takes the neighbouring buckets
+    /// too: the answer always lies inside, and so the result is the whole table's.
+    fn partition_point(&self, cdf: &[f64], u: f64) -> usize {
+        let buckets = self.first.len() - 1;
+        let j = ((u * self.scale) as usize).min(buckets - 1);
+        let lo = self.first[j.saturating_sub(1)] as usize;
+        let hi = (self.first[(j + 2).min(buckets)] as usize + 1).min(cdf.len());
+        lo + cdf[lo..hi].partition_point(|&c| c <= u)
+    }
 }
 
 /// `n` points on the surface, uniform with respect to area, with face normals.
@@ -540,6 +582,60 @@ impl LazyMaxHeap {
             }
             self.heap[0].0 = w;
             self.sift_down(0);
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The guide's search gives the whole table's partition point for every kind of draw:
+    /// entries themselves, bucket edges and their neighbouring floats, 0 and the total, over
+    /// tables with runs of zero-area entries, one huge entry among tiny ones, and uneven steps.
+    #[test]
+    fn guide_table_search_is_the_whole_tables() {
+        let mut r = rng(11);
+        let mut tables: Vec<Vec<f64>> = vec![
+            vec![1.0],
+            vec![0.0, 0.0, 3.0, 3.0, 3.0, 5.0],
+            vec![1e-300, 1e-300, 1e300],
+            (1..=1000).map(|k| (k * k) as f64 * 1e-7).collect(),
+        ];
+        let mut acc = 0.0;
+        tables.push(
+            (0..5000)
+                .map(|k| {
+                    // Every seventh triangle has no area; the others span 12 orders of magnitude.
+                    acc += if k % 7 == 0 {
+                        0.0
+                    } else {
+                        10f64.powf(r.random::<f64>() * 12.0 - 6.0)
+                    };
+                    acc
+                })
+                .collect(),
+        );
+        for cdf in &tables {
+            let guide = GuideTable::new(cdf);
+            let total = cdf[cdf.len() - 1];
+            let mut draws = vec![0.0, total, f64::MIN_POSITIVE];
+            for &c in cdf {
+                draws.extend([c, c.next_down(), c.next_up()]);
+            }
+            for j in 0..=cdf.len() {
+                let edge = j as f64 / guide.scale;
+                draws.extend([edge, edge.next_down(), edge.next_up()]);
+            }
+            draws.extend((0..2000).map(|_| r.random::<f64>() * total));
+            for u in draws.into_iter().filter(|u| (0.0..=total).contains(u)) {
+                assert_eq!(
+                    guide.partition_point(cdf, u),
+                    cdf.partition_point(|&c| c <= u),
+                    "table of {} entries, draw {u:e}",
+                    cdf.len()
+                );
+            }
         }
     }
 }
