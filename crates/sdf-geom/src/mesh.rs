@@ -1,6 +1,6 @@
 //! The triangle mesh type, its bounding box, normalisation and clean-up.
 
-use foldhash::{HashMap, HashMapExt, HashSet, HashSetExt};
+use rayon::prelude::*;
 
 use glam::{DVec3, Vec3};
 
@@ -386,44 +386,76 @@ pub(crate) fn clean(
     check_finite(&vertices)?;
     check_indices(&triangles, vertices.len())?;
 
-    // Weld by exact position so that unwelded copies are recognised as duplicates / degenerates.
-    let mut canon: HashMap<[u32; 3], u32> = HashMap::with_capacity(vertices.len());
-    let weld: Vec<u32> = vertices
-        .iter()
+    // Weld by exact position so that unwelded copies are recognised as duplicates / degenerates:
+    // each vertex maps to the first one at its position. Groups are found by sorting (position,
+    // index) in parallel rather than by hashing, which on a 1.4 M-triangle mesh took 0.8 s.
+    let mut by_position: Vec<([u32; 3], u32)> = vertices
+        .par_iter()
         .enumerate()
-        .map(|(i, v)| {
-            // +0.0 and -0.0 are the same position.
-            let key = (*v + Vec3::ZERO).to_array().map(f32::to_bits);
-            *canon.entry(key).or_insert(i as u32)
+        // +0.0 and -0.0 are the same position.
+        .map(|(i, v)| ((*v + Vec3::ZERO).to_array().map(f32::to_bits), i as u32))
+        .collect();
+    by_position.par_sort_unstable();
+    let mut weld = vec![0u32; vertices.len()];
+    for (k, &(key, i)) in by_position.iter().enumerate() {
+        weld[i as usize] = if k > 0 && by_position[k - 1].0 == key {
+            weld[by_position[k - 1].1 as usize]
+        } else {
+            i
+        };
+    }
+    drop(by_position);
+
+    // Each triangle's welded corners rotated so the smallest comes first (the same key <=> the
+    // same oriented triangle), or `None` where it is degenerate.
+    let keys: Vec<Option<[u32; 3]>> = triangles
+        .par_iter()
+        .map(|t| {
+            let w = t.map(|i| weld[i as usize]);
+            if w[0] == w[1] || w[1] == w[2] || w[0] == w[2] {
+                return None;
+            }
+            let [a, b, c] = t.map(|i| vertices[i as usize].as_dvec3());
+            ((b - a).cross(c - a) != DVec3::ZERO).then(|| rotate_min_first(w))
         })
         .collect();
-
-    let mut seen: HashSet<[u32; 3]> = HashSet::with_capacity(triangles.len());
-    let mut kept = Vec::with_capacity(triangles.len());
-    for t in triangles {
-        let w = t.map(|i| weld[i as usize]);
-        if w[0] == w[1] || w[1] == w[2] || w[0] == w[2] {
-            report.degenerate_faces += 1;
-            continue;
-        }
-        let [a, b, c] = t.map(|i| vertices[i as usize].as_dvec3());
-        if (b - a).cross(c - a) == DVec3::ZERO {
-            report.degenerate_faces += 1;
-            continue;
-        }
-        // Rotate so the smallest index comes first: same key <=> same oriented triangle.
-        let r = rotate_min_first(w);
-        let opposite = rotate_min_first([w[0], w[2], w[1]]);
-        if seen.contains(&r) {
-            report.duplicate_faces += 1;
-            continue;
-        }
-        if seen.contains(&opposite) {
-            report.opposite_duplicate_faces += 1;
-        }
-        seen.insert(r);
-        kept.push(t);
-    }
+    // The first triangle of each key is kept, the later ones are duplicates; a kept triangle
+    // is an opposite duplicate where its key reversed belongs to a triangle kept before it.
+    let mut by_key: Vec<([u32; 3], u32)> = keys
+        .par_iter()
+        .enumerate()
+        .filter_map(|(i, k)| k.map(|k| (k, i as u32)))
+        .collect();
+    by_key.par_sort_unstable();
+    let first_of = |key: [u32; 3]| {
+        let at = by_key.partition_point(|e| e.0 < key);
+        by_key.get(at).filter(|e| e.0 == key).map(|e| e.1)
+    };
+    let keep: Vec<bool> = keys
+        .par_iter()
+        .enumerate()
+        .map(|(i, k)| k.is_some_and(|k| first_of(k) == Some(i as u32)))
+        .collect();
+    let opposite = keys
+        .par_iter()
+        .zip(&keep)
+        .enumerate()
+        .filter(|&(i, (k, &kept))| {
+            kept && k.is_some_and(|r| {
+                first_of(rotate_min_first([r[0], r[2], r[1]])).is_some_and(|j| (j as usize) < i)
+            })
+        })
+        .count();
+    let mut kept: Vec<[u32; 3]> = triangles
+        .iter()
+        .zip(&keep)
+        .filter_map(|(t, &k)| k.then_some(*t))
+        .collect();
+    let non_degenerate = by_key.len();
+    report.degenerate_faces += triangles.len() - non_degenerate;
+    report.duplicate_faces += non_degenerate - kept.len();
+    report.opposite_duplicate_faces += opposite;
+    drop((keys, by_key, keep));
     if kept.is_empty() {
         return Err(GeomError::NoTriangles {
             dropped: report.degenerate_faces + report.duplicate_faces,

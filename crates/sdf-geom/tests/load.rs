@@ -636,3 +636,109 @@ fn normalization_round_trips() {
     let id = sdf_geom::Normalization::identity();
     assert_eq!(id.to_normalized(Vec3::ONE), Vec3::ONE);
 }
+
+/// The cleaner against the rule it implements, written the plain way (a set of the oriented
+/// triangles kept so far): on soups full of welded copies of vertices (same position, other
+/// index, ±0), repeated faces in every rotation, reversed faces, collapsed and collinear faces,
+/// the same triangles in the same order and the same counts.
+#[test]
+fn cleaning_keeps_the_first_of_each_face_as_a_sequential_pass_does() {
+    use std::collections::{HashMap, HashSet};
+    fn reference(vertices: &[Vec3], triangles: &[[u32; 3]]) -> (Vec<[u32; 3]>, [usize; 3]) {
+        let key = |v: Vec3| (v + Vec3::ZERO).to_array().map(f32::to_bits);
+        let mut first: HashMap<[u32; 3], u32> = HashMap::new();
+        let weld: Vec<u32> = (0..vertices.len() as u32)
+            .map(|i| *first.entry(key(vertices[i as usize])).or_insert(i))
+            .collect();
+        let rot = |t: [u32; 3]| {
+            let m = t
+                .iter()
+                .position(|&x| x == *t.iter().min().unwrap())
+                .unwrap();
+            [t[m], t[(m + 1) % 3], t[(m + 2) % 3]]
+        };
+        let (mut seen, mut kept, mut counts) = (HashSet::new(), Vec::new(), [0; 3]);
+        for &t in triangles {
+            let w = t.map(|i| weld[i as usize]);
+            let [a, b, c] = t.map(|i| vertices[i as usize].as_dvec3());
+            if w[0] == w[1]
+                || w[1] == w[2]
+                || w[0] == w[2]
+                || (b - a).cross(c - a) == glam::DVec3::ZERO
+            {
+                counts[0] += 1;
+            } else if seen.contains(&rot(w)) {
+                counts[1] += 1;
+            } else {
+                counts[2] += usize::from(seen.contains(&rot([w[0], w[2], w[1]])));
+                seen.insert(rot(w));
+                kept.push(t);
+            }
+        }
+        (kept, counts)
+    }
+    let mut state = 7u64;
+    let mut next = |n: u64| {
+        state = state
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        (state >> 33) % n
+    };
+    let mut totals = [0; 3];
+    for round in 0..20 {
+        // Few distinct positions, many copies: collisions of every kind are common.
+        let positions: Vec<Vec3> = (0..6 + round)
+            .map(|_| Vec3::new(next(4) as f32, next(4) as f32, next(3) as f32 - 1.0))
+            .collect();
+        let vertices: Vec<Vec3> = (0..40)
+            .map(|_| {
+                let p = positions[next(positions.len() as u64) as usize];
+                // A negative zero is the same position as a positive one.
+                if next(4) == 0 {
+                    Vec3::from_array(p.to_array().map(|c| if c == 0.0 { -0.0 } else { c }))
+                } else {
+                    p
+                }
+            })
+            .collect();
+        let n = vertices.len() as u64;
+        let mut triangles: Vec<[u32; 3]> = Vec::new();
+        for _ in 0..300 {
+            let t = [next(n) as u32, next(n) as u32, next(n) as u32];
+            triangles.push(t);
+            match next(4) {
+                0 => triangles.push([t[1], t[2], t[0]]),
+                1 => triangles.push([t[0], t[2], t[1]]),
+                _ => {}
+            }
+        }
+        let (want, [degenerate, duplicate, opposite]) = reference(&vertices, &triangles);
+        for (t, c) in totals.iter_mut().zip([degenerate, duplicate, opposite]) {
+            *t += c;
+        }
+        match Mesh::from_raw(vertices.clone(), triangles.clone()) {
+            Ok((mesh, report)) => {
+                assert_eq!(
+                    (report.degenerate_faces, report.duplicate_faces),
+                    (degenerate, duplicate),
+                    "round {round}"
+                );
+                assert_eq!(report.opposite_duplicate_faces, opposite, "round {round}");
+                // The mesh's indices are renumbered over the vertices kept: compare positions.
+                let corners = |v: &[Vec3], t: &[[u32; 3]]| -> Vec<[Vec3; 3]> {
+                    t.iter().map(|t| t.map(|i| v[i as usize])).collect()
+                };
+                assert_eq!(
+                    corners(&mesh.vertices, &mesh.triangles),
+                    corners(&vertices, &want),
+                    "round {round}"
+                );
+            }
+            Err(e) => assert!(want.is_empty(), "round {round}: {e}"),
+        }
+    }
+    assert!(
+        totals.iter().all(|&t| t > 100),
+        "soups without every case: {totals:?}"
+    );
+}
