@@ -601,7 +601,31 @@ fn build_nodes(prims: &[Triangle], params: BvhBuildParams) -> (Vec<Node>, Vec<u3
     let mut order = Vec::with_capacity(prims.len());
     let mut built = bvhs.iter();
     place(&plan, &indices, 0, &mut nodes, &mut order, &mut built);
-    (nodes, order)
+    (depth_first(&nodes), order)
+}
+
+/// The same tree with its nodes renumbered in depth-first order (each inner node's two children
+/// still adjacent, the left one's subtree next): obvhs numbers a part's nodes in the order PLOC
+/// made them, so the bottom-up and top-down passes that follow jumped around memory, 3.4 s of
+/// the build on 5.5 M triangles.
+fn depth_first(nodes: &[Node]) -> Vec<Node> {
+    let mut out = Vec::with_capacity(nodes.len());
+    out.push(nodes[0]);
+    // Inner nodes placed whose children are not yet: (old index, new index).
+    let mut stack = vec![(0usize, 0usize)];
+    while let Some((old, new)) = stack.pop() {
+        let n = nodes[old];
+        if n.count > 0 {
+            continue;
+        }
+        let first = out.len();
+        out.push(nodes[n.first as usize]);
+        out.push(nodes[n.first as usize + 1]);
+        out[new].first = first as u32;
+        stack.push((n.first as usize + 1, first + 1));
+        stack.push((n.first as usize, first));
+    }
+    out
 }
 
 /// What the top-down split reads of a triangle, kept beside its index so that each split streams
@@ -1565,6 +1589,23 @@ mod tests {
         let mut sorted = order.clone();
         sorted.sort_unstable();
         assert!(sorted.iter().copied().eq(0..prims.len() as u32));
+        // Depth-first numbering: children after their parent, every node reached once, every
+        // triangle slot in one leaf.
+        let (mut stack, mut seen, mut slots) = (vec![0usize], 0, vec![0u8; prims.len()]);
+        while let Some(i) = stack.pop() {
+            seen += 1;
+            let n = nodes[i];
+            if n.count > 0 {
+                for s in n.first..n.first + n.count {
+                    slots[s as usize] += 1;
+                }
+            } else {
+                assert!(n.first as usize > i);
+                stack.extend([n.first as usize + 1, n.first as usize]);
+            }
+        }
+        assert_eq!(seen, nodes.len());
+        assert!(slots.iter().all(|&c| c == 1));
     }
 
     /// A small deterministic generator (no dependency on the samplers).
