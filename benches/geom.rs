@@ -1,4 +1,5 @@
-//! sdf-geom benchmarks: BVH build, the NGLOD epoch mix (1e5 uniform + 2e5 near-surface + 2e5
+//! sdf-geom benchmarks: BVH build, cleaning, BVH and surface sampling of a 1.3 M-triangle mesh,
+//! the NGLOD epoch mix (1e5 uniform + 2e5 near-surface + 2e5
 //! surface points, all signed), and 1e5 Poisson-disk samples.
 //!
 //! `cargo bench -p hwsdf --bench geom`. Meshes come from `$HWSDF_MESHES`, else `../shared/meshes`
@@ -96,6 +97,23 @@ fn benches(c: &mut Criterion) {
             b.iter(|| sdf.signed_distance_batch(&pts))
         });
     }
+    g.finish();
+
+    // A scan-sized mesh, made here: the shared meshes stop at 86 k triangles, and users bring
+    // millions. An icosphere's triangles are more regular than a scan's, so this tracks the
+    // code's scaling rather than a particular scan.
+    let sphere = Mesh::icosphere(1.0, 8);
+    let mut g = c.benchmark_group(format!("large_mesh_{}k", sphere.triangles.len() / 1000));
+    g.sample_size(10).measurement_time(Duration::from_secs(15));
+    g.bench_function("clean", |b| {
+        b.iter(|| Mesh::from_raw(sphere.vertices.clone(), sphere.triangles.clone()))
+    });
+    g.bench_function("bvh_build", |b| {
+        b.iter(|| SignedDistance::new(&sphere).expect("valid mesh"))
+    });
+    g.bench_function("surface_samples_1e6", |b| {
+        b.iter(|| sample::surface(&sphere, 1_000_000, 3))
+    });
     g.finish();
 
     let mut g = c.benchmark_group("poisson_disk_1e5");
