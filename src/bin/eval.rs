@@ -88,8 +88,8 @@ fn eval(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
             args.mesh.display()
         );
     }
-    let truth = run::GroundTruth::new(mesh)?;
     let gpu = GpuContext::new()?;
+    let truth = run::GroundTruth::new(mesh, &args.mesh)?;
     if args.siren_kernels == LayerKernels::CoopF16 && gpu.coop_f16_tile().is_none() {
         eprintln!(
             "warning: {} has no f16 cooperative matrices; --siren-kernels coop evaluates on the tiled f32 kernels",

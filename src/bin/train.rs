@@ -112,8 +112,6 @@ fn train(args: &Args) -> Result<Outcome, Box<dyn std::error::Error>> {
     // Load the mesh and the checkpoint before the GPU: bad input is reported at once.
     let uris = hwsdf::geom::LoadOptions::with_external_uris(args.allow_external_uris);
     let (mesh, normalization) = run::load_normalized_with(&args.mesh, &uris)?;
-    // The exact SDF once, for the check below, the trainer's samples and the evaluation.
-    let truth = run::GroundTruth::new(mesh)?;
     let resume = match &args.resume {
         Some(path) => Some(run::Checkpoint::load(path)?),
         None => None,
@@ -137,6 +135,9 @@ fn train(args: &Args) -> Result<Outcome, Box<dyn std::error::Error>> {
         );
     }
     let options = flags.options(model, preset, &[model])?;
+    // The exact SDF once, for the check below, the trainer's samples and the evaluation; after
+    // every cheap check, since on a scan of millions of triangles it takes seconds.
+    let truth = run::GroundTruth::new(mesh, &args.mesh)?;
     if options.distance == DistanceMode::Signed
         && let Some(reason) = run::no_inside_check(&truth)
     {

@@ -756,7 +756,8 @@ pub const MAX_CHECKPOINT_PROGRESS: u64 = 1 << 30;
 pub struct Trained {
     /// The model file contents.
     pub file: ModelFile,
-    /// Wall time of training.
+    /// Wall time of training: sampling, the trainer's setup and its steps or epochs, not the
+    /// ground truth's BVH (built before, [`GroundTruth`]; reports before it included one).
     pub train_seconds: f64,
     /// Steps or epochs done.
     pub done: usize,
@@ -849,10 +850,11 @@ pub struct GroundTruth {
 }
 
 impl GroundTruth {
-    /// Builds the signed distance of `mesh` (already normalised, as [`load_normalized`] gives it).
-    pub fn new(mesh: Mesh) -> Result<Self, RunError> {
+    /// Builds the signed distance of `mesh` (already normalised, as [`load_normalized`] gives it),
+    /// loaded from `path` (for errors).
+    pub fn new(mesh: Mesh, path: &Path) -> Result<Self, RunError> {
         let sdf = SignedDistance::new(&mesh).map_err(|source| RunError::Mesh {
-            path: PathBuf::from("<normalised mesh>"),
+            path: path.to_owned(),
             source,
         })?;
         Ok(GroundTruth {
@@ -862,8 +864,8 @@ impl GroundTruth {
     }
 }
 
-/// Trains `options.model` on a normalised mesh and its ground truth. `stop` is polled between steps or epochs: when
-/// it is set the run ends early and what was learnt so far is returned.
+/// Trains `options.model` on a normalised mesh and its ground truth. `stop` is polled between
+/// steps or epochs: when it is set the run ends early and what was learnt so far is returned.
 pub fn train(
     gpu: &GpuContext,
     truth: &GroundTruth,
@@ -1434,7 +1436,7 @@ pub fn run(
     progress: impl FnMut(&Progress),
 ) -> Result<RunOutcome, RunError> {
     let (mesh, normalization) = load_normalized(mesh_path)?;
-    let truth = GroundTruth::new(mesh)?;
+    let truth = GroundTruth::new(mesh, mesh_path)?;
     let trained = train(gpu, &truth, normalization, options, resume, stop, progress)?;
     if trained.interrupted {
         return Ok(RunOutcome::Interrupted(Box::new(trained)));

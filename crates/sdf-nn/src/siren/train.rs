@@ -337,9 +337,11 @@ impl SirenTrainer {
         Self::sampled(gpu, siren, mesh, None, config)
     }
 
-    /// [`SirenTrainer::from_mesh`] with the exact signed distance of `mesh` already built: `sdf`
-    /// must be `SignedDistance::new(mesh)`'s. It labels the box pool, so a caller that also
-    /// evaluates against the mesh builds its BVH once.
+    /// [`SirenTrainer::from_mesh`] with the exact signed distance of `mesh` (normalised, as
+    /// there) already built: `sdf` must be `SignedDistance::new(mesh)`'s. It labels the box pool,
+    /// so a caller that also evaluates against the mesh builds its BVH once. (`from_mesh` labels
+    /// with the SDF of `mesh` normalised once more, which can differ from `mesh` by an ulp: a
+    /// label within about 1e-7 of the surface may differ between the two.)
     pub fn with_ground_truth(
         gpu: &GpuContext,
         siren: &Siren,
