@@ -14,6 +14,7 @@ use std::rc::Rc;
 
 use base64::Engine as _;
 use glam::{Mat4, Vec3};
+use rayon::prelude::*;
 
 use crate::GeomError;
 use crate::mesh::{LoadReport, Mesh, clean};
@@ -268,16 +269,60 @@ pub(crate) fn read_file_within(path: &Path, max_bytes: u64) -> Result<Vec<u8>, G
 ///
 /// Removed lines stay as empty lines, so line numbers in errors still match the file.
 fn obj_text(bytes: &[u8]) -> (String, ObjCounts) {
+    obj_text_in_chunks(bytes, OBJ_CHUNK)
+}
+
+/// Bytes of OBJ text per task of [`obj_text`], which rewrites chunks of whole lines in parallel
+/// (on a 52 MB file the rewrite took 0.4-0.7 s on one core).
+const OBJ_CHUNK: usize = 1 << 20;
+
+/// [`obj_text`] in chunks of about `chunk` bytes, each cut at a line end.
+fn obj_text_in_chunks(bytes: &[u8], chunk: usize) -> (String, ObjCounts) {
     let bytes = bytes.strip_prefix(b"\xEF\xBB\xBF").unwrap_or(bytes);
     let mut text = String::from_utf8_lossy(bytes);
     // Classic Mac OS ended lines with a lone CR, which tobj reads as one line of garbage.
     if text.contains('\r') {
         text = text.replace("\r\n", "\n").replace('\r', "\n").into();
     }
+    let mut pieces = Vec::new();
+    let mut start = 0;
+    while start < text.len() {
+        let from = start.saturating_add(chunk.max(1)).min(text.len());
+        // A line end is a char boundary: '\n' is never part of a longer UTF-8 sequence.
+        let end = text.as_bytes()[from..]
+            .iter()
+            .position(|&b| b == b'\n')
+            .map_or(text.len(), |i| from + i + 1);
+        pieces.push(&text[start..end]);
+        start = end;
+    }
+    let parts: Vec<(String, ObjCounts, usize)> =
+        pieces.par_iter().map(|piece| obj_lines(piece)).collect();
+    let mut out = String::with_capacity(parts.iter().map(|p| p.0.len()).sum());
+    let mut counts = ObjCounts::default();
+    let mut lines_before = 0;
+    for (piece, c, lines) in parts {
+        out.push_str(&piece);
+        counts.vertices += c.vertices;
+        counts.triangles += c.triangles;
+        counts.skipped_elements += c.skipped_elements;
+        counts.short_faces += c.short_faces;
+        if counts.bad_w.is_none() {
+            counts.bad_w = c.bad_w.map(|(line, text)| (lines_before + line, text));
+        }
+        lines_before += lines;
+    }
+    (out, counts)
+}
+
+/// [`obj_text`]'s rewrite of whole lines, numbered from 1, and how many there were.
+fn obj_lines(text: &str) -> (String, ObjCounts, usize) {
     let mut out = String::with_capacity(text.len());
     let mut counts = ObjCounts::default();
+    let mut lines = 0;
     for (i, line) in text.split_inclusive('\n').enumerate() {
         let line_no = i + 1;
+        lines = line_no;
         let content = match line.find('#') {
             Some(i) => &line[..i],
             None => line.strip_suffix('\n').unwrap_or(line),
@@ -333,7 +378,7 @@ fn obj_text(bytes: &[u8]) -> (String, ObjCounts) {
             out.push('\n');
         }
     }
-    (out, counts)
+    (out, counts, lines)
 }
 
 /// [`GeomError::SceneTooLarge`] for the first `(what, count, limit)` whose count passes its limit.
@@ -1905,4 +1950,33 @@ fn add_gltf_mesh(
         }));
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Chunks are cut at line ends, and the bad-w line is numbered in the whole file: the same
+    /// text and counts for every chunk size, with multi-byte characters, CR LF ends, removed
+    /// lines, colours, a missing last newline and two bad w's.
+    #[test]
+    fn obj_text_is_the_same_in_any_chunks() {
+        let text = "# en-tête\r\no naïve 名前\nv 0 0 0 1 0 0\nv 1 0 0\r\nv 0 1 0 0.5 0.5 0.5 1\n\
+                    vt 0.5\nvn 0 0 1\nf 1/1/1 2/2/2 3/3/3 # c\nl 1 2\np 1\nf 1 2\nusemtl x\n\
+                    v 0 0 1 0\nf 1 2 3 4\nv 2 2 2 inf\ng 名前 no newline at the end";
+        let (whole, counts) = obj_text_in_chunks(text.as_bytes(), usize::MAX);
+        let bad = text
+            .replace("\r\n", "\n")
+            .lines()
+            .position(|l| l.starts_with("v 0 0 1 0"))
+            .unwrap()
+            + 1;
+        assert_eq!(counts.bad_w.as_ref().map(|b| b.0), Some(bad));
+        assert_eq!((counts.vertices, counts.triangles), (5, 3));
+        for chunk in [0, 1, 2, 3, 5, 7, 16, 40, 1000] {
+            let (t, c) = obj_text_in_chunks(text.as_bytes(), chunk);
+            assert_eq!(t, whole, "chunks of {chunk}");
+            assert_eq!(format!("{c:?}"), format!("{counts:?}"), "chunks of {chunk}");
+        }
+    }
 }
