@@ -24,6 +24,11 @@ use crate::{GeomError, Mesh};
 /// non-finite result for a finite query.
 pub const FAR_QUERY_RADII: f64 = 4096.0;
 
+/// The winding number from which a point is inside: [`SignedDistance::is_inside`] and the sign
+/// of [`SignedDistance::signed_distance`] (1 inside a closed mesh, 0 outside, fractional near an
+/// open one).
+const INSIDE_WINDING: f32 = 0.5;
+
 /// Meshes whose largest coordinate magnitude lies outside `[2^-16, 2^16]` are rescaled internally
 /// by a power of two (exact in floating point) so that the f32 search and winding sums neither
 /// overflow (coordinates near 1e38) nor underflow; distances and points are scaled back on output.
@@ -1422,7 +1427,14 @@ impl SignedDistance {
 
     /// Whether `p` is inside: winding number ≥ 1/2. False for non-finite `p`.
     pub fn is_inside(&self, p: Vec3) -> bool {
-        self.winding_number(p) >= 0.5
+        self.winding_number(p) >= INSIDE_WINDING
+    }
+
+    /// [`is_inside`](Self::is_inside) for many points, in parallel with rayon.
+    pub fn is_inside_batch(&self, points: &[Vec3]) -> Vec<bool> {
+        self.batch(points, |sd, p, s| {
+            p.is_finite() && sd.winding_at(p, s) >= INSIDE_WINDING
+        })
     }
 
     /// Signed distance: negative inside (winding number ≥ 1/2), positive outside, NaN for a
@@ -1449,7 +1461,7 @@ impl SignedDistance {
         if d <= self.surface_eps {
             return self.out(d);
         }
-        if self.winding_with(pa, s) >= 0.5 {
+        if self.winding_with(pa, s) >= INSIDE_WINDING {
             -self.out(d)
         } else {
             self.out(d)

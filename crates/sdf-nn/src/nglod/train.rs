@@ -417,9 +417,9 @@ impl<'g> NglodTrainer<'g> {
         config: NglodTrainConfig,
     ) -> Result<Self, NglodError> {
         // Bad settings are refused before the BVH is built.
-        Self::check(mesh, &config)?;
+        let n = Self::check(mesh, &config)?;
         let sdf = Arc::new(SignedDistance::new(mesh)?);
-        Self::with_ground_truth(gpu, model, mesh, sdf, config)
+        Self::checked(gpu, model, mesh, sdf, config, n)
     }
 
     /// [`NglodTrainer::new`] with the exact signed distance of `mesh` already built: `sdf` must
@@ -432,7 +432,19 @@ impl<'g> NglodTrainer<'g> {
         sdf: Arc<SignedDistance>,
         config: NglodTrainConfig,
     ) -> Result<Self, NglodError> {
-        let n32 = Self::check(mesh, &config)?;
+        let n = Self::check(mesh, &config)?;
+        Self::checked(gpu, model, mesh, sdf, config, n)
+    }
+
+    /// The trainer, once [`NglodTrainer::check`] has passed and given `n32` points per epoch.
+    fn checked(
+        gpu: &'g GpuContext,
+        model: &Nglod,
+        mesh: &Mesh,
+        sdf: Arc<SignedDistance>,
+        config: NglodTrainConfig,
+        n32: u32,
+    ) -> Result<Self, NglodError> {
         let n = n32 as usize;
         // A fresh model's sparse levels take the band around this mesh.
         let placed;

@@ -230,11 +230,11 @@ pub const BOX_POOL: usize = 1 << 20;
 /// outside: the sign the evaluation's ground truth gives, also on open meshes.
 pub fn sided_box_points(sdf: &sdf_geom::SignedDistance, n: usize, seed: u64) -> Vec<Vec4> {
     let points = sdf_geom::sample::uniform_box(n, seed);
-    let winding = sdf.winding_number_batch(&points);
+    let inside = sdf.is_inside_batch(&points);
     points
         .iter()
-        .zip(winding)
-        .map(|(p, w)| p.extend(if w >= 0.5 { -1.0 } else { 1.0 }))
+        .zip(inside)
+        .map(|(p, inside)| p.extend(if inside { -1.0 } else { 1.0 }))
         .collect()
 }
 
