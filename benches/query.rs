@@ -29,7 +29,11 @@
 //! `kernel`, `neural_sdf` and `neural_sdf_timed` for the presets of
 //! `QUERY_BENCH_SIREN_PRESETS=small,default` (default `small`) on the kernels of
 //! `QUERY_BENCH_SIREN_KERNELS` (default `auto`; `tiled` runs the fused kernel, whose queries take
-//! one dispatch, on any adapter).
+//! one dispatch, on any adapter; a list such as `tiled,coop` runs each in the same rounds, its
+//! rows named after it). Both models also get `resident` (`record_query` on points already on
+//! the GPU, submitted and waited for, the values left there: what PyTorch's eval of a device
+//! tensor measures), and, where the device maps storage buffers (not with
+//! `HWSDF_MAPPABLE_STORAGE=0`), `serve_mapped` (the serving API with `QueryTransfer::Mapped`).
 
 use std::time::Duration;
 
@@ -40,7 +44,7 @@ use sdf_nn::gpu::GpuTimer;
 use sdf_nn::nglod::ScatterMode;
 use sdf_nn::{
     GpuContext, NeuralSdf, Nglod, NglodConfig, NglodGpu, Normalization, QueryBuffers,
-    QueryBuffersDescriptor, QuerySpace,
+    QueryBuffersDescriptor, QuerySpace, QueryTransfer,
 };
 
 /// Query buffers for `n` points in the normalised cube, values only.
@@ -54,6 +58,26 @@ fn normalized_buffers(gpu: &GpuContext, sdf: &NeuralSdf, n: usize) -> QueryBuffe
         },
     )
     .unwrap()
+}
+
+/// [`normalized_buffers`] with [`QueryTransfer::Mapped`] (no copies: the kernel reads and
+/// writes mapped memory), where the device maps storage buffers.
+fn mapped_buffers(gpu: &GpuContext, sdf: &NeuralSdf, n: usize) -> Option<QueryBuffers> {
+    if !gpu.maps_storage() {
+        return None;
+    }
+    Some(
+        sdf.create_query_buffers(
+            gpu,
+            &QueryBuffersDescriptor {
+                capacity: n as u32,
+                space: QuerySpace::Normalized,
+                transfer: QueryTransfer::Mapped,
+                ..Default::default()
+            },
+        )
+        .unwrap(),
+    )
 }
 
 /// Copies the start of `src` into the whole of the mappable `staging` at the end of `enc`,
@@ -218,7 +242,7 @@ fn old_report_path(
 }
 
 /// A named call to time.
-type Variant<'a> = (&'static str, Box<dyn FnMut() + 'a>);
+type Variant<'a> = (String, Box<dyn FnMut() + 'a>);
 
 /// The variants in turn, `rounds` calls each (see the module docs).
 fn interleaved(gpu: &GpuContext, rounds: usize) {
@@ -273,6 +297,10 @@ fn interleaved(gpu: &GpuContext, rounds: usize) {
             let mut resident = normalized_buffers(gpu, &sdf, n);
             resident.upload(gpu, &pts).unwrap();
             let resident_staging = readback_buffer(gpu, "bench resident staging", n as u64 * 4);
+            let mut resident_only = normalized_buffers(gpu, &sdf, n);
+            resident_only.upload(gpu, &pts).unwrap();
+            let mut mapped = mapped_buffers(gpu, &sdf, n);
+            let mut mapped_out = Vec::with_capacity(n);
             // The floor of any query: one submission (with or without one empty dispatch) and
             // the readback of 10 floats.
             let roundtrip = |dispatch: bool| {
@@ -286,18 +314,18 @@ fn interleaved(gpu: &GpuContext, rounds: usize) {
                 std::hint::black_box(submit_and_read(gpu, enc, &src, &staging));
             };
             let mut variants: Vec<Variant<'_>> = vec![
-                ("roundtrip/empty", Box::new(|| roundtrip(false))),
+                ("roundtrip/empty".into(), Box::new(|| roundtrip(false))),
                 (
-                    "roundtrip/upload",
+                    "roundtrip/upload".into(),
                     Box::new(|| {
                         gpu.queue()
                             .write_buffer(&upload_dst, 0, bytemuck::cast_slice(&host));
                         roundtrip(false)
                     }),
                 ),
-                ("roundtrip/dispatch", Box::new(|| roundtrip(true))),
+                ("roundtrip/dispatch".into(), Box::new(|| roundtrip(true))),
                 (
-                    "serve_recorded",
+                    "serve_recorded".into(),
                     Box::new(|| {
                         let mut enc = gpu.device().create_command_encoder(&Default::default());
                         sdf.record_query(gpu, &mut enc, &mut resident, n as u32)
@@ -311,25 +339,35 @@ fn interleaved(gpu: &GpuContext, rounds: usize) {
                     }),
                 ),
                 (
-                    "kernel",
+                    "resident".into(),
+                    Box::new(|| {
+                        let mut enc = gpu.device().create_command_encoder(&Default::default());
+                        sdf.record_query(gpu, &mut enc, &mut resident_only, n as u32)
+                            .unwrap();
+                        gpu.queue().submit([enc.finish()]);
+                        gpu.wait().unwrap();
+                    }),
+                ),
+                (
+                    "kernel".into(),
                     Box::new(|| {
                         std::hint::black_box(net.eval(gpu, &pts, None).unwrap());
                     }),
                 ),
                 (
-                    "neural_sdf",
+                    "neural_sdf".into(),
                     Box::new(|| {
                         std::hint::black_box(sdf.eval_normalized(gpu, &pts).unwrap());
                     }),
                 ),
                 (
-                    "neural_sdf_timed",
+                    "neural_sdf_timed".into(),
                     Box::new(|| {
                         std::hint::black_box(sdf.eval_normalized_timed(gpu, &pts).unwrap());
                     }),
                 ),
                 (
-                    "serve_submit_wait",
+                    "serve_submit_wait".into(),
                     Box::new(|| {
                         let ticket = sdf.submit_query(gpu, &mut buffers, &pts).unwrap();
                         out.clear();
@@ -337,9 +375,19 @@ fn interleaved(gpu: &GpuContext, rounds: usize) {
                     }),
                 ),
             ];
+            if let Some(m) = mapped.as_mut() {
+                variants.push((
+                    "serve_mapped".into(),
+                    Box::new(|| {
+                        let ticket = sdf.submit_query(gpu, m, &pts).unwrap();
+                        mapped_out.clear();
+                        m.wait(gpu, ticket).unwrap().extend_values(&mut mapped_out);
+                    }),
+                ));
+            }
             if let Some(t) = &timer {
                 variants.push((
-                    "old_report_path",
+                    "old_report_path".into(),
                     Box::new(|| {
                         std::hint::black_box(old_report_path(gpu, &net, t, &pts));
                     }),
@@ -374,59 +422,148 @@ fn interleaved_siren(gpu: &GpuContext, rounds: usize) {
     }
 }
 
+/// The SIREN kernels of the interleaved mode: `QUERY_BENCH_SIREN_KERNELS=tiled,coop` (default
+/// `auto`); with more than one, each row is named after its kernels and they run in turn in the
+/// same rounds.
+fn siren_kernels() -> Vec<sdf_nn::siren::LayerKernels> {
+    std::env::var("QUERY_BENCH_SIREN_KERNELS")
+        .unwrap_or_else(|_| "auto".into())
+        .split(',')
+        .map(|k| {
+            k.trim()
+                .parse()
+                .unwrap_or_else(|e| panic!("QUERY_BENCH_SIREN_KERNELS: {e}"))
+        })
+        .collect()
+}
+
+/// One SIREN network behind every path the interleaved mode times, on one kernel family.
+struct SirenPaths {
+    name: String,
+    net: sdf_nn::SirenGpu,
+    sdf: NeuralSdf,
+}
+
 fn interleaved_siren_preset(
     gpu: &GpuContext,
     rounds: usize,
     preset: &str,
     config: sdf_nn::SirenConfig,
 ) {
-    let kernels: sdf_nn::siren::LayerKernels = match std::env::var("QUERY_BENCH_SIREN_KERNELS") {
-        Err(_) => Default::default(),
-        Ok(name) => name
-            .parse()
-            .unwrap_or_else(|e| panic!("QUERY_BENCH_SIREN_KERNELS: {e}")),
-    };
     let siren = sdf_nn::Siren::new(config, 1).unwrap();
-    let mut net = sdf_nn::SirenGpu::new(gpu, &siren).unwrap();
-    net.set_layer_kernels(gpu, kernels).unwrap();
-    let mut sdf = NeuralSdf::from_model_file(
-        siren.to_model_file(Normalization::identity(), serde_json::Value::Null),
-    )
-    .unwrap();
-    sdf.set_siren_kernels(kernels).unwrap();
+    let kernels = siren_kernels();
+    let mut paths: Vec<SirenPaths> = kernels
+        .iter()
+        .map(|&k| {
+            let mut net = sdf_nn::SirenGpu::new(gpu, &siren).unwrap();
+            net.set_layer_kernels(gpu, k).unwrap();
+            let mut sdf = NeuralSdf::from_model_file(
+                siren.to_model_file(Normalization::identity(), serde_json::Value::Null),
+            )
+            .unwrap();
+            sdf.set_siren_kernels(k).unwrap();
+            let name = if kernels.len() > 1 {
+                format!("{}/", k.name())
+            } else {
+                String::new()
+            };
+            SirenPaths { name, net, sdf }
+        })
+        .collect();
     for n in batch_sizes() {
         let pts: Vec<Vec3> = sdf_geom::sample::uniform_box(n, 42);
-        let mut gpu_ns = Vec::with_capacity(rounds);
-        let mut variants: Vec<Variant<'_>> = vec![
-            (
-                "kernel",
-                Box::new(|| {
-                    std::hint::black_box(net.eval(gpu, &pts).unwrap());
+        let mut gpu_ns: Vec<Vec<f64>> = vec![Vec::with_capacity(rounds); paths.len()];
+        let mut variants: Vec<Variant<'_>> = Vec::new();
+        for (p, ns) in paths.iter_mut().zip(gpu_ns.iter_mut()) {
+            let (name, net, sdf) = (&p.name, &mut p.net, &p.sdf);
+            let mut staged = normalized_buffers(gpu, sdf, n);
+            let mut resident = normalized_buffers(gpu, sdf, n);
+            resident.upload(gpu, &pts).unwrap();
+            let mut resident_only = normalized_buffers(gpu, sdf, n);
+            resident_only.upload(gpu, &pts).unwrap();
+            let resident_staging = readback_buffer(gpu, "bench resident staging", n as u64 * 4);
+            let mut mapped = mapped_buffers(gpu, sdf, n);
+            let pts = &pts;
+            variants.push((
+                format!("{name}kernel"),
+                Box::new(move || {
+                    std::hint::black_box(net.eval(gpu, pts).unwrap());
                 }),
-            ),
-            (
-                "neural_sdf",
-                Box::new(|| {
-                    std::hint::black_box(sdf.eval_normalized(gpu, &pts).unwrap());
+            ));
+            variants.push((
+                format!("{name}neural_sdf"),
+                Box::new(move || {
+                    std::hint::black_box(sdf.eval_normalized(gpu, pts).unwrap());
                 }),
-            ),
-            (
-                "neural_sdf_timed",
-                Box::new(|| {
-                    let (v, ns) = sdf.eval_normalized_timed(gpu, &pts).unwrap();
-                    gpu_ns.extend(ns.map(|ns| ns as f64 / 1e3));
+            ));
+            variants.push((
+                format!("{name}neural_sdf_timed"),
+                Box::new(move || {
+                    let (v, t) = sdf.eval_normalized_timed(gpu, pts).unwrap();
+                    ns.extend(t.map(|t| t as f64 / 1e3));
                     std::hint::black_box(v);
                 }),
-            ),
-        ];
+            ));
+            let mut out = Vec::with_capacity(n);
+            variants.push((
+                format!("{name}serve_submit_wait"),
+                Box::new(move || {
+                    let ticket = sdf.submit_query(gpu, &mut staged, pts).unwrap();
+                    out.clear();
+                    staged.wait(gpu, ticket).unwrap().extend_values(&mut out);
+                }),
+            ));
+            // Points already on the GPU, the values read back: a query without its upload.
+            variants.push((
+                format!("{name}serve_recorded"),
+                Box::new(move || {
+                    let mut enc = gpu.device().create_command_encoder(&Default::default());
+                    sdf.record_query(gpu, &mut enc, &mut resident, n as u32)
+                        .unwrap();
+                    std::hint::black_box(submit_and_read(
+                        gpu,
+                        enc,
+                        resident.results(),
+                        &resident_staging,
+                    ));
+                }),
+            ));
+            // Points and values on the GPU, the submission waited for: what PyTorch's eval
+            // (a tensor on the device in, one out, `torch.cuda.synchronize()`) measures.
+            variants.push((
+                format!("{name}resident"),
+                Box::new(move || {
+                    let mut enc = gpu.device().create_command_encoder(&Default::default());
+                    sdf.record_query(gpu, &mut enc, &mut resident_only, n as u32)
+                        .unwrap();
+                    gpu.queue().submit([enc.finish()]);
+                    gpu.wait().unwrap();
+                }),
+            ));
+            if mapped.is_some() {
+                let mut out = Vec::with_capacity(n);
+                variants.push((
+                    format!("{name}serve_mapped"),
+                    Box::new(move || {
+                        let m = mapped.as_mut().unwrap();
+                        let ticket = sdf.submit_query(gpu, m, pts).unwrap();
+                        out.clear();
+                        m.wait(gpu, ticket).unwrap().extend_values(&mut out);
+                    }),
+                ));
+            }
+        }
         report_interleaved(&format!("siren_{preset} n={n:5}"), &mut variants, rounds);
         drop(variants);
-        if !gpu_ns.is_empty() {
-            gpu_ns.sort_by(f64::total_cmp);
-            println!(
-                "siren_{preset} n={n:5} kernel time (timestamps) median {:8.1} µs",
-                gpu_ns[gpu_ns.len() / 2]
-            );
+        for (p, ns) in paths.iter().zip(gpu_ns.iter_mut()) {
+            if !ns.is_empty() {
+                ns.sort_by(f64::total_cmp);
+                println!(
+                    "siren_{preset} n={n:5} {}kernel time (timestamps) median {:8.1} µs",
+                    p.name,
+                    ns[ns.len() / 2]
+                );
+            }
         }
     }
 }
@@ -448,7 +585,7 @@ fn report_interleaved(prefix: &str, variants: &mut [Variant<'_>], rounds: usize)
     for ((v, _), t) in variants.iter().zip(&mut times) {
         t.sort_by(f64::total_cmp);
         println!(
-            "{prefix} {v:18} min {:8.1} µs  p10 {:8.1} µs  median {:8.1} µs",
+            "{prefix} {v:24} min {:8.1} µs  p10 {:8.1} µs  median {:8.1} µs",
             t[0],
             t[t.len() / 10],
             t[t.len() / 2]

@@ -20,7 +20,9 @@ use rayon::prelude::*;
 use crate::gpu::{GpuContext, GpuError, GpuTimer};
 use crate::model_file::{ModelFile, ModelFileError, Normalization};
 use crate::nglod::{Nglod, NglodError, NglodGpu};
-use crate::query::{QueryBuffers, QueryBuffersDescriptor, QueryError, QueryOutputs, QuerySpace};
+use crate::query::{
+    QueryBuffers, QueryBuffersDescriptor, QueryError, QueryOutputs, QuerySpace, QueryTransfer,
+};
 use crate::siren::{self, LayerKernels, Siren, SirenGpu, SirenGpuError};
 
 /// Most points the host-side methods send in one submission; larger inputs are split.
@@ -92,6 +94,8 @@ pub struct NeuralSdf {
     lod: Option<usize>,
     /// The kernels a SIREN's GPU side runs on.
     siren_kernels: LayerKernels,
+    /// [`NeuralSdf::set_siren_coop_min_points`] (`None`: the served default).
+    siren_coop_min_points: Option<Option<u32>>,
     gpu: Mutex<Option<GpuSide>>,
     /// Identifies the model to the [`QueryBuffers`] made for it.
     id: u64,
@@ -145,6 +149,7 @@ impl NeuralSdf {
             file,
             lod: None,
             siren_kernels: LayerKernels::Auto,
+            siren_coop_min_points: None,
             gpu: Mutex::new(None),
             id: next_id(),
             host_queries: Mutex::new(Vec::new()),
@@ -212,13 +217,7 @@ impl NeuralSdf {
         }
         if kernels != self.siren_kernels {
             self.siren_kernels = kernels;
-            // Rebuilt on next use, under a new identity for the query buffers.
-            *self.gpu.get_mut().unwrap_or_else(|e| e.into_inner()) = None;
-            self.host_queries
-                .get_mut()
-                .unwrap_or_else(|e| e.into_inner())
-                .clear();
-            self.id = next_id();
+            self.reset_gpu_side();
         }
         Ok(())
     }
@@ -226,6 +225,32 @@ impl NeuralSdf {
     /// The kernels a SIREN model runs on.
     pub fn siren_kernels(&self) -> LayerKernels {
         self.siren_kernels
+    }
+
+    /// With [`LayerKernels::Auto`], SIREN queries of values of at least `points` points run on
+    /// f16 cooperative matrices where the device has them, `None` never (see
+    /// [`SirenGpu::set_coop_min_points`]). The default is
+    /// [`crate::siren::auto_coop_min_points`]: [`crate::siren::COOP_AUTO_MIN_POINTS`] on GPUs
+    /// for networks at least [`crate::siren::COOP_AUTO_MIN_WIDTH`] wide. [`QueryBuffers`] made
+    /// before the change are refused after it; make new ones. An error for NGLOD models.
+    pub fn set_siren_coop_min_points(&mut self, points: Option<u32>) -> Result<(), NeuralSdfError> {
+        if let Network::Nglod(_) = self.network {
+            return Err(NeuralSdfError::NoLayerKernels("nglod"));
+        }
+        self.siren_coop_min_points = Some(points);
+        self.reset_gpu_side();
+        Ok(())
+    }
+
+    /// Drops the GPU network and the host query buffers (rebuilt on next use) and takes a new
+    /// identity, so that query buffers made before are refused.
+    fn reset_gpu_side(&mut self) {
+        *self.gpu.get_mut().unwrap_or_else(|e| e.into_inner()) = None;
+        self.host_queries
+            .get_mut()
+            .unwrap_or_else(|e| e.into_inner())
+            .clear();
+        self.id = next_id();
     }
 
     /// Signed distances at `points` (mesh coordinates, mesh units), on the GPU. Any number of
@@ -336,7 +361,14 @@ impl NeuralSdf {
                         capacity,
                         outputs,
                         space,
-                        ..Default::default()
+                        // Every host-side query reads its results back: no copies where the
+                        // device maps storage (on an H100 15–18 µs less per query than
+                        // through staging; BENCHMARKS.md).
+                        transfer: if gpu.maps_storage() {
+                            QueryTransfer::Mapped
+                        } else {
+                            QueryTransfer::Staged
+                        },
                     },
                 )?;
                 match found {
@@ -427,6 +459,9 @@ impl NeuralSdf {
                     let mut net = SirenGpu::new_frozen(gpu, s)?;
                     if self.siren_kernels != LayerKernels::Auto {
                         net.set_layer_kernels(gpu, self.siren_kernels)?;
+                    }
+                    if let Some(points) = self.siren_coop_min_points {
+                        net.set_coop_min_points(gpu, points)?;
                     }
                     GpuNetwork::Siren(Box::new(net))
                 }

@@ -127,7 +127,7 @@ pub enum QueryTransfer {
     Staged,
     /// No copies: the points buffer is mapped and written, the results buffer mapped and read.
     /// On lavapipe a 10-point query costs two copy commands less. Needs the device feature
-    /// `MAPPABLE_PRIMARY_BUFFERS` (requested on CPU and integrated adapters). The results buffer
+    /// `MAPPABLE_PRIMARY_BUFFERS` (asked for wherever the adapter has it: [`GpuContext::maps_storage`]). The results buffer
     /// is then mapped from [`NeuralSdf::submit_query`] until the [`QueryResults`] of its ticket
     /// is dropped: no submission may use [`QueryBuffers::results`] meanwhile
     /// ([`NeuralSdf::record_query`] refuses with [`QueryError::Busy`]).

@@ -274,6 +274,104 @@ fn coop_f16_inference_matches_cpu_reference() {
     assert!(worst_deg < 2.0, "NeuralSdf normals on coop: {worst_deg}°");
 }
 
+/// `LayerKernels::Auto` with a batch threshold for cooperative matrices
+/// (`set_coop_min_points`, which served networks on GPUs start at `COOP_AUTO_MIN_POINTS`): a
+/// batch of values below it gives exactly what the f32 kernels give, one at or above it exactly
+/// what `CoopF16` gives; normals stay in f32 at any size. On `SirenGpu`, through `NeuralSdf`'s
+/// host path, and through the serving API's buffers, whose kernel is picked per query (one
+/// buffer set, batches on both sides of the threshold).
+#[test]
+fn coop_auto_runs_large_batches_on_cooperative_matrices() {
+    let gpu = gpu();
+    if coop_tile_or_skip(gpu).is_none() {
+        return;
+    }
+    const MIN: u32 = 100;
+    let net = Siren::new(SirenConfig::small(), 21).unwrap();
+    let (below, above) = (
+        sdf_geom::sample::uniform_box(MIN as usize - 1, 1),
+        sdf_geom::sample::uniform_box(257, 2),
+    );
+    let mut f32_net = SirenGpu::new(gpu, &net).unwrap();
+    let mut coop_net = SirenGpu::new(gpu, &net).unwrap();
+    coop_net
+        .set_layer_kernels(gpu, LayerKernels::CoopF16)
+        .unwrap();
+    let mut auto = SirenGpu::new(gpu, &net).unwrap();
+    assert_eq!(
+        auto.coop_min_points(),
+        None,
+        "a network that trains keeps f32"
+    );
+    assert_eq!(auto.coop_tile(), None);
+    auto.set_coop_min_points(gpu, Some(MIN)).unwrap();
+    assert!(auto.coop_tile().is_some());
+    let (f32_above, coop_above) = (
+        f32_net.eval(gpu, &above).unwrap(),
+        coop_net.eval(gpu, &above).unwrap(),
+    );
+    assert_ne!(f32_above, coop_above, "f16 rounding shows somewhere");
+    assert_eq!(
+        auto.eval(gpu, &below).unwrap(),
+        f32_net.eval(gpu, &below).unwrap()
+    );
+    assert_eq!(auto.eval(gpu, &above).unwrap(), coop_above);
+    assert_eq!(
+        auto.eval_with_gradient(gpu, &above).unwrap(),
+        f32_net.eval_with_gradient(gpu, &above).unwrap()
+    );
+
+    let served = |min: Option<u32>| {
+        let file = net.to_model_file(Normalization::identity(), serde_json::Value::Null);
+        let mut sdf = NeuralSdf::from_model_file(file).unwrap();
+        sdf.set_siren_coop_min_points(min).unwrap();
+        sdf
+    };
+    let (plain, auto) = (served(None), served(Some(MIN)));
+    assert_eq!(
+        auto.eval_normalized(gpu, &below).unwrap(),
+        plain.eval_normalized(gpu, &below).unwrap()
+    );
+    assert_eq!(auto.eval_normalized(gpu, &above).unwrap(), coop_above);
+    assert_eq!(
+        auto.eval_with_normals(gpu, &above).unwrap(),
+        plain.eval_with_normals(gpu, &above).unwrap()
+    );
+    let mut buffers = auto
+        .create_query_buffers(
+            gpu,
+            &sdf_nn::QueryBuffersDescriptor {
+                capacity: 300,
+                space: sdf_nn::QuerySpace::Normalized,
+                ..Default::default()
+            },
+        )
+        .unwrap();
+    for (pts, want) in [
+        (&above, coop_above.clone()),
+        (&below, plain.eval_normalized(gpu, &below).unwrap()),
+        (&above, coop_above.clone()),
+    ] {
+        let ticket = auto.submit_query(gpu, &mut buffers, pts).unwrap();
+        let mut got = Vec::new();
+        buffers.wait(gpu, ticket).unwrap().extend_values(&mut got);
+        assert_eq!(got, want, "{} points through the serving API", pts.len());
+    }
+}
+
+/// The served default of `Auto`'s threshold: GPUs, networks at least 256 wide.
+#[test]
+fn coop_auto_default_rule() {
+    use sdf_nn::siren::{COOP_AUTO_MIN_POINTS, auto_coop_min_points};
+    let wide = SirenConfig::default();
+    assert_eq!(
+        auto_coop_min_points(false, &wide),
+        Some(COOP_AUTO_MIN_POINTS)
+    );
+    assert_eq!(auto_coop_min_points(true, &wide), None, "CPU adapters");
+    assert_eq!(auto_coop_min_points(false, &SirenConfig::small()), None);
+}
+
 /// `LayerKernels::CoopF16` on a network trained on a real mesh (its weights and activations
 /// have left their initial ranges): the error against the f64 reference, and the points whose
 /// sign differs from the f32 kernels' (the F1 that f16 can cost).

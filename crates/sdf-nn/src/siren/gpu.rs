@@ -117,6 +117,25 @@ pub(crate) struct ReduceUniforms {
     pub(crate) _pad1: u32,
 }
 
+/// Smallest batch of values that [`LayerKernels::Auto`] runs on f16 cooperative matrices in a
+/// served network. On an H100 (SIREN `default`, points and values on the GPU, interleaved
+/// rounds) the cooperative-matrix kernel took 78.5 µs against the f32 fused kernel's 75.4 µs at
+/// 3000 points, and 77.7 against 167.4 µs at 8192 (440 against 680 µs at 50 000): its time is
+/// flat up to 8192 points while the f32 kernel's grows, so they cross near 3200.
+pub const COOP_AUTO_MIN_POINTS: u32 = 4096;
+
+/// Narrowest hidden layers that [`LayerKernels::Auto`] runs on f16 cooperative matrices. On an
+/// H100 the `small` preset (64 wide) took 424 µs on them at 50 000 points against 224 µs in f32
+/// and the `default` (256 wide) 686 against 1016 µs; 128 is not measured, so it stays in f32.
+pub const COOP_AUTO_MIN_WIDTH: usize = 256;
+
+/// The default of [`SirenGpu::set_coop_min_points`] for a served network ([`crate::NeuralSdf`])
+/// of `config` on an adapter: [`COOP_AUTO_MIN_POINTS`] on GPUs for networks at least
+/// [`COOP_AUTO_MIN_WIDTH`] wide, else none (networks that train keep none).
+pub fn auto_coop_min_points(cpu_adapter: bool, config: &SirenConfig) -> Option<u32> {
+    (!cpu_adapter && config.width >= COOP_AUTO_MIN_WIDTH).then_some(COOP_AUTO_MIN_POINTS)
+}
+
 /// The kernel families a [`LayerKernels`] choice sets up: row-blocked, tiled, cooperative-matrix.
 type Families = (
     Option<RowBlockedPlan>,
@@ -145,10 +164,18 @@ const GEMM_ROWS: u32 = 64;
 /// launch.
 #[derive(Debug)]
 pub(crate) struct QueryLaunch {
-    kernel: OneDispatch,
+    kernel: BoundDispatch,
+    /// With [`LayerKernels::Auto`] and [`SirenGpu::set_coop_min_points`]: that many points,
+    /// and the cooperative-matrix kernel that batches of values of at least as many run on.
+    large: Option<(u32, BoundDispatch)>,
     /// Rows per point: 1, or 4 with normals.
     rows_per_point: u32,
-    /// The row count the uniforms hold.
+}
+
+/// A one-dispatch kernel and the row count its uniforms hold.
+#[derive(Debug)]
+struct BoundDispatch {
+    kernel: OneDispatch,
     written: u32,
 }
 
@@ -157,13 +184,17 @@ impl QueryLaunch {
     /// submission, so record it at most once per submission.
     pub(crate) fn record(&mut self, gpu: &GpuContext, pass: &mut wgpu::ComputePass<'_>, n: u32) {
         let rows = n * self.rows_per_point;
-        if rows != self.written {
+        let bound = match self.large.as_mut() {
+            Some((min, large)) if n >= *min => large,
+            _ => &mut self.kernel,
+        };
+        if rows != bound.written {
             gpu.queue()
-                .write_buffer(&self.kernel.uniforms, 0, bytemuck::bytes_of(&rows));
-            self.written = rows;
+                .write_buffer(&bound.kernel.uniforms, 0, bytemuck::bytes_of(&rows));
+            bound.written = rows;
         }
-        let (x, y) = gpu.dispatch_size(rows.div_ceil(self.kernel.group_rows).max(1));
-        self.kernel.launch.record_groups(pass, (x, y, 1));
+        let (x, y) = gpu.dispatch_size(rows.div_ceil(bound.kernel.group_rows).max(1));
+        bound.kernel.launch.record_groups(pass, (x, y, 1));
     }
 }
 
@@ -242,6 +273,8 @@ pub struct SirenGpu {
     /// [`SirenGpu::new_frozen`]): the row-blocked kernels' packed weights are then copied when
     /// they change, not at the start of every evaluation.
     frozen: bool,
+    /// [`SirenGpu::set_coop_min_points`].
+    coop_min_points: Option<u32>,
     /// How training steps differentiate through ∇ₓΦ.
     train_step: TrainStep,
 }
@@ -261,7 +294,7 @@ impl SirenGpu {
         let kernels = LayerKernels::default();
         let tiled_block = TiledBlock::default();
         let (dense, tiled, coop) =
-            Self::families(gpu, kernels, tiled_block, &config, &layers, &params)?;
+            Self::families(gpu, kernels, tiled_block, &config, &layers, &params, false)?;
         Ok(SirenGpu {
             config,
             layers,
@@ -283,6 +316,7 @@ impl SirenGpu {
             fused_row_blocks: 1,
             tiled_block,
             frozen: false,
+            coop_min_points: None,
             train_step: TrainStep::default(),
         })
     }
@@ -294,6 +328,11 @@ impl SirenGpu {
     pub(crate) fn new_frozen(gpu: &GpuContext, siren: &Siren) -> Result<Self, SirenGpuError> {
         let mut net = Self::new(gpu, siren)?;
         net.frozen = true;
+        // What `Auto` runs a served network's large batches on.
+        net.coop_min_points = auto_coop_min_points(gpu.is_cpu(), &net.config);
+        if net.coop_min_points.is_some() {
+            net.coop = CoopKernels::new(gpu, &net.config, &net.params)?;
+        }
         net.pack_now(gpu);
         Ok(net)
     }
@@ -307,6 +346,7 @@ impl SirenGpu {
         config: &SirenConfig,
         layers: &[LayerLayout],
         params: &wgpu::Buffer,
+        auto_coop: bool,
     ) -> Result<Families, SirenGpuError> {
         let mut dense = if kernels.row_blocked(gpu) {
             RowBlockedPlan::new(gpu, layers)?
@@ -342,11 +382,12 @@ impl SirenGpu {
                 ),
             });
         }
-        let coop = if kernels == LayerKernels::CoopF16 {
-            CoopKernels::new(gpu, config, params)?
-        } else {
-            None
-        };
+        let coop =
+            if kernels == LayerKernels::CoopF16 || (kernels == LayerKernels::Auto && auto_coop) {
+                CoopKernels::new(gpu, config, params)?
+            } else {
+                None
+            };
         Ok((dense, tiled, coop))
     }
 
@@ -434,6 +475,7 @@ impl SirenGpu {
             &self.config,
             &self.layers,
             &self.params,
+            self.coop_min_points.is_some(),
         )?;
         self.kernels = kernels;
         self.eval = None;
@@ -508,10 +550,41 @@ impl SirenGpu {
         TiledKernels::fused_layout(gpu, &self.config, self.fused_row_blocks).map(|l| l.row_blocks)
     }
 
-    /// The side of the cooperative-matrix tiles that run inference of values
-    /// ([`LayerKernels::CoopF16`] where the device and the network allow them), if they do.
+    /// The side of the cooperative-matrix tiles that run inference of values, if they are set
+    /// up: with [`LayerKernels::CoopF16`] where the device and the network allow them (every
+    /// batch of values), and with [`LayerKernels::Auto`] in a served network
+    /// ([`crate::NeuralSdf`]) where [`auto_coop_network`] holds (batches of values of at least
+    /// [`COOP_AUTO_MIN_POINTS`]).
     pub fn coop_tile(&self) -> Option<u32> {
         self.coop.as_ref().map(CoopKernels::tile)
+    }
+
+    /// With [`LayerKernels::Auto`], batches of values of at least `points` points run on the
+    /// cooperative-matrix kernels where the device has them ([`LayerKernels::CoopF16`]'s,
+    /// f16 with f32 accumulators); smaller ones, normals and training on the f32 kernels.
+    /// `None` (the default of a network that trains) never uses them; a served network
+    /// ([`crate::NeuralSdf`]) starts at [`auto_coop_min_points`].
+    pub fn set_coop_min_points(
+        &mut self,
+        gpu: &GpuContext,
+        points: Option<u32>,
+    ) -> Result<(), SirenGpuError> {
+        self.coop_min_points = points;
+        self.set_layer_kernels(gpu, self.kernels)
+    }
+
+    /// See [`SirenGpu::set_coop_min_points`].
+    pub fn coop_min_points(&self) -> Option<u32> {
+        self.coop_min_points
+    }
+
+    /// The smallest batch that `Auto` runs on the cooperative-matrix kernels (`u32::MAX`:
+    /// none): values only.
+    fn auto_coop_from(&self, tangents: bool) -> u32 {
+        match self.coop_min_points {
+            Some(m) if self.kernels == LayerKernels::Auto && !tangents => m,
+            _ => u32::MAX,
+        }
     }
 
     /// Whether an inference launch of `n` points runs on the fused all-layer kernel.
@@ -748,9 +821,26 @@ impl SirenGpu {
         input: &wgpu::Buffer,
         output: &wgpu::Buffer,
     ) -> Result<Option<OneDispatch>, GpuError> {
+        let coop = self.kernels == LayerKernels::CoopF16 || self.auto_coop_from(tangents) <= n;
+        self.one_dispatch_on(gpu, n, tangents, query, input, output, coop)
+    }
+
+    /// [`SirenGpu::one_dispatch`] on the cooperative-matrix kernel if `coop` and it is set up,
+    /// else on the fused kernel where it runs `n` points.
+    #[allow(clippy::too_many_arguments)]
+    fn one_dispatch_on(
+        &self,
+        gpu: &GpuContext,
+        n: u32,
+        tangents: bool,
+        query: Option<glam::Vec4>,
+        input: &wgpu::Buffer,
+        output: &wgpu::Buffer,
+        coop: bool,
+    ) -> Result<Option<OneDispatch>, GpuError> {
         let cfg = &self.config;
         let rows = if tangents { 4 * n } else { n };
-        if let Some(c) = &self.coop {
+        if let Some(c) = self.coop.as_ref().filter(|_| coop) {
             return Ok(Some(c.forward(
                 gpu,
                 cfg,
@@ -796,11 +886,24 @@ impl SirenGpu {
         map: glam::Vec4,
     ) -> Result<Option<QueryLaunch>, SirenGpuError> {
         let rows_per_point = if normals { 4 } else { 1 };
-        let kernel = self.one_dispatch(gpu, capacity, normals, Some(map), points, results)?;
-        Ok(kernel.map(|kernel| QueryLaunch {
-            kernel,
+        let written = capacity * rows_per_point;
+        let always_coop = self.kernels == LayerKernels::CoopF16;
+        let one =
+            |coop| self.one_dispatch_on(gpu, capacity, normals, Some(map), points, results, coop);
+        let Some(kernel) = one(always_coop)? else {
+            return Ok(None);
+        };
+        // Auto's large batches: a second kernel bound to the same buffers, picked per query.
+        let min = self.auto_coop_from(normals);
+        let large = if !always_coop && self.coop.is_some() && min <= capacity {
+            one(true)?.map(|kernel| (min, BoundDispatch { kernel, written }))
+        } else {
+            None
+        };
+        Ok(Some(QueryLaunch {
+            kernel: BoundDispatch { kernel, written },
+            large,
             rows_per_point,
-            written: capacity * rows_per_point,
         }))
     }
 

@@ -34,7 +34,10 @@ pub mod ror;
 mod tangents;
 pub mod train;
 
-pub use gpu::{DEFAULT_FUSED_MAX_POINTS, SirenGpu, SirenGpuError};
+pub use gpu::{
+    COOP_AUTO_MIN_POINTS, COOP_AUTO_MIN_WIDTH, DEFAULT_FUSED_MAX_POINTS, SirenGpu, SirenGpuError,
+    auto_coop_min_points,
+};
 pub use kernels::{LayerKernels, TiledBlock};
 pub use ror::TrainStep;
 pub use train::{
