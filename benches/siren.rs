@@ -10,6 +10,10 @@
 //! the tiled family's fused all-layer kernel (`SirenGpu::set_fused_max_points`; 0 disables it)
 //! and `SIREN_BENCH_FUSED_ROW_BLOCKS` its register blocks of rows per invocation (1 to 3,
 //! `SirenGpu::set_fused_row_blocks`; default 1).
+//! `eval_resident` times the same network served (`NeuralSdf`, whose `Auto` runs batches of values
+//! of at least `COOP_AUTO_MIN_POINTS` on cooperative matrices where the GPU has them) with the
+//! points already on the GPU and the values left there: `record_query`, submit, wait, as
+//! PyTorch's eval of a device tensor is timed.
 //! `SIREN_BENCH_TRAIN_STEP` forces the training step (`tangents` or `ror`, reverse over reverse;
 //! default: `TrainStep::Auto`), and `SIREN_BENCH_TILED_BLOCK` the tiled GEMM's register blocks
 //! (`4x4`, `8x4`, `4x8` or `8x8`; default: `TiledBlock::Auto`).
@@ -116,6 +120,39 @@ fn bench(c: &mut Criterion) {
             g.bench_with_input(BenchmarkId::new("eval", n), &pts, |b, pts| {
                 b.iter(|| net.eval(gpu, pts).unwrap())
             });
+        }
+        // The same network served (`NeuralSdf`, whose `Auto` runs large batches of values on
+        // cooperative matrices where the GPU has them), points and values left on the GPU:
+        // a submission of `record_query` waited for, what PyTorch's eval of a device tensor
+        // measures (scripts/siren_torch_bench.py).
+        let mut served = sdf_nn::NeuralSdf::from_model_file(
+            siren.to_model_file(sdf_nn::Normalization::identity(), serde_json::Value::Null),
+        )
+        .unwrap();
+        served.set_siren_kernels(kernels()).unwrap();
+        for &n in sizes {
+            let mut buffers = served
+                .create_query_buffers(
+                    gpu,
+                    &sdf_nn::QueryBuffersDescriptor {
+                        capacity: n as u32,
+                        space: sdf_nn::QuerySpace::Normalized,
+                        ..Default::default()
+                    },
+                )
+                .unwrap();
+            buffers.upload(gpu, &points(n)).unwrap();
+            let mut resident = || {
+                let mut enc = gpu.device().create_command_encoder(&Default::default());
+                served
+                    .record_query(gpu, &mut enc, &mut buffers, n as u32)
+                    .unwrap();
+                gpu.queue().submit([enc.finish()]);
+                gpu.wait().unwrap();
+            };
+            resident(); // compile and allocate outside the timing
+            g.throughput(Throughput::Elements(n as u64));
+            g.bench_function(BenchmarkId::new("eval_resident", n), |b| b.iter(&mut resident));
         }
         eprintln!(
             "{name}: {macs} MACs per point forward ({} flop per point)",
