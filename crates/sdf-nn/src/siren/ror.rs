@@ -99,6 +99,8 @@ struct RorUniforms {
     inv_n: f32,
     omega: f32,
     w_sign: f32,
+    b1_off: u32,
+    _pad: [u32; 3],
 }
 
 /// Which kernels run the hidden layers' products.
@@ -237,6 +239,8 @@ pub(crate) fn build(
         inv_n: 1.0 / n as f32,
         omega,
         w_sign: weights.sign,
+        b1_off: layers[0].bias as u32,
+        _pad: [0; 3],
     };
     let ru = gpu.uniform("siren ror uniforms", &ror_uniforms);
     // The first layer's weight gradient on the tiled family: its own splits.
@@ -272,6 +276,23 @@ pub(crate) fn build(
             z_first: 0,
             t_first: 0,
         };
+        if l == 0 && matches!(family, Family::Tiled(_)) {
+            // Fan-in 3: elementwise, not a GEMM tile padded from 3 columns.
+            launches.push(Launch::flat(
+                gpu,
+                &pipe("ror_first_forward")?,
+                "siren ror first-layer forward",
+                &[
+                    entry(0, &ru),
+                    entry(1, params),
+                    entry(2, &p[0]),
+                    entry(3, &x[0]),
+                    entry(6, x_streams),
+                ],
+                n * width,
+            ));
+            continue;
+        }
         let e = RorEpilogue::Forward { omega };
         launches.extend(family.product(gpu, layers, l, n, true, e, &io, params)?);
     }
@@ -349,6 +370,22 @@ pub(crate) fn build(
             z_first: 0,
             t_first: 0,
         };
+        if l == 0 && matches!(family, Family::Tiled(_)) {
+            launches.push(Launch::flat(
+                gpu,
+                &pipe("ror_first_grad_adjoint")?,
+                "siren ror first-layer input-gradient adjoint",
+                &[
+                    entry(0, &ru),
+                    entry(1, params),
+                    entry(2, &p[0]),
+                    entry(3, &x[0]),
+                    entry(8, &x0),
+                ],
+                n * width,
+            ));
+            continue;
+        }
         let e = RorEpilogue::GradAdjoint { omega };
         launches.extend(family.product(gpu, layers, l, n, true, e, &io, params)?);
     }
