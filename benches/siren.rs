@@ -152,7 +152,9 @@ fn bench(c: &mut Criterion) {
             };
             resident(); // compile and allocate outside the timing
             g.throughput(Throughput::Elements(n as u64));
-            g.bench_function(BenchmarkId::new("eval_resident", n), |b| b.iter(&mut resident));
+            g.bench_function(BenchmarkId::new("eval_resident", n), |b| {
+                b.iter(&mut resident)
+            });
         }
         eprintln!(
             "{name}: {macs} MACs per point forward ({} flop per point)",

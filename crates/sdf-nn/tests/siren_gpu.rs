@@ -832,6 +832,29 @@ fn reverse_over_reverse_step_matches_cpu_reference() {
     }
 }
 
+/// The reverse-over-reverse step's per-point kernel with every count of lanes per point (1 on
+/// CPU adapters, 4 on GPUs by default), on a width that no count divides and a batch that
+/// leaves its last workgroup partly empty.
+#[test]
+fn reverse_over_reverse_head_lanes_match_cpu_reference() {
+    let gpu = gpu();
+    let cfg = SirenConfig {
+        width: 18,
+        hidden_layers: 2,
+        omega0: 30.0,
+    };
+    let net = Siren::new(cfg, 31).unwrap();
+    for lanes in [1, 2, 4, 8] {
+        with_kernels(gpu, &net, &[LayerKernels::Tiled], |g| {
+            g.set_train_step(TrainStep::ReverseOverReverse);
+            g.set_head_lanes(Some(lanes));
+            assert_eq!(g.head_lanes(gpu), lanes);
+            eprint!("{lanes} lanes: ");
+            gradients_match_with(g, cfg, &net, 45, 19, 32, &soft_weights())
+        });
+    }
+}
+
 /// The reverse-over-reverse gradient against central differences (in f64) of the reference
 /// loss, a few parameters of every weight matrix and bias.
 #[test]

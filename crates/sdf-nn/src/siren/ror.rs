@@ -74,10 +74,12 @@ const OUT_SPLITS: u32 = 256;
 /// Stacked rows per split of the first layer's weight gradient on the tiled family
 /// (`FIRST_WGRAD_ROWS` in `siren_ror.wgsl`).
 const FIRST_WGRAD_ROWS: u32 = 128;
-/// Invocations per workgroup of `ror_head` (one point each, the loss summed per workgroup):
-/// 64, so that a batch of 10⁴ points spreads over 157 workgroups, not 40 (a GPU's every SM, each
-/// invocation a 2·width-float row of its own to read). The same time as 256 on lavapipe.
+/// Invocations per workgroup of `ror_head` (`HEAD_LANES` per point, the loss summed per
+/// workgroup): 64, so that a batch of 10⁴ points spreads over 625 workgroups on a GPU (4 lanes
+/// per point: every SM busy).
 pub(crate) const HEAD_WG: u32 = 64;
+/// Most invocations per point of `ror_head` ([`SirenGpu::set_head_lanes`]).
+pub(crate) const MAX_HEAD_LANES: u32 = 8;
 
 /// `siren_ror.wgsl`'s uniforms.
 #[repr(C)]
@@ -327,12 +329,16 @@ pub(crate) fn build(
         launches.extend(family.product(gpu, layers, l, n, false, e, &io, params)?);
     }
     // Φ, ∇ₓΦ = H_1 W_1, the loss and its seeds φ̄ and ḡ.
-    let loss_groups = n.div_ceil(HEAD_WG);
+    let head_lanes = net.head_lanes(gpu);
+    let loss_groups = n.div_ceil(HEAD_WG / head_lanes);
     let (hx, hy) = gpu.dispatch_size(loss_groups);
     let head = gpu.pipeline(
         &shaders::SIREN_ROR,
         "ror_head",
-        &[("LOSS_WG", f64::from(HEAD_WG))],
+        &[
+            ("LOSS_WG", f64::from(HEAD_WG)),
+            ("HEAD_LANES", f64::from(head_lanes)),
+        ],
     )?;
     launches.push(Launch::new(
         gpu,
