@@ -112,11 +112,11 @@ fn ror_top_back(
     y_last[i] = r.omega * cos(r.omega * p_last[i]) * abar + p_last[i + r.width];
 }
 
-// Invocations per point in ror_head (`SirenGpu::head_lanes`): lane j sums features j,
-// j + HEAD_LANES, ..., so that on a GPU one load instruction of a subgroup reads HEAD_LANES
+// Invocations per point in ror_head: 4 in the step's GPU layout (`SirenGpu::set_gpu_step_layout`),
+// where lane j sums features j, j + 4, ..., so that one load instruction of a subgroup reads 4
 // consecutive floats of each point's row, not one float from each of 32 rows 2·width apart (on
-// an H100 the one-point-per-invocation head took 63 µs for 10⁴ points). 1 on CPU adapters,
-// where a point per invocation measured faster (lavapipe: 18.4 against 24.6 ms with 4).
+// an H100 the one-point-per-invocation head took 63 µs for 10⁴ points); 1 in the CPU layout,
+// which lavapipe measured faster (18.4 against 24.6 ms).
 override HEAD_LANES: u32 = 4u;
 var<workgroup> head_red: array<vec4<f32>, LOSS_WG>;
 

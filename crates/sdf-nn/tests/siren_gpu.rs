@@ -832,11 +832,13 @@ fn reverse_over_reverse_step_matches_cpu_reference() {
     }
 }
 
-/// The reverse-over-reverse step's per-point kernel with every count of lanes per point (1 on
-/// CPU adapters, 4 on GPUs by default), on a width that no count divides and a batch that
-/// leaves its last workgroup partly empty.
+/// The reverse-over-reverse step in both layouts of its per-point and reduction kernels (the
+/// CPU layout is lavapipe's default, the GPU one a GPU's): 4 lanes per point in the head on a
+/// width that 4 does not divide and a batch that leaves its last workgroup partly empty, and the
+/// output and first layers' partials summed by a workgroup per output where they have 64 splits
+/// or more (the output layer's 256 at any batch; the first layer's 66 at 4200 points, 1 at 45).
 #[test]
-fn reverse_over_reverse_head_lanes_match_cpu_reference() {
+fn reverse_over_reverse_step_layouts_match_cpu_reference() {
     let gpu = gpu();
     let cfg = SirenConfig {
         width: 18,
@@ -844,14 +846,16 @@ fn reverse_over_reverse_head_lanes_match_cpu_reference() {
         omega0: 30.0,
     };
     let net = Siren::new(cfg, 31).unwrap();
-    for lanes in [1, 2, 4, 8] {
-        with_kernels(gpu, &net, &[LayerKernels::Tiled], |g| {
-            g.set_train_step(TrainStep::ReverseOverReverse);
-            g.set_head_lanes(Some(lanes));
-            assert_eq!(g.head_lanes(gpu), lanes);
-            eprint!("{lanes} lanes: ");
-            gradients_match_with(g, cfg, &net, 45, 19, 32, &soft_weights())
-        });
+    for gpu_layout in [false, true] {
+        for (n, n_surface) in [(45, 19), (4200, 2000)] {
+            with_kernels(gpu, &net, &[LayerKernels::Tiled], |g| {
+                g.set_train_step(TrainStep::ReverseOverReverse);
+                g.set_gpu_step_layout(Some(gpu_layout));
+                assert_eq!(g.gpu_step_layout(gpu), gpu_layout);
+                eprint!("GPU layout {gpu_layout}: ");
+                gradients_match_with(g, cfg, &net, n, n_surface, 32, &soft_weights())
+            });
+        }
     }
 }
 

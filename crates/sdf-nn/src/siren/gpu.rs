@@ -267,8 +267,8 @@ pub struct SirenGpu {
     fused_max_points: u32,
     /// Register blocks per invocation the fused kernel may use ([`SirenGpu::set_fused_row_blocks`]).
     fused_row_blocks: u32,
-    /// [`SirenGpu::set_head_lanes`] (`None`: by adapter).
-    head_lanes: Option<u32>,
+    /// [`SirenGpu::set_gpu_step_layout`] (`None`: by adapter).
+    gpu_step_layout: Option<bool>,
     /// The tiled GEMM's register blocks.
     tiled_block: TiledBlock,
     /// The parameters change only through [`SirenGpu::upload`] (a served model, see
@@ -316,7 +316,7 @@ impl SirenGpu {
                 u32::MAX
             },
             fused_row_blocks: 1,
-            head_lanes: None,
+            gpu_step_layout: None,
             tiled_block,
             frozen: false,
             coop_min_points: None,
@@ -536,20 +536,24 @@ impl SirenGpu {
         self.eval_grad = None;
     }
 
-    /// Invocations per point of the reverse-over-reverse step's per-point kernel: 1, 2, 4 or 8
-    /// (others are rounded up to one of them; `None`: [`SirenGpu::head_lanes`]'s default). A
-    /// [`super::SirenTrainer`] must rebuild its passes: use
+    /// Lays out the reverse-over-reverse step's per-point and reduction kernels for a GPU
+    /// (`Some(true)`), for a CPU adapter (`Some(false)`), or by the adapter (`None`, the
+    /// default). The GPU layout gives the per-point kernel (`ror_head`) 4 invocations per point,
+    /// so that a subgroup's loads read 4 consecutive floats of each point's rows (one float
+    /// from each of 32 rows apart took 63 µs for 10⁴ points on an H100), and sums the split
+    /// partials of the layers with few outputs (the output and first layers) with a workgroup
+    /// per output. Lavapipe measured both slower (the head 24.6 against 18.4 ms for the
+    /// `small` preset's 10⁴ points, the two reductions 6.2 against 0.4 ms). Results agree to
+    /// f32 rounding. A [`super::SirenTrainer`] must rebuild its passes: use
     /// [`super::SirenTrainer::set_train_step`].
-    pub fn set_head_lanes(&mut self, lanes: Option<u32>) {
-        self.head_lanes = lanes.map(|l| l.clamp(1, ror::MAX_HEAD_LANES).next_power_of_two());
+    pub fn set_gpu_step_layout(&mut self, gpu_layout: Option<bool>) {
+        self.gpu_step_layout = gpu_layout;
     }
 
-    /// Invocations per point of the reverse-over-reverse step's per-point kernel (`ror_head`)
-    /// on `gpu`: [`SirenGpu::set_head_lanes`], else 4 on GPUs (a subgroup's loads then read 4
-    /// consecutive floats of each point's rows) and 1 on CPU adapters (faster on lavapipe:
-    /// 18.4 against 24.6 ms for the `small` preset's 10⁴ points).
-    pub fn head_lanes(&self, gpu: &GpuContext) -> u32 {
-        self.head_lanes.unwrap_or(if gpu.is_cpu() { 1 } else { 4 })
+    /// Whether the reverse-over-reverse step runs its GPU layout on `gpu`
+    /// ([`SirenGpu::set_gpu_step_layout`]).
+    pub fn gpu_step_layout(&self, gpu: &GpuContext) -> bool {
+        self.gpu_step_layout.unwrap_or(!gpu.is_cpu())
     }
 
     /// Register blocks of four rows per invocation of the fused kernel, 1 to 3 (default 1):
@@ -1305,9 +1309,9 @@ impl TrainPasses {
         // Every point's: the normal on the surface, (side, 0, 0) off it.
         let normals = gpu.storage_zeroed("siren batch normals", u64::from(n) * 3 * 4)?;
         // A sum per workgroup of the head, whichever step: the reverse-over-reverse head's
-        // workgroups take the fewest points, at most MAX_HEAD_LANES lanes per point (passes
-        // rebuilt on these buffers may use more lanes than these).
-        let head_groups = n.div_ceil(WG.min(ror::HEAD_WG / ror::MAX_HEAD_LANES));
+        // workgroups take the fewest points, in its GPU layout (passes rebuilt on these
+        // buffers may have the other layout).
+        let head_groups = n.div_ceil(WG.min(ror::HEAD_WG / ror::GPU_HEAD_LANES));
         let loss_partial = gpu.storage_zeroed("siren loss partial", u64::from(head_groups) * 16)?;
         Self::with_io(
             gpu,

@@ -78,8 +78,18 @@ const FIRST_WGRAD_ROWS: u32 = 128;
 /// workgroup): 64, so that a batch of 10⁴ points spreads over 625 workgroups on a GPU (4 lanes
 /// per point: every SM busy).
 pub(crate) const HEAD_WG: u32 = 64;
-/// Most invocations per point of `ror_head` ([`SirenGpu::set_head_lanes`]).
-pub(crate) const MAX_HEAD_LANES: u32 = 8;
+/// Whether a weight gradient's split partials are summed by a workgroup per output
+/// (`reduce_wgrad_by_output`) rather than an invocation per output: in the step's GPU layout
+/// ([`SirenGpu::set_gpu_step_layout`]), for few outputs of many splits,
+/// the output layer's and the first layer's (a hidden layer's 65 792 outputs of 40 splits keep
+/// the invocation each).
+fn reduce_by_output(gpu_layout: bool, outputs: u32, splits: u32) -> bool {
+    gpu_layout && splits >= 64 && outputs <= 4096
+}
+
+/// Invocations per point of `ror_head` in the step's GPU layout
+/// ([`SirenGpu::set_gpu_step_layout`]; 1 in the CPU layout).
+pub(crate) const GPU_HEAD_LANES: u32 = 4;
 
 /// `siren_ror.wgsl`'s uniforms.
 #[repr(C)]
@@ -223,6 +233,8 @@ pub(crate) fn build(
         .unwrap_or(1);
     let partial = gpu.storage_zeroed("siren ror wgrad partial", partial_len * 4)?;
     let reduce = gpu.pipeline(&shaders::SIREN_TRAIN, "reduce_wgrad", &[])?;
+    let reduce_by_output_pipeline =
+        gpu.pipeline(&shaders::SIREN_TRAIN, "reduce_wgrad_by_output", &[])?;
     let last = layers.last().expect("at least one layer");
     let ror_uniforms = RorUniforms {
         n_points: n,
@@ -329,7 +341,8 @@ pub(crate) fn build(
         launches.extend(family.product(gpu, layers, l, n, false, e, &io, params)?);
     }
     // Φ, ∇ₓΦ = H_1 W_1, the loss and its seeds φ̄ and ḡ.
-    let head_lanes = net.head_lanes(gpu);
+    let gpu_layout = net.gpu_step_layout(gpu);
+    let head_lanes = if gpu_layout { GPU_HEAD_LANES } else { 1 };
     let loss_groups = n.div_ceil(HEAD_WG / head_lanes);
     let (hx, hy) = gpu.dispatch_size(loss_groups);
     let head = gpu.pipeline(
@@ -427,13 +440,20 @@ pub(crate) fn build(
                 ..Default::default()
             },
         );
-        launches.push(Launch::flat(
-            gpu,
-            &reduce,
-            "siren ror reduce wgrad",
-            &[entry(5, &rub), entry(6, &partial), entry(7, grads)],
-            m * k + m,
-        ));
+        let outputs = m * k + m;
+        let entries = [entry(5, &rub), entry(6, &partial), entry(7, grads)];
+        launches.push(if reduce_by_output(gpu_layout, outputs, splits) {
+            let (x, y) = gpu.dispatch_size(outputs);
+            Launch::new(
+                gpu,
+                &reduce_by_output_pipeline,
+                "siren ror reduce wgrad by output",
+                &entries,
+                (x, y, 1),
+            )
+        } else {
+            Launch::flat(gpu, &reduce, "siren ror reduce wgrad", &entries, outputs)
+        });
         keep.push(rub);
     };
     // The output layer: w̄ = Σ φ̄ A_L + Ḡ_L, b̄ = Σ φ̄.
