@@ -575,9 +575,9 @@ impl SirenGpu {
 
     /// The side of the cooperative-matrix tiles that run inference of values, if they are set
     /// up: with [`LayerKernels::CoopF16`] where the device and the network allow them (every
-    /// batch of values), and with [`LayerKernels::Auto`] in a served network
-    /// ([`crate::NeuralSdf`]) where [`auto_coop_network`] holds (batches of values of at least
-    /// [`COOP_AUTO_MIN_POINTS`]).
+    /// batch of values), and with [`LayerKernels::Auto`] where [`SirenGpu::set_coop_min_points`]
+    /// set a batch size (a served network's default, [`auto_coop_min_points`]: batches of values
+    /// of at least [`COOP_AUTO_MIN_POINTS`] on GPUs).
     pub fn coop_tile(&self) -> Option<u32> {
         self.coop.as_ref().map(CoopKernels::tile)
     }
