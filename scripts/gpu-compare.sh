@@ -8,7 +8,8 @@
 # (`cargo bench --no-run`) and the release binaries, strips them, and copies them with
 # tests/data (the benches open tests/data/spot.obj by a relative path), the PyTorch scripts and
 # this script, and archives the folder as DIR.tar.gz. With GPU_COMPARE_DEBS=1 it also downloads
-# Debian's amd64 Vulkan loader packages into DIR/debs, for a host without a loader. Copy DIR (or
+# Debian's amd64 Vulkan loader and glvnd packages into DIR/debs, for a host without them (`run`
+# unpacks them as root). Copy DIR (or
 # the archive) to the host, then `bash DIR/gpu-compare.sh run DIR`.
 #
 # `run` finds the Vulkan loader (or unpacks DIR/debs/*.deb as root, or says how to get one),
@@ -145,7 +146,10 @@ pack() {
         local o=(-oAPT::Architecture=amd64 -oAPT::Architectures=amd64 -oDir::State::Lists=/tmp/gpu-compare-apt)
         mkdir -p /tmp/gpu-compare-apt/partial "$dir/debs"
         apt-get "${o[@]}" update -qq
-        (cd "$dir/debs" && apt-get "${o[@]}" download libvulkan1)
+        # The loader, and the glvnd libraries NVIDIA's Vulkan driver loads through (without them
+        # the loader finds the driver's manifest but wgpu sees no adapter: session 19's H100).
+        (cd "$dir/debs" && apt-get "${o[@]}" download libvulkan1 libegl1 libglvnd0 libopengl0 \
+            libgl1 libglx0 libgles2)
     fi
     # One compressed file to carry (the folder is ~70 MB, the archive about a third of that).
     tar -C "$(dirname "$dir")" -czf "$dir.tar.gz" "$(basename "$dir")"
@@ -159,17 +163,18 @@ pack() {
 }
 
 find_vulkan() {
-    if ldconfig -p 2>/dev/null | grep 'libvulkan\.so\.1' >/dev/null; then
-        return 0
-    fi
     local debs=("$dir"/debs/*.deb "$dir"/../.gl/*.deb)
     local found=0 f
     for f in "${debs[@]}"; do [ -e "$f" ] && found=1; done
+    # Whenever the pack has them (and we are root): a host may have the loader but not the
+    # glvnd libraries the NVIDIA driver needs. `dpkg -x` only adds files.
     if [ "$found" = 1 ] && [ "$(id -u)" = 0 ]; then
-        echo "== no Vulkan loader: unpacking the packed Debian packages"
+        echo "== unpacking the packed Debian packages (Vulkan loader, glvnd)"
         for f in "${debs[@]}"; do [ -e "$f" ] && dpkg -x "$f" /; done
         ldconfig
-        ldconfig -p | grep 'libvulkan\.so\.1' >/dev/null && return 0
+    fi
+    if ldconfig -p 2>/dev/null | grep 'libvulkan\.so\.1' >/dev/null; then
+        return 0
     fi
     cat >&2 <<'EOF'
 No Vulkan loader (libvulkan.so.1) on this host. Either install it
@@ -181,15 +186,14 @@ EOF
 }
 
 find_icd() {
-    # The NVIDIA container runtime may put the ICD outside the loader's search path.
+    # The NVIDIA container runtime mounts the driver (and its manifest) under /usr/local/nvidia,
+    # which may be outside the loader's search path: name it where it exists (what session 19's
+    # H100 and H200 runs needed, with the glvnd libraries).
     local icd
-    for icd in /usr/share/vulkan/icd.d/*.json /etc/vulkan/icd.d/*.json; do
-        [ -e "$icd" ] && return 0
-    done
     for icd in /usr/local/nvidia/share/vulkan/icd.d/nvidia_icd.json /usr/local/nvidia/icd.d/nvidia_icd.json; do
         if [ -e "$icd" ]; then
             export VK_DRIVER_FILES=${VK_DRIVER_FILES:-$icd}
-            echo "== using the Vulkan driver manifest $icd"
+            echo "== using the Vulkan driver manifest $VK_DRIVER_FILES"
             return 0
         fi
     done
