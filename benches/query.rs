@@ -49,35 +49,68 @@ use sdf_nn::{
 
 /// Query buffers for `n` points in the normalised cube, values only.
 fn normalized_buffers(gpu: &GpuContext, sdf: &NeuralSdf, n: usize) -> QueryBuffers {
+    buffers_with(gpu, sdf, n, QueryTransfer::Auto)
+}
+
+/// [`normalized_buffers`] with [`QueryTransfer::Mapped`] (no copies: the kernel reads and
+/// writes mapped memory), where the device maps storage buffers.
+fn mapped_buffers(gpu: &GpuContext, sdf: &NeuralSdf, n: usize) -> Option<QueryBuffers> {
+    gpu.maps_storage()
+        .then(|| buffers_with(gpu, sdf, n, QueryTransfer::Mapped))
+}
+
+fn buffers_with(
+    gpu: &GpuContext,
+    sdf: &NeuralSdf,
+    n: usize,
+    transfer: QueryTransfer,
+) -> QueryBuffers {
     sdf.create_query_buffers(
         gpu,
         &QueryBuffersDescriptor {
             capacity: n as u32,
             space: QuerySpace::Normalized,
+            transfer,
             ..Default::default()
         },
     )
     .unwrap()
 }
 
-/// [`normalized_buffers`] with [`QueryTransfer::Mapped`] (no copies: the kernel reads and
-/// writes mapped memory), where the device maps storage buffers.
-fn mapped_buffers(gpu: &GpuContext, sdf: &NeuralSdf, n: usize) -> Option<QueryBuffers> {
-    if !gpu.maps_storage() {
-        return None;
-    }
-    Some(
-        sdf.create_query_buffers(
-            gpu,
-            &QueryBuffersDescriptor {
-                capacity: n as u32,
-                space: QuerySpace::Normalized,
-                transfer: QueryTransfer::Mapped,
-                ..Default::default()
-            },
-        )
-        .unwrap(),
-    )
+/// The serving API's round: `submit_query` of `pts`, then `wait`, the values into `out`.
+fn serve(
+    gpu: &GpuContext,
+    sdf: &NeuralSdf,
+    buffers: &mut QueryBuffers,
+    pts: &[Vec3],
+    out: &mut Vec<f32>,
+) {
+    let ticket = sdf.submit_query(gpu, buffers, pts).unwrap();
+    out.clear();
+    buffers.wait(gpu, ticket).unwrap().extend_values(out);
+}
+
+/// `record_query` of the first `n` points already in `buffers`, submitted and waited for, the
+/// values left on the GPU: what PyTorch's eval of a device tensor measures.
+fn resident_query(gpu: &GpuContext, sdf: &NeuralSdf, buffers: &mut QueryBuffers, n: usize) {
+    let mut enc = gpu.device().create_command_encoder(&Default::default());
+    sdf.record_query(gpu, &mut enc, buffers, n as u32).unwrap();
+    gpu.queue().submit([enc.finish()]);
+    gpu.wait().unwrap();
+}
+
+/// `record_query` of the first `n` points already in `buffers`, the values read back through
+/// `staging`: a query without its upload.
+fn recorded_query(
+    gpu: &GpuContext,
+    sdf: &NeuralSdf,
+    buffers: &mut QueryBuffers,
+    n: usize,
+    staging: &wgpu::Buffer,
+) -> Vec<f32> {
+    let mut enc = gpu.device().create_command_encoder(&Default::default());
+    sdf.record_query(gpu, &mut enc, buffers, n as u32).unwrap();
+    submit_and_read(gpu, enc, buffers.results(), staging)
 }
 
 /// Copies the start of `src` into the whole of the mappable `staging` at the end of `enc`,
@@ -204,11 +237,7 @@ fn nglod(c: &mut Criterion, gpu: &GpuContext) {
             let mut buffers = normalized_buffers(gpu, &sdf, n);
             let mut out = Vec::with_capacity(n);
             g.bench_with_input(BenchmarkId::new("serve_submit_wait", n), &pts, |b, pts| {
-                b.iter(|| {
-                    let ticket = sdf.submit_query(gpu, &mut buffers, pts).unwrap();
-                    out.clear();
-                    buffers.wait(gpu, ticket).unwrap().extend_values(&mut out);
-                })
+                b.iter(|| serve(gpu, &sdf, &mut buffers, pts, &mut out))
             });
             if let Some(timer) = GpuTimer::new(gpu) {
                 g.bench_with_input(BenchmarkId::new("old_report_path", n), &pts, |b, pts| {
@@ -327,26 +356,18 @@ fn interleaved(gpu: &GpuContext, rounds: usize) {
                 (
                     "serve_recorded".into(),
                     Box::new(|| {
-                        let mut enc = gpu.device().create_command_encoder(&Default::default());
-                        sdf.record_query(gpu, &mut enc, &mut resident, n as u32)
-                            .unwrap();
-                        std::hint::black_box(submit_and_read(
+                        std::hint::black_box(recorded_query(
                             gpu,
-                            enc,
-                            resident.results(),
+                            &sdf,
+                            &mut resident,
+                            n,
                             &resident_staging,
                         ));
                     }),
                 ),
                 (
                     "resident".into(),
-                    Box::new(|| {
-                        let mut enc = gpu.device().create_command_encoder(&Default::default());
-                        sdf.record_query(gpu, &mut enc, &mut resident_only, n as u32)
-                            .unwrap();
-                        gpu.queue().submit([enc.finish()]);
-                        gpu.wait().unwrap();
-                    }),
+                    Box::new(|| resident_query(gpu, &sdf, &mut resident_only, n)),
                 ),
                 (
                     "kernel".into(),
@@ -368,21 +389,13 @@ fn interleaved(gpu: &GpuContext, rounds: usize) {
                 ),
                 (
                     "serve_submit_wait".into(),
-                    Box::new(|| {
-                        let ticket = sdf.submit_query(gpu, &mut buffers, &pts).unwrap();
-                        out.clear();
-                        buffers.wait(gpu, ticket).unwrap().extend_values(&mut out);
-                    }),
+                    Box::new(|| serve(gpu, &sdf, &mut buffers, &pts, &mut out)),
                 ),
             ];
             if let Some(m) = mapped.as_mut() {
                 variants.push((
                     "serve_mapped".into(),
-                    Box::new(|| {
-                        let ticket = sdf.submit_query(gpu, m, &pts).unwrap();
-                        mapped_out.clear();
-                        m.wait(gpu, ticket).unwrap().extend_values(&mut mapped_out);
-                    }),
+                    Box::new(|| serve(gpu, &sdf, m, &pts, &mut mapped_out)),
                 ));
             }
             if let Some(t) = &timer {
@@ -482,7 +495,7 @@ fn interleaved_siren_preset(
             let mut resident_only = normalized_buffers(gpu, sdf, n);
             resident_only.upload(gpu, &pts).unwrap();
             let resident_staging = readback_buffer(gpu, "bench resident staging", n as u64 * 4);
-            let mut mapped = mapped_buffers(gpu, sdf, n);
+            let mapped = mapped_buffers(gpu, sdf, n);
             let pts = &pts;
             variants.push((
                 format!("{name}kernel"),
@@ -507,49 +520,30 @@ fn interleaved_siren_preset(
             let mut out = Vec::with_capacity(n);
             variants.push((
                 format!("{name}serve_submit_wait"),
-                Box::new(move || {
-                    let ticket = sdf.submit_query(gpu, &mut staged, pts).unwrap();
-                    out.clear();
-                    staged.wait(gpu, ticket).unwrap().extend_values(&mut out);
-                }),
+                Box::new(move || serve(gpu, sdf, &mut staged, pts, &mut out)),
             ));
             // Points already on the GPU, the values read back: a query without its upload.
             variants.push((
                 format!("{name}serve_recorded"),
                 Box::new(move || {
-                    let mut enc = gpu.device().create_command_encoder(&Default::default());
-                    sdf.record_query(gpu, &mut enc, &mut resident, n as u32)
-                        .unwrap();
-                    std::hint::black_box(submit_and_read(
+                    std::hint::black_box(recorded_query(
                         gpu,
-                        enc,
-                        resident.results(),
+                        sdf,
+                        &mut resident,
+                        n,
                         &resident_staging,
                     ));
                 }),
             ));
-            // Points and values on the GPU, the submission waited for: what PyTorch's eval
-            // (a tensor on the device in, one out, `torch.cuda.synchronize()`) measures.
             variants.push((
                 format!("{name}resident"),
-                Box::new(move || {
-                    let mut enc = gpu.device().create_command_encoder(&Default::default());
-                    sdf.record_query(gpu, &mut enc, &mut resident_only, n as u32)
-                        .unwrap();
-                    gpu.queue().submit([enc.finish()]);
-                    gpu.wait().unwrap();
-                }),
+                Box::new(move || resident_query(gpu, sdf, &mut resident_only, n)),
             ));
-            if mapped.is_some() {
+            if let Some(mut m) = mapped {
                 let mut out = Vec::with_capacity(n);
                 variants.push((
                     format!("{name}serve_mapped"),
-                    Box::new(move || {
-                        let m = mapped.as_mut().unwrap();
-                        let ticket = sdf.submit_query(gpu, m, pts).unwrap();
-                        out.clear();
-                        m.wait(gpu, ticket).unwrap().extend_values(&mut out);
-                    }),
+                    Box::new(move || serve(gpu, sdf, &mut m, pts, &mut out)),
                 ));
             }
         }

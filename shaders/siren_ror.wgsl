@@ -77,6 +77,12 @@ fn flat_id(wid: vec3<u32>, nwg: vec3<u32>, lid: u32) -> u32 {
     return (wid.y * nwg.x + wid.x) * WG + lid;
 }
 
+// Row o of the first layer's weights W_1 (fan-in 3).
+fn w1_row(o: u32) -> vec3<f32> {
+    let w = r.w1_off + 3u * o;
+    return vec3<f32>(params[w], params[w + 1u], params[w + 2u]);
+}
+
 @compute @workgroup_size(256)
 fn ror_top(
     @builtin(workgroup_id) wid: vec3<u32>,
@@ -139,11 +145,10 @@ fn ror_head(
     if p < r.n_points {
         let row = 2u * p * r.width;
         for (var i = lane; i < r.width; i += HEAD_LANES) {
-            let w1 = r.w1_off + 3u * i;
             let h = y_first[row + r.width + i];
             acc = vec4<f32>(
                 fma(params[r.w_out_off + i], x_last[row + i], acc.x),
-                fma(vec3<f32>(h), vec3<f32>(params[w1], params[w1 + 1u], params[w1 + 2u]), acc.yzw),
+                fma(vec3<f32>(h), w1_row(i), acc.yzw),
             );
         }
     }
@@ -259,11 +264,11 @@ fn ror_first_forward(
     }
     let p = t / r.width;
     let o = t % r.width;
-    let w = r.w1_off + 3u * o;
+    let w = w1_row(o);
     let q = 12u * p;
-    var z = x_streams[q] * params[w];
-    z = fma(x_streams[q + 1u], params[w + 1u], z);
-    z = fma(x_streams[q + 2u], params[w + 2u], z);
+    var z = x_streams[q] * w.x;
+    z = fma(x_streams[q + 1u], w.y, z);
+    z = fma(x_streams[q + 2u], w.z, z);
     z += params[r.b1_off + o];
     let i = 2u * p * r.width + o;
     p_last[i] = z;
@@ -282,11 +287,11 @@ fn ror_first_grad_adjoint(
     }
     let p = t / r.width;
     let o = t % r.width;
-    let w = r.w1_off + 3u * o;
+    let w = w1_row(o);
     let q = 6u * p + 3u;
-    var c = x0[q] * params[w];
-    c = fma(x0[q + 1u], params[w + 1u], c);
-    c = fma(x0[q + 2u], params[w + 2u], c);
+    var c = x0[q] * w.x;
+    c = fma(x0[q + 1u], w.y, c);
+    c = fma(x0[q + 2u], w.z, c);
     let i = 2u * p * r.width + o;
     let wz = r.omega * p_last[i];
     let g = p_last[i + r.width];

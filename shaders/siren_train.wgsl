@@ -133,8 +133,6 @@ fn reduce_wgrad(
 // With one invocation per output summing every split in turn they took 19.7 and 15.5 µs on an
 // H100 (a hidden layer's 65 792 outputs: 9.4). The step's GPU layout only: lavapipe measured it
 // slower (`SirenGpu::set_gpu_step_layout`).
-var<workgroup> red_sum: array<f32, 256>;
-
 @compute @workgroup_size(256)
 fn reduce_wgrad_by_output(
     @builtin(workgroup_id) wid: vec3<u32>,
@@ -155,24 +153,31 @@ fn reduce_wgrad_by_output(
             s += partial[red.pbias_off + k * red.m + (t - mn)];
         }
     }
-    red_sum[lid] = s;
-    workgroupBarrier();
-    for (var stride = WG / 2u; stride > 0u; stride /= 2u) {
-        if lid < stride {
-            red_sum[lid] += red_sum[lid + stride];
-        }
-        workgroupBarrier();
-    }
+    let sum = workgroup_sum(lid, vec4<f32>(s, 0.0, 0.0, 0.0)).x;
     if lid == 0u {
         if t < mn {
-            grads[red.w_off + t] += red_sum[0];
+            grads[red.w_off + t] += sum;
         } else {
-            grads[red.b_off + t - mn] += red_sum[0];
+            grads[red.b_off + t - mn] += sum;
         }
     }
 }
 
 var<workgroup> acc: array<vec4<f32>, 256>;
+
+// The tree sum of `v` over the workgroup's WG invocations (every one must call it, in uniform
+// control flow); invocation 0 gets the sum.
+fn workgroup_sum(lid: u32, v: vec4<f32>) -> vec4<f32> {
+    acc[lid] = v;
+    workgroupBarrier();
+    for (var stride = WG / 2u; stride > 0u; stride /= 2u) {
+        if lid < stride {
+            acc[lid] += acc[lid + stride];
+        }
+        workgroupBarrier();
+    }
+    return acc[lid];
+}
 
 @compute @workgroup_size(256)
 fn reduce_loss(@builtin(local_invocation_index) lid: u32) {
@@ -181,16 +186,8 @@ fn reduce_loss(@builtin(local_invocation_index) lid: u32) {
         s += vec4<f32>(loss_partial[4u * i], loss_partial[4u * i + 1u], loss_partial[4u * i + 2u],
             loss_partial[4u * i + 3u]);
     }
-    acc[lid] = s;
-    workgroupBarrier();
-    for (var stride = WG / 2u; stride > 0u; stride /= 2u) {
-        if lid < stride {
-            acc[lid] += acc[lid + stride];
-        }
-        workgroupBarrier();
-    }
+    let r = workgroup_sum(lid, s);
     if lid == 0u {
-        let r = acc[0];
         history[4u * lr.slot] = r.x;
         history[4u * lr.slot + 1u] = r.y;
         history[4u * lr.slot + 2u] = r.z;

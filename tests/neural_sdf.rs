@@ -194,10 +194,7 @@ fn a_sphere_model_extracts_to_the_sphere() {
 fn serving_api_reuses_buffers_and_refuses_misuse() {
     let gpu = gpu();
     let models = models();
-    let mappable = gpu
-        .device()
-        .features()
-        .contains(wgpu::Features::MAPPABLE_PRIMARY_BUFFERS);
+    let mappable = gpu.maps_storage();
     // Both ways of moving data, whichever `Auto` picks on this adapter.
     for (model, transfer) in models
         .iter()

@@ -462,10 +462,7 @@ impl GpuContext {
     /// so kernels read and write mapped memory at full speed and copies through staging
     /// buffers are pure overhead. On a discrete GPU mappable memory is slow for kernels.
     pub fn maps_storage_cheaply(&self) -> bool {
-        self.device
-            .features()
-            .contains(wgpu::Features::MAPPABLE_PRIMARY_BUFFERS)
-            && shares_host_memory(self.adapter_info.device_type)
+        self.maps_storage() && shares_host_memory(self.adapter_info.device_type)
     }
 
     /// A zeroed storage buffer (as [`GpuContext::storage_zeroed`]) with extra `usage`, e.g.

@@ -653,10 +653,7 @@ impl NeuralSdf {
         let out_floats = u64::from(desc.outputs.floats_per_point());
         let storage =
             |what: &str, bytes: u64| gpu.storage_zeroed(&format!("{label} {what}"), bytes);
-        let mappable = gpu
-            .device()
-            .features()
-            .contains(wgpu::Features::MAPPABLE_PRIMARY_BUFFERS);
+        let mappable = gpu.maps_storage();
         let mapped = match desc.transfer {
             QueryTransfer::Auto => gpu.maps_storage_cheaply(),
             QueryTransfer::Staged => false,

@@ -285,6 +285,15 @@ impl SirenGpu {
     /// Uploads `siren`'s parameters and compiles (or fetches from the context's cache) the
     /// kernels.
     pub fn new(gpu: &GpuContext, siren: &Siren) -> Result<Self, SirenGpuError> {
+        Self::with_coop_min_points(gpu, siren, None)
+    }
+
+    /// [`SirenGpu::new`] with [`SirenGpu::set_coop_min_points`] set to `coop_min_points`.
+    fn with_coop_min_points(
+        gpu: &GpuContext,
+        siren: &Siren,
+        coop_min_points: Option<u32>,
+    ) -> Result<Self, SirenGpuError> {
         let config = *siren.config();
         config.validate()?;
         // Padded to 16 bytes: the GEMM also reads it as vec4.
@@ -295,8 +304,15 @@ impl SirenGpu {
         let layers = config.layers();
         let kernels = LayerKernels::default();
         let tiled_block = TiledBlock::default();
-        let (dense, tiled, coop) =
-            Self::families(gpu, kernels, tiled_block, &config, &layers, &params, false)?;
+        let (dense, tiled, coop) = Self::families(
+            gpu,
+            kernels,
+            tiled_block,
+            &config,
+            &layers,
+            &params,
+            coop_min_points.is_some(),
+        )?;
         Ok(SirenGpu {
             config,
             layers,
@@ -319,7 +335,7 @@ impl SirenGpu {
             gpu_step_layout: None,
             tiled_block,
             frozen: false,
-            coop_min_points: None,
+            coop_min_points,
             train_step: TrainStep::default(),
         })
     }
@@ -329,13 +345,10 @@ impl SirenGpu {
     /// skip [`SirenGpu::record_pack`]; [`SirenGpu::upload`] and
     /// [`SirenGpu::set_layer_kernels`] pack.
     pub(crate) fn new_frozen(gpu: &GpuContext, siren: &Siren) -> Result<Self, SirenGpuError> {
-        let mut net = Self::new(gpu, siren)?;
-        net.frozen = true;
         // What `Auto` runs a served network's large batches on.
-        net.coop_min_points = auto_coop_min_points(gpu.is_cpu(), &net.config);
-        if net.coop_min_points.is_some() {
-            net.coop = CoopKernels::new(gpu, &net.config, &net.params)?;
-        }
+        let coop_min_points = auto_coop_min_points(gpu.is_cpu(), siren.config());
+        let mut net = Self::with_coop_min_points(gpu, siren, coop_min_points)?;
+        net.frozen = true;
         net.pack_now(gpu);
         Ok(net)
     }
@@ -831,27 +844,20 @@ impl SirenGpu {
         Ok(Some(launches?))
     }
 
-    /// The one-dispatch kernel over `n` points where this network runs one for them: the
-    /// cooperative-matrix kernel where it is set up, else the tiled fused kernel where
-    /// [`SirenGpu::runs_fused`]. Its input and output are those of
-    /// [`TiledKernels::fused_forward`] (`query`: the map into the cube of a caller's points).
-    fn one_dispatch(
-        &self,
-        gpu: &GpuContext,
-        n: u32,
-        tangents: bool,
-        query: Option<glam::Vec4>,
-        input: &wgpu::Buffer,
-        output: &wgpu::Buffer,
-    ) -> Result<Option<OneDispatch>, GpuError> {
-        let coop = self.kernels == LayerKernels::CoopF16 || self.auto_coop_from(tangents) <= n;
-        self.one_dispatch_on(gpu, n, tangents, query, input, output, coop)
+    /// Whether an inference of `n` points (`tangents`: with gradients) runs on the
+    /// cooperative-matrix kernels where they are set up: every one with
+    /// [`LayerKernels::CoopF16`], batches of values from [`SirenGpu::set_coop_min_points`] on
+    /// with `Auto`.
+    fn runs_coop(&self, n: u32, tangents: bool) -> bool {
+        self.kernels == LayerKernels::CoopF16 || self.auto_coop_from(tangents) <= n
     }
 
-    /// [`SirenGpu::one_dispatch`] on the cooperative-matrix kernel if `coop` and it is set up,
-    /// else on the fused kernel where it runs `n` points.
+    /// The one-dispatch kernel over `n` points where this network runs one for them: the
+    /// cooperative-matrix kernel if `coop` and it is set up, else the tiled fused kernel where
+    /// [`SirenGpu::runs_fused`]. Its input and output are those of
+    /// [`TiledKernels::fused_forward`] (`query`: the map into the cube of a caller's points).
     #[allow(clippy::too_many_arguments)]
-    fn one_dispatch_on(
+    fn one_dispatch(
         &self,
         gpu: &GpuContext,
         n: u32,
@@ -912,7 +918,7 @@ impl SirenGpu {
         let written = capacity * rows_per_point;
         let always_coop = self.kernels == LayerKernels::CoopF16;
         let one =
-            |coop| self.one_dispatch_on(gpu, capacity, normals, Some(map), points, results, coop);
+            |coop| self.one_dispatch(gpu, capacity, normals, Some(map), points, results, coop);
         let Some(kernel) = one(always_coop)? else {
             return Ok(None);
         };
@@ -1046,7 +1052,8 @@ impl SirenGpu {
     ) -> Result<Vec<Launch>, GpuError> {
         let cfg = &self.config;
         let rows = if ws.tangents { 4 * n } else { n };
-        if let Some(one) = self.one_dispatch(gpu, n, ws.tangents, None, input, values)? {
+        let coop = self.runs_coop(n, ws.tangents);
+        if let Some(one) = self.one_dispatch(gpu, n, ws.tangents, None, input, values, coop)? {
             return Ok(vec![one.launch]);
         }
         let p = &self.pipelines;

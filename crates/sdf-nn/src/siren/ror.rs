@@ -270,9 +270,36 @@ pub(crate) fn build(
     let mut launches = Vec::new();
     let mut keep = Vec::new();
     let top = l_hidden - 1;
+    // On the tiled family the first layer's two products with fan-in 3 run elementwise
+    // (`ror_first_forward`, `ror_first_grad_adjoint`), not as GEMM tiles padded from 3
+    // columns: one invocation per (point, feature) of P_1 and X_1, reading `input`.
+    let first_tiled = matches!(family, Family::Tiled(_));
+    let first_layer = |entry_point: &str, label: &str, input: wgpu::BindGroupEntry<'_>| {
+        Ok::<_, GpuError>(Launch::flat(
+            gpu,
+            &pipe(entry_point)?,
+            label,
+            &[
+                entry(0, &ru),
+                entry(1, params),
+                entry(2, &p[0]),
+                entry(3, &x[0]),
+                input,
+            ],
+            n * width,
+        ))
+    };
 
     // Forward: P_l ← Z_l, X_l ← A_l.
     for l in 0..l_hidden {
+        if l == 0 && first_tiled {
+            launches.push(first_layer(
+                "ror_first_forward",
+                "siren ror first-layer forward",
+                entry(6, x_streams),
+            )?);
+            continue;
+        }
         let (src, a_rs) = if l == 0 {
             (x_streams, 12)
         } else {
@@ -290,23 +317,6 @@ pub(crate) fn build(
             z_first: 0,
             t_first: 0,
         };
-        if l == 0 && matches!(family, Family::Tiled(_)) {
-            // Fan-in 3: elementwise, not a GEMM tile padded from 3 columns.
-            launches.push(Launch::flat(
-                gpu,
-                &pipe("ror_first_forward")?,
-                "siren ror first-layer forward",
-                &[
-                    entry(0, &ru),
-                    entry(1, params),
-                    entry(2, &p[0]),
-                    entry(3, &x[0]),
-                    entry(6, x_streams),
-                ],
-                n * width,
-            ));
-            continue;
-        }
         let e = RorEpilogue::Forward { omega };
         launches.extend(family.product(gpu, layers, l, n, true, e, &io, params)?);
     }
@@ -372,6 +382,14 @@ pub(crate) fn build(
     ));
     // The adjoint of the input-gradient chain: H̄_l = Ḡ_{l-1} W_lᵀ, Ḡ_l into X_l, T_l into P_l.
     for l in 0..l_hidden {
+        if l == 0 && first_tiled {
+            launches.push(first_layer(
+                "ror_first_grad_adjoint",
+                "siren ror first-layer input-gradient adjoint",
+                entry(8, &x0),
+            )?);
+            continue;
+        }
         let (src, a_off, a_rs) = if l == 0 {
             (&x0, 3, 6)
         } else {
@@ -389,22 +407,6 @@ pub(crate) fn build(
             z_first: 0,
             t_first: 0,
         };
-        if l == 0 && matches!(family, Family::Tiled(_)) {
-            launches.push(Launch::flat(
-                gpu,
-                &pipe("ror_first_grad_adjoint")?,
-                "siren ror first-layer input-gradient adjoint",
-                &[
-                    entry(0, &ru),
-                    entry(1, params),
-                    entry(2, &p[0]),
-                    entry(3, &x[0]),
-                    entry(8, &x0),
-                ],
-                n * width,
-            ));
-            continue;
-        }
         let e = RorEpilogue::GradAdjoint { omega };
         launches.extend(family.product(gpu, layers, l, n, true, e, &io, params)?);
     }
