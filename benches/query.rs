@@ -34,6 +34,8 @@
 //! the GPU, submitted and waited for, the values left there: what PyTorch's eval of a device
 //! tensor measures), and, where the device maps storage buffers (not with
 //! `HWSDF_MAPPABLE_STORAGE=0`), `serve_mapped` (the serving API with `QueryTransfer::Mapped`).
+//! Before them, `transfer` rows split a mapped query's host-side transfers (no kernel): see
+//! `transfer_split`.
 
 use std::time::Duration;
 
@@ -587,6 +589,121 @@ fn report_interleaved(prefix: &str, variants: &mut [Variant<'_>], rounds: usize)
     }
 }
 
+/// Where a mapped query's transfers spend their time, without a kernel, on buffers made as
+/// `QueryTransfer::Mapped` makes them (points `STORAGE | COPY_DST | MAP_WRITE`, on a discrete
+/// GPU write-combined device memory across the bus; results `STORAGE | COPY_SRC | MAP_READ`):
+/// - `map_write_cycle`: the points mapped for writing (polled until mapped) and unmapped;
+/// - `pack_host`: the points padded to vec4 into a host vector;
+/// - `memcpy_mapped`: that vector copied into the mapped points in one `memcpy` (uploads
+///   before session 20 did both);
+/// - `store_mapped`: the points written into the mapped points, one 16-byte store each;
+/// - `write_mapped`: the points written by `sdf_nn::query::write_points` (what uploads do now:
+///   packed in 1 KiB blocks on the stack, each block copied);
+/// - `read_mapped`: the mapped results (one float per point) read into a host vector.
+fn transfer_split(gpu: &GpuContext, rounds: usize) {
+    use std::sync::Arc;
+    use std::sync::atomic::{AtomicBool, Ordering};
+    use std::time::Instant;
+    if !gpu.maps_storage() {
+        println!("transfer split: this device does not map storage buffers");
+        return;
+    }
+    let map = |buffer: &wgpu::Buffer, mode: wgpu::MapMode| {
+        let done = Arc::new(AtomicBool::new(false));
+        let flag = Arc::clone(&done);
+        buffer
+            .slice(..)
+            .map_async(mode, move |r| flag.store(r.is_ok(), Ordering::Release));
+        while !done.load(Ordering::Acquire) {
+            gpu.device().poll(wgpu::PollType::Poll).unwrap();
+        }
+    };
+    let mut sizes = batch_sizes();
+    sizes.push(50_000);
+    for n in sizes {
+        let pts: Vec<Vec3> = sdf_geom::sample::uniform_box(n, 42);
+        let buffer = |label, size, usage| {
+            gpu.device().create_buffer(&wgpu::BufferDescriptor {
+                label: Some(label),
+                size,
+                usage: wgpu::BufferUsages::STORAGE | usage,
+                mapped_at_creation: false,
+            })
+        };
+        let points = buffer(
+            "bench mapped points",
+            n as u64 * 16,
+            wgpu::BufferUsages::COPY_DST | wgpu::BufferUsages::MAP_WRITE,
+        );
+        let results = buffer(
+            "bench mapped results",
+            n as u64 * 4,
+            wgpu::BufferUsages::COPY_SRC | wgpu::BufferUsages::MAP_READ,
+        );
+        let names = [
+            "map_write_cycle",
+            "pack_host",
+            "memcpy_mapped",
+            "store_mapped",
+            "write_mapped",
+            "read_mapped",
+        ];
+        let mut times: Vec<Vec<f64>> = vec![Vec::with_capacity(rounds); names.len()];
+        let mut host: Vec<[f32; 4]> = Vec::with_capacity(n);
+        let mut out: Vec<f32> = Vec::with_capacity(n);
+        let mut timed = |i: usize, f: &mut dyn FnMut()| {
+            let start = Instant::now();
+            f();
+            times[i].push(start.elapsed().as_secs_f64() * 1e6);
+        };
+        for _ in 0..=rounds {
+            timed(0, &mut || {
+                map(&points, wgpu::MapMode::Write);
+                points.unmap();
+            });
+            map(&points, wgpu::MapMode::Write);
+            timed(1, &mut || {
+                host.clear();
+                host.extend(pts.iter().map(|p| [p.x, p.y, p.z, 1.0]));
+            });
+            timed(2, &mut || {
+                let mut view = points.slice(..).get_mapped_range_mut().unwrap();
+                view.copy_from_slice(bytemuck::cast_slice(&host));
+            });
+            timed(3, &mut || {
+                let mut view = points.slice(..).get_mapped_range_mut().unwrap();
+                view.slice(..)
+                    .into_chunks::<16>()
+                    .0
+                    .write_iter(pts.iter().map(|p| bytemuck::cast([p.x, p.y, p.z, 1.0f32])));
+            });
+            timed(4, &mut || {
+                let mut view = points.slice(..).get_mapped_range_mut().unwrap();
+                sdf_nn::query::write_points(view.slice(..), &pts);
+            });
+            points.unmap();
+            map(&results, wgpu::MapMode::Read);
+            timed(5, &mut || {
+                out.clear();
+                out.extend_from_slice(bytemuck::cast_slice(
+                    &results.slice(..).get_mapped_range().unwrap(),
+                ));
+            });
+            results.unmap();
+        }
+        for (name, t) in names.iter().zip(&mut times) {
+            t.remove(0); // the first round maps and faults pages in
+            t.sort_by(f64::total_cmp);
+            println!(
+                "transfer n={n:6} {name:16} min {:8.1} µs  p10 {:8.1} µs  median {:8.1} µs",
+                t[0],
+                t[t.len() / 10],
+                t[t.len() / 2]
+            );
+        }
+    }
+}
+
 fn main() {
     let gpu = GpuContext::shared().expect("a GPU adapter");
     eprintln!("adapter: {}", gpu.describe());
@@ -594,6 +711,7 @@ fn main() {
         .ok()
         .and_then(|s| s.parse::<usize>().ok())
     {
+        transfer_split(gpu, rounds.max(1));
         interleaved(gpu, rounds.max(1));
         interleaved_siren(gpu, rounds.max(1));
         return;

@@ -273,8 +273,6 @@ pub struct QueryBuffers {
     /// The points buffer's write mapping ([`QueryTransfer::Mapped`]).
     upload_map: Arc<MapSlot>,
     kernels: Kernels,
-    /// Host copy of the points, padded to vec4, reused between uploads.
-    host: Vec<[f32; 4]>,
     /// Mapped upload buffers that [`NeuralSdf::submit_query`] writes the points into and copies
     /// from in its own encoder: unlike `Queue::write_buffer`, no staging buffer is created and
     /// no second command buffer submitted per query (≈ 8 µs of a 10-point query on lavapipe).
@@ -443,10 +441,12 @@ impl QueryBuffers {
     /// Writes `points` into [`QueryBuffers::points`] through the queue (they take effect at
     /// the next submission) and returns their count.
     pub fn upload(&mut self, gpu: &GpuContext, points: &[Vec3]) -> Result<u32, QueryError> {
-        let n = self.stage_host(points)?;
-        if n > 0 {
-            gpu.queue()
-                .write_buffer(&self.points, 0, bytemuck::cast_slice(&self.host));
+        let n = self.check_points(points)?;
+        if let Some(size) = wgpu::BufferSize::new(u64::from(n) * 16) {
+            // None: wgpu reported the error to the device's handler, as `write_buffer` would.
+            if let Some(mut view) = gpu.queue().write_buffer_with(&self.points, 0, size) {
+                write_points(view.slice(..), points);
+            }
         }
         Ok(n)
     }
@@ -462,13 +462,14 @@ impl QueryBuffers {
         enc: &mut wgpu::CommandEncoder,
         points: &[Vec3],
     ) -> Result<u32, QueryError> {
-        let n = self.stage_host(points)?;
+        let n = self.check_points(points)?;
         let Some(size) = wgpu::BufferSize::new(u64::from(n) * 16) else {
             return Ok(0);
         };
-        self.belt
-            .write_buffer(enc, &self.points, 0, size)
-            .copy_from_slice(bytemuck::cast_slice(&self.host));
+        write_points(
+            self.belt.write_buffer(enc, &self.points, 0, size).slice(..),
+            points,
+        );
         Ok(n)
     }
 
@@ -476,7 +477,7 @@ impl QueryBuffers {
     /// first: no submission uses it, since the last query was waited for) and returns their
     /// count.
     fn upload_mapped(&mut self, gpu: &GpuContext, points: &[Vec3]) -> Result<u32, NeuralSdfError> {
-        let n = self.stage_host(points)?;
+        let n = self.check_points(points)?;
         let bytes = u64::from(n) * 16;
         if bytes == 0 {
             return Ok(0);
@@ -490,7 +491,7 @@ impl QueryBuffers {
         let written = self.upload_map.settle(gpu.device()).and_then(|()| {
             slice
                 .get_mapped_range_mut()
-                .map(|mut view| view.copy_from_slice(bytemuck::cast_slice(&self.host)))
+                .map(|mut view| write_points(view.slice(..), points))
                 .map_err(|e| e.to_string())
         });
         // Also on failure: unmapping cancels a mapping still pending, which would otherwise
@@ -597,8 +598,8 @@ impl QueryBuffers {
         self.device == *gpu.device()
     }
 
-    /// Checks the count of `points` and writes them, padded to vec4, into the host copy.
-    fn stage_host(&mut self, points: &[Vec3]) -> Result<u32, QueryError> {
+    /// Checks the count of `points` and that each is finite; returns the count.
+    fn check_points(&self, points: &[Vec3]) -> Result<u32, QueryError> {
         let n = self.check_count(points.len())?;
         if let Some(index) = points.iter().position(|p| !p.is_finite()) {
             return Err(QueryError::NonFinitePoint {
@@ -606,9 +607,6 @@ impl QueryBuffers {
                 point: points[index],
             });
         }
-        self.host.clear();
-        self.host
-            .extend(points.iter().map(|p| [p.x, p.y, p.z, 1.0]));
         Ok(n)
     }
 
@@ -620,6 +618,29 @@ impl QueryBuffers {
             });
         }
         Ok(n as u32)
+    }
+}
+
+/// Writes `points` as `vec4<f32>` (w = 1), the layout of [`QueryBuffers::points`], into `dst`,
+/// which must hold exactly 16 bytes per point (panics otherwise): for your own writes into a
+/// mapped points buffer or a staging view ([`wgpu::BufferViewMut::slice`],
+/// [`wgpu::QueueWriteBufferView::slice`]).
+///
+/// On discrete GPUs `dst` is write-combined memory across the bus: the points are packed in
+/// blocks of 1 KiB on the stack and each block copied with vector stores, with no host copy of
+/// the whole batch first and no bulk `memcpy` (whose string instructions can run far below the
+/// bus's rate on such memory).
+pub fn write_points(mut dst: wgpu::WriteOnly<'_, [u8]>, points: &[Vec3]) {
+    const BLOCK: usize = 64;
+    assert_eq!(dst.len(), points.len() * 16, "16 bytes per point");
+    let mut block = [[0f32; 4]; BLOCK];
+    for (i, pts) in points.chunks(BLOCK).enumerate() {
+        for (b, p) in block.iter_mut().zip(pts) {
+            *b = [p.x, p.y, p.z, 1.0];
+        }
+        let start = i * BLOCK * 16;
+        let bytes: &[u8] = bytemuck::cast_slice(&block[..pts.len()]);
+        dst.slice(start..start + bytes.len()).copy_from_slice(bytes);
     }
 }
 
@@ -764,7 +785,6 @@ impl NeuralSdf {
             mapped,
             upload_map: Arc::new(MapSlot::default()),
             kernels,
-            host: Vec::new(),
             belt: wgpu::util::StagingBelt::new(gpu.device().clone(), cap * 16),
             map: Arc::new(MapSlot::default()),
             generation: 0,
@@ -961,6 +981,18 @@ mod tests {
                 Vec3::new(t.sin(), (1.3 * t).cos(), (0.7 * t).sin()) * 1.2
             })
             .collect()
+    }
+
+    /// `write_points` packs every point, across its 64-point blocks and a partial last one.
+    #[test]
+    fn write_points_packs_vec4_across_blocks() {
+        for n in [0, 1, 63, 64, 65, 301] {
+            let pts = &points()[..n];
+            let mut bytes = vec![0xAAu8; n * 16];
+            super::write_points(wgpu::WriteOnly::from_mut(bytes.as_mut_slice()), pts);
+            let want: Vec<[f32; 4]> = pts.iter().map(|p| [p.x, p.y, p.z, 1.0]).collect();
+            assert_eq!(bytes, bytemuck::cast_slice::<_, u8>(&want), "{n} points");
+        }
     }
 
     fn assert_close(got: &[f32], want: &[f32], what: &str) {
