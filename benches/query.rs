@@ -596,9 +596,8 @@ fn report_interleaved(prefix: &str, variants: &mut [Variant<'_>], rounds: usize)
 /// - `pack_host`: the points padded to vec4 into a host vector;
 /// - `memcpy_mapped`: that vector copied into the mapped points in one `memcpy` (uploads
 ///   before session 20 did both);
-/// - `store_mapped`: the points written into the mapped points, one 16-byte store each;
-/// - `write_mapped`: the points written by `sdf_nn::query::write_points` (what uploads do now:
-///   packed in 1 KiB blocks on the stack, each block copied);
+/// - `write_mapped`: the points written into the mapped points by `sdf_nn::query::write_points`,
+///   one 16-byte store each (what uploads do now);
 /// - `read_mapped`: the mapped results (one float per point) read into a host vector.
 fn transfer_split(gpu: &GpuContext, rounds: usize) {
     use std::sync::Arc;
@@ -644,7 +643,6 @@ fn transfer_split(gpu: &GpuContext, rounds: usize) {
             "map_write_cycle",
             "pack_host",
             "memcpy_mapped",
-            "store_mapped",
             "write_mapped",
             "read_mapped",
         ];
@@ -672,18 +670,11 @@ fn transfer_split(gpu: &GpuContext, rounds: usize) {
             });
             timed(3, &mut || {
                 let mut view = points.slice(..).get_mapped_range_mut().unwrap();
-                view.slice(..)
-                    .into_chunks::<16>()
-                    .0
-                    .write_iter(pts.iter().map(|p| bytemuck::cast([p.x, p.y, p.z, 1.0f32])));
-            });
-            timed(4, &mut || {
-                let mut view = points.slice(..).get_mapped_range_mut().unwrap();
                 sdf_nn::query::write_points(view.slice(..), &pts);
             });
             points.unmap();
             map(&results, wgpu::MapMode::Read);
-            timed(5, &mut || {
+            timed(4, &mut || {
                 out.clear();
                 out.extend_from_slice(bytemuck::cast_slice(
                     &results.slice(..).get_mapped_range().unwrap(),

@@ -626,22 +626,15 @@ impl QueryBuffers {
 /// mapped points buffer or a staging view ([`wgpu::BufferViewMut::slice`],
 /// [`wgpu::QueueWriteBufferView::slice`]).
 ///
-/// On discrete GPUs `dst` is write-combined memory across the bus: the points are packed in
-/// blocks of 1 KiB on the stack and each block copied with vector stores, with no host copy of
-/// the whole batch first and no bulk `memcpy` (whose string instructions can run far below the
-/// bus's rate on such memory).
-pub fn write_points(mut dst: wgpu::WriteOnly<'_, [u8]>, points: &[Vec3]) {
-    const BLOCK: usize = 64;
-    assert_eq!(dst.len(), points.len() * 16, "16 bytes per point");
-    let mut block = [[0f32; 4]; BLOCK];
-    for (i, pts) in points.chunks(BLOCK).enumerate() {
-        for (b, p) in block.iter_mut().zip(pts) {
-            *b = [p.x, p.y, p.z, 1.0];
-        }
-        let start = i * BLOCK * 16;
-        let bytes: &[u8] = bytemuck::cast_slice(&block[..pts.len()]);
-        dst.slice(start..start + bytes.len()).copy_from_slice(bytes);
-    }
+/// One 16-byte store per point, straight from the caller's slice: one pass over the points
+/// instead of packing a host vector and copying it (on an H100 host, into its mapped
+/// write-combined memory: 4.2 µs against 3.0 + 3.2 µs for 3000 points; BENCHMARKS.md).
+pub fn write_points(dst: wgpu::WriteOnly<'_, [u8]>, points: &[Vec3]) {
+    dst.into_chunks::<16>().0.write_iter(
+        points
+            .iter()
+            .map(|p| bytemuck::cast([p.x, p.y, p.z, 1.0f32])),
+    );
 }
 
 /// The next query's generation: tickets carry it, and buffers take only their own in-flight one.
@@ -983,16 +976,24 @@ mod tests {
             .collect()
     }
 
-    /// `write_points` packs every point, across its 64-point blocks and a partial last one.
+    /// `write_points` packs every point (a length that is not 16 bytes per point panics).
     #[test]
     fn write_points_packs_vec4_across_blocks() {
-        for n in [0, 1, 63, 64, 65, 301] {
+        for n in [0, 1, 2, 301] {
             let pts = &points()[..n];
             let mut bytes = vec![0xAAu8; n * 16];
             super::write_points(wgpu::WriteOnly::from_mut(bytes.as_mut_slice()), pts);
             let want: Vec<[f32; 4]> = pts.iter().map(|p| [p.x, p.y, p.z, 1.0]).collect();
             assert_eq!(bytes, bytemuck::cast_slice::<_, u8>(&want), "{n} points");
         }
+        let short = std::panic::catch_unwind(|| {
+            let mut bytes = vec![0u8; 16];
+            super::write_points(
+                wgpu::WriteOnly::from_mut(bytes.as_mut_slice()),
+                &points()[..2],
+            );
+        });
+        assert!(short.is_err(), "a view too short for the points must panic");
     }
 
     fn assert_close(got: &[f32], want: &[f32], what: &str) {
