@@ -43,7 +43,8 @@ struct Ror {
     w_sign: f32,
     // The first layer's bias (ror_first_forward).
     b1_off: u32,
-    _pad0: u32,
+    // Stacked rows per split of ror_first_wgrad (even).
+    first_rows: u32,
     _pad1: u32,
     _pad2: u32,
 }
@@ -212,12 +213,9 @@ fn ror_out_grad(
     }
 }
 
-// Rows of the stacked first-layer product per split of `ror_first_wgrad`: small, so that the
-// width × splits invocations fill a GPU (a hidden layer's split-K GEMM has tiles to do that).
-const FIRST_WGRAD_ROWS: u32 = 128u;
-
-// One invocation per (split, output feature o): `r.splits` splits of FIRST_WGRAD_ROWS stacked
-// rows each. Stacked row 2p is (Z̄_1[p], x[p]), row 2p + 1 is (H_1[p], ḡ[p]): Y_1's and X_0's
+// One invocation per (split, output feature o): `r.splits` splits of `r.first_rows` stacked
+// rows each (few, so that the width × splits invocations fill a GPU: a hidden layer's split-K
+// GEMM has tiles to do that). Stacked row 2p is (Z̄_1[p], x[p]), row 2p + 1 is (H_1[p], ḡ[p]): Y_1's and X_0's
 // rows as they lie (row strides `width` and 3).
 @compute @workgroup_size(256)
 fn ror_first_wgrad(
@@ -232,8 +230,8 @@ fn ror_first_wgrad(
     }
     let split = t / w;
     let o = t % w;
-    let first = split * FIRST_WGRAD_ROWS;
-    let end = min(first + FIRST_WGRAD_ROWS, 2u * r.n_points);
+    let first = split * r.first_rows;
+    let end = min(first + r.first_rows, 2u * r.n_points);
     var g = vec3<f32>(0.0);
     var b = 0.0;
     // Rows in pairs (`first` is even): the bias takes the first of each.

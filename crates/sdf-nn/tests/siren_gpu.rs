@@ -836,7 +836,9 @@ fn reverse_over_reverse_step_matches_cpu_reference() {
 /// CPU layout is lavapipe's default, the GPU one a GPU's): 4 lanes per point in the head on a
 /// width that 4 does not divide and a batch that leaves its last workgroup partly empty, and the
 /// output and first layers' partials summed by a workgroup per output where they have 64 splits
-/// or more (the output layer's 256 at any batch; the first layer's 66 at 4200 points, 1 at 45).
+/// or more. The CPU layout: the output layer's 256 splits, the first layer's 66 of 128 stacked
+/// rows at 4200 points and 1 at 45; the GPU layout: 1024 splits, and the first layer's 263 of
+/// 32 rows at 4200 points (the last half full) and 3 at 45 (an invocation per output).
 #[test]
 fn reverse_over_reverse_step_layouts_match_cpu_reference() {
     let gpu = gpu();

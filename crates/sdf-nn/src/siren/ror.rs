@@ -71,9 +71,16 @@ pub enum TrainStep {
 /// the `default` width, enough for every SM of a large GPU (64 splits made 65). The same time
 /// on lavapipe (7.3 against 7.5 ms for `small`, the reduction 0.1 ms more).
 const OUT_SPLITS: u32 = 256;
+/// [`OUT_SPLITS`] in the step's GPU layout: at 256 the H100 ran the kernel at 620 GB/s (33 µs
+/// for 10⁴ points; a quarter of its invocation slots, 39 dependent loads each), so four
+/// times the invocations for a quarter of the loads each.
+const GPU_OUT_SPLITS: u32 = 1024;
 /// Stacked rows per split of the first layer's weight gradient on the tiled family
-/// (`FIRST_WGRAD_ROWS` in `siren_ror.wgsl`).
+/// (`first_rows` of `siren_ror.wgsl`'s uniforms; even, so that a split holds whole pairs).
 const FIRST_WGRAD_ROWS: u32 = 128;
+/// [`FIRST_WGRAD_ROWS`] in the step's GPU layout: 128 gave 40 192 invocations of 64 row pairs
+/// for 10⁴ points, 35 µs on an H100 (590 GB/s); 32 gives four times the invocations.
+const GPU_FIRST_WGRAD_ROWS: u32 = 32;
 /// Invocations per workgroup of `ror_head` (`HEAD_LANES` per point, the loss summed per
 /// workgroup): 64, so that a batch of 10⁴ points spreads over 625 workgroups on a GPU (4 lanes
 /// per point: every SM busy).
@@ -112,7 +119,9 @@ struct RorUniforms {
     omega: f32,
     w_sign: f32,
     b1_off: u32,
-    _pad: [u32; 3],
+    /// Stacked rows per split of `ror_first_wgrad`.
+    first_rows: u32,
+    _pad: [u32; 2],
 }
 
 /// Which kernels run the hidden layers' products.
@@ -213,7 +222,13 @@ pub(crate) fn build(
     let x0 = gpu.storage_zeroed("siren ror X0", u64::from(n) * 6 * 4)?;
     let dphi = gpu.storage_zeroed("siren ror dphi", u64::from(n) * 4)?;
     let rows2 = 2 * n;
-    let first_splits = rows2.div_ceil(FIRST_WGRAD_ROWS);
+    let gpu_layout = net.gpu_step_layout(gpu);
+    let (out_splits, first_rows) = if gpu_layout {
+        (GPU_OUT_SPLITS, GPU_FIRST_WGRAD_ROWS)
+    } else {
+        (OUT_SPLITS, FIRST_WGRAD_ROWS)
+    };
+    let first_splits = rows2.div_ceil(first_rows);
     let wgrads: Vec<GemmUniforms> = layers[..l_hidden]
         .iter()
         .map(|l| gemm_wgrad(l, rows2))
@@ -226,7 +241,7 @@ pub(crate) fn build(
             Family::Tiled(_) => u64::from(u.pbias_off) + u64::from(splits_for(rows2) * u.m),
         })
         .chain([
-            u64::from(OUT_SPLITS) * u64::from(width + 1),
+            u64::from(out_splits) * u64::from(width + 1),
             u64::from(first_splits) * u64::from(width) * 4,
         ])
         .max()
@@ -243,8 +258,8 @@ pub(crate) fn build(
         w_out_off: last.weight as u32,
         b_out_off: last.bias as u32,
         w1_off: layers[0].weight as u32,
-        splits: OUT_SPLITS,
-        pbias_off: OUT_SPLITS * width,
+        splits: out_splits,
+        pbias_off: out_splits * width,
         w_surface: weights.surface,
         w_off_surface: weights.off_surface,
         w_normal: weights.normal,
@@ -254,7 +269,8 @@ pub(crate) fn build(
         omega,
         w_sign: weights.sign,
         b1_off: layers[0].bias as u32,
-        _pad: [0; 3],
+        first_rows,
+        _pad: [0; 2],
     };
     let ru = gpu.uniform("siren ror uniforms", &ror_uniforms);
     // The first layer's weight gradient on the tiled family: its own splits.
@@ -351,7 +367,6 @@ pub(crate) fn build(
         launches.extend(family.product(gpu, layers, l, n, false, e, &io, params)?);
     }
     // Φ, ∇ₓΦ = H_1 W_1, the loss and its seeds φ̄ and ḡ.
-    let gpu_layout = net.gpu_step_layout(gpu);
     let head_lanes = if gpu_layout { GPU_HEAD_LANES } else { 1 };
     let loss_groups = n.div_ceil(HEAD_WG / head_lanes);
     let (hx, hy) = gpu.dispatch_size(loss_groups);
@@ -469,14 +484,14 @@ pub(crate) fn build(
             entry(11, &dphi),
             entry(12, &partial),
         ],
-        OUT_SPLITS * (width + 1),
+        out_splits * (width + 1),
     ));
     push_reduce(
         &mut launches,
         &mut keep,
         last,
-        OUT_SPLITS,
-        OUT_SPLITS * width,
+        out_splits,
+        out_splits * width,
     );
     // Downwards: W̄_l from the stacked rows, then Z̄_{l-1} = D(Z_{l-1}) ⊙ Z̄_l W_l + T_{l-1}.
     for l in (0..l_hidden).rev() {
