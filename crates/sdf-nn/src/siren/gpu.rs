@@ -558,7 +558,9 @@ impl SirenGpu {
     /// per output. Lavapipe measured both slower (the head 24.6 against 18.4 ms for the
     /// `small` preset's 10⁴ points, the two reductions 6.2 against 0.4 ms). Results agree to
     /// f32 rounding. A [`super::SirenTrainer`] must rebuild its passes: use
-    /// [`super::SirenTrainer::set_train_step`].
+    /// [`super::SirenTrainer::set_train_step`]. With `None`, the environment variable
+    /// `HWSDF_STEP_LAYOUT=gpu` or `cpu` overrides the adapter's choice (to compare the two on
+    /// one GPU, e.g. in a whole fit by `train`).
     pub fn set_gpu_step_layout(&mut self, gpu_layout: Option<bool>) {
         self.gpu_step_layout = gpu_layout;
     }
@@ -566,7 +568,13 @@ impl SirenGpu {
     /// Whether the reverse-over-reverse step runs its GPU layout on `gpu`
     /// ([`SirenGpu::set_gpu_step_layout`]).
     pub fn gpu_step_layout(&self, gpu: &GpuContext) -> bool {
-        self.gpu_step_layout.unwrap_or(!gpu.is_cpu())
+        self.gpu_step_layout
+            .or_else(|| match std::env::var("HWSDF_STEP_LAYOUT").as_deref() {
+                Ok("gpu") => Some(true),
+                Ok("cpu") => Some(false),
+                _ => None,
+            })
+            .unwrap_or(!gpu.is_cpu())
     }
 
     /// Register blocks of four rows per invocation of the fused kernel, 1 to 3 (default 1):
