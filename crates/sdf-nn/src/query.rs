@@ -978,7 +978,7 @@ mod tests {
 
     /// `write_points` packs every point (a length that is not 16 bytes per point panics).
     #[test]
-    fn write_points_packs_vec4_across_blocks() {
+    fn write_points_packs_vec4() {
         for n in [0, 1, 2, 301] {
             let pts = &points()[..n];
             let mut bytes = vec![0xAAu8; n * 16];
