@@ -579,14 +579,20 @@ fn report_interleaved(prefix: &str, variants: &mut [Variant<'_>], rounds: usize)
         }
     }
     for ((v, _), t) in variants.iter().zip(&mut times) {
-        t.sort_by(f64::total_cmp);
-        println!(
-            "{prefix} {v:24} min {:8.1} µs  p10 {:8.1} µs  median {:8.1} µs",
-            t[0],
-            t[t.len() / 10],
-            t[t.len() / 2]
-        );
+        print_quantiles(&format!("{prefix} {v:24}"), t);
     }
+}
+
+/// Prints `label`, then the minimum, 10th percentile and median of the microseconds in `t`
+/// (sorted in place): the line every interleaved row is.
+fn print_quantiles(label: &str, t: &mut [f64]) {
+    t.sort_by(f64::total_cmp);
+    println!(
+        "{label} min {:8.1} µs  p10 {:8.1} µs  median {:8.1} µs",
+        t[0],
+        t[t.len() / 10],
+        t[t.len() / 2]
+    );
 }
 
 /// Where a mapped query's transfers spend their time, without a kernel, on buffers made as
@@ -684,13 +690,7 @@ fn transfer_split(gpu: &GpuContext, rounds: usize) {
         }
         for (name, t) in names.iter().zip(&mut times) {
             t.remove(0); // the first round maps and faults pages in
-            t.sort_by(f64::total_cmp);
-            println!(
-                "transfer n={n:6} {name:16} min {:8.1} µs  p10 {:8.1} µs  median {:8.1} µs",
-                t[0],
-                t[t.len() / 10],
-                t[t.len() / 2]
-            );
+            print_quantiles(&format!("transfer n={n:6} {name:16}"), t);
         }
     }
 }

@@ -84,20 +84,43 @@ fn w1_row(o: u32) -> vec3<f32> {
     return vec3<f32>(params[w], params[w + 1u], params[w + 2u]);
 }
 
+// x · W_1[o]: the first layer's product of one (point, feature), in one fma order for both
+// kernels that take it.
+fn w1_dot(x: vec3<f32>, o: u32) -> f32 {
+    let w = w1_row(o);
+    let z = x.x * w.x;
+    return fma(x.z, w.z, fma(x.y, w.y, z));
+}
+
+// The (point, feature) an elementwise kernel's invocation owns, one per feature of every point
+// (`Launch::flat` over n_points · width), and the element's index in a matrix of two streams
+// per point (row stride 2·width, the first stream's); `valid` is false past the end.
+struct Element {
+    p: u32,
+    o: u32,
+    i: u32,
+    valid: bool,
+}
+
+fn element(wid: vec3<u32>, nwg: vec3<u32>, lid: u32) -> Element {
+    let t = flat_id(wid, nwg, lid);
+    let p = t / r.width;
+    let o = t % r.width;
+    return Element(p, o, 2u * p * r.width + o, t < r.n_points * r.width);
+}
+
 @compute @workgroup_size(256)
 fn ror_top(
     @builtin(workgroup_id) wid: vec3<u32>,
     @builtin(num_workgroups) nwg: vec3<u32>,
     @builtin(local_invocation_index) lid: u32,
 ) {
-    let t = flat_id(wid, nwg, lid);
-    if t >= r.n_points * r.width {
+    let e = element(wid, nwg, lid);
+    if !e.valid {
         return;
     }
-    let p = t / r.width;
-    let o = t % r.width;
-    let i = 2u * p * r.width + o;
-    let w = params[r.w_out_off + o];
+    let i = e.i;
+    let w = params[r.w_out_off + e.o];
     p_last[i + r.width] = w;
     y_last[i + r.width] = r.omega * cos(r.omega * p_last[i]) * w;
 }
@@ -108,14 +131,12 @@ fn ror_top_back(
     @builtin(num_workgroups) nwg: vec3<u32>,
     @builtin(local_invocation_index) lid: u32,
 ) {
-    let t = flat_id(wid, nwg, lid);
-    if t >= r.n_points * r.width {
+    let e = element(wid, nwg, lid);
+    if !e.valid {
         return;
     }
-    let p = t / r.width;
-    let o = t % r.width;
-    let i = 2u * p * r.width + o;
-    let abar = dphi_in[p] * params[r.w_out_off + o];
+    let i = e.i;
+    let abar = dphi_in[e.p] * params[r.w_out_off + e.o];
     y_last[i] = r.omega * cos(r.omega * p_last[i]) * abar + p_last[i + r.width];
 }
 
@@ -256,21 +277,15 @@ fn ror_first_forward(
     @builtin(num_workgroups) nwg: vec3<u32>,
     @builtin(local_invocation_index) lid: u32,
 ) {
-    let t = flat_id(wid, nwg, lid);
-    if t >= r.n_points * r.width {
+    let e = element(wid, nwg, lid);
+    if !e.valid {
         return;
     }
-    let p = t / r.width;
-    let o = t % r.width;
-    let w = w1_row(o);
-    let q = 12u * p;
-    var z = x_streams[q] * w.x;
-    z = fma(x_streams[q + 1u], w.y, z);
-    z = fma(x_streams[q + 2u], w.z, z);
-    z += params[r.b1_off + o];
-    let i = 2u * p * r.width + o;
-    p_last[i] = z;
-    y_last[i] = sin(r.omega * z);
+    let q = 12u * e.p;
+    let x = vec3<f32>(x_streams[q], x_streams[q + 1u], x_streams[q + 2u]);
+    let z = w1_dot(x, e.o) + params[r.b1_off + e.o];
+    p_last[e.i] = z;
+    y_last[e.i] = sin(r.omega * z);
 }
 
 @compute @workgroup_size(256)
@@ -279,18 +294,14 @@ fn ror_first_grad_adjoint(
     @builtin(num_workgroups) nwg: vec3<u32>,
     @builtin(local_invocation_index) lid: u32,
 ) {
-    let t = flat_id(wid, nwg, lid);
-    if t >= r.n_points * r.width {
+    let e = element(wid, nwg, lid);
+    if !e.valid {
         return;
     }
-    let p = t / r.width;
-    let o = t % r.width;
-    let w = w1_row(o);
-    let q = 6u * p + 3u;
-    var c = x0[q] * w.x;
-    c = fma(x0[q + 1u], w.y, c);
-    c = fma(x0[q + 2u], w.z, c);
-    let i = 2u * p * r.width + o;
+    // ḡ of the point (X_0's second stream) times W_1[o].
+    let q = 6u * e.p + 3u;
+    let c = w1_dot(vec3<f32>(x0[q], x0[q + 1u], x0[q + 2u]), e.o);
+    let i = e.i;
     let wz = r.omega * p_last[i];
     let g = p_last[i + r.width];
     y_last[i + r.width] = r.omega * cos(wz) * c;

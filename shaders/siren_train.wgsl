@@ -128,10 +128,10 @@ fn reduce_wgrad(
 }
 
 // reduce_wgrad's work for layers with few outputs and many splits (the reverse-over-reverse
-// step's output and first layers: 257 and 1024 outputs of 256 and 157 splits at the `default`
-// preset): one workgroup per output, its invocations striding over the splits, summed in a tree.
-// With one invocation per output summing every split in turn they took 19.7 and 15.5 µs on an
-// H100 (a hidden layer's 65 792 outputs: 9.4). The step's GPU layout only: lavapipe measured it
+// step's output and first layers: 257 and 1024 outputs of 1024 and 625 splits for the `default`
+// preset's 10⁴ points): one workgroup per output, its invocations striding over the splits,
+// summed in a tree. With one invocation per output summing every split in turn they took 19.7
+// and 15.5 µs on an H100 at 256 and 157 splits (a hidden layer's 65 792 outputs: 9.4). The step's GPU layout only: lavapipe measured it
 // slower (`SirenGpu::set_gpu_step_layout`).
 @compute @workgroup_size(256)
 fn reduce_wgrad_by_output(
