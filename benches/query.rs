@@ -695,9 +695,278 @@ fn transfer_split(gpu: &GpuContext, rounds: usize) {
     }
 }
 
+/// Where one mapped query's wall time goes, phase by phase (`QUERY_BENCH_PHASES=ROUNDS`, on
+/// the presets of `QUERY_BENCH_PRESETS` and `QUERY_BENCH_SIREN_PRESETS` and the batch sizes of
+/// `QUERY_BENCH_POINTS`): the serving API's mapped round rebuilt from its public pieces with a
+/// clock read between them (map the points, write them, encode, submit, ask for the results'
+/// mapping, wait for it by polling, read, unmap); beside it the same round waited for with a
+/// blocking wait, `resident` (encode, submit and wait for a query on device-local buffers, no
+/// transfers), an empty submission waited for, and one idle `poll`. Then, in separate rounds,
+/// the GPU time of the query's passes (timestamps around them) on the mapped buffers and on the
+/// device-local ones: whether a kernel that reads and writes mapped memory runs slower.
+fn phase_split(gpu: &GpuContext, rounds: usize) {
+    use std::sync::Arc;
+    use std::sync::atomic::{AtomicBool, Ordering};
+    use std::time::Instant;
+    if !gpu.maps_storage() {
+        println!("phase split: this device does not map storage buffers");
+        return;
+    }
+    let mut models: Vec<(String, NeuralSdf)> = Vec::new();
+    for (name, cfg) in presets() {
+        let mut model = Nglod::new(cfg).unwrap();
+        if model.needs_bands() {
+            model.place_bands(|p| (p.length() - 0.6).abs()).unwrap();
+        }
+        let file = model.to_model_file(Normalization::identity(), serde_json::Value::Null);
+        models.push((format!("nglod_{name}"), NeuralSdf::from_model_file(file).unwrap()));
+    }
+    for (name, cfg) in siren_presets() {
+        let siren = sdf_nn::Siren::new(cfg, 1).unwrap();
+        let file = siren.to_model_file(Normalization::identity(), serde_json::Value::Null);
+        models.push((format!("siren_{name}"), NeuralSdf::from_model_file(file).unwrap()));
+    }
+    // Asks for `slice`'s mapping; the flag turns true when its callback has run.
+    let request = |slice: wgpu::BufferSlice<'_>, mode: wgpu::MapMode| {
+        let done = Arc::new(AtomicBool::new(false));
+        let flag = Arc::clone(&done);
+        slice.map_async(mode, move |r| flag.store(r.is_ok(), Ordering::Release));
+        done
+    };
+    // Polls until `done`; returns the number of polls.
+    let spin = |done: &AtomicBool| {
+        let mut polls = 0u32;
+        while !done.load(Ordering::Acquire) {
+            gpu.device().poll(wgpu::PollType::Poll).unwrap();
+            polls += 1;
+        }
+        polls
+    };
+    let spin_idle = || {
+        let mut polls = 0u32;
+        while !gpu.device().poll(wgpu::PollType::Poll).unwrap().is_queue_empty() {
+            polls += 1;
+        }
+        polls
+    };
+    for (name, sdf) in &models {
+        for n in batch_sizes() {
+            let pts: Vec<Vec3> = sdf_geom::sample::uniform_box(n, 42);
+            let mut mapped = mapped_buffers(gpu, sdf, n).unwrap();
+            let mut resident = buffers_with(gpu, sdf, n, QueryTransfer::Staged);
+            resident.upload(gpu, &pts).unwrap();
+            let (point_bytes, result_bytes) = (n as u64 * 16, n as u64 * 4);
+            let names = [
+                "map_points",
+                "write_points",
+                "encode",
+                "submit",
+                "map_request",
+                "wait (polls)",
+                "read",
+                "unmap",
+                "total",
+                "blocking: wait",
+                "blocking: total",
+                "resident: encode",
+                "resident: submit",
+                "resident: wait",
+                "resident: total",
+                "empty: submit+wait",
+                "idle poll",
+            ];
+            let mut t: Vec<Vec<f64>> = vec![Vec::with_capacity(rounds); names.len()];
+            let mut polls: Vec<f64> = Vec::with_capacity(rounds);
+            let mut out: Vec<f32> = Vec::with_capacity(n);
+            let us = |a: Instant, b: Instant| (b - a).as_secs_f64() * 1e6;
+            // One mapped round; its clock readings (start, then after each phase).
+            let mut mapped_round = |mapped: &mut QueryBuffers, blocking: bool| {
+                let mut c = [Instant::now(); 9];
+                let done = request(mapped.points().slice(..point_bytes), wgpu::MapMode::Write);
+                spin(&done);
+                c[1] = Instant::now();
+                {
+                    let slice = mapped.points().slice(..point_bytes);
+                    let mut view = slice.get_mapped_range_mut().unwrap();
+                    sdf_nn::query::write_points(view.slice(..), &pts);
+                }
+                mapped.points().unmap();
+                c[2] = Instant::now();
+                let mut enc = gpu.device().create_command_encoder(&Default::default());
+                sdf.record_query(gpu, &mut enc, mapped, n as u32).unwrap();
+                let cmd = enc.finish();
+                c[3] = Instant::now();
+                let index = gpu.queue().submit([cmd]);
+                c[4] = Instant::now();
+                let done = request(mapped.results().slice(..result_bytes), wgpu::MapMode::Read);
+                c[5] = Instant::now();
+                let p = if blocking {
+                    gpu.device()
+                        .poll(wgpu::PollType::Wait {
+                            submission_index: Some(index),
+                            timeout: None,
+                        })
+                        .unwrap();
+                    spin(&done)
+                } else {
+                    spin(&done)
+                };
+                c[6] = Instant::now();
+                out.clear();
+                out.extend_from_slice(bytemuck::cast_slice(
+                    &mapped.results().slice(..result_bytes).get_mapped_range().unwrap(),
+                ));
+                c[7] = Instant::now();
+                mapped.results().unmap();
+                c[8] = Instant::now();
+                (c, p)
+            };
+            // The same round with its command buffer encoded during the previous round's wait
+            // (while the points are mapped): what a server that keeps the next submission
+            // ready would see. Its clock: start, after writing, submit, wait, read and unmap.
+            let mut next: Option<wgpu::CommandBuffer> = None;
+            let mut pipelined_round = |sdf: &NeuralSdf, mapped: &mut QueryBuffers| {
+                let c0 = Instant::now();
+                let done = request(mapped.points().slice(..point_bytes), wgpu::MapMode::Write);
+                spin(&done);
+                {
+                    let slice = mapped.points().slice(..point_bytes);
+                    let mut view = slice.get_mapped_range_mut().unwrap();
+                    sdf_nn::query::write_points(view.slice(..), &pts);
+                }
+                mapped.points().unmap();
+                let cmd = next.take().unwrap_or_else(|| {
+                    let mut enc = gpu.device().create_command_encoder(&Default::default());
+                    sdf.record_query(gpu, &mut enc, mapped, n as u32).unwrap();
+                    enc.finish()
+                });
+                gpu.queue().submit([cmd]);
+                let c1 = Instant::now();
+                let done = request(mapped.results().slice(..result_bytes), wgpu::MapMode::Read);
+                let mut enc = gpu.device().create_command_encoder(&Default::default());
+                sdf.record_query(gpu, &mut enc, mapped, n as u32).unwrap();
+                next = Some(enc.finish());
+                let c2 = Instant::now();
+                spin(&done);
+                let c3 = Instant::now();
+                let mut out = Vec::with_capacity(n);
+                out.extend_from_slice(bytemuck::cast_slice::<u8, f32>(
+                    &mapped.results().slice(..result_bytes).get_mapped_range().unwrap(),
+                ));
+                mapped.results().unmap();
+                let c4 = Instant::now();
+                std::hint::black_box(out);
+                (us(c0, c1), us(c1, c2), us(c2, c3), us(c0, c4))
+            };
+            let mut piped: [Vec<f64>; 4] = Default::default();
+            for round in 0..=rounds {
+                let (c, p) = mapped_round(&mut mapped, false);
+                let (b, _) = mapped_round(&mut mapped, true);
+                let pr = pipelined_round(sdf, &mut mapped);
+                if round > 0 {
+                    for (v, x) in piped.iter_mut().zip([pr.0, pr.1, pr.2, pr.3]) {
+                        v.push(x);
+                    }
+                }
+                let e0 = Instant::now();
+                let mut enc = gpu.device().create_command_encoder(&Default::default());
+                sdf.record_query(gpu, &mut enc, &mut resident, n as u32).unwrap();
+                let cmd = enc.finish();
+                let e1 = Instant::now();
+                gpu.queue().submit([cmd]);
+                let e2 = Instant::now();
+                spin_idle();
+                let e3 = Instant::now();
+                let enc = gpu.device().create_command_encoder(&Default::default());
+                gpu.queue().submit([enc.finish()]);
+                spin_idle();
+                let e4 = Instant::now();
+                gpu.device().poll(wgpu::PollType::Poll).unwrap();
+                let e5 = Instant::now();
+                if round == 0 {
+                    continue; // the first round compiles and faults pages in
+                }
+                for i in 0..8 {
+                    t[i].push(us(c[i], c[i + 1]));
+                }
+                t[8].push(us(c[0], c[8]));
+                t[9].push(us(b[5], b[6]));
+                t[10].push(us(b[0], b[8]));
+                t[11].push(us(e0, e1));
+                t[12].push(us(e1, e2));
+                t[13].push(us(e2, e3));
+                t[14].push(us(e0, e3));
+                t[15].push(us(e3, e4));
+                t[16].push(us(e4, e5));
+                polls.push(f64::from(p));
+            }
+            for (label, t) in names.iter().zip(&mut t) {
+                print_quantiles(&format!("phases {name} n={n:5} {label:20}"), t);
+            }
+            for (label, t) in [
+                "pre-encoded: to submit",
+                "pre-encoded: next enc",
+                "pre-encoded: wait",
+                "pre-encoded: total",
+            ]
+            .iter()
+            .zip(&mut piped)
+            {
+                print_quantiles(&format!("phases {name} n={n:5} {label:20}"), t);
+            }
+            polls.sort_by(f64::total_cmp);
+            println!(
+                "phases {name} n={n:5} polls while waiting: median {}",
+                polls[polls.len() / 2]
+            );
+            // The GPU time of the query's passes on either buffers, timestamps around them.
+            if let Some(timer) = GpuTimer::new(gpu) {
+                for (what, buffers) in [("mapped", &mut mapped), ("device-local", &mut resident)]
+                {
+                    if what == "mapped" {
+                        let done =
+                            request(buffers.points().slice(..point_bytes), wgpu::MapMode::Write);
+                        spin(&done);
+                        {
+                            let slice = buffers.points().slice(..point_bytes);
+                            let mut view = slice.get_mapped_range_mut().unwrap();
+                            sdf_nn::query::write_points(view.slice(..), &pts);
+                        }
+                        buffers.points().unmap();
+                    }
+                    let mut ns: Vec<f64> = Vec::with_capacity(rounds);
+                    for _ in 0..rounds.clamp(1, 200) {
+                        let mut enc = gpu.device().create_command_encoder(&Default::default());
+                        drop(enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                            label: Some("bench stamp start"),
+                            timestamp_writes: Some(timer.writes(true, false)),
+                        }));
+                        sdf.record_query(gpu, &mut enc, buffers, n as u32).unwrap();
+                        drop(enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                            label: Some("bench stamp end"),
+                            timestamp_writes: Some(timer.writes(false, true)),
+                        }));
+                        timer.resolve(&mut enc);
+                        gpu.queue().submit([enc.finish()]);
+                        ns.push(timer.read_ns(gpu).unwrap() as f64 / 1e3);
+                    }
+                    print_quantiles(&format!("phases {name} n={n:5} gpu span, {what:12}"), &mut ns);
+                }
+            }
+        }
+    }
+}
+
 fn main() {
     let gpu = GpuContext::shared().expect("a GPU adapter");
     eprintln!("adapter: {}", gpu.describe());
+    if let Some(rounds) = std::env::var("QUERY_BENCH_PHASES")
+        .ok()
+        .and_then(|s| s.parse::<usize>().ok())
+    {
+        phase_split(gpu, rounds.max(1));
+        return;
+    }
     if let Some(rounds) = std::env::var("QUERY_BENCH_INTERLEAVED")
         .ok()
         .and_then(|s| s.parse::<usize>().ok())

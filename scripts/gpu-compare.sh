@@ -36,17 +36,20 @@
 # query bench interleaved (QUERY_BENCH_INTERLEAVED): a query's wall time split into the empty
 # round trip, the upload, one launch and the kernel, for NGLOD and SIREN `small` and `default`
 # (issue 13: what SIREN's wall path adds to its kernel time); its log is
-# DIR/results/query-split.txt. The `profile` stage prints where a SIREN `default` training step's
+# DIR/results/query-split.txt. The `phases` stage times one mapped query phase by phase
+# (QUERY_BENCH_PHASES: map, write, encode, submit, wait, read; a blocking wait; a command buffer
+# encoded during the previous wait; the GPU span on mapped and device-local buffers), NGLOD and
+# SIREN `default` at 10, 3000 and 50 000 points; DIR/results/query-phases.txt. The `profile` stage prints where a SIREN `default` training step's
 # time goes, launch by launch, from GPU timestamps (SIREN_BENCH_PROFILE; issue 12's ≤ 2 ms per
 # step); its log is DIR/results/siren-profile.txt. Environment:
 #   GPU_COMPARE_PRESETS=small,default   presets to run (both by default)
-#   GPU_COMPARE_STAGES=checks,bench,coop,blocks,split,profile,torch,fit,corpus
+#   GPU_COMPARE_STAGES=checks,bench,coop,blocks,split,phases,profile,torch,fit,corpus
 #                                       what to run (default all; split a session's runs with it)
 #   GPU_COMPARE_BLOCKS=                 register blocks of the tiled GEMM the `blocks` stage
 #                                       forces (e.g. 4x4,8x8; none by default: session 13's
 #                                       H100 run set TiledBlock::Auto's rule)
 #   GPU_COMPARE_ROW_BLOCKS=2,3          the fused kernel's row blocks it forces too
-#   GPU_COMPARE_SPLIT_ROUNDS=500        rounds of the `split` stage's interleaved query bench
+#   GPU_COMPARE_SPLIT_ROUNDS=500        rounds of the `split` and `phases` stages' query benches
 #   GPU_COMPARE_CHECK_TIMEOUT=300       seconds each kernel test binary may take (`checks`)
 #   GPU_COMPARE_FITS=nglod,siren,siren-design-loss,siren-constant-lr
 #                                       which fits the `fit` stage times (default all four:
@@ -226,7 +229,7 @@ run() {
     fi
     export CRITERION_HOME="$res/criterion"
     export SIREN_BENCH_PRESETS=${GPU_COMPARE_PRESETS:-small,default}
-    local stages=",${GPU_COMPARE_STAGES:-checks,bench,coop,blocks,split,profile,torch,fit,corpus},"
+    local stages=",${GPU_COMPARE_STAGES:-checks,bench,coop,blocks,split,phases,profile,torch,fit,corpus},"
     if [[ $stages == *,checks,* ]]; then
         # Kernels designed on lavapipe meet a real GPU here: other subgroup sizes, real
         # parallelism within a workgroup, other limits. Figures from kernels that fail their
@@ -282,6 +285,14 @@ run() {
         echo "== the query path split into its parts (QUERY_BENCH_INTERLEAVED=${GPU_COMPARE_SPLIT_ROUNDS:-500})"
         QUERY_BENCH_INTERLEAVED="${GPU_COMPARE_SPLIT_ROUNDS:-500}" QUERY_BENCH_SIREN_PRESETS=small,default \
             benches/query 2>&1 | tee "$res/query-split.txt" || echo "(failed)"
+    fi
+    if [[ $stages == *,phases,* ]] && [ -x benches/query ]; then
+        echo "== one mapped query phase by phase (QUERY_BENCH_PHASES=${GPU_COMPARE_SPLIT_ROUNDS:-500})"
+        QUERY_BENCH_PHASES="${GPU_COMPARE_SPLIT_ROUNDS:-500}" \
+            QUERY_BENCH_PRESETS="${QUERY_BENCH_PRESETS:-default}" \
+            QUERY_BENCH_SIREN_PRESETS="${QUERY_BENCH_SIREN_PRESETS:-default}" \
+            QUERY_BENCH_POINTS="${QUERY_BENCH_POINTS:-10,3000,50000}" \
+            benches/query 2>&1 | tee "$res/query-phases.txt" || echo "(failed)"
     fi
     if [[ $stages == *,profile,* ]]; then
         echo "== a SIREN default training step, launch by launch (SIREN_BENCH_PROFILE=20)"
