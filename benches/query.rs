@@ -957,9 +957,97 @@ fn phase_split(gpu: &GpuContext, rounds: usize) {
     }
 }
 
+/// How long the GPU takes to answer a submission, by what the submission ends with and how
+/// long the GPU sat idle before it (`QUERY_BENCH_LATENCY=ROUNDS`): an empty command buffer, a
+/// 4-byte copy, an empty dispatch, an empty dispatch then the copy, and a SIREN `default` query
+/// of 3000 points on device-local buffers, each submitted after the host spun for 0, 50, 300
+/// or 2000 µs with nothing in flight, and waited for by polling. Prints p10, median and p90.
+fn latency_split(gpu: &GpuContext, rounds: usize) {
+    use std::time::Instant;
+    let src = gpu.storage_zeroed("bench src", 16).unwrap();
+    let dst = gpu.storage_zeroed("bench dst", 16).unwrap();
+    let empty_pipeline = gpu
+        .pipeline(&sdf_nn::shaders::QUERY, "prepare", &[])
+        .unwrap();
+    let u = gpu.uniform("bench empty uniforms", &[0u32; 8]);
+    let (p, q) = (
+        gpu.storage_zeroed("bench p", 16).unwrap(),
+        gpu.storage_zeroed("bench q", 12).unwrap(),
+    );
+    let entries = [(0, &u), (1, &p), (2, &q)].map(|(binding, b)| wgpu::BindGroupEntry {
+        binding,
+        resource: b.as_entire_binding(),
+    });
+    let empty_group = gpu.device().create_bind_group(&wgpu::BindGroupDescriptor {
+        label: Some("bench empty"),
+        layout: &empty_pipeline.get_bind_group_layout(0),
+        entries: &entries,
+    });
+    let siren = sdf_nn::Siren::new(sdf_nn::SirenConfig::default(), 1).unwrap();
+    let sdf = NeuralSdf::from_model_file(
+        siren.to_model_file(Normalization::identity(), serde_json::Value::Null),
+    )
+    .unwrap();
+    let n = 3000;
+    let mut resident = buffers_with(gpu, &sdf, n, QueryTransfer::Staged);
+    resident.upload(gpu, &sdf_geom::sample::uniform_box(n, 42)).unwrap();
+    let kinds = ["empty", "copy", "dispatch", "dispatch+copy", "siren_query"];
+    let gaps_us = [0u64, 50, 300, 2000];
+    let mut t: Vec<Vec<f64>> = vec![Vec::with_capacity(rounds); kinds.len() * gaps_us.len()];
+    for round in 0..=rounds {
+        for (g, &gap) in gaps_us.iter().enumerate() {
+            for (k, kind) in kinds.iter().enumerate() {
+                let mut enc = gpu.device().create_command_encoder(&Default::default());
+                if kind.starts_with("dispatch") {
+                    let mut pass = enc.begin_compute_pass(&Default::default());
+                    pass.set_pipeline(&empty_pipeline);
+                    pass.set_bind_group(0, &empty_group, &[]);
+                    pass.dispatch_workgroups(1, 1, 1);
+                }
+                if kind.ends_with("copy") {
+                    enc.copy_buffer_to_buffer(&src, 0, &dst, 0, 4);
+                }
+                if *kind == "siren_query" {
+                    sdf.record_query(gpu, &mut enc, &mut resident, n as u32).unwrap();
+                }
+                let cmd = enc.finish();
+                let idle = Instant::now();
+                while idle.elapsed().as_micros() < u128::from(gap) {
+                    std::hint::spin_loop();
+                }
+                let start = Instant::now();
+                gpu.queue().submit([cmd]);
+                while !gpu.device().poll(wgpu::PollType::Poll).unwrap().is_queue_empty() {}
+                if round > 0 {
+                    t[g * kinds.len() + k].push(start.elapsed().as_secs_f64() * 1e6);
+                }
+            }
+        }
+    }
+    for (g, gap) in gaps_us.iter().enumerate() {
+        for (k, kind) in kinds.iter().enumerate() {
+            let t = &mut t[g * kinds.len() + k];
+            t.sort_by(f64::total_cmp);
+            println!(
+                "latency idle {gap:5} µs {kind:14} p10 {:7.1} µs  median {:7.1} µs  p90 {:7.1} µs",
+                t[t.len() / 10],
+                t[t.len() / 2],
+                t[t.len() * 9 / 10]
+            );
+        }
+    }
+}
+
 fn main() {
     let gpu = GpuContext::shared().expect("a GPU adapter");
     eprintln!("adapter: {}", gpu.describe());
+    if let Some(rounds) = std::env::var("QUERY_BENCH_LATENCY")
+        .ok()
+        .and_then(|s| s.parse::<usize>().ok())
+    {
+        latency_split(gpu, rounds.max(1));
+        return;
+    }
     if let Some(rounds) = std::env::var("QUERY_BENCH_PHASES")
         .ok()
         .and_then(|s| s.parse::<usize>().ok())
