@@ -719,12 +719,18 @@ fn phase_split(gpu: &GpuContext, rounds: usize) {
             model.place_bands(|p| (p.length() - 0.6).abs()).unwrap();
         }
         let file = model.to_model_file(Normalization::identity(), serde_json::Value::Null);
-        models.push((format!("nglod_{name}"), NeuralSdf::from_model_file(file).unwrap()));
+        models.push((
+            format!("nglod_{name}"),
+            NeuralSdf::from_model_file(file).unwrap(),
+        ));
     }
     for (name, cfg) in siren_presets() {
         let siren = sdf_nn::Siren::new(cfg, 1).unwrap();
         let file = siren.to_model_file(Normalization::identity(), serde_json::Value::Null);
-        models.push((format!("siren_{name}"), NeuralSdf::from_model_file(file).unwrap()));
+        models.push((
+            format!("siren_{name}"),
+            NeuralSdf::from_model_file(file).unwrap(),
+        ));
     }
     // Asks for `slice`'s mapping; the flag turns true when its callback has run.
     let request = |slice: wgpu::BufferSlice<'_>, mode: wgpu::MapMode| {
@@ -744,7 +750,12 @@ fn phase_split(gpu: &GpuContext, rounds: usize) {
     };
     let spin_idle = || {
         let mut polls = 0u32;
-        while !gpu.device().poll(wgpu::PollType::Poll).unwrap().is_queue_empty() {
+        while !gpu
+            .device()
+            .poll(wgpu::PollType::Poll)
+            .unwrap()
+            .is_queue_empty()
+        {
             polls += 1;
         }
         polls
@@ -814,7 +825,11 @@ fn phase_split(gpu: &GpuContext, rounds: usize) {
                 c[6] = Instant::now();
                 out.clear();
                 out.extend_from_slice(bytemuck::cast_slice(
-                    &mapped.results().slice(..result_bytes).get_mapped_range().unwrap(),
+                    &mapped
+                        .results()
+                        .slice(..result_bytes)
+                        .get_mapped_range()
+                        .unwrap(),
                 ));
                 c[7] = Instant::now();
                 mapped.results().unmap();
@@ -851,7 +866,11 @@ fn phase_split(gpu: &GpuContext, rounds: usize) {
                 let c3 = Instant::now();
                 let mut out = Vec::with_capacity(n);
                 out.extend_from_slice(bytemuck::cast_slice::<u8, f32>(
-                    &mapped.results().slice(..result_bytes).get_mapped_range().unwrap(),
+                    &mapped
+                        .results()
+                        .slice(..result_bytes)
+                        .get_mapped_range()
+                        .unwrap(),
                 ));
                 mapped.results().unmap();
                 let c4 = Instant::now();
@@ -870,7 +889,8 @@ fn phase_split(gpu: &GpuContext, rounds: usize) {
                 }
                 let e0 = Instant::now();
                 let mut enc = gpu.device().create_command_encoder(&Default::default());
-                sdf.record_query(gpu, &mut enc, &mut resident, n as u32).unwrap();
+                sdf.record_query(gpu, &mut enc, &mut resident, n as u32)
+                    .unwrap();
                 let cmd = enc.finish();
                 let e1 = Instant::now();
                 gpu.queue().submit([cmd]);
@@ -921,8 +941,7 @@ fn phase_split(gpu: &GpuContext, rounds: usize) {
             );
             // The GPU time of the query's passes on either buffers, timestamps around them.
             if let Some(timer) = GpuTimer::new(gpu) {
-                for (what, buffers) in [("mapped", &mut mapped), ("device-local", &mut resident)]
-                {
+                for (what, buffers) in [("mapped", &mut mapped), ("device-local", &mut resident)] {
                     if what == "mapped" {
                         let done =
                             request(buffers.points().slice(..point_bytes), wgpu::MapMode::Write);
@@ -950,7 +969,10 @@ fn phase_split(gpu: &GpuContext, rounds: usize) {
                         gpu.queue().submit([enc.finish()]);
                         ns.push(timer.read_ns(gpu).unwrap() as f64 / 1e3);
                     }
-                    print_quantiles(&format!("phases {name} n={n:5} gpu span, {what:12}"), &mut ns);
+                    print_quantiles(
+                        &format!("phases {name} n={n:5} gpu span, {what:12}"),
+                        &mut ns,
+                    );
                 }
             }
         }
@@ -990,7 +1012,9 @@ fn latency_split(gpu: &GpuContext, rounds: usize) {
     .unwrap();
     let n = 3000;
     let mut resident = buffers_with(gpu, &sdf, n, QueryTransfer::Staged);
-    resident.upload(gpu, &sdf_geom::sample::uniform_box(n, 42)).unwrap();
+    resident
+        .upload(gpu, &sdf_geom::sample::uniform_box(n, 42))
+        .unwrap();
     let kinds = ["empty", "copy", "dispatch", "dispatch+copy", "siren_query"];
     let gaps_us = [0u64, 50, 300, 2000];
     let mut t: Vec<Vec<f64>> = vec![Vec::with_capacity(rounds); kinds.len() * gaps_us.len()];
@@ -1008,7 +1032,8 @@ fn latency_split(gpu: &GpuContext, rounds: usize) {
                     enc.copy_buffer_to_buffer(&src, 0, &dst, 0, 4);
                 }
                 if *kind == "siren_query" {
-                    sdf.record_query(gpu, &mut enc, &mut resident, n as u32).unwrap();
+                    sdf.record_query(gpu, &mut enc, &mut resident, n as u32)
+                        .unwrap();
                 }
                 let cmd = enc.finish();
                 let idle = Instant::now();
@@ -1017,7 +1042,12 @@ fn latency_split(gpu: &GpuContext, rounds: usize) {
                 }
                 let start = Instant::now();
                 gpu.queue().submit([cmd]);
-                while !gpu.device().poll(wgpu::PollType::Poll).unwrap().is_queue_empty() {}
+                while !gpu
+                    .device()
+                    .poll(wgpu::PollType::Poll)
+                    .unwrap()
+                    .is_queue_empty()
+                {}
                 if round > 0 {
                     t[g * kinds.len() + k].push(start.elapsed().as_secs_f64() * 1e6);
                 }

@@ -18,7 +18,7 @@ use sdf_nn::{
 use serde::{Deserialize, Serialize};
 
 use crate::metrics::{EVAL_SEED, EvalSets, Scores};
-use crate::timing::{Latency, WARM_UP, measure_latency_timed};
+use crate::timing::{Latency, MEASURE_FOR, WARM_UP, measure_latency_timed};
 
 /// Errors of a run. Each names what failed so a corpus run can record it and go on.
 #[derive(Debug, thiserror::Error)]
@@ -1193,11 +1193,13 @@ pub fn evaluate(
         None
     };
     // Wall time through the public call, and kernel time from timestamp queries (where the
-    // adapter has them) in separate calls, so that the timestamps never slow the wall figures.
+    // adapter has them) in separate, alternating calls, so that the timestamps never slow the
+    // wall figures and both see the same state of the GPU.
     let latency = measure_latency_timed(
         &sets.bbox.points,
         10,
         WARM_UP,
+        MEASURE_FOR,
         |p| model.eval_normalized(gpu, p),
         |p| model.eval_normalized_timed(gpu, p),
     )?;

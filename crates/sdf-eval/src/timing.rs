@@ -41,7 +41,7 @@ pub struct Latency {
     /// adapter has them (from the timed calls only).
     #[serde(default)]
     pub gpu_batch3000_us: Option<f64>,
-    /// Repetitions behind each median.
+    /// Repetitions behind each median, at least (the smaller batch gets more on a GPU).
     pub reps: usize,
 }
 
@@ -69,46 +69,44 @@ pub fn warm_up<E>(duration: Duration, mut f: impl FnMut() -> Result<(), E>) -> R
     Ok(calls)
 }
 
-/// Median wall time in seconds of `reps` calls of `f`, after untimed calls for `warm` (at
-/// least one, which pays for pipeline compilation and buffer creation).
-pub fn median_seconds<E>(
-    reps: usize,
-    warm: Duration,
-    mut f: impl FnMut() -> Result<(), E>,
-) -> Result<f64, E> {
-    warm_up(warm, &mut f)?;
-    let mut times = Vec::with_capacity(reps);
-    for _ in 0..reps.max(1) {
-        let t = Instant::now();
-        f()?;
-        times.push(t.elapsed().as_secs_f64());
-    }
-    Ok(median(times))
-}
+/// How long the reports keep timing each batch size once they have [`MIN_REPS`] repetitions:
+/// on a GPU a repetition takes well under a millisecond, and ten in a row of each call gave a
+/// SIREN `default` fit's wall-over-kernel difference from 50 to 84 µs across six fits on H100s
+/// (BENCHMARKS.md, session 20); on lavapipe ten repetitions mostly take longer than this.
+pub const MEASURE_FOR: Duration = Duration::from_millis(250);
+/// The most repetitions [`MEASURE_FOR`] adds up to per batch size.
+pub const MAX_REPS: usize = 2000;
 
 /// Measures `eval` (a batch evaluation returning one value per point) on the first
-/// [`PER_POINT_BATCH`] and [`LATENCY_BATCH`] of `points`, `reps` times each (at least
-/// [`MIN_REPS`]), after evaluating the large batch for `warm` (the reports use [`WARM_UP`]).
-/// `points` is cycled if shorter. Wall times only: the GPU fields are `None` (see
+/// [`PER_POINT_BATCH`] and [`LATENCY_BATCH`] of `points`, after evaluating the large batch
+/// for `warm` (the reports use [`WARM_UP`]): at least `reps` times each (and [`MIN_REPS`]),
+/// and on for `measure_for` (the reports use [`MEASURE_FOR`]) up to [`MAX_REPS`]. `points` is
+/// cycled if shorter. Wall times only: the GPU fields are `None` (see
 /// [`measure_latency_timed`]).
 pub fn measure_latency<E>(
     points: &[Vec3],
     reps: usize,
     warm: Duration,
+    measure_for: Duration,
     eval: impl FnMut(&[Vec3]) -> Result<Vec<f32>, E>,
 ) -> Result<Latency, E> {
-    measure_latency_timed(points, reps, warm, eval, |_| Ok((Vec::new(), None)))
+    measure_latency_timed(points, reps, warm, measure_for, eval, |_| {
+        Ok((Vec::new(), None))
+    })
 }
 
 /// [`measure_latency`] with kernel times too: the wall figures time `eval` (the plain public
 /// call), and `timed` (e.g. `NeuralSdf::eval_normalized_timed`, returning the batch's GPU time
-/// in nanoseconds where it can) is called separately, `reps` times per batch after a warm-up,
-/// for the GPU figures. Both follow `warm` of evaluations of the large batch. A GPU figure is
-/// `None` unless every timed repetition of its batch reported a time.
+/// in nanoseconds where it can) is called separately for the GPU figures. The two alternate,
+/// one call each per repetition, so that both medians come from the same stretch of the
+/// GPU's clocks and load and their difference is the cost of the round trip; the wall clock
+/// never times a timed call. A GPU figure is `None` unless every timed repetition of its
+/// batch reported a time.
 pub fn measure_latency_timed<E>(
     points: &[Vec3],
     reps: usize,
     warm: Duration,
+    measure_for: Duration,
     mut eval: impl FnMut(&[Vec3]) -> Result<Vec<f32>, E>,
     mut timed: impl FnMut(&[Vec3]) -> Result<(Vec<f32>, Option<u64>), E>,
 ) -> Result<Latency, E> {
@@ -117,26 +115,31 @@ pub fn measure_latency_timed<E>(
     let big = batch(PER_POINT_BATCH);
     let small = batch(LATENCY_BATCH);
     let reps = reps.max(MIN_REPS);
-    let per_batch = median_seconds(reps, warm, || eval(&big).map(|_| ()))?;
-    let latency = median_seconds(reps, Duration::ZERO, || eval(&small).map(|_| ()))?;
-    // Kernel times: a warm-up call, then `reps` timed ones, per batch.
-    let mut gpu_median = |pts: &[Vec3]| -> Result<Option<f64>, E> {
+    warm_up(warm, || eval(&big).map(|_| ()))?;
+    let mut measure = |pts: &[Vec3]| -> Result<(f64, Option<f64>, usize), E> {
+        // One call of each first, untimed: it pays for buffers of this size and the timer.
+        eval(pts)?;
         timed(pts)?;
-        let mut ns = Vec::with_capacity(reps);
-        for _ in 0..reps {
-            ns.push(timed(pts)?.1);
+        let start = Instant::now();
+        let (mut wall, mut ns) = (Vec::with_capacity(reps), Vec::with_capacity(reps));
+        while wall.len() < reps || (start.elapsed() < measure_for && wall.len() < MAX_REPS) {
+            let t = Instant::now();
+            eval(pts)?;
+            wall.push(t.elapsed().as_secs_f64());
+            ns.push(timed(pts)?.1.map(|t| t as f64));
         }
-        let ns: Option<Vec<f64>> = ns.into_iter().map(|t| t.map(|t| t as f64)).collect();
-        Ok(ns.map(median))
+        let count = wall.len();
+        let ns: Option<Vec<f64>> = ns.into_iter().collect();
+        Ok((median(wall), ns.map(median), count))
     };
-    let gpu_big = gpu_median(&big)?;
-    let gpu_small = gpu_median(&small)?;
+    let (per_batch, gpu_big, big_reps) = measure(&big)?;
+    let (latency, gpu_small, small_reps) = measure(&small)?;
     Ok(Latency {
         per_point_ns: per_batch * 1e9 / PER_POINT_BATCH as f64,
         batch3000_us: latency * 1e6,
         gpu_per_point_ns: gpu_big.map(|ns| ns / PER_POINT_BATCH as f64),
         gpu_batch3000_us: gpu_small.map(|ns| ns / 1e3),
-        reps,
+        reps: big_reps.min(small_reps),
     })
 }
 
@@ -153,16 +156,16 @@ mod tests {
     #[test]
     fn latency_calls_eval_on_the_documented_batches() {
         let mut sizes = Vec::new();
-        let lat = measure_latency(&[Vec3::ZERO; 7], 3, Duration::ZERO, |p| {
+        let lat = measure_latency(&[Vec3::ZERO; 7], 3, Duration::ZERO, Duration::ZERO, |p| {
             sizes.push(p.len());
             Ok::<_, ()>(vec![0.0; p.len()])
         })
         .unwrap();
-        // One warm-up (Duration::ZERO still makes one call) plus MIN_REPS timed calls of each
-        // size.
+        // The large batch: one warm-up call (Duration::ZERO still makes one), one untimed call,
+        // then MIN_REPS timed ones; the small batch: one untimed call and MIN_REPS timed ones.
         assert_eq!(
             sizes.iter().filter(|&&n| n == PER_POINT_BATCH).count(),
-            MIN_REPS + 1
+            MIN_REPS + 2
         );
         assert_eq!(
             sizes.iter().filter(|&&n| n == LATENCY_BATCH).count(),
@@ -174,7 +177,7 @@ mod tests {
 
     #[test]
     fn untimed_latency_has_no_gpu_time() {
-        let lat = measure_latency(&[Vec3::ZERO], 1, Duration::ZERO, |p| {
+        let lat = measure_latency(&[Vec3::ZERO], 1, Duration::ZERO, Duration::ZERO, |p| {
             Ok::<_, ()>(vec![0.0; p.len()])
         })
         .unwrap();
@@ -183,20 +186,23 @@ mod tests {
     }
 
     #[test]
-    fn wall_and_gpu_times_come_from_separate_calls() {
-        // The untimed call is the only one the wall clock sees; the timed call's warm-up reports
-        // a huge time that must be ignored, its repetitions 1, 2, ..., MIN_REPS ms (50000) and
-        // 7 µs (3000).
-        let (mut plain, mut timed_big) = (0usize, 0u64);
+    fn wall_and_gpu_times_come_from_separate_alternating_calls() {
+        // The untimed call is the only one the wall clock sees, and the two alternate. The
+        // timed call's untimed first call reports a huge time that must be ignored, its
+        // repetitions 1, 2, ..., MIN_REPS ms (50000) and 7 µs (3000).
+        let calls = std::cell::RefCell::new(Vec::new());
+        let mut timed_big = 0u64;
         let lat = measure_latency_timed(
             &[Vec3::ONE; 3],
             1,
             Duration::ZERO,
+            Duration::ZERO,
             |p| {
-                plain += 1;
+                calls.borrow_mut().push(('e', p.len()));
                 Ok::<_, ()>(vec![0.0; p.len()])
             },
             |p| {
+                calls.borrow_mut().push(('t', p.len()));
                 let ns = if p.len() == PER_POINT_BATCH {
                     let ns = if timed_big == 0 {
                         u64::MAX / 2
@@ -212,8 +218,15 @@ mod tests {
             },
         )
         .unwrap();
-        assert_eq!(plain, 2 * (MIN_REPS + 1));
+        let calls = calls.into_inner();
+        let plain = calls.iter().filter(|c| c.0 == 'e').count();
+        assert_eq!(plain, 2 * (MIN_REPS + 1) + 1);
         assert_eq!(timed_big as usize, MIN_REPS + 1);
+        // After the warm-up call, every batch alternates: eval, timed, eval, timed, ...
+        for pair in calls[1..].chunks(2) {
+            assert_eq!(pair[0].0, 'e', "{calls:?}");
+            assert_eq!(pair[1], ('t', pair[0].1), "{calls:?}");
+        }
         // Median of 1..=10 ms is 5.5 ms.
         let expected = 5.5e6 / PER_POINT_BATCH as f64;
         let got = lat.gpu_per_point_ns.expect("a GPU time");
@@ -222,11 +235,43 @@ mod tests {
     }
 
     #[test]
+    fn measuring_goes_on_for_its_duration_up_to_max_reps() {
+        // Calls that take no time reach MAX_REPS long before a minute has passed.
+        let start = Instant::now();
+        let lat = measure_latency(
+            &[Vec3::ZERO],
+            1,
+            Duration::ZERO,
+            Duration::from_secs(60),
+            |p| Ok::<_, ()>(vec![0.0; p.len()]),
+        )
+        .unwrap();
+        assert_eq!(lat.reps, MAX_REPS);
+        assert!(start.elapsed() < Duration::from_secs(60));
+        // Calls of ≥ 1 ms: the loop stops only once 30 ms have passed for each batch size.
+        let start = Instant::now();
+        let lat = measure_latency(
+            &[Vec3::ZERO],
+            1,
+            Duration::ZERO,
+            Duration::from_millis(30),
+            |p| {
+                std::thread::sleep(Duration::from_millis(1));
+                Ok::<_, ()>(vec![0.0; p.len()])
+            },
+        )
+        .unwrap();
+        assert!(start.elapsed() >= Duration::from_millis(60));
+        assert!((MIN_REPS..=30).contains(&lat.reps), "{} reps", lat.reps);
+    }
+
+    #[test]
     fn a_missing_gpu_time_gives_none() {
         let mut calls = 0;
         let lat = measure_latency_timed(
             &[Vec3::ZERO],
             1,
+            Duration::ZERO,
             Duration::ZERO,
             |p| Ok::<_, ()>(vec![0.0; p.len()]),
             |p| {
@@ -262,7 +307,7 @@ mod tests {
 
     #[test]
     fn errors_propagate() {
-        let r = measure_latency(&[Vec3::ZERO], 1, Duration::ZERO, |_| {
+        let r = measure_latency(&[Vec3::ZERO], 1, Duration::ZERO, Duration::ZERO, |_| {
             Err::<Vec<f32>, _>("boom")
         });
         assert_eq!(r.unwrap_err(), "boom");
