@@ -128,34 +128,19 @@ struct RowBlock {
     r3: vec4<f32>,
 }
 
-// The transposed weights of four input features at an invocation's four output features:
-// Wᵀ[4k4 + j][o0 .. o0 + 3] in qj.
-struct Quad {
-    q0: vec4<f32>,
-    q1: vec4<f32>,
-    q2: vec4<f32>,
-    q3: vec4<f32>,
-}
-
-// The Quad of input features 4k4 .. 4k4 + 3, where `wt` is the index of Wᵀ[0][o0] in `wt4`.
-fn load_quad(wt: u32, k4: u32, w4: u32) -> Quad {
-    let q = wt + 4u * k4 * w4;
-    return Quad(wt4[q], wt4[q + w4], wt4[q + 2u * w4], wt4[q + 3u * w4]);
-}
-
 // `acc` plus the products of the block's rows from r0, at input features 4k4 .. 4k4 + 3, with
-// those features' transposed weights.
-fn block_mac(acc: RowBlock, r0: u32, k4: u32, w4: u32, q: Quad) -> RowBlock {
+// those features' transposed weights q0 .. q3.
+fn block_mac(acc: RowBlock, r0: u32, k4: u32, w4: u32, q0: vec4<f32>, q1: vec4<f32>, q2: vec4<f32>, q3: vec4<f32>) -> RowBlock {
     var out = acc;
-    out.r0 = row_mac(out.r0, act[r0 * w4 + k4], q);
-    out.r1 = row_mac(out.r1, act[(r0 + 1u) * w4 + k4], q);
-    out.r2 = row_mac(out.r2, act[(r0 + 2u) * w4 + k4], q);
-    out.r3 = row_mac(out.r3, act[(r0 + 3u) * w4 + k4], q);
+    out.r0 = row_mac(out.r0, act[r0 * w4 + k4], q0, q1, q2, q3);
+    out.r1 = row_mac(out.r1, act[(r0 + 1u) * w4 + k4], q0, q1, q2, q3);
+    out.r2 = row_mac(out.r2, act[(r0 + 2u) * w4 + k4], q0, q1, q2, q3);
+    out.r3 = row_mac(out.r3, act[(r0 + 3u) * w4 + k4], q0, q1, q2, q3);
     return out;
 }
 
-fn row_mac(acc: vec4<f32>, a: vec4<f32>, q: Quad) -> vec4<f32> {
-    return fma(vec4(a.w), q.q3, fma(vec4(a.z), q.q2, fma(vec4(a.y), q.q1, fma(vec4(a.x), q.q0, acc))));
+fn row_mac(acc: vec4<f32>, a: vec4<f32>, q0: vec4<f32>, q1: vec4<f32>, q2: vec4<f32>, q3: vec4<f32>) -> vec4<f32> {
+    return fma(vec4(a.w), q3, fma(vec4(a.z), q2, fma(vec4(a.y), q1, fma(vec4(a.x), q0, acc))));
 }
 
 // A hidden layer's activations of the block at rows r0 .. r0 + 3, column cb, from its sums and
@@ -222,37 +207,20 @@ fn fused_forward(
         var d = RowBlock();
         var e = RowBlock();
         if owns_block {
-            // Two steps of four input features per trip, the next trip's weights loading
-            // while these multiply: a small batch leaves a workgroup nearly alone on its
-            // multiprocessor, with nothing else to run while a load comes from the cache, and
-            // one step's multiplies are too few to cover that wait (H100: 60 µs for one
-            // workgroup of the `default` network with the loads step by step). Indices past
-            // the last step are clamped: those loads are redundant, never out of bounds.
-            let last = w4 - 1u;
-            var qa = load_quad(wt, 0u, w4);
-            var qb = load_quad(wt, min(1u, last), w4);
-            for (var k4 = 0u; k4 < w4; k4 += 2u) {
-                let na = load_quad(wt, min(k4 + 2u, last), w4);
-                let nb = load_quad(wt, min(k4 + 3u, last), w4);
-                c = block_mac(c, r0, k4, w4, qa);
+            for (var k4 = 0u; k4 < w4; k4++) {
+                // Input features 4k4 .. 4k4 + 3, four outputs each.
+                let q = wt + 4u * k4 * w4;
+                let q0 = wt4[q];
+                let q1 = wt4[q + w4];
+                let q2 = wt4[q + 2u * w4];
+                let q3 = wt4[q + 3u * w4];
+                c = block_mac(c, r0, k4, w4, q0, q1, q2, q3);
                 if RB > 1u {
-                    d = block_mac(d, r1, k4, w4, qa);
+                    d = block_mac(d, r1, k4, w4, q0, q1, q2, q3);
                 }
                 if RB > 2u {
-                    e = block_mac(e, r2, k4, w4, qa);
+                    e = block_mac(e, r2, k4, w4, q0, q1, q2, q3);
                 }
-                // Uniform: an odd count of steps ends on a single step.
-                if k4 < last {
-                    c = block_mac(c, r0, k4 + 1u, w4, qb);
-                    if RB > 1u {
-                        d = block_mac(d, r1, k4 + 1u, w4, qb);
-                    }
-                    if RB > 2u {
-                        e = block_mac(e, r2, k4 + 1u, w4, qb);
-                    }
-                }
-                qa = na;
-                qb = nb;
             }
         }
         // Every block is read before any is overwritten.
@@ -326,12 +294,8 @@ fn head_row(first_row: u32, r: u32, woff4: u32) -> f32 {
     }
     let w4 = f.width / 4u;
     var s = vec4<f32>(0.0);
-    // The next step's weights load while this one multiplies (see the hidden layers).
-    var q = params4[woff4];
     for (var k4 = 0u; k4 < w4; k4++) {
-        let next = params4[woff4 + min(k4 + 1u, w4 - 1u)];
-        s = fma(act[r * w4 + k4], q, s);
-        q = next;
+        s = fma(act[r * w4 + k4], params4[woff4 + k4], s);
     }
     var phi = s.x + s.y + s.z + s.w;
     if f.tangents == 0u || r % 4u == 0u {
