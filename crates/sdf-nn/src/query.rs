@@ -281,6 +281,25 @@ pub struct QueryBuffers {
     /// Bumped on each submission; tickets carry it.
     generation: u64,
     in_flight: Option<(u64, u32)>,
+    /// The point count and level of detail of the last query recorded into these buffers,
+    /// which their uniforms hold from its submission on (a kernel's uniforms are written when
+    /// they change).
+    recorded: Option<(u32, Option<usize>)>,
+    /// [`QueryTransfer::Mapped`] with one-dispatch kernels: the next query's commands, recorded
+    /// by [`NeuralSdf::submit_query`] right after it submits, for the same count and level of
+    /// detail, while the GPU works and the host would only wait (one slot for plain queries,
+    /// one for timed ones). On an H100 that takes the 3.4–3.7 µs of encoding out of the next
+    /// query's wall time (BENCHMARKS.md, session 21).
+    prepared: [Option<Prepared>; 2],
+    /// How many queries were submitted from `prepared` (for tests).
+    prepared_used: u64,
+}
+
+/// A query's commands, recorded ahead of its submission.
+struct Prepared {
+    n: u32,
+    lod: Option<usize>,
+    commands: wgpu::CommandBuffer,
 }
 
 impl std::fmt::Debug for QueryBuffers {
@@ -523,7 +542,7 @@ impl QueryBuffers {
             label: "query results".into(),
             reason,
         };
-        let bytes = u64::from(ticket.n) * u64::from(self.outputs.floats_per_point()) * 4;
+        let bytes = self.result_bytes(ticket.n);
         let view = if bytes == 0 {
             None
         } else {
@@ -586,6 +605,22 @@ impl QueryBuffers {
         }
         self.map.set(MapState::Idle);
         Ok(())
+    }
+
+    /// Bytes of the results of `n` points.
+    fn result_bytes(&self, n: u32) -> u64 {
+        u64::from(n) * u64::from(self.outputs.floats_per_point()) * 4
+    }
+
+    /// Whether a query is one dispatch from the points to the results (no network scratch).
+    fn one_dispatch(&self) -> bool {
+        matches!(self.kernels, Kernels::Nglod(_) | Kernels::Siren(_))
+    }
+
+    /// How many queries [`NeuralSdf::submit_query`] submitted from commands recorded ahead.
+    #[cfg(test)]
+    pub(crate) fn prepared_used(&self) -> u64 {
+        self.prepared_used
     }
 
     /// Whether the staging (with mapped transfers: the results) buffer is mapped or being mapped.
@@ -782,6 +817,9 @@ impl NeuralSdf {
             map: Arc::new(MapSlot::default()),
             generation: 0,
             in_flight: None,
+            recorded: None,
+            prepared: [None, None],
+            prepared_used: 0,
         })
     }
 
@@ -824,23 +862,40 @@ impl NeuralSdf {
             return Err(QueryError::Busy.into());
         }
         self.check_buffers(gpu, buffers)?;
-        let mut enc = gpu.device().create_command_encoder(&Default::default());
-        let n = if buffers.mapped {
-            buffers.upload_mapped(gpu, points)?
+        let lod = self.lod();
+        let (n, submission) = if buffers.mapped {
+            let n = buffers.upload_mapped(gpu, points)?;
+            // Commands recorded for this count and level of detail are current only while the
+            // uniforms still hold them: no other recording came in between.
+            let prepared = buffers.prepared[usize::from(timed)]
+                .take()
+                .filter(|p| p.n == n && p.lod == lod && buffers.recorded == Some((n, lod)));
+            let commands = match prepared {
+                Some(p) => {
+                    buffers.prepared_used += 1;
+                    p.commands
+                }
+                None => {
+                    let mut enc = gpu.device().create_command_encoder(&Default::default());
+                    self.record_query_timed(gpu, &mut enc, buffers, n, timed)?;
+                    enc.finish()
+                }
+            };
+            (n, gpu.queue().submit([commands]))
         } else {
+            let mut enc = gpu.device().create_command_encoder(&Default::default());
             let n = buffers.upload_in(&mut enc, points)?;
             buffers.belt.finish();
-            n
-        };
-        self.record_query_timed(gpu, &mut enc, buffers, n, timed)?;
-        let bytes = u64::from(n) * u64::from(buffers.outputs.floats_per_point()) * 4;
-        if bytes > 0 && !buffers.mapped {
-            enc.copy_buffer_to_buffer(&buffers.results, 0, &buffers.staging, 0, bytes);
-        }
-        let submission = gpu.queue().submit([enc.finish()]);
-        if !buffers.mapped {
+            self.record_query_timed(gpu, &mut enc, buffers, n, timed)?;
+            let bytes = buffers.result_bytes(n);
+            if bytes > 0 {
+                enc.copy_buffer_to_buffer(&buffers.results, 0, &buffers.staging, 0, bytes);
+            }
+            let submission = gpu.queue().submit([enc.finish()]);
             buffers.belt.recall();
-        }
+            (n, submission)
+        };
+        let bytes = buffers.result_bytes(n);
         // Unique across every QueryBuffers, so a ticket is only ever taken by its own buffers.
         buffers.generation = NEXT_GENERATION.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
         if bytes > 0 {
@@ -849,6 +904,23 @@ impl NeuralSdf {
                 .request(buffers.staging.slice(..bytes), wgpu::MapMode::Read);
         }
         buffers.in_flight = Some((buffers.generation, n));
+        if buffers.mapped && n > 0 && buffers.one_dispatch() {
+            // The next query, likely of the same size, recorded while this one runs. Only
+            // this method submits it, once this query has been waited for and its results
+            // unmapped, so the busy check does not apply. On failure the next query records
+            // its own.
+            let mut enc = gpu.device().create_command_encoder(&Default::default());
+            if self
+                .record_unchecked(gpu, &mut enc, buffers, n, timed)
+                .is_ok()
+            {
+                buffers.prepared[usize::from(timed)] = Some(Prepared {
+                    n,
+                    lod,
+                    commands: enc.finish(),
+                });
+            }
+        }
         Ok(QueryTicket {
             generation: buffers.generation,
             submission,
@@ -883,15 +955,29 @@ impl NeuralSdf {
         timed: bool,
     ) -> Result<(), NeuralSdfError> {
         self.check_buffers(gpu, buffers)?;
-        buffers.check_count(n as usize)?;
         // With mapped transfers the results buffer is mapped from `submit_query` until its
         // results are dropped: no other submission may use it meanwhile.
         if buffers.mapped && (buffers.in_flight.is_some() || buffers.map_busy()) {
             return Err(QueryError::Busy.into());
         }
+        self.record_unchecked(gpu, enc, buffers, n, timed)
+    }
+
+    /// [`NeuralSdf::record_query_timed`] without the check that mapped buffers are free.
+    fn record_unchecked(
+        &self,
+        gpu: &GpuContext,
+        enc: &mut wgpu::CommandEncoder,
+        buffers: &mut QueryBuffers,
+        n: u32,
+        timed: bool,
+    ) -> Result<(), NeuralSdfError> {
+        self.check_buffers(gpu, buffers)?;
+        buffers.check_count(n as usize)?;
         if n == 0 {
             return Ok(());
         }
+        buffers.recorded = Some((n, self.lod()));
         let normals = buffers.outputs == QueryOutputs::ValuesAndNormals;
         let lod = self.lod();
         self.with_gpu(gpu, |net, timer| {
@@ -1058,6 +1144,81 @@ mod tests {
             GpuNetwork::Siren(s) => Ok(s.upload(gpu, &b)?),
             GpuNetwork::Nglod(_) => unreachable!(),
         });
+    }
+
+    /// `submit_query` records the next query while this one runs and submits those commands
+    /// when the next query has the same size and level of detail. A query of another size,
+    /// another level of detail, or after another recording into the buffers (which rewrites
+    /// their uniforms) must not run them; plain and timed queries alternate, as the reports
+    /// run them. NGLOD's query is one dispatch on every adapter.
+    #[test]
+    fn prepared_queries_answer_like_fresh_ones() {
+        use crate::query::{QueryBuffers, QueryBuffersDescriptor, QueryTransfer};
+        let gpu = gpu();
+        if !gpu.maps_storage() {
+            eprintln!("skipped: {} does not map storage buffers", gpu.describe());
+            return;
+        }
+        let mut model = Nglod::new(NglodConfig::small()).unwrap();
+        if model.needs_bands() {
+            model.place_bands(|p| (p.length() - 0.6).abs()).unwrap();
+        }
+        let mut served =
+            sdf(model.to_model_file(Normalization::identity(), serde_json::Value::Null));
+        let mut buffers = served
+            .create_query_buffers(
+                gpu,
+                &QueryBuffersDescriptor {
+                    capacity: 301,
+                    transfer: QueryTransfer::Mapped,
+                    ..Default::default()
+                },
+            )
+            .unwrap();
+        // Every query gets points of its own, so stale commands show as stale results.
+        let sets: Vec<Vec<Vec3>> = (0..8)
+            .map(|k| {
+                points()
+                    .iter()
+                    .map(|p| *p * (1.0 - 0.07 * k as f32))
+                    .collect()
+            })
+            .collect();
+        let query = |served: &NeuralSdf, buffers: &mut QueryBuffers, pts: &[Vec3], timed: bool| {
+            let ticket = served.submit_query_timed(gpu, buffers, pts, timed).unwrap();
+            let mut got = Vec::new();
+            buffers.wait(gpu, ticket).unwrap().extend_values(&mut got);
+            if timed {
+                served.read_query_ns(gpu).unwrap();
+            }
+            assert_close(
+                &got,
+                &served.eval_cpu(pts),
+                &format!("{} points", pts.len()),
+            );
+        };
+        for (i, pts) in sets[..4].iter().enumerate() {
+            query(&served, &mut buffers, pts, i % 2 == 1);
+        }
+        // The third and fourth ran on commands recorded by the first and second.
+        assert_eq!(buffers.prepared_used(), 2);
+        // Another size.
+        query(&served, &mut buffers, &sets[4][..100], false);
+        assert_eq!(buffers.prepared_used(), 2);
+        // A recording of 7 points in between rewrites the uniforms: the commands recorded for
+        // 100 points would answer only 7 of them.
+        let mut enc = gpu.device().create_command_encoder(&Default::default());
+        served.record_query(gpu, &mut enc, &mut buffers, 7).unwrap();
+        gpu.queue().submit([enc.finish()]);
+        gpu.wait().unwrap();
+        query(&served, &mut buffers, &sets[5][..100], false);
+        assert_eq!(buffers.prepared_used(), 2);
+        query(&served, &mut buffers, &sets[6][..100], false);
+        assert_eq!(buffers.prepared_used(), 3);
+        // Another level of detail.
+        served.set_lod(Some(1)).unwrap();
+        query(&served, &mut buffers, &sets[7][..100], false);
+        assert_eq!(buffers.prepared_used(), 3);
     }
 
     /// A SIREN query larger than one of the network's launches takes the path that splits it
