@@ -17,6 +17,8 @@
 //!   [`QueryBuffers::is_ready`] then `wait`) maps the results and hands them out as a
 //!   [`QueryResults`] guard that unmaps on drop. One submission per [`QueryBuffers`] is in
 //!   flight at a time: keep two to overlap a query with the host's work on the last one.
+//!   With mapped transfers it also records the next query of the same size while the GPU
+//!   works, so a caller that repeats its batch size does not wait for the encoding.
 //!
 //! A query is one kernel launch from points to results for NGLOD, and for SIREN on the kernels
 //! GPUs run (the tiled fused kernel and the cooperative-matrix one); SIREN on the row-blocked
