@@ -979,9 +979,9 @@ impl NeuralSdf {
         if n == 0 {
             return Ok(());
         }
-        buffers.recorded = Some((n, self.lod()));
-        let normals = buffers.outputs == QueryOutputs::ValuesAndNormals;
         let lod = self.lod();
+        buffers.recorded = Some((n, lod));
+        let normals = buffers.outputs == QueryOutputs::ValuesAndNormals;
         self.with_gpu(gpu, |net, timer| {
             let timer: Option<&GpuTimer> = timer.filter(|_| timed);
             match (net, &mut buffers.kernels) {
