@@ -36,6 +36,10 @@
 //! `HWSDF_MAPPABLE_STORAGE=0`), `serve_mapped` (the serving API with `QueryTransfer::Mapped`).
 //! Before them, `transfer` rows split a mapped query's host-side transfers (no kernel): see
 //! `transfer_split`.
+//!
+//! Two more modes, instead of the above: `QUERY_BENCH_PHASES=ROUNDS` times one mapped query
+//! phase by phase (`phase_split`), and `QUERY_BENCH_LATENCY=ROUNDS` how long the GPU takes to
+//! answer a submission by what it holds and how long it sat idle before (`latency_split`).
 
 use std::time::Duration;
 
