@@ -1148,6 +1148,16 @@ mod tests {
         });
     }
 
+    /// The serving types cross threads (a renderer's or a planner's workers): no field, such
+    /// as the commands recorded ahead, may take that away.
+    #[test]
+    fn serving_types_are_send_and_sync() {
+        fn send_sync<T: Send + Sync>() {}
+        send_sync::<crate::QueryBuffers>();
+        send_sync::<crate::query::QueryTicket>();
+        send_sync::<NeuralSdf>();
+    }
+
     /// `submit_query` records the next query while this one runs and submits those commands
     /// when the next query has the same size and level of detail. A query of another size,
     /// another level of detail, or after another recording into the buffers (which rewrites
