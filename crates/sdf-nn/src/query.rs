@@ -965,7 +965,9 @@ impl NeuralSdf {
         self.record_unchecked(gpu, enc, buffers, n, timed)
     }
 
-    /// [`NeuralSdf::record_query_timed`] without the check that mapped buffers are free.
+    /// [`NeuralSdf::record_query_timed`] without its checks that `buffers` are this model's
+    /// and, when mapped, free: both callers have made the first (`submit_query_timed` on
+    /// entry), and the commands recorded ahead run only once the buffers are free.
     fn record_unchecked(
         &self,
         gpu: &GpuContext,
@@ -974,7 +976,6 @@ impl NeuralSdf {
         n: u32,
         timed: bool,
     ) -> Result<(), NeuralSdfError> {
-        self.check_buffers(gpu, buffers)?;
         buffers.check_count(n as usize)?;
         if n == 0 {
             return Ok(());
