@@ -209,18 +209,77 @@ fn empty_roundtrip(c: &mut Criterion, gpu: &GpuContext) {
     g.finish();
 }
 
+/// An NGLOD model of `cfg` and the `NeuralSdf` serving it (identity normalisation). A sparse
+/// level holds the band around a sphere of about a real mesh's size.
+fn nglod_model(cfg: NglodConfig) -> (Nglod, NeuralSdf) {
+    let mut model = Nglod::new(cfg).unwrap();
+    if model.needs_bands() {
+        model.place_bands(|p| (p.length() - 0.6).abs()).unwrap();
+    }
+    let sdf = NeuralSdf::from_model_file(
+        model.to_model_file(Normalization::identity(), serde_json::Value::Null),
+    )
+    .unwrap();
+    (model, sdf)
+}
+
+/// The `NeuralSdf` serving `siren` (identity normalisation).
+fn siren_sdf(siren: &sdf_nn::Siren) -> NeuralSdf {
+    NeuralSdf::from_model_file(
+        siren.to_model_file(Normalization::identity(), serde_json::Value::Null),
+    )
+    .unwrap()
+}
+
+/// A dispatch that does nothing (query.wgsl's `prepare` with a point count of 0) and its bind
+/// group: one kernel launch without work.
+fn empty_dispatch(gpu: &GpuContext) -> (wgpu::ComputePipeline, wgpu::BindGroup) {
+    let pipeline = gpu
+        .pipeline(&sdf_nn::shaders::QUERY, "prepare", &[])
+        .unwrap();
+    let u = gpu.uniform("bench empty uniforms", &[0u32; 8]);
+    let (p, q) = (
+        gpu.storage_zeroed("bench p", 16).unwrap(),
+        gpu.storage_zeroed("bench q", 12).unwrap(),
+    );
+    let entries = [(0, &u), (1, &p), (2, &q)].map(|(binding, b)| wgpu::BindGroupEntry {
+        binding,
+        resource: b.as_entire_binding(),
+    });
+    let group = gpu.device().create_bind_group(&wgpu::BindGroupDescriptor {
+        label: Some("bench empty"),
+        layout: &pipeline.get_bind_group_layout(0),
+        entries: &entries,
+    });
+    (pipeline, group)
+}
+
+/// Asks for `slice`'s mapping; the flag turns true once its callback has run.
+fn request_map(
+    slice: wgpu::BufferSlice<'_>,
+    mode: wgpu::MapMode,
+) -> std::sync::Arc<std::sync::atomic::AtomicBool> {
+    use std::sync::atomic::{AtomicBool, Ordering};
+    let done = std::sync::Arc::new(AtomicBool::new(false));
+    let flag = std::sync::Arc::clone(&done);
+    slice.map_async(mode, move |r| flag.store(r.is_ok(), Ordering::Release));
+    done
+}
+
+/// Polls `gpu` until `done`; returns the number of polls.
+fn poll_until(gpu: &GpuContext, done: &std::sync::atomic::AtomicBool) -> u32 {
+    let mut polls = 0;
+    while !done.load(std::sync::atomic::Ordering::Acquire) {
+        gpu.device().poll(wgpu::PollType::Poll).unwrap();
+        polls += 1;
+    }
+    polls
+}
+
 fn nglod(c: &mut Criterion, gpu: &GpuContext) {
     for (name, cfg) in presets() {
-        let mut model = Nglod::new(cfg).unwrap();
-        // A sparse level holds the band around a sphere of about a real mesh's size.
-        if model.needs_bands() {
-            model.place_bands(|p| (p.length() - 0.6).abs()).unwrap();
-        }
+        let (model, sdf) = nglod_model(cfg);
         let net = NglodGpu::new(gpu, &model, ScatterMode::Auto).unwrap();
-        let sdf = NeuralSdf::from_model_file(
-            model.to_model_file(Normalization::identity(), serde_json::Value::Null),
-        )
-        .unwrap();
         let mut g = c.benchmark_group(format!("nglod_{name}"));
         g.sample_size(20)
             .warm_up_time(Duration::from_secs(1))
@@ -284,45 +343,12 @@ fn interleaved(gpu: &GpuContext, rounds: usize) {
     let src = gpu.storage_zeroed("bench src", 40).unwrap();
     let staging = readback_buffer(gpu, "bench staging", 40);
     let timer = GpuTimer::new(gpu);
-    // A dispatch that does nothing (query.wgsl's `prepare` with a point count of 0), to split a
-    // query's cost into the submit+readback, one kernel launch, and the kernel's work.
-    let empty_pipeline = gpu
-        .pipeline(&sdf_nn::shaders::QUERY, "prepare", &[])
-        .unwrap();
-    let u = gpu.uniform("bench empty uniforms", &[0u32; 8]);
-    let (p, q) = (
-        gpu.storage_zeroed("bench p", 16).unwrap(),
-        gpu.storage_zeroed("bench q", 12).unwrap(),
-    );
-    let empty_group = gpu.device().create_bind_group(&wgpu::BindGroupDescriptor {
-        label: Some("bench empty"),
-        layout: &empty_pipeline.get_bind_group_layout(0),
-        entries: &[
-            wgpu::BindGroupEntry {
-                binding: 0,
-                resource: u.as_entire_binding(),
-            },
-            wgpu::BindGroupEntry {
-                binding: 1,
-                resource: p.as_entire_binding(),
-            },
-            wgpu::BindGroupEntry {
-                binding: 2,
-                resource: q.as_entire_binding(),
-            },
-        ],
-    });
+    // A launch without work, to split a query's cost into the submit+readback, one kernel
+    // launch, and the kernel's work.
+    let (empty_pipeline, empty_group) = empty_dispatch(gpu);
     for (name, cfg) in presets() {
-        let mut model = Nglod::new(cfg).unwrap();
-        // A sparse level holds the band around a sphere of about a real mesh's size.
-        if model.needs_bands() {
-            model.place_bands(|p| (p.length() - 0.6).abs()).unwrap();
-        }
+        let (model, sdf) = nglod_model(cfg);
         let net = NglodGpu::new(gpu, &model, ScatterMode::Auto).unwrap();
-        let sdf = NeuralSdf::from_model_file(
-            model.to_model_file(Normalization::identity(), serde_json::Value::Null),
-        )
-        .unwrap();
         for n in batch_sizes() {
             let pts: Vec<Vec3> = sdf_geom::sample::uniform_box(n, 42);
             let mut buffers = normalized_buffers(gpu, &sdf, n);
@@ -476,10 +502,7 @@ fn interleaved_siren_preset(
         .map(|&k| {
             let mut net = sdf_nn::SirenGpu::new(gpu, &siren).unwrap();
             net.set_layer_kernels(gpu, k).unwrap();
-            let mut sdf = NeuralSdf::from_model_file(
-                siren.to_model_file(Normalization::identity(), serde_json::Value::Null),
-            )
-            .unwrap();
+            let mut sdf = siren_sdf(&siren);
             sdf.set_siren_kernels(k).unwrap();
             let name = if kernels.len() > 1 {
                 format!("{}/", k.name())
@@ -610,22 +633,13 @@ fn print_quantiles(label: &str, t: &mut [f64]) {
 ///   one 16-byte store each (what uploads do now);
 /// - `read_mapped`: the mapped results (one float per point) read into a host vector.
 fn transfer_split(gpu: &GpuContext, rounds: usize) {
-    use std::sync::Arc;
-    use std::sync::atomic::{AtomicBool, Ordering};
     use std::time::Instant;
     if !gpu.maps_storage() {
         println!("transfer split: this device does not map storage buffers");
         return;
     }
     let map = |buffer: &wgpu::Buffer, mode: wgpu::MapMode| {
-        let done = Arc::new(AtomicBool::new(false));
-        let flag = Arc::clone(&done);
-        buffer
-            .slice(..)
-            .map_async(mode, move |r| flag.store(r.is_ok(), Ordering::Release));
-        while !done.load(Ordering::Acquire) {
-            gpu.device().poll(wgpu::PollType::Poll).unwrap();
-        }
+        poll_until(gpu, &request_map(buffer.slice(..), mode));
     };
     let mut sizes = batch_sizes();
     sizes.push(50_000);
@@ -709,8 +723,6 @@ fn transfer_split(gpu: &GpuContext, rounds: usize) {
 /// the GPU time of the query's passes (timestamps around them) on the mapped buffers and on the
 /// device-local ones: whether a kernel that reads and writes mapped memory runs slower.
 fn phase_split(gpu: &GpuContext, rounds: usize) {
-    use std::sync::Arc;
-    use std::sync::atomic::{AtomicBool, Ordering};
     use std::time::Instant;
     if !gpu.maps_storage() {
         println!("phase split: this device does not map storage buffers");
@@ -718,40 +730,13 @@ fn phase_split(gpu: &GpuContext, rounds: usize) {
     }
     let mut models: Vec<(String, NeuralSdf)> = Vec::new();
     for (name, cfg) in presets() {
-        let mut model = Nglod::new(cfg).unwrap();
-        if model.needs_bands() {
-            model.place_bands(|p| (p.length() - 0.6).abs()).unwrap();
-        }
-        let file = model.to_model_file(Normalization::identity(), serde_json::Value::Null);
-        models.push((
-            format!("nglod_{name}"),
-            NeuralSdf::from_model_file(file).unwrap(),
-        ));
+        models.push((format!("nglod_{name}"), nglod_model(cfg).1));
     }
     for (name, cfg) in siren_presets() {
         let siren = sdf_nn::Siren::new(cfg, 1).unwrap();
-        let file = siren.to_model_file(Normalization::identity(), serde_json::Value::Null);
-        models.push((
-            format!("siren_{name}"),
-            NeuralSdf::from_model_file(file).unwrap(),
-        ));
+        models.push((format!("siren_{name}"), siren_sdf(&siren)));
     }
-    // Asks for `slice`'s mapping; the flag turns true when its callback has run.
-    let request = |slice: wgpu::BufferSlice<'_>, mode: wgpu::MapMode| {
-        let done = Arc::new(AtomicBool::new(false));
-        let flag = Arc::clone(&done);
-        slice.map_async(mode, move |r| flag.store(r.is_ok(), Ordering::Release));
-        done
-    };
-    // Polls until `done`; returns the number of polls.
-    let spin = |done: &AtomicBool| {
-        let mut polls = 0u32;
-        while !done.load(Ordering::Acquire) {
-            gpu.device().poll(wgpu::PollType::Poll).unwrap();
-            polls += 1;
-        }
-        polls
-    };
+    let spin = |done: &std::sync::atomic::AtomicBool| poll_until(gpu, done);
     let spin_idle = || {
         let mut polls = 0u32;
         while !gpu
@@ -771,6 +756,26 @@ fn phase_split(gpu: &GpuContext, rounds: usize) {
             let mut resident = buffers_with(gpu, sdf, n, QueryTransfer::Staged);
             resident.upload(gpu, &pts).unwrap();
             let (point_bytes, result_bytes) = (n as u64 * 16, n as u64 * 4);
+            // The points written into the mapped points buffer, which is then unmapped.
+            let write = |buffers: &QueryBuffers| {
+                {
+                    let slice = buffers.points().slice(..point_bytes);
+                    let mut view = slice.get_mapped_range_mut().unwrap();
+                    sdf_nn::query::write_points(view.slice(..), &pts);
+                }
+                buffers.points().unmap();
+            };
+            // The mapped results read into `out`.
+            let read = |buffers: &QueryBuffers, out: &mut Vec<f32>| {
+                out.clear();
+                out.extend_from_slice(bytemuck::cast_slice(
+                    &buffers
+                        .results()
+                        .slice(..result_bytes)
+                        .get_mapped_range()
+                        .unwrap(),
+                ));
+            };
             let names = [
                 "map_points",
                 "write_points",
@@ -797,15 +802,10 @@ fn phase_split(gpu: &GpuContext, rounds: usize) {
             // One mapped round; its clock readings (start, then after each phase).
             let mut mapped_round = |mapped: &mut QueryBuffers, blocking: bool| {
                 let mut c = [Instant::now(); 9];
-                let done = request(mapped.points().slice(..point_bytes), wgpu::MapMode::Write);
+                let done = request_map(mapped.points().slice(..point_bytes), wgpu::MapMode::Write);
                 spin(&done);
                 c[1] = Instant::now();
-                {
-                    let slice = mapped.points().slice(..point_bytes);
-                    let mut view = slice.get_mapped_range_mut().unwrap();
-                    sdf_nn::query::write_points(view.slice(..), &pts);
-                }
-                mapped.points().unmap();
+                write(mapped);
                 c[2] = Instant::now();
                 let mut enc = gpu.device().create_command_encoder(&Default::default());
                 sdf.record_query(gpu, &mut enc, mapped, n as u32).unwrap();
@@ -813,7 +813,7 @@ fn phase_split(gpu: &GpuContext, rounds: usize) {
                 c[3] = Instant::now();
                 let index = gpu.queue().submit([cmd]);
                 c[4] = Instant::now();
-                let done = request(mapped.results().slice(..result_bytes), wgpu::MapMode::Read);
+                let done = request_map(mapped.results().slice(..result_bytes), wgpu::MapMode::Read);
                 c[5] = Instant::now();
                 let p = if blocking {
                     gpu.device()
@@ -827,14 +827,7 @@ fn phase_split(gpu: &GpuContext, rounds: usize) {
                     spin(&done)
                 };
                 c[6] = Instant::now();
-                out.clear();
-                out.extend_from_slice(bytemuck::cast_slice(
-                    &mapped
-                        .results()
-                        .slice(..result_bytes)
-                        .get_mapped_range()
-                        .unwrap(),
-                ));
+                read(mapped, &mut out);
                 c[7] = Instant::now();
                 mapped.results().unmap();
                 c[8] = Instant::now();
@@ -846,14 +839,11 @@ fn phase_split(gpu: &GpuContext, rounds: usize) {
             let mut next: Option<wgpu::CommandBuffer> = None;
             let mut pipelined_round = |sdf: &NeuralSdf, mapped: &mut QueryBuffers| {
                 let c0 = Instant::now();
-                let done = request(mapped.points().slice(..point_bytes), wgpu::MapMode::Write);
-                spin(&done);
-                {
-                    let slice = mapped.points().slice(..point_bytes);
-                    let mut view = slice.get_mapped_range_mut().unwrap();
-                    sdf_nn::query::write_points(view.slice(..), &pts);
-                }
-                mapped.points().unmap();
+                spin(&request_map(
+                    mapped.points().slice(..point_bytes),
+                    wgpu::MapMode::Write,
+                ));
+                write(mapped);
                 let cmd = next.take().unwrap_or_else(|| {
                     let mut enc = gpu.device().create_command_encoder(&Default::default());
                     sdf.record_query(gpu, &mut enc, mapped, n as u32).unwrap();
@@ -861,7 +851,7 @@ fn phase_split(gpu: &GpuContext, rounds: usize) {
                 });
                 gpu.queue().submit([cmd]);
                 let c1 = Instant::now();
-                let done = request(mapped.results().slice(..result_bytes), wgpu::MapMode::Read);
+                let done = request_map(mapped.results().slice(..result_bytes), wgpu::MapMode::Read);
                 let mut enc = gpu.device().create_command_encoder(&Default::default());
                 sdf.record_query(gpu, &mut enc, mapped, n as u32).unwrap();
                 next = Some(enc.finish());
@@ -869,13 +859,7 @@ fn phase_split(gpu: &GpuContext, rounds: usize) {
                 spin(&done);
                 let c3 = Instant::now();
                 let mut out = Vec::with_capacity(n);
-                out.extend_from_slice(bytemuck::cast_slice::<u8, f32>(
-                    &mapped
-                        .results()
-                        .slice(..result_bytes)
-                        .get_mapped_range()
-                        .unwrap(),
-                ));
+                read(mapped, &mut out);
                 mapped.results().unmap();
                 let c4 = Instant::now();
                 std::hint::black_box(out);
@@ -947,15 +931,9 @@ fn phase_split(gpu: &GpuContext, rounds: usize) {
             if let Some(timer) = GpuTimer::new(gpu) {
                 for (what, buffers) in [("mapped", &mut mapped), ("device-local", &mut resident)] {
                     if what == "mapped" {
-                        let done =
-                            request(buffers.points().slice(..point_bytes), wgpu::MapMode::Write);
-                        spin(&done);
-                        {
-                            let slice = buffers.points().slice(..point_bytes);
-                            let mut view = slice.get_mapped_range_mut().unwrap();
-                            sdf_nn::query::write_points(view.slice(..), &pts);
-                        }
-                        buffers.points().unmap();
+                        let slice = buffers.points().slice(..point_bytes);
+                        spin(&request_map(slice, wgpu::MapMode::Write));
+                        write(buffers);
                     }
                     let mut ns: Vec<f64> = Vec::with_capacity(rounds);
                     for _ in 0..rounds.clamp(1, 200) {
@@ -992,28 +970,8 @@ fn latency_split(gpu: &GpuContext, rounds: usize) {
     use std::time::Instant;
     let src = gpu.storage_zeroed("bench src", 16).unwrap();
     let dst = gpu.storage_zeroed("bench dst", 16).unwrap();
-    let empty_pipeline = gpu
-        .pipeline(&sdf_nn::shaders::QUERY, "prepare", &[])
-        .unwrap();
-    let u = gpu.uniform("bench empty uniforms", &[0u32; 8]);
-    let (p, q) = (
-        gpu.storage_zeroed("bench p", 16).unwrap(),
-        gpu.storage_zeroed("bench q", 12).unwrap(),
-    );
-    let entries = [(0, &u), (1, &p), (2, &q)].map(|(binding, b)| wgpu::BindGroupEntry {
-        binding,
-        resource: b.as_entire_binding(),
-    });
-    let empty_group = gpu.device().create_bind_group(&wgpu::BindGroupDescriptor {
-        label: Some("bench empty"),
-        layout: &empty_pipeline.get_bind_group_layout(0),
-        entries: &entries,
-    });
-    let siren = sdf_nn::Siren::new(sdf_nn::SirenConfig::default(), 1).unwrap();
-    let sdf = NeuralSdf::from_model_file(
-        siren.to_model_file(Normalization::identity(), serde_json::Value::Null),
-    )
-    .unwrap();
+    let (empty_pipeline, empty_group) = empty_dispatch(gpu);
+    let sdf = siren_sdf(&sdf_nn::Siren::new(sdf_nn::SirenConfig::default(), 1).unwrap());
     let n = 3000;
     let mut resident = buffers_with(gpu, &sdf, n, QueryTransfer::Staged);
     resident
