@@ -629,7 +629,7 @@ fn print_quantiles(label: &str, t: &mut [f64]) {
 /// - `pack_host`: the points padded to vec4 into a host vector;
 /// - `memcpy_mapped`: that vector copied into the mapped points in one `memcpy` (uploads
 ///   before session 20 did both);
-/// - `write_mapped`: the points written into the mapped points by `sdf_nn::query::write_points`,
+/// - `write_mapped`: the points written into the mapped points by `sdf_nn::serve::query::write_points`,
 ///   one 16-byte store each (what uploads do now);
 /// - `read_mapped`: the mapped results (one float per point) read into a host vector.
 fn transfer_split(gpu: &GpuContext, rounds: usize) {
@@ -694,7 +694,7 @@ fn transfer_split(gpu: &GpuContext, rounds: usize) {
             });
             timed(3, &mut || {
                 let mut view = points.slice(..).get_mapped_range_mut().unwrap();
-                sdf_nn::query::write_points(view.slice(..), &pts);
+                sdf_nn::serve::query::write_points(view.slice(..), &pts);
             });
             points.unmap();
             map(&results, wgpu::MapMode::Read);
@@ -761,7 +761,7 @@ fn phase_split(gpu: &GpuContext, rounds: usize) {
                 {
                     let slice = buffers.points().slice(..point_bytes);
                     let mut view = slice.get_mapped_range_mut().unwrap();
-                    sdf_nn::query::write_points(view.slice(..), &pts);
+                    sdf_nn::serve::query::write_points(view.slice(..), &pts);
                 }
                 buffers.points().unmap();
             };

@@ -129,7 +129,7 @@ fn corpus(args: &Args) -> Result<ExitCode, BoxError> {
     }
     state.create()?;
     let gpu = GpuContext::with_options(
-        &GpuOptions::from_env().with_adapter(args.adapter.as_deref(), "--adapter"),
+        &GpuOptions::from_env()?.with_adapter(args.adapter.as_deref(), "--adapter"),
     )?;
     // SIREN's CPU preset wins when both run: one preset for the whole table.
     let preset = flags.preset_for(

@@ -56,7 +56,7 @@ fn parse_size(s: &str) -> Result<(u32, u32), String> {
             (n, n)
         }
     };
-    let max = hwsdf::nn::render::MAX_IMAGE_SIDE;
+    let max = hwsdf::nn::serve::render::MAX_IMAGE_SIDE;
     if w == 0 || h == 0 || w > max || h > max {
         return Err(format!("size {w}x{h}: each side must be in 1..={max}"));
     }

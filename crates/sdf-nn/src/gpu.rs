@@ -10,8 +10,9 @@
 //! - otherwise a real GPU (discrete, then integrated, then virtual) is preferred over a CPU
 //!   adapter such as lavapipe.
 //!
-//! `HWSDF_MAPPABLE_STORAGE=0` does not ask for `MAPPABLE_PRIMARY_BUFFERS` (see
-//! [`GpuContext::maps_storage`]).
+//! Every variable is read once, by [`GpuOptions::from_env`]; `HWSDF_MAPPABLE_STORAGE=0` does not
+//! ask for `MAPPABLE_PRIMARY_BUFFERS` (see [`GpuContext::maps_storage`]), `HWSDF_NO_COOP=1`
+//! leaves cooperative matrices off, `HWSDF_STEP_LAYOUT=gpu|cpu` forces SIREN's step layout.
 
 use std::borrow::Cow;
 use std::collections::HashMap;
@@ -107,6 +108,18 @@ pub enum GpuError {
         /// wgpu's message.
         message: String,
     },
+    /// An environment variable of [`GpuOptions::from_env`] holds a value it does not know.
+    #[error(
+        "{variable}={value:?} is not a value it takes: use one of {allowed} (or leave it unset)"
+    )]
+    Environment {
+        /// The variable.
+        variable: &'static str,
+        /// Its value.
+        value: String,
+        /// The values it takes.
+        allowed: String,
+    },
     /// Mapping a buffer for readback failed, or the device was lost while waiting.
     #[error("reading back `{label}` failed: {reason}")]
     Readback {
@@ -117,9 +130,20 @@ pub enum GpuError {
     },
 }
 
-/// How to choose the adapter. [`GpuOptions::from_env`] reads `HWSDF_ADAPTER` and the usual
-/// wgpu variables.
-#[derive(Clone, Debug, Default)]
+/// Which layout SIREN's reverse-over-reverse training step runs (`HWSDF_STEP_LAYOUT`): the
+/// one for GPUs (many small splits, wide reductions) or the one for CPU adapters such as
+/// lavapipe. By default the adapter decides.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum StepLayout {
+    /// The layout for real GPUs.
+    Gpu,
+    /// The layout for CPU adapters.
+    Cpu,
+}
+
+/// How to choose the adapter and which of its capabilities to use: every library knob that can
+/// come from the environment, read once by [`GpuOptions::from_env`].
+#[derive(Clone, Debug)]
 pub struct GpuOptions {
     /// Which adapter: its index in [`list_adapters`] (as `gpu-info` prints it), its PCI bus id
     /// (`wgpu::AdapterInfo::device_pci_bus_id`, e.g. `0000:65:00.0`), or part of its name
@@ -129,23 +153,101 @@ pub struct GpuOptions {
     pub adapter_from: String,
     /// Restrict to these backends; `None` means wgpu's defaults (or `WGPU_BACKEND`).
     pub backends: Option<wgpu::Backends>,
+    /// Ask for mappable storage buffers where the adapter has them (default `true`;
+    /// `HWSDF_MAPPABLE_STORAGE=0` turns it off). See [`GpuContext::maps_storage`].
+    pub mappable_storage: bool,
+    /// Use f16 cooperative matrices (tensor cores) where the driver has them (default `true`;
+    /// `HWSDF_NO_COOP=1` turns it off). See [`GpuContext::coop_f16_tile`].
+    pub cooperative_matrices: bool,
+    /// Force the layout of SIREN's training step (`HWSDF_STEP_LAYOUT=gpu|cpu`); `None`: by
+    /// adapter.
+    pub step_layout: Option<StepLayout>,
 }
 
+impl Default for GpuOptions {
+    fn default() -> Self {
+        GpuOptions {
+            adapter: None,
+            adapter_from: String::new(),
+            backends: None,
+            mappable_storage: true,
+            cooperative_matrices: true,
+            step_layout: None,
+        }
+    }
+}
+
+/// The environment variables [`GpuOptions::from_env`] reads, in the order it reads them.
+pub const ENV_VARIABLES: &[&str] = &[
+    "HWSDF_ADAPTER",
+    "WGPU_ADAPTER_NAME",
+    "WGPU_BACKEND",
+    "HWSDF_MAPPABLE_STORAGE",
+    "HWSDF_NO_COOP",
+    "HWSDF_STEP_LAYOUT",
+];
+
 impl GpuOptions {
-    /// Options from `HWSDF_ADAPTER` (index, bus id or name), else `WGPU_ADAPTER_NAME` (name),
-    /// and `WGPU_BACKEND`.
-    pub fn from_env() -> Self {
-        let var = |name: &str| std::env::var(name).ok().filter(|s| !s.trim().is_empty());
+    /// Options from the process's environment: `HWSDF_ADAPTER` (index, bus id or name), else
+    /// `WGPU_ADAPTER_NAME` (name); `WGPU_BACKEND`; `HWSDF_MAPPABLE_STORAGE=0|1`;
+    /// `HWSDF_NO_COOP=0|1`; `HWSDF_STEP_LAYOUT=gpu|cpu`. An empty variable counts as unset; any
+    /// other value than those listed is an error naming the allowed ones.
+    pub fn from_env() -> Result<Self, GpuError> {
+        Self::from_vars(|name| std::env::var(name).ok())
+    }
+
+    /// [`GpuOptions::from_env`] over any source of variables (`var(name)` is the value of
+    /// `name`, if set).
+    pub fn from_vars(var: impl Fn(&str) -> Option<String>) -> Result<Self, GpuError> {
+        let var = |name: &str| var(name).filter(|s| !s.trim().is_empty());
         let (adapter, adapter_from) = match (var("HWSDF_ADAPTER"), var("WGPU_ADAPTER_NAME")) {
             (Some(a), _) => (Some(a), "HWSDF_ADAPTER"),
             (None, Some(a)) => (Some(a), "WGPU_ADAPTER_NAME"),
             (None, None) => (None, ""),
         };
-        GpuOptions {
+        let choice = |name: &'static str, allowed: &'static [&'static str]| {
+            var(name)
+                .map(|value| {
+                    let v = value.trim().to_ascii_lowercase();
+                    allowed
+                        .iter()
+                        .position(|a| *a == v)
+                        .ok_or(GpuError::Environment {
+                            variable: name,
+                            value,
+                            allowed: allowed.join(", "),
+                        })
+                })
+                .transpose()
+        };
+        let backends = match var("WGPU_BACKEND") {
+            None => None,
+            Some(value) => {
+                let backends = wgpu::Backends::from_comma_list(&value);
+                if backends.is_empty() {
+                    return Err(GpuError::Environment {
+                        variable: "WGPU_BACKEND",
+                        value,
+                        allowed: "a comma-separated list of vulkan, metal, dx12, gl, webgpu".into(),
+                    });
+                }
+                Some(backends)
+            }
+        };
+        Ok(GpuOptions {
             adapter,
             adapter_from: adapter_from.into(),
-            backends: wgpu::Backends::from_env(),
-        }
+            backends,
+            mappable_storage: choice("HWSDF_MAPPABLE_STORAGE", &["0", "1"])?.is_none_or(|i| i == 1),
+            cooperative_matrices: choice("HWSDF_NO_COOP", &["0", "1"])?.is_none_or(|i| i == 0),
+            step_layout: choice("HWSDF_STEP_LAYOUT", &["gpu", "cpu"])?.map(|i| {
+                if i == 0 {
+                    StepLayout::Gpu
+                } else {
+                    StepLayout::Cpu
+                }
+            }),
+        })
     }
 
     /// These options with the adapter chosen by a command-line flag instead (`None` keeps
@@ -190,6 +292,8 @@ pub struct GpuContext {
     coop_tile: Option<u32>,
     /// How long a wait polls before it blocks, in nanoseconds ([`GpuContext::set_spin_wait`]).
     spin_wait_ns: AtomicU64,
+    /// The options the context was made with.
+    options: GpuOptions,
 }
 
 impl fmt::Debug for GpuContext {
@@ -263,7 +367,7 @@ fn coop_f16_tile(adapter: &wgpu::Adapter) -> Option<u32> {
 impl GpuContext {
     /// A context on the adapter chosen by the environment (see the module docs).
     pub fn new() -> Result<Self, GpuError> {
-        Self::with_options(&GpuOptions::from_env())
+        Self::with_options(&GpuOptions::from_env()?)
     }
 
     /// A context on the adapter chosen by `options`.
@@ -276,7 +380,7 @@ impl GpuContext {
         let instance = wgpu::Instance::new(desc);
         let adapters = pollster::block_on(instance.enumerate_adapters(backends));
         let adapter = choose_adapter(adapters, options, backends)?;
-        Self::from_adapter(adapter)
+        Self::from_adapter(adapter, options)
     }
 
     /// One context per process, created from the environment on first use and shared after.
@@ -297,8 +401,9 @@ impl GpuContext {
         Ok(SHARED.get_or_init(|| gpu))
     }
 
-    /// A context on an adapter the caller already chose.
-    pub fn from_adapter(adapter: wgpu::Adapter) -> Result<Self, GpuError> {
+    /// A context on an adapter the caller already chose, using its capabilities as `options`
+    /// allow (their adapter choice is not used).
+    pub fn from_adapter(adapter: wgpu::Adapter, options: &GpuOptions) -> Result<Self, GpuError> {
         let info = adapter.get_info();
         let have = adapter.limits();
         let check = |limit: &'static str, has: u32, need: u32| {
@@ -349,7 +454,7 @@ impl GpuContext {
         // use it (`NeuralSdf::eval` and its kin: each crosses the bus once either way, and on
         // an H100 a query took 15–18 µs less than through staging copies). wgpu logs a
         // warning at device creation there. `HWSDF_MAPPABLE_STORAGE=0` leaves it off.
-        if std::env::var_os("HWSDF_MAPPABLE_STORAGE").is_some_and(|v| v == "0") {
+        if !options.mappable_storage {
             features.remove(wgpu::Features::MAPPABLE_PRIMARY_BUFFERS);
         }
         let request = |features: wgpu::Features, experimental: wgpu::ExperimentalFeatures| {
@@ -364,8 +469,7 @@ impl GpuContext {
         // Cooperative matrices are experimental in wgpu: ask for them only where our kernels can
         // use them, and open the device without them if the driver refuses the request.
         // `HWSDF_NO_COOP=1` leaves them off.
-        let opted_out = std::env::var_os("HWSDF_NO_COOP").is_some_and(|v| v != "0");
-        let coop_tile = coop_f16_tile(&adapter).filter(|_| !opted_out);
+        let coop_tile = coop_f16_tile(&adapter).filter(|_| options.cooperative_matrices);
         let with_coop = coop_tile.and_then(|_| {
             // SAFETY: wgpu's contract for experimental features. Only the kernels of
             // `siren::kernels::coop` use cooperative matrices, in the configuration
@@ -398,6 +502,7 @@ impl GpuContext {
             max_dispatch,
             coop_tile,
             spin_wait_ns: AtomicU64::new(SPIN_WAIT.as_nanos() as u64),
+            options: options.clone(),
         })
     }
 
@@ -438,6 +543,12 @@ impl GpuContext {
         self.device
             .features()
             .contains(wgpu::Features::TIMESTAMP_QUERY)
+    }
+
+    /// The options this context was made with (its capabilities' switches and the SIREN step
+    /// layout, as [`GpuOptions::from_env`] read them for [`GpuContext::new`]).
+    pub fn options(&self) -> &GpuOptions {
+        &self.options
     }
 
     /// The side (16 or 8) of the square tiles in which the device multiplies f16 cooperative

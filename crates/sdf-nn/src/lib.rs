@@ -24,27 +24,24 @@
 #![warn(missing_docs)]
 
 pub mod adam;
-pub mod embed;
 pub mod gpu;
 pub mod model_file;
-pub mod neural;
 pub mod nglod;
-pub mod query;
-pub mod render;
+pub mod serve;
 pub mod shaders;
 pub mod siren;
 
 pub use adam::{Adam, AdamConfig, AdamCpu, AdamState};
-pub use embed::{EmbedError, SdfBindGroup};
-pub use gpu::{GpuContext, GpuError, GpuOptions, SPIN_WAIT};
+pub use gpu::{GpuContext, GpuError, GpuOptions, SPIN_WAIT, StepLayout};
 pub use model_file::{ModelFile, ModelFileError, Normalization};
-pub use neural::{NeuralSdf, NeuralSdfError};
 pub use nglod::{
     DistanceMode, Nglod, NglodConfig, NglodError, NglodGpu, NglodTrainConfig, NglodTrainer,
 };
-pub use query::{
+pub use serve::neural::{NeuralSdf, NeuralSdfError};
+pub use serve::query::{
     QueryBuffers, QueryBuffersDescriptor, QueryError, QueryOutputs, QueryResults, QuerySpace,
     QueryTicket, QueryTransfer,
 };
-pub use render::{RenderError, RenderOptions, Renderer, RgbaImage, render};
+pub use serve::render::{RenderError, RenderOptions, Renderer, RgbaImage, render};
+pub use serve::wgsl::{EmbedError, SdfBindGroup};
 pub use siren::{LossWeights, Siren, SirenConfig, SirenGpu, SirenTrainConfig, SirenTrainer};

@@ -1,10 +1,11 @@
-//! Every WGSL shader of the project, embedded from the top-level `shaders/` folder, with the
-//! device features each one needs.
+//! Every WGSL shader of the crate, with the device features each one needs. Each file lives
+//! beside the Rust that dispatches it (`nglod/shaders/`, `siren/shaders/`, `serve/shaders/`,
+//! `adam.wgsl`) and is embedded with `include_str!`, so the crate packages alone.
 
 /// A WGSL source file and what it needs from the device.
 #[derive(Clone, Copy, Debug)]
 pub struct Shader {
-    /// File name in `shaders/`, also the cache key and the debug label.
+    /// File name (without its folder), also the cache key and the debug label.
     pub name: &'static str,
     /// WGSL source.
     pub source: &'static str,
@@ -13,32 +14,32 @@ pub struct Shader {
 }
 
 macro_rules! shader {
-    ($name:literal, $features:expr) => {
+    ($dir:literal $name:literal, $features:expr) => {
         Shader {
             name: $name,
-            source: include_str!(concat!("../../../shaders/", $name)),
+            source: include_str!(concat!($dir, $name)),
             required_features: $features,
         }
     };
     // A shader completed by shared WGSL files, prepended in order (WGSL has no includes).
-    ($name:literal with [$($part:literal),+], $features:expr) => {
+    ($dir:literal $name:literal with [$($pdir:literal $part:literal),+], $features:expr) => {
         Shader {
             name: $name,
             source: concat!(
-                $(include_str!(concat!("../../../shaders/", $part)), "\n",)+
-                include_str!(concat!("../../../shaders/", $name))
+                $(include_str!(concat!($pdir, $part)), "\n",)+
+                include_str!(concat!($dir, $name))
             ),
             required_features: $features,
         }
     };
     // A shader file (named) followed by shared WGSL files: for a file of `enable` directives
     // and definitions that must come before the code they configure.
-    ($name:literal then [$($part:literal),+], $features:expr) => {
+    ($dir:literal $name:literal then [$($pdir:literal $part:literal),+], $features:expr) => {
         Shader {
             name: $name,
             source: concat!(
-                include_str!(concat!("../../../shaders/", $name)),
-                $("\n", include_str!(concat!("../../../shaders/", $part)),)+
+                include_str!(concat!($dir, $name)),
+                $("\n", include_str!(concat!($pdir, $part)),)+
             ),
             required_features: $features,
         }
@@ -46,37 +47,40 @@ macro_rules! shader {
 }
 
 /// The shared Adam optimiser step.
-pub const ADAM: Shader = shader!("adam.wgsl", wgpu::Features::empty());
+pub const ADAM: Shader = shader!("" "adam.wgsl", wgpu::Features::empty());
 
 /// NGLOD inference (grid interpolation + MLP).
 pub const NGLOD_FORWARD: Shader = shader!(
-    "nglod_forward.wgsl" with ["nglod_grid.wgsl", "query_map.wgsl"],
+    "nglod/shaders/" "nglod_forward.wgsl" with ["nglod/shaders/" "nglod_grid.wgsl", "serve/shaders/" "query_map.wgsl"],
     wgpu::Features::empty()
 );
 /// NGLOD forward + backward per row, grid scatter with native float atomics.
 pub const NGLOD_TRAIN_ATOMIC: Shader = shader!(
-    "nglod_train_atomic.wgsl" with ["nglod_grid.wgsl"],
+    "nglod/shaders/" "nglod_train_atomic.wgsl" with ["nglod/shaders/" "nglod_grid.wgsl"],
     wgpu::Features::SHADER_FLOAT32_ATOMIC
 );
 /// NGLOD forward + backward per row, grid scatter by compare-exchange (any adapter).
 pub const NGLOD_TRAIN_CAS: Shader = shader!(
-    "nglod_train_cas.wgsl" with ["nglod_grid.wgsl"],
+    "nglod/shaders/" "nglod_train_cas.wgsl" with ["nglod/shaders/" "nglod_grid.wgsl"],
     wgpu::Features::empty()
 );
 /// NGLOD MLP-gradient and loss reduction.
-pub const NGLOD_REDUCE: Shader = shader!("nglod_reduce.wgsl", wgpu::Features::empty());
+pub const NGLOD_REDUCE: Shader =
+    shader!("nglod/shaders/" "nglod_reduce.wgsl", wgpu::Features::empty());
 
 /// SIREN's tiled GEMM with the sine forward / backward epilogues.
-pub const SIREN_GEMM: Shader = shader!("siren_gemm.wgsl", wgpu::Features::empty());
+pub const SIREN_GEMM: Shader = shader!("siren/shaders/" "siren_gemm.wgsl", wgpu::Features::empty());
 /// SIREN's hidden layers with the weights in uniform-buffer windows (forward, backward and
 /// weight-gradient partials).
-pub const SIREN_DENSE: Shader = shader!("siren_dense.wgsl", wgpu::Features::empty());
+pub const SIREN_DENSE: Shader =
+    shader!("siren/shaders/" "siren_dense.wgsl", wgpu::Features::empty());
 /// SIREN's tiled per-layer GEMM for GPUs, with the layer epilogues fused in.
-pub const SIREN_TILED_LAYER: Shader = shader!("siren_tiled_layer.wgsl", wgpu::Features::empty());
+pub const SIREN_TILED_LAYER: Shader =
+    shader!("siren/shaders/" "siren_tiled_layer.wgsl", wgpu::Features::empty());
 /// SIREN inference in one dispatch for GPUs: every layer of a tile of points, activations in
 /// workgroup memory.
 pub const SIREN_TILED_FUSED: Shader = shader!(
-    "siren_tiled_fused.wgsl" with ["query_map.wgsl"],
+    "siren/shaders/" "siren_tiled_fused.wgsl" with ["serve/shaders/" "query_map.wgsl"],
     wgpu::Features::empty()
 );
 /// The features of the cooperative-matrix kernels.
@@ -86,33 +90,35 @@ const COOP: wgpu::Features = wgpu::Features::EXPERIMENTAL_COOPERATIVE_MATRIX
 /// SIREN inference on f16 16 × 16 cooperative matrices (tensor cores), every layer in one
 /// dispatch.
 pub const SIREN_COOP_16: Shader = shader!(
-    "siren_coop_16x16.wgsl" then ["query_map.wgsl", "siren_coop.wgsl"],
+    "siren/shaders/" "siren_coop_16x16.wgsl" then ["serve/shaders/" "query_map.wgsl", "siren/shaders/" "siren_coop.wgsl"],
     COOP
 );
 /// [`SIREN_COOP_16`] on 8 × 8 tiles.
 pub const SIREN_COOP_8: Shader = shader!(
-    "siren_coop_8x8.wgsl" then ["query_map.wgsl", "siren_coop.wgsl"],
+    "siren/shaders/" "siren_coop_8x8.wgsl" then ["serve/shaders/" "query_map.wgsl", "siren/shaders/" "siren_coop.wgsl"],
     COOP
 );
 /// SIREN's output layer, loss and its derivative.
 pub const SIREN_HEAD: Shader = shader!(
-    "siren_head.wgsl" with ["siren_loss.wgsl"],
+    "siren/shaders/" "siren_head.wgsl" with ["siren/shaders/" "siren_loss.wgsl"],
     wgpu::Features::empty()
 );
 /// The elementwise and per-point kernels of SIREN's reverse-over-reverse training step.
 pub const SIREN_ROR: Shader = shader!(
-    "siren_ror.wgsl" with ["siren_loss.wgsl"],
+    "siren/shaders/" "siren_ror.wgsl" with ["siren/shaders/" "siren_loss.wgsl"],
     wgpu::Features::empty()
 );
 /// SIREN's batch sampling and reductions.
-pub const SIREN_TRAIN: Shader = shader!("siren_train.wgsl", wgpu::Features::empty());
+pub const SIREN_TRAIN: Shader =
+    shader!("siren/shaders/" "siren_train.wgsl", wgpu::Features::empty());
 
 /// The serving path's ends: points to network input, network output to distances and normals.
-pub const QUERY: Shader = shader!("query.wgsl" with ["query_map.wgsl"], wgpu::Features::empty());
+pub const QUERY: Shader = shader!("serve/shaders/" "query.wgsl" with ["serve/shaders/" "query_map.wgsl"], wgpu::Features::empty());
 
-/// The sphere tracer of [`mod@crate::render`]. It calls `hwsdf_distance` / `hwsdf_normal`, so it
+/// The sphere tracer of [`mod@crate::serve::render`]. It calls `hwsdf_distance` / `hwsdf_normal`, so it
 /// compiles only after a model's [`crate::NeuralSdf::wgsl`] snippet (listed in [`NEEDS_MODEL`]).
-pub const SPHERE_TRACE: Shader = shader!("sphere_trace.wgsl", wgpu::Features::empty());
+pub const SPHERE_TRACE: Shader =
+    shader!("serve/shaders/" "sphere_trace.wgsl", wgpu::Features::empty());
 
 /// Files of shared WGSL that the `shader!` macro prepends to the shaders that use them; they
 /// are validated as part of those.
@@ -222,23 +228,45 @@ mod tests {
         .unwrap_or_else(|e| panic!("{}: {}", shader.name, e.emit_to_string(source)));
     }
 
-    /// A shader file that is not in [`ALL`] would escape validation.
+    /// Every `.wgsl` file under `src/`, by file name, with its contents.
+    fn wgsl_files() -> Vec<(String, String)> {
+        fn walk(dir: &std::path::Path, out: &mut Vec<(String, String)>) {
+            for entry in std::fs::read_dir(dir).expect("src/ is readable").flatten() {
+                let path = entry.path();
+                if path.is_dir() {
+                    walk(&path, out);
+                } else if path.extension().is_some_and(|e| e == "wgsl") {
+                    let name = entry.file_name().to_string_lossy().into_owned();
+                    out.push((name, std::fs::read_to_string(&path).expect("readable")));
+                }
+            }
+        }
+        let mut out = Vec::new();
+        walk(
+            concat!(env!("CARGO_MANIFEST_DIR"), "/src").as_ref(),
+            &mut out,
+        );
+        out.sort();
+        out
+    }
+
+    /// A shader file that is not in [`ALL`] would escape validation; two files of one name
+    /// would share a pipeline cache key.
     #[test]
     fn every_shader_file_is_registered() {
-        let dir = concat!(env!("CARGO_MANIFEST_DIR"), "/../../shaders");
-        let mut on_disk: Vec<String> = std::fs::read_dir(dir)
-            .expect("shaders/ exists")
-            .filter_map(|e| e.ok())
-            .map(|e| e.file_name().to_string_lossy().into_owned())
-            .filter(|n| n.ends_with(".wgsl"))
-            .collect();
-        on_disk.sort();
+        let files = wgsl_files();
+        let on_disk: Vec<String> = files.iter().map(|(n, _)| n.clone()).collect();
+        let mut unique = on_disk.clone();
+        unique.dedup();
+        assert_eq!(on_disk, unique, "two shader files share a name");
         let mut registered: Vec<String> = ALL.iter().map(|s| s.name.to_owned()).collect();
         for part in SHARED_PARTS {
-            let path = format!("{dir}/{part}");
-            let text = std::fs::read_to_string(&path).expect("shared part exists");
+            let (_, text) = files
+                .iter()
+                .find(|(n, _)| n == part)
+                .expect("shared part exists");
             assert!(
-                ALL.iter().any(|s| s.source.contains(&text)),
+                ALL.iter().any(|s| s.source.contains(text.as_str())),
                 "{part} is prepended to no shader"
             );
             registered.push((*part).to_owned());

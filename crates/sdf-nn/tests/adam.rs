@@ -177,7 +177,7 @@ fn unknown_adapter_name_is_a_clear_error() {
     let options = GpuOptions {
         adapter: Some("no-such-adapter-hwsdf".into()),
         adapter_from: "WGPU_ADAPTER_NAME".into(),
-        backends: None,
+        ..GpuOptions::default()
     };
     let err = GpuContext::with_options(&options).unwrap_err();
     let msg = err.to_string();

@@ -7,7 +7,8 @@ use glam::Vec3;
 use rand::{Rng, SeedableRng};
 use rand_pcg::Pcg64;
 use sdf_nn::{
-    GpuContext, NeuralSdf, Nglod, NglodConfig, Normalization, Siren, SirenConfig, neural::Network,
+    GpuContext, NeuralSdf, Nglod, NglodConfig, Normalization, Siren, SirenConfig,
+    serve::neural::Network,
 };
 
 fn gpu() -> &'static GpuContext {

@@ -5,7 +5,7 @@
 use glam::{Vec3, Vec4};
 use sdf_nn::{
     GpuContext, NeuralSdf, Nglod, Normalization, RenderError, RenderOptions, Renderer,
-    render::Camera,
+    serve::render::Camera,
 };
 
 fn gpu() -> &'static GpuContext {

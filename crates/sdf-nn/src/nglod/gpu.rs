@@ -389,7 +389,7 @@ impl NglodGpu {
     }
 
     /// Records the evaluation of the first `n` points of `binding`'s input into its output
-    /// with the first `lod` levels, into `enc` (the serving path, [`crate::query`]). The point
+    /// with the first `lod` levels, into `enc` (the serving path, [`crate::serve::query`]). The point
     /// count and level go through the queue when they change, so they take effect at the next
     /// submission: record one binding at most once per submission. `timer`, when given,
     /// brackets the dispatch (resolve it after).

@@ -558,8 +558,8 @@ impl SirenGpu {
     /// per output. Lavapipe measured both slower (the head 24.6 against 18.4 ms for the
     /// `small` preset's 10⁴ points, the two reductions 6.2 against 0.4 ms). Results agree to
     /// f32 rounding. A [`super::SirenTrainer`] must rebuild its passes: use
-    /// [`super::SirenTrainer::set_train_step`]. With `None`, the environment variable
-    /// `HWSDF_STEP_LAYOUT=gpu` or `cpu` overrides the adapter's choice (to compare the two on
+    /// [`super::SirenTrainer::set_train_step`]. With `None`, [`crate::GpuOptions::step_layout`]
+    /// (`HWSDF_STEP_LAYOUT=gpu` or `cpu`) overrides the adapter's choice (to compare the two on
     /// one GPU, e.g. in a whole fit by `train`).
     pub fn set_gpu_step_layout(&mut self, gpu_layout: Option<bool>) {
         self.gpu_step_layout = gpu_layout;
@@ -569,10 +569,10 @@ impl SirenGpu {
     /// ([`SirenGpu::set_gpu_step_layout`]).
     pub fn gpu_step_layout(&self, gpu: &GpuContext) -> bool {
         self.gpu_step_layout
-            .or_else(|| match std::env::var("HWSDF_STEP_LAYOUT").as_deref() {
-                Ok("gpu") => Some(true),
-                Ok("cpu") => Some(false),
-                _ => None,
+            .or_else(|| {
+                gpu.options()
+                    .step_layout
+                    .map(|l| l == crate::gpu::StepLayout::Gpu)
             })
             .unwrap_or(!gpu.is_cpu())
     }
@@ -744,7 +744,7 @@ impl SirenGpu {
     }
 
     /// Records the evaluation of `n` points from `input` into `output`, into the caller's
-    /// encoder: the serving path of [`crate::query`] (issue 13). `input` holds the network's
+    /// encoder: the serving path of [`crate::serve::query`] (issue 13). `input` holds the network's
     /// input rows (3 floats per normalised point, or with `gradients` the four rows of
     /// `stream_rows`: the point and the unit tangents); `output` receives 1 float per point, or
     /// with `gradients` 4 (value, then the gradient). Built on the launches of

@@ -20,7 +20,7 @@ use rayon::prelude::*;
 use crate::gpu::{GpuContext, GpuError, GpuTimer};
 use crate::model_file::{ModelFile, ModelFileError, Normalization};
 use crate::nglod::{Nglod, NglodError, NglodGpu};
-use crate::query::{
+use crate::serve::query::{
     QueryBuffers, QueryBuffersDescriptor, QueryError, QueryOutputs, QuerySpace, QueryTransfer,
 };
 use crate::siren::{self, LayerKernels, Siren, SirenGpu, SirenGpuError};
@@ -59,7 +59,7 @@ pub enum NeuralSdfError {
     /// A GPU error.
     #[error(transparent)]
     Gpu(#[from] GpuError),
-    /// The serving API was misused (see [`crate::query`]).
+    /// The serving API was misused (see [`crate::serve::query`]).
     #[error(transparent)]
     Query(#[from] QueryError),
     /// A level of detail was asked of a model without levels.
@@ -255,7 +255,7 @@ impl NeuralSdf {
 
     /// Signed distances at `points` (mesh coordinates, mesh units), on the GPU. Any number of
     /// points: large inputs are split into several submissions. Runs on the serving path of
-    /// [`crate::query`] with buffers the model keeps per device: one upload, one submission and
+    /// [`crate::serve::query`] with buffers the model keeps per device: one upload, one submission and
     /// one readback per call, nothing allocated on the GPU after the first call.
     pub fn eval(&self, gpu: &GpuContext, points: &[Vec3]) -> Result<Vec<f32>, NeuralSdfError> {
         let mut out = Vec::with_capacity(points.len());
@@ -342,7 +342,7 @@ impl NeuralSdf {
         space: QuerySpace,
         outputs: QueryOutputs,
         timed: bool,
-        mut take: impl FnMut(&crate::query::QueryResults<'_>),
+        mut take: impl FnMut(&crate::serve::query::QueryResults<'_>),
     ) -> Result<Option<u64>, NeuralSdfError> {
         let mut all = self.host_queries.lock().unwrap_or_else(|e| e.into_inner());
         let want = points.len().clamp(1, HOST_CHUNK);

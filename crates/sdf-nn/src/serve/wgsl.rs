@@ -24,7 +24,7 @@
 //! other evaluation path of [`NeuralSdf`] computes it.
 //!
 //! ```no_run
-//! # fn demo(sdf: &sdf_nn::NeuralSdf, device: &wgpu::Device) -> Result<(), sdf_nn::embed::EmbedError> {
+//! # fn demo(sdf: &sdf_nn::NeuralSdf, device: &wgpu::Device) -> Result<(), sdf_nn::serve::wgsl::EmbedError> {
 //! // The caller's shader uses group 0 for its own resources and gives the model group 1.
 //! let source = format!("{}\n{}", sdf.wgsl(1), "/* shader calling hwsdf_distance(p) */");
 //! let sdf_group = sdf.bind_group(device)?;
@@ -38,8 +38,8 @@ use std::fmt::Write;
 use glam::Vec3;
 
 use crate::model_file::Normalization;
-use crate::neural::{Network, NeuralSdf};
 use crate::nglod::Nglod;
+use crate::serve::neural::{Network, NeuralSdf};
 use crate::siren::Siren;
 
 /// Errors of [`NeuralSdf::bind_group`].
@@ -76,7 +76,7 @@ pub struct SdfBindGroup {
 impl NeuralSdf {
     /// Self-contained WGSL defining `hwsdf_distance`, `hwsdf_normal` (mesh coordinates) and
     /// their `_normalized` variants, reading the weights from `@group(group) @binding(0)`. See
-    /// the [`embed`](crate::embed) module. The current level of detail ([`NeuralSdf::set_lod`])
+    /// the [`embed`](crate::serve::wgsl) module. The current level of detail ([`NeuralSdf::set_lod`])
     /// is baked in.
     pub fn wgsl(&self, group: u32) -> String {
         let lod = self.lod();

@@ -32,7 +32,7 @@
 //! ```no_run
 //! # fn main() -> Result<(), Box<dyn std::error::Error>> {
 //! use glam::Vec3;
-//! use sdf_nn::query::{QueryBuffersDescriptor, QueryOutputs};
+//! use sdf_nn::serve::query::{QueryBuffersDescriptor, QueryOutputs};
 //! use sdf_nn::{GpuContext, NeuralSdf};
 //!
 //! let gpu = GpuContext::new()?;
@@ -63,8 +63,8 @@ use std::time::{Duration, Instant};
 use glam::Vec3;
 
 use crate::gpu::{GpuContext, GpuError, GpuTimer, entry};
-use crate::neural::{GpuNetwork, NeuralSdf, NeuralSdfError};
 use crate::nglod::gpu::NglodEvalBinding;
+use crate::serve::neural::{GpuNetwork, NeuralSdf, NeuralSdfError};
 use crate::shaders;
 use crate::siren::gpu::QueryLaunch;
 
@@ -1044,7 +1044,7 @@ impl NeuralSdf {
 mod tests {
     use glam::Vec3;
 
-    use crate::neural::GpuNetwork;
+    use crate::serve::neural::GpuNetwork;
     use crate::{GpuContext, NeuralSdf, Nglod, NglodConfig, Normalization, Siren, SirenConfig};
 
     fn gpu() -> &'static GpuContext {
@@ -1155,7 +1155,7 @@ mod tests {
     fn serving_types_are_send_and_sync() {
         fn send_sync<T: Send + Sync>() {}
         send_sync::<crate::QueryBuffers>();
-        send_sync::<crate::query::QueryTicket>();
+        send_sync::<crate::serve::query::QueryTicket>();
         send_sync::<NeuralSdf>();
     }
 
@@ -1166,7 +1166,7 @@ mod tests {
     /// run them. NGLOD's query is one dispatch on every adapter.
     #[test]
     fn prepared_queries_answer_like_fresh_ones() {
-        use crate::query::{QueryBuffers, QueryBuffersDescriptor, QueryTransfer};
+        use crate::serve::query::{QueryBuffers, QueryBuffersDescriptor, QueryTransfer};
         let gpu = gpu();
         if !gpu.maps_storage() {
             eprintln!("skipped: {} does not map storage buffers", gpu.describe());

@@ -1,4 +1,4 @@
-//! Sphere-traced images of a [`NeuralSdf`]: the embedding of [`crate::embed`] used for real.
+//! Sphere-traced images of a [`NeuralSdf`]: the embedding of [`crate::serve::wgsl`] used for real.
 //!
 //! `shaders/sphere_trace.wgsl` is a compute shader with one invocation per pixel. It is compiled
 //! concatenated after the model's snippet ([`NeuralSdf::wgsl`] at group 1), traces a ray from
@@ -20,10 +20,10 @@ use std::path::{Path, PathBuf};
 
 use glam::{Vec3, Vec4};
 
-use crate::embed::{EmbedError, SdfBindGroup};
 use crate::gpu::{GpuContext, GpuError};
 use crate::model_file::{Normalization, write_atomic};
-use crate::neural::NeuralSdf;
+use crate::serve::neural::NeuralSdf;
+use crate::serve::wgsl::{EmbedError, SdfBindGroup};
 use crate::shaders::SPHERE_TRACE;
 
 /// Largest image side we accept (keeps the pixel buffer and the dispatch within every device's
