@@ -37,10 +37,11 @@ pub use model_file::{ModelFile, ModelFileError, Normalization};
 pub use nglod::{
     DistanceMode, Nglod, NglodConfig, NglodError, NglodGpu, NglodTrainConfig, NglodTrainer,
 };
-pub use serve::neural::{NeuralSdf, NeuralSdfError};
+pub use serve::error::{NeuralSdfError, QueryError};
+pub use serve::neural::NeuralSdf;
 pub use serve::query::{
-    QueryBuffers, QueryBuffersDescriptor, QueryError, QueryOutputs, QueryResults, QuerySpace,
-    QueryTicket, QueryTransfer,
+    QueryBuffers, QueryBuffersDescriptor, QueryOutputs, QueryResults, QuerySpace, QueryTicket,
+    QueryTransfer,
 };
 pub use serve::render::{RenderError, RenderOptions, Renderer, RgbaImage, render};
 pub use serve::wgsl::{EmbedError, SdfBindGroup};

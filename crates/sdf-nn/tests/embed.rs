@@ -8,7 +8,7 @@ use rand::{Rng, SeedableRng};
 use rand_pcg::Pcg64;
 use sdf_nn::{
     GpuContext, NeuralSdf, Nglod, NglodConfig, Normalization, Siren, SirenConfig,
-    serve::neural::Network,
+    serve::network::Network,
 };
 
 fn gpu() -> &'static GpuContext {

@@ -10,81 +10,29 @@
 //! ([`crate::QueryError::NonFinitePoint`]): kernels need not propagate NaN, so their answer
 //! would be an arbitrary number, where the CPU's is NaN.
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::sync::Mutex;
 use std::sync::atomic::{AtomicU64, Ordering};
 
 use glam::Vec3;
 use rayon::prelude::*;
 
-use crate::gpu::{GpuContext, GpuError, GpuTimer};
-use crate::model_file::{ModelFile, ModelFileError, Normalization};
-use crate::nglod::{Nglod, NglodError, NglodGpu};
+use crate::gpu::{GpuContext, GpuTimer};
+use crate::model_file::{ModelFile, Normalization};
+use crate::nglod::{Nglod, NglodGpu};
+use crate::serve::error::{NeuralSdfError, QueryError};
+use crate::serve::network::{GpuNetwork, Network};
 use crate::serve::query::{
-    QueryBuffers, QueryBuffersDescriptor, QueryError, QueryOutputs, QuerySpace, QueryTransfer,
+    QueryBuffers, QueryBuffersDescriptor, QueryOutputs, QuerySpace, QueryTicket, QueryTransfer,
 };
-use crate::siren::{self, LayerKernels, Siren, SirenGpu, SirenGpuError};
+use crate::serve::wgsl::{self, EmbedError, SdfBindGroup};
+use crate::siren::{self, LayerKernels, Siren, SirenGpu};
 
 /// Most points the host-side methods send in one submission; larger inputs are split.
 const HOST_CHUNK: usize = 1 << 18;
 
 /// Architecture name of NGLOD model files.
 const NGLOD_ARCHITECTURE: &str = "nglod";
-
-/// Errors of [`NeuralSdf`].
-#[derive(Debug, thiserror::Error)]
-pub enum NeuralSdfError {
-    /// The model file could not be read or is not a valid model.
-    #[error(transparent)]
-    ModelFile(#[from] ModelFileError),
-    /// [`NeuralSdf::load`] read a model file that holds no valid model (another architecture,
-    /// a configuration that does not validate, tensors that do not match it): `source` says
-    /// what, as [`NeuralSdf::from_model_file`] would, and the message names the file.
-    #[error("{path}: {reason}")]
-    InvalidModel {
-        /// The model file.
-        path: PathBuf,
-        /// What is wrong with the model in it (in the message, so not also its `source()`).
-        reason: Box<NeuralSdfError>,
-    },
-    /// The file's architecture is not one we know.
-    #[error("unknown architecture `{0}` in the model file (expected `siren` or `nglod`)")]
-    UnknownArchitecture(String),
-    /// The file holds an NGLOD model that does not validate.
-    #[error(transparent)]
-    Nglod(#[from] NglodError),
-    /// A SIREN GPU error.
-    #[error(transparent)]
-    Siren(#[from] SirenGpuError),
-    /// A GPU error.
-    #[error(transparent)]
-    Gpu(#[from] GpuError),
-    /// The serving API was misused (see [`crate::serve::query`]).
-    #[error(transparent)]
-    Query(#[from] QueryError),
-    /// A level of detail was asked of a model without levels.
-    #[error("levels of detail exist only for NGLOD models; this is a {0} model")]
-    NoLevels(&'static str),
-    /// Layer kernels were chosen for a model that is not a SIREN.
-    #[error("layer kernels are chosen only for SIREN models; this is a {0} model")]
-    NoLayerKernels(&'static str),
-}
-
-/// The network inside a [`NeuralSdf`].
-#[derive(Clone, Debug)]
-pub enum Network {
-    /// A SIREN.
-    Siren(Siren),
-    /// An NGLOD model.
-    Nglod(Nglod),
-}
-
-/// The network's GPU side, created on first GPU use and kept with the device it lives on.
-// Boxed: both hold several buffers and pipelines inline, of very different sizes.
-pub(crate) enum GpuNetwork {
-    Siren(Box<SirenGpu>),
-    Nglod(Box<NglodGpu>),
-}
 
 /// A trained neural SDF, either architecture.
 pub struct NeuralSdf {
@@ -251,6 +199,103 @@ impl NeuralSdf {
             .unwrap_or_else(|e| e.into_inner())
             .clear();
         self.id = next_id();
+    }
+
+    /// Self-contained WGSL defining `hwsdf_distance`, `hwsdf_normal` (mesh coordinates) and
+    /// their `_normalized` variants, reading the weights from `@group(group) @binding(0)`. See
+    /// the [`wgsl`](crate::serve::wgsl) module. The current level of detail
+    /// ([`NeuralSdf::set_lod`]) is baked in.
+    pub fn wgsl(&self, group: u32) -> String {
+        wgsl::generate(self.network(), self.normalization(), self.lod(), group)
+    }
+
+    /// Uploads the weights to `device` and creates the bind group (and its layout) that the
+    /// snippet of [`NeuralSdf::wgsl`] reads, visible to compute and fragment stages.
+    pub fn bind_group(&self, device: &wgpu::Device) -> Result<SdfBindGroup, EmbedError> {
+        wgsl::bind_group(self.network(), device)
+    }
+
+    /// Buffers for queries of this model on `gpu`'s device (see the [`query`] module).
+    ///
+    /// [`query`]: crate::serve::query
+    pub fn create_query_buffers(
+        &self,
+        gpu: &GpuContext,
+        desc: &QueryBuffersDescriptor<'_>,
+    ) -> Result<QueryBuffers, NeuralSdfError> {
+        if desc.capacity == 0 {
+            return Err(QueryError::Invalid("capacity 0".into()).into());
+        }
+        self.with_gpu(gpu, |network, _| {
+            QueryBuffers::new(gpu, network, self.id, self.normalization, desc)
+        })
+    }
+
+    /// Records a query of the first `n` points of [`QueryBuffers::points`] into `enc`; the
+    /// results land in [`QueryBuffers::results`] when `enc` has run, and stay on the GPU.
+    ///
+    /// The point count goes through the queue when it changes, taking effect at the next
+    /// submission: record one [`QueryBuffers`] at most once per submission (use one per batch).
+    pub fn record_query(
+        &self,
+        gpu: &GpuContext,
+        enc: &mut wgpu::CommandEncoder,
+        buffers: &mut QueryBuffers,
+        n: u32,
+    ) -> Result<(), NeuralSdfError> {
+        buffers.check_owner(self.id, gpu)?;
+        buffers.check_free()?;
+        self.record_unchecked(gpu, enc, buffers, n, false)
+    }
+
+    /// Uploads `points`, records their query, copies the results to the staging buffer and
+    /// submits, without waiting: redeem the ticket with [`QueryBuffers::wait`].
+    pub fn submit_query(
+        &self,
+        gpu: &GpuContext,
+        buffers: &mut QueryBuffers,
+        points: &[Vec3],
+    ) -> Result<QueryTicket, NeuralSdfError> {
+        self.submit_query_timed(gpu, buffers, points, false)
+    }
+
+    /// [`NeuralSdf::submit_query`], with the query's passes timed by this model's
+    /// [`GpuTimer`] when `timed` (read it with [`NeuralSdf::read_query_ns`] after waiting).
+    pub(crate) fn submit_query_timed(
+        &self,
+        gpu: &GpuContext,
+        buffers: &mut QueryBuffers,
+        points: &[Vec3],
+        timed: bool,
+    ) -> Result<QueryTicket, NeuralSdfError> {
+        buffers.submit(gpu, self.id, points, self.lod, timed, |buffers, enc, n| {
+            self.record_unchecked(gpu, enc, buffers, n, timed)
+        })
+    }
+
+    /// The GPU nanoseconds of the last timed query's passes (first to last), from this
+    /// model's timer; `None` without timestamp queries. Call after its ticket was waited on.
+    pub(crate) fn read_query_ns(&self, gpu: &GpuContext) -> Result<Option<u64>, NeuralSdfError> {
+        self.with_gpu(gpu, |_, timer| match timer {
+            Some(t) => Ok(Some(t.read_ns(gpu)?)),
+            None => Ok(None),
+        })
+    }
+
+    /// Records a query of `n` points into `enc` with this model's GPU network, bracketing the
+    /// passes with the model's timer when `timed` and the device has timestamp queries,
+    /// without checking that `buffers` are this model's and free (the callers have).
+    fn record_unchecked(
+        &self,
+        gpu: &GpuContext,
+        enc: &mut wgpu::CommandEncoder,
+        buffers: &mut QueryBuffers,
+        n: u32,
+        timed: bool,
+    ) -> Result<(), NeuralSdfError> {
+        self.with_gpu(gpu, |network, timer| {
+            buffers.record(gpu, enc, network, self.lod, n, timer.filter(|_| timed))
+        })
     }
 
     /// Signed distances at `points` (mesh coordinates, mesh units), on the GPU. Any number of
@@ -437,11 +482,6 @@ impl NeuralSdf {
             .zip(local.iter().zip(&clamped).zip(outside))
             .map(|((d, g), ((p, c), o))| (n.distance_to_original(d + o), outward_normal(g, *p, *c)))
             .collect()
-    }
-
-    /// Identifies the model to the [`QueryBuffers`] made for it.
-    pub(crate) fn id(&self) -> u64 {
-        self.id
     }
 
     /// Runs `f` on this model's GPU network for `gpu`'s device (and its timer, where the device

@@ -15,13 +15,13 @@
 //! @group(G) @binding(0) var<storage, read> hwsdf_params: array<f32>;
 //! ```
 //!
-//! with `G` the group index the caller passes to [`NeuralSdf::wgsl`]. An NGLOD model with sparse
+//! with `G` the group index the caller passes to [`NeuralSdf::wgsl`](crate::NeuralSdf::wgsl). An NGLOD model with sparse
 //! levels also reads its vertex tables from `@group(G) @binding(1) var<storage, read>
 //! hwsdf_table: array<u32>` ([`SdfBindGroup::table`]). Every global the snippet
 //! declares starts with `hwsdf_` / `HWSDF_`, so it cannot clash with the caller's names.
 //!
 //! Outside the normalised box the distance is `Φ(clamp(x)) + |x − clamp(x)|`, exactly as every
-//! other evaluation path of [`NeuralSdf`] computes it.
+//! other evaluation path of [`NeuralSdf`](crate::NeuralSdf) computes it.
 //!
 //! ```no_run
 //! # fn demo(sdf: &sdf_nn::NeuralSdf, device: &wgpu::Device) -> Result<(), sdf_nn::serve::wgsl::EmbedError> {
@@ -39,10 +39,10 @@ use glam::Vec3;
 
 use crate::model_file::Normalization;
 use crate::nglod::Nglod;
-use crate::serve::neural::{Network, NeuralSdf};
+use crate::serve::network::Network;
 use crate::siren::Siren;
 
-/// Errors of [`NeuralSdf::bind_group`].
+/// Errors of [`NeuralSdf::bind_group`](crate::NeuralSdf::bind_group).
 #[derive(Debug, thiserror::Error)]
 pub enum EmbedError {
     /// The weights do not fit one storage binding on this device.
@@ -58,12 +58,12 @@ pub enum EmbedError {
     },
 }
 
-/// The model's weights on a caller's device, bound for the snippet of [`NeuralSdf::wgsl`].
+/// The model's weights on a caller's device, bound for the snippet of [`NeuralSdf::wgsl`](crate::NeuralSdf::wgsl).
 #[derive(Debug)]
 pub struct SdfBindGroup {
     /// Layout: binding 0 (and 1 for a sparse NGLOD model), read-only storage buffers visible to
     /// compute and fragment shaders.
-    /// Put it at the group index passed to [`NeuralSdf::wgsl`] in the pipeline layout.
+    /// Put it at the group index passed to [`NeuralSdf::wgsl`](crate::NeuralSdf::wgsl) in the pipeline layout.
     pub layout: wgpu::BindGroupLayout,
     /// The bind group to set at that index.
     pub bind_group: wgpu::BindGroup,
@@ -73,83 +73,74 @@ pub struct SdfBindGroup {
     pub table: Option<wgpu::Buffer>,
 }
 
-impl NeuralSdf {
-    /// Self-contained WGSL defining `hwsdf_distance`, `hwsdf_normal` (mesh coordinates) and
-    /// their `_normalized` variants, reading the weights from `@group(group) @binding(0)`. See
-    /// the [`embed`](crate::serve::wgsl) module. The current level of detail ([`NeuralSdf::set_lod`])
-    /// is baked in.
-    pub fn wgsl(&self, group: u32) -> String {
-        let lod = self.lod();
-        generate(self.network(), self.normalization(), lod, group)
-    }
-
-    /// Uploads the weights to `device` and creates the bind group (and its layout) that the
-    /// snippet of [`NeuralSdf::wgsl`] reads, visible to compute and fragment stages.
-    pub fn bind_group(&self, device: &wgpu::Device) -> Result<SdfBindGroup, EmbedError> {
-        let (params, tables): (&[f32], Vec<u32>) = match self.network() {
-            Network::Siren(s) => (s.params(), Vec::new()),
-            Network::Nglod(m) => (m.params(), m.sparse_tables()),
-        };
-        let limits = device.limits();
-        let limit = limits
-            .max_storage_buffer_binding_size
-            .min(limits.max_buffer_size);
-        for bytes in [
-            std::mem::size_of_val(params) as u64,
-            std::mem::size_of_val(&tables[..]) as u64,
-        ] {
-            if bytes > limit {
-                return Err(EmbedError::TooLarge { bytes, limit });
-            }
+/// The weights of `network` on `device` and the bind group that reads them: see
+/// [`NeuralSdf::bind_group`](crate::NeuralSdf::bind_group).
+pub(crate) fn bind_group(
+    network: &Network,
+    device: &wgpu::Device,
+) -> Result<SdfBindGroup, EmbedError> {
+    let (params, tables): (&[f32], Vec<u32>) = match network {
+        Network::Siren(s) => (s.params(), Vec::new()),
+        Network::Nglod(m) => (m.params(), m.sparse_tables()),
+    };
+    let limits = device.limits();
+    let limit = limits
+        .max_storage_buffer_binding_size
+        .min(limits.max_buffer_size);
+    for bytes in [
+        std::mem::size_of_val(params) as u64,
+        std::mem::size_of_val(&tables[..]) as u64,
+    ] {
+        if bytes > limit {
+            return Err(EmbedError::TooLarge { bytes, limit });
         }
-        use wgpu::util::DeviceExt;
-        let storage = |label, contents: &[u8]| {
-            device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
-                label: Some(label),
-                contents,
-                usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST,
-            })
-        };
-        let buffer = storage("hwsdf_params", bytemuck::cast_slice(params));
-        let table =
-            (!tables.is_empty()).then(|| storage("hwsdf_table", bytemuck::cast_slice(&tables)));
-        let buffers: Vec<&wgpu::Buffer> = std::iter::once(&buffer).chain(&table).collect();
-        let layout_entries: Vec<_> = (0..buffers.len() as u32)
-            .map(|binding| wgpu::BindGroupLayoutEntry {
-                binding,
-                visibility: wgpu::ShaderStages::COMPUTE | wgpu::ShaderStages::FRAGMENT,
-                ty: wgpu::BindingType::Buffer {
-                    ty: wgpu::BufferBindingType::Storage { read_only: true },
-                    has_dynamic_offset: false,
-                    min_binding_size: None,
-                },
-                count: None,
-            })
-            .collect();
-        let layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
-            label: Some("hwsdf_params layout"),
-            entries: &layout_entries,
-        });
-        let entries: Vec<_> = buffers
-            .iter()
-            .enumerate()
-            .map(|(i, b)| wgpu::BindGroupEntry {
-                binding: i as u32,
-                resource: b.as_entire_binding(),
-            })
-            .collect();
-        let bind_group = device.create_bind_group(&wgpu::BindGroupDescriptor {
-            label: Some("hwsdf_params"),
-            layout: &layout,
-            entries: &entries,
-        });
-        Ok(SdfBindGroup {
-            layout,
-            bind_group,
-            buffer,
-            table,
-        })
     }
+    use wgpu::util::DeviceExt;
+    let storage = |label, contents: &[u8]| {
+        device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+            label: Some(label),
+            contents,
+            usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST,
+        })
+    };
+    let buffer = storage("hwsdf_params", bytemuck::cast_slice(params));
+    let table = (!tables.is_empty()).then(|| storage("hwsdf_table", bytemuck::cast_slice(&tables)));
+    let buffers: Vec<&wgpu::Buffer> = std::iter::once(&buffer).chain(&table).collect();
+    let layout_entries: Vec<_> = (0..buffers.len() as u32)
+        .map(|binding| wgpu::BindGroupLayoutEntry {
+            binding,
+            visibility: wgpu::ShaderStages::COMPUTE | wgpu::ShaderStages::FRAGMENT,
+            ty: wgpu::BindingType::Buffer {
+                ty: wgpu::BufferBindingType::Storage { read_only: true },
+                has_dynamic_offset: false,
+                min_binding_size: None,
+            },
+            count: None,
+        })
+        .collect();
+    let layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+        label: Some("hwsdf_params layout"),
+        entries: &layout_entries,
+    });
+    let entries: Vec<_> = buffers
+        .iter()
+        .enumerate()
+        .map(|(i, b)| wgpu::BindGroupEntry {
+            binding: i as u32,
+            resource: b.as_entire_binding(),
+        })
+        .collect();
+    let bind_group = device.create_bind_group(&wgpu::BindGroupDescriptor {
+        label: Some("hwsdf_params"),
+        layout: &layout,
+        entries: &entries,
+    });
+    Ok(SdfBindGroup {
+        layout,
+        bind_group,
+        buffer,
+        table,
+    })
 }
 
 /// A WGSL `f32` literal that parses back to exactly `x` (Rust's shortest round-trip form).
@@ -167,7 +158,12 @@ fn vec3_lit(v: Vec3) -> String {
 }
 
 /// The whole snippet.
-fn generate(network: &Network, n: Normalization, lod: Option<usize>, group: u32) -> String {
+pub(crate) fn generate(
+    network: &Network,
+    n: Normalization,
+    lod: Option<usize>,
+    group: u32,
+) -> String {
     let mut s = String::new();
     let arch = match network {
         Network::Siren(_) => "SIREN",

@@ -1,0 +1,223 @@
+//! [`GpuOptions`]: the adapter choice and the capability switches, read from the environment
+//! in one place.
+
+use super::GpuError;
+
+/// Which layout SIREN's reverse-over-reverse training step runs (`HWSDF_STEP_LAYOUT`): the
+/// one for GPUs (many small splits, wide reductions) or the one for CPU adapters such as
+/// lavapipe. By default the adapter decides.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum StepLayout {
+    /// The layout for real GPUs.
+    Gpu,
+    /// The layout for CPU adapters.
+    Cpu,
+}
+
+/// How to choose the adapter and which of its capabilities to use: every library knob that can
+/// come from the environment, read once by [`GpuOptions::from_env`].
+#[derive(Clone, Debug)]
+pub struct GpuOptions {
+    /// Which adapter: its index in [`list_adapters`] (as `gpu-info` prints it), its PCI bus id
+    /// (`wgpu::AdapterInfo::device_pci_bus_id`, e.g. `0000:65:00.0`), or part of its name
+    /// (case-insensitive; the first match wins). `None`: the best adapter.
+    pub adapter: Option<String>,
+    /// Where [`GpuOptions::adapter`] came from, for error messages (e.g. `--adapter`).
+    pub adapter_from: String,
+    /// Restrict to these backends; `None` means wgpu's defaults (or `WGPU_BACKEND`).
+    pub backends: Option<wgpu::Backends>,
+    /// Ask for mappable storage buffers where the adapter has them (default `true`;
+    /// `HWSDF_MAPPABLE_STORAGE=0` turns it off). See [`GpuContext::maps_storage`].
+    pub mappable_storage: bool,
+    /// Use f16 cooperative matrices (tensor cores) where the driver has them (default `true`;
+    /// `HWSDF_NO_COOP=1` turns it off). See [`GpuContext::coop_f16_tile`].
+    pub cooperative_matrices: bool,
+    /// Force the layout of SIREN's training step (`HWSDF_STEP_LAYOUT=gpu|cpu`); `None`: by
+    /// adapter.
+    pub step_layout: Option<StepLayout>,
+}
+
+impl Default for GpuOptions {
+    fn default() -> Self {
+        GpuOptions {
+            adapter: None,
+            adapter_from: String::new(),
+            backends: None,
+            mappable_storage: true,
+            cooperative_matrices: true,
+            step_layout: None,
+        }
+    }
+}
+
+/// The environment variables [`GpuOptions::from_env`] reads, in the order it reads them.
+pub const ENV_VARIABLES: &[&str] = &[
+    "HWSDF_ADAPTER",
+    "WGPU_ADAPTER_NAME",
+    "WGPU_BACKEND",
+    "HWSDF_MAPPABLE_STORAGE",
+    "HWSDF_NO_COOP",
+    "HWSDF_STEP_LAYOUT",
+];
+
+impl GpuOptions {
+    /// Options from the process's environment: `HWSDF_ADAPTER` (index, bus id or name), else
+    /// `WGPU_ADAPTER_NAME` (name); `WGPU_BACKEND`; `HWSDF_MAPPABLE_STORAGE=0|1`;
+    /// `HWSDF_NO_COOP=0|1`; `HWSDF_STEP_LAYOUT=gpu|cpu`. An empty variable counts as unset; any
+    /// other value than those listed is an error naming the allowed ones.
+    pub fn from_env() -> Result<Self, GpuError> {
+        Self::from_vars(|name| std::env::var(name).ok())
+    }
+
+    /// [`GpuOptions::from_env`] over any source of variables (`var(name)` is the value of
+    /// `name`, if set).
+    pub fn from_vars(var: impl Fn(&str) -> Option<String>) -> Result<Self, GpuError> {
+        let var = |name: &str| var(name).filter(|s| !s.trim().is_empty());
+        let (adapter, adapter_from) = match (var("HWSDF_ADAPTER"), var("WGPU_ADAPTER_NAME")) {
+            (Some(a), _) => (Some(a), "HWSDF_ADAPTER"),
+            (None, Some(a)) => (Some(a), "WGPU_ADAPTER_NAME"),
+            (None, None) => (None, ""),
+        };
+        let choice = |name: &'static str, allowed: &'static [&'static str]| {
+            var(name)
+                .map(|value| {
+                    let v = value.trim().to_ascii_lowercase();
+                    allowed
+                        .iter()
+                        .position(|a| *a == v)
+                        .ok_or(GpuError::Environment {
+                            variable: name,
+                            value,
+                            allowed: allowed.join(", "),
+                        })
+                })
+                .transpose()
+        };
+        let backends = match var("WGPU_BACKEND") {
+            None => None,
+            Some(value) => {
+                let backends = wgpu::Backends::from_comma_list(&value);
+                if backends.is_empty() {
+                    return Err(GpuError::Environment {
+                        variable: "WGPU_BACKEND",
+                        value,
+                        allowed: "a comma-separated list of vulkan, metal, dx12, gl, webgpu".into(),
+                    });
+                }
+                Some(backends)
+            }
+        };
+        Ok(GpuOptions {
+            adapter,
+            adapter_from: adapter_from.into(),
+            backends,
+            mappable_storage: choice("HWSDF_MAPPABLE_STORAGE", &["0", "1"])?.is_none_or(|i| i == 1),
+            cooperative_matrices: choice("HWSDF_NO_COOP", &["0", "1"])?.is_none_or(|i| i == 0),
+            step_layout: choice("HWSDF_STEP_LAYOUT", &["gpu", "cpu"])?.map(|i| {
+                if i == 0 {
+                    StepLayout::Gpu
+                } else {
+                    StepLayout::Cpu
+                }
+            }),
+        })
+    }
+
+    /// These options with the adapter chosen by a command-line flag instead (`None` keeps
+    /// the environment's choice).
+    pub fn with_adapter(mut self, adapter: Option<&str>, flag: &str) -> Self {
+        if let Some(a) = adapter.filter(|a| !a.trim().is_empty()) {
+            self.adapter = Some(a.to_owned());
+            self.adapter_from = flag.to_owned();
+        }
+        self
+    }
+}
+
+/// Keeps Mesa's device-selection layer (`VK_LAYER_MESA_device_select`, installed with Mesa's
+/// Vulkan drivers) out of a process that has no usable `XDG_RUNTIME_DIR`, such as a headless
+/// server or CI: wgpu enables the window-system instance extensions wherever the driver has
+/// them, the layer then asks Wayland for the default GPU, and libwayland prints
+/// `error: XDG_RUNTIME_DIR is invalid or not set in the environment.` two to four times. The
+/// layer only orders adapters for programs that take the first one; we choose our own
+/// ([`GpuOptions::adapter`]). Sets `NODEVICE_SELECT=1` (the layer's own switch) unless the
+/// variable is set already or `XDG_RUNTIME_DIR` is a directory.
+///
+/// # Safety
+/// It writes the process's environment, so no other thread may read or write the environment
+/// while it runs: call it first thing in `main`, before any thread starts.
+pub unsafe fn skip_device_select_layer_when_headless() {
+    let runtime_dir =
+        std::env::var_os("XDG_RUNTIME_DIR").is_some_and(|dir| std::path::Path::new(&dir).is_dir());
+    if !runtime_dir && std::env::var_os("NODEVICE_SELECT").is_none() {
+        // SAFETY: the caller guarantees no other thread touches the environment.
+        unsafe { std::env::set_var("NODEVICE_SELECT", "1") };
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::{GpuOptions, StepLayout};
+
+    fn options(vars: &[(&str, &str)]) -> Result<GpuOptions, String> {
+        GpuOptions::from_vars(|name| {
+            vars.iter()
+                .find(|(n, _)| *n == name)
+                .map(|(_, v)| (*v).to_owned())
+        })
+        .map_err(|e| e.to_string())
+    }
+
+    #[test]
+    fn defaults_use_every_capability() {
+        let o = options(&[]).unwrap();
+        assert!(o.adapter.is_none() && o.backends.is_none());
+        assert!(o.mappable_storage && o.cooperative_matrices);
+        assert_eq!(o.step_layout, None);
+        // An empty variable counts as unset.
+        let o = options(&[("HWSDF_NO_COOP", " "), ("HWSDF_ADAPTER", "")]).unwrap();
+        assert!(o.cooperative_matrices && o.adapter.is_none());
+    }
+
+    #[test]
+    fn known_values_set_their_switch() {
+        let o = options(&[
+            ("HWSDF_MAPPABLE_STORAGE", "0"),
+            ("HWSDF_NO_COOP", "1"),
+            ("HWSDF_STEP_LAYOUT", "CPU"),
+            ("WGPU_BACKEND", "vulkan"),
+            ("WGPU_ADAPTER_NAME", "llvmpipe"),
+        ])
+        .unwrap();
+        assert!(!o.mappable_storage && !o.cooperative_matrices);
+        assert_eq!(o.step_layout, Some(StepLayout::Cpu));
+        assert_eq!(o.backends, Some(wgpu::Backends::VULKAN));
+        assert_eq!(o.adapter.as_deref(), Some("llvmpipe"));
+        assert_eq!(o.adapter_from, "WGPU_ADAPTER_NAME");
+        let o = options(&[("HWSDF_STEP_LAYOUT", "gpu"), ("HWSDF_NO_COOP", "0")]).unwrap();
+        assert_eq!(o.step_layout, Some(StepLayout::Gpu));
+        assert!(o.cooperative_matrices);
+        // HWSDF_ADAPTER wins over wgpu's own variable.
+        let o = options(&[("HWSDF_ADAPTER", "1"), ("WGPU_ADAPTER_NAME", "x")]).unwrap();
+        assert_eq!(
+            (o.adapter.as_deref(), o.adapter_from.as_str()),
+            (Some("1"), "HWSDF_ADAPTER")
+        );
+    }
+
+    #[test]
+    fn unknown_values_are_errors_that_name_the_allowed_ones() {
+        for (name, value, allowed) in [
+            ("HWSDF_STEP_LAYOUT", "sideways", "gpu, cpu"),
+            ("HWSDF_NO_COOP", "yes", "0, 1"),
+            ("HWSDF_MAPPABLE_STORAGE", "off", "0, 1"),
+            ("WGPU_BACKEND", "vulcan", "vulkan"),
+        ] {
+            let err = options(&[(name, value)]).unwrap_err();
+            assert!(
+                err.contains(name) && err.contains(value) && err.contains(allowed),
+                "{err}"
+            );
+        }
+    }
+}
