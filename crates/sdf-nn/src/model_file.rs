@@ -376,100 +376,12 @@ impl ModelFile {
         }
         let (_, header) = SafeTensors::read_metadata(bytes).map_err(|e| corrupt(e.to_string()))?;
         let st = SafeTensors::deserialize(bytes).map_err(|e| corrupt(e.to_string()))?;
-        let meta = header.metadata().clone().unwrap_or_default();
-        let get = |key: &'static str| {
-            meta.get(key).ok_or_else(|| ModelFileError::Metadata {
-                path: path.to_owned(),
-                key,
-                detail: String::new(),
-            })
-        };
-        let parse = |key: &'static str| -> Result<serde_json::Value, ModelFileError> {
-            serde_json::from_str(get(key)?).map_err(|e| ModelFileError::Metadata {
-                path: path.to_owned(),
-                key,
-                detail: format!(": {e}"),
-            })
-        };
-        if get("format")? != "hwsdf" {
-            return Err(ModelFileError::Metadata {
-                path: path.to_owned(),
-                key: "format",
-                detail: ": not written by hwsdf".into(),
-            });
-        }
-        let normalization = normalization_from_json(&parse("normalization")?).ok_or_else(|| {
-            ModelFileError::Metadata {
-                path: path.to_owned(),
-                key: "normalization",
-                detail: ": expected {\"center\": [x, y, z], \"scale\": s}".into(),
-            }
-        })?;
-        // The box [-1, 1]³ must map back to finite coordinates: a scale of 1e-45 or a centre
-        // near f32::MAX would put every extracted vertex and evaluated distance at infinity.
-        let half = 1.0 / normalization.scale;
-        let corner = normalization.center.abs() + glam::Vec3::splat(half);
-        if !normalization.scale.is_finite()
-            || normalization.scale <= 0.0
-            || !normalization.center.is_finite()
-            || !half.is_finite()
-            || !corner.is_finite()
-        {
-            return Err(ModelFileError::Metadata {
-                path: path.to_owned(),
-                key: "normalization",
-                detail: ": center must be finite, scale finite and positive, and the box they map [-1, 1]³ to finite in float32".into(),
-            });
-        }
-        let metadata = ModelMetadata {
-            architecture: get("architecture")?.clone(),
-            config: parse("config")?,
-            training: parse("training")?,
-            normalization,
-            hwsdf_version: get("hwsdf_version")?.clone(),
-        };
-        let mut tensors = Vec::new();
-        for (name, view) in st.tensors() {
-            let bytes = view.data();
-            let (data, dtype): (Vec<f32>, _) = match view.dtype() {
-                Dtype::F32 => (bytemuck::pod_collect_to_vec(bytes), TensorDtype::F32),
-                Dtype::F16 => (
-                    bytes
-                        .chunks_exact(2)
-                        .map(|b| half::f16::from_le_bytes([b[0], b[1]]).to_f32())
-                        .collect(),
-                    TensorDtype::F16,
-                ),
-                Dtype::U32 => {
-                    let ints: Vec<u32> = bytemuck::pod_collect_to_vec(bytes);
-                    if let Some(v) = ints.iter().find(|&&v| v > MAX_INDEX) {
-                        return Err(corrupt(format!(
-                            "tensor `{name}` holds the index {v}, above {MAX_INDEX}"
-                        )));
-                    }
-                    (ints.iter().map(|&v| v as f32).collect(), TensorDtype::U32)
-                }
-                other => {
-                    return Err(corrupt(format!(
-                        "tensor `{name}` is {other:?}; hwsdf models hold F32, F16 and U32 tensors"
-                    )));
-                }
-            };
-            if let Some(index) = data.iter().position(|v| !v.is_finite()) {
-                return Err(ModelFileError::NonFinite {
-                    path: path.to_owned(),
-                    value: data[index],
-                    name,
-                    index,
-                });
-            }
-            tensors.push(Tensor {
-                shape: view.shape().to_vec(),
-                data,
-                name,
-                dtype,
-            });
-        }
+        let metadata = metadata_from_header(header.metadata().clone().unwrap_or_default(), path)?;
+        let mut tensors = st
+            .tensors()
+            .into_iter()
+            .map(|(name, view)| tensor_from_view(name, &view, path))
+            .collect::<Result<Vec<_>, _>>()?;
         tensors.sort_by(|a, b| a.name.cmp(&b.name));
         Ok(ModelFile { metadata, tensors })
     }
@@ -566,6 +478,116 @@ impl ModelFile {
             .map(|t| t.data.len())
             .sum()
     }
+}
+
+/// The metadata of a model file's header, checked: the format, the normalisation (finite, and
+/// mapping the box to finite coordinates) and the keys every model file has.
+fn metadata_from_header(
+    meta: std::collections::HashMap<String, String>,
+    path: &Path,
+) -> Result<ModelMetadata, ModelFileError> {
+    let get = |key: &'static str| {
+        meta.get(key).ok_or_else(|| ModelFileError::Metadata {
+            path: path.to_owned(),
+            key,
+            detail: String::new(),
+        })
+    };
+    let parse = |key: &'static str| -> Result<serde_json::Value, ModelFileError> {
+        serde_json::from_str(get(key)?).map_err(|e| ModelFileError::Metadata {
+            path: path.to_owned(),
+            key,
+            detail: format!(": {e}"),
+        })
+    };
+    if get("format")? != "hwsdf" {
+        return Err(ModelFileError::Metadata {
+            path: path.to_owned(),
+            key: "format",
+            detail: ": not written by hwsdf".into(),
+        });
+    }
+    let normalization = normalization_from_json(&parse("normalization")?).ok_or_else(|| {
+        ModelFileError::Metadata {
+            path: path.to_owned(),
+            key: "normalization",
+            detail: ": expected {\"center\": [x, y, z], \"scale\": s}".into(),
+        }
+    })?;
+    // The box [-1, 1]³ must map back to finite coordinates: a scale of 1e-45 or a centre
+    // near f32::MAX would put every extracted vertex and evaluated distance at infinity.
+    let half = 1.0 / normalization.scale;
+    let corner = normalization.center.abs() + glam::Vec3::splat(half);
+    if !normalization.scale.is_finite()
+        || normalization.scale <= 0.0
+        || !normalization.center.is_finite()
+        || !half.is_finite()
+        || !corner.is_finite()
+    {
+        return Err(ModelFileError::Metadata {
+            path: path.to_owned(),
+            key: "normalization",
+            detail: ": center must be finite, scale finite and positive, and the box they map [-1, 1]³ to finite in float32".into(),
+        });
+    }
+    Ok(ModelMetadata {
+        architecture: get("architecture")?.clone(),
+        config: parse("config")?,
+        training: parse("training")?,
+        normalization,
+        hwsdf_version: get("hwsdf_version")?.clone(),
+    })
+}
+
+/// One tensor of a model file, checked: a dtype we write, indices in range, finite values.
+fn tensor_from_view(
+    name: String,
+    view: &safetensors::tensor::TensorView<'_>,
+    path: &Path,
+) -> Result<Tensor, ModelFileError> {
+    let corrupt = |reason: String| ModelFileError::Corrupt {
+        path: path.to_owned(),
+        reason,
+    };
+    let bytes = view.data();
+    let (data, dtype): (Vec<f32>, _) = match view.dtype() {
+        Dtype::F32 => (bytemuck::pod_collect_to_vec(bytes), TensorDtype::F32),
+        Dtype::F16 => (
+            bytes
+                .chunks_exact(2)
+                .map(|b| half::f16::from_le_bytes([b[0], b[1]]).to_f32())
+                .collect(),
+            TensorDtype::F16,
+        ),
+        Dtype::U32 => {
+            let ints: Vec<u32> = bytemuck::pod_collect_to_vec(bytes);
+            if let Some(v) = ints.iter().find(|&&v| v > MAX_INDEX) {
+                return Err(corrupt(format!(
+                    "tensor `{name}` holds the index {v}, above {MAX_INDEX}"
+                )));
+            }
+            (ints.iter().map(|&v| v as f32).collect(), TensorDtype::U32)
+        }
+        other => {
+            return Err(corrupt(format!(
+                "tensor `{name}` is {other:?}; hwsdf models hold F32, F16 and U32 tensors"
+            )));
+        }
+    };
+    if let Some(index) = data.iter().position(|v| !v.is_finite()) {
+        return Err(ModelFileError::NonFinite {
+            path: path.to_owned(),
+            value: data[index],
+            name,
+            index,
+        });
+    }
+    Ok(Tensor {
+        shape: view.shape().to_vec(),
+        data,
+        name,
+        dtype,
+    })
 }
 
 pub use sdf_geom::io::write_atomic;
