@@ -12,7 +12,7 @@ pub enum GpuError {
         /// The backends that were searched.
         backends: String,
     },
-    /// [`GpuOptions::adapter`] (`--adapter`, `HWSDF_ADAPTER` or `WGPU_ADAPTER_NAME`) matched no
+    /// [`GpuOptions::adapter`](crate::GpuOptions::adapter) (`--adapter`, `HWSDF_ADAPTER` or `WGPU_ADAPTER_NAME`) matched no
     /// adapter.
     #[error(
         "no adapter matches {requested:?} (from {from}: an index, a PCI bus id or part of a name); \
@@ -82,7 +82,7 @@ pub enum GpuError {
         /// wgpu's message.
         message: String,
     },
-    /// An environment variable of [`GpuOptions::from_env`] holds a value it does not know.
+    /// An environment variable of [`GpuOptions::from_env`](crate::GpuOptions::from_env) holds a value it does not know.
     #[error(
         "{variable}={value:?} is not a value it takes: use one of {allowed} (or leave it unset)"
     )]

@@ -1,4 +1,4 @@
-//! [`GpuOptions`]: the adapter choice and the capability switches, read from the environment
+//! [`GpuOptions`](crate::GpuOptions): the adapter choice and the capability switches, read from the environment
 //! in one place.
 
 use super::GpuError;
@@ -15,22 +15,22 @@ pub enum StepLayout {
 }
 
 /// How to choose the adapter and which of its capabilities to use: every library knob that can
-/// come from the environment, read once by [`GpuOptions::from_env`].
+/// come from the environment, read once by [`GpuOptions::from_env`](crate::GpuOptions::from_env).
 #[derive(Clone, Debug)]
 pub struct GpuOptions {
-    /// Which adapter: its index in [`list_adapters`] (as `gpu-info` prints it), its PCI bus id
+    /// Which adapter: its index in [`list_adapters`](crate::gpu::list_adapters) (as `gpu-info` prints it), its PCI bus id
     /// (`wgpu::AdapterInfo::device_pci_bus_id`, e.g. `0000:65:00.0`), or part of its name
     /// (case-insensitive; the first match wins). `None`: the best adapter.
     pub adapter: Option<String>,
-    /// Where [`GpuOptions::adapter`] came from, for error messages (e.g. `--adapter`).
+    /// Where [`GpuOptions::adapter`](crate::GpuOptions::adapter) came from, for error messages (e.g. `--adapter`).
     pub adapter_from: String,
     /// Restrict to these backends; `None` means wgpu's defaults (or `WGPU_BACKEND`).
     pub backends: Option<wgpu::Backends>,
     /// Ask for mappable storage buffers where the adapter has them (default `true`;
-    /// `HWSDF_MAPPABLE_STORAGE=0` turns it off). See [`GpuContext::maps_storage`].
+    /// `HWSDF_MAPPABLE_STORAGE=0` turns it off). See [`GpuContext::maps_storage`](crate::GpuContext::maps_storage).
     pub mappable_storage: bool,
     /// Use f16 cooperative matrices (tensor cores) where the driver has them (default `true`;
-    /// `HWSDF_NO_COOP=1` turns it off). See [`GpuContext::coop_f16_tile`].
+    /// `HWSDF_NO_COOP=1` turns it off). See [`GpuContext::coop_f16_tile`](crate::GpuContext::coop_f16_tile).
     pub cooperative_matrices: bool,
     /// Force the layout of SIREN's training step (`HWSDF_STEP_LAYOUT=gpu|cpu`); `None`: by
     /// adapter.
@@ -50,7 +50,7 @@ impl Default for GpuOptions {
     }
 }
 
-/// The environment variables [`GpuOptions::from_env`] reads, in the order it reads them.
+/// The environment variables [`GpuOptions::from_env`](crate::GpuOptions::from_env) reads, in the order it reads them.
 pub const ENV_VARIABLES: &[&str] = &[
     "HWSDF_ADAPTER",
     "WGPU_ADAPTER_NAME",
@@ -69,7 +69,7 @@ impl GpuOptions {
         Self::from_vars(|name| std::env::var(name).ok())
     }
 
-    /// [`GpuOptions::from_env`] over any source of variables (`var(name)` is the value of
+    /// [`GpuOptions::from_env`](crate::GpuOptions::from_env) over any source of variables (`var(name)` is the value of
     /// `name`, if set).
     pub fn from_vars(var: impl Fn(&str) -> Option<String>) -> Result<Self, GpuError> {
         let var = |name: &str| var(name).filter(|s| !s.trim().is_empty());
@@ -140,7 +140,7 @@ impl GpuOptions {
 /// them, the layer then asks Wayland for the default GPU, and libwayland prints
 /// `error: XDG_RUNTIME_DIR is invalid or not set in the environment.` two to four times. The
 /// layer only orders adapters for programs that take the first one; we choose our own
-/// ([`GpuOptions::adapter`]). Sets `NODEVICE_SELECT=1` (the layer's own switch) unless the
+/// ([`GpuOptions::adapter`](crate::GpuOptions::adapter)). Sets `NODEVICE_SELECT=1` (the layer's own switch) unless the
 /// variable is set already or `XDG_RUNTIME_DIR` is a directory.
 ///
 /// # Safety

@@ -203,7 +203,7 @@ impl NeuralSdf {
 
     /// Self-contained WGSL defining `hwsdf_distance`, `hwsdf_normal` (mesh coordinates) and
     /// their `_normalized` variants, reading the weights from `@group(group) @binding(0)`. See
-    /// the [`wgsl`](crate::serve::wgsl) module. The current level of detail
+    /// the [`wgsl`] module. The current level of detail
     /// ([`NeuralSdf::set_lod`]) is baked in.
     pub fn wgsl(&self, group: u32) -> String {
         wgsl::generate(self.network(), self.normalization(), self.lod(), group)

@@ -1,18 +1,18 @@
-//! Serving a [`NeuralSdf`] to code that queries it all the time (a planner checking collisions,
+//! Serving a [`NeuralSdf`](crate::NeuralSdf) to code that queries it all the time (a planner checking collisions,
 //! a renderer, a physics step), the way wgpu code is written: the caller owns the buffers, work
 //! is recorded into the caller's encoder, a submission returns at once, and reading back is a
 //! separate step that the caller may skip.
 //!
-//! - [`NeuralSdf::create_query_buffers`] makes a [`QueryBuffers`]: a points buffer
+//! - [`NeuralSdf::create_query_buffers`](crate::NeuralSdf::create_query_buffers) makes a [`QueryBuffers`]: a points buffer
 //!   ([`QueryBuffers::points`], `array<vec4<f32>>`, xyz used), a results buffer
 //!   ([`QueryBuffers::results`]: `array<f32>` of distances, or with
 //!   [`QueryOutputs::ValuesAndNormals`] `array<vec4<f32>>` of (distance, normal)), the network's
 //!   scratch where it needs any, and a mappable staging buffer (or, on CPU and integrated adapters, mappable points
 //!   and results buffers instead: [`QueryTransfer`]). Create it once, reuse it for every query.
-//! - [`NeuralSdf::record_query`] records a query of the first `n` points into your encoder.
+//! - [`NeuralSdf::record_query`](crate::NeuralSdf::record_query) records a query of the first `n` points into your encoder.
 //!   The results stay on the GPU: bind [`QueryBuffers::results`] in your next pass. Your own
 //!   pass may also have written [`QueryBuffers::points`] (it is a storage buffer).
-//! - [`NeuralSdf::submit_query`] uploads points, records, copies the results to the staging
+//! - [`NeuralSdf::submit_query`](crate::NeuralSdf::submit_query) uploads points, records, copies the results to the staging
 //!   buffer and submits, returning a [`QueryTicket`] at once; [`QueryBuffers::wait`] (or
 //!   [`QueryBuffers::is_ready`] then `wait`) maps the results and hands them out as a
 //!   [`QueryResults`] guard that unmaps on drop. One submission per [`QueryBuffers`] is in
@@ -24,9 +24,9 @@
 //! GPUs run (the tiled fused kernel and the cooperative-matrix one); SIREN on the row-blocked
 //! and GEMM kernels adds a launch before and after the network's own.
 //!
-//! Distances and normals follow [`NeuralSdf`]'s rule outside the model's box, and are in mesh
+//! Distances and normals follow [`NeuralSdf`](crate::NeuralSdf)'s rule outside the model's box, and are in mesh
 //! units and coordinates (or, with [`QuerySpace::Normalized`], in the model's cube). Every
-//! host-side method of [`NeuralSdf`] (`eval`, `eval_normalized`, `eval_with_normals`, the timed
+//! host-side method of [`NeuralSdf`](crate::NeuralSdf) (`eval`, `eval_normalized`, `eval_with_normals`, the timed
 //! variant the reports use) runs on this same path, with buffers it keeps per device.
 //!
 //! ```no_run
@@ -106,7 +106,7 @@ pub enum QuerySpace {
     Normalized,
 }
 
-/// Describes a [`QueryBuffers`] (see [`NeuralSdf::create_query_buffers`]).
+/// Describes a [`QueryBuffers`] (see [`NeuralSdf::create_query_buffers`](crate::NeuralSdf::create_query_buffers)).
 #[derive(Clone, Copy, Debug, Default)]
 pub struct QueryBuffersDescriptor<'a> {
     /// Debug label of the buffers.
@@ -117,15 +117,15 @@ pub struct QueryBuffersDescriptor<'a> {
     pub outputs: QueryOutputs,
     /// Mesh or normalised coordinates.
     pub space: QuerySpace,
-    /// How [`NeuralSdf::submit_query`] moves points in and results out.
+    /// How [`NeuralSdf::submit_query`](crate::NeuralSdf::submit_query) moves points in and results out.
     pub transfer: QueryTransfer,
 }
 
-/// How [`NeuralSdf::submit_query`] and [`QueryBuffers::wait`] move points and results between
+/// How [`NeuralSdf::submit_query`](crate::NeuralSdf::submit_query) and [`QueryBuffers::wait`] move points and results between
 /// the host and the buffers.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash)]
 pub enum QueryTransfer {
-    /// [`QueryTransfer::Mapped`] where [`GpuContext::maps_storage_cheaply`] (CPU and integrated
+    /// [`QueryTransfer::Mapped`] where [`GpuContext::maps_storage_cheaply`](crate::GpuContext::maps_storage_cheaply) (CPU and integrated
     /// adapters), [`QueryTransfer::Staged`] elsewhere.
     #[default]
     Auto,
@@ -134,15 +134,15 @@ pub enum QueryTransfer {
     Staged,
     /// No copies: the points buffer is mapped and written, the results buffer mapped and read.
     /// On lavapipe a 10-point query costs two copy commands less. Needs the device feature
-    /// `MAPPABLE_PRIMARY_BUFFERS` (asked for wherever the adapter has it: [`GpuContext::maps_storage`]). The results buffer
-    /// is then mapped from [`NeuralSdf::submit_query`] until the [`QueryResults`] of its ticket
+    /// `MAPPABLE_PRIMARY_BUFFERS` (asked for wherever the adapter has it: [`GpuContext::maps_storage`](crate::GpuContext::maps_storage)). The results buffer
+    /// is then mapped from [`NeuralSdf::submit_query`](crate::NeuralSdf::submit_query) until the [`QueryResults`] of its ticket
     /// is dropped: no submission may use [`QueryBuffers::results`] meanwhile
-    /// ([`NeuralSdf::record_query`] refuses with [`QueryError::Busy`]).
+    /// ([`NeuralSdf::record_query`](crate::NeuralSdf::record_query) refuses with [`QueryError::Busy`]).
     Mapped,
 }
 
 /// Reusable, caller-owned buffers for queries of up to `capacity` points of one
-/// [`NeuralSdf`] on one device. See the [module docs](self).
+/// [`NeuralSdf`](crate::NeuralSdf) on one device. See the [module docs](self).
 pub struct QueryBuffers {
     model: u64,
     device: wgpu::Device,
@@ -160,7 +160,7 @@ pub struct QueryBuffers {
     /// The points buffer's write mapping ([`QueryTransfer::Mapped`]).
     upload_map: Arc<MapSlot>,
     kernels: Kernels,
-    /// Mapped upload buffers that [`NeuralSdf::submit_query`] writes the points into and copies
+    /// Mapped upload buffers that [`NeuralSdf::submit_query`](crate::NeuralSdf::submit_query) writes the points into and copies
     /// from in its own encoder: unlike `Queue::write_buffer`, no staging buffer is created and
     /// no second command buffer submitted per query (≈ 8 µs of a 10-point query on lavapipe).
     belt: wgpu::util::StagingBelt,
@@ -173,7 +173,7 @@ pub struct QueryBuffers {
     /// they change).
     recorded: Option<(u32, Option<usize>)>,
     /// [`QueryTransfer::Mapped`] with one-dispatch kernels: the next query's commands, recorded
-    /// by [`NeuralSdf::submit_query`] right after it submits, for the same count and level of
+    /// by [`NeuralSdf::submit_query`](crate::NeuralSdf::submit_query) right after it submits, for the same count and level of
     /// detail, while the GPU works and the host would only wait (one slot for plain queries,
     /// one for timed ones). On an H100 that takes the 3.4–3.7 µs of encoding out of the next
     /// query's wall time (BENCHMARKS.md, session 21).
@@ -504,7 +504,7 @@ impl QueryBuffers {
         matches!(self.kernels, Kernels::Nglod(_) | Kernels::Siren(_))
     }
 
-    /// How many queries [`NeuralSdf::submit_query`] submitted from commands recorded ahead.
+    /// How many queries [`NeuralSdf::submit_query`](crate::NeuralSdf::submit_query) submitted from commands recorded ahead.
     #[cfg(test)]
     pub(crate) fn prepared_used(&self) -> u64 {
         self.prepared_used
