@@ -316,3 +316,17 @@ impl AdamCpu {
         }
     }
 }
+
+#[cfg(test)]
+mod tests {
+    /// The optimiser's uniforms have the layout `adam.wgsl` reads.
+    #[test]
+    fn adam_uniforms_mirror_the_shader() {
+        crate::shaders::assert_mirrors!(
+            super::AdamUniforms,
+            crate::shaders::ADAM,
+            "AdamUniforms",
+            [step_size, beta1, beta2, eps, inv_sqrt_bc2, grad_scale, len]
+        );
+    }
+}

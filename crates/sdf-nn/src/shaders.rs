@@ -152,6 +152,72 @@ pub const ALL: &[Shader] = &[
     QUERY,
 ];
 
+/// Asserts, in a test, that the Rust struct `$rust`, written into a uniform or storage buffer,
+/// has the layout of the WGSL struct `$wgsl` of `$shader` that reads it: each listed field at
+/// the offset of the WGSL member of the same name, every WGSL member listed, and the Rust
+/// struct at least as large. Padding fields (`_pad`) need not be listed. One check per pair
+/// keeps the hand-written mirrors in step with the shaders.
+#[cfg(test)]
+macro_rules! assert_mirrors {
+    ($rust:ty, $shader:expr, $wgsl:literal, [$($field:ident),* $(,)?]) => {
+        $crate::shaders::check_mirror(
+            &$shader,
+            $wgsl,
+            std::mem::size_of::<$rust>(),
+            &[$((stringify!($field), std::mem::offset_of!($rust, $field))),*],
+        )
+    };
+}
+#[cfg(test)]
+pub(crate) use assert_mirrors;
+
+/// The check of [`assert_mirrors`]: `fields` are the Rust fields' names and byte offsets.
+#[cfg(test)]
+pub(crate) fn check_mirror(
+    shader: &Shader,
+    wgsl: &str,
+    rust_size: usize,
+    fields: &[(&str, usize)],
+) {
+    // A shader that calls a model's snippet gets stand-ins: only its own types matter here.
+    let source = if NEEDS_MODEL.contains(&shader.name) {
+        format!(
+            "fn hwsdf_distance(p: vec3<f32>) -> f32 {{ return 0.0; }}\n\
+             fn hwsdf_normal(p: vec3<f32>) -> vec3<f32> {{ return p; }}\n{}",
+            shader.source
+        )
+    } else {
+        shader.source.to_owned()
+    };
+    let module = naga::front::wgsl::parse_str(&source)
+        .unwrap_or_else(|e| panic!("{}: {}", shader.name, e.emit_to_string(&source)));
+    let mut layouter = naga::proc::Layouter::default();
+    layouter.update(module.to_ctx()).expect("layout");
+    let (_, ty) = module
+        .types
+        .iter()
+        .find(|(_, t)| t.name.as_deref() == Some(wgsl))
+        .unwrap_or_else(|| panic!("{}: no struct {wgsl}", shader.name));
+    let naga::TypeInner::Struct { members, span } = &ty.inner else {
+        panic!("{}: {wgsl} is not a struct", shader.name);
+    };
+    let wgsl_fields: Vec<(&str, usize)> = members
+        .iter()
+        .filter_map(|m| Some((m.name.as_deref()?, m.offset as usize)))
+        .filter(|(name, _)| !name.starts_with('_'))
+        .collect();
+    assert_eq!(
+        wgsl_fields, fields,
+        "{}: the Rust mirror of {wgsl} (left: WGSL members and offsets) differs",
+        shader.name
+    );
+    assert!(
+        rust_size >= *span as usize,
+        "{}: the Rust mirror of {wgsl} has {rust_size} bytes, the WGSL struct {span}",
+        shader.name
+    );
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

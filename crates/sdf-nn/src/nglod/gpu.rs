@@ -692,6 +692,31 @@ mod tests {
         (src[..b].to_owned(), src[e..].to_owned())
     }
 
+    /// The uniforms have the layout every NGLOD kernel reads.
+    #[test]
+    fn uniforms_mirror_the_shaders() {
+        shaders::assert_mirrors!(
+            super::EvalUniforms,
+            shaders::NGLOD_FORWARD,
+            "Uniforms",
+            [n_points, lod, mlp_offset, levels, query]
+        );
+        for shader in [
+            shaders::NGLOD_TRAIN_ATOMIC,
+            shaders::NGLOD_TRAIN_CAS,
+            shaders::NGLOD_REDUCE,
+        ] {
+            shaders::assert_mirrors!(
+                super::TrainUniforms,
+                shader,
+                "Uniforms",
+                [
+                    n_rows, first, n_prefix, lod_base, mlp_offset, chunk, n_chunks, levels
+                ]
+            );
+        }
+    }
+
     /// The two grid-scatter variants must differ only in how they add, or one path would test
     /// something other than what the other runs.
     #[test]

@@ -510,3 +510,19 @@ pub fn render(
     options.validate()?;
     Renderer::new(gpu, sdf)?.render(gpu, options)
 }
+
+#[cfg(test)]
+mod tests {
+    /// The tracer's uniforms have the layout `sphere_trace.wgsl` reads.
+    #[test]
+    fn trace_uniforms_mirror_the_shader() {
+        crate::shaders::assert_mirrors!(
+            super::TraceUniforms,
+            super::SPHERE_TRACE,
+            "TraceUniforms",
+            [
+                eye, forward, right, up, light, albedo, background, box_min, box_max, size
+            ]
+        );
+    }
+}

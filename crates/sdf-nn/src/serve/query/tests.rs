@@ -380,3 +380,14 @@ fn siren_kernels_change_refuses_old_buffers() {
         Err(crate::NeuralSdfError::NoLayerKernels("nglod"))
     ));
 }
+
+/// The query stages' uniforms have the layout `query.wgsl` reads.
+#[test]
+fn query_uniforms_mirror_the_shader() {
+    crate::shaders::assert_mirrors!(
+        super::QueryUniforms,
+        crate::shaders::QUERY,
+        "Query",
+        [n_points, streams, normals, scale, center]
+    );
+}
