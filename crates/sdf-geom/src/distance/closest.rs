@@ -41,7 +41,7 @@ impl Node4 {
 }
 
 impl SignedDistance {
-    /// The far path (see [`FAR_QUERY_RADII`]): distance, closest point, slot and barycentrics, all
+    /// The far path (see [`FAR_QUERY_RADII`](super::FAR_QUERY_RADII)): distance, closest point, slot and barycentrics, all
     /// internal and in f64.
     pub(super) fn far_closest(
         &self,

@@ -29,7 +29,7 @@ pub(super) struct WindingNode {
 
 /// A node of the 4-wide winding tree: the [`WindingNode`] data of up to four children in SoA form,
 /// so that the far-field test and expansion of all four run in one SIMD pass. It has the same shape
-/// and indices as the [`Node4`] at the same position (inner child: index into `wnodes4`; leaf child:
+/// and indices as the [`Node4`](super::closest::Node4) at the same position (inner child: index into `wnodes4`; leaf child:
 /// first index into `packets`).
 #[derive(Clone, Copy, Debug)]
 #[repr(C, align(64))]
