@@ -172,6 +172,50 @@ pub fn extract_surface<E: std::error::Error + 'static>(
             Ok(v)
         };
 
+    let mut cells = surface_cells(options, h, &lattice, &mut call, &mut stats)?;
+    cells.par_sort_unstable_by_key(|&c| key(c));
+    stats.cells = cells.len();
+
+    // Distances at every corner of every kept cell, each lattice point once.
+    let mut corners: Vec<u64> = cells
+        .par_iter()
+        .flat_map_iter(|&c| (0..8).map(move |i| key(c + corner(i))))
+        .collect();
+    corners.par_sort_unstable();
+    corners.dedup();
+    let corner_points: Vec<Vec3> = corners.iter().map(|&k| lattice(unkey(k))).collect();
+    let corner_values = call(&corner_points, &mut stats)?;
+    drop(corner_points);
+    let value_at = |p: IVec3| -> f32 {
+        let i = corners
+            .binary_search(&key(p))
+            .expect("every corner of a kept cell was evaluated");
+        corner_values[i]
+    };
+
+    let (vertices, vertex_index) = cell_vertices(&cells, &value_at, &lattice, h);
+    let triangles = cell_quads(&cells, &vertices, &vertex_index, &value_at);
+    Ok((
+        Mesh {
+            vertices,
+            triangles,
+        },
+        stats,
+    ))
+}
+
+/// The coarse-to-fine pruning: blocks of cells evaluated at their centres (through `call`, which
+/// counts the evaluations in `stats`), those that cannot hold the surface dropped, the others
+/// split in eight, down to single cells, which are returned (unsorted). Stops with
+/// [`ExtractError::OverBudget`] as soon as the kept blocks predict too many cells.
+fn surface_cells<E: std::error::Error + 'static>(
+    options: &ExtractOptions,
+    h: f32,
+    lattice: &impl Fn(IVec3) -> Vec3,
+    call: &mut impl FnMut(&[Vec3], &mut ExtractStats) -> Result<Vec<f32>, ExtractError<E>>,
+    stats: &mut ExtractStats,
+) -> Result<Vec<IVec3>, ExtractError<E>> {
+    let n = options.resolution;
     // Top blocks of 2^k cells, about 8 per axis.
     let mut size = (n / 8).max(1).next_power_of_two();
     let per_axis = n.div_ceil(size) as i32;
@@ -188,7 +232,7 @@ pub fn extract_surface<E: std::error::Error + 'static>(
             .iter()
             .map(|&b| lattice(b) + Vec3::splat(0.5 * size as f32 * h))
             .collect();
-        let values = call(&centers, &mut stats)?;
+        let values = call(&centers, stats)?;
         let half_diag = 0.5 * 3f32.sqrt() * size as f32 * h;
         let bound = options.lipschitz * half_diag + h;
         // NaN values are kept (`v.abs() > bound` is false for NaN), so a broken region is
@@ -215,8 +259,7 @@ pub fn extract_surface<E: std::error::Error + 'static>(
             }
         }
         if size == 1 {
-            blocks = kept;
-            break;
+            return Ok(kept);
         }
         let child = size / 2;
         blocks = kept
@@ -231,28 +274,17 @@ pub fn extract_surface<E: std::error::Error + 'static>(
             .collect();
         size = child;
     }
-    let mut cells = blocks;
-    cells.par_sort_unstable_by_key(|&c| key(c));
-    stats.cells = cells.len();
+}
 
-    // Distances at every corner of every kept cell, each lattice point once.
-    let mut corners: Vec<u64> = cells
-        .par_iter()
-        .flat_map_iter(|&c| (0..8).map(move |i| key(c + corner(i))))
-        .collect();
-    corners.par_sort_unstable();
-    corners.dedup();
-    let corner_points: Vec<Vec3> = corners.iter().map(|&k| lattice(unkey(k))).collect();
-    let corner_values = call(&corner_points, &mut stats)?;
-    drop(corner_points);
-    let value_at = |p: IVec3| -> f32 {
-        let i = corners
-            .binary_search(&key(p))
-            .expect("every corner of a kept cell was evaluated");
-        corner_values[i]
-    };
-
-    // One vertex per cell with a sign change.
+/// Surface nets' vertices: one per cell (of the sorted `cells`) whose corners change sign, at the
+/// mean of its edges' zero crossings. Returns the vertices and each cell's vertex index
+/// (`u32::MAX`: none).
+fn cell_vertices(
+    cells: &[IVec3],
+    value_at: &(impl Fn(IVec3) -> f32 + Sync),
+    lattice: &(impl Fn(IVec3) -> Vec3 + Sync),
+    h: f32,
+) -> (Vec<Vec3>, Vec<u32>) {
     let cell_vertices: Vec<Option<Vec3>> = cells
         .par_iter()
         .map(|&c| {
@@ -284,13 +316,23 @@ pub fn extract_surface<E: std::error::Error + 'static>(
             vertices.push(*p);
         }
     }
+    (vertices, vertex_index)
+}
+
+/// Surface nets' faces: one quad (two triangles) per lattice edge with a sign change, joining
+/// the vertices of the four cells around it, handled by the cell at the edge's start and wound so
+/// that its normal points towards positive distance.
+fn cell_quads(
+    cells: &[IVec3],
+    vertices: &[Vec3],
+    vertex_index: &[u32],
+    value_at: &(impl Fn(IVec3) -> f32 + Sync),
+) -> Vec<[u32; 3]> {
     let cell_vertex = |c: IVec3| -> Option<u32> {
         let i = cells.binary_search_by_key(&key(c), |&x| key(x)).ok()?;
         (vertex_index[i] != u32::MAX).then_some(vertex_index[i])
     };
-
-    // One quad per lattice edge with a sign change, handled by the cell at the edge's start.
-    let triangles: Vec<[u32; 3]> = cells
+    cells
         .par_iter()
         .enumerate()
         .filter(|&(i, _)| vertex_index[i] != u32::MAX)
@@ -319,18 +361,11 @@ pub fn extract_surface<E: std::error::Error + 'static>(
                 } else {
                     [a, d, cc, b]
                 };
-                out.extend(split_quad(quad, &vertices));
+                out.extend(split_quad(quad, vertices));
             }
             out
         })
-        .collect();
-    Ok((
-        Mesh {
-            vertices,
-            triangles,
-        },
-        stats,
-    ))
+        .collect()
 }
 
 /// Splits a quad along its shorter diagonal.

@@ -1,52 +1,9 @@
 //! Slow, simple reference implementations (brute force over all triangles, in f64) used to check the
 //! fast paths. O(n) per query; for tests and spot checks only.
 
-use glam::DVec3;
-
+// The far path of the distance uses the same f64 routine: it lives there, and is shown here.
 use crate::Mesh;
-
-/// Closest point on triangle (a, b, c) to p in f64 (Ericson), with barycentric weights.
-pub fn closest_on_triangle_f64(p: DVec3, a: DVec3, b: DVec3, c: DVec3) -> (DVec3, DVec3) {
-    let ab = b - a;
-    let ac = c - a;
-    let ap = p - a;
-    let d1 = ab.dot(ap);
-    let d2 = ac.dot(ap);
-    if d1 <= 0.0 && d2 <= 0.0 {
-        return (a, DVec3::X);
-    }
-    let bp = p - b;
-    let d3 = ab.dot(bp);
-    let d4 = ac.dot(bp);
-    if d3 >= 0.0 && d4 <= d3 {
-        return (b, DVec3::Y);
-    }
-    let vc = d1 * d4 - d3 * d2;
-    if vc <= 0.0 && d1 >= 0.0 && d3 <= 0.0 {
-        let v = d1 / (d1 - d3);
-        return (a + ab * v, DVec3::new(1.0 - v, v, 0.0));
-    }
-    let cp = p - c;
-    let d5 = ab.dot(cp);
-    let d6 = ac.dot(cp);
-    if d6 >= 0.0 && d5 <= d6 {
-        return (c, DVec3::Z);
-    }
-    let vb = d5 * d2 - d1 * d6;
-    if vb <= 0.0 && d2 >= 0.0 && d6 <= 0.0 {
-        let w = d2 / (d2 - d6);
-        return (a + ac * w, DVec3::new(1.0 - w, 0.0, w));
-    }
-    let va = d3 * d6 - d5 * d4;
-    if va <= 0.0 && (d4 - d3) >= 0.0 && (d5 - d6) >= 0.0 {
-        let w = (d4 - d3) / ((d4 - d3) + (d5 - d6));
-        return (b + (c - b) * w, DVec3::new(0.0, 1.0 - w, w));
-    }
-    let denom = 1.0 / (va + vb + vc);
-    let v = vb * denom;
-    let w = vc * denom;
-    (a + ab * v + ac * w, DVec3::new(1.0 - v - w, v, w))
-}
+pub use crate::distance::closest_on_triangle_f64;
 
 /// Unsigned distance and index of the nearest triangle, by scanning all triangles in f64.
 /// Returns `(f64::INFINITY, u32::MAX)` for a mesh without valid triangles.

@@ -1,0 +1,239 @@
+//! glTF and GLB: the document and its extensions checked, then the scene's size, buffers and
+//! mesh instances in turn (each in its own room beside this one).
+
+use std::path::Path;
+
+use glam::Mat4;
+
+use super::LoadOptions;
+use super::buffers::read_buffers;
+use super::primitive::{Merged, add_gltf_mesh};
+use super::scene::{GpuInstancing, check_scene_size, expand_scene, gpu_instancing, node_graph};
+use crate::GeomError;
+use crate::mesh::{LoadReport, Mesh, clean};
+
+/// Whether a glTF that lists the compression extension `ext` as used (not required) holds its
+/// geometry uncompressed too, as the specification asks of such files: with Draco, every
+/// compressed primitive's POSITION and index accessors still have a buffer view; with meshopt,
+/// no buffer is a `fallback` one (a placeholder without data). Anything else is refused.
+fn has_uncompressed_fallback(root: &gltf::json::Root, ext: &str) -> bool {
+    if ext == "KHR_draco_mesh_compression" {
+        let stored = |i: &gltf::json::Index<gltf::json::Accessor>| {
+            root.accessors
+                .get(i.value())
+                .is_some_and(|a| a.buffer_view.is_some())
+        };
+        let positions = gltf::json::validation::Checked::Valid(gltf::Semantic::Positions);
+        root.meshes
+            .iter()
+            .flat_map(|m| &m.primitives)
+            .filter(|p| {
+                p.extensions
+                    .as_ref()
+                    .is_some_and(|e| e.others.contains_key(ext))
+            })
+            .all(|p| {
+                p.attributes.get(&positions).is_some_and(stored)
+                    && p.indices.as_ref().is_none_or(stored)
+            })
+    } else {
+        root.buffers.iter().all(|b| {
+            let fallback = b
+                .extensions
+                .as_ref()
+                .and_then(|e| e.others.get(ext)?.get("fallback"));
+            fallback != Some(&gltf::json::Value::Bool(true))
+        })
+    }
+}
+
+/// Loads a glTF or GLB file held in `bytes`: the document validated, the scene's size bounded
+/// before any buffer is read, the buffers read, every mesh instance of the scene merged.
+pub(super) fn load_gltf(
+    path: &Path,
+    format: &'static str,
+    bytes: &[u8],
+    dir: Option<&Path>,
+    options: &LoadOptions,
+) -> Result<(Mesh, LoadReport), GeomError> {
+    let glb;
+    let (json_bytes, blob): (&[u8], Option<&[u8]>) = if bytes.starts_with(b"glTF") {
+        glb =
+            gltf::Glb::from_slice(bytes).map_err(|e| parse_error(path, format!("bad GLB: {e}")))?;
+        (&glb.json, glb.bin.as_deref())
+    } else {
+        (bytes, None)
+    };
+    let (doc, fallbacks) = document(path, json_bytes)?;
+
+    let mut out = Merged {
+        report: LoadReport {
+            format,
+            ..Default::default()
+        },
+        ..Default::default()
+    };
+    for what in fallbacks {
+        out.report.warnings.push(format!(
+            "the file also holds its geometry without {what}, which is not supported: that \
+             uncompressed copy was read"
+        ));
+    }
+
+    // The scene's shape first (cheap, no buffer is read): cycles, instance counts, limits.
+    let scene = doc.default_scene().or_else(|| doc.scenes().next());
+    let graph = match &scene {
+        Some(scene) => Some(node_graph(path, &doc, scene)?),
+        None => None,
+    };
+    // Nodes drawn many times by EXT_mesh_gpu_instancing (validated here, read below).
+    let accessors: Vec<gltf::Accessor> = doc.accessors().collect();
+    let instancing: Vec<Option<GpuInstancing>> = doc
+        .nodes()
+        .map(|node| gpu_instancing(path, &accessors, &node))
+        .collect::<Result<_, _>>()?;
+    check_scene_size(path, &doc, graph.as_ref(), &instancing)?;
+
+    let buffers = read_buffers(path, &doc, blob, dir, options)?;
+
+    match (scene, graph) {
+        (Some(scene), Some(graph)) => {
+            expand_scene(path, &doc, &scene, &graph, &instancing, &buffers, &mut out)?;
+        }
+        _ => {
+            out.report
+                .warnings
+                .push("no scene: every mesh taken once with the identity transform".into());
+            for mesh in doc.meshes() {
+                out.report.instances += 1;
+                add_gltf_mesh(
+                    path,
+                    None,
+                    &mesh,
+                    Mat4::IDENTITY,
+                    mesh.weights().unwrap_or_default(),
+                    true,
+                    &buffers,
+                    &mut out,
+                )?;
+            }
+        }
+    }
+    let mesh = clean(out.vertices, out.triangles, &mut out.report)?;
+    Ok((mesh, out.report))
+}
+
+/// [`GeomError::Parse`] without a line: how every failed glTF validation is reported.
+pub(super) fn parse_error(path: &Path, message: String) -> GeomError {
+    GeomError::Parse {
+        path: path.to_path_buf(),
+        line: None,
+        message,
+    }
+}
+
+/// The glTF document in `json_bytes`, after the checks `gltf` leaves out or gets wrong (the
+/// extensions, the POSITION accessors), and the compression extensions whose uncompressed
+/// fallback is read instead.
+fn document(
+    path: &Path,
+    json_bytes: &[u8],
+) -> Result<(gltf::Document, Vec<&'static str>), GeomError> {
+    let mut root: gltf::json::Root = gltf::json::deserialize::from_slice(json_bytes)
+        .map_err(|e| parse_error(path, format!("bad glTF JSON: {e}")))?;
+    let fallbacks = compression_fallbacks(path, &root)?;
+    refuse_required_extensions(path, &root)?;
+    // gltf's validation refuses required extensions it does not implement itself; the ones
+    // left are appearance only (never read here) or read here from the JSON.
+    root.extensions_required.clear();
+    // gltf-json's own validation indexes `accessors` with the POSITION index before checking it
+    // (found by the gltf fuzz target: fuzz/regressions/gltf/position-index-out-of-range.gltf).
+    for (m, mesh) in root.meshes.iter().enumerate() {
+        for (k, prim) in mesh.primitives.iter().enumerate() {
+            if let Some(i) = prim.attributes.get(&gltf::json::validation::Checked::Valid(
+                gltf::Semantic::Positions,
+            )) && i.value() >= root.accessors.len()
+            {
+                return Err(parse_error(
+                    path,
+                    format!(
+                        "mesh {m} primitive {k}: POSITION accessor {} does not exist ({} accessors)",
+                        i.value(),
+                        root.accessors.len()
+                    ),
+                ));
+            }
+        }
+    }
+    let doc = gltf::Document::from_json(root).map_err(|e| parse_error(path, e.to_string()))?;
+    Ok((doc, fallbacks))
+}
+
+/// Compressed geometry we cannot decode. Listed as used but not required, the file must also
+/// hold the geometry uncompressed (the glTF specification's fallback): that is read, and the
+/// compressions are returned for the report's warnings. Anything else is
+/// [`GeomError::Unsupported`].
+fn compression_fallbacks(
+    path: &Path,
+    root: &gltf::json::Root,
+) -> Result<Vec<&'static str>, GeomError> {
+    let mut fallbacks = Vec::new();
+    for ext in root
+        .extensions_used
+        .iter()
+        .chain(root.extensions_required.iter())
+    {
+        let what = match ext.as_str() {
+            "KHR_draco_mesh_compression" => {
+                Some("Draco mesh compression (KHR_draco_mesh_compression)")
+            }
+            "EXT_meshopt_compression" | "KHR_meshopt_compression" => {
+                Some("meshopt compression (EXT_meshopt_compression)")
+            }
+            _ => None,
+        };
+        if let Some(what) = what {
+            let required = root.extensions_required.contains(ext);
+            if required || !has_uncompressed_fallback(root, ext) {
+                return Err(GeomError::Unsupported {
+                    path: path.to_path_buf(),
+                    feature: what.to_string(),
+                });
+            }
+            if !fallbacks.contains(&what) {
+                fallbacks.push(what);
+            }
+        }
+    }
+    Ok(fallbacks)
+}
+
+/// A required extension we do not read could change the geometry or is unknown: refuse it by
+/// name rather than load something wrong. Extensions that only concern appearance do not touch
+/// the triangles; EXT_mesh_gpu_instancing and KHR_mesh_quantization are read.
+fn refuse_required_extensions(path: &Path, root: &gltf::json::Root) -> Result<(), GeomError> {
+    let understood = |e: &str| {
+        [
+            "KHR_materials_",
+            "KHR_texture_",
+            "EXT_texture_",
+            "MSFT_texture_",
+        ]
+        .iter()
+        .any(|p| e.starts_with(p))
+            || matches!(
+                e,
+                "KHR_lights_punctual"
+                    | "KHR_xmp_json_ld"
+                    | "EXT_mesh_gpu_instancing"
+                    | "KHR_mesh_quantization"
+            )
+    };
+    match root.extensions_required.iter().find(|e| !understood(e)) {
+        Some(ext) => Err(GeomError::Unsupported {
+            path: path.to_path_buf(),
+            feature: format!("the required glTF extension {ext}"),
+        }),
+        None => Ok(()),
+    }
+}
