@@ -23,7 +23,7 @@ use crate::nglod::{Nglod, NglodError, NglodGpu};
 use crate::serve::query::{
     QueryBuffers, QueryBuffersDescriptor, QueryError, QueryOutputs, QuerySpace, QueryTransfer,
 };
-use crate::siren::{self, LayerKernels, Siren, SirenGpu, SirenGpuError};
+use crate::siren::{self, LayerKernels, Siren, SirenGpu, SirenGpuError, SirenGpuOptions};
 
 /// Most points the host-side methods send in one submission; larger inputs are split.
 const HOST_CHUNK: usize = 1 << 18;
@@ -229,7 +229,7 @@ impl NeuralSdf {
 
     /// With [`LayerKernels::Auto`], SIREN queries of values of at least `points` points run on
     /// f16 cooperative matrices where the device has them, `None` never (see
-    /// [`SirenGpu::set_coop_min_points`]). The default is
+    /// [`crate::siren::SirenGpuOptions::coop_min_points`]). The default is
     /// [`crate::siren::auto_coop_min_points`]: [`crate::siren::COOP_AUTO_MIN_POINTS`] on GPUs
     /// for networks at least [`crate::siren::COOP_AUTO_MIN_WIDTH`] wide. [`QueryBuffers`] made
     /// before the change are refused after it; make new ones. An error for NGLOD models.
@@ -456,13 +456,12 @@ impl NeuralSdf {
         if stale {
             let network = match &self.network {
                 Network::Siren(s) => {
-                    let mut net = SirenGpu::new_frozen(gpu, s)?;
-                    if self.siren_kernels != LayerKernels::Auto {
-                        net.set_layer_kernels(gpu, self.siren_kernels)?;
-                    }
-                    if let Some(points) = self.siren_coop_min_points {
-                        net.set_coop_min_points(gpu, points)?;
-                    }
+                    let options = SirenGpuOptions {
+                        kernels: self.siren_kernels,
+                        ..SirenGpuOptions::default()
+                    };
+                    let coop = self.siren_coop_min_points;
+                    let net = SirenGpu::new_frozen(gpu, s, &options, coop)?;
                     GpuNetwork::Siren(Box::new(net))
                 }
                 Network::Nglod(m) => GpuNetwork::Nglod(Box::new(NglodGpu::new_frozen(gpu, m)?)),

@@ -66,7 +66,7 @@ use crate::gpu::{GpuContext, GpuError, GpuTimer, entry};
 use crate::nglod::gpu::NglodEvalBinding;
 use crate::serve::neural::{GpuNetwork, NeuralSdf, NeuralSdfError};
 use crate::shaders;
-use crate::siren::gpu::QueryLaunch;
+use crate::siren::eval::QueryLaunch;
 
 /// Invocations per workgroup of `shaders/query.wgsl`.
 const WG: u32 = 64;
@@ -1247,7 +1247,11 @@ mod tests {
         served
             .with_gpu(gpu, |net, _| {
                 if let GpuNetwork::Siren(s) = net {
-                    s.set_max_points_per_launch(64);
+                    let options = crate::siren::SirenGpuOptions {
+                        max_points_per_launch: 64,
+                        ..*s.options()
+                    };
+                    s.set_options(gpu, &options)?;
                 }
                 Ok(())
             })
@@ -1352,7 +1356,11 @@ mod tests {
             served
                 .with_gpu(gpu, |net, _| {
                     if let GpuNetwork::Siren(s) = net {
-                        s.set_fused_row_blocks(blocks);
+                        let options = crate::siren::SirenGpuOptions {
+                            fused_row_blocks: blocks,
+                            ..*s.options()
+                        };
+                        s.set_options(gpu, &options)?;
                         assert_eq!(s.fused_row_blocks(gpu), Some(blocks));
                     }
                     Ok(())
