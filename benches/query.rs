@@ -500,8 +500,11 @@ fn interleaved_siren_preset(
     let mut paths: Vec<SirenPaths> = kernels
         .iter()
         .map(|&k| {
-            let mut net = sdf_nn::SirenGpu::new(gpu, &siren).unwrap();
-            net.set_layer_kernels(gpu, k).unwrap();
+            let options = sdf_nn::siren::SirenGpuOptions {
+                kernels: k,
+                ..Default::default()
+            };
+            let net = sdf_nn::SirenGpu::with_options(gpu, &siren, &options).unwrap();
             let mut sdf = siren_sdf(&siren);
             sdf.set_siren_kernels(k).unwrap();
             let name = if kernels.len() > 1 {

@@ -7,9 +7,9 @@
 //! `SIREN_BENCH_KERNELS` forces a layer-kernel family (`row-blocked`, `gemm`, `tiled` or
 //! `coop`, inference on f16 cooperative matrices where the adapter has them; default:
 //! `LayerKernels::Auto`), and `SIREN_BENCH_FUSED_MAX` the largest inference batch of
-//! the tiled family's fused all-layer kernel (`SirenGpu::set_fused_max_points`; 0 disables it)
-//! and `SIREN_BENCH_FUSED_ROW_BLOCKS` its register blocks of rows per invocation (1 to 3,
-//! `SirenGpu::set_fused_row_blocks`; default 1).
+//! the tiled family's fused all-layer kernel (`SirenGpuOptions::fused_max_points`; 0 disables
+//! it) and `SIREN_BENCH_FUSED_ROW_BLOCKS` its register blocks of rows per invocation (1 to 3,
+//! `SirenGpuOptions::fused_row_blocks`; default 1).
 //! `eval_resident` times the same network served (`NeuralSdf`, whose `Auto` runs batches of values
 //! of at least `COOP_AUTO_MIN_POINTS` on cooperative matrices where the GPU has them) with the
 //! points already on the GPU and the values left there: `record_query`, submit, wait, as
@@ -28,7 +28,7 @@ use std::time::Duration;
 
 use criterion::{BenchmarkId, Criterion, Throughput, criterion_group};
 use glam::Vec3;
-use sdf_nn::siren::{LayerKernels, TiledBlock, TrainStep};
+use sdf_nn::siren::{LayerKernels, SirenGpuOptions, TiledBlock, TrainStep};
 use sdf_nn::{GpuContext, Siren, SirenConfig, SirenGpu, SirenTrainConfig, SirenTrainer};
 
 fn presets() -> Vec<(&'static str, SirenConfig)> {
@@ -70,6 +70,25 @@ fn train_step() -> TrainStep {
     }
 }
 
+/// The options the knobs name: kernels, tiled blocks, fused kernel and training step.
+fn options() -> SirenGpuOptions {
+    let number = |var: &str| {
+        std::env::var(var)
+            .ok()
+            .map(|v| v.parse().unwrap_or_else(|_| panic!("{var}: a number")))
+    };
+    let defaults = SirenGpuOptions::default();
+    SirenGpuOptions {
+        kernels: kernels(),
+        tiled_block: tiled_block(),
+        fused_max_points: number("SIREN_BENCH_FUSED_MAX"),
+        fused_row_blocks: number("SIREN_BENCH_FUSED_ROW_BLOCKS")
+            .unwrap_or(defaults.fused_row_blocks),
+        train_step: train_step(),
+        ..defaults
+    }
+}
+
 fn points(n: usize) -> Vec<Vec3> {
     sdf_geom::sample::uniform_box(n, 42)
 }
@@ -80,19 +99,11 @@ fn bench(c: &mut Criterion) {
     let (mesh, _) = sdf_geom::load_mesh("tests/data/spot.obj").expect("tests/data/spot.obj");
     for (name, cfg) in presets() {
         let siren = Siren::new(cfg, 1).unwrap();
-        let mut net = SirenGpu::new(gpu, &siren).unwrap();
-        net.set_layer_kernels(gpu, kernels()).unwrap();
-        net.set_tiled_block(gpu, tiled_block()).unwrap();
-        if let Ok(v) = std::env::var("SIREN_BENCH_FUSED_MAX") {
-            net.set_fused_max_points(v.parse().expect("SIREN_BENCH_FUSED_MAX: a number"));
-        }
-        if let Ok(v) = std::env::var("SIREN_BENCH_FUSED_ROW_BLOCKS") {
-            net.set_fused_row_blocks(v.parse().expect("SIREN_BENCH_FUSED_ROW_BLOCKS: 1, 2 or 3"));
-        }
+        let mut net = SirenGpu::with_options(gpu, &siren, &options()).unwrap();
         eprintln!(
             "{name}: kernels {:?} (tiled blocks {:?}), fused for 3000 points: {} (row blocks {:?}), cooperative-matrix tiles: {:?}",
-            net.layer_kernels(),
-            net.tiled_block(),
+            net.options().kernels,
+            net.options().tiled_block,
             net.runs_fused(gpu, 3000),
             net.fused_row_blocks(gpu),
             net.coop_tile()
@@ -188,13 +199,12 @@ fn trainer(gpu: &GpuContext, name: &str, siren: &Siren, mesh: &sdf_geom::Mesh) -
         ..SirenTrainConfig::default()
     };
     let mut trainer = SirenTrainer::from_mesh(gpu, siren, mesh, train).unwrap();
-    trainer.set_layer_kernels(gpu, kernels()).unwrap();
-    trainer.set_tiled_block(gpu, tiled_block()).unwrap();
-    trainer.set_train_step(gpu, train_step()).unwrap();
+    trainer.set_net_options(gpu, &options()).unwrap();
+    let net = trainer.net();
     eprintln!(
         "{name}: train step {:?}, reverse over reverse: {}",
-        trainer.net().train_step(),
-        trainer.net().runs_reverse_over_reverse()
+        net.options().train_step,
+        net.runs_reverse_over_reverse()
     );
     trainer
 }

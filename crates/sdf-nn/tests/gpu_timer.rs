@@ -132,7 +132,11 @@ fn timed_siren_eval_matches_untimed_and_is_within_wall_time() {
     // Also split into three launches of 1024 points (1024 + 1024 + 952), whose times add up.
     for max_per_launch in [None, Some(1024)] {
         if let Some(m) = max_per_launch {
-            net.set_max_points_per_launch(m);
+            let options = sdf_nn::siren::SirenGpuOptions {
+                max_points_per_launch: m,
+                ..*net.options()
+            };
+            net.set_options(gpu, &options).unwrap();
         }
         let t = Instant::now();
         let (timed, ns) = net.eval_timed(gpu, &pts, &timer).unwrap();

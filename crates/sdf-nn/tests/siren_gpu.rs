@@ -2,17 +2,39 @@
 //! the environment selects (lavapipe in CI). One test binary, so every pipeline is compiled
 //! once.
 
+// The fit and sign check the end-to-end runs share with the `siren_fit` example.
+#[path = "../examples/siren_fit/fit.rs"]
+mod fit;
+
 use glam::Vec3;
-use sdf_nn::siren::{LayerKernels, LossWeights, SirenGpuError, TiledBlock, TrainStep, cpu};
+use sdf_nn::siren::{
+    LayerKernels, LossWeights, SirenGpuError, SirenGpuOptions, TiledBlock, TrainStep, cpu,
+};
 use sdf_nn::{
     GpuContext, ModelFile, NeuralSdf, Normalization, Siren, SirenConfig, SirenGpu,
-    SirenTrainConfig, SirenTrainer,
+    SirenTrainConfig, SirenTrainer, StepLayout,
 };
 
 fn gpu() -> &'static GpuContext {
     let gpu = GpuContext::shared().expect("a GPU adapter (lavapipe in CI)");
     eprintln!("adapter: {}", gpu.describe());
     gpu
+}
+
+/// A network on `gpu` running `kernels`.
+fn on_kernels(gpu: &GpuContext, net: &Siren, kernels: LayerKernels) -> SirenGpu {
+    let options = SirenGpuOptions {
+        kernels,
+        ..SirenGpuOptions::default()
+    };
+    SirenGpu::with_options(gpu, net, &options).unwrap()
+}
+
+/// Changes one of `g`'s knobs on the live network.
+fn set(gpu: &GpuContext, g: &mut SirenGpu, change: impl FnOnce(&mut SirenGpuOptions)) {
+    let mut options = *g.options();
+    change(&mut options);
+    g.set_options(gpu, &options).unwrap();
 }
 
 fn to64(v: Vec3) -> [f64; 3] {
@@ -40,8 +62,7 @@ fn with_kernels(
     mut check: impl FnMut(&mut SirenGpu),
 ) {
     for &kernels in families {
-        let mut g = SirenGpu::new(gpu, net).unwrap();
-        g.set_layer_kernels(gpu, kernels).unwrap();
+        let mut g = on_kernels(gpu, net, kernels);
         let expected = match kernels {
             // Every hidden layer; the output layer (fan-out 1) stays on the GEMM.
             LayerKernels::RowBlocked => net.config().hidden_layers,
@@ -77,7 +98,7 @@ fn forward_matches_on(
     let gpu = gpu();
     let p64: Vec<f64> = net.params().iter().map(|&p| f64::from(p)).collect();
     if let Some(m) = max_per_launch {
-        g.set_max_points_per_launch(m);
+        set(gpu, g, |o| o.max_points_per_launch = m);
     }
     let pts = sdf_geom::sample::uniform_box(n, seed);
     let vals = g.eval(gpu, &pts).unwrap();
@@ -207,8 +228,7 @@ fn coop_f16_inference_matches_cpu_reference() {
             omega0: 30.0,
         };
         let net = Siren::new(cfg, seed).unwrap();
-        let mut g = SirenGpu::new(gpu, &net).unwrap();
-        g.set_layer_kernels(gpu, LayerKernels::CoopF16).unwrap();
+        let mut g = on_kernels(gpu, &net, LayerKernels::CoopF16);
         assert_eq!(g.coop_tile(), Some(tile), "{cfg:?}");
         assert!(g.runs_tiled(), "the f32 kernels for training");
         for n in [1, 37, 700] {
@@ -275,8 +295,8 @@ fn coop_f16_inference_matches_cpu_reference() {
 }
 
 /// `LayerKernels::Auto` with a batch threshold for cooperative matrices
-/// (`set_coop_min_points`, which served networks on GPUs start at `COOP_AUTO_MIN_POINTS`): a
-/// batch of values below it gives exactly what the f32 kernels give, one at or above it exactly
+/// (`SirenGpuOptions::coop_min_points`, which served networks on GPUs start at
+/// `COOP_AUTO_MIN_POINTS`): a batch of values below it gives exactly what the f32 kernels give, one at or above it exactly
 /// what `CoopF16` gives; normals stay in f32 at any size. On `SirenGpu`, through `NeuralSdf`'s
 /// host path, and through the serving API's buffers, whose kernel is picked per query (one
 /// buffer set, batches on both sides of the threshold).
@@ -293,18 +313,15 @@ fn coop_auto_runs_large_batches_on_cooperative_matrices() {
         sdf_geom::sample::uniform_box(257, 2),
     );
     let mut f32_net = SirenGpu::new(gpu, &net).unwrap();
-    let mut coop_net = SirenGpu::new(gpu, &net).unwrap();
-    coop_net
-        .set_layer_kernels(gpu, LayerKernels::CoopF16)
-        .unwrap();
+    let mut coop_net = on_kernels(gpu, &net, LayerKernels::CoopF16);
     let mut auto = SirenGpu::new(gpu, &net).unwrap();
     assert_eq!(
-        auto.coop_min_points(),
+        auto.options().coop_min_points,
         None,
         "a network that trains keeps f32"
     );
     assert_eq!(auto.coop_tile(), None);
-    auto.set_coop_min_points(gpu, Some(MIN)).unwrap();
+    set(gpu, &mut auto, |o| o.coop_min_points = Some(MIN));
     assert!(auto.coop_tile().is_some());
     let (f32_above, coop_above) = (
         f32_net.eval(gpu, &above).unwrap(),
@@ -387,10 +404,8 @@ fn coop_f16_on_a_trained_network() {
     let mut trainer = SirenTrainer::from_mesh(gpu, &init, &mesh, train.clone()).unwrap();
     trainer.train(gpu, train.steps, |_, _| {}).unwrap();
     let net = trainer.siren(gpu).unwrap();
-    let mut coop = SirenGpu::new(gpu, &net).unwrap();
-    coop.set_layer_kernels(gpu, LayerKernels::CoopF16).unwrap();
-    let mut tiled = SirenGpu::new(gpu, &net).unwrap();
-    tiled.set_layer_kernels(gpu, LayerKernels::Tiled).unwrap();
+    let mut coop = on_kernels(gpu, &net, LayerKernels::CoopF16);
+    let mut tiled = on_kernels(gpu, &net, LayerKernels::Tiled);
     let pts = sdf_geom::sample::uniform_box(20_000, 5);
     let worst = worst_value_error(&mut coop, &net, &pts);
     let (c, t) = (
@@ -442,7 +457,7 @@ fn tiled_kernels_match_cpu_reference_on_ragged_shapes() {
             // kernels.
             for fused_max in [u32::MAX, 0] {
                 with_kernels(gpu, &net, &[LayerKernels::Tiled], |g| {
-                    g.set_fused_max_points(fused_max);
+                    set(gpu, g, |o| o.fused_max_points = Some(fused_max));
                     let fused = width % 4 == 0 && fused_max > 0;
                     assert_eq!(g.runs_fused(gpu, n as u32), fused);
                     eprint!("fused {fused}: ");
@@ -477,15 +492,17 @@ fn tiled_register_blocks_match_cpu_reference() {
             TiledBlock::Block8x8,
         ] {
             with_kernels(gpu, &net, &[LayerKernels::Tiled], |g| {
-                g.set_tiled_block(gpu, block).unwrap();
-                assert_eq!(g.tiled_block(), block);
+                set(gpu, g, |o| {
+                    o.tiled_block = block;
+                    o.fused_max_points = Some(0);
+                });
+                assert_eq!(g.options().tiled_block, block);
                 assert!(g.runs_tiled());
-                g.set_fused_max_points(0);
                 eprint!("{block:?}: ");
                 for n in [7, 1001] {
                     forward_matches_on(g, cfg, &net, n, 91 + n as u64, None);
                     for step in [TrainStep::Tangents, TrainStep::ReverseOverReverse] {
-                        g.set_train_step(step);
+                        set(gpu, g, |o| o.train_step = step);
                         let seed = 92 + n as u64;
                         gradients_match_with(g, cfg, &net, n, n / 2, seed, &soft_weights());
                     }
@@ -516,7 +533,7 @@ fn fused_kernel_row_blocks_match_cpu_reference() {
         let net = Siren::new(cfg, 61).unwrap();
         for blocks in 1..=3 {
             with_kernels(gpu, &net, &[LayerKernels::Tiled], |g| {
-                g.set_fused_row_blocks(blocks);
+                set(gpu, g, |o| o.fused_row_blocks = blocks);
                 assert_eq!(g.fused_row_blocks(gpu), Some(blocks), "{cfg:?}");
                 for &n in sizes {
                     assert!(g.runs_fused(gpu, n as u32));
@@ -540,8 +557,7 @@ fn fused_kernel_weights_follow_the_parameters() {
         omega0: 30.0,
     };
     let net = Siren::new(cfg, 31).unwrap();
-    let mut g = SirenGpu::new(gpu, &net).unwrap();
-    g.set_layer_kernels(gpu, LayerKernels::Tiled).unwrap();
+    let mut g = on_kernels(gpu, &net, LayerKernels::Tiled);
     let pts = sdf_geom::sample::uniform_box(203, 31);
     assert!(g.runs_fused(gpu, pts.len() as u32));
     // Every batch on GPUs by default; up to DEFAULT_FUSED_MAX_POINTS on CPU adapters.
@@ -596,8 +612,11 @@ fn wide_layers_match_cpu_reference() {
             LayerKernels::Gemm,
             LayerKernels::RowBlocked,
         ] {
-            let mut g = SirenGpu::new(gpu, &net).unwrap();
-            let chosen = g.set_layer_kernels(gpu, kernels);
+            let options = SirenGpuOptions {
+                kernels,
+                ..SirenGpuOptions::default()
+            };
+            let chosen = SirenGpu::with_options(gpu, &net, &options);
             let llvm = &gpu.adapter_info().driver_info;
             let old_llvm = gpu.is_cpu() && !["LLVM 19", "LLVM 2"].iter().any(|v| llvm.contains(v));
             let refused =
@@ -611,9 +630,9 @@ fn wide_layers_match_cpu_reference() {
                     other => panic!("{kernels:?} at width {width}: {other:?}"),
                 }
             }
-            chosen.unwrap();
+            let mut g = chosen.unwrap();
             for fused_max in [u32::MAX, 0] {
-                g.set_fused_max_points(fused_max);
+                set(gpu, &mut g, |o| o.fused_max_points = Some(fused_max));
                 eprint!("{kernels:?} fused ≤ {fused_max}: ");
                 forward_matches_on(&mut g, cfg, &net, 37, 70 + width as u64, None);
             }
@@ -765,17 +784,18 @@ fn train_step_auto_and_fallback() {
             hidden_layers: 2,
             omega0: 30.0,
         };
-        let mut g = SirenGpu::new(gpu, &Siren::new(cfg, 1).unwrap()).unwrap();
-        g.set_layer_kernels(gpu, kernels).unwrap();
-        assert_eq!(g.train_step(), TrainStep::Auto);
+        let mut g = on_kernels(gpu, &Siren::new(cfg, 1).unwrap(), kernels);
+        assert_eq!(g.options().train_step, TrainStep::Auto);
         assert_eq!(
             g.runs_reverse_over_reverse(),
             auto,
             "{width} {kernels:?} auto"
         );
-        g.set_train_step(TrainStep::ReverseOverReverse);
+        set(gpu, &mut g, |o| {
+            o.train_step = TrainStep::ReverseOverReverse
+        });
         assert_eq!(g.runs_reverse_over_reverse(), forced, "{width} {kernels:?}");
-        g.set_train_step(TrainStep::Tangents);
+        set(gpu, &mut g, |o| o.train_step = TrainStep::Tangents);
         assert!(!g.runs_reverse_over_reverse());
     }
     // Auto kernels (row-blocked on CPU adapters, tiled on GPUs) run the new step by default.
@@ -820,7 +840,7 @@ fn reverse_over_reverse_step_matches_cpu_reference() {
                     &[LayerKernels::Tiled]
                 };
                 with_kernels(gpu, &net, families, |g| {
-                    g.set_train_step(step);
+                    set(gpu, g, |o| o.train_step = step);
                     let ror = step == TrainStep::ReverseOverReverse;
                     assert_eq!(g.runs_reverse_over_reverse(), ror);
                     eprint!("{step:?}: ");
@@ -851,8 +871,14 @@ fn reverse_over_reverse_step_layouts_match_cpu_reference() {
     for gpu_layout in [false, true] {
         for (n, n_surface) in [(45, 19), (4200, 2000)] {
             with_kernels(gpu, &net, &[LayerKernels::Tiled], |g| {
-                g.set_train_step(TrainStep::ReverseOverReverse);
-                g.set_gpu_step_layout(Some(gpu_layout));
+                set(gpu, g, |o| {
+                    o.train_step = TrainStep::ReverseOverReverse;
+                    o.step_layout = Some(if gpu_layout {
+                        StepLayout::Gpu
+                    } else {
+                        StepLayout::Cpu
+                    });
+                });
                 assert_eq!(g.gpu_step_layout(gpu), gpu_layout);
                 eprint!("GPU layout {gpu_layout}: ");
                 gradients_match_with(g, cfg, &net, n, n_surface, 32, &soft_weights())
@@ -891,7 +917,7 @@ fn reverse_over_reverse_gradient_matches_finite_differences() {
     };
     let families = [LayerKernels::Tiled, LayerKernels::RowBlocked];
     with_kernels(gpu, &net, &families, |g| {
-        g.set_train_step(TrainStep::ReverseOverReverse);
+        set(gpu, g, |o| o.train_step = TrainStep::ReverseOverReverse);
         assert!(g.runs_reverse_over_reverse());
         let (_, grads) = g
             .loss_and_gradient(gpu, &pts, &normals, &sides, &weights)
@@ -940,150 +966,17 @@ fn train_sign_accuracy(
     train: SirenTrainConfig,
     seed: u64,
 ) -> f64 {
-    let gpu = gpu();
-    let t0 = std::time::Instant::now();
-    let preset = match std::env::var("SIREN_PRESET").as_deref() {
-        Ok("default") => SirenConfig::default(),
-        _ => SirenConfig::small(),
-    };
-    let net_cfg = SirenConfig {
-        omega0: env_or("SIREN_OMEGA", preset.omega0),
-        ..preset
-    };
-    let mut siren = Siren::new(net_cfg, seed).unwrap();
-    if let Ok(b) = std::env::var("SIREN_OUT_BIAS") {
-        *siren.params_mut().last_mut().unwrap() = b.parse().unwrap();
-    }
-    let mut trainer = SirenTrainer::from_mesh(gpu, &siren, mesh, train.clone()).unwrap();
-    let t_setup = t0.elapsed();
-    let summary = trainer
-        .train(gpu, train.steps, |step, l| {
-            if step % 100 == 0 {
-                eprintln!("{name} step {step}: loss {:.3} {l:?}", l.total());
-            }
-        })
-        .unwrap();
-    let (normalized, _) = mesh.normalized();
-    let truth = sdf_geom::SignedDistance::new(&normalized).unwrap();
-    let pts = sdf_geom::sample::uniform_box(20_000, seed + 7);
-    let vals = trainer.net().eval(gpu, &pts).unwrap();
-    // Wrong signs by the true distance: near the surface (resolution) or far (spurious sheets).
-    let truth_d = truth.signed_distance_batch(&pts);
-    let mut wrong = [0usize; 6];
-    for (&d, v) in truth_d.iter().zip(&vals) {
-        if (*v < 0.0) != (d < 0.0) {
-            let band = if d.abs() < 0.02 {
-                0
-            } else if d.abs() < 0.1 {
-                1
-            } else {
-                2
-            };
-            wrong[band + if d < 0.0 { 3 } else { 0 }] += 1;
-        }
-    }
-    eprintln!(
-        "{name}: wrong signs outside / inside at |d| < 0.02, 0.02-0.1, > 0.1: {:?} / {:?}",
-        &wrong[..3],
-        &wrong[3..]
-    );
-    let acc = 1.0 - wrong.iter().sum::<usize>() as f64 / pts.len() as f64;
-    if let Ok(path) = std::env::var("SIREN_SAVE") {
-        // For `eval`'s F1 on a manual experiment.
-        let file = trainer.model_file(gpu).unwrap();
-        file.save(std::path::Path::new(&path)).unwrap();
-    }
-    eprintln!(
-        "{name}: {} steps in {:.1?} (setup {t_setup:.1?}), final loss {:?}, lr {:e}, sign accuracy {:.4}",
-        summary.steps, summary.elapsed, summary.final_loss, summary.final_lr, acc
-    );
-    acc
+    let siren = Siren::new(SirenConfig::small(), seed).unwrap();
+    fit::fit_and_check_signs(gpu(), name, &siren, mesh, &train, seed, None)
 }
 
-fn env_or<T: std::str::FromStr>(k: &str, d: T) -> T {
-    std::env::var(k)
-        .ok()
-        .and_then(|v| v.parse().ok())
-        .unwrap_or(d)
-}
-
-#[test]
-#[ignore = "manual experiment: SIREN_STEPS, SIREN_LR, SIREN_BATCH, SIREN_EIK, SIREN_SIGN, SIREN_MESH, SIREN_OMEGA, SIREN_SAVE, SIREN_SEED, SIREN_OUT_BIAS, SIREN_PRESET"]
-fn experiment() {
-    let mesh = match std::env::var("SIREN_MESH") {
-        Ok(p) => sdf_geom::load_mesh(p).unwrap().0,
-        Err(_) => icosphere(3),
-    };
-    let batch: usize = env_or("SIREN_BATCH", 5000);
-    let cfg = SirenTrainConfig {
-        steps: env_or("SIREN_STEPS", 200),
-        lr: env_or("SIREN_LR", 1e-4),
-        surface_per_step: batch,
-        box_per_step: batch,
-        dataset_size: env_or("SIREN_DATA", 20_000),
-        weights: LossWeights {
-            eikonal: env_or("SIREN_EIK", 5.0),
-            sign: env_or("SIREN_SIGN", LossWeights::default().sign),
-            ..LossWeights::default()
-        },
-        ..SirenTrainConfig::default()
-    };
-    train_sign_accuracy("experiment", &mesh, cfg, env_or("SIREN_SEED", 1));
-}
-
-#[test]
-#[ignore = "manual profile: SIREN_N, SIREN_TRAIN_STEP (tangents or ror), SIREN_KERNELS (row-blocked or tiled)"]
-fn profile() {
-    let gpu = gpu();
-    let cfg = SirenConfig::small();
-    let net = Siren::new(cfg, 1).unwrap();
-    let mut g = SirenGpu::new(gpu, &net).unwrap();
-    match std::env::var("SIREN_KERNELS").as_deref() {
-        Ok("row-blocked") => g.set_layer_kernels(gpu, LayerKernels::RowBlocked).unwrap(),
-        Ok("tiled") => g.set_layer_kernels(gpu, LayerKernels::Tiled).unwrap(),
-        _ => {}
-    }
-    match std::env::var("SIREN_TRAIN_STEP").as_deref() {
-        Ok("tangents") => g.set_train_step(TrainStep::Tangents),
-        Ok("ror") => g.set_train_step(TrainStep::ReverseOverReverse),
-        _ => {}
-    }
-    eprintln!(
-        "kernels {:?}, reverse over reverse: {}",
-        g.layer_kernels(),
-        g.runs_reverse_over_reverse()
-    );
-    let n: usize = env_or("SIREN_N", 10_000);
-    let pts = sdf_geom::sample::uniform_box(n, 3);
-    let nrm: Vec<Vec3> = pts[..n / 2].iter().map(|p| p.normalize()).collect();
-    for rep in 0..3 {
-        let t = std::time::Instant::now();
-        g.eval(gpu, &pts).unwrap();
-        let a = t.elapsed();
-        let t = std::time::Instant::now();
-        g.eval_with_gradient(gpu, &pts).unwrap();
-        let b = t.elapsed();
-        let t = std::time::Instant::now();
-        g.loss_and_gradient(gpu, &pts, &nrm, &[], &LossWeights::default())
-            .unwrap();
-        let c = t.elapsed();
-        let flop = 2.0 * cfg.forward_macs() as f64 * n as f64;
-        eprintln!(
-            "rep {rep}: eval {a:.2?} ({:.2} GFLOP/s), eval+grad {b:.2?} ({:.2} GFLOP/s), loss+grad {c:.2?}",
-            flop / a.as_secs_f64() / 1e9,
-            4.0 * flop / b.as_secs_f64() / 1e9
-        );
-    }
-}
-
-/// Settings of the end-to-end runs: `steps` (or `SIREN_E2E_STEPS`) steps of
-/// `SIREN_E2E_BATCH` surface + as many box points (default 1000), learning rate 1e-4.
+/// Settings of the end-to-end runs: `steps` steps of 1000 surface + 1000 box points, learning
+/// rate 1e-4.
 fn e2e_config(steps: usize) -> SirenTrainConfig {
-    let batch = env_or("SIREN_E2E_BATCH", 1000);
     SirenTrainConfig {
-        steps: env_or("SIREN_E2E_STEPS", steps),
-        surface_per_step: batch,
-        box_per_step: batch,
+        steps,
+        surface_per_step: 1000,
+        box_per_step: 1000,
         dataset_size: 20_000,
         plateau_patience: 1000,
         ..SirenTrainConfig::default()
@@ -1273,13 +1166,17 @@ fn training_steps_reduce_the_loss_and_the_model_file_round_trips() {
 }
 
 /// The training step on the tiled family (forced on lavapipe; Auto picks it on GPUs): the
-/// passes are rebuilt by `set_layer_kernels`, the loss falls and stays finite.
+/// passes are rebuilt by `set_net_options`, the loss falls and stays finite.
 #[test]
 fn tiled_training_steps_reduce_the_loss() {
     let gpu = gpu();
     let siren = Siren::new(SirenConfig::small(), 5).unwrap();
     let mut trainer = SirenTrainer::from_mesh(gpu, &siren, &icosphere(2), short_run(200)).unwrap();
-    trainer.set_layer_kernels(gpu, LayerKernels::Tiled).unwrap();
+    let tiled = SirenGpuOptions {
+        kernels: LayerKernels::Tiled,
+        ..SirenGpuOptions::default()
+    };
+    trainer.set_net_options(gpu, &tiled).unwrap();
     assert!(trainer.net().runs_tiled());
     assert_eq!(trainer.net().row_blocked_layers(), 0);
     losses_fall_over_40_steps(gpu, &mut trainer);
@@ -1300,10 +1197,12 @@ fn reverse_over_reverse_training_steps_reduce_the_loss() {
     for kernels in [LayerKernels::Tiled, LayerKernels::RowBlocked] {
         let mut trainer =
             SirenTrainer::from_mesh(gpu, &siren, &icosphere(2), short_run(201)).unwrap();
-        trainer.set_layer_kernels(gpu, kernels).unwrap();
-        trainer
-            .set_train_step(gpu, TrainStep::ReverseOverReverse)
-            .unwrap();
+        let options = SirenGpuOptions {
+            kernels,
+            train_step: TrainStep::ReverseOverReverse,
+            ..SirenGpuOptions::default()
+        };
+        trainer.set_net_options(gpu, &options).unwrap();
         assert!(trainer.net().runs_reverse_over_reverse());
         let losses = losses_fall_over_40_steps(gpu, &mut trainer);
         eprintln!("{kernels:?}: losses {losses:?}");
@@ -1357,8 +1256,12 @@ fn profiled_steps_time_every_launch_and_train_alike() {
     for kernels in [LayerKernels::Auto, LayerKernels::Tiled] {
         let mut plain = SirenTrainer::from_mesh(gpu, &init, &mesh, train.clone()).unwrap();
         let mut profiled = SirenTrainer::from_mesh(gpu, &init, &mesh, train.clone()).unwrap();
-        plain.set_layer_kernels(gpu, kernels).unwrap();
-        profiled.set_layer_kernels(gpu, kernels).unwrap();
+        let options = SirenGpuOptions {
+            kernels,
+            ..SirenGpuOptions::default()
+        };
+        plain.set_net_options(gpu, &options).unwrap();
+        profiled.set_net_options(gpu, &options).unwrap();
         let mut times = Vec::new();
         for _ in 0..2 {
             plain.step(gpu).unwrap();

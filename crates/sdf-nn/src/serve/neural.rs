@@ -26,7 +26,7 @@ use crate::serve::query::{
     QueryBuffers, QueryBuffersDescriptor, QueryOutputs, QuerySpace, QueryTicket, QueryTransfer,
 };
 use crate::serve::wgsl::{self, EmbedError, SdfBindGroup};
-use crate::siren::{self, LayerKernels, Siren, SirenGpu};
+use crate::siren::{self, LayerKernels, Siren, SirenGpu, SirenGpuOptions};
 
 /// Most points the host-side methods send in one submission; larger inputs are split.
 const HOST_CHUNK: usize = 1 << 18;
@@ -177,7 +177,7 @@ impl NeuralSdf {
 
     /// With [`LayerKernels::Auto`], SIREN queries of values of at least `points` points run on
     /// f16 cooperative matrices where the device has them, `None` never (see
-    /// [`SirenGpu::set_coop_min_points`]). The default is
+    /// [`crate::siren::SirenGpuOptions::coop_min_points`]). The default is
     /// [`crate::siren::auto_coop_min_points`]: [`crate::siren::COOP_AUTO_MIN_POINTS`] on GPUs
     /// for networks at least [`crate::siren::COOP_AUTO_MIN_WIDTH`] wide. [`QueryBuffers`] made
     /// before the change are refused after it; make new ones. An error for NGLOD models.
@@ -496,13 +496,12 @@ impl NeuralSdf {
         if stale {
             let network = match &self.network {
                 Network::Siren(s) => {
-                    let mut net = SirenGpu::new_frozen(gpu, s)?;
-                    if self.siren_kernels != LayerKernels::Auto {
-                        net.set_layer_kernels(gpu, self.siren_kernels)?;
-                    }
-                    if let Some(points) = self.siren_coop_min_points {
-                        net.set_coop_min_points(gpu, points)?;
-                    }
+                    let options = SirenGpuOptions {
+                        kernels: self.siren_kernels,
+                        ..SirenGpuOptions::default()
+                    };
+                    let coop = self.siren_coop_min_points;
+                    let net = SirenGpu::new_frozen(gpu, s, &options, coop)?;
                     GpuNetwork::Siren(Box::new(net))
                 }
                 Network::Nglod(m) => GpuNetwork::Nglod(Box::new(NglodGpu::new_frozen(gpu, m)?)),

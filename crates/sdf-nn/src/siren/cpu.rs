@@ -14,7 +14,7 @@
 //! ```
 
 use super::SirenConfig;
-use super::train::LossWeights;
+use super::loss::LossWeights;
 
 /// Guards norms in the cosine and eikonal terms against division by zero.
 pub const NORM_EPS: f64 = 1e-12;

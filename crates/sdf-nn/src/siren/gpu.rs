@@ -1,6 +1,6 @@
-//! Host code of the SIREN kernels (`shaders/siren_gemm.wgsl`, `siren_dense.wgsl`,
-//! `siren_head.wgsl`, `siren_train.wgsl`): inference, inference with the input gradient, and
-//! the forward + double backward of a training step.
+//! Host code of the SIREN kernels: [`SirenGpu`], a network's parameters and gradients on the
+//! GPU with the kernels that run it, for inference, inference with the input gradient, and the
+//! loss and gradient of a training step.
 //!
 //! Activations are row-major `[rows, width]` matrices. With tangents, a point owns four
 //! consecutive rows: the value, then ∂/∂x, ∂/∂y, ∂/∂z. A hidden layer runs (see
@@ -12,20 +12,27 @@
 //!
 //! A training step either carries the tangents ([`TrainStep::Tangents`], the four rows per
 //! point above) or runs reverse over reverse ([`TrainStep::ReverseOverReverse`], one row per
-//! point; the math and layout are in [`super::ror`]); [`SirenGpu::set_train_step`] chooses.
+//! point; the math and layout are in [`super::step::reverse_over_reverse`]);
+//! [`SirenGpuOptions::train_step`] chooses. The launches are built by `siren/eval.rs` and
+//! [`super::step`] from a borrowed view of this network (`siren/net.rs`); this module picks the
+//! kernels.
 
 use glam::Vec3;
 
+use super::eval::{EvalSlots, EvalWorkspace, QueryLaunch, stream_rows};
 use super::kernels::coop::CoopKernels;
-use super::kernels::products::{GemmUniforms, gemm_forward, splits_for};
-use super::kernels::row_blocked::{Epilogue, RowBlockedPlan};
-use super::kernels::tiled::{TiledEpilogue, TiledKernels};
-use super::kernels::{Launch, LayerKernels, OneDispatch, TiledBlock, WG};
-use super::ror::{self, TrainStep};
-use super::tangents;
+use super::kernels::gemm::{GEMM_CPU_MAX_FAN_IN, GemmKernels, gemm_trusted_wide};
+use super::kernels::head::HeadKernels;
+use super::kernels::row_blocked::RowBlockedPlan;
+use super::kernels::tiled::TiledKernels;
+use super::kernels::{Launch, LayerKernels, OneDispatch};
+use super::loss::{LossTerms, LossWeights};
+use super::net::NetView;
+use super::options::{DEFAULT_FUSED_MAX_POINTS, SirenGpuOptions, auto_coop_min_points};
+use super::step::passes::TrainPasses;
+use super::step::{StepNet, TrainStep};
 use super::{LayerLayout, Siren, SirenConfig, SirenConfigError};
-use crate::gpu::{GpuContext, GpuError, GpuTimer, entry};
-use crate::shaders;
+use crate::gpu::{GpuContext, GpuError, GpuTimer, StepLayout};
 
 /// Errors of the SIREN GPU code.
 #[derive(Debug, thiserror::Error)]
@@ -48,94 +55,6 @@ pub enum SirenGpuError {
     },
 }
 
-/// The widest hidden layer the GEMM (`siren_gemm.wgsl`) evaluates correctly on Debian 12's
-/// lavapipe (Mesa 22.3, LLVM 15): from a fan-in of 500 on (vec4 loads; 497–499 take scalar loads
-/// and pass) its results are wrong by 1e-2 and more there, with a threshold that moves with its K
-/// chunk (KC = 128 moved it between 1500 and 2000, KC = 64 between 1024 and 1500). The same
-/// shader is right at every width to 2048 on Mesa 26.1 (LLVM 19), so it is the older driver's
-/// compiler; the tiled kernels are right on both. See [`gemm_trusted_wide`].
-pub(crate) const GEMM_CPU_MAX_FAN_IN: usize = 496;
-
-/// Whether the GEMM may run layers wider than [`GEMM_CPU_MAX_FAN_IN`] on `gpu`: on a GPU, and on
-/// llvmpipe built with LLVM 19 or newer (measured right); not on llvmpipe with an older or
-/// unknown LLVM (LLVM 15 measured wrong, 16–18 not measured).
-fn gemm_trusted_wide(gpu: &GpuContext) -> bool {
-    if !gpu.is_cpu() {
-        return true;
-    }
-    let info = &gpu.adapter_info().driver_info;
-    let llvm_major = info
-        .split("LLVM ")
-        .nth(1)
-        .and_then(|v| v.split('.').next())
-        .and_then(|m| m.parse::<u32>().ok());
-    llvm_major.is_some_and(|m| m >= 19)
-}
-
-#[repr(C)]
-#[derive(Clone, Copy, Debug, Default, bytemuck::Pod, bytemuck::Zeroable)]
-struct ElementwiseUniforms {
-    n_points: u32,
-    width: u32,
-    bias_off: u32,
-    _pad0: u32,
-    omega: f32,
-    _pad1: [f32; 3],
-}
-
-#[repr(C)]
-#[derive(Clone, Copy, Debug, Default, bytemuck::Pod, bytemuck::Zeroable)]
-pub(crate) struct HeadUniforms {
-    pub(crate) mode: u32,
-    pub(crate) n_points: u32,
-    pub(crate) n_surface: u32,
-    pub(crate) width: u32,
-    pub(crate) w_off: u32,
-    pub(crate) b_off: u32,
-    pub(crate) _pad0: u32,
-    pub(crate) _pad1: u32,
-    pub(crate) w_surface: f32,
-    pub(crate) w_off_surface: f32,
-    pub(crate) w_normal: f32,
-    pub(crate) w_eikonal: f32,
-    pub(crate) alpha: f32,
-    pub(crate) inv_n: f32,
-    pub(crate) omega: f32,
-    pub(crate) w_sign: f32,
-}
-
-#[repr(C)]
-#[derive(Clone, Copy, Debug, Default, bytemuck::Pod, bytemuck::Zeroable)]
-pub(crate) struct ReduceUniforms {
-    pub(crate) m: u32,
-    pub(crate) n: u32,
-    pub(crate) splits: u32,
-    pub(crate) w_off: u32,
-    pub(crate) b_off: u32,
-    pub(crate) pbias_off: u32,
-    pub(crate) _pad0: u32,
-    pub(crate) _pad1: u32,
-}
-
-/// Smallest batch of values that [`LayerKernels::Auto`] runs on f16 cooperative matrices in a
-/// served network. On an H100 (SIREN `default`, points and values on the GPU, interleaved
-/// rounds) the cooperative-matrix kernel took 78.5 µs against the f32 fused kernel's 75.4 µs at
-/// 3000 points, and 77.7 against 167.4 µs at 8192 (440 against 680 µs at 50 000): its time is
-/// flat up to 8192 points while the f32 kernel's grows, so they cross near 3200.
-pub const COOP_AUTO_MIN_POINTS: u32 = 4096;
-
-/// Narrowest hidden layers that [`LayerKernels::Auto`] runs on f16 cooperative matrices. On an
-/// H100 the `small` preset (64 wide) took 424 µs on them at 50 000 points against 224 µs in f32
-/// and the `default` (256 wide) 686 against 1016 µs; 128 is not measured, so it stays in f32.
-pub const COOP_AUTO_MIN_WIDTH: usize = 256;
-
-/// The default of [`SirenGpu::set_coop_min_points`] for a served network ([`crate::NeuralSdf`])
-/// of `config` on an adapter: [`COOP_AUTO_MIN_POINTS`] on GPUs for networks at least
-/// [`COOP_AUTO_MIN_WIDTH`] wide, else none (networks that train keep none).
-pub fn auto_coop_min_points(cpu_adapter: bool, config: &SirenConfig) -> Option<u32> {
-    (!cpu_adapter && config.width >= COOP_AUTO_MIN_WIDTH).then_some(COOP_AUTO_MIN_POINTS)
-}
-
 /// The kernel families a [`LayerKernels`] choice sets up: row-blocked, tiled, cooperative-matrix.
 type Families = (
     Option<RowBlockedPlan>,
@@ -143,157 +62,52 @@ type Families = (
     Option<CoopKernels>,
 );
 
-/// Default of [`SirenGpu::set_fused_max_points`] on CPU adapters: the latency-bound batches
-/// (the 3000 points). GPUs run every inference batch on the fused kernel: on an H100
-/// it took 15–17 % less time than the per-layer kernels at 50 000 points (`default` preset,
-/// two alternating runs; BENCHMARKS "NVIDIA H100"), and at 3000 it is the only way to fill
-/// the GPU.
-pub const DEFAULT_FUSED_MAX_POINTS: u32 = 8192;
-
 /// Whether [`TrainStep::Auto`] picks the reverse-over-reverse step on the row-blocked kernels:
 /// on lavapipe it measured 529–565 ms per `small` step of 10⁴ points against 852–894 ms for
 /// the tangents (BENCHMARKS.md, "The reverse-over-reverse training step").
 const ROW_BLOCKED_AUTO_ROR: bool = true;
 
-/// Rows per GEMM workgroup (see `siren_gemm.wgsl`).
-const GEMM_ROWS: u32 = 64;
-
-/// A network's one-dispatch kernel bound to a caller's query buffers
-/// ([`SirenGpu::query_launch`]): a query of any count up to the buffers' capacity writes the
-/// count into the uniforms (through the queue, when it changes) instead of building a new
-/// launch.
-#[derive(Debug)]
-pub(crate) struct QueryLaunch {
-    kernel: BoundDispatch,
-    /// With [`LayerKernels::Auto`] and [`SirenGpu::set_coop_min_points`]: that many points,
-    /// and the cooperative-matrix kernel that batches of values of at least as many run on.
-    large: Option<(u32, BoundDispatch)>,
-    /// Rows per point: 1, or 4 with normals.
-    rows_per_point: u32,
-}
-
-/// A one-dispatch kernel and the row count its uniforms hold.
-#[derive(Debug)]
-struct BoundDispatch {
-    kernel: OneDispatch,
-    written: u32,
-}
-
-impl QueryLaunch {
-    /// Records the query of `n` points into `pass`; a new count takes effect at the next
-    /// submission, so record it at most once per submission.
-    pub(crate) fn record(&mut self, gpu: &GpuContext, pass: &mut wgpu::ComputePass<'_>, n: u32) {
-        let rows = n * self.rows_per_point;
-        let bound = match self.large.as_mut() {
-            Some((min, large)) if n >= *min => large,
-            _ => &mut self.kernel,
-        };
-        if rows != bound.written {
-            gpu.queue()
-                .write_buffer(&bound.kernel.uniforms, 0, bytemuck::bytes_of(&rows));
-            bound.written = rows;
-        }
-        let (x, y) = gpu.dispatch_size(rows.div_ceil(bound.kernel.group_rows).max(1));
-        bound.kernel.launch.record_groups(pass, (x, y, 1));
-    }
-}
-
-fn gemm_groups(gpu: &GpuContext, u: &GemmUniforms) -> (u32, u32, u32) {
-    let z = if u.mode == 2 { splits_for(u.k) } else { 1 };
-    let (x, y) = gpu.dispatch_size(u.m.div_ceil(GEMM_ROWS));
-    (x, y, z)
-}
-
-/// The compiled pipelines SIREN uses.
-#[derive(Debug, Clone)]
-pub(crate) struct Pipelines {
-    gemm: wgpu::ComputePipeline,
-    sine_forward: wgpu::ComputePipeline,
-    sine_backward: wgpu::ComputePipeline,
-    pub(crate) head_forward: wgpu::ComputePipeline,
-    /// `head_forward` without the loss reduction, for inference.
-    head_eval: wgpu::ComputePipeline,
-    pub(crate) head_backward: wgpu::ComputePipeline,
-}
-
-impl Pipelines {
-    fn new(gpu: &GpuContext) -> Result<Self, GpuError> {
-        Ok(Pipelines {
-            gemm: gpu.pipeline(&shaders::SIREN_GEMM, "gemm", &[])?,
-            sine_forward: gpu.pipeline(&shaders::SIREN_GEMM, "sine_forward", &[])?,
-            sine_backward: gpu.pipeline(&shaders::SIREN_GEMM, "sine_backward", &[])?,
-            head_forward: gpu.pipeline(&shaders::SIREN_HEAD, "head_forward", &[])?,
-            head_eval: gpu.pipeline(&shaders::SIREN_HEAD, "head_eval", &[])?,
-            head_backward: gpu.pipeline(&shaders::SIREN_HEAD, "head_backward", &[])?,
-        })
-    }
-}
-
-/// Buffers of the forward pass for a fixed capacity of points, and the launches for the
-/// batch size they were last built for.
-#[derive(Debug)]
-struct EvalWorkspace {
-    capacity: u32,
-    tangents: bool,
-    input: wgpu::Buffer,
-    act: [wgpu::Buffer; 2],
-    /// Pre-activations (tangent mode only).
-    z: wgpu::Buffer,
-    values: wgpu::Buffer,
-    launches: Vec<Launch>,
-    /// The launches were built for this many points.
-    built_for: Option<u32>,
-}
-
 /// A SIREN's parameters (and gradients) on the GPU, with its kernels.
 #[derive(Debug)]
 pub struct SirenGpu {
-    pub(crate) config: SirenConfig,
-    pub(crate) layers: Vec<LayerLayout>,
-    pub(crate) params: wgpu::Buffer,
-    pub(crate) grads: wgpu::Buffer,
-    pub(crate) pipelines: Pipelines,
-    eval: Option<EvalWorkspace>,
-    eval_grad: Option<EvalWorkspace>,
-    max_chunk: u32,
-    kernels: LayerKernels,
+    config: SirenConfig,
+    layers: Vec<LayerLayout>,
+    params: wgpu::Buffer,
+    grads: wgpu::Buffer,
+    /// The strided GEMM and sine kernels (every product the other families leave).
+    gemm: GemmKernels,
+    /// The output layer's kernels.
+    head: HeadKernels,
+    /// The inference workspaces, with the launches last built on them.
+    evals: EvalSlots,
     /// The hidden layers on the row-blocked kernels, if any.
     dense: Option<RowBlockedPlan>,
     /// The tiled kernels, when they run every product.
-    pub(crate) tiled: Option<TiledKernels>,
+    tiled: Option<TiledKernels>,
     /// The cooperative-matrix kernels, when they run inference of values.
     coop: Option<CoopKernels>,
-    /// Largest inference batch (per launch) for the fused all-layer kernel of the tiled family.
-    fused_max_points: u32,
-    /// Register blocks per invocation the fused kernel may use ([`SirenGpu::set_fused_row_blocks`]).
-    fused_row_blocks: u32,
-    /// [`SirenGpu::set_gpu_step_layout`] (`None`: by adapter).
-    gpu_step_layout: Option<bool>,
-    /// The tiled GEMM's register blocks.
-    tiled_block: TiledBlock,
     /// The parameters change only through [`SirenGpu::upload`] (a served model, see
     /// [`SirenGpu::new_frozen`]): the row-blocked kernels' packed weights are then copied when
     /// they change, not at the start of every evaluation.
     frozen: bool,
-    /// [`SirenGpu::set_coop_min_points`].
-    coop_min_points: Option<u32>,
-    /// How training steps differentiate through ∇ₓΦ.
-    train_step: TrainStep,
+    /// The knobs, clamped ([`SirenGpuOptions::clamped`]).
+    options: SirenGpuOptions,
 }
 
 impl SirenGpu {
     /// Uploads `siren`'s parameters and compiles (or fetches from the context's cache) the
-    /// kernels.
+    /// kernels, with the default [`SirenGpuOptions`].
     pub fn new(gpu: &GpuContext, siren: &Siren) -> Result<Self, SirenGpuError> {
-        Self::with_coop_min_points(gpu, siren, None)
+        Self::with_options(gpu, siren, &SirenGpuOptions::default())
     }
 
-    /// [`SirenGpu::new`] with [`SirenGpu::set_coop_min_points`] set to `coop_min_points`.
-    fn with_coop_min_points(
+    /// [`SirenGpu::new`] with `options`.
+    pub fn with_options(
         gpu: &GpuContext,
         siren: &Siren,
-        coop_min_points: Option<u32>,
+        options: &SirenGpuOptions,
     ) -> Result<Self, SirenGpuError> {
+        let options = options.clamped();
         let config = *siren.config();
         config.validate()?;
         // Padded to 16 bytes: the GEMM also reads it as vec4.
@@ -302,68 +116,56 @@ impl SirenGpu {
         let params = gpu.storage_from_slice("siren params", &padded)?;
         let grads = gpu.storage_zeroed("siren grads", padded.len() as u64 * 4)?;
         let layers = config.layers();
-        let kernels = LayerKernels::default();
-        let tiled_block = TiledBlock::default();
-        let (dense, tiled, coop) = Self::families(
-            gpu,
-            kernels,
-            tiled_block,
-            &config,
-            &layers,
-            &params,
-            coop_min_points.is_some(),
-        )?;
+        let (dense, tiled, coop) = Self::families(gpu, &options, &config, &layers, &params)?;
         Ok(SirenGpu {
             config,
             layers,
             params,
             grads,
-            pipelines: Pipelines::new(gpu)?,
-            eval: None,
-            eval_grad: None,
-            max_chunk: 65536,
-            kernels,
+            gemm: GemmKernels::new(gpu)?,
+            head: HeadKernels::new(gpu)?,
+            evals: EvalSlots::default(),
             dense,
             tiled,
             coop,
-            fused_max_points: if gpu.is_cpu() {
-                DEFAULT_FUSED_MAX_POINTS
-            } else {
-                u32::MAX
-            },
-            fused_row_blocks: 1,
-            gpu_step_layout: None,
-            tiled_block,
             frozen: false,
-            coop_min_points,
-            train_step: TrainStep::default(),
+            options,
         })
     }
 
-    /// [`SirenGpu::new`] for a network whose parameters nobody writes on the GPU (no trainer,
-    /// no writes through [`SirenGpu::params_buffer`]): [`crate::NeuralSdf`]'s. Its evaluations
-    /// skip [`SirenGpu::record_pack`]; [`SirenGpu::upload`] and
-    /// [`SirenGpu::set_layer_kernels`] pack.
-    pub(crate) fn new_frozen(gpu: &GpuContext, siren: &Siren) -> Result<Self, SirenGpuError> {
-        // What `Auto` runs a served network's large batches on.
-        let coop_min_points = auto_coop_min_points(gpu.is_cpu(), siren.config());
-        let mut net = Self::with_coop_min_points(gpu, siren, coop_min_points)?;
+    /// [`SirenGpu::with_options`] for a network whose parameters nobody writes on the GPU (no
+    /// trainer, no writes through [`SirenGpu::params_buffer`]): [`crate::NeuralSdf`]'s. Its
+    /// evaluations skip [`SirenGpu::record_pack`]; [`SirenGpu::upload`] and
+    /// [`SirenGpu::set_options`] pack. `coop_min_points`: `None` takes a served network's
+    /// default, [`auto_coop_min_points`], over `options`' own.
+    pub(crate) fn new_frozen(
+        gpu: &GpuContext,
+        siren: &Siren,
+        options: &SirenGpuOptions,
+        coop_min_points: Option<Option<u32>>,
+    ) -> Result<Self, SirenGpuError> {
+        let options = SirenGpuOptions {
+            // What `Auto` runs a served network's large batches on.
+            coop_min_points: coop_min_points
+                .unwrap_or_else(|| auto_coop_min_points(gpu.is_cpu(), siren.config())),
+            ..*options
+        };
+        let mut net = Self::with_options(gpu, siren, &options)?;
         net.frozen = true;
         net.pack_now(gpu);
         Ok(net)
     }
 
-    /// The row-blocked, tiled and cooperative-matrix kernels that `kernels` asks for on
+    /// The row-blocked, tiled and cooperative-matrix kernels that `options.kernels` asks for on
     /// `gpu`, each where it applies.
     fn families(
         gpu: &GpuContext,
-        kernels: LayerKernels,
-        tiled_block: TiledBlock,
+        options: &SirenGpuOptions,
         config: &SirenConfig,
         layers: &[LayerLayout],
         params: &wgpu::Buffer,
-        auto_coop: bool,
     ) -> Result<Families, SirenGpuError> {
+        let kernels = options.kernels;
         let mut dense = if kernels.row_blocked(gpu) {
             RowBlockedPlan::new(gpu, layers)?
         } else {
@@ -379,7 +181,7 @@ impl SirenGpu {
             dense = None;
         }
         let tiled = if kernels.tiled(gpu) || auto_tiled {
-            TiledKernels::new(gpu, config, params, tiled_block)?
+            TiledKernels::new(gpu, config, params, options.tiled_block)?
         } else {
             None
         };
@@ -398,12 +200,12 @@ impl SirenGpu {
                 ),
             });
         }
-        let coop =
-            if kernels == LayerKernels::CoopF16 || (kernels == LayerKernels::Auto && auto_coop) {
-                CoopKernels::new(gpu, config, params)?
-            } else {
-                None
-            };
+        let auto_coop = kernels == LayerKernels::Auto && options.coop_min_points.is_some();
+        let coop = if kernels == LayerKernels::CoopF16 || auto_coop {
+            CoopKernels::new(gpu, config, params)?
+        } else {
+            None
+        };
         Ok((dense, tiled, coop))
     }
 
@@ -437,74 +239,89 @@ impl SirenGpu {
         }
     }
 
-    /// Chooses how training steps (and [`SirenGpu::loss_and_gradient`]) differentiate the
-    /// loss's ∇ₓΦ terms (default [`TrainStep::Auto`]). A [`super::SirenTrainer`] must rebuild
-    /// its passes: use [`super::SirenTrainer::set_train_step`].
-    pub fn set_train_step(&mut self, step: TrainStep) {
-        self.train_step = step;
+    /// The knobs this network runs with (clamped into their ranges).
+    pub fn options(&self) -> &SirenGpuOptions {
+        &self.options
     }
 
-    /// The chosen training step (possibly [`TrainStep::Auto`]).
-    pub fn train_step(&self) -> TrainStep {
-        self.train_step
+    /// Changes the knobs of this live network: the kernels are set up again where `options`
+    /// changes which run, and inference rebuilds its launches. A [`super::SirenTrainer`] must
+    /// rebuild its passes: use [`super::SirenTrainer::set_net_options`]. On an error the
+    /// network keeps its options.
+    pub fn set_options(
+        &mut self,
+        gpu: &GpuContext,
+        options: &SirenGpuOptions,
+    ) -> Result<(), SirenGpuError> {
+        let options = options.clamped();
+        let old = self.options;
+        // The training step's knobs change neither the kernels nor inference.
+        let eval_knobs = |o: &SirenGpuOptions| SirenGpuOptions {
+            train_step: TrainStep::Auto,
+            step_layout: None,
+            ..*o
+        };
+        let families = (
+            options.kernels,
+            options.tiled_block,
+            options.coop_min_points,
+        ) != (old.kernels, old.tiled_block, old.coop_min_points);
+        if families {
+            (self.dense, self.tiled, self.coop) =
+                Self::families(gpu, &options, &self.config, &self.layers, &self.params)?;
+        }
+        self.options = options;
+        if eval_knobs(&options) != eval_knobs(&old) {
+            self.evals.clear();
+        }
+        if families && self.frozen {
+            self.pack_now(gpu);
+        }
+        Ok(())
     }
 
     /// Whether training steps run reverse over reverse with the current kernels and
     /// [`TrainStep`] (otherwise they carry tangents).
     pub fn runs_reverse_over_reverse(&self) -> bool {
         let tiled = self.tiled.is_some();
-        let dense = self.dense_ror_plan().is_some();
-        match self.train_step {
+        let dense = self.view().dense_ror_plan().is_some();
+        match self.options.train_step {
             TrainStep::Tangents => false,
             TrainStep::ReverseOverReverse => tiled || dense,
             TrainStep::Auto => tiled || (ROW_BLOCKED_AUTO_ROR && dense),
         }
     }
 
-    /// The tiled kernels, when they run every product.
-    pub(crate) fn tiled_kernels(&self) -> Option<&TiledKernels> {
-        self.tiled.as_ref()
+    /// Whether the reverse-over-reverse step runs its GPU layout on `gpu`
+    /// ([`SirenGpuOptions::step_layout`]).
+    pub fn gpu_step_layout(&self, gpu: &GpuContext) -> bool {
+        self.options
+            .step_layout
+            .or(gpu.options().step_layout)
+            .map_or(!gpu.is_cpu(), |l| l == StepLayout::Gpu)
     }
 
-    /// The row-blocked kernels, when they cover every hidden layer (what the
-    /// reverse-over-reverse step needs of them).
-    pub(crate) fn dense_ror_plan(&self) -> Option<&RowBlockedPlan> {
-        let covers_all = |d: &RowBlockedPlan| (0..self.config.hidden_layers).all(|l| d.covers(l));
-        self.dense.as_ref().filter(|d| covers_all(d))
-    }
-
-    /// The layers' parameter layout.
-    pub(crate) fn layer_layouts(&self) -> &[LayerLayout] {
-        &self.layers
-    }
-
-    /// Chooses the kernels of the hidden layers (default [`LayerKernels::Auto`]).
-    pub fn set_layer_kernels(
-        &mut self,
-        gpu: &GpuContext,
-        kernels: LayerKernels,
-    ) -> Result<(), SirenGpuError> {
-        (self.dense, self.tiled, self.coop) = Self::families(
-            gpu,
-            kernels,
-            self.tiled_block,
-            &self.config,
-            &self.layers,
-            &self.params,
-            self.coop_min_points.is_some(),
-        )?;
-        self.kernels = kernels;
-        self.eval = None;
-        self.eval_grad = None;
-        if self.frozen {
-            self.pack_now(gpu);
+    /// The network as the launch builders see it.
+    pub(crate) fn view(&self) -> NetView<'_> {
+        NetView {
+            config: self.config,
+            layers: &self.layers,
+            params: &self.params,
+            grads: &self.grads,
+            gemm: &self.gemm,
+            head: &self.head,
+            dense: self.dense.as_ref(),
+            tiled: self.tiled.as_ref(),
         }
-        Ok(())
     }
 
-    /// The kernels of the hidden layers.
-    pub fn layer_kernels(&self) -> LayerKernels {
-        self.kernels
+    /// The network as the training step's builders see it on `gpu`.
+    pub(crate) fn step_net(&self, gpu: &GpuContext) -> StepNet<'_> {
+        StepNet {
+            net: self.view(),
+            reverse_over_reverse: self.runs_reverse_over_reverse(),
+            gpu_layout: self.gpu_step_layout(gpu),
+        }
     }
 
     /// How many hidden layers run on the row-blocked kernels (0 with the GEMM).
@@ -514,23 +331,6 @@ impl SirenGpu {
         })
     }
 
-    /// Chooses the tiled GEMM's register blocks (default [`TiledBlock::Auto`]; they matter
-    /// only where the tiled kernels run, see [`SirenGpu::runs_tiled`]). Results agree to f32
-    /// rounding whichever block runs.
-    pub fn set_tiled_block(
-        &mut self,
-        gpu: &GpuContext,
-        block: TiledBlock,
-    ) -> Result<(), SirenGpuError> {
-        self.tiled_block = block;
-        self.set_layer_kernels(gpu, self.kernels)
-    }
-
-    /// The tiled GEMM's register blocks.
-    pub fn tiled_block(&self) -> TiledBlock {
-        self.tiled_block
-    }
-
     /// Whether the tiled kernels run every product (they need 8 KiB of workgroup memory with
     /// 4 × 4 blocks, 16 KiB with 8 × 8, and
     /// 256 invocations per workgroup; without them the GEMM runs instead).
@@ -538,103 +338,41 @@ impl SirenGpu {
         self.tiled.is_some()
     }
 
-    /// Inference launches of at most `points` points run on the tiled family's fused
-    /// all-layer kernel (default: every batch on GPUs, [`DEFAULT_FUSED_MAX_POINTS`] on CPU
-    /// adapters; 0 disables it), larger ones on
-    /// its per-layer kernels. Only with [`LayerKernels::Tiled`] and a width the fused kernel
-    /// fits (a multiple of 4, at most 1024).
-    pub fn set_fused_max_points(&mut self, points: u32) {
-        self.fused_max_points = points;
-        self.eval = None;
-        self.eval_grad = None;
-    }
-
-    /// Lays out the reverse-over-reverse step's per-point and reduction kernels for a GPU
-    /// (`Some(true)`), for a CPU adapter (`Some(false)`), or by the adapter (`None`, the
-    /// default). The GPU layout gives the per-point kernel (`ror_head`) 4 invocations per point,
-    /// so that a subgroup's loads read 4 consecutive floats of each point's rows (one float
-    /// from each of 32 rows apart took 63 µs for 10⁴ points on an H100), and sums the split
-    /// partials of the layers with few outputs (the output and first layers) with a workgroup
-    /// per output. Lavapipe measured both slower (the head 24.6 against 18.4 ms for the
-    /// `small` preset's 10⁴ points, the two reductions 6.2 against 0.4 ms). Results agree to
-    /// f32 rounding. A [`super::SirenTrainer`] must rebuild its passes: use
-    /// [`super::SirenTrainer::set_train_step`]. With `None`, [`crate::GpuOptions::step_layout`]
-    /// (`HWSDF_STEP_LAYOUT=gpu` or `cpu`) overrides the adapter's choice (to compare the two on
-    /// one GPU, e.g. in a whole fit by `train`).
-    pub fn set_gpu_step_layout(&mut self, gpu_layout: Option<bool>) {
-        self.gpu_step_layout = gpu_layout;
-    }
-
-    /// Whether the reverse-over-reverse step runs its GPU layout on `gpu`
-    /// ([`SirenGpu::set_gpu_step_layout`]).
-    pub fn gpu_step_layout(&self, gpu: &GpuContext) -> bool {
-        self.gpu_step_layout
-            .or_else(|| {
-                gpu.options()
-                    .step_layout
-                    .map(|l| l == crate::gpu::StepLayout::Gpu)
-            })
-            .unwrap_or(!gpu.is_cpu())
-    }
-
-    /// Register blocks of four rows per invocation of the fused kernel, 1 to 3 (default 1):
-    /// more load each weight once for more rows, and fill fewer workgroups. A full block takes
-    /// 16 KiB of workgroup memory at widths of 64 and more; where the device has less, the
-    /// blocks get fewer rows, and only where not even 4 rows fit are there fewer blocks
-    /// ([`SirenGpu::fused_row_blocks`] says how many run).
-    pub fn set_fused_row_blocks(&mut self, blocks: u32) {
-        self.fused_row_blocks = blocks.clamp(1, 3);
-        self.eval = None;
-        self.eval_grad = None;
-    }
-
     /// The register blocks per invocation the fused kernel runs with on `gpu` (`None` where the
-    /// network does not fit it).
+    /// network does not fit it; see [`SirenGpuOptions::fused_row_blocks`]).
     pub fn fused_row_blocks(&self, gpu: &GpuContext) -> Option<u32> {
-        TiledKernels::fused_layout(gpu, &self.config, self.fused_row_blocks).map(|l| l.row_blocks)
+        TiledKernels::fused_layout(gpu, &self.config, self.options.fused_row_blocks)
+            .map(|l| l.row_blocks)
     }
 
     /// The side of the cooperative-matrix tiles that run inference of values, if they are set
     /// up: with [`LayerKernels::CoopF16`] where the device and the network allow them (every
-    /// batch of values), and with [`LayerKernels::Auto`] where [`SirenGpu::set_coop_min_points`]
-    /// set a batch size (a served network's default, [`auto_coop_min_points`]: batches of values
-    /// of at least [`COOP_AUTO_MIN_POINTS`] on GPUs).
+    /// batch of values), and with [`LayerKernels::Auto`] where
+    /// [`SirenGpuOptions::coop_min_points`] sets a batch size (a served network's default,
+    /// [`auto_coop_min_points`]: batches of values of at least
+    /// [`super::COOP_AUTO_MIN_POINTS`] on GPUs).
     pub fn coop_tile(&self) -> Option<u32> {
         self.coop.as_ref().map(CoopKernels::tile)
-    }
-
-    /// With [`LayerKernels::Auto`], batches of values of at least `points` points run on the
-    /// cooperative-matrix kernels where the device has them ([`LayerKernels::CoopF16`]'s,
-    /// f16 with f32 accumulators); smaller ones, normals and training on the f32 kernels.
-    /// `None` (the default of a network that trains) never uses them; a served network
-    /// ([`crate::NeuralSdf`]) starts at [`auto_coop_min_points`].
-    pub fn set_coop_min_points(
-        &mut self,
-        gpu: &GpuContext,
-        points: Option<u32>,
-    ) -> Result<(), SirenGpuError> {
-        self.coop_min_points = points;
-        self.set_layer_kernels(gpu, self.kernels)
-    }
-
-    /// See [`SirenGpu::set_coop_min_points`].
-    pub fn coop_min_points(&self) -> Option<u32> {
-        self.coop_min_points
     }
 
     /// The smallest batch that `Auto` runs on the cooperative-matrix kernels (`u32::MAX`:
     /// none): values only.
     fn auto_coop_from(&self, tangents: bool) -> u32 {
-        match self.coop_min_points {
-            Some(m) if self.kernels == LayerKernels::Auto && !tangents => m,
+        match self.options.coop_min_points {
+            Some(m) if self.options.kernels == LayerKernels::Auto && !tangents => m,
             _ => u32::MAX,
         }
     }
 
     /// Whether an inference launch of `n` points runs on the fused all-layer kernel.
     pub fn runs_fused(&self, gpu: &GpuContext, n: u32) -> bool {
+        let max = self.options.fused_max_points.unwrap_or(if gpu.is_cpu() {
+            DEFAULT_FUSED_MAX_POINTS
+        } else {
+            u32::MAX
+        });
         self.tiled.is_some()
-            && n <= self.fused_max_points
+            && n <= max
             && TiledKernels::fused_group_rows(gpu, &self.config).is_some()
     }
 
@@ -645,10 +383,6 @@ impl SirenGpu {
         if let Some(d) = &self.dense {
             d.record_pack(enc, &self.params);
         }
-    }
-
-    pub(crate) fn dense_for(&self, l: usize) -> Option<&RowBlockedPlan> {
-        self.dense.as_ref().filter(|d| d.covers(l))
     }
 
     /// The architecture.
@@ -696,20 +430,46 @@ impl SirenGpu {
     }
 
     /// Points per launch: bounded by the storage-binding limit on the largest activation
-    /// buffer, and by 65536 to keep memory modest.
+    /// buffer, and by [`SirenGpuOptions::max_points_per_launch`] to keep memory modest.
     fn chunk_capacity(&self, gpu: &GpuContext, tangents: bool) -> u32 {
         let limit = gpu.limits().max_storage_buffer_binding_size;
         let per_point = self.config.width as u64 * 4 * if tangents { 4 } else { 1 };
-        let cap = (limit / per_point).clamp(64, u64::from(self.max_chunk));
+        let max = u64::from(self.options.max_points_per_launch);
+        let cap = (limit / per_point).clamp(64, max);
         (cap as u32 / 64) * 64
     }
 
-    /// Caps the points per launch (default 65536; at least 64; the device limits may lower it
-    /// further). Smaller launches use less memory; larger ones amortise launch overhead.
-    pub fn set_max_points_per_launch(&mut self, points: u32) {
-        self.max_chunk = points.clamp(64, 1 << 22);
-        self.eval = None;
-        self.eval_grad = None;
+    /// The inference workspace of `tangents`, taken out of its slot (put it back with
+    /// [`EvalSlots::put`]), allocated for `capacity` points where there is none.
+    fn take_workspace(
+        &mut self,
+        gpu: &GpuContext,
+        capacity: u32,
+        tangents: bool,
+    ) -> Result<EvalWorkspace, GpuError> {
+        match self.evals.take(tangents) {
+            Some(ws) => Ok(ws),
+            None => EvalWorkspace::new(gpu, self.config.width, capacity, tangents),
+        }
+    }
+
+    /// The launches of a forward pass over `n` points from `input` into `values`, on `ws`'s
+    /// activations: one dispatch where this network runs one for them, else layer by layer
+    /// ([`EvalWorkspace::layer_launches`]). Recorded after [`SirenGpu::record_pack`], in one
+    /// compute pass, in order.
+    fn eval_launches(
+        &self,
+        gpu: &GpuContext,
+        ws: &EvalWorkspace,
+        n: u32,
+        input: &wgpu::Buffer,
+        values: &wgpu::Buffer,
+    ) -> Result<Vec<Launch>, GpuError> {
+        let coop = self.runs_coop(n, ws.tangents);
+        if let Some(one) = self.one_dispatch(gpu, n, ws.tangents, None, input, values, coop)? {
+            return Ok(vec![one.launch]);
+        }
+        ws.layer_launches(gpu, &self.view(), n, input, values)
     }
 
     /// Φ at each point (normalised coordinates), any number of points, split into launches that
@@ -763,14 +523,8 @@ impl SirenGpu {
             return Ok(());
         }
         let (in_per, out_per) = if gradients { (12u64, 4u64) } else { (3, 1) };
-        let mut ws = match if gradients {
-            self.eval_grad.take()
-        } else {
-            self.eval.take()
-        } {
-            Some(ws) => ws,
-            None => self.alloc_eval(gpu, self.chunk_capacity(gpu, gradients), gradients)?,
-        };
+        let capacity = self.chunk_capacity(gpu, gradients);
+        let mut ws = self.take_workspace(gpu, capacity, gradients)?;
         let result = (|| {
             self.refresh_pack(enc);
             let mut first = 0u32;
@@ -808,11 +562,7 @@ impl SirenGpu {
             }
             Ok::<(), GpuError>(())
         })();
-        if gradients {
-            self.eval_grad = Some(ws);
-        } else {
-            self.eval = Some(ws);
-        }
+        self.evals.put(ws);
         Ok(result?)
     }
 
@@ -834,30 +584,18 @@ impl SirenGpu {
         if n == 0 || n > capacity {
             return Ok(None);
         }
-        let slot = if gradients {
-            &mut self.eval_grad
-        } else {
-            &mut self.eval
-        };
-        let ws = match slot.take() {
-            Some(ws) => ws,
-            None => self.alloc_eval(gpu, capacity, gradients)?,
-        };
+        let ws = self.take_workspace(gpu, capacity, gradients)?;
         let launches = self.eval_launches(gpu, &ws, n, input, output);
-        if gradients {
-            self.eval_grad = Some(ws);
-        } else {
-            self.eval = Some(ws);
-        }
+        self.evals.put(ws);
         Ok(Some(launches?))
     }
 
     /// Whether an inference of `n` points (`tangents`: with gradients) runs on the
     /// cooperative-matrix kernels where they are set up: every one with
-    /// [`LayerKernels::CoopF16`], batches of values from [`SirenGpu::set_coop_min_points`] on
-    /// with `Auto`.
+    /// [`LayerKernels::CoopF16`], batches of values from [`SirenGpuOptions::coop_min_points`]
+    /// on with `Auto`.
     fn runs_coop(&self, n: u32, tangents: bool) -> bool {
-        self.kernels == LayerKernels::CoopF16 || self.auto_coop_from(tangents) <= n
+        self.options.kernels == LayerKernels::CoopF16 || self.auto_coop_from(tangents) <= n
     }
 
     /// The one-dispatch kernel over `n` points where this network runs one for them: the
@@ -889,7 +627,7 @@ impl SirenGpu {
                 output,
             )));
         }
-        let layout = TiledKernels::fused_layout(gpu, cfg, self.fused_row_blocks);
+        let layout = TiledKernels::fused_layout(gpu, cfg, self.options.fused_row_blocks);
         match (self.tiled.as_ref(), layout) {
             (Some(t), Some(layout)) if self.runs_fused(gpu, n) => Ok(Some(t.fused_forward(
                 gpu,
@@ -923,8 +661,7 @@ impl SirenGpu {
         map: glam::Vec4,
     ) -> Result<Option<QueryLaunch>, SirenGpuError> {
         let rows_per_point = if normals { 4 } else { 1 };
-        let written = capacity * rows_per_point;
-        let always_coop = self.kernels == LayerKernels::CoopF16;
+        let always_coop = self.options.kernels == LayerKernels::CoopF16;
         let one =
             |coop| self.one_dispatch(gpu, capacity, normals, Some(map), points, results, coop);
         let Some(kernel) = one(always_coop)? else {
@@ -933,15 +670,16 @@ impl SirenGpu {
         // Auto's large batches: a second kernel bound to the same buffers, picked per query.
         let min = self.auto_coop_from(normals);
         let large = if !always_coop && self.coop.is_some() && min <= capacity {
-            one(true)?.map(|kernel| (min, BoundDispatch { kernel, written }))
+            one(true)?.map(|kernel| (min, kernel))
         } else {
             None
         };
-        Ok(Some(QueryLaunch {
-            kernel: BoundDispatch { kernel, written },
+        Ok(Some(QueryLaunch::new(
+            kernel,
             large,
+            capacity,
             rows_per_point,
-        }))
+        )))
     }
 
     /// Records `launches` (from [`SirenGpu::bound_eval`]) into `enc` in one compute pass, after
@@ -970,14 +708,8 @@ impl SirenGpu {
         if points.is_empty() {
             return Ok((out, gpu_ns));
         }
-        let mut ws = match if tangents {
-            self.eval_grad.take()
-        } else {
-            self.eval.take()
-        } {
-            Some(ws) => ws,
-            None => self.alloc_eval(gpu, self.chunk_capacity(gpu, tangents), tangents)?,
-        };
+        let capacity = self.chunk_capacity(gpu, tangents);
+        let mut ws = self.take_workspace(gpu, capacity, tangents)?;
         let result = (|| {
             for chunk in points.chunks(ws.capacity as usize) {
                 let n = chunk.len() as u32;
@@ -1013,200 +745,9 @@ impl SirenGpu {
             }
             Ok::<(), GpuError>(())
         })();
-        if tangents {
-            self.eval_grad = Some(ws);
-        } else {
-            self.eval = Some(ws);
-        }
+        self.evals.put(ws);
         result?;
         Ok((out, gpu_ns))
-    }
-
-    fn alloc_eval(
-        &self,
-        gpu: &GpuContext,
-        capacity: u32,
-        tangents: bool,
-    ) -> Result<EvalWorkspace, SirenGpuError> {
-        let per = if tangents { 4u64 } else { 1 };
-        let rows = u64::from(capacity) * per;
-        let width = self.config.width as u64;
-        Ok(EvalWorkspace {
-            capacity,
-            tangents,
-            input: gpu.storage_zeroed("siren eval input", rows * 3 * 4)?,
-            act: [
-                gpu.storage_zeroed("siren eval act 0", rows * width * 4)?,
-                gpu.storage_zeroed("siren eval act 1", rows * width * 4)?,
-            ],
-            z: gpu.storage_zeroed("siren eval z", if tangents { rows * width * 4 } else { 4 })?,
-            values: gpu.storage_zeroed("siren eval values", rows * 4)?,
-            launches: Vec::new(),
-            built_for: None,
-        })
-    }
-
-    /// The launches of a forward pass over `n` points from `input` (three floats per point, or
-    /// with tangents the twelve of [`stream_rows`]) into `values` (Φ per point, or Φ and ∇Φ),
-    /// with `ws`'s activation buffers as scratch (sized for at least `n` points). Recorded after
-    /// [`SirenGpu::record_pack`], in one compute pass, in order.
-    fn eval_launches(
-        &self,
-        gpu: &GpuContext,
-        ws: &EvalWorkspace,
-        n: u32,
-        input: &wgpu::Buffer,
-        values: &wgpu::Buffer,
-    ) -> Result<Vec<Launch>, GpuError> {
-        let cfg = &self.config;
-        let rows = if ws.tangents { 4 * n } else { n };
-        let coop = self.runs_coop(n, ws.tangents);
-        if let Some(one) = self.one_dispatch(gpu, n, ws.tangents, None, input, values, coop)? {
-            return Ok(vec![one.launch]);
-        }
-        let p = &self.pipelines;
-        let mut launches = Vec::new();
-        for l in 0..cfg.hidden_layers {
-            let src = if l == 0 { input } else { &ws.act[(l - 1) % 2] };
-            let dst = &ws.act[l % 2];
-            if let Some(d) = self.dense_for(l) {
-                let omega = cfg.omega0;
-                let (epilogue, out) = if ws.tangents {
-                    (Epilogue::SineWithTangents { omega, act: dst }, &ws.z)
-                } else {
-                    (Epilogue::Sine { omega }, dst)
-                };
-                launches.extend(d.forward(gpu, l, rows, epilogue, src, &self.params, out)?);
-            } else if let Some(t) = &self.tiled {
-                let u = gemm_forward(&self.layers[l], rows, false, cfg.omega0);
-                let omega = cfg.omega0;
-                launches.push(if ws.tangents {
-                    let epilogue = TiledEpilogue::SineWithTangents { omega, act: dst };
-                    t.gemm(gpu, &u, epilogue, src, &self.params, &ws.z)
-                } else {
-                    t.gemm(
-                        gpu,
-                        &u,
-                        TiledEpilogue::Sine { omega },
-                        src,
-                        &self.params,
-                        dst,
-                    )
-                });
-            } else if ws.tangents {
-                let u = gemm_forward(&self.layers[l], rows, false, cfg.omega0);
-                launches.push(self.gemm_launch(gpu, &u, src, &self.params, &ws.z));
-                launches.push(self.sine_forward_launch(gpu, l, n, &ws.z, dst));
-            } else {
-                let u = gemm_forward(&self.layers[l], rows, true, cfg.omega0);
-                launches.push(self.gemm_launch(gpu, &u, src, &self.params, dst));
-            }
-        }
-        let last = self.layers.last().expect("at least one layer");
-        let head = HeadUniforms {
-            mode: ws.tangents as u32,
-            n_points: n,
-            width: cfg.width as u32,
-            w_off: last.weight as u32,
-            b_off: last.bias as u32,
-            omega: cfg.omega0,
-            ..Default::default()
-        };
-        let hu = gpu.uniform("siren head uniforms", &head);
-        launches.push(Launch::flat(
-            gpu,
-            &p.head_eval,
-            "siren eval head",
-            &[
-                entry(0, &hu),
-                entry(1, &ws.act[(cfg.hidden_layers - 1) % 2]),
-                entry(2, &self.params),
-                entry(4, values),
-            ],
-            n,
-        ));
-        Ok(launches)
-    }
-
-    pub(crate) fn gemm_launch(
-        &self,
-        gpu: &GpuContext,
-        u: &GemmUniforms,
-        a: &wgpu::Buffer,
-        b: &wgpu::Buffer,
-        out: &wgpu::Buffer,
-    ) -> Launch {
-        let u = &u.with_load_styles();
-        let ub = gpu.uniform("siren gemm uniforms", u);
-        Launch::new(
-            gpu,
-            &self.pipelines.gemm,
-            "siren gemm",
-            &[
-                entry(0, &ub),
-                entry(1, a),
-                entry(2, b),
-                entry(3, &self.params),
-                entry(4, out),
-                entry(5, a),
-                entry(6, b),
-            ],
-            gemm_groups(gpu, u),
-        )
-    }
-
-    fn elementwise_uniforms(&self, gpu: &GpuContext, l: usize, n: u32) -> wgpu::Buffer {
-        gpu.uniform(
-            "siren elementwise uniforms",
-            &ElementwiseUniforms {
-                n_points: n,
-                width: self.config.width as u32,
-                bias_off: self.layers[l].bias as u32,
-                omega: self.config.omega0,
-                ..Default::default()
-            },
-        )
-    }
-
-    pub(crate) fn sine_forward_launch(
-        &self,
-        gpu: &GpuContext,
-        l: usize,
-        n: u32,
-        z: &wgpu::Buffer,
-        act: &wgpu::Buffer,
-    ) -> Launch {
-        let u = self.elementwise_uniforms(gpu, l, n);
-        Launch::flat(
-            gpu,
-            &self.pipelines.sine_forward,
-            "siren sine forward",
-            &[
-                entry(10, &u),
-                entry(11, &self.params),
-                entry(12, z),
-                entry(13, act),
-            ],
-            n * self.config.width as u32,
-        )
-    }
-
-    pub(crate) fn sine_backward_launch(
-        &self,
-        gpu: &GpuContext,
-        l: usize,
-        n: u32,
-        grad: &wgpu::Buffer,
-        z: &wgpu::Buffer,
-    ) -> Launch {
-        let u = self.elementwise_uniforms(gpu, l, n);
-        Launch::flat(
-            gpu,
-            &self.pipelines.sine_backward,
-            "siren sine backward",
-            &[entry(10, &u), entry(14, grad), entry(15, z)],
-            n * self.config.width as u32,
-        )
     }
 
     /// The loss of one batch (the first `normals.len()` points on the surface with those
@@ -1220,11 +761,11 @@ impl SirenGpu {
         points: &[Vec3],
         normals: &[Vec3],
         sides: &[f32],
-        weights: &super::LossWeights,
-    ) -> Result<(super::LossTerms, Vec<f32>), SirenGpuError> {
+        weights: &LossWeights,
+    ) -> Result<(LossTerms, Vec<f32>), SirenGpuError> {
         let n = points.len().max(1) as u32;
         let n_surface = normals.len().min(points.len()) as u32;
-        let passes = TrainPasses::new(gpu, self, n, n_surface, weights)?;
+        let passes = TrainPasses::new(gpu, &self.step_net(gpu), n, n_surface, weights)?;
         let streams: Vec<f32> = points.iter().flat_map(|p| stream_rows(*p)).collect();
         gpu.write(&passes.x_streams, &streams)?;
         let off = points.len() - n_surface as usize;
@@ -1246,26 +787,6 @@ impl SirenGpu {
             passes.record(&mut pass);
         }
         gpu.queue().submit([enc.finish()]);
-        if std::env::var_os("SIREN_PROFILE").is_some() {
-            // Diagnostics: time every launch on its own.
-            gpu.wait()?;
-            for (i, l) in passes.launches.iter().enumerate() {
-                let t = std::time::Instant::now();
-                let mut enc = gpu.device().create_command_encoder(&Default::default());
-                {
-                    let mut pass = enc.begin_compute_pass(&Default::default());
-                    l.record(&mut pass);
-                }
-                gpu.queue().submit([enc.finish()]);
-                gpu.wait()?;
-                eprintln!(
-                    "launch {i} {} {:?}: {:?}",
-                    l.label(),
-                    l.groups(),
-                    t.elapsed()
-                );
-            }
-        }
         let partial: Vec<f32> =
             gpu.read_back_range(&passes.loss_partial, 0, u64::from(passes.loss_groups) * 4)?;
         let mut t = [0.0f32; 4];
@@ -1274,156 +795,12 @@ impl SirenGpu {
                 t[k] += row[k];
             }
         }
-        let terms = super::LossTerms {
+        let terms = LossTerms {
             surface: t[0],
             off_surface: t[1],
             normal: t[2],
             eikonal: t[3],
         };
         Ok((terms, self.read_grads(gpu)?))
-    }
-}
-
-/// A point's four input rows: the point, then the unit tangents e_x, e_y, e_z.
-fn stream_rows(p: Vec3) -> [f32; 12] {
-    [p.x, p.y, p.z, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]
-}
-
-/// The launches of one training step's loss and gradient (from [`ror::build`] or
-/// [`tangents::build`]), the buffers they use, and the loss partials' count.
-pub(crate) struct StepLaunches {
-    pub(crate) launches: Vec<Launch>,
-    pub(crate) keep: Vec<wgpu::Buffer>,
-    pub(crate) loss_groups: u32,
-}
-
-/// The buffers and recorded launches of one training step's forward and backward passes for a
-/// batch of `n` points whose input streams the caller writes into [`TrainPasses::x_streams`].
-#[derive(Debug)]
-pub(crate) struct TrainPasses {
-    pub(crate) n: u32,
-    n_surface: u32,
-    pub(crate) x_streams: wgpu::Buffer,
-    pub(crate) normals: wgpu::Buffer,
-    pub(crate) loss_partial: wgpu::Buffer,
-    pub(crate) loss_groups: u32,
-    launches: Vec<Launch>,
-    _keep: Vec<wgpu::Buffer>,
-}
-
-impl TrainPasses {
-    /// Everything for a batch of `n` points, `n_surface` of them on the surface.
-    pub(crate) fn new(
-        gpu: &GpuContext,
-        net: &SirenGpu,
-        n: u32,
-        n_surface: u32,
-        weights: &super::LossWeights,
-    ) -> Result<Self, SirenGpuError> {
-        let x_streams = gpu.storage_zeroed("siren x streams", u64::from(4 * n) * 3 * 4)?;
-        // Every point's: the normal on the surface, (side, 0, 0) off it.
-        let normals = gpu.storage_zeroed("siren batch normals", u64::from(n) * 3 * 4)?;
-        // A sum per workgroup of the head, whichever step: the reverse-over-reverse head's
-        // workgroups take the fewest points, in its GPU layout (passes rebuilt on these
-        // buffers may have the other layout).
-        let head_groups = n.div_ceil(WG.min(ror::HEAD_WG / ror::GPU_HEAD_LANES));
-        let loss_partial = gpu.storage_zeroed("siren loss partial", u64::from(head_groups) * 16)?;
-        Self::with_io(
-            gpu,
-            net,
-            n,
-            n_surface,
-            weights,
-            x_streams,
-            normals,
-            loss_partial,
-        )
-    }
-
-    /// The passes rebuilt for `net`'s current kernels, on the same input and loss buffers (so
-    /// launches bound to those stay valid).
-    pub(crate) fn rebuilt(
-        &self,
-        gpu: &GpuContext,
-        net: &SirenGpu,
-        weights: &super::LossWeights,
-    ) -> Result<Self, SirenGpuError> {
-        Self::with_io(
-            gpu,
-            net,
-            self.n,
-            self.n_surface,
-            weights,
-            self.x_streams.clone(),
-            self.normals.clone(),
-            self.loss_partial.clone(),
-        )
-    }
-
-    #[allow(clippy::too_many_arguments)]
-    fn with_io(
-        gpu: &GpuContext,
-        net: &SirenGpu,
-        n: u32,
-        n_surface: u32,
-        weights: &super::LossWeights,
-        x_streams: wgpu::Buffer,
-        normals: wgpu::Buffer,
-        loss_partial: wgpu::Buffer,
-    ) -> Result<Self, SirenGpuError> {
-        if net.runs_reverse_over_reverse() {
-            let r = ror::build(
-                gpu,
-                net,
-                n,
-                n_surface,
-                weights,
-                &x_streams,
-                &normals,
-                &loss_partial,
-            )?;
-            return Ok(TrainPasses {
-                n,
-                n_surface,
-                x_streams,
-                normals,
-                loss_partial,
-                loss_groups: r.loss_groups,
-                launches: r.launches,
-                _keep: r.keep,
-            });
-        }
-        let t = tangents::build(
-            gpu,
-            net,
-            n,
-            n_surface,
-            weights,
-            &x_streams,
-            &normals,
-            &loss_partial,
-        )?;
-        Ok(TrainPasses {
-            n,
-            n_surface,
-            x_streams,
-            normals,
-            loss_partial,
-            loss_groups: t.loss_groups,
-            launches: t.launches,
-            _keep: t.keep,
-        })
-    }
-
-    /// Records forward, loss and backward (accumulating into the gradient buffer).
-    pub(crate) fn record(&self, pass: &mut wgpu::ComputePass<'_>) {
-        for l in &self.launches {
-            l.record(pass);
-        }
-    }
-
-    /// The launches [`TrainPasses::record`] records, in order.
-    pub(crate) fn launches(&self) -> &[Launch] {
-        &self.launches
     }
 }

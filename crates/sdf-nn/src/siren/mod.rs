@@ -10,7 +10,9 @@
 //!   evaluation, model files).
 //! - [`cpu`]: the f64 reference of forward, input gradient, loss and every parameter gradient.
 //! - [`gpu`]: the WGSL kernels' host code ([`SirenGpu`]): inference, inference with the input
-//!   gradient, and the training step.
+//!   gradient, and the training step; its knobs are [`SirenGpuOptions`] ([`options`]).
+//! - [`step`]: the training step's launches, reverse over reverse or with tangents.
+//! - [`loss`]: the loss's weights and terms.
 //! - [`train`]: [`SirenTrainer`], the training loop on the GPU.
 //!
 //! Parameters are stored flat, layer after layer, each as `W` (`[out, in]`, row-major) then
@@ -28,21 +30,24 @@ use crate::model_file::{
 };
 
 pub mod cpu;
+pub(crate) mod eval;
 pub mod gpu;
 pub(crate) mod kernels;
-pub mod ror;
-mod tangents;
+pub mod loss;
+mod net;
+pub mod options;
+pub mod step;
 pub mod train;
 
-pub use gpu::{
-    COOP_AUTO_MIN_POINTS, COOP_AUTO_MIN_WIDTH, DEFAULT_FUSED_MAX_POINTS, SirenGpu, SirenGpuError,
+pub use gpu::{SirenGpu, SirenGpuError};
+pub use kernels::{LayerKernels, TiledBlock};
+pub use loss::{LossTerms, LossWeights};
+pub use options::{
+    COOP_AUTO_MIN_POINTS, COOP_AUTO_MIN_WIDTH, DEFAULT_FUSED_MAX_POINTS, SirenGpuOptions,
     auto_coop_min_points,
 };
-pub use kernels::{LayerKernels, TiledBlock};
-pub use ror::TrainStep;
-pub use train::{
-    LossTerms, LossWeights, SirenTrainConfig, SirenTrainer, TrainError, sided_box_points,
-};
+pub use step::TrainStep;
+pub use train::{SirenTrainConfig, SirenTrainer, TrainError, sided_box_points};
 
 /// The largest ω0 a SIREN may have: the paper's is 30; far beyond it sin(ω0 z) of f32 arguments
 /// is rounding noise, and the GPU and CPU paths disagree (0.13 at 1e30).

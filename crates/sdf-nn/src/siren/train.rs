@@ -9,76 +9,16 @@ use std::time::{Duration, Instant};
 use glam::{Vec3, Vec4};
 use serde::{Deserialize, Serialize};
 
-use super::gpu::{SirenGpu, SirenGpuError, TrainPasses};
+use super::gpu::{SirenGpu, SirenGpuError};
 use super::kernels::Launch;
+use super::loss::{LossTerms, LossWeights};
+use super::options::SirenGpuOptions;
+use super::step::passes::TrainPasses;
 use super::{Siren, SirenConfigError};
 use crate::adam::{Adam, AdamConfig};
 use crate::gpu::{GpuContext, GpuError, PassProfiler, PassTime, entry};
 use crate::model_file::{self, ModelFile};
 use crate::shaders;
-
-/// Weights of the four loss terms, the off-surface sharpness α and the sign term.
-#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
-pub struct LossWeights {
-    /// On-surface |Φ| (3000).
-    pub surface: f32,
-    /// Off-surface exp(−α|Φ|) (100).
-    pub off_surface: f32,
-    /// On-surface 1 − cos(∇Φ, n) (100).
-    pub normal: f32,
-    /// Eikonal |‖∇Φ‖ − 1| on all points (5; the SIREN reference code uses 50).
-    pub eikonal: f32,
-    /// α of the off-surface term (100).
-    pub alpha: f32,
-    /// The sign term `w relu(−s Φ)` on off-surface points whose side `s` (+1 outside, −1
-    /// inside) is known: zero where Φ has the right sign, `w |Φ|` where it has the wrong one.
-    /// Counted in [`LossTerms::off_surface`]. The design document's loss has no such term (0),
-    /// and model files written before it existed read as 0.
-    #[serde(default)]
-    pub sign: f32,
-}
-
-impl Default for LossWeights {
-    fn default() -> Self {
-        LossWeights {
-            surface: 3000.0,
-            off_surface: 100.0,
-            normal: 100.0,
-            eikonal: 5.0,
-            alpha: 100.0,
-            sign: SIGN_WEIGHT,
-        }
-    }
-}
-
-/// The four weighted loss terms of a step (each a mean over the batch).
-#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
-pub struct LossTerms {
-    /// On-surface |Φ| term.
-    pub surface: f32,
-    /// Off-surface exp(−α|Φ|) term, with the sign term where sides are known.
-    pub off_surface: f32,
-    /// Normal-alignment term.
-    pub normal: f32,
-    /// Eikonal term.
-    pub eikonal: f32,
-}
-
-impl LossTerms {
-    /// Sum of the four terms.
-    pub fn total(&self) -> f32 {
-        self.surface + self.off_surface + self.normal + self.eikonal
-    }
-
-    fn from_slice(v: &[f32]) -> Self {
-        LossTerms {
-            surface: v[0],
-            off_surface: v[1],
-            normal: v[2],
-            eikonal: v[3],
-        }
-    }
-}
 
 /// Hyperparameters of SIREN training.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -217,9 +157,6 @@ struct SampleUniforms {
     n_pool: u32,
     _pad: [u32; 3],
 }
-
-/// Default of [`LossWeights::sign`].
-pub const SIGN_WEIGHT: f32 = 1000.0;
 
 /// Default of [`SirenTrainConfig::box_pool`]: 2^20 points, one per 0.02³ of the cube, each
 /// drawn about 50 times in 10⁴ steps of 5000.
@@ -436,7 +373,7 @@ impl SirenTrainer {
         let net = SirenGpu::new(gpu, siren)?;
         let passes = TrainPasses::new(
             gpu,
-            &net,
+            &net.step_net(gpu),
             n as u32,
             config.surface_per_step as u32,
             &config.weights,
@@ -555,44 +492,21 @@ impl SirenTrainer {
         self.last_loss
     }
 
-    /// Chooses the kernels of the network's layers, for training and evaluation (default
-    /// [`super::LayerKernels::Auto`]).
-    pub fn set_layer_kernels(
+    /// Changes the network's knobs ([`SirenGpu::set_options`]: its kernels, their blocking,
+    /// the training step) and rebuilds the training passes for them.
+    pub fn set_net_options(
         &mut self,
         gpu: &GpuContext,
-        kernels: super::LayerKernels,
+        options: &SirenGpuOptions,
     ) -> Result<(), TrainError> {
-        self.net.set_layer_kernels(gpu, kernels)?;
-        self.passes = self.passes.rebuilt(gpu, &self.net, &self.config.weights)?;
+        self.net.set_options(gpu, options)?;
+        let net = self.net.step_net(gpu);
+        self.passes = self.passes.rebuilt(gpu, &net, &self.config.weights)?;
         Ok(())
     }
 
-    /// Chooses the tiled GEMM's register blocks ([`SirenGpu::set_tiled_block`]) and rebuilds
-    /// the training passes.
-    pub fn set_tiled_block(
-        &mut self,
-        gpu: &GpuContext,
-        block: super::TiledBlock,
-    ) -> Result<(), TrainError> {
-        self.net.set_tiled_block(gpu, block)?;
-        self.passes = self.passes.rebuilt(gpu, &self.net, &self.config.weights)?;
-        Ok(())
-    }
-
-    /// Chooses how the training step differentiates through ∇ₓΦ (default
-    /// [`super::TrainStep::Auto`]) and rebuilds the training passes.
-    pub fn set_train_step(
-        &mut self,
-        gpu: &GpuContext,
-        step: super::TrainStep,
-    ) -> Result<(), TrainError> {
-        self.net.set_train_step(step);
-        self.passes = self.passes.rebuilt(gpu, &self.net, &self.config.weights)?;
-        Ok(())
-    }
-
-    /// The network on the GPU (e.g. for evaluation between steps). Switch its kernels with
-    /// [`SirenTrainer::set_layer_kernels`], which also rebuilds the training passes.
+    /// The network on the GPU (e.g. for evaluation between steps). Change its options with
+    /// [`SirenTrainer::set_net_options`], which also rebuilds the training passes.
     pub fn net(&mut self) -> &mut SirenGpu {
         &mut self.net
     }

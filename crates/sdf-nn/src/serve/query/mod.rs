@@ -70,7 +70,7 @@ use glam::Vec3;
 use crate::gpu::{GpuContext, GpuError};
 use crate::nglod::gpu::NglodEvalBinding;
 use crate::serve::error::{NeuralSdfError, QueryError};
-use crate::siren::gpu::QueryLaunch;
+use crate::siren::eval::QueryLaunch;
 use mapping::{MapSlot, MapState};
 
 /// Invocations per workgroup of `shaders/query.wgsl`.

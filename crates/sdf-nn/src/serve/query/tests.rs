@@ -204,7 +204,11 @@ fn siren_queries_beyond_one_launch_are_split() {
     served
         .with_gpu(gpu, |net, _| {
             if let GpuNetwork::Siren(s) = net {
-                s.set_max_points_per_launch(64);
+                let options = crate::siren::SirenGpuOptions {
+                    max_points_per_launch: 64,
+                    ..*s.options()
+                };
+                s.set_options(gpu, &options)?;
             }
             Ok(())
         })
@@ -309,7 +313,11 @@ fn siren_one_dispatch_queries_with_row_blocks() {
         served
             .with_gpu(gpu, |net, _| {
                 if let GpuNetwork::Siren(s) = net {
-                    s.set_fused_row_blocks(blocks);
+                    let options = crate::siren::SirenGpuOptions {
+                        fused_row_blocks: blocks,
+                        ..*s.options()
+                    };
+                    s.set_options(gpu, &options)?;
                     assert_eq!(s.fused_row_blocks(gpu), Some(blocks));
                 }
                 Ok(())

@@ -1,12 +1,15 @@
 //! SIREN's kernel families, one module each with its own pipelines: [`row_blocked`] (CPU
-//! adapters), [`tiled`] (GPUs) and [`coop`] (f16 cooperative matrices); the strided GEMM that
-//! the first two fall back on is in `siren/gpu.rs`, its shapes in [`products`].
+//! adapters), [`tiled`] (GPUs), [`coop`] (f16 cooperative matrices) and the strided GEMM that
+//! the first two fall back on, [`gemm`] (its shapes in [`products`]); every family ends in the
+//! output layer's kernels of [`head`].
 //! [`LayerKernels`] is the one policy that picks a family from the adapter. Every family records
 //! its work as [`Launch`]es.
 
 use crate::gpu::GpuContext;
 
 pub(crate) mod coop;
+pub(crate) mod gemm;
+pub(crate) mod head;
 pub(crate) mod products;
 pub(crate) mod row_blocked;
 pub(crate) mod tiled;
@@ -223,11 +226,6 @@ impl Launch {
 
     pub(crate) fn record(&self, pass: &mut wgpu::ComputePass<'_>) {
         self.record_groups(pass, self.groups);
-    }
-
-    /// Its workgroup grid.
-    pub(crate) fn groups(&self) -> (u32, u32, u32) {
-        self.groups
     }
 
     /// Records it with another workgroup grid.

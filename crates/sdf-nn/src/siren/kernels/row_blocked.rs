@@ -464,8 +464,9 @@ impl RowBlockedPlan {
         Ok((launch, pbias_off))
     }
 
-    /// A reverse-over-reverse product `C = A W_lᵀ` of layer `l` over `rows` points (`siren::ror`):
-    /// `Forward` (mode 3) or `GradAdjoint` (mode 4) epilogue. Offsets and strides in `io` are
+    /// A reverse-over-reverse product `C = A W_lᵀ` of layer `l` over `rows` points
+    /// (`siren::step::reverse_over_reverse`): `Forward` (mode 3) or `GradAdjoint` (mode 4)
+    /// epilogue. Offsets and strides in `io` are
     /// in floats.
     pub(crate) fn ror_times_wt(
         &self,

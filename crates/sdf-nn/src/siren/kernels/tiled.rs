@@ -3,10 +3,10 @@
 //! `shaders/siren_tiled_fused.wgsl` (every layer of an inference in one dispatch).
 
 use super::products::GemmUniforms;
-use super::{Launch, OneDispatch, point_stride};
+use super::{Launch, OneDispatch, TiledBlock, point_stride};
 use crate::gpu::{GpuContext, GpuError, entry};
 use crate::shaders;
-use crate::siren::{SirenConfig, TiledBlock};
+use crate::siren::SirenConfig;
 
 /// Rows and columns of C per workgroup of the tiled GEMM with 4 × 4 register blocks (the
 /// tile is `TILE·MB` × `TILE·NB` in the shader).
