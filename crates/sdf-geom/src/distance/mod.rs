@@ -8,6 +8,7 @@ mod build;
 mod closest;
 mod simd;
 mod triangle;
+mod wide;
 mod winding;
 
 use glam::{DVec3, Vec3, Vec3A};
@@ -15,10 +16,11 @@ use obvhs::BvhBuildParams;
 use rayon::prelude::*;
 
 use crate::{GeomError, Mesh};
-use build::{area_triangles, build_nodes, collapse4, depth_first_order, tame_exponent};
+use build::{area_triangles, build_nodes, depth_first_order, tame_exponent};
 use closest::Node4;
 pub use triangle::closest_on_triangle_f64;
 use triangle::{TriPacket, closest_on_triangle};
+use wide::collapse4;
 use winding::{WNode4, solid_angle, winding_nodes};
 
 /// Queries farther than this many bounding-sphere radii from the mesh's bounding-box centre take the

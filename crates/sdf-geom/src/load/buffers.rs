@@ -7,8 +7,7 @@ use std::rc::Rc;
 
 use base64::Engine as _;
 
-use super::gltf::parse_error;
-use super::{LoadOptions, in_message, read_input_file};
+use super::{LoadOptions, in_message, parse_error, read_input_file};
 use crate::GeomError;
 
 /// The document's buffers, index for index: the GLB blob, `data:` URIs, or files inside the

@@ -5,10 +5,10 @@ use std::path::Path;
 
 use glam::Mat4;
 
-use super::LoadOptions;
 use super::buffers::read_buffers;
 use super::primitive::{Merged, add_gltf_mesh};
 use super::scene::{GpuInstancing, check_scene_size, expand_scene, gpu_instancing, node_graph};
+use super::{LoadOptions, parse_error};
 use crate::GeomError;
 use crate::mesh::{LoadReport, Mesh, clean};
 
@@ -121,15 +121,6 @@ pub(super) fn load_gltf(
     }
     let mesh = clean(out.vertices, out.triangles, &mut out.report)?;
     Ok((mesh, out.report))
-}
-
-/// [`GeomError::Parse`] without a line: how every failed glTF validation is reported.
-pub(super) fn parse_error(path: &Path, message: String) -> GeomError {
-    GeomError::Parse {
-        path: path.to_path_buf(),
-        line: None,
-        message,
-    }
 }
 
 /// The glTF document in `json_bytes`, after the checks `gltf` leaves out or gets wrong (the

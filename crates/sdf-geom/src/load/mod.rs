@@ -274,3 +274,22 @@ pub(super) fn check_limits<const N: usize>(
 pub(super) fn in_message(text: &str) -> String {
     text.chars().take(200).collect()
 }
+
+/// [`GeomError::Parse`] without a line: how every failed glTF validation is reported.
+pub(super) fn parse_error(path: &Path, message: String) -> GeomError {
+    GeomError::Parse {
+        path: path.to_path_buf(),
+        line: None,
+        message,
+    }
+}
+
+/// [`GeomError::NodeTransform`] for `node`.
+pub(super) fn node_error(path: &Path, node: &::gltf::Node, reason: String) -> GeomError {
+    GeomError::NodeTransform {
+        path: path.to_path_buf(),
+        node: node.index(),
+        name: node.name().map(in_message),
+        reason,
+    }
+}

@@ -7,8 +7,7 @@ use std::rc::Rc;
 use glam::{Mat4, Vec3};
 
 use super::accessors::{Vec3Format, read_accessor, vec3_format};
-use super::in_message;
-use super::scene::node_error;
+use super::{in_message, node_error};
 use crate::GeomError;
 use crate::mesh::LoadReport;
 

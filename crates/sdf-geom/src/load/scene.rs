@@ -10,7 +10,7 @@ use glam::{Mat4, Vec3};
 use super::accessors::{Vec3Format, component, read_accessor};
 use super::primitive::{Merged, add_gltf_mesh};
 use super::{
-    MAX_INSTANCED_TRIANGLES, MAX_INSTANCED_VERTICES, MAX_INSTANCES, check_limits, in_message,
+    MAX_INSTANCED_TRIANGLES, MAX_INSTANCED_VERTICES, MAX_INSTANCES, check_limits, node_error,
 };
 use crate::GeomError;
 
@@ -252,16 +252,6 @@ fn instance_worlds(
             })
             .collect(),
         None => Ok(vec![world]),
-    }
-}
-
-/// [`GeomError::NodeTransform`] for `node`.
-pub(super) fn node_error(path: &Path, node: &gltf::Node, reason: String) -> GeomError {
-    GeomError::NodeTransform {
-        path: path.to_path_buf(),
-        node: node.index(),
-        name: node.name().map(in_message),
-        reason,
     }
 }
 
