@@ -792,3 +792,23 @@ mod tests {
         assert!(rates(&c, &[1.0; 100]).iter().all(|&r| r == 1e-4));
     }
 }
+
+#[cfg(test)]
+mod uniform_layout {
+    /// SampleUniforms, LossReduceUniforms: the layout the shaders read.
+    #[test]
+    fn uniforms_mirror_the_shaders() {
+        crate::shaders::assert_mirrors!(
+            super::SampleUniforms,
+            crate::shaders::SIREN_TRAIN,
+            "Sample",
+            [n_points, n_surface, n_data, seed, n_pool]
+        );
+        crate::shaders::assert_mirrors!(
+            super::LossReduceUniforms,
+            crate::shaders::SIREN_TRAIN,
+            "LossReduce",
+            [n_partials, slot]
+        );
+    }
+}

@@ -222,3 +222,43 @@ impl CoopKernels {
         }
     }
 }
+
+#[cfg(test)]
+mod uniform_layout {
+    /// CoopUniforms: the layout the shaders read.
+    #[test]
+    fn uniforms_mirror_the_shaders() {
+        crate::shaders::assert_mirrors!(
+            super::CoopUniforms,
+            crate::shaders::SIREN_COOP_16,
+            "Coop",
+            [
+                rows,
+                width,
+                hidden_layers,
+                omega,
+                tangents,
+                point_stride,
+                act_stride,
+                query,
+                map
+            ]
+        );
+        crate::shaders::assert_mirrors!(
+            super::CoopUniforms,
+            crate::shaders::SIREN_COOP_8,
+            "Coop",
+            [
+                rows,
+                width,
+                hidden_layers,
+                omega,
+                tangents,
+                point_stride,
+                act_stride,
+                query,
+                map
+            ]
+        );
+    }
+}

@@ -163,3 +163,17 @@ impl GemmKernels {
         )
     }
 }
+
+#[cfg(test)]
+mod uniform_layout {
+    /// ElementwiseUniforms: the layout the shaders read.
+    #[test]
+    fn uniforms_mirror_the_shaders() {
+        crate::shaders::assert_mirrors!(
+            super::ElementwiseUniforms,
+            crate::shaders::SIREN_GEMM,
+            "Elementwise",
+            [n_points, width, bias_off, omega]
+        );
+    }
+}

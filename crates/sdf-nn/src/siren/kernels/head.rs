@@ -47,3 +47,32 @@ impl HeadKernels {
         })
     }
 }
+
+#[cfg(test)]
+mod uniform_layout {
+    /// HeadUniforms: the layout the shaders read.
+    #[test]
+    fn uniforms_mirror_the_shaders() {
+        crate::shaders::assert_mirrors!(
+            super::HeadUniforms,
+            crate::shaders::SIREN_HEAD,
+            "Head",
+            [
+                mode,
+                n_points,
+                n_surface,
+                width,
+                w_off,
+                b_off,
+                w_surface,
+                w_off_surface,
+                w_normal,
+                w_eikonal,
+                alpha,
+                inv_n,
+                omega,
+                w_sign
+            ]
+        );
+    }
+}

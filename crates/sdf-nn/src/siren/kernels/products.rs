@@ -146,3 +146,20 @@ pub(crate) fn gemm_wgrad(lay: &LayerLayout, rows: u32) -> GemmUniforms {
         ..Default::default()
     }
 }
+
+#[cfg(test)]
+mod uniform_layout {
+    /// GemmUniforms: the layout the shaders read.
+    #[test]
+    fn uniforms_mirror_the_shaders() {
+        crate::shaders::assert_mirrors!(
+            super::GemmUniforms,
+            crate::shaders::SIREN_GEMM,
+            "Gemm",
+            [
+                mode, m, n, k, a_off, a_rs, a_cs, b_off, b_rs, b_cs, ldc, bias_off, k_chunk,
+                pbias_off, omega, b_style, a_vec4
+            ]
+        );
+    }
+}

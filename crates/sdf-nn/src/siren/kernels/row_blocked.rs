@@ -598,3 +598,37 @@ impl RowBlockedPlan {
         u64::from(SPLITS) * (p.layout.fan_out as u64) * (p.layout.fan_in as u64 + 1)
     }
 }
+
+#[cfg(test)]
+mod uniform_layout {
+    /// DenseUniforms, WgradUniforms: the layout the shaders read.
+    #[test]
+    fn uniforms_mirror_the_shaders() {
+        crate::shaders::assert_mirrors!(
+            super::DenseUniforms,
+            crate::shaders::SIREN_DENSE,
+            "Dense",
+            [
+                rows,
+                a_stride4,
+                a_first4,
+                out_stride4,
+                out_first4,
+                mode,
+                bias_off,
+                omega,
+                out1_first4,
+                z_first4,
+                t_first4
+            ]
+        );
+        crate::shaders::assert_mirrors!(
+            super::WgradUniforms,
+            crate::shaders::SIREN_DENSE,
+            "Wgrad",
+            [
+                points, splits, z_stride4, x_stride4, tiles_k, fan_out, fan_in, pbias_off
+            ]
+        );
+    }
+}

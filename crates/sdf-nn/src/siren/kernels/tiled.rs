@@ -562,3 +562,36 @@ mod tests {
         assert_eq!(workgroups((2, 1), 129, 65), 4);
     }
 }
+
+#[cfg(test)]
+mod uniform_layout {
+    /// FusedUniforms, TiledUniforms: the layout the shaders read.
+    #[test]
+    fn uniforms_mirror_the_shaders() {
+        crate::shaders::assert_mirrors!(
+            super::FusedUniforms,
+            crate::shaders::SIREN_TILED_FUSED,
+            "Fused",
+            [
+                rows,
+                group_rows,
+                width,
+                hidden_layers,
+                tangents,
+                point_stride,
+                omega,
+                query,
+                map
+            ]
+        );
+        crate::shaders::assert_mirrors!(
+            super::TiledUniforms,
+            crate::shaders::SIREN_TILED_LAYER,
+            "Tiled",
+            [
+                mode, m, n, k, a_off, a_rs, a_cs, b_off, b_rs, b_cs, ldc, bias_off, k_chunk,
+                pbias_off, omega, flags, out_off, out1_off, z_off, t_off
+            ]
+        );
+    }
+}

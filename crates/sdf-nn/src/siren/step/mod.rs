@@ -149,3 +149,17 @@ impl<'a> WgradReduce<'a> {
         keep.push(rub);
     }
 }
+
+#[cfg(test)]
+mod uniform_layout {
+    /// ReduceUniforms: the layout the shaders read.
+    #[test]
+    fn uniforms_mirror_the_shaders() {
+        crate::shaders::assert_mirrors!(
+            super::ReduceUniforms,
+            crate::shaders::SIREN_TRAIN,
+            "Reduce",
+            [m, n, splits, w_off, b_off, pbias_off]
+        );
+    }
+}

@@ -693,3 +693,36 @@ impl Recorder<'_> {
         Ok(())
     }
 }
+
+#[cfg(test)]
+mod uniform_layout {
+    /// RorUniforms: the layout the shaders read.
+    #[test]
+    fn uniforms_mirror_the_shaders() {
+        crate::shaders::assert_mirrors!(
+            super::RorUniforms,
+            crate::shaders::SIREN_ROR,
+            "Ror",
+            [
+                n_points,
+                n_surface,
+                width,
+                w_out_off,
+                b_out_off,
+                w1_off,
+                splits,
+                pbias_off,
+                w_surface,
+                w_off_surface,
+                w_normal,
+                w_eikonal,
+                alpha,
+                inv_n,
+                omega,
+                w_sign,
+                b1_off,
+                first_rows
+            ]
+        );
+    }
+}
