@@ -41,7 +41,8 @@ use crate::model_file::{
 
 pub use gpu::{NglodGpu, ScatterMode};
 pub use train::{
-    DistanceMode, EpochStats, NglodTrainConfig, NglodTrainer, PoolSchedule, TimeBudget, TrainReport,
+    DEFAULT_EPOCHS, DistanceMode, EpochStats, NglodTrainConfig, NglodTrainer, PoolSchedule,
+    TimeBudget, TrainReport,
 };
 
 /// Largest number of levels the kernels accept.

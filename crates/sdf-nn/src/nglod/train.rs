@@ -49,6 +49,13 @@ impl DistanceMode {
     }
 }
 
+/// Epochs of a run by default ([`NglodTrainConfig::default`]), and of `train`'s and `corpus`'s
+/// runs on a GPU (their CPU time budget stops there too). 100: the default preset on the 20
+/// shared meshes, 12 epochs 0.993 / 0.963 F1 (box / near the surface), 100 epochs 0.997 / 0.982
+/// (0.997 / 0.981 with today's band of 0 cells); on six of them 50 epochs 0.969 near, 100
+/// epochs 0.976 (BENCHMARKS.md, measured on lavapipe). The pool makes it cheap.
+pub const DEFAULT_EPOCHS: usize = 100;
+
 /// Training settings. The defaults are the design document's, plus the sample pool.
 #[derive(Clone, Debug, PartialEq)]
 pub struct NglodTrainConfig {
@@ -134,11 +141,7 @@ impl TimeBudget {
 impl Default for NglodTrainConfig {
     fn default() -> Self {
         NglodTrainConfig {
-            // 100: the default preset on the 20 shared meshes, 12 epochs 0.993 / 0.963 F1 (box /
-            // near the surface), 100 epochs 0.997 / 0.982 (0.997 / 0.981 with today's band of
-            // 0 cells); on six of them 50 epochs 0.969 near, 100 epochs 0.976 (BENCHMARKS.md,
-            // measured on lavapipe). The pool makes it cheap.
-            epochs: 100,
+            epochs: DEFAULT_EPOCHS,
             batch_size: 2048,
             adam: AdamConfig::default(),
             objective: Objective::Full,
