@@ -9,10 +9,11 @@ use std::path::PathBuf;
 use std::process::ExitCode;
 
 use clap::Parser;
+use hwsdf::cli::{GpuFlags, check_eval_points};
 use hwsdf::eval::metrics::{DEFAULT_EVAL_POINTS, EVAL_SEED, SurfaceMetrics};
 use hwsdf::eval::run::{self, Evaluation};
+use hwsdf::nn::NeuralSdf;
 use hwsdf::nn::siren::LayerKernels;
-use hwsdf::nn::{GpuContext, NeuralSdf};
 use serde_json::json;
 
 /// Score a trained neural SDF against the exact SDF of its mesh.
@@ -43,6 +44,8 @@ struct Args {
     /// glTF: also follow buffer URIs outside the mesh's folder (absolute paths, `..`, symbolic links).
     #[arg(long)]
     allow_external_uris: bool,
+    #[command(flatten)]
+    gpu: GpuFlags,
 }
 
 fn main() -> ExitCode {
@@ -57,10 +60,7 @@ fn main() -> ExitCode {
 }
 
 fn eval(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
-    if args.points == 0 {
-        return Err("--points must be at least 1".into());
-    }
-    run::check_eval_points(args.points)?;
+    check_eval_points("--points", args.points)?;
     // Checked before the evaluation it would otherwise follow.
     let max = hwsdf::geom::extract::MAX_RESOLUTION;
     if args.surface_resolution == 1 || args.surface_resolution > max {
@@ -88,7 +88,7 @@ fn eval(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
             args.mesh.display()
         );
     }
-    let gpu = GpuContext::new()?;
+    let gpu = args.gpu.open()?;
     let truth = run::GroundTruth::new(mesh, &args.mesh)?;
     if args.siren_kernels == LayerKernels::CoopF16 && gpu.coop_f16_tile().is_none() {
         eprintln!(

@@ -204,6 +204,15 @@ impl TrainOptions {
         self.nglod_architecture.check(self.model, self.preset)
     }
 
+    /// These options over `preset` instead, e.g. the adapter's once it is open. Only NGLOD's
+    /// architecture depends on the preset, so only it is checked again.
+    pub fn with_preset(self, preset: Preset) -> Result<Self, RunError> {
+        if preset != self.preset {
+            self.nglod_architecture.check(self.model, preset)?;
+        }
+        Ok(TrainOptions { preset, ..self })
+    }
+
     /// How long this run trains on a CPU adapter or not: the steps or epochs asked for, else
     /// [`default_length`] (for NGLOD on a CPU adapter, [`CPU_TIME_BUDGET`] from it). The one
     /// place a run's length is settled: [`super::train`], [`TrainOptions::settings`] and the
@@ -225,9 +234,10 @@ impl TrainOptions {
     /// for, so that two runs that train alike have equal settings however their options were
     /// spelt (`--epochs 100` on a GPU and no `--epochs` there are the same run). The length
     /// defaults depend on the adapter, hence `cpu_adapter`. A corpus run keeps these beside its
-    /// results and refuses to mix results of other settings into one table.
+    /// results and refuses to mix results of other settings into one table. The options are
+    /// taken as [`TrainOptions::validate`] passed them; the NGLOD architecture they resolve to
+    /// is checked as it is built.
     pub fn settings(&self, cpu_adapter: bool) -> Result<RunSettings, RunError> {
-        self.validate()?;
         let mut s = BTreeMap::new();
         let mut put = |k: &str, v: String| s.insert(k.to_owned(), v);
         put("preset", self.preset.name().to_owned());
@@ -648,9 +658,12 @@ mod tests {
             ),
             "{s}"
         );
-        // Invalid options have no settings.
+        // An architecture that does not resolve has no settings.
         let bad = TrainOptions {
-            epochs: Some(0),
+            nglod_architecture: NglodArchitecture {
+                hidden: Some(0),
+                ..Default::default()
+            },
             ..TrainOptions::new(ModelKind::Nglod, Preset::Small)
         };
         assert!(bad.settings(false).is_err());
