@@ -12,8 +12,8 @@ use clap::Parser;
 use hwsdf::cli::{GpuFlags, check_eval_points};
 use hwsdf::eval::metrics::{DEFAULT_EVAL_POINTS, EVAL_SEED, SurfaceMetrics};
 use hwsdf::eval::run::{self, Evaluation};
-use hwsdf::nn::NeuralSdf;
 use hwsdf::nn::siren::LayerKernels;
+use hwsdf::nn::{GpuContext, NeuralSdf};
 use serde_json::json;
 
 /// Score a trained neural SDF against the exact SDF of its mesh.
@@ -99,31 +99,7 @@ fn eval(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
     let Evaluation {
         scores, latency, ..
     } = run::evaluate(&gpu, &model, &truth, args.points)?;
-    // A model that never changes sign in the box (one trained for a few steps, say) has no
-    // surface to compare: its surface figures are null, with the reason, and the rest stands.
-    let mut surface_null_reason = None;
-    let surface = if args.surface_resolution > 0 {
-        let (extracted, _) = run::extract_mesh(&gpu, &model, args.surface_resolution)?;
-        if extracted.triangles.is_empty() {
-            surface_null_reason = Some(format!(
-                "the model's level set has no triangles at {}³: it does not change sign in the box",
-                args.surface_resolution
-            ));
-            None
-        } else {
-            // Compare in the normalised frame, like every other figure here.
-            let extracted = extracted.transformed(&model.normalization());
-            Some(SurfaceMetrics::between(
-                &extracted,
-                &truth.mesh,
-                &truth.sdf,
-                args.points.min(100_000),
-                EVAL_SEED,
-            )?)
-        }
-    } else {
-        None
-    };
+    let (surface, surface_null_reason) = surface(&gpu, &model, &truth, args)?;
     let report = json!({
         "model": args.model.display().to_string(),
         "mesh": args.mesh.display().to_string(),
@@ -213,4 +189,40 @@ fn eval(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
         println!("adapter          {}", gpu.describe());
     }
     Ok(())
+}
+
+/// The surface figures (Chamfer-L1, normal consistency) of the mesh extracted from `model` at
+/// `--surface-resolution`, or why there are none. A model that never changes sign in the box
+/// (one trained for a few steps, say) has no surface to compare: its surface figures are null,
+/// with the reason, and the rest stands.
+fn surface(
+    gpu: &GpuContext,
+    model: &NeuralSdf,
+    truth: &run::GroundTruth,
+    args: &Args,
+) -> Result<(Option<SurfaceMetrics>, Option<String>), Box<dyn std::error::Error>> {
+    let mut surface_null_reason = None;
+    let surface = if args.surface_resolution > 0 {
+        let (extracted, _) = run::extract_mesh(gpu, model, args.surface_resolution)?;
+        if extracted.triangles.is_empty() {
+            surface_null_reason = Some(format!(
+                "the model's level set has no triangles at {}³: it does not change sign in the box",
+                args.surface_resolution
+            ));
+            None
+        } else {
+            // Compare in the normalised frame, like every other figure here.
+            let extracted = extracted.transformed(&model.normalization());
+            Some(SurfaceMetrics::between(
+                &extracted,
+                &truth.mesh,
+                &truth.sdf,
+                args.points.min(100_000),
+                EVAL_SEED,
+            )?)
+        }
+    } else {
+        None
+    };
+    Ok((surface, surface_null_reason))
 }
