@@ -4,7 +4,8 @@
 //! This facade re-exports the workspace crates:
 //! - [`geom`]: meshes, exact BVH distance, winding-number sign, samplers;
 //! - [`nn`]: the GPU context, kernels, models, trainers and model files;
-//! - [`eval`]: metrics, timing and corpus runs.
+//! - [`eval`]: metrics, timing and corpus runs;
+//! - [`cli`]: the flags the binaries share (the GPU to run on, how to train).
 //!
 //! A model trained by `cargo run --release --bin train -- mesh.obj`, queried from Rust:
 //!
@@ -28,6 +29,8 @@
 //! # }
 //! ```
 #![warn(missing_docs)]
+
+pub mod cli;
 
 pub use sdf_eval as eval;
 pub use sdf_geom as geom;

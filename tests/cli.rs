@@ -257,6 +257,90 @@ fn unknown_adapter_name_is_a_clear_error_not_a_panic() {
     assert!(stderr(&o).contains("WGPU_ADAPTER_NAME"));
 }
 
+/// A small, untrained NGLOD model file: enough for the binaries that read a model to reach
+/// their GPU.
+fn untrained_model() -> PathBuf {
+    let path = scratch("untrained.nglod.safetensors");
+    let model = hwsdf::nn::Nglod::new(hwsdf::nn::NglodConfig::small()).unwrap();
+    model
+        .to_model_file(hwsdf::geom::Normalization::identity(), Default::default())
+        .save(&path)
+        .unwrap();
+    path
+}
+
+/// Every binary that runs on a GPU takes `--adapter`, and opens its GPU through it: an adapter
+/// that is not there is the "no adapter matches" error naming the flag, before any work.
+#[test]
+fn every_gpu_binary_takes_adapter() {
+    let model = untrained_model();
+    let mesh = data("suzanne.obj");
+    let cases: [(&str, Vec<&std::ffi::OsStr>); 5] = [
+        (
+            "train",
+            vec![mesh.as_os_str(), "--epochs".as_ref(), "1".as_ref()],
+        ),
+        ("eval", vec![model.as_os_str(), mesh.as_os_str()]),
+        ("extract", vec![model.as_os_str(), "--out".as_ref()]),
+        ("render", vec![model.as_os_str(), "--out".as_ref()]),
+        ("gpu-info", vec![]),
+    ];
+    for (name, args) in cases {
+        let mut cmd = bin(name);
+        cmd.args(args);
+        match name {
+            "train" => cmd.arg("--out").arg(scratch("adapter.nglod.safetensors")),
+            "extract" => cmd.arg(scratch("adapter.obj")),
+            "render" => cmd.arg(scratch("adapter.png")),
+            _ => &mut cmd,
+        };
+        let o = cmd.args(["--adapter", "no-such-gpu"]).output().unwrap();
+        assert_clean_failure(&o, "no adapter matches \"no-such-gpu\" (from --adapter");
+        assert!(
+            !stderr(&o).contains("training"),
+            "{name} started work: {}",
+            stderr(&o)
+        );
+    }
+    // The first adapter by its index: what `gpu-info --adapter 0` shows, `render` runs on.
+    let info = bin("gpu-info").args(["--adapter", "0"]).output().unwrap();
+    assert!(info.status.success(), "{}", stderr(&info));
+    let listed = stderr(&info)
+        .lines()
+        .find_map(|l| l.trim().strip_prefix("0: ").map(str::to_owned))
+        .unwrap();
+    let shown = String::from_utf8_lossy(&info.stdout)
+        .lines()
+        .next()
+        .unwrap()
+        .to_owned();
+    assert!(listed.starts_with(&shown), "{listed} vs {shown}");
+    let png = scratch("adapter-0.png");
+    let o = bin("render")
+        .arg(&model)
+        .args(["--size", "16", "--adapter", "0", "--out"])
+        .arg(&png)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(stderr(&o).contains(&shown), "{}", stderr(&o));
+}
+
+/// The environment's GPU settings are checked as the GPU opens: a value no setting takes is an
+/// error naming the ones it does.
+#[test]
+fn an_unknown_step_layout_names_the_allowed_ones() {
+    let o = bin("train")
+        .arg(data("suzanne.obj"))
+        .args(["--epochs", "1", "--out"])
+        .arg(scratch("layout.nglod.safetensors"))
+        .env("HWSDF_STEP_LAYOUT", "sideways")
+        .output()
+        .unwrap();
+    assert_clean_failure(&o, "HWSDF_STEP_LAYOUT");
+    assert!(stderr(&o).contains("gpu, cpu"), "{}", stderr(&o));
+}
+
 #[test]
 fn ctrl_c_writes_a_checkpoint_that_resume_continues() {
     use std::io::{BufRead, BufReader};

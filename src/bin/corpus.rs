@@ -20,20 +20,17 @@
 //! training at its next step, write its checkpoint to `<out>.d/`, and exit with 130; the next run
 //! resumes that mesh from the checkpoint and goes on with the rest.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 
 use clap::{Parser, ValueEnum};
+use hwsdf::cli::{GpuFlags, TrainingFlags};
 use hwsdf::eval::corpus::{self, CorpusMesh, CorpusSettings, Entry, Record, Shard, StateDir};
-use hwsdf::eval::run::{self, Checkpoint, ModelKind, RunOutcome};
+use hwsdf::eval::run::{self, Checkpoint, ModelKind, Preset, RunOutcome, TrainOptions};
 use hwsdf::geom::io::write_atomic;
-use hwsdf::nn::{GpuContext, GpuOptions};
-
-#[path = "common/flags.rs"]
-mod flags;
-use flags::TrainingFlags;
+use hwsdf::nn::GpuContext;
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
 enum Models {
@@ -68,9 +65,8 @@ struct Args {
     /// Build the table from `<out>.d/` alone (no GPU, no training); works while shards run.
     #[arg(long)]
     merge: bool,
-    /// Adapter: an index or PCI bus id from `gpu-info`, or part of a name (else `HWSDF_ADAPTER`).
-    #[arg(long)]
-    adapter: Option<String>,
+    #[command(flatten)]
+    gpu: GpuFlags,
     /// Every mesh's training, as `train` takes it.
     #[command(flatten)]
     training: TrainingFlags,
@@ -109,8 +105,8 @@ fn corpus(args: &Args) -> Result<ExitCode, BoxError> {
         return merge(args, &state, &meshes, &models);
     }
     let flags = &args.training;
-    flags.check(&models)?;
     // Every check that can fail runs before the GPU is opened or a mesh is trained.
+    let options = flags.options(&models)?;
     let shard = match &args.shard {
         Some(s) => Some((Shard::parse(s)?, "--shard".to_owned())),
         None => Shard::from_env(|k| std::env::var(k).ok(), args.shards)?,
@@ -128,9 +124,7 @@ fn corpus(args: &Args) -> Result<ExitCode, BoxError> {
         None => eprintln!("all {} meshes (no shard)", meshes.len()),
     }
     state.create()?;
-    let gpu = GpuContext::with_options(
-        &GpuOptions::from_env()?.with_adapter(args.adapter.as_deref(), "--adapter"),
-    )?;
+    let gpu = args.gpu.open()?;
     // SIREN's CPU preset wins when both run: one preset for the whole table.
     let preset = flags.preset_for(
         if models.contains(&ModelKind::Siren) {
@@ -140,21 +134,7 @@ fn corpus(args: &Args) -> Result<ExitCode, BoxError> {
         },
         gpu.is_cpu(),
     );
-    // Every model's options and their settings, checked against those the results folder was
-    // made with before any mesh is trained.
-    let mut options = Vec::new();
-    let mut settings = CorpusSettings {
-        eval_points: flags.eval_points,
-        ..Default::default()
-    };
-    for &model in &models {
-        let o = flags.options(model, preset, &models)?;
-        settings
-            .models
-            .insert(model.name().to_owned(), o.settings(gpu.is_cpu())?);
-        options.push(o);
-    }
-    state.claim(&settings)?;
+    let options = claim(&state, flags.eval_points, options, preset, gpu.is_cpu())?;
     let stop = Arc::new(AtomicBool::new(false));
     {
         let stop = stop.clone();
@@ -173,115 +153,17 @@ fn corpus(args: &Args) -> Result<ExitCode, BoxError> {
         gpu.describe()
     );
 
-    let mut interrupted = false;
-    'meshes: for mesh in &mine {
-        for options in &options {
-            let model = options.model;
-            if stop.load(Ordering::Relaxed) {
-                interrupted = true;
-                break 'meshes;
-            }
-            let (rel, tag) = (&mesh.rel, model.name());
-            match state.read(rel, model) {
-                Record::Entry(Entry::Done(_)) => {
-                    eprintln!("{rel} {tag}: done earlier, skipped");
-                    continue;
-                }
-                Record::Corrupt(why) => {
-                    eprintln!(
-                        "warning: ignoring an unreadable result ({why}); {rel} {tag} is redone"
-                    )
-                }
-                Record::Missing | Record::Entry(Entry::Failed { .. }) => {}
-            }
-            let checkpoint_path = state.checkpoint(rel, model);
-            let checkpoint = if checkpoint_path.exists() {
-                match Checkpoint::load(&checkpoint_path)
-                    .and_then(|c| Ok((c.differences(options)?, c)))
-                {
-                    Ok((differences, _)) if !differences.is_empty() => {
-                        // Resuming it would put a fit of other settings in this table.
-                        eprintln!(
-                            "warning: {rel} {tag}: its checkpoint has other settings ({}); starting over",
-                            differences.join("; ")
-                        );
-                        None
-                    }
-                    Ok((_, c)) => {
-                        eprintln!(
-                            "{rel} {tag}: resuming from its checkpoint ({} done)",
-                            c.done()
-                        );
-                        Some(c)
-                    }
-                    Err(e) => {
-                        eprintln!("warning: {rel} {tag}: unusable checkpoint ({e}); starting over");
-                        None
-                    }
-                }
-            } else {
-                None
-            };
-            eprintln!("{rel} {tag}: training");
-            let outcome = run::run(
-                &gpu,
-                &mesh.path,
-                options,
-                &state.model_file(rel, model),
-                flags.eval_points,
-                checkpoint.as_ref(),
-                &stop,
-                |_| {},
-            );
-            let entry = match outcome {
-                Ok(RunOutcome::Interrupted(trained)) => {
-                    trained.checkpoint().save(&checkpoint_path)?;
-                    eprintln!(
-                        "{rel} {tag}: interrupted after {}; checkpoint written to {}",
-                        trained.done,
-                        checkpoint_path.display()
-                    );
-                    interrupted = true;
-                    break 'meshes;
-                }
-                Ok(RunOutcome::Finished(report, _)) => {
-                    eprintln!(
-                        "{rel} {tag}: F1 box {}, near {}, {:.0} s",
-                        corpus::f1_cell(report.f1_bbox),
-                        corpus::f1_cell(report.f1_near_surface),
-                        report.train_seconds
-                    );
-                    Entry::Done(report)
-                }
-                Err(e) => {
-                    eprintln!("{rel} {tag}: failed: {e}");
-                    Entry::Failed {
-                        mesh: mesh.path.display().to_string(),
-                        model: tag.into(),
-                        error: e.to_string(),
-                    }
-                }
-            };
-            let done = matches!(entry, Entry::Done(_));
-            state.write(rel, model, &entry)?;
-            if checkpoint_path.exists() {
-                if done {
-                    // The result supersedes the checkpoint it was resumed from.
-                    let _ = std::fs::remove_file(&checkpoint_path);
-                } else {
-                    // A failure (a full disk, a lost device) must not cost the training done.
-                    eprintln!(
-                        "{rel} {tag}: its checkpoint {} is kept for the next run",
-                        checkpoint_path.display()
-                    );
-                }
-            }
+    let pairs = mine
+        .iter()
+        .flat_map(|m| options.iter().map(move |o| (*m, o)));
+    for (mesh, options) in pairs {
+        if stop.load(Ordering::Relaxed)
+            || train_one(&gpu, &state, mesh, options, flags.eval_points, &stop)?
+                == Trained::Interrupted
+        {
+            eprintln!("stopped; run the same command again to resume");
+            return Ok(ExitCode::from(130));
         }
-    }
-
-    if interrupted {
-        eprintln!("stopped; run the same command again to resume");
-        return Ok(ExitCode::from(130));
     }
     match shard {
         // No shard writes the table: the merge is its only writer.
@@ -296,6 +178,149 @@ fn corpus(args: &Args) -> Result<ExitCode, BoxError> {
             Ok(ExitCode::SUCCESS)
         }
         None => merge(args, &state, &meshes, &models),
+    }
+}
+
+/// Every model's options over the run's `preset`, with their settings checked against those
+/// the results folder was made with (and recorded there by its first run), before any mesh is
+/// trained.
+fn claim(
+    state: &StateDir,
+    eval_points: usize,
+    options: Vec<TrainOptions>,
+    preset: Preset,
+    cpu_adapter: bool,
+) -> Result<Vec<TrainOptions>, BoxError> {
+    let mut settings = CorpusSettings {
+        eval_points,
+        ..Default::default()
+    };
+    let mut resolved = Vec::new();
+    for o in options {
+        let o = o.with_preset(preset)?;
+        settings
+            .models
+            .insert(o.model.name().to_owned(), o.settings(cpu_adapter)?);
+        resolved.push(o);
+    }
+    state.claim(&settings)?;
+    Ok(resolved)
+}
+
+/// How one mesh's run ended, as far as the corpus goes on.
+#[derive(PartialEq, Eq)]
+enum Trained {
+    /// Done, done earlier, or failed (and recorded): the next one follows.
+    Recorded,
+    /// Stopped by a signal; its checkpoint is written.
+    Interrupted,
+}
+
+/// Trains, evaluates and records one mesh with one model's `options`, unless its result is
+/// there already; resumes from its checkpoint where one of the same settings is.
+fn train_one(
+    gpu: &GpuContext,
+    state: &StateDir,
+    mesh: &CorpusMesh,
+    options: &TrainOptions,
+    eval_points: usize,
+    stop: &Arc<AtomicBool>,
+) -> Result<Trained, BoxError> {
+    let model = options.model;
+    let (rel, tag) = (&mesh.rel, model.name());
+    match state.read(rel, model) {
+        Record::Entry(Entry::Done(_)) => {
+            eprintln!("{rel} {tag}: done earlier, skipped");
+            return Ok(Trained::Recorded);
+        }
+        Record::Corrupt(why) => {
+            eprintln!("warning: ignoring an unreadable result ({why}); {rel} {tag} is redone")
+        }
+        Record::Missing | Record::Entry(Entry::Failed { .. }) => {}
+    }
+    let checkpoint_path = state.checkpoint(rel, model);
+    let checkpoint = resumable(&checkpoint_path, options, rel, tag);
+    eprintln!("{rel} {tag}: training");
+    let outcome = run::run(
+        gpu,
+        &mesh.path,
+        options,
+        &state.model_file(rel, model),
+        eval_points,
+        checkpoint.as_ref(),
+        stop,
+        |_| {},
+    );
+    let entry = match outcome {
+        Ok(RunOutcome::Interrupted(trained)) => {
+            trained.checkpoint().save(&checkpoint_path)?;
+            eprintln!(
+                "{rel} {tag}: interrupted after {}; checkpoint written to {}",
+                trained.done,
+                checkpoint_path.display()
+            );
+            return Ok(Trained::Interrupted);
+        }
+        Ok(RunOutcome::Finished(report, _)) => {
+            eprintln!(
+                "{rel} {tag}: F1 box {}, near {}, {:.0} s",
+                corpus::f1_cell(report.f1_bbox),
+                corpus::f1_cell(report.f1_near_surface),
+                report.train_seconds
+            );
+            Entry::Done(report)
+        }
+        Err(e) => {
+            eprintln!("{rel} {tag}: failed: {e}");
+            Entry::Failed {
+                mesh: mesh.path.display().to_string(),
+                model: tag.into(),
+                error: e.to_string(),
+            }
+        }
+    };
+    let done = matches!(entry, Entry::Done(_));
+    state.write(rel, model, &entry)?;
+    if checkpoint_path.exists() {
+        if done {
+            // The result supersedes the checkpoint it was resumed from.
+            let _ = std::fs::remove_file(&checkpoint_path);
+        } else {
+            // A failure (a full disk, a lost device) must not cost the training done.
+            eprintln!(
+                "{rel} {tag}: its checkpoint {} is kept for the next run",
+                checkpoint_path.display()
+            );
+        }
+    }
+    Ok(Trained::Recorded)
+}
+
+/// The checkpoint at `path` if a run of `options` may resume it; else (none, unreadable, or
+/// of other settings, which would put a fit of those in this table) `None`, with a warning.
+fn resumable(path: &Path, options: &TrainOptions, rel: &str, tag: &str) -> Option<Checkpoint> {
+    if !path.exists() {
+        return None;
+    }
+    match Checkpoint::load(path).and_then(|c| Ok((c.differences(options)?, c))) {
+        Ok((differences, _)) if !differences.is_empty() => {
+            eprintln!(
+                "warning: {rel} {tag}: its checkpoint has other settings ({}); starting over",
+                differences.join("; ")
+            );
+            None
+        }
+        Ok((_, c)) => {
+            eprintln!(
+                "{rel} {tag}: resuming from its checkpoint ({} done)",
+                c.done()
+            );
+            Some(c)
+        }
+        Err(e) => {
+            eprintln!("warning: {rel} {tag}: unusable checkpoint ({e}); starting over");
+            None
+        }
     }
 }
 

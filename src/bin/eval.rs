@@ -9,6 +9,7 @@ use std::path::PathBuf;
 use std::process::ExitCode;
 
 use clap::Parser;
+use hwsdf::cli::{GpuFlags, check_eval_points};
 use hwsdf::eval::metrics::{DEFAULT_EVAL_POINTS, EVAL_SEED, SurfaceMetrics};
 use hwsdf::eval::run::{self, Evaluation};
 use hwsdf::nn::siren::LayerKernels;
@@ -43,6 +44,8 @@ struct Args {
     /// glTF: also follow buffer URIs outside the mesh's folder (absolute paths, `..`, symbolic links).
     #[arg(long)]
     allow_external_uris: bool,
+    #[command(flatten)]
+    gpu: GpuFlags,
 }
 
 fn main() -> ExitCode {
@@ -57,10 +60,7 @@ fn main() -> ExitCode {
 }
 
 fn eval(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
-    if args.points == 0 {
-        return Err("--points must be at least 1".into());
-    }
-    run::check_eval_points(args.points)?;
+    check_eval_points("--points", args.points)?;
     // Checked before the evaluation it would otherwise follow.
     let max = hwsdf::geom::extract::MAX_RESOLUTION;
     if args.surface_resolution == 1 || args.surface_resolution > max {
@@ -88,7 +88,7 @@ fn eval(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
             args.mesh.display()
         );
     }
-    let gpu = GpuContext::new()?;
+    let gpu = args.gpu.open()?;
     let truth = run::GroundTruth::new(mesh, &args.mesh)?;
     if args.siren_kernels == LayerKernels::CoopF16 && gpu.coop_f16_tile().is_none() {
         eprintln!(
@@ -99,31 +99,7 @@ fn eval(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
     let Evaluation {
         scores, latency, ..
     } = run::evaluate(&gpu, &model, &truth, args.points)?;
-    // A model that never changes sign in the box (one trained for a few steps, say) has no
-    // surface to compare: its surface figures are null, with the reason, and the rest stands.
-    let mut surface_null_reason = None;
-    let surface = if args.surface_resolution > 0 {
-        let (extracted, _) = run::extract_mesh(&gpu, &model, args.surface_resolution)?;
-        if extracted.triangles.is_empty() {
-            surface_null_reason = Some(format!(
-                "the model's level set has no triangles at {}³: it does not change sign in the box",
-                args.surface_resolution
-            ));
-            None
-        } else {
-            // Compare in the normalised frame, like every other figure here.
-            let extracted = extracted.transformed(&model.normalization());
-            Some(SurfaceMetrics::between(
-                &extracted,
-                &truth.mesh,
-                &truth.sdf,
-                args.points.min(100_000),
-                EVAL_SEED,
-            )?)
-        }
-    } else {
-        None
-    };
+    let (surface, surface_null_reason) = surface(&gpu, &model, &truth, args)?;
     let report = json!({
         "model": args.model.display().to_string(),
         "mesh": args.mesh.display().to_string(),
@@ -213,4 +189,40 @@ fn eval(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
         println!("adapter          {}", gpu.describe());
     }
     Ok(())
+}
+
+/// The surface figures (Chamfer-L1, normal consistency) of the mesh extracted from `model` at
+/// `--surface-resolution`, or why there are none. A model that never changes sign in the box
+/// (one trained for a few steps, say) has no surface to compare: its surface figures are null,
+/// with the reason, and the rest stands.
+fn surface(
+    gpu: &GpuContext,
+    model: &NeuralSdf,
+    truth: &run::GroundTruth,
+    args: &Args,
+) -> Result<(Option<SurfaceMetrics>, Option<String>), Box<dyn std::error::Error>> {
+    let mut surface_null_reason = None;
+    let surface = if args.surface_resolution > 0 {
+        let (extracted, _) = run::extract_mesh(gpu, model, args.surface_resolution)?;
+        if extracted.triangles.is_empty() {
+            surface_null_reason = Some(format!(
+                "the model's level set has no triangles at {}³: it does not change sign in the box",
+                args.surface_resolution
+            ));
+            None
+        } else {
+            // Compare in the normalised frame, like every other figure here.
+            let extracted = extracted.transformed(&model.normalization());
+            Some(SurfaceMetrics::between(
+                &extracted,
+                &truth.mesh,
+                &truth.sdf,
+                args.points.min(100_000),
+                EVAL_SEED,
+            )?)
+        }
+    } else {
+        None
+    };
+    Ok((surface, surface_null_reason))
 }

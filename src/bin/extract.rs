@@ -10,9 +10,10 @@ use std::process::ExitCode;
 use std::time::Instant;
 
 use clap::Parser;
+use hwsdf::cli::GpuFlags;
 use hwsdf::eval::run::extract_mesh_with;
 use hwsdf::geom::extract::{EXTRACT_MEMORY_BUDGET, ExtractOptions, MAX_RESOLUTION};
-use hwsdf::nn::{GpuContext, NeuralSdf};
+use hwsdf::nn::NeuralSdf;
 
 /// Extract the zero level set of a trained neural SDF as an OBJ mesh.
 #[derive(Parser, Debug)]
@@ -34,6 +35,8 @@ struct Args {
     /// estimate, after the coarse levels (a few seconds) and before the fine ones.
     #[arg(long, default_value_t = EXTRACT_MEMORY_BUDGET as f64 / GIB)]
     max_memory_gib: f64,
+    #[command(flatten)]
+    gpu: GpuFlags,
 }
 
 const GIB: f64 = (1u64 << 30) as f64;
@@ -63,7 +66,7 @@ fn extract(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
     hwsdf::geom::io::check_outputs(&[&args.model], &[&args.out])?;
     let mut model = NeuralSdf::load(&args.model)?;
     model.set_lod(args.lod)?;
-    let gpu = GpuContext::new()?;
+    let gpu = args.gpu.open()?;
     let start = Instant::now();
     let options = ExtractOptions {
         max_bytes: (args.max_memory_gib * GIB).min(u64::MAX as f64) as u64,

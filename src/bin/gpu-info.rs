@@ -1,11 +1,24 @@
 //! Prints the adapter HW SDF would use, then (on stderr) every adapter wgpu can see with the
 //! index and PCI bus id that `--adapter` / `HWSDF_ADAPTER` take.
 //!
-//! `HWSDF_ADAPTER`, `WGPU_ADAPTER_NAME` and `WGPU_BACKEND` are honoured exactly as in training.
+//! `--adapter`, `HWSDF_ADAPTER`, `WGPU_ADAPTER_NAME` and `WGPU_BACKEND` are honoured exactly as
+//! in training: `gpu-info --adapter X` shows the adapter `train --adapter X` would use.
 
 use std::process::ExitCode;
 
+use clap::Parser;
+use hwsdf::cli::GpuFlags;
+
+/// Show the adapter HW SDF would use, and every adapter it can choose from.
+#[derive(Parser, Debug)]
+#[command(version, about)]
+struct Args {
+    #[command(flatten)]
+    gpu: GpuFlags,
+}
+
 fn main() -> ExitCode {
+    let args = Args::parse();
     let all = hwsdf::nn::gpu::list_adapters();
     eprintln!(
         "adapters wgpu can see (--adapter / HWSDF_ADAPTER take the index, the PCI bus id or part of the name):"
@@ -16,7 +29,7 @@ fn main() -> ExitCode {
     for a in &all {
         eprintln!("  {a}");
     }
-    match hwsdf::nn::GpuContext::new() {
+    match args.gpu.open() {
         Ok(gpu) => {
             println!("{}", gpu.describe());
             println!(

@@ -11,7 +11,8 @@ use std::path::PathBuf;
 use std::process::ExitCode;
 
 use clap::Parser;
-use hwsdf::nn::{GpuContext, NeuralSdf, RenderOptions, Renderer};
+use hwsdf::cli::GpuFlags;
+use hwsdf::nn::{NeuralSdf, RenderOptions, Renderer};
 
 /// Render a neural SDF model (SIREN or NGLOD) to a PNG by sphere tracing on the GPU.
 #[derive(Parser, Debug)]
@@ -40,6 +41,8 @@ struct Args {
     /// Transparent background instead of a dark grey one.
     #[arg(long)]
     transparent: bool,
+    #[command(flatten)]
+    gpu: GpuFlags,
 }
 
 /// `512x512`, `640X480` or `256`.
@@ -94,7 +97,7 @@ fn run(args: &Args) -> Result<(), String> {
     // Check the options before the (slow) device and shader setup.
     options.validate().map_err(|e| e.to_string())?;
 
-    let gpu = GpuContext::new().map_err(|e| e.to_string())?;
+    let gpu = args.gpu.open().map_err(|e| e.to_string())?;
     let start = std::time::Instant::now();
     // A model whose sums overflow (NaN or ∞ everywhere) would sphere-trace every pixel to its
     // step limit and save a blank image: refuse it, as `eval` does.

@@ -15,14 +15,11 @@ use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 
 use clap::{Parser, ValueEnum};
+use hwsdf::cli::{GpuFlags, TrainingFlags, format_loss};
 use hwsdf::eval::run::{self, ModelKind, NglodArchitecture, Progress};
 use hwsdf::geom::io;
-use hwsdf::nn::{DistanceMode, GpuContext, NeuralSdf};
+use hwsdf::nn::{DistanceMode, NeuralSdf};
 use indicatif::{ProgressBar, ProgressStyle};
-
-#[path = "common/flags.rs"]
-mod flags;
-use flags::TrainingFlags;
 
 #[derive(Clone, Copy, Debug, ValueEnum)]
 enum Model {
@@ -53,6 +50,8 @@ struct Args {
     resume: Option<PathBuf>,
     #[command(flatten)]
     training: TrainingFlags,
+    #[command(flatten)]
+    gpu: GpuFlags,
 }
 
 /// The exit status of a run stopped by Ctrl-C or SIGTERM (its checkpoint written), as a shell
@@ -84,31 +83,9 @@ fn train(args: &Args) -> Result<Outcome, Box<dyn std::error::Error>> {
         Model::Nglod => ModelKind::Nglod,
     };
     let flags = &args.training;
-    flags.check(&[model])?;
-    let out = args
-        .out
-        .clone()
-        .unwrap_or_else(|| default_out(&args.mesh, model));
-    let report_path = args
-        .report
-        .clone()
-        .unwrap_or_else(|| out.with_extension("json"));
-    if args.report.is_none() && report_path == out {
-        return Err(format!(
-            "--out {} would also be the report's default name (the model's with .json): give \
-             the model another name, or the report one with --report",
-            out.display()
-        )
-        .into());
-    }
-    let checkpoint = checkpoint_path(&out);
-    // Before any work: no output may replace the mesh, the checkpoint resumed from or another
-    // output, and each folder must take a new file. The checkpoint an interrupted run writes
-    // may replace the one it resumed from: that is the same run, further on.
-    let mut inputs = vec![args.mesh.as_path()];
-    inputs.extend(args.resume.as_deref());
-    io::check_outputs(&inputs, &[&out, &report_path])?;
-    io::check_outputs(&[&args.mesh], &[&out, &report_path, &checkpoint])?;
+    // One model, one set of options.
+    let options = flags.options(&[model])?.remove(0);
+    let paths = Paths::new(args, model)?;
     // Load the mesh and the checkpoint before the GPU: bad input is reported at once.
     let uris = hwsdf::geom::LoadOptions::with_external_uris(args.allow_external_uris);
     let (mesh, normalization) = run::load_normalized_with(&args.mesh, &uris)?;
@@ -121,20 +98,22 @@ fn train(args: &Args) -> Result<Outcome, Box<dyn std::error::Error>> {
     if let Some(c) = &resume {
         c.check_model(model)?;
     }
-    let gpu = GpuContext::new()?;
-    let preset = flags.preset_for(model, gpu.is_cpu());
+    let gpu = args.gpu.open()?;
+    let options = options.with_preset(flags.preset_for(model, gpu.is_cpu()))?;
     if flags.preset.is_none() && gpu.is_cpu() {
-        let length = match model {
-            _ if flags.epochs.is_some() || flags.steps.is_some() => "",
-            ModelKind::Nglod => " and as many epochs as about a minute of training buys here",
-            ModelKind::Siren => " and a shorter default run",
+        let length = options.length(true);
+        let length = if length.asked.is_some() {
+            ""
+        } else if length.time_budget.is_some() {
+            " and as many epochs as about a minute of training buys here"
+        } else {
+            " and a shorter default run"
         };
         eprintln!(
             "note: CPU adapter; using the `{}` preset{length} (pass --preset/--epochs/--steps to override)",
-            preset.name()
+            options.preset.name()
         );
     }
-    let options = flags.options(model, preset, &[model])?;
     // The exact SDF once, for the check below, the trainer's samples and the evaluation; after
     // every cheap check, since on a scan of millions of triangles it takes seconds.
     let truth = run::GroundTruth::new(mesh, &args.mesh)?;
@@ -152,23 +131,131 @@ fn train(args: &Args) -> Result<Outcome, Box<dyn std::error::Error>> {
     let changed = match model {
         ModelKind::Nglod => options
             .nglod_architecture
-            .differences(&NglodArchitecture::default().config(preset, flags.seed)?),
+            .differences(&NglodArchitecture::default().config(options.preset, flags.seed)?),
         ModelKind::Siren => Vec::new(),
     };
     eprintln!(
         "training {} ({}{}) on {} with {}",
         model.name(),
-        preset.name(),
+        options.preset.name(),
         changed.iter().map(|c| format!("; {c}")).collect::<String>(),
         args.mesh.display(),
         gpu.describe()
     );
 
-    let stop = Arc::new(AtomicBool::new(false));
-    let evaluating = Arc::new(AtomicBool::new(false));
-    {
-        let stop = stop.clone();
-        let evaluating = evaluating.clone();
+    let signals = Signals::install()?;
+    let mut reporter = Reporter::new();
+    let trained = run::train(
+        &gpu,
+        &truth,
+        normalization,
+        &options,
+        resume.as_ref(),
+        &signals.stop,
+        |p| reporter.update(p),
+    )?;
+    reporter.finish();
+
+    if trained.interrupted {
+        trained.checkpoint().save(&paths.checkpoint)?;
+        eprintln!(
+            "interrupted after {} {}s; checkpoint written to {}. Continue with:\n  {}",
+            trained.done,
+            model.unit(),
+            paths.checkpoint.display(),
+            resume_command(std::env::args_os(), &paths.checkpoint)
+        );
+        return Ok(Outcome::Interrupted);
+    }
+
+    trained.file.save(&paths.out)?;
+    let file_bytes = std::fs::metadata(&paths.out)?.len();
+    eprintln!(
+        "saved {} ({} bytes); evaluating",
+        paths.out.display(),
+        file_bytes
+    );
+    signals.evaluating.store(true, Ordering::Relaxed);
+    if signals.stop.load(Ordering::Relaxed) {
+        // Ctrl-C came after the last step but before the evaluation began.
+        eprintln!("interrupted; the model is saved, no report written");
+        std::process::exit(INTERRUPTED.into());
+    }
+    let sdf = NeuralSdf::from_model_file(trained.file.clone())?;
+    let eval = run::evaluate(&gpu, &sdf, &truth, flags.eval_points)?;
+    // The report's atomic write is not cut short by a late Ctrl-C.
+    signals.evaluating.store(false, Ordering::Relaxed);
+    let report = run::Report::new(
+        &args.mesh,
+        &options,
+        &trained,
+        file_bytes,
+        &eval,
+        gpu.describe(),
+    );
+    report.write(&paths.report)?;
+    print_summary(&args.mesh, model, &report);
+    eprintln!("report written to {}", paths.report.display());
+    Ok(Outcome::Finished)
+}
+
+/// Where a run writes: the model, its report, and the checkpoint an interruption leaves.
+struct Paths {
+    out: PathBuf,
+    report: PathBuf,
+    checkpoint: PathBuf,
+}
+
+impl Paths {
+    /// The paths `args` ask for or default to, checked before any work: no output may replace
+    /// the mesh, the checkpoint resumed from or another output, and each folder must take a new
+    /// file. The checkpoint an interrupted run writes may replace the one it resumed from: that
+    /// is the same run, further on.
+    fn new(args: &Args, model: ModelKind) -> Result<Self, Box<dyn std::error::Error>> {
+        let out = args
+            .out
+            .clone()
+            .unwrap_or_else(|| default_out(&args.mesh, model));
+        let report = args
+            .report
+            .clone()
+            .unwrap_or_else(|| out.with_extension("json"));
+        if args.report.is_none() && report == out {
+            return Err(format!(
+                "--out {} would also be the report's default name (the model's with .json): give \
+                 the model another name, or the report one with --report",
+                out.display()
+            )
+            .into());
+        }
+        let checkpoint = checkpoint_path(&out);
+        let mut inputs = vec![args.mesh.as_path()];
+        inputs.extend(args.resume.as_deref());
+        io::check_outputs(&inputs, &[&out, &report])?;
+        io::check_outputs(&[&args.mesh], &[&out, &report, &checkpoint])?;
+        Ok(Paths {
+            out,
+            report,
+            checkpoint,
+        })
+    }
+}
+
+/// What Ctrl-C and SIGTERM have asked: `stop` after the current step, and whether the
+/// evaluation (which has nothing to keep) has begun.
+struct Signals {
+    stop: Arc<AtomicBool>,
+    evaluating: Arc<AtomicBool>,
+}
+
+impl Signals {
+    fn install() -> Result<Self, ctrlc::Error> {
+        let signals = Signals {
+            stop: Arc::new(AtomicBool::new(false)),
+            evaluating: Arc::new(AtomicBool::new(false)),
+        };
+        let stop = signals.stop.clone();
+        let evaluating = signals.evaluating.clone();
         ctrlc::set_handler(move || {
             // The model is saved by then; the evaluation has nothing to keep.
             if evaluating.load(Ordering::Relaxed) {
@@ -183,58 +270,12 @@ fn train(args: &Args) -> Result<Outcome, Box<dyn std::error::Error>> {
             }
             eprintln!("\nstopping after the current step; Ctrl-C again to abort without saving");
         })?;
+        Ok(signals)
     }
+}
 
-    let mut reporter = Reporter::new();
-    let trained = run::train(
-        &gpu,
-        &truth,
-        normalization,
-        &options,
-        resume.as_ref(),
-        &stop,
-        |p| reporter.update(p),
-    )?;
-    reporter.finish();
-
-    if trained.interrupted {
-        trained.checkpoint().save(&checkpoint)?;
-        eprintln!(
-            "interrupted after {} {}s; checkpoint written to {}. Continue with:\n  {}",
-            trained.done,
-            if model == ModelKind::Siren {
-                "step"
-            } else {
-                "epoch"
-            },
-            checkpoint.display(),
-            resume_command(std::env::args_os(), &checkpoint)
-        );
-        return Ok(Outcome::Interrupted);
-    }
-
-    trained.file.save(&out)?;
-    let file_bytes = std::fs::metadata(&out)?.len();
-    eprintln!("saved {} ({} bytes); evaluating", out.display(), file_bytes);
-    evaluating.store(true, Ordering::Relaxed);
-    if stop.load(Ordering::Relaxed) {
-        // Ctrl-C came after the last step but before the evaluation began.
-        eprintln!("interrupted; the model is saved, no report written");
-        std::process::exit(INTERRUPTED.into());
-    }
-    let sdf = NeuralSdf::from_model_file(trained.file.clone())?;
-    let eval = run::evaluate(&gpu, &sdf, &truth, flags.eval_points)?;
-    // The report's atomic write is not cut short by a late Ctrl-C.
-    evaluating.store(false, Ordering::Relaxed);
-    let report = run::Report::new(
-        &args.mesh,
-        &options,
-        &trained,
-        file_bytes,
-        &eval,
-        gpu.describe(),
-    );
-    report.write(&report_path)?;
+/// The run's one line of figures (and its sign errors) on stdout.
+fn print_summary(mesh: &Path, model: ModelKind, report: &run::Report) {
     let f4 = |x: Option<f64>| x.map_or_else(|| "n/a".to_owned(), |v| format!("{v:.4}"));
     let chamfer = report
         .chamfer_l1
@@ -242,7 +283,7 @@ fn train(args: &Args) -> Result<Outcome, Box<dyn std::error::Error>> {
         .unwrap_or_default();
     println!(
         "{} {}: F1 box {}, near surface {}, mean {}; |Φ−d| near {:.5}{chamfer}; {:.1} ns/point, {:.0} µs per 3000; {} params, {} bytes; trained in {:.1} s",
-        args.mesh.display(),
+        mesh.display(),
         model.name(),
         f4(report.f1_bbox),
         f4(report.f1_near_surface),
@@ -257,8 +298,6 @@ fn train(args: &Args) -> Result<Outcome, Box<dyn std::error::Error>> {
     if let Some(e) = report.sign_errors_bbox.filter(|e| e.total() > 0) {
         println!("sign errors in the box: {e}");
     }
-    eprintln!("report written to {}", report_path.display());
-    Ok(Outcome::Finished)
 }
 
 /// The command that continues this run: its own arguments (every flag, `--out` and the preset
@@ -332,8 +371,10 @@ impl Reporter {
 
     fn update(&mut self, p: &Progress) {
         let msg = format!(
-            "loss {:.5}  lr {:.1e}  {:.0} points/s",
-            p.loss, p.lr, p.points_per_second
+            "loss {}  lr {:.1e}  {:.0} points/s",
+            format_loss(p.loss),
+            p.lr,
+            p.points_per_second
         );
         if std::io::stderr().is_terminal() {
             let bar = self.bar.get_or_insert_with(|| {

@@ -13,6 +13,7 @@ pub fn bin(name: &str) -> Command {
         "extract" => env!("CARGO_BIN_EXE_extract"),
         "corpus" => env!("CARGO_BIN_EXE_corpus"),
         "gpu-info" => env!("CARGO_BIN_EXE_gpu-info"),
+        "render" => env!("CARGO_BIN_EXE_render"),
         other => panic!("no binary {other}"),
     })
 }

@@ -10,19 +10,16 @@
 //! what it did per epoch.
 
 use std::collections::VecDeque;
-use std::ops::Range;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Instant;
 
 use glam::Vec3;
-use rand::{Rng, SeedableRng};
-use rand_pcg::Pcg64;
-use rayon::prelude::*;
 use sdf_geom::{Mesh, SignedDistance};
 use serde::{Deserialize, Serialize};
 
 use super::gpu::TrainKernels;
+use super::pool::{Block, Pool, PoolSchedule, sample_block};
 use super::{Nglod, NglodError, NglodGpu, Objective, ScatterMode};
 use crate::adam::{Adam, AdamConfig};
 use crate::gpu::GpuContext;
@@ -48,6 +45,13 @@ impl DistanceMode {
         }
     }
 }
+
+/// Epochs of a run by default ([`NglodTrainConfig::default`]), and of `train`'s and `corpus`'s
+/// runs on a GPU (their CPU time budget stops there too). 100: the default preset on the 20
+/// shared meshes, 12 epochs 0.993 / 0.963 F1 (box / near the surface), 100 epochs 0.997 / 0.982
+/// (0.997 / 0.981 with today's band of 0 cells); on six of them 50 epochs 0.969 near, 100
+/// epochs 0.976 (BENCHMARKS.md, measured on lavapipe). The pool makes it cheap.
+pub const DEFAULT_EPOCHS: usize = 100;
 
 /// Training settings. The defaults are the design document's, plus the sample pool.
 #[derive(Clone, Debug, PartialEq)]
@@ -134,11 +138,7 @@ impl TimeBudget {
 impl Default for NglodTrainConfig {
     fn default() -> Self {
         NglodTrainConfig {
-            // 100: the default preset on the 20 shared meshes, 12 epochs 0.993 / 0.963 F1 (box /
-            // near the surface), 100 epochs 0.997 / 0.982 (0.997 / 0.981 with today's band of
-            // 0 cells); on six of them 50 epochs 0.969 near, 100 epochs 0.976 (BENCHMARKS.md,
-            // measured on lavapipe). The pool makes it cheap.
-            epochs: 100,
+            epochs: DEFAULT_EPOCHS,
             batch_size: 2048,
             adam: AdamConfig::default(),
             objective: Objective::Full,
@@ -164,12 +164,12 @@ impl Default for NglodTrainConfig {
 }
 
 impl NglodTrainConfig {
-    fn points_per_epoch(&self) -> usize {
+    pub(super) fn points_per_epoch(&self) -> usize {
         self.uniform_points + self.near_points + self.surface_points
     }
 
     /// The pool's schedule.
-    fn pool(&self) -> PoolSchedule {
+    pub(super) fn pool(&self) -> PoolSchedule {
         PoolSchedule {
             blocks: self.pool_blocks,
             refresh_every: self.refresh_every,
@@ -195,40 +195,6 @@ impl NglodTrainConfig {
             Some(g) if g > 0 => (1 + epoch / g).min(levels),
             _ => levels,
         }
-    }
-}
-
-/// When each block of the sample pool is drawn and which blocks an epoch draws from. Block `k`
-/// is sampled with a seed derived from `k`, so the pool of any epoch can be rebuilt (resume).
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub struct PoolSchedule {
-    /// Blocks kept.
-    pub blocks: usize,
-    /// Epochs between new blocks once the pool is full.
-    pub refresh_every: usize,
-}
-
-impl PoolSchedule {
-    /// The first epoch that draws from block `k`: one new block per epoch until the pool is full
-    /// (so the first epoch waits for one block only), then one every `refresh_every` epochs.
-    pub fn due(&self, k: usize) -> usize {
-        let p = self.blocks.max(1);
-        if k < p {
-            k
-        } else {
-            (p - 1) + (k - p + 1) * self.refresh_every.max(1)
-        }
-    }
-
-    /// The blocks in the pool during `epoch`.
-    pub fn blocks_at(&self, epoch: usize) -> Range<usize> {
-        let p = self.blocks.max(1);
-        let last = if epoch < p {
-            epoch
-        } else {
-            (p - 1) + (epoch - (p - 1)) / self.refresh_every.max(1)
-        };
-        (last + 1).saturating_sub(p)..last + 1
     }
 }
 
@@ -282,99 +248,15 @@ pub struct TrainReport {
     pub inside_fraction: Option<f64>,
 }
 
-/// One block of the pool: an epoch's worth of labelled points (not shuffled: epochs draw from
-/// the pool in random order). The first `uniform_points` are the uniform box points.
-struct Block {
-    points: Vec<Vec3>,
-    targets: Vec<f32>,
-    seconds: f64,
-}
-
-/// Draws and labels block `k` of the pool (on the calling thread plus rayon's pool).
-fn sample_block(mesh: &Mesh, sdf: &SignedDistance, c: &NglodTrainConfig, k: usize) -> Block {
-    let t = Instant::now();
-    let seed = c.seed ^ (k as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15);
-    let mut points = sdf_geom::sample::uniform_box(c.uniform_points, seed);
-    points.extend(sdf_geom::sample::near_surface(
-        mesh,
-        c.near_points,
-        c.sigma,
-        seed ^ 1,
-    ));
-    let mut targets = match c.distance {
-        DistanceMode::Signed => sdf.signed_distance_batch(&points),
-        // No winding number needed: the closest point alone gives |d|.
-        DistanceMode::Unsigned => sdf
-            .closest_point_batch(&points)
-            .iter()
-            .map(|c| c.distance)
-            .collect(),
-    };
-    // Surface samples lie on the mesh by construction: their exact distance is 0, so the
-    // distance query is skipped for them (40% of the points).
-    let surface = sdf_geom::sample::surface(mesh, c.surface_points, seed ^ 2).points;
-    targets.resize(points.len() + surface.len(), 0.0);
-    points.extend(surface);
-    Block {
-        points,
-        targets,
-        seconds: t.elapsed().as_secs_f64(),
-    }
-}
-
-/// The order in which epoch `epoch` visits the pool: `n` distinct indices below `pool_len`, in
-/// random order (a partial Fisher–Yates shuffle seeded by the run's seed and the epoch).
-fn epoch_order(pool_len: usize, n: usize, seed: u64, epoch: usize) -> Vec<u32> {
-    let mut rng = Pcg64::seed_from_u64(
-        seed ^ 0xD1B5_4A32_D192_ED03 ^ (epoch as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15),
-    );
-    let mut idx: Vec<u32> = (0..pool_len as u32).collect();
-    let n = n.min(pool_len);
-    for i in 0..n {
-        let j = rng.random_range(i..pool_len);
-        idx.swap(i, j);
-    }
-    idx.truncate(n);
-    idx
-}
-
-/// The labelled pool: the blocks of [`PoolSchedule::blocks_at`] for the current epoch.
-struct Pool {
-    blocks: VecDeque<(usize, Block)>,
-    cap: usize,
-}
-
-impl Pool {
-    fn push(&mut self, k: usize, b: Block) {
-        self.blocks.push_back((k, b));
-        while self.blocks.len() > self.cap {
-            self.blocks.pop_front();
-        }
-    }
-
-    fn len(&self) -> usize {
-        self.blocks.iter().map(|(_, b)| b.points.len()).sum()
-    }
-
-    /// Epoch `epoch`'s points and targets in its order.
-    fn draw(&self, n: usize, seed: u64, epoch: usize) -> (Vec<Vec3>, Vec<f32>) {
-        let order = epoch_order(self.len(), n, seed, epoch);
-        let mut starts = Vec::with_capacity(self.blocks.len());
-        let mut acc = 0usize;
-        for (_, b) in &self.blocks {
-            starts.push(acc);
-            acc += b.points.len();
-        }
-        order
-            .par_iter()
-            .with_min_len(4096)
-            .map(|&i| {
-                let i = i as usize;
-                let b = starts.partition_point(|&s| s <= i) - 1;
-                let blk = &self.blocks[b].1;
-                (blk.points[i - starts[b]], blk.targets[i - starts[b]])
-            })
-            .unzip()
+impl TrainReport {
+    /// Counts an epoch in, `last_loss` its last read-back.
+    fn add(&mut self, epoch: EpochStats, last_loss: f32) {
+        self.steps += epoch.steps;
+        self.gpu_seconds += epoch.gpu_seconds;
+        self.sampling_seconds += epoch.sampling_seconds;
+        self.stall_seconds += epoch.stall_seconds;
+        self.final_loss = last_loss;
+        self.epochs.push(epoch);
     }
 }
 
@@ -614,6 +496,25 @@ impl<'g> NglodTrainer<'g> {
         let batch = config.batch_size.min(n);
         let steps_per_epoch = n.div_ceil(batch) as usize;
         let schedule = config.pool();
+        let mut stepper = Stepper {
+            gpu,
+            points,
+            targets,
+            adam,
+            kernels,
+            config,
+            n,
+            batch,
+            steps_per_epoch,
+        };
+        let should_stop = || {
+            config
+                .max_seconds
+                .is_some_and(|m| start.elapsed().as_secs_f64() >= m)
+                || stop_flag
+                    .as_ref()
+                    .is_some_and(|f| f.load(Ordering::Relaxed))
+        };
 
         std::thread::scope(|scope| -> Result<(), NglodError> {
             let spawn = |k: usize| scope.spawn(move || sample_block(mesh, sdf, config, k));
@@ -636,13 +537,7 @@ impl<'g> NglodTrainer<'g> {
                 new_sampling += b.seconds;
                 pool.push(k, b);
             }
-            if config.distance == DistanceMode::Signed
-                && let Some((_, b)) = pool.blocks.front()
-            {
-                let u = &b.targets[..config.uniform_points.min(b.targets.len())];
-                report.inside_fraction =
-                    Some(u.iter().filter(|&&d| d < 0.0).count() as f64 / u.len().max(1) as f64);
-            }
+            report.inside_fraction = pool.inside_fraction(config);
             let mut stall = wait.elapsed().as_secs_f64();
             let mut next_block = initial.end;
             let mut pending = (schedule.due(next_block) < end_epoch).then(|| spawn(next_block));
@@ -669,74 +564,23 @@ impl<'g> NglodTrainer<'g> {
                 let (p, t) = pool.draw(n as usize, config.seed, e);
                 let sampling = new_sampling + draw.elapsed().as_secs_f64();
                 new_sampling = 0.0;
-                let gpu_start = Instant::now();
-                gpu.write(points, bytemuck::cast_slice::<Vec3, f32>(&p))?;
-                gpu.write(targets, &t)?;
-                drop((p, t));
                 let lod = config.levels_at(e, levels);
-                kernels.set_lod(config.objective, lod);
                 // A resumed epoch skips the steps it had done.
-                let skip = if e == first_epoch {
-                    *epoch_steps_done
-                } else {
-                    0
-                };
-                let mut steps = 0;
-                let (mut loss_sum, mut loss_reads) = (0.0f64, 0usize);
-                let mut since_read = 0u32;
-                let mut last_loss = f32::NAN;
-                let mut stop = false;
-                let mut lr = config.adam.lr;
-                let mut first = (skip as u32).saturating_mul(batch).min(n);
-                let mut step_in_epoch = skip;
-                while first < n {
-                    let nb = batch.min(n - first);
-                    lr = config.lr_at(
-                        (e as f64 + step_in_epoch as f64 / steps_per_epoch as f64)
-                            / end_epoch as f64,
-                    );
-                    adam.config.lr = lr;
-                    let mut enc = gpu.device().create_command_encoder(&Default::default());
-                    kernels.record(gpu, &mut enc, first, nb)?;
-                    adam.record_step(gpu, &mut enc, 1.0 / nb as f32);
-                    gpu.queue().submit([enc.finish()]);
-                    first += nb;
-                    steps += 1;
-                    step_in_epoch += 1;
-                    since_read += nb;
-                    *steps_done += 1;
-                    if steps % config.loss_every == 0 || first >= n {
-                        let s: Vec<f32> = gpu.read_back_range(&kernels.stats, 0, 1)?;
-                        gpu.zero(&kernels.stats);
-                        let loss = s[0] / since_read as f32;
-                        since_read = 0;
-                        if !loss.is_finite() {
-                            return Err(NglodError::Diverged {
-                                epoch: e,
-                                step: *steps_done - 1,
-                                loss,
-                            });
-                        }
-                        last_loss = loss;
-                        loss_sum += f64::from(loss);
-                        loss_reads += 1;
-                        if config
-                            .max_seconds
-                            .is_some_and(|m| start.elapsed().as_secs_f64() >= m)
-                            || stop_flag
-                                .as_ref()
-                                .is_some_and(|f| f.load(Ordering::Relaxed))
-                        {
-                            stop = true;
-                            break;
-                        }
-                    }
-                }
-                gpu.wait()?;
-                let gpu_seconds = gpu_start.elapsed().as_secs_f64();
+                let skip = (e == first_epoch).then_some(*epoch_steps_done);
+                let run = EpochSteps::run(
+                    &mut stepper,
+                    (e, lod, end_epoch),
+                    (p, t),
+                    skip.unwrap_or(0),
+                    steps_done,
+                    should_stop,
+                )?;
                 // A fresh run with a time budget plans its length after its first two epochs.
                 let fresh = first_epoch == 0 && e < 2;
-                if let Some(b) = config.time_budget.filter(|_| fresh && !stop && first >= n) {
+                if let Some(b) = config
+                    .time_budget
+                    .filter(|_| fresh && !run.stop && run.first >= n)
+                {
                     let elapsed = start.elapsed().as_secs_f64();
                     end_epoch = b.epochs(epochs, e + 1, elapsed, elapsed - epoch_began);
                     if pending.is_none() && schedule.due(next_block) < end_epoch {
@@ -745,33 +589,26 @@ impl<'g> NglodTrainer<'g> {
                 }
                 let stats = EpochStats {
                     epoch: e,
-                    steps,
-                    loss: (loss_sum / loss_reads.max(1) as f64) as f32,
-                    gpu_seconds,
+                    steps: run.steps,
+                    loss: run.mean_loss,
+                    gpu_seconds: run.gpu_seconds,
                     sampling_seconds: sampling,
                     stall_seconds: stall,
-                    lr,
+                    lr: run.lr,
                     levels: lod,
                     planned: end_epoch - first_epoch,
                 };
                 stall = 0.0;
                 on_epoch(&stats);
-                report.steps += steps;
-                report.gpu_seconds += stats.gpu_seconds;
-                report.sampling_seconds += stats.sampling_seconds;
-                report.stall_seconds += stats.stall_seconds;
-                report.final_loss = last_loss;
-                report.epochs.push(stats);
+                report.add(stats, run.last_loss);
                 // An epoch stopped part-way stays unfinished, with its steps recorded, so a
                 // resume runs the rest of it instead of skipping it.
-                if first >= n {
-                    *epochs_done = e + 1;
-                    *epoch_steps_done = 0;
+                (*epochs_done, *epoch_steps_done) = if run.first >= n {
+                    (e + 1, 0)
                 } else {
-                    *epochs_done = e;
-                    *epoch_steps_done = step_in_epoch;
-                }
-                if stop {
+                    (e, run.step_in_epoch)
+                };
+                if run.stop {
                     report.stopped_early = true;
                     // Let the pending sampler finish (scope joins it); its work is discarded.
                     break;
@@ -783,6 +620,130 @@ impl<'g> NglodTrainer<'g> {
         })?;
         report.total_seconds = start.elapsed().as_secs_f64();
         Ok(report)
+    }
+}
+
+/// What the GPU side of an epoch works with: the epoch's points are uploaded; its optimiser
+/// steps run on them.
+struct Stepper<'a> {
+    gpu: &'a GpuContext,
+    points: &'a wgpu::Buffer,
+    targets: &'a wgpu::Buffer,
+    adam: &'a mut Adam,
+    kernels: &'a mut TrainKernels,
+    config: &'a NglodTrainConfig,
+    /// Points per epoch.
+    n: u32,
+    /// Points per step.
+    batch: u32,
+    steps_per_epoch: usize,
+}
+
+/// What one epoch's optimiser steps did.
+#[derive(Clone, Copy)]
+struct EpochSteps {
+    /// Steps run (those a resume skipped not counted).
+    steps: usize,
+    /// Mean of the loss read-backs.
+    mean_loss: f32,
+    /// The last loss read back.
+    last_loss: f32,
+    /// Learning rate of the last step.
+    lr: f32,
+    /// The first point not trained on: `n` once the epoch is done.
+    first: u32,
+    /// Steps done within the epoch, skipped ones included.
+    step_in_epoch: usize,
+    /// Whether `should_stop` ended the epoch part-way.
+    stop: bool,
+    /// Wall time of the upload, the steps and the final wait.
+    gpu_seconds: f64,
+}
+
+impl EpochSteps {
+    /// Uploads epoch `e`'s points and targets and runs the epoch on its first `lod` levels, in a
+    /// run planned to `end_epoch`, from its step `skip` on, reading the loss
+    /// back every `loss_every` steps and at the end, and stopping after a read-back once
+    /// `should_stop` says so. `steps_done` counts every step of the run.
+    fn run(
+        s: &mut Stepper<'_>,
+        (e, lod, end_epoch): (usize, usize, usize),
+        (points, targets): (Vec<Vec3>, Vec<f32>),
+        skip: usize,
+        steps_done: &mut usize,
+        should_stop: impl Fn() -> bool,
+    ) -> Result<Self, NglodError> {
+        let start = Instant::now();
+        let Stepper {
+            gpu,
+            points: points_buffer,
+            targets: targets_buffer,
+            ref mut adam,
+            ref mut kernels,
+            config,
+            n,
+            batch,
+            steps_per_epoch,
+        } = *s;
+        gpu.write(points_buffer, bytemuck::cast_slice::<Vec3, f32>(&points))?;
+        gpu.write(targets_buffer, &targets)?;
+        drop((points, targets));
+        kernels.set_lod(config.objective, lod);
+        let mut steps = 0;
+        let (mut loss_sum, mut loss_reads) = (0.0f64, 0usize);
+        let mut since_read = 0u32;
+        let mut last_loss = f32::NAN;
+        let mut stop = false;
+        let mut lr = config.adam.lr;
+        let mut first = (skip as u32).saturating_mul(batch).min(n);
+        let mut step_in_epoch = skip;
+        while first < n {
+            let nb = batch.min(n - first);
+            lr = config.lr_at(
+                (e as f64 + step_in_epoch as f64 / steps_per_epoch as f64) / end_epoch as f64,
+            );
+            adam.config.lr = lr;
+            let mut enc = gpu.device().create_command_encoder(&Default::default());
+            kernels.record(gpu, &mut enc, first, nb)?;
+            adam.record_step(gpu, &mut enc, 1.0 / nb as f32);
+            gpu.queue().submit([enc.finish()]);
+            first += nb;
+            steps += 1;
+            step_in_epoch += 1;
+            since_read += nb;
+            *steps_done += 1;
+            if steps % config.loss_every == 0 || first >= n {
+                let s: Vec<f32> = gpu.read_back_range(&kernels.stats, 0, 1)?;
+                gpu.zero(&kernels.stats);
+                let loss = s[0] / since_read as f32;
+                since_read = 0;
+                if !loss.is_finite() {
+                    return Err(NglodError::Diverged {
+                        epoch: e,
+                        step: *steps_done - 1,
+                        loss,
+                    });
+                }
+                last_loss = loss;
+                loss_sum += f64::from(loss);
+                loss_reads += 1;
+                if should_stop() {
+                    stop = true;
+                    break;
+                }
+            }
+        }
+        gpu.wait()?;
+        Ok(EpochSteps {
+            gpu_seconds: start.elapsed().as_secs_f64(),
+            steps,
+            mean_loss: (loss_sum / loss_reads.max(1) as f64) as f32,
+            last_loss,
+            lr,
+            first,
+            step_in_epoch,
+            stop,
+        })
     }
 }
 
@@ -840,41 +801,6 @@ impl NglodTrainer<'_> {
 mod tests {
     use super::*;
 
-    fn spot() -> (Mesh, SignedDistance) {
-        let path = concat!(env!("CARGO_MANIFEST_DIR"), "/../../tests/data/spot.obj");
-        let (mesh, _) = sdf_geom::load_mesh(path).expect("tests/data/spot.obj");
-        let (unit, _) = mesh.normalized();
-        let sdf = SignedDistance::new(&unit).unwrap();
-        (unit, sdf)
-    }
-
-    fn small_config(seed: u64) -> NglodTrainConfig {
-        NglodTrainConfig {
-            uniform_points: 500,
-            near_points: 1000,
-            surface_points: 1000,
-            seed,
-            ..Default::default()
-        }
-    }
-
-    fn pool_at(
-        mesh: &Mesh,
-        sdf: &SignedDistance,
-        c: &NglodTrainConfig,
-        epoch: usize,
-    ) -> (Vec<usize>, Pool) {
-        let blocks = c.pool().blocks_at(epoch);
-        let mut pool = Pool {
-            blocks: VecDeque::new(),
-            cap: c.pool_blocks,
-        };
-        for k in blocks.clone() {
-            pool.push(k, sample_block(mesh, sdf, c, k));
-        }
-        (blocks.collect(), pool)
-    }
-
     #[test]
     fn a_time_budget_fits_epochs_between_its_bounds() {
         let b = TimeBudget {
@@ -898,119 +824,6 @@ mod tests {
             "the least wins over max_epochs"
         );
         assert_eq!(b.epochs(3, 1, 0.0, 0.0), 100, "an epoch of no time");
-    }
-
-    #[test]
-    fn schedule_fills_the_pool_then_replaces_one_block_every_few_epochs() {
-        let s = PoolSchedule {
-            blocks: 4,
-            refresh_every: 3,
-        };
-        // The pool grows by one block per epoch, so epoch 0 waits for one block only.
-        assert_eq!(s.blocks_at(0), 0..1);
-        assert_eq!(s.blocks_at(3), 0..4);
-        // Then the oldest block is replaced every third epoch: a partial redraw.
-        assert_eq!(s.blocks_at(5), 0..4);
-        assert_eq!(s.blocks_at(6), 1..5);
-        assert_eq!(s.blocks_at(9), 2..6);
-        // `due` and `blocks_at` agree: an epoch holds the newest blocks already due.
-        for e in 0..60 {
-            let r = s.blocks_at(e);
-            assert!(r.clone().all(|k| s.due(k) <= e), "epoch {e}: {r:?}");
-            assert!(s.due(r.end) > e, "epoch {e}: {r:?}");
-            assert_eq!(r.len(), (e + 1).min(4));
-        }
-        // One block, refreshed every epoch: fresh points every epoch, as before the pool.
-        let old = PoolSchedule {
-            blocks: 1,
-            refresh_every: 1,
-        };
-        for e in 0..10 {
-            assert_eq!(old.blocks_at(e), e..e + 1);
-        }
-    }
-
-    #[test]
-    fn epoch_orders_are_fresh_every_epoch_and_deterministic_in_the_seed() {
-        let a = epoch_order(10_000, 2_500, 7, 3);
-        assert_eq!(a, epoch_order(10_000, 2_500, 7, 3));
-        assert_ne!(a, epoch_order(10_000, 2_500, 7, 4));
-        assert_ne!(a, epoch_order(10_000, 2_500, 8, 3));
-        // Distinct indices in range: a draw without replacement.
-        let mut s = a.clone();
-        s.sort_unstable();
-        s.dedup();
-        assert_eq!(s.len(), 2_500);
-        assert!(s.iter().all(|&i| i < 10_000));
-        // Drawing the whole pool is a permutation.
-        let mut all = epoch_order(1_000, 1_000, 1, 0);
-        all.sort_unstable();
-        assert_eq!(all, (0..1_000).collect::<Vec<u32>>());
-    }
-
-    #[test]
-    fn pool_draws_are_deterministic_fresh_and_partly_redrawn() {
-        let (mesh, sdf) = spot();
-        let c = small_config(5);
-        let n = c.points_per_epoch();
-        let (ids, pool) = pool_at(&mesh, &sdf, &c, 4);
-        assert_eq!(ids, vec![0, 1, 2, 3]);
-        assert_eq!(pool.len(), 4 * n);
-        let (p, t) = pool.draw(n, c.seed, 4);
-        assert_eq!(p.len(), n);
-        // The same seed rebuilds the same pool and draw (what a resume relies on).
-        let (_, again) = pool_at(&mesh, &sdf, &c, 4);
-        assert_eq!(again.draw(n, c.seed, 4), (p.clone(), t.clone()));
-        // Another seed gives other points.
-        let (_, other) = pool_at(&mesh, &sdf, &small_config(6), 4);
-        assert_ne!(other.draw(n, 6, 4).0, p);
-        // The next epoch draws the same pool in a fresh order, and from all of it.
-        let (p5, _) = pool.draw(n, c.seed, 5);
-        assert_ne!(p5, p);
-        let blocks_hit = |pts: &[Vec3]| {
-            let mut hit = [false; 4];
-            for q in pts {
-                for (b, (_, blk)) in pool.blocks.iter().enumerate() {
-                    if blk.points.contains(q) {
-                        hit[b] = true;
-                    }
-                }
-            }
-            hit
-        };
-        assert_eq!(blocks_hit(&p[..200]), [true; 4]);
-        // Every drawn point keeps its label.
-        for (q, d) in p.iter().zip(&t).take(300) {
-            let exact = sdf.signed_distance(*q);
-            assert!(*d == 0.0 || (*d - exact).abs() < 1e-6, "{q} {d} {exact}");
-        }
-        // Partial redraw: at epoch 7 (refresh every 4) block 4 replaces block 0, the rest stay.
-        let (ids7, pool7) = pool_at(&mesh, &sdf, &c, 7);
-        assert_eq!(ids7, vec![1, 2, 3, 4]);
-        for i in 0..3 {
-            assert_eq!(pool7.blocks[i].1.points, pool.blocks[i + 1].1.points);
-        }
-        assert_ne!(pool7.blocks[3].1.points, pool.blocks[3].1.points);
-    }
-
-    #[test]
-    fn unsigned_targets_are_absolute_distances() {
-        let (mesh, sdf) = spot();
-        let signed = sample_block(&mesh, &sdf, &small_config(1), 0);
-        let unsigned = sample_block(
-            &mesh,
-            &sdf,
-            &NglodTrainConfig {
-                distance: DistanceMode::Unsigned,
-                ..small_config(1)
-            },
-            0,
-        );
-        assert_eq!(signed.points, unsigned.points);
-        assert!(signed.targets.iter().any(|&d| d < 0.0));
-        for (s, u) in signed.targets.iter().zip(&unsigned.targets) {
-            assert!((s.abs() - u).abs() < 1e-6, "{s} {u}");
-        }
     }
 
     #[test]

@@ -1,11 +1,12 @@
 //! The training flags `train` and `corpus` share: one definition, so that both binaries take the
-//! same options with the same meaning, defaults and checks. Each includes this file with
-//! `#[path = "common/flags.rs"] mod flags;`.
+//! same options with the same meaning, defaults and checks. They become [`TrainOptions`], whose
+//! [`TrainOptions::validate`] is their one check and whose [`TrainOptions::length`] settles the
+//! default length.
 
 use clap::ValueEnum;
-use hwsdf::eval::metrics::DEFAULT_EVAL_POINTS;
-use hwsdf::eval::run::{self, ModelKind, NglodArchitecture, Preset, RunError, TrainOptions};
-use hwsdf::nn::{DistanceMode, LossWeights};
+use sdf_eval::metrics::DEFAULT_EVAL_POINTS;
+use sdf_eval::run::{ModelKind, NglodArchitecture, Preset, RunError, TrainOptions};
+use sdf_nn::{DistanceMode, LossWeights};
 
 /// `--preset`.
 #[derive(Clone, Copy, Debug, ValueEnum)]
@@ -126,25 +127,24 @@ impl TrainingFlags {
             .unwrap_or_else(|| Preset::for_adapter(cpu_adapter, model))
     }
 
-    /// Checks every flag for a run of `models` before the GPU is opened or a mesh is read: the
-    /// evaluation's size, and [`Self::options`] of each model (the preset's exact choice waits
-    /// for the adapter; only NGLOD's checks depend on it, and its default is `default`).
-    pub fn check(&self, models: &[ModelKind]) -> Result<(), RunError> {
-        if self.eval_points == 0 {
-            return Err(RunError::Options("--eval-points must be at least 1".into()));
-        }
-        run::check_eval_points(self.eval_points)?;
-        for &model in models {
-            self.options(model, self.preset().unwrap_or(Preset::Default), models)?;
-        }
-        Ok(())
+    /// Every model's options for a run of `models`, each flag checked once, before the GPU is
+    /// opened or a mesh is read: the evaluation's size, then [`TrainOptions::validate`] of each
+    /// model's options. Their preset is the one asked for, else `default` until the adapter is
+    /// open: [`TrainOptions::with_preset`] then sets the adapter's ([`Self::preset_for`]).
+    pub fn options(&self, models: &[ModelKind]) -> Result<Vec<TrainOptions>, RunError> {
+        super::check_eval_points("--eval-points", self.eval_points)?;
+        let preset = self.preset().unwrap_or(Preset::Default);
+        models
+            .iter()
+            .map(|&model| self.model_options(model, preset, models))
+            .collect()
     }
 
     /// The options of `model`'s runs in a run of `models`, validated. A flag that applies to one
     /// model only goes to that model when both run (`--steps` to SIREN, `--epochs` and the
     /// NGLOD flags to NGLOD, the loss weights to SIREN), and is an error when only the other
     /// runs. `--lr` is refused when both run: their defaults differ tenfold.
-    pub fn options(
+    fn model_options(
         &self,
         model: ModelKind,
         preset: Preset,
@@ -226,9 +226,11 @@ fn parse_pool(s: &str) -> Result<(usize, usize), String> {
     let (a, b) = s
         .split_once(',')
         .ok_or_else(|| format!("expected BLOCKS,EVERY, not {s:?}"))?;
-    let parse = |x: &str| match x.trim().parse::<usize>() {
-        Ok(v) if v > 0 => Ok(v),
-        _ => Err(format!("{x:?} is not a positive integer")),
+    // Zeros parse: TrainOptions::validate refuses them, for the library's callers too.
+    let parse = |x: &str| {
+        x.trim()
+            .parse::<usize>()
+            .map_err(|_| format!("{x:?} is not a positive integer"))
     };
     Ok((parse(a)?, parse(b)?))
 }

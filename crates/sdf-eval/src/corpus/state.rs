@@ -1,0 +1,385 @@
+//! The results folder `<out>.d/` every shard shares: the settings it was made with, one result
+//! file (and model, and checkpoint) per mesh and model under a name no other pair shares, each
+//! written atomically.
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+use serde::{Deserialize, Serialize};
+
+use super::{CorpusError, stable_hash};
+use crate::run::{ModelKind, Report, RunSettings};
+
+/// What a corpus run asks for: the evaluation's size and each model's [`RunSettings`]. The first
+/// run or shard writes them into `<out>.d/settings.json` and every later one must ask for the
+/// same ([`StateDir::claim`]), so that a table never mixes results of different settings and a
+/// rerun with other flags cannot silently skip meshes as done.
+#[derive(Clone, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct CorpusSettings {
+    /// Points in each evaluation set.
+    pub eval_points: usize,
+    /// Each model's settings, by model name.
+    pub models: BTreeMap<String, RunSettings>,
+}
+
+impl CorpusSettings {
+    /// How these settings differ from `recorded`, as `name asked, not recorded` lines: the
+    /// evaluation, and each model both have (a model only one side has is no conflict: its
+    /// results are kept apart by name).
+    pub fn differences(&self, recorded: &CorpusSettings) -> Vec<String> {
+        let mut out = Vec::new();
+        if self.eval_points != recorded.eval_points {
+            out.push(format!(
+                "eval points {}, not {}",
+                self.eval_points, recorded.eval_points
+            ));
+        }
+        for (model, settings) in &self.models {
+            if let Some(theirs) = recorded.models.get(model) {
+                out.extend(
+                    settings
+                        .differences(theirs)
+                        .into_iter()
+                        .map(|d| format!("{model} {d}")),
+                );
+            }
+        }
+        out
+    }
+}
+
+/// One mesh × model outcome, as kept on disk.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+#[serde(untagged)]
+pub enum Entry {
+    /// Trained and evaluated.
+    Done(Box<Report>),
+    /// Failed with this error (retried by the next run).
+    Failed {
+        /// The mesh file.
+        mesh: String,
+        /// `"siren"` or `"nglod"`.
+        model: String,
+        /// The error.
+        error: String,
+    },
+}
+
+/// What a mesh's result file holds.
+#[derive(Debug)]
+pub enum Record {
+    /// No file yet.
+    Missing,
+    /// A finished or failed run.
+    Entry(Entry),
+    /// A file that does not parse (a writer killed by hand, a disk error): it is never merged,
+    /// and the next run redoes the mesh.
+    Corrupt(String),
+}
+
+/// The folder of per-mesh results, `<out>.d/`, shared by every shard.
+#[derive(Clone, Debug)]
+pub struct StateDir {
+    dir: PathBuf,
+}
+
+impl StateDir {
+    /// The folder that belongs to the table `out`.
+    pub fn for_table(out: &Path) -> Self {
+        StateDir {
+            dir: PathBuf::from(format!("{}.d", out.display())),
+        }
+    }
+
+    /// Its path.
+    pub fn path(&self) -> &Path {
+        &self.dir
+    }
+
+    /// Creates the folder (and its parents) if needed.
+    pub fn create(&self) -> Result<(), CorpusError> {
+        // "File exists (os error 17)" alone does not say that the state folder's name is taken.
+        if self.dir.exists() && !self.dir.is_dir() {
+            return Err(CorpusError::Io {
+                path: self.dir.clone(),
+                source: std::io::Error::new(
+                    std::io::ErrorKind::AlreadyExists,
+                    "a file has the name of the results' state folder (the table's name + .d); \
+                     move it or choose another --out",
+                ),
+            });
+        }
+        std::fs::create_dir_all(&self.dir).map_err(|source| CorpusError::Io {
+            path: self.dir.clone(),
+            source,
+        })
+    }
+
+    /// The stem of every file of `mesh` × `model`: the relative path itself where it is a
+    /// plain file name, otherwise the path with unsafe characters replaced and a hash of the
+    /// whole relative path appended, so that no two meshes share a name.
+    pub fn stem(rel: &str, model: ModelKind) -> String {
+        let plain = !rel.is_empty()
+            && !rel.starts_with('.')
+            && rel
+                .chars()
+                .all(|c| c.is_ascii_alphanumeric() || matches!(c, '.' | '_' | '-'));
+        let base = if plain {
+            rel.to_owned()
+        } else {
+            let cleaned: String = rel
+                .chars()
+                .map(|c| {
+                    if c.is_ascii_alphanumeric() || matches!(c, '.' | '-') {
+                        c
+                    } else {
+                        '_'
+                    }
+                })
+                .collect();
+            let cleaned = cleaned.trim_start_matches(['.', '_']);
+            let tail: String = cleaned
+                .chars()
+                .rev()
+                .take(80)
+                .collect::<Vec<_>>()
+                .into_iter()
+                .rev()
+                .collect();
+            format!("{tail}-{:08x}", stable_hash(rel) as u32)
+        };
+        format!("{base}.{}", model.name())
+    }
+
+    /// The record of the settings every result in the folder was made with.
+    pub fn settings_path(&self) -> PathBuf {
+        self.dir.join("settings.json")
+    }
+
+    /// The recorded settings, if any run has recorded them yet.
+    pub fn read_settings(&self) -> Result<Option<CorpusSettings>, CorpusError> {
+        let path = self.settings_path();
+        match std::fs::read(&path) {
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(None),
+            Err(source) => Err(CorpusError::Io { path, source }),
+            Ok(bytes) => {
+                serde_json::from_slice(&bytes)
+                    .map(Some)
+                    .map_err(|e| CorpusError::BadSettings {
+                        path,
+                        reason: e.to_string(),
+                    })
+            }
+        }
+    }
+
+    /// Records `settings` as the folder's, or checks them against those recorded: any
+    /// difference is [`CorpusError::OtherSettings`], and a model the record lacks is added to
+    /// it. Shards starting together agree on one record: the first is created without ever
+    /// replacing another's, and the rest are checked against it. A folder from before the
+    /// record existed takes the first settings claimed.
+    pub fn claim(&self, settings: &CorpusSettings) -> Result<(), CorpusError> {
+        let path = self.settings_path();
+        let io = |source| CorpusError::Io {
+            path: path.clone(),
+            source,
+        };
+        let json = |s: &CorpusSettings| serde_json::to_vec_pretty(s).expect("settings serialise");
+        // Twice at most: a shard that loses the race to create the record reads the winner's.
+        for _ in 0..2 {
+            let Some(recorded) = self.read_settings()? else {
+                match sdf_geom::io::create_atomic(&path, &json(settings)) {
+                    Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => continue,
+                    other => return other.map_err(io),
+                }
+            };
+            let differences = settings.differences(&recorded);
+            if !differences.is_empty() {
+                return Err(CorpusError::OtherSettings {
+                    dir: self.dir.clone(),
+                    differences,
+                });
+            }
+            let mut merged = recorded.clone();
+            for (model, s) in &settings.models {
+                merged
+                    .models
+                    .entry(model.clone())
+                    .or_insert_with(|| s.clone());
+            }
+            if merged != recorded {
+                sdf_geom::io::write_atomic(&path, &json(&merged)).map_err(io)?;
+            }
+            return Ok(());
+        }
+        Err(io(std::io::Error::other(
+            "the settings record was created and removed while being read",
+        )))
+    }
+
+    /// The result file of `rel` × `model`.
+    pub fn record(&self, rel: &str, model: ModelKind) -> PathBuf {
+        self.dir.join(format!("{}.json", Self::stem(rel, model)))
+    }
+
+    /// The model file of `rel` × `model`.
+    pub fn model_file(&self, rel: &str, model: ModelKind) -> PathBuf {
+        self.dir
+            .join(format!("{}.safetensors", Self::stem(rel, model)))
+    }
+
+    /// The checkpoint an interrupted fit of `rel` × `model` leaves.
+    pub fn checkpoint(&self, rel: &str, model: ModelKind) -> PathBuf {
+        self.dir
+            .join(format!("{}.checkpoint.safetensors", Self::stem(rel, model)))
+    }
+
+    /// Reads the result of `rel` × `model`.
+    pub fn read(&self, rel: &str, model: ModelKind) -> Record {
+        let path = self.record(rel, model);
+        match std::fs::read(&path) {
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => Record::Missing,
+            Err(e) => Record::Corrupt(format!("{}: {e}", path.display())),
+            Ok(bytes) => match serde_json::from_slice::<Entry>(&bytes) {
+                Ok(entry) => Record::Entry(entry),
+                Err(e) => Record::Corrupt(format!("{}: {e}", path.display())),
+            },
+        }
+    }
+
+    /// Writes the result of `rel` × `model`, atomically.
+    pub fn write(&self, rel: &str, model: ModelKind, entry: &Entry) -> Result<(), CorpusError> {
+        let path = self.record(rel, model);
+        let json = serde_json::to_vec_pretty(entry).expect("entries serialise");
+        sdf_geom::io::write_atomic(&path, &json).map_err(|source| CorpusError::Io { path, source })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::corpus::merge;
+    use std::collections::BTreeSet;
+
+    #[test]
+    fn a_file_in_the_state_folders_place_is_named() {
+        let dir = std::env::temp_dir().join(format!("hwsdf-statefile-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let out = dir.join("r.md");
+        std::fs::write(dir.join("r.md.d"), "not a folder").unwrap();
+        let e = StateDir::for_table(&out).create().unwrap_err().to_string();
+        assert!(e.contains("r.md.d"), "{e}");
+        assert!(
+            e.contains("a file has the name of the results' state folder"),
+            "{e}"
+        );
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn names_are_unique_per_mesh_and_model() {
+        let rels = [
+            "a.obj",
+            "x/a.obj",
+            "x_a.obj",
+            "y/x/a.obj",
+            "a b.obj",
+            "a_b.obj",
+            "ünï.obj",
+            "../up.obj",
+        ];
+        let mut stems = BTreeSet::new();
+        for rel in rels {
+            for model in [ModelKind::Siren, ModelKind::Nglod] {
+                let stem = StateDir::stem(rel, model);
+                assert!(!stem.contains('/') && !stem.starts_with('.'), "{stem}");
+                assert!(
+                    stems.insert(stem.clone()),
+                    "{rel} {model:?} -> {stem} twice"
+                );
+            }
+        }
+        // Flat corpora keep the names earlier versions wrote, so old runs resume.
+        assert_eq!(
+            StateDir::stem("spot.obj", ModelKind::Nglod),
+            "spot.obj.nglod"
+        );
+    }
+
+    #[test]
+    fn a_results_folder_keeps_one_set_of_settings() {
+        use crate::run::{Preset, TrainOptions};
+        let root =
+            std::env::temp_dir().join(format!("hwsdf-corpus-settings-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&root);
+        let state = StateDir::for_table(&root.join("results.md"));
+        state.create().unwrap();
+        let nglod = |epochs: Option<usize>, cpu: bool| {
+            TrainOptions {
+                epochs,
+                ..TrainOptions::new(ModelKind::Nglod, Preset::Default)
+            }
+            .settings(cpu)
+            .unwrap()
+        };
+        let siren = TrainOptions {
+            steps: Some(50),
+            ..TrainOptions::new(ModelKind::Siren, Preset::Small)
+        };
+        let with = |models: &[(&str, RunSettings)], points: usize| CorpusSettings {
+            eval_points: points,
+            models: models
+                .iter()
+                .map(|(m, s)| (m.to_string(), s.clone()))
+                .collect(),
+        };
+        let first = with(&[("nglod", nglod(Some(12), false))], 1000);
+        assert_eq!(state.read_settings().unwrap(), None);
+        state.claim(&first).unwrap();
+        assert_eq!(state.read_settings().unwrap().as_ref(), Some(&first));
+        // The same settings, however spelt, are welcome again: 100 epochs is a GPU's default.
+        state.claim(&first).unwrap();
+        let gpu_default = with(&[("nglod", nglod(None, false))], 1000);
+        let explicit = with(&[("nglod", nglod(Some(100), false))], 1000);
+        assert!(gpu_default.differences(&explicit).is_empty());
+        // Other settings are refused with what differs, and the record stays.
+        for (other, says) in [
+            (
+                with(&[("nglod", nglod(Some(30), false))], 1000),
+                "nglod epochs 30, not 12",
+            ),
+            (
+                with(&[("nglod", nglod(Some(12), false))], 999),
+                "eval points 999, not 1000",
+            ),
+            (gpu_default, "nglod epochs 100, not 12"),
+            (
+                with(&[("nglod", nglod(None, true))], 1000),
+                "nglod epochs about 55 s of training (12 to 100), not 12",
+            ),
+        ] {
+            let e = state.claim(&other).unwrap_err();
+            assert!(matches!(&e, CorpusError::OtherSettings { .. }), "{e}");
+            assert!(e.to_string().contains(says), "{e}");
+        }
+        assert_eq!(state.read_settings().unwrap().as_ref(), Some(&first));
+        // A model the record lacks is added to it; the merged table states each model's.
+        let siren_settings = siren.settings(true).unwrap();
+        state
+            .claim(&with(&[("siren", siren_settings.clone())], 1000))
+            .unwrap();
+        let both = with(
+            &[("nglod", nglod(Some(12), false)), ("siren", siren_settings)],
+            1000,
+        );
+        assert_eq!(state.read_settings().unwrap().as_ref(), Some(&both));
+        let table = merge(&state, &[], &[ModelKind::Siren]).settings.unwrap();
+        assert_eq!(table.as_ref(), Some(&both));
+        // An unreadable record stops every run instead of being replaced.
+        std::fs::write(state.settings_path(), "{\"eval_poi").unwrap();
+        let e = state.claim(&first).unwrap_err();
+        assert!(matches!(e, CorpusError::BadSettings { .. }), "{e}");
+        assert!(merge(&state, &[], &[ModelKind::Nglod]).settings.is_err());
+        std::fs::remove_dir_all(&root).unwrap();
+    }
+}

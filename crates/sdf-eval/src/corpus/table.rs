@@ -1,0 +1,382 @@
+//! The table merged from a results folder: the design document's Markdown table with the
+//! progress of the corpus, the failures, and the meshes whose sign errors lie far from the
+//! surface.
+
+use std::collections::{BTreeMap, BTreeSet};
+use std::fmt::Write as _;
+
+use super::{CorpusError, CorpusMesh, CorpusSettings, Entry, Record, StateDir};
+use crate::run::{ModelKind, Report};
+
+/// The table built from a results folder, and what it knows about progress.
+#[derive(Debug)]
+pub struct Merge {
+    /// Finished and failed entries by model name and relative path.
+    pub entries: BTreeMap<(&'static str, String), Entry>,
+    /// Mesh × model pairs expected.
+    pub expected: usize,
+    /// Pairs without a result yet.
+    pub missing: usize,
+    /// Result files that do not parse (ignored; redone by the next run).
+    pub corrupt: Vec<String>,
+    /// The settings the results were made with (`None` for a folder from before they were
+    /// recorded), or why their record cannot be read.
+    pub settings: Result<Option<CorpusSettings>, CorpusError>,
+}
+
+/// Reads every expected result of `meshes` × `models` from `state`.
+pub fn merge(state: &StateDir, meshes: &[CorpusMesh], models: &[ModelKind]) -> Merge {
+    let mut m = Merge {
+        entries: BTreeMap::new(),
+        expected: meshes.len() * models.len(),
+        missing: 0,
+        corrupt: Vec::new(),
+        settings: state.read_settings(),
+    };
+    for mesh in meshes {
+        for &model in models {
+            match state.read(&mesh.rel, model) {
+                Record::Missing => m.missing += 1,
+                Record::Corrupt(why) => {
+                    m.missing += 1;
+                    m.corrupt.push(why);
+                }
+                Record::Entry(e) => {
+                    m.entries.insert((model.name(), mesh.rel.clone()), e);
+                }
+            }
+        }
+    }
+    m
+}
+
+/// An F1 to three decimals, or "n/a" where it is undefined (a mesh without an inside).
+pub fn f1_cell(x: Option<f64>) -> String {
+    x.map_or_else(|| "n/a".to_owned(), |v| format!("{v:.3}"))
+}
+
+/// The design document's averages (F1 in the box, F1 near the surface).
+fn reference(model: &str) -> (f64, f64) {
+    match model {
+        "siren" => (0.90, 0.89),
+        _ => (0.98, 0.94),
+    }
+}
+
+impl Merge {
+    /// Finished pairs.
+    pub fn done(&self) -> usize {
+        self.entries
+            .values()
+            .filter(|e| matches!(e, Entry::Done(_)))
+            .count()
+    }
+
+    /// Failed pairs with their errors: `(relative path, model, error)`.
+    pub fn failed(&self) -> Vec<(&str, &str, &str)> {
+        self.entries
+            .iter()
+            .filter_map(|((model, rel), e)| match e {
+                Entry::Failed { error, .. } => Some((rel.as_str(), *model, error.as_str())),
+                Entry::Done(_) => None,
+            })
+            .collect()
+    }
+
+    /// Whether every expected pair has a finished or failed result.
+    pub fn complete(&self) -> bool {
+        self.missing == 0
+    }
+
+    /// "N of M meshes done, F failed" (mesh × model pairs when several models run).
+    pub fn status(&self) -> String {
+        format!(
+            "{} of {} done, {} failed{}",
+            self.done(),
+            self.expected,
+            self.failed().len(),
+            if self.missing > 0 {
+                format!(", {} not yet run", self.missing)
+            } else {
+                String::new()
+            }
+        )
+    }
+
+    /// The design document's table: one section per model, a row per mesh, the averages and
+    /// the reference row. Depends only on the results folder, so a sharded run and a single
+    /// process over the same meshes write the same table.
+    pub fn markdown(&self) -> String {
+        let mut s = String::new();
+        let reports: Vec<&Report> = self
+            .entries
+            .values()
+            .filter_map(|e| match e {
+                Entry::Done(r) => Some(r.as_ref()),
+                Entry::Failed { .. } => None,
+            })
+            .collect();
+        let presets: BTreeSet<&str> = reports.iter().map(|r| r.preset.as_str()).collect();
+        let adapters: BTreeSet<&str> = reports.iter().map(|r| r.adapter.as_str()).collect();
+        let list = |set: &BTreeSet<&str>| {
+            if set.is_empty() {
+                "none yet".to_owned()
+            } else {
+                set.iter().copied().collect::<Vec<_>>().join("; ")
+            }
+        };
+        let _ = writeln!(
+            s,
+            "Preset `{}`, adapter {}. {}.\n",
+            list(&presets),
+            list(&adapters),
+            self.status()
+        );
+        for model in ["siren", "nglod"] {
+            let rows: Vec<_> = self
+                .entries
+                .iter()
+                .filter(|((m, _), _)| *m == model)
+                .collect();
+            if rows.is_empty() {
+                continue;
+            }
+            let _ = writeln!(s, "### {}\n", model.to_uppercase());
+            if let Ok(Some(settings)) = &self.settings {
+                if let Some(m) = settings.models.get(model) {
+                    let _ = writeln!(s, "Settings: {m}; eval points {}.\n", settings.eval_points);
+                }
+            }
+            let _ = writeln!(
+                s,
+                "| mesh | F1 in bounding box | F1 near surface | mean | train s | ns/point | µs/3000 | params | file bytes |"
+            );
+            let _ = writeln!(s, "| --- | --- | --- | --- | --- | --- | --- | --- | --- |");
+            let (mut fb, mut fnr, mut n, mut left_out) = (0.0, 0.0, 0usize, 0usize);
+            let mut done: Vec<(&str, &Report)> = Vec::new();
+            for ((_, mesh), e) in &rows {
+                match e {
+                    Entry::Done(r) => {
+                        done.push((mesh.as_str(), r.as_ref()));
+                        let _ = writeln!(
+                            s,
+                            "| {mesh} | {} | {} | {} | {:.0} | {:.0} | {:.0} | {} | {} |",
+                            f1_cell(r.f1_bbox),
+                            f1_cell(r.f1_near_surface),
+                            f1_cell(r.f1_mean),
+                            r.train_seconds,
+                            r.per_point_ns,
+                            r.batch3000_us,
+                            r.params,
+                            r.file_bytes
+                        );
+                        // A mesh without an inside has no F1: left out of the averages.
+                        if let (Some(b), Some(near)) = (r.f1_bbox, r.f1_near_surface) {
+                            fb += b;
+                            fnr += near;
+                            n += 1;
+                        } else {
+                            left_out += 1;
+                        }
+                    }
+                    Entry::Failed { error, .. } => {
+                        let _ = writeln!(
+                            s,
+                            "| {mesh} | failed: {} | | | | | | | |",
+                            error.replace('|', "/").replace('\n', " ")
+                        );
+                    }
+                }
+            }
+            if left_out > 0 {
+                let _ = writeln!(
+                    s,
+                    "| n/a: {left_out} mesh(es) without an inside (F1 undefined), left out of the average | | | | | | | | |"
+                );
+            }
+            if n > 0 {
+                let (rb, rn) = reference(model);
+                let _ = writeln!(
+                    s,
+                    "| **average ({n} meshes)** | **{:.3}** | **{:.3}** | **{:.3}** | | | | | |",
+                    fb / n as f64,
+                    fnr / n as f64,
+                    0.5 * (fb + fnr) / n as f64
+                );
+                let _ = writeln!(
+                    s,
+                    "| design document (50 meshes) | {rb:.2} | {rn:.2} | {:.3} | | | | | |",
+                    0.5 * (rb + rn)
+                );
+            }
+            if let Some(line) = wrong_regions(&done) {
+                let _ = writeln!(s, "\n{line}");
+            }
+            let _ = writeln!(s);
+        }
+        s
+    }
+}
+
+/// Meshes listed by name in [`wrong_regions`]' line.
+const WRONG_REGIONS_LISTED: usize = 5;
+
+/// What kind of sign errors a model's `done` results have, as one line under its table: the
+/// meshes with box points of the wrong sign more than 0.05 from the surface (whole regions of
+/// the wrong sign, not a displaced surface), the worst first. `None` when no result has the
+/// counts (results written before they existed).
+fn wrong_regions(done: &[(&str, &Report)]) -> Option<String> {
+    let counted: Vec<(&str, u64, u64)> = done
+        .iter()
+        .filter_map(|(mesh, r)| {
+            r.sign_errors_bbox.map(|e| {
+                (
+                    *mesh,
+                    e.false_inside.beyond_0_05(),
+                    e.false_outside.beyond_0_05(),
+                )
+            })
+        })
+        .collect();
+    if counted.is_empty() {
+        return None;
+    }
+    let uncounted = done.len() - counted.len();
+    let mut far: Vec<_> = counted.iter().filter(|c| c.1 + c.2 > 0).collect();
+    far.sort_by_key(|c| std::cmp::Reverse(c.1 + c.2));
+    let mut line = if far.is_empty() {
+        format!(
+            "Wrong-sign regions: none on {} mesh(es); every box point of the wrong sign lies within \
+             0.05 of the surface (a surface a little off, not a region of the wrong sign).",
+            counted.len()
+        )
+    } else {
+        let listed: Vec<String> = far
+            .iter()
+            .take(WRONG_REGIONS_LISTED)
+            .map(|(mesh, fi, fo)| format!("{mesh} {fi} / {fo}"))
+            .collect();
+        format!(
+            "Wrong-sign regions (box points of the wrong sign more than 0.05 from the surface, \
+             false inside / false outside): {} of {} mesh(es); {}{}.",
+            far.len(),
+            counted.len(),
+            listed.join(", "),
+            if far.len() > WRONG_REGIONS_LISTED {
+                ", ..."
+            } else {
+                ""
+            }
+        )
+    };
+    if uncounted > 0 {
+        line += &format!(" ({uncounted} result(s) predate these counts.)");
+    }
+    Some(line)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A finished NGLOD result on `mesh` whose box sign errors are `(false inside, false
+    /// outside)` counts by band (`None`: a result from before the counts).
+    fn report(mesh: &str, errors: Option<([u64; 4], [u64; 4])>) -> Report {
+        let bands = |b: [u64; 4]| {
+            serde_json::json!({
+                "within_0_01": b[0], "within_0_05": b[1], "within_0_2": b[2], "beyond_0_2": b[3]
+            })
+        };
+        let mut r = serde_json::json!({
+            "mesh": mesh, "model": "nglod", "preset": "small", "params": 1, "file_bytes": 1,
+            "f1_bbox": 0.99, "f1_near_surface": 0.95, "f1_mean": 0.97,
+            "sign_accuracy_bbox": 0.99, "sign_accuracy_near_surface": 0.95,
+            "near_surface_mean_abs_error": 0.001, "near_surface_max_abs_error": 0.01,
+            "per_point_ns": 1.0, "batch3000_us": 1.0, "gpu_per_point_ns": null,
+            "train_seconds": 1.0, "trained": 1, "final_loss": 0.0, "eval_points": 1000,
+            "adapter": "test", "hwsdf_version": "0", "training": null
+        });
+        if let Some((fi, fo)) = errors {
+            r["sign_errors_bbox"] =
+                serde_json::json!({ "false_inside": bands(fi), "false_outside": bands(fo) });
+        }
+        serde_json::from_value(r).unwrap()
+    }
+
+    #[test]
+    fn wrong_regions_name_the_meshes_with_far_sign_errors() {
+        let near_only = report("near.obj", Some(([5, 2, 0, 0], [3, 0, 0, 0])));
+        let ghost = report("ghost.obj", Some(([1, 0, 4, 30], [0, 0, 0, 0])));
+        let hollow = report("hollow.obj", Some(([0, 0, 0, 0], [0, 1, 2, 1])));
+        let old = report("old.obj", None);
+        assert_eq!(wrong_regions(&[("old.obj", &old)]), None);
+        assert_eq!(
+            wrong_regions(&[("near.obj", &near_only)]).unwrap(),
+            "Wrong-sign regions: none on 1 mesh(es); every box point of the wrong sign lies \
+             within 0.05 of the surface (a surface a little off, not a region of the wrong sign)."
+        );
+        // The worst first; the errors within 0.05 do not count.
+        let line = wrong_regions(&[
+            ("hollow.obj", &hollow),
+            ("near.obj", &near_only),
+            ("ghost.obj", &ghost),
+            ("old.obj", &old),
+        ])
+        .unwrap();
+        assert_eq!(
+            line,
+            "Wrong-sign regions (box points of the wrong sign more than 0.05 from the surface, \
+             false inside / false outside): 2 of 3 mesh(es); ghost.obj 34 / 0, hollow.obj 0 / 3. \
+             (1 result(s) predate these counts.)"
+        );
+        // Past five meshes the list ends in an ellipsis.
+        let many: Vec<Report> = (0..7)
+            .map(|i| report(&format!("m{i}.obj"), Some(([0, 0, 0, i + 1], [0; 4]))))
+            .collect();
+        let names: Vec<String> = (0..7).map(|i| format!("m{i}.obj")).collect();
+        let rows: Vec<(&str, &Report)> = names.iter().map(String::as_str).zip(&many).collect();
+        let line = wrong_regions(&rows).unwrap();
+        assert!(
+            line.contains("7 of 7 mesh(es); m6.obj 7 / 0, m5.obj 6 / 0"),
+            "{line}"
+        );
+        assert!(line.ends_with("m2.obj 3 / 0, ...."), "{line}");
+    }
+
+    #[test]
+    fn a_corrupt_record_is_never_merged() {
+        let root = std::env::temp_dir().join(format!("hwsdf-corpus-merge-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&root);
+        let state = StateDir::for_table(&root.join("results.md"));
+        state.create().unwrap();
+        let all = vec![
+            CorpusMesh::new(&root, "a.obj"),
+            CorpusMesh::new(&root, "b.obj"),
+            CorpusMesh::new(&root, "c.obj"),
+        ];
+        let failed = Entry::Failed {
+            mesh: "a.obj".into(),
+            model: "nglod".into(),
+            error: "no triangles".into(),
+        };
+        state.write("a.obj", ModelKind::Nglod, &failed).unwrap();
+        // What a writer killed half-way through a file would leave, if it wrote in place.
+        std::fs::write(state.record("b.obj", ModelKind::Nglod), "{\"mesh\": \"b.o").unwrap();
+        let m = merge(&state, &all, &[ModelKind::Nglod]);
+        assert_eq!((m.expected, m.done(), m.missing), (3, 0, 2));
+        assert_eq!(m.failed(), vec![("a.obj", "nglod", "no triangles")]);
+        assert_eq!(m.corrupt.len(), 1);
+        assert!(matches!(
+            state.read("b.obj", ModelKind::Nglod),
+            Record::Corrupt(_)
+        ));
+        let table = m.markdown();
+        assert!(
+            table.contains("0 of 3 done, 1 failed, 2 not yet run"),
+            "{table}"
+        );
+        assert!(table.contains("| a.obj | failed: no triangles"), "{table}");
+        assert!(!table.contains("b.obj"), "{table}");
+        std::fs::remove_dir_all(&root).unwrap();
+    }
+}

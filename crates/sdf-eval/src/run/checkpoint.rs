@@ -1,0 +1,345 @@
+//! Checkpoints: what an interrupted run saves (the model so far, the optimiser's moments, the
+//! progress counters) and the checks a resume makes before it continues from one.
+
+use std::path::Path;
+
+use sdf_nn::{AdamState, ModelFile, NeuralSdf, Nglod};
+
+use super::{ModelKind, NglodArchitecture, RunError, TrainOptions, Trained};
+
+/// What an interrupted run saves: the model so far, the optimiser's moments and the progress
+/// counters, in one model file (extra tensors `optimizer.m` and `optimizer.v`; metadata
+/// `training.checkpoint = true`). `train --resume` continues from it.
+#[derive(Clone, Debug)]
+pub struct Checkpoint {
+    file: ModelFile,
+    /// The file it was loaded from, which its refusals name.
+    path: Option<std::path::PathBuf>,
+}
+
+impl Checkpoint {
+    /// Reads a checkpoint, rejecting plain model files.
+    pub fn load(path: &Path) -> Result<Self, RunError> {
+        let file = ModelFile::load(path)?;
+        if file.metadata.training.get("checkpoint") != Some(&serde_json::Value::Bool(true)) {
+            return Err(RunError::Options(format!(
+                "{} is a model file, not a checkpoint of an interrupted run",
+                path.display()
+            )));
+        }
+        let c = Checkpoint {
+            file,
+            path: Some(path.to_owned()),
+        };
+        // The hyperparameters it carries get the checks the command line's get.
+        let bad = |e: String| RunError::Options(format!("checkpoint {}: {e}", path.display()));
+        c.optimizer()?.validate().map_err(bad)?;
+        if let Some(lr) = c.lr() {
+            sdf_nn::AdamConfig::check_lr(lr).map_err(bad)?;
+        }
+        // Progress it claims: a resume must neither run for ever nor report an untrained model
+        // as finished.
+        let t = &c.file.metadata.training;
+        for key in ["done", "planned", "epoch_steps_done"] {
+            match &t[key] {
+                serde_json::Value::Null => {}
+                v if v.as_u64().is_some_and(|x| x <= MAX_CHECKPOINT_PROGRESS) => {}
+                v => {
+                    return Err(bad(format!(
+                        "{key} is {v}, not a count of at most {MAX_CHECKPOINT_PROGRESS}"
+                    )));
+                }
+            }
+        }
+        if let Some(planned) = c.planned()
+            && c.done() > planned
+        {
+            return Err(bad(format!(
+                "{} epochs done of {planned} planned",
+                c.done()
+            )));
+        }
+        Ok(c)
+    }
+
+    /// Writes the checkpoint atomically.
+    pub fn save(&self, path: &Path) -> Result<(), RunError> {
+        Ok(self.file.save(path)?)
+    }
+
+    /// The model part, as a plain model file.
+    pub fn model_file(&self) -> ModelFile {
+        let mut f = self.file.clone();
+        f.tensors.retain(|t| !t.name.starts_with(OPTIMIZER_PREFIX));
+        f
+    }
+
+    /// Steps or epochs done when it was written.
+    pub fn done(&self) -> usize {
+        self.file.metadata.training["done"].as_u64().unwrap_or(0) as usize
+    }
+
+    /// NGLOD: the epochs its run planned (with the CPU time budget, more than the default), which
+    /// a resume without `--epochs` goes on to.
+    pub fn planned(&self) -> Option<usize> {
+        self.file.metadata.training["planned"]
+            .as_u64()
+            .map(|p| p as usize)
+    }
+
+    /// NGLOD: optimiser steps done within the unfinished epoch `done()`, which a resume finishes.
+    pub fn epoch_steps_done(&self) -> usize {
+        self.file.metadata.training["epoch_steps_done"]
+            .as_u64()
+            .unwrap_or(0) as usize
+    }
+
+    /// The optimiser's moments and step counter.
+    pub fn optimizer(&self) -> Result<AdamState, RunError> {
+        // The network's parameters, rebuilt from the file (which checks it): a tensor the
+        // network does not read is no parameter, and the moments are checked against the real
+        // count here, not first by the GPU.
+        let n = NeuralSdf::from_model_file(self.model_file())?.param_count();
+        let m = self.file.tensor("optimizer.m", &[n])?.to_vec();
+        let v = self.file.tensor("optimizer.v", &[n])?.to_vec();
+        let step = self.file.metadata.training["adam_step"]
+            .as_u64()
+            .and_then(|s| u32::try_from(s).ok())
+            .ok_or_else(|| self.refusal("the checkpoint has no optimiser step count".into()))?;
+        Ok(AdamState { m, v, step })
+    }
+
+    /// The learning rate when it was written (`None` if absent; a value that is not a number
+    /// reads as NaN, which the checks refuse).
+    pub fn lr(&self) -> Option<f32> {
+        let v = &self.file.metadata.training["lr"];
+        (!v.is_null()).then(|| v.as_f64().map_or(f32::NAN, |x| x as f32))
+    }
+
+    /// Errors unless this checkpoint is of a `model` model: the check a resume can make before
+    /// the adapter (which may choose the preset) is open.
+    pub fn check_model(&self, model: ModelKind) -> Result<(), RunError> {
+        let has = self.options().0;
+        if has.as_deref() == Some(model.name()) {
+            return Ok(());
+        }
+        Err(self.refusal(format!(
+            "the checkpoint is of a {} model, not {}",
+            has.as_deref().unwrap_or("unknown"),
+            model.name()
+        )))
+    }
+
+    /// Errors unless a run of `options` may continue this checkpoint: the same model and preset
+    /// (the architecture is checked when the model is built from it).
+    pub fn check_resumes(&self, options: &TrainOptions) -> Result<(), RunError> {
+        self.check_model(options.model)?;
+        let preset = self.options().1;
+        if preset.as_deref() != Some(options.preset.name()) {
+            return Err(self.refusal(format!(
+                "the checkpoint uses the {} preset, not {}",
+                preset.as_deref().unwrap_or("unknown"),
+                options.preset.name()
+            )));
+        }
+        Ok(())
+    }
+
+    /// A refusal to resume from this checkpoint, naming its file where it was loaded from one.
+    pub(super) fn refusal(&self, why: String) -> RunError {
+        RunError::Options(match &self.path {
+            Some(path) => format!("{}: {why}", path.display()),
+            None => why,
+        })
+    }
+
+    /// What of `options`' model, preset and architecture this checkpoint does not have, as
+    /// `name asked, not checkpoint's` lines (empty when a run of `options` may resume it). A
+    /// NGLOD checkpoint must have every value of the architecture `options` resolve to, not only
+    /// those given on the command line: `corpus` resumes into a table of one set of settings.
+    pub fn differences(&self, options: &TrainOptions) -> Result<Vec<String>, RunError> {
+        let mut out = Vec::new();
+        let (model, preset) = self.options();
+        for (name, asked, has) in [
+            ("model", options.model.name(), model),
+            ("preset", options.preset.name(), preset),
+        ] {
+            if has.as_deref() != Some(asked) {
+                out.push(format!(
+                    "{name} {asked}, not {}",
+                    has.as_deref().unwrap_or("unknown")
+                ));
+            }
+        }
+        if out.is_empty() && options.model == ModelKind::Nglod {
+            let resolved = options
+                .nglod_architecture
+                .config(options.preset, options.seed)?;
+            let every = NglodArchitecture {
+                resolutions: Some(resolved.resolutions),
+                sparse_levels: Some(resolved.sparse_levels),
+                feature_dim: Some(resolved.feature_dim),
+                hidden: Some(resolved.hidden),
+                band_cells: Some(resolved.band_cells),
+            };
+            let model = Nglod::from_model_file(&self.model_file())?;
+            out.extend(every.differences(model.config()));
+        }
+        Ok(out)
+    }
+
+    /// Which architecture and preset it was trained with.
+    pub fn options(&self) -> (Option<String>, Option<String>) {
+        let t = &self.file.metadata.training;
+        (
+            t["model"].as_str().map(str::to_owned),
+            t["preset"].as_str().map(str::to_owned),
+        )
+    }
+}
+
+const OPTIMIZER_PREFIX: &str = "optimizer.";
+
+/// The most steps or epochs a checkpoint may claim done or planned.
+pub const MAX_CHECKPOINT_PROGRESS: u64 = 1 << 30;
+
+impl Trained {
+    /// The checkpoint of this (interrupted) run: the model file with the optimiser's state. Like
+    /// every model file it stores NGLOD's grid features as f16, so a resumed run continues from
+    /// them rounded (by at most 2^-11 relative, far below one Adam step's change).
+    pub fn checkpoint(&self) -> Checkpoint {
+        let mut file = self.file.clone();
+        let n = self.optimizer.m.len();
+        for (name, data) in [
+            ("optimizer.m", &self.optimizer.m),
+            ("optimizer.v", &self.optimizer.v),
+        ] {
+            file.tensors
+                .push(sdf_nn::model_file::Tensor::f32(name, vec![n], data.clone()));
+        }
+        let t = &mut file.metadata.training;
+        t["checkpoint"] = true.into();
+        t["adam_step"] = self.optimizer.step.into();
+        t["lr"] = f64::from(self.lr).into();
+        t["done"] = self.done.into();
+        Checkpoint { file, path: None }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::run::Preset;
+    use sdf_nn::NglodConfig;
+
+    /// A run of `model`'s `small` preset interrupted after `done` steps or epochs, with zero
+    /// optimiser moments for its `n` parameters.
+    fn interrupted(mut file: ModelFile, model: &str, n: usize, done: usize) -> Trained {
+        file.metadata.training = serde_json::json!({"model": model, "preset": "small"});
+        Trained {
+            file,
+            train_seconds: 1.0,
+            done,
+            final_loss: 0.1,
+            interrupted: true,
+            details: serde_json::Value::Null,
+            optimizer: AdamState {
+                m: vec![0.0; n],
+                v: vec![0.0; n],
+                step: done as u32,
+            },
+            lr: 1e-3,
+        }
+    }
+
+    /// A checkpoint resumes only into a run of its own model, preset and whole architecture.
+    #[test]
+    fn checkpoint_differences_name_every_setting_it_lacks() {
+        let nglod = Nglod::new(NglodConfig::small()).unwrap();
+        let file = nglod.to_model_file(sdf_geom::Normalization::identity(), Default::default());
+        let c = interrupted(file, "nglod", nglod.param_count(), 1).checkpoint();
+        let small = TrainOptions::new(ModelKind::Nglod, Preset::Small);
+        assert!(c.differences(&small).unwrap().is_empty());
+        let default = TrainOptions::new(ModelKind::Nglod, Preset::Default);
+        assert_eq!(
+            c.differences(&default).unwrap(),
+            ["preset default, not small"]
+        );
+        let siren = TrainOptions::new(ModelKind::Siren, Preset::Small);
+        assert_eq!(c.differences(&siren).unwrap(), ["model siren, not nglod"]);
+        let mut wider = small.clone();
+        wider.nglod_architecture.hidden = Some(NglodConfig::small().hidden * 2);
+        let d = c.differences(&wider).unwrap();
+        assert_eq!(d.len(), 1, "{d:?}");
+        assert!(d[0].starts_with("hidden "), "{d:?}");
+    }
+
+    /// A checkpoint's claimed progress is checked when it loads: counts beyond any run, more
+    /// epochs done than planned, or an optimiser step at u32::MAX (which used to overflow on the
+    /// first resumed step) never reach training.
+    #[test]
+    fn checkpoints_claiming_impossible_progress_are_refused() {
+        let siren = sdf_nn::Siren::new(sdf_nn::SirenConfig::small(), 1).unwrap();
+        let n = siren.params().len();
+        let file = siren.to_model_file(sdf_geom::Normalization::identity(), Default::default());
+        let trained = interrupted(file, "siren", n, 5);
+        let dir = std::env::temp_dir().join(format!("hwsdf-ckpt-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let save = |name: &str, edit: &dyn Fn(&mut serde_json::Value)| {
+            let mut c = trained.checkpoint();
+            edit(&mut c.file.metadata.training);
+            let path = dir.join(name);
+            c.save(&path).unwrap();
+            Checkpoint::load(&path)
+        };
+        let ok = save("ok.safetensors", &|_| {}).unwrap();
+        // A tensor the network does not read changes nothing.
+        let mut extra = trained.checkpoint();
+        extra.file.tensors.push(sdf_nn::model_file::Tensor::f32(
+            "junk",
+            vec![4],
+            vec![0.0; 4],
+        ));
+        extra.save(&dir.join("extra.safetensors")).unwrap();
+        let extra = Checkpoint::load(&dir.join("extra.safetensors")).unwrap();
+        assert_eq!(extra.optimizer().unwrap().m.len(), n);
+        assert_eq!((ok.done(), ok.optimizer().unwrap().step), (5, 5));
+        // The step counter saturates instead of overflowing.
+        let max = save("step-max.safetensors", &|t| {
+            t["adam_step"] = u32::MAX.into()
+        })
+        .unwrap();
+        let mut adam = sdf_nn::AdamCpu::new(n, sdf_nn::AdamConfig::default());
+        adam.step = max.optimizer().unwrap().step;
+        let mut p = vec![0.0f64; n];
+        adam.step(&mut p, &vec![1.0; n], 1.0);
+        assert!(p.iter().all(|x| x.is_finite()));
+        for (name, edit, says) in [
+            (
+                "done-huge.safetensors",
+                &(|t: &mut serde_json::Value| t["done"] = u64::MAX.into())
+                    as &dyn Fn(&mut serde_json::Value),
+                "done is",
+            ),
+            (
+                "planned-huge.safetensors",
+                &|t: &mut serde_json::Value| t["planned"] = u64::MAX.into(),
+                "planned is",
+            ),
+            (
+                "done-past-planned.safetensors",
+                &|t: &mut serde_json::Value| t["planned"] = 3.into(),
+                "5 epochs done of 3 planned",
+            ),
+            (
+                "negative.safetensors",
+                &|t: &mut serde_json::Value| t["epoch_steps_done"] = (-1).into(),
+                "epoch_steps_done is -1",
+            ),
+        ] {
+            let e = save(name, edit).map(|_| ()).unwrap_err().to_string();
+            assert!(e.contains(says), "{name}: {e}");
+        }
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+}

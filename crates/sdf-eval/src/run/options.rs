@@ -1,0 +1,756 @@
+//! What a run is asked for and what it resolves to: the model, the size preset, the training
+//! options of `train`'s and `corpus`'s flags with their one validation
+//! ([`TrainOptions::validate`]), the defaults they fall back on ([`TrainOptions::length`],
+//! [`default_length`], [`CPU_TIME_BUDGET`]), and the settings a corpus records.
+
+use std::collections::{BTreeMap, BTreeSet};
+
+use sdf_nn::nglod::{DEFAULT_EPOCHS, TimeBudget};
+use sdf_nn::{DistanceMode, LossWeights, NglodConfig, NglodTrainConfig, SirenTrainConfig};
+use serde::{Deserialize, Serialize};
+
+use super::RunError;
+
+/// The most SIREN steps a run may ask for: a thousand times the default (about 4.5 hours on
+/// an H100), so that a mistyped length is refused instead of running for ever.
+pub const MAX_STEPS: usize = 10_000_000;
+
+/// The most NGLOD epochs a run may ask for: a thousand times the default (about 2 hours on an
+/// H100).
+pub const MAX_EPOCHS: usize = 100_000;
+
+/// Which architecture to train.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum ModelKind {
+    /// SIREN.
+    Siren,
+    /// NGLOD.
+    Nglod,
+}
+
+impl ModelKind {
+    /// `"siren"` or `"nglod"`.
+    pub fn name(self) -> &'static str {
+        match self {
+            ModelKind::Siren => "siren",
+            ModelKind::Nglod => "nglod",
+        }
+    }
+
+    /// What its length counts: `"step"` (SIREN) or `"epoch"` (NGLOD).
+    pub fn unit(self) -> &'static str {
+        match self {
+            ModelKind::Siren => "step",
+            ModelKind::Nglod => "epoch",
+        }
+    }
+}
+
+/// Size preset.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Preset {
+    /// The design document's architecture (for NGLOD with a sparse fourth level near the surface:
+    /// `NglodConfig::default_preset`).
+    Default,
+    /// A small network for CPU-only machines and tests.
+    Small,
+}
+
+impl Preset {
+    /// The preset used when none is asked for: `small` on a CPU adapter (lavapipe), where the
+    /// design document's networks train too slowly, `default` on a GPU.
+    /// NGLOD: `default` everywhere (`small` is capacity-bound and no longer saves time on
+    /// lavapipe: issue 14, BENCHMARKS.md). SIREN: `small` on a CPU adapter, `default` on a GPU.
+    pub fn for_adapter(cpu_adapter: bool, model: ModelKind) -> Self {
+        if cpu_adapter && model == ModelKind::Siren {
+            Preset::Small
+        } else {
+            Preset::Default
+        }
+    }
+
+    /// `"default"` or `"small"`.
+    pub fn name(self) -> &'static str {
+        match self {
+            Preset::Default => "default",
+            Preset::Small => "small",
+        }
+    }
+}
+
+/// What to train and for how long.
+#[derive(Clone, Debug)]
+pub struct TrainOptions {
+    /// Architecture.
+    pub model: ModelKind,
+    /// Size preset.
+    pub preset: Preset,
+    /// SIREN steps (`None`: the preset's default for the adapter).
+    pub steps: Option<usize>,
+    /// NGLOD epochs (`None`: the preset's default for the adapter).
+    pub epochs: Option<usize>,
+    /// Seed of initialisation and sampling.
+    pub seed: u64,
+    /// Initial learning rate (`None`: the model's default, 1e-4 for SIREN and 1e-3 for NGLOD).
+    pub lr: Option<f32>,
+    /// SIREN loss weights (`None`: the design document's). An error for NGLOD.
+    pub siren_weights: Option<LossWeights>,
+    /// SIREN: steps without progress of the loss before the learning rate is divided by 10
+    /// (`None`: the trainer's 500; 0 keeps it constant). An error for NGLOD.
+    pub plateau_patience: Option<usize>,
+    /// NGLOD: final learning rate as a fraction of the first, reached by cosine decay (`None`:
+    /// the trainer's default; 1 keeps it constant).
+    pub lr_final: Option<f32>,
+    /// NGLOD: add a level of detail every this many epochs (`None`: the trainer's default; 0
+    /// trains all levels from the start).
+    pub grow_every: Option<usize>,
+    /// Signed or unsigned distance (unsigned: NGLOD only).
+    pub distance: DistanceMode,
+    /// NGLOD sample pool: `(blocks, refresh_every)` (`None`: the trainer's default; `(1, 1)`
+    /// draws fresh points every epoch as before the pool).
+    pub pool: Option<(usize, usize)>,
+    /// NGLOD: an architecture other than the preset's (each value given replaces the preset's).
+    /// An error for SIREN unless empty.
+    pub nglod_architecture: NglodArchitecture,
+}
+
+impl TrainOptions {
+    /// A run of `model` over `preset` with every other option at its default (seed 0).
+    pub fn new(model: ModelKind, preset: Preset) -> Self {
+        TrainOptions {
+            model,
+            preset,
+            steps: None,
+            epochs: None,
+            seed: 0,
+            lr: None,
+            siren_weights: None,
+            plateau_patience: None,
+            lr_final: None,
+            grow_every: None,
+            distance: DistanceMode::Signed,
+            pool: None,
+            nglod_architecture: NglodArchitecture::default(),
+        }
+    }
+
+    /// Checks what can be checked without a mesh or a GPU, so that a bad option is a typed error
+    /// before any work: lengths of at least 1, every option given to the model it applies to, a
+    /// usable learning rate, final ratio, loss weights and NGLOD architecture. [`train`] runs it
+    /// too.
+    pub fn validate(&self) -> Result<(), RunError> {
+        let refuse = |why: &str| Err(RunError::Options(why.to_owned()));
+        if self.steps == Some(0) || self.epochs == Some(0) {
+            return refuse("--steps and --epochs must be at least 1");
+        }
+        if self.steps.is_some_and(|s| s > MAX_STEPS) || self.epochs.is_some_and(|e| e > MAX_EPOCHS)
+        {
+            return Err(RunError::Options(format!(
+                "--steps is at most {MAX_STEPS} and --epochs at most {MAX_EPOCHS} (a thousand \
+                 times the defaults: hours on a GPU)"
+            )));
+        }
+        match self.model {
+            ModelKind::Siren => {
+                if self.epochs.is_some() {
+                    return refuse("--epochs applies to NGLOD; SIREN trains for --steps");
+                }
+                if self.distance == DistanceMode::Unsigned {
+                    return Err(RunError::UnsignedSiren);
+                }
+                if self.lr_final.is_some() || self.grow_every.is_some() || self.pool.is_some() {
+                    return refuse(
+                        "--lr-final, --grow-every and --pool apply to NGLOD; SIREN samples its \
+                         batch every step and divides its learning rate by 10 when its loss \
+                         plateaus (--plateau-patience)",
+                    );
+                }
+                if let Some(w) = self.siren_weights {
+                    w.validate()?;
+                }
+            }
+            ModelKind::Nglod => {
+                if self.steps.is_some() {
+                    return refuse("--steps applies to SIREN; NGLOD trains for --epochs");
+                }
+                if self.siren_weights.is_some() {
+                    return refuse(
+                        "loss weights apply to SIREN; NGLOD's loss is the squared error",
+                    );
+                }
+                if self.plateau_patience.is_some() {
+                    return refuse(
+                        "--plateau-patience applies to SIREN; NGLOD's learning rate decays \
+                         along a cosine (--lr-final)",
+                    );
+                }
+                if let Some(f) = self.lr_final
+                    && !(f.is_finite() && f >= 0.0)
+                {
+                    return Err(RunError::Options(format!(
+                        "--lr-final must be finite and non-negative, not {f}"
+                    )));
+                }
+                if matches!(self.pool, Some((0, _) | (_, 0))) {
+                    return refuse("--pool takes two positive integers, BLOCKS,EVERY");
+                }
+            }
+        }
+        if let Some(lr) = self.lr {
+            sdf_nn::AdamConfig::check_lr(lr).map_err(RunError::Options)?;
+        }
+        self.nglod_architecture.check(self.model, self.preset)
+    }
+
+    /// These options over `preset` instead, e.g. the adapter's once it is open. Only NGLOD's
+    /// architecture depends on the preset, so only it is checked again.
+    pub fn with_preset(self, preset: Preset) -> Result<Self, RunError> {
+        if preset != self.preset {
+            self.nglod_architecture.check(self.model, preset)?;
+        }
+        Ok(TrainOptions { preset, ..self })
+    }
+
+    /// How long this run trains on a CPU adapter or not: the steps or epochs asked for, else
+    /// [`default_length`] (for NGLOD on a CPU adapter, [`CPU_TIME_BUDGET`] from it). The one
+    /// place a run's length is settled: [`super::train`], [`TrainOptions::settings`] and the
+    /// binaries' notes read it.
+    pub fn length(&self, cpu_adapter: bool) -> Length {
+        let asked = match self.model {
+            ModelKind::Siren => self.steps,
+            ModelKind::Nglod => self.epochs,
+        };
+        Length {
+            asked,
+            default: default_length(self.model, self.preset, cpu_adapter),
+            time_budget: (self.model == ModelKind::Nglod && asked.is_none() && cpu_adapter)
+                .then_some(CPU_TIME_BUDGET),
+        }
+    }
+
+    /// What this run asks for, as `name → value` with every default resolved to what it stands
+    /// for, so that two runs that train alike have equal settings however their options were
+    /// spelt (`--epochs 100` on a GPU and no `--epochs` there are the same run). The length
+    /// defaults depend on the adapter, hence `cpu_adapter`. A corpus run keeps these beside its
+    /// results and refuses to mix results of other settings into one table. The options are
+    /// taken as [`TrainOptions::validate`] passed them; the NGLOD architecture they resolve to
+    /// is checked as it is built.
+    pub fn settings(&self, cpu_adapter: bool) -> Result<RunSettings, RunError> {
+        let mut s = BTreeMap::new();
+        let mut put = |k: &str, v: String| s.insert(k.to_owned(), v);
+        put("preset", self.preset.name().to_owned());
+        put("seed", self.seed.to_string());
+        let length = self.length(cpu_adapter).to_string();
+        match self.model {
+            ModelKind::Siren => {
+                let d = SirenTrainConfig::default();
+                let w = self.siren_weights.unwrap_or(d.weights);
+                put("steps", length);
+                put("lr", self.lr.unwrap_or(d.lr).to_string());
+                put(
+                    "plateau patience",
+                    self.plateau_patience
+                        .unwrap_or(d.plateau_patience)
+                        .to_string(),
+                );
+                put(
+                    "loss weights",
+                    format!(
+                        "surface {}, off-surface {}, normal {}, eikonal {}, alpha {}, sign {}",
+                        w.surface, w.off_surface, w.normal, w.eikonal, w.alpha, w.sign
+                    ),
+                );
+            }
+            ModelKind::Nglod => {
+                let d = NglodTrainConfig::default();
+                let c = self.nglod_architecture.config(self.preset, self.seed)?;
+                put("epochs", length);
+                put("lr", self.lr.unwrap_or(d.adam.lr).to_string());
+                let lr_final = self.lr_final.or(d.lr_final).unwrap_or(1.0);
+                put("lr final", lr_final.to_string());
+                let grow = self.grow_every.or(d.grow_every).unwrap_or(0);
+                put("grow every", grow.to_string());
+                let (blocks, every) = self.pool.unwrap_or((d.pool_blocks, d.refresh_every));
+                put("pool", format!("{blocks},{every}"));
+                put("distance", self.distance.name().to_owned());
+                put(
+                    "architecture",
+                    format!(
+                        "resolutions {}, sparse levels {}, band cells {}, features {}, hidden {}",
+                        comma_list(&c.resolutions),
+                        c.sparse_levels,
+                        c.band_cells,
+                        c.feature_dim,
+                        c.hidden
+                    ),
+                );
+            }
+        }
+        Ok(RunSettings(s))
+    }
+}
+
+/// How long a run trains: [`TrainOptions::length`].
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Length {
+    /// The steps or epochs asked for (`--steps`, `--epochs`).
+    pub asked: Option<usize>,
+    /// The preset's default for the adapter, when none is asked for ([`default_length`]).
+    pub default: usize,
+    /// NGLOD's default on a CPU adapter: a time to fill, with `default` the least it trains.
+    pub time_budget: Option<TimeBudget>,
+}
+
+/// As the settings write it: the count asked for, else the default it stands for.
+impl std::fmt::Display for Length {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match (self.asked, self.time_budget) {
+            (Some(n), _) => write!(f, "{n}"),
+            (None, Some(b)) => write!(
+                f,
+                "about {} s of training ({} to {})",
+                b.seconds, self.default, b.max_epochs
+            ),
+            (None, None) => write!(f, "{}", self.default),
+        }
+    }
+}
+
+/// What a run asks for: [`TrainOptions::settings`].
+#[derive(Clone, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(transparent)]
+pub struct RunSettings(pub BTreeMap<String, String>);
+
+impl RunSettings {
+    /// The settings these have that `recorded` has otherwise, as `name value, not recorded`
+    /// lines (empty when they agree; a name only one side has counts too).
+    pub fn differences(&self, recorded: &RunSettings) -> Vec<String> {
+        let names: BTreeSet<&String> = self.0.keys().chain(recorded.0.keys()).collect();
+        names
+            .into_iter()
+            .filter_map(|k| {
+                let (a, r) = (self.0.get(k), recorded.0.get(k));
+                let show = |v: Option<&String>| v.map_or("unset", String::as_str).to_owned();
+                (a != r).then(|| format!("{k} {}, not {}", show(a), show(r)))
+            })
+            .collect()
+    }
+}
+
+impl std::fmt::Display for RunSettings {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let parts: Vec<String> = self.0.iter().map(|(k, v)| format!("{k} {v}")).collect();
+        f.write_str(&parts.join("; "))
+    }
+}
+
+/// Resolutions as the flags and the logs write them: `6,12,24,48`.
+fn comma_list(resolutions: &[u32]) -> String {
+    resolutions
+        .iter()
+        .map(u32::to_string)
+        .collect::<Vec<_>>()
+        .join(",")
+}
+
+/// NGLOD architecture values over a preset (`train --resolutions --sparse-levels --band-cells
+/// --features --hidden`): each one given replaces the preset's, the others stay. The result is
+/// checked by [`NglodConfig::validate`], so a bad combination is a typed error before any work.
+///
+/// ```
+/// use sdf_eval::run::{NglodArchitecture, Preset};
+///
+/// // Two sparse levels of 32 and 64 cells under dense ones of 8 and 16.
+/// let fine = NglodArchitecture {
+///     resolutions: Some(vec![8, 16, 32, 64]),
+///     sparse_levels: Some(2),
+///     ..Default::default()
+/// };
+/// let config = fine.config(Preset::Default, 0).unwrap();
+/// assert_eq!((config.feature_dim, config.hidden), (8, 128)); // the preset's
+/// ```
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
+pub struct NglodArchitecture {
+    /// Cells per axis of each level of detail, coarse to fine.
+    pub resolutions: Option<Vec<u32>>,
+    /// How many of the finest levels keep features only near the surface.
+    pub sparse_levels: Option<usize>,
+    /// Features per grid vertex, F.
+    pub feature_dim: Option<u32>,
+    /// Hidden width of the MLP, H.
+    pub hidden: Option<u32>,
+    /// How far sparse levels reach beyond the cells the surface passes through, in cells.
+    pub band_cells: Option<u32>,
+}
+
+impl NglodArchitecture {
+    /// Whether no value is given (the preset's architecture).
+    pub fn is_preset(&self) -> bool {
+        *self == Self::default()
+    }
+
+    /// Checks these values for a run of `model` over `preset`: for SIREN none may be given, for
+    /// NGLOD the configuration they make must be valid.
+    pub fn check(&self, model: ModelKind, preset: Preset) -> Result<(), RunError> {
+        match model {
+            ModelKind::Siren if !self.is_preset() => Err(RunError::Options(
+                "--resolutions, --sparse-levels, --band-cells, --features and --hidden set \
+                 NGLOD's architecture; SIREN's comes from its preset"
+                    .into(),
+            )),
+            ModelKind::Siren => Ok(()),
+            ModelKind::Nglod => self.config(preset, 0).map(drop),
+        }
+    }
+
+    /// The preset's configuration with these values over it, seeded and validated.
+    pub fn config(&self, preset: Preset, seed: u64) -> Result<NglodConfig, RunError> {
+        let base = match preset {
+            Preset::Default => NglodConfig::default_preset(),
+            Preset::Small => NglodConfig::small(),
+        };
+        let config = NglodConfig {
+            resolutions: self.resolutions.clone().unwrap_or(base.resolutions),
+            sparse_levels: self.sparse_levels.unwrap_or(base.sparse_levels),
+            feature_dim: self.feature_dim.unwrap_or(base.feature_dim),
+            hidden: self.hidden.unwrap_or(base.hidden),
+            seed,
+            band_cells: self.band_cells.unwrap_or(base.band_cells),
+        };
+        config.validate()?;
+        Ok(config)
+    }
+
+    /// The values given that `config` does not have, as `name: asked, config's` lines (empty
+    /// when it agrees with every value given).
+    pub fn differences(&self, config: &NglodConfig) -> Vec<String> {
+        let mut out = Vec::new();
+        let mut check = |name: &str, asked: Option<String>, has: String| {
+            if let Some(a) = asked.filter(|a| *a != has) {
+                out.push(format!("{name} {a}, not {has}"));
+            }
+        };
+        check(
+            "resolutions",
+            self.resolutions.as_deref().map(comma_list),
+            comma_list(&config.resolutions),
+        );
+        check(
+            "sparse levels",
+            self.sparse_levels.map(|s| s.to_string()),
+            config.sparse_levels.to_string(),
+        );
+        check(
+            "features",
+            self.feature_dim.map(|f| f.to_string()),
+            config.feature_dim.to_string(),
+        );
+        check(
+            "hidden",
+            self.hidden.map(|h| h.to_string()),
+            config.hidden.to_string(),
+        );
+        check(
+            "band cells",
+            self.band_cells.map(|b| b.to_string()),
+            config.band_cells.to_string(),
+        );
+        out
+    }
+}
+
+/// NGLOD's default run on a CPU adapter: as many epochs as about a minute of training buys
+/// there (issue 14: "the best fit that about a minute buys"), planned from the first epoch,
+/// between [`default_length`]'s and a GPU's default. On the 2-core box that is ~13 epochs with Debian 12's
+/// Mesa 22.3 and ~35 with Mesa 26.1 (BENCHMARKS.md).
+pub const CPU_TIME_BUDGET: sdf_nn::nglod::TimeBudget = sdf_nn::nglod::TimeBudget {
+    seconds: 55.0,
+    max_epochs: DEFAULT_EPOCHS,
+};
+
+/// Default SIREN steps and NGLOD epochs: what converges on a GPU for the design document's
+/// presets (the trainers' own defaults, [`SirenTrainConfig`]'s steps and
+/// [`DEFAULT_EPOCHS`]), and a budget of a few minutes on a CPU adapter (lavapipe); for NGLOD
+/// there, the least of [`CPU_TIME_BUDGET`]. Runs read it through [`TrainOptions::length`].
+pub fn default_length(model: ModelKind, preset: Preset, cpu_adapter: bool) -> usize {
+    match (model, preset, cpu_adapter) {
+        (ModelKind::Siren, _, false) => SirenTrainConfig::default().steps,
+        (ModelKind::Siren, Preset::Small, true) => 300,
+        (ModelKind::Siren, Preset::Default, true) => 100,
+        (ModelKind::Nglod, _, false) => DEFAULT_EPOCHS,
+        (ModelKind::Nglod, Preset::Small, true) => 4,
+        // About a minute on the 2-core box with lavapipe (8 epochs: 31-77 s of training under load).
+        (ModelKind::Nglod, Preset::Default, true) => 12,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn options_go_to_the_model_they_apply_to() {
+        let siren = TrainOptions::new(ModelKind::Siren, Preset::Small);
+        let nglod = TrainOptions::new(ModelKind::Nglod, Preset::Default);
+        assert!(siren.validate().is_ok() && nglod.validate().is_ok());
+        let refused = |o: TrainOptions, says: &str| {
+            let e = o.validate().unwrap_err().to_string();
+            assert!(e.contains(says), "{says:?} not in {e:?}");
+        };
+        refused(
+            TrainOptions {
+                epochs: Some(3),
+                ..siren.clone()
+            },
+            "--epochs applies to NGLOD",
+        );
+        refused(
+            TrainOptions {
+                steps: Some(0),
+                ..siren.clone()
+            },
+            "at least 1",
+        );
+        refused(
+            TrainOptions {
+                pool: Some((2, 2)),
+                ..siren.clone()
+            },
+            "apply to NGLOD",
+        );
+        refused(
+            TrainOptions {
+                distance: DistanceMode::Unsigned,
+                ..siren.clone()
+            },
+            "NGLOD only",
+        );
+        refused(
+            TrainOptions {
+                lr: Some(f32::NAN),
+                ..siren.clone()
+            },
+            "learning rate",
+        );
+        refused(
+            TrainOptions {
+                steps: Some(10),
+                ..nglod.clone()
+            },
+            "--steps applies to SIREN",
+        );
+        refused(
+            TrainOptions {
+                siren_weights: Some(LossWeights::default()),
+                ..nglod.clone()
+            },
+            "loss weights apply to SIREN",
+        );
+        refused(
+            TrainOptions {
+                plateau_patience: Some(500),
+                ..nglod.clone()
+            },
+            "--plateau-patience applies to SIREN",
+        );
+        assert!(
+            TrainOptions {
+                plateau_patience: Some(0),
+                ..siren.clone()
+            }
+            .validate()
+            .is_ok()
+        );
+        refused(
+            TrainOptions {
+                lr_final: Some(-0.5),
+                ..nglod.clone()
+            },
+            "--lr-final",
+        );
+        refused(
+            TrainOptions {
+                pool: Some((0, 4)),
+                ..nglod.clone()
+            },
+            "--pool",
+        );
+        refused(
+            TrainOptions {
+                nglod_architecture: NglodArchitecture {
+                    hidden: Some(0),
+                    ..Default::default()
+                },
+                ..nglod.clone()
+            },
+            "hidden",
+        );
+    }
+
+    #[test]
+    fn settings_resolve_every_default() {
+        let nglod = TrainOptions::new(ModelKind::Nglod, Preset::Default);
+        let spelt_out = TrainOptions {
+            epochs: Some(100),
+            lr: Some(1e-3),
+            lr_final: Some(0.1),
+            grow_every: Some(0),
+            pool: Some((4, 4)),
+            nglod_architecture: NglodArchitecture {
+                resolutions: Some(vec![6, 12, 24, 48]),
+                feature_dim: Some(8),
+                ..Default::default()
+            },
+            ..nglod.clone()
+        };
+        let gpu = nglod.settings(false).unwrap();
+        assert_eq!(gpu, spelt_out.settings(false).unwrap());
+        assert_eq!(
+            gpu.to_string(),
+            "architecture resolutions 6,12,24,48, sparse levels 1, band cells 0, features 8, \
+             hidden 128; \
+             distance signed; epochs 100; grow every 0; lr 0.001; lr final 0.1; pool 4,4; \
+             preset default; seed 0"
+        );
+        // The length a default stands for depends on the adapter.
+        let cpu = nglod.settings(true).unwrap();
+        assert_eq!(
+            cpu.differences(&gpu),
+            ["epochs about 55 s of training (12 to 100), not 100"]
+        );
+        let finer = TrainOptions {
+            nglod_architecture: NglodArchitecture {
+                hidden: Some(64),
+                ..Default::default()
+            },
+            seed: 1,
+            ..nglod
+        };
+        assert_eq!(
+            finer.settings(false).unwrap().differences(&gpu),
+            [
+                "architecture resolutions 6,12,24,48, sparse levels 1, band cells 0, features 8, \
+                 hidden 64, not resolutions 6,12,24,48, sparse levels 1, band cells 0, features 8, \
+                 hidden 128",
+                "seed 1, not 0"
+            ]
+        );
+        let siren = TrainOptions::new(ModelKind::Siren, Preset::Small);
+        let s = siren.settings(true).unwrap().to_string();
+        assert!(s.contains("steps 300"), "{s}");
+        assert!(s.contains("plateau patience 500"), "{s}");
+        let constant = TrainOptions {
+            plateau_patience: Some(0),
+            ..siren.clone()
+        };
+        assert_eq!(
+            constant
+                .settings(true)
+                .unwrap()
+                .differences(&siren.settings(true).unwrap()),
+            ["plateau patience 0, not 500"]
+        );
+        assert!(
+            s.contains(
+                "loss weights surface 3000, off-surface 100, normal 100, eikonal 5, alpha 100, sign 1000"
+            ),
+            "{s}"
+        );
+        // An architecture that does not resolve has no settings.
+        let bad = TrainOptions {
+            nglod_architecture: NglodArchitecture {
+                hidden: Some(0),
+                ..Default::default()
+            },
+            ..TrainOptions::new(ModelKind::Nglod, Preset::Small)
+        };
+        assert!(bad.settings(false).is_err());
+    }
+
+    #[test]
+    fn an_nglod_architecture_replaces_only_the_values_given() {
+        let none = NglodArchitecture::default();
+        assert!(none.is_preset());
+        let seeded = NglodConfig {
+            seed: 7,
+            ..NglodConfig::default_preset()
+        };
+        assert_eq!(none.config(Preset::Default, 7).unwrap(), seeded);
+        assert_eq!(none.config(Preset::Small, 0).unwrap(), NglodConfig::small());
+        let fine = NglodArchitecture {
+            resolutions: Some(vec![8, 16, 32, 64]),
+            sparse_levels: Some(2),
+            ..Default::default()
+        };
+        assert!(!fine.is_preset());
+        // SIREN takes no NGLOD architecture; NGLOD takes a valid one.
+        assert!(none.check(ModelKind::Siren, Preset::Small).is_ok());
+        assert!(matches!(
+            fine.check(ModelKind::Siren, Preset::Small),
+            Err(RunError::Options(_))
+        ));
+        assert!(fine.check(ModelKind::Nglod, Preset::Small).is_ok());
+        let c = fine.config(Preset::Small, 3).unwrap();
+        assert_eq!(c.resolutions, [8, 16, 32, 64]);
+        assert_eq!(
+            (c.sparse_levels, c.feature_dim, c.hidden, c.seed),
+            (2, 4, 32, 3)
+        );
+        // Agreeing with every value given is no difference; the values not given are free.
+        assert!(fine.differences(&c).is_empty());
+        assert!(
+            fine.differences(&NglodConfig {
+                hidden: 7,
+                ..c.clone()
+            })
+            .is_empty()
+        );
+        assert_eq!(
+            fine.differences(&NglodConfig::default_preset()),
+            [
+                "resolutions 8,16,32,64, not 6,12,24,48",
+                "sparse levels 2, not 1"
+            ]
+        );
+    }
+
+    #[test]
+    fn a_bad_nglod_architecture_is_a_typed_error() {
+        for bad in [
+            // More sparse levels than levels.
+            NglodArchitecture {
+                sparse_levels: Some(5),
+                ..Default::default()
+            },
+            // A sparse level above 255 cells (the default's finest level is sparse).
+            NglodArchitecture {
+                resolutions: Some(vec![8, 300]),
+                ..Default::default()
+            },
+            NglodArchitecture {
+                resolutions: Some(vec![]),
+                ..Default::default()
+            },
+            NglodArchitecture {
+                feature_dim: Some(0),
+                ..Default::default()
+            },
+            NglodArchitecture {
+                hidden: Some(0),
+                ..Default::default()
+            },
+        ] {
+            assert!(
+                bad.check(ModelKind::Nglod, Preset::Default).is_err(),
+                "{bad:?}"
+            );
+            let e = bad.config(Preset::Default, 0).unwrap_err();
+            assert!(
+                matches!(e, RunError::Nglod(sdf_nn::NglodError::InvalidConfig(_))),
+                "{bad:?}: {e}"
+            );
+        }
+    }
+}

@@ -1,0 +1,121 @@
+//! NGLOD's trainer in a run: the model from its architecture or a checkpoint (whose
+//! architecture must agree with the one asked for), the trainer's configuration from the run's
+//! options, and the epochs with progress, stopping and the record of what they planned.
+
+use std::sync::atomic::Ordering;
+
+use sdf_nn::{Nglod, NglodTrainConfig, NglodTrainer};
+
+use super::{Checkpoint, Plan, Progress, RunError, Trained, check_trained, with_run_record};
+
+/// Trains an NGLOD to `plan.total` epochs (or what its time budget plans).
+pub(super) fn train(
+    plan: &Plan<'_>,
+    mut progress: impl FnMut(&Progress),
+) -> Result<Trained, RunError> {
+    let (gpu, total) = (plan.gpu, plan.total);
+    let model = model(plan)?;
+    let first = plan.resume.map_or(0, Checkpoint::done).min(total);
+    let train_config = config(plan, total - first);
+    let per_epoch = (train_config.uniform_points
+        + train_config.near_points
+        + train_config.surface_points) as f64;
+    let mut trainer = NglodTrainer::with_ground_truth(
+        gpu,
+        &model,
+        &plan.truth.mesh,
+        plan.truth.sdf.clone(),
+        train_config,
+    )?;
+    trainer.set_stop_flag(plan.stop.clone());
+    if let Some(c) = plan.resume {
+        trainer.resume(&c.optimizer()?, first, c.epoch_steps_done())?;
+    }
+    let mut planned = total;
+    let report = trainer.train_with(|e| {
+        let done = e.epoch + 1;
+        planned = first + e.planned;
+        progress(&Progress {
+            done,
+            total: planned,
+            unit: "epoch",
+            loss: e.loss,
+            lr: e.lr,
+            points_per_second: plan.points_per_second(done - first, per_epoch),
+        });
+    })?;
+    let trained = trainer.model()?;
+    let optimizer = trainer.optimizer_state()?;
+    let done = trainer.epochs_done();
+    let lr = report
+        .epochs
+        .last()
+        .map_or(trainer.config().adam.lr, |e| e.lr);
+    let mut training = with_run_record(
+        trainer.training_json(Some(&report)),
+        plan.training_json(done, report.final_loss),
+    );
+    training["planned"] = planned.into();
+    training["stall_seconds"] = report.stall_seconds.into();
+    let file = trained.to_model_file(plan.normalization, training.clone());
+    check_trained(&file, done, "epoch")?;
+    Ok(Trained {
+        file,
+        train_seconds: plan.start.elapsed().as_secs_f64(),
+        done,
+        final_loss: report.final_loss,
+        interrupted: report.stopped_early && plan.stop.load(Ordering::Relaxed),
+        details: training,
+        optimizer,
+        lr,
+    })
+}
+
+/// The model to train: the checkpoint's, whose architecture must have every value asked for,
+/// or a fresh one of the asked architecture over the preset.
+fn model(plan: &Plan<'_>) -> Result<Nglod, RunError> {
+    let options = plan.options;
+    let Some(c) = plan.resume else {
+        return Ok(Nglod::new(
+            options
+                .nglod_architecture
+                .config(options.preset, options.seed)?,
+        )?);
+    };
+    let model = Nglod::from_model_file(&c.model_file())?;
+    let differences = options.nglod_architecture.differences(model.config());
+    if !differences.is_empty() {
+        return Err(c.refusal(format!(
+            "the checkpoint's architecture differs: {}",
+            differences.join("; ")
+        )));
+    }
+    Ok(model)
+}
+
+/// The trainer's configuration for `epochs` more epochs: its defaults with the run's options
+/// over them.
+fn config(plan: &Plan<'_>, epochs: usize) -> NglodTrainConfig {
+    let options = plan.options;
+    let mut c = NglodTrainConfig {
+        epochs,
+        seed: options.seed,
+        distance: options.distance,
+        time_budget: plan.time_budget,
+        ..Default::default()
+    };
+    if let Some(lr) = options.lr {
+        c.adam.lr = lr;
+    }
+    if let Some(f) = options.lr_final {
+        c.lr_final = (f != 1.0).then_some(f);
+    }
+    if let Some(g) = options.grow_every {
+        c.grow_every = (g > 0).then_some(g);
+    }
+    if let Some((blocks, every)) = options.pool {
+        c.pool_blocks = blocks;
+        c.refresh_every = every;
+    }
+    c
+}

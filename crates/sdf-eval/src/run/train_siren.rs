@@ -1,0 +1,92 @@
+//! SIREN's trainer in a run: the network from its preset or a checkpoint, the trainer's
+//! configuration from the run's options, and the step loop with progress and stopping.
+
+use std::sync::atomic::Ordering;
+
+use sdf_nn::{Siren, SirenConfig, SirenTrainConfig, SirenTrainer};
+
+use super::{Plan, Preset, Progress, RunError, Trained, check_trained, with_run_record};
+
+/// Trains a SIREN to `plan.total` steps.
+pub(super) fn train(
+    plan: &Plan<'_>,
+    mut progress: impl FnMut(&Progress),
+) -> Result<Trained, RunError> {
+    let (gpu, options, total) = (plan.gpu, plan.options, plan.total);
+    let siren = match plan.resume {
+        Some(c) => Siren::from_model_file(&c.model_file())?,
+        None => {
+            let config = match options.preset {
+                Preset::Default => SirenConfig::default(),
+                Preset::Small => SirenConfig::small(),
+            };
+            Siren::new(config, options.seed).map_err(sdf_nn::siren::TrainError::from)?
+        }
+    };
+    let defaults = SirenTrainConfig::default();
+    let train_config = SirenTrainConfig {
+        steps: total,
+        seed: options.seed,
+        lr: options.lr.unwrap_or(defaults.lr),
+        weights: options.siren_weights.unwrap_or(defaults.weights),
+        plateau_patience: options
+            .plateau_patience
+            .unwrap_or(defaults.plateau_patience),
+        ..defaults
+    };
+    let per_step = (train_config.surface_per_step + train_config.box_per_step) as f64;
+    let mut trainer = SirenTrainer::with_ground_truth(
+        gpu,
+        &siren,
+        &plan.truth.mesh,
+        &plan.truth.sdf,
+        train_config,
+    )?;
+    if let Some(c) = plan.resume {
+        let lr = c.lr().unwrap_or(trainer.lr());
+        trainer.resume(gpu, &c.optimizer()?, c.done(), lr)?;
+    }
+    let first = trainer.steps_done();
+    let mut loss = f32::NAN;
+    let mut interrupted = false;
+    while trainer.steps_done() < total {
+        if plan.stop.load(Ordering::Relaxed) {
+            interrupted = true;
+            break;
+        }
+        if let Some(l) = trainer.step(gpu)? {
+            loss = l.total();
+            let done = trainer.steps_done();
+            progress(&Progress {
+                done,
+                total,
+                unit: "step",
+                loss,
+                lr: trainer.lr(),
+                points_per_second: plan.points_per_second(done - first, per_step),
+            });
+        }
+    }
+    let done = trainer.steps_done();
+    let optimizer = trainer.optimizer_state(gpu)?;
+    let lr = trainer.lr();
+    let mut file = trainer.model_file(gpu)?;
+    file.metadata.training = with_run_record(
+        std::mem::take(&mut file.metadata.training),
+        plan.training_json(done, loss),
+    );
+    file.metadata.normalization = plan.normalization;
+    // The trainer checks each window's loss; the weights are checked here, since a run
+    // shorter than a window reads no loss at all.
+    check_trained(&file, done, "step")?;
+    Ok(Trained {
+        file,
+        train_seconds: plan.start.elapsed().as_secs_f64(),
+        done,
+        final_loss: loss,
+        interrupted,
+        details: serde_json::Value::Null,
+        optimizer,
+        lr,
+    })
+}

@@ -1,0 +1,55 @@
+//! The command-line flags the binaries share, each defined, parsed and checked once: the GPU to
+//! run on ([`GpuFlags`], which every binary that touches a GPU flattens and opens its GPU
+//! through) and how to train ([`TrainingFlags`], `train`'s and `corpus`'s), with the few
+//! helpers their output shares.
+
+mod training;
+
+use sdf_eval::run::{self, RunError};
+use sdf_nn::{GpuContext, GpuError, GpuOptions};
+
+pub use training::{DistanceArg, PresetArg, TrainingFlags};
+
+/// Which GPU to run on. The environment's settings (`HWSDF_ADAPTER`, `WGPU_ADAPTER_NAME`,
+/// `WGPU_BACKEND`, `HWSDF_MAPPABLE_STORAGE`, `HWSDF_NO_COOP`, `HWSDF_STEP_LAYOUT`) apply as
+/// [`GpuOptions::from_env`] reads them; `--adapter` wins over the environment's adapter.
+#[derive(clap::Args, Clone, Debug, Default)]
+pub struct GpuFlags {
+    /// The adapter to run on: its index or PCI bus id as `gpu-info` lists them, or part of its
+    /// name (default: the environment's `HWSDF_ADAPTER`, else the best one found).
+    #[arg(long, value_name = "ADAPTER")]
+    pub adapter: Option<String>,
+}
+
+impl GpuFlags {
+    /// The GPU options of the environment with `--adapter` over them. Unknown values of the
+    /// environment's variables are errors naming the allowed ones.
+    pub fn options(&self) -> Result<GpuOptions, GpuError> {
+        Ok(GpuOptions::from_env()?.with_adapter(self.adapter.as_deref(), "--adapter"))
+    }
+
+    /// Opens the GPU these flags choose.
+    pub fn open(&self) -> Result<GpuContext, GpuError> {
+        GpuContext::with_options(&self.options()?)
+    }
+}
+
+/// Checks the size of an evaluation's sets as `flag` (`--points`, `--eval-points`) gives it:
+/// at least one point, and within [`run::EVAL_MEMORY_BUDGET`].
+pub fn check_eval_points(flag: &str, points: usize) -> Result<(), RunError> {
+    if points == 0 {
+        return Err(RunError::Options(format!("{flag} must be at least 1")));
+    }
+    run::check_eval_points(points)
+}
+
+/// A loss as progress lines and reports print it: four significant digits whatever its scale
+/// (a fitted NGLOD's loss is ~1e-6, which fixed decimals would print as 0).
+///
+/// ```
+/// assert_eq!(hwsdf::cli::format_loss(3.14159e-6), "3.142e-6");
+/// assert_eq!(hwsdf::cli::format_loss(0.5), "5.000e-1");
+/// ```
+pub fn format_loss(loss: f32) -> String {
+    format!("{loss:.3e}")
+}
