@@ -269,6 +269,26 @@ fn untrained_model() -> PathBuf {
     path
 }
 
+/// On a machine without a display (no `XDG_RUNTIME_DIR`), the binaries print only their own
+/// output: not libwayland's `XDG_RUNTIME_DIR is invalid` lines, which Mesa's device-selection
+/// layer (installed with lavapipe, so on CI) used to cause two to four times per run.
+#[test]
+fn headless_runs_print_no_window_system_errors() {
+    let model = untrained_model();
+    let png = scratch("headless.png");
+    let mut render = bin("render");
+    render.arg(&model).args(["--size", "16", "--out"]).arg(&png);
+    for mut cmd in [bin("gpu-info"), render] {
+        let o = cmd
+            .env_remove("XDG_RUNTIME_DIR")
+            .env_remove("NODEVICE_SELECT")
+            .output()
+            .unwrap();
+        assert!(o.status.success(), "{}", stderr(&o));
+        assert!(!stderr(&o).contains("XDG_RUNTIME_DIR"), "{}", stderr(&o));
+    }
+}
+
 /// Every binary that runs on a GPU takes `--adapter`, and opens its GPU through it: an adapter
 /// that is not there is the "no adapter matches" error naming the flag, before any work.
 #[test]

@@ -75,6 +75,8 @@ struct Args {
 type BoxError = Box<dyn std::error::Error>;
 
 fn main() -> ExitCode {
+    // SAFETY: first thing in main, before any other thread exists.
+    unsafe { hwsdf::nn::gpu::skip_device_select_layer_when_headless() };
     let args = Args::parse();
     match corpus(&args) {
         Ok(code) => code,

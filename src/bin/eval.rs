@@ -49,6 +49,8 @@ struct Args {
 }
 
 fn main() -> ExitCode {
+    // SAFETY: first thing in main, before any other thread exists.
+    unsafe { hwsdf::nn::gpu::skip_device_select_layer_when_headless() };
     let args = Args::parse();
     match eval(&args) {
         Ok(()) => ExitCode::SUCCESS,

@@ -42,6 +42,8 @@ struct Args {
 const GIB: f64 = (1u64 << 30) as f64;
 
 fn main() -> ExitCode {
+    // SAFETY: first thing in main, before any other thread exists.
+    unsafe { hwsdf::nn::gpu::skip_device_select_layer_when_headless() };
     let args = Args::parse();
     match extract(&args) {
         Ok(()) => ExitCode::SUCCESS,

@@ -67,6 +67,8 @@ fn parse_size(s: &str) -> Result<(u32, u32), String> {
 }
 
 fn main() -> ExitCode {
+    // SAFETY: first thing in main, before any other thread exists.
+    unsafe { hwsdf::nn::gpu::skip_device_select_layer_when_headless() };
     let args = Args::parse();
     match run(&args) {
         Ok(()) => ExitCode::SUCCESS,

@@ -59,6 +59,8 @@ struct Args {
 const INTERRUPTED: u8 = 130;
 
 fn main() -> ExitCode {
+    // SAFETY: first thing in main, before any other thread exists.
+    unsafe { hwsdf::nn::gpu::skip_device_select_layer_when_headless() };
     let args = Args::parse();
     match train(&args) {
         Ok(Outcome::Finished) => ExitCode::SUCCESS,

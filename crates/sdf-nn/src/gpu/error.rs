@@ -16,7 +16,7 @@ pub enum GpuError {
     /// adapter.
     #[error(
         "no adapter matches {requested:?} (from {from}: an index, a PCI bus id or part of a name); \
-         available adapters: {available}. Unset {from} or set it to one of these"
+         available adapters: {available}. Leave {from} out or give it one of these"
     )]
     AdapterNotFound {
         /// The requested index, bus id or name fragment.

@@ -462,6 +462,9 @@ impl<'g> NglodTrainer<'g> {
     }
 
     /// Like [`NglodTrainer::train`], calling `on_epoch` after every epoch.
+    // rooms: one thread scope owns the sampler threads and the epoch loop that joins them; the
+    // pool, the pending block and the stall clock live across epochs inside it. The GPU steps
+    // of an epoch are `EpochSteps::run`.
     pub fn train_with(
         &mut self,
         mut on_epoch: impl FnMut(&EpochStats),
