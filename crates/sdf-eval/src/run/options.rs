@@ -138,7 +138,7 @@ impl TrainOptions {
 
     /// Checks what can be checked without a mesh or a GPU, so that a bad option is a typed error
     /// before any work: lengths of at least 1, every option given to the model it applies to, a
-    /// usable learning rate, final ratio, loss weights and NGLOD architecture. [`train`] runs it
+    /// usable learning rate, final ratio, loss weights and NGLOD architecture. [`train`](super::train) runs it
     /// too.
     pub fn validate(&self) -> Result<(), RunError> {
         let refuse = |why: &str| Err(RunError::Options(why.to_owned()));

@@ -18,7 +18,7 @@ pub struct Report {
     /// `"default"` or `"small"`.
     pub preset: String,
     /// The model's hyperparameters as its file records them (the preset's, or the
-    /// [`NglodArchitecture`] asked for over it).
+    /// [`NglodArchitecture`](super::NglodArchitecture) asked for over it).
     #[serde(default)]
     pub architecture: serde_json::Value,
     /// Parameter count.
@@ -55,7 +55,7 @@ pub struct Report {
     #[serde(default)]
     pub bbox_mean_abs_error: f64,
     /// Unsigned fields: symmetric Chamfer-L1 distance between the mesh and the extracted
-    /// level set Φ = [`UNSIGNED_LEVEL`] (normalised units; an exact |d| scores about that level).
+    /// level set Φ = [`UNSIGNED_LEVEL`](super::UNSIGNED_LEVEL) (normalised units; an exact |d| scores about that level).
     #[serde(default)]
     pub chamfer_l1: Option<f64>,
     /// Mean |Φ − SDF| near the surface, normalised units.
