@@ -81,7 +81,7 @@ pub struct TrainingFlags {
     pub sparse_levels: Option<usize>,
     /// NGLOD: how far the sparse levels reach beyond the cells the surface passes through, in
     /// cells, at most 4 (default 0; 1, the default before, makes files 18-43 % larger for F1
-    /// within 0.001 on average, BENCHMARKS.md "band width").
+    /// within 0.001 on average, docs/benchmarks/2026-11-23-nglod-band-width.md).
     #[arg(long, help_heading = "NGLOD architecture")]
     pub band_cells: Option<u32>,
     /// NGLOD: features per grid vertex (`default`: 8; `small`: 4).

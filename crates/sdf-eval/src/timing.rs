@@ -20,7 +20,7 @@ pub const LATENCY_BATCH: usize = 3_000;
 pub const MIN_REPS: usize = 10;
 /// How long the reports keep the model busy before they time it. A GPU left idle lowers its
 /// clocks and raises them only under sustained load, so the first calls after a pause run
-/// several times slower than the rest (see BENCHMARKS "Latency after a warm-up"); steady
+/// several times slower than the rest (see docs/benchmarks "Latency after a warm-up"); steady
 /// state is what a caller that queries all the time sees, and what criterion's warm-up
 /// measures too.
 pub const WARM_UP: Duration = Duration::from_millis(500);
@@ -72,7 +72,7 @@ pub fn warm_up<E>(duration: Duration, mut f: impl FnMut() -> Result<(), E>) -> R
 /// How long the reports keep timing each batch size once they have [`MIN_REPS`] repetitions:
 /// on a GPU a repetition takes well under a millisecond, and ten in a row of each call gave a
 /// SIREN `default` fit's wall-over-kernel difference from 50 to 84 µs across six fits on H100s
-/// (BENCHMARKS.md, session 20); on lavapipe ten repetitions mostly take longer than this.
+/// (docs/benchmarks, session 20); on lavapipe ten repetitions mostly take longer than this.
 pub const MEASURE_FOR: Duration = Duration::from_millis(250);
 /// The most repetitions [`MEASURE_FOR`] adds up to per batch size.
 pub const MAX_REPS: usize = 2000;

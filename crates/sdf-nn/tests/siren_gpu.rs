@@ -993,7 +993,7 @@ fn small_preset_learns_the_sign_of_a_sphere() {
 
 // A real mesh: ~1 min on lavapipe. With the output bias starting "outside"
 // (`siren::OUTPUT_BIAS_INIT`) 500 steps gave 99.49% with this seed and 99.62% with seed 1
-// (BENCHMARKS.md, SIREN); before it, 2000 steps gave 95.9% with this seed.
+// (docs/benchmarks, SIREN); before it, 2000 steps gave 95.9% with this seed.
 #[test]
 fn small_preset_learns_the_sign_of_spot() {
     let (mesh, _) = sdf_geom::load_mesh(test_data("spot.obj")).unwrap();

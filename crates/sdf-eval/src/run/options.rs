@@ -62,7 +62,7 @@ impl Preset {
     /// The preset used when none is asked for: `small` on a CPU adapter (lavapipe), where the
     /// design document's networks train too slowly, `default` on a GPU.
     /// NGLOD: `default` everywhere (`small` is capacity-bound and no longer saves time on
-    /// lavapipe: issue 14, BENCHMARKS.md). SIREN: `small` on a CPU adapter, `default` on a GPU.
+    /// lavapipe: issue 14, docs/benchmarks). SIREN: `small` on a CPU adapter, `default` on a GPU.
     pub fn for_adapter(cpu_adapter: bool, model: ModelKind) -> Self {
         if cpu_adapter && model == ModelKind::Siren {
             Preset::Small
@@ -464,7 +464,7 @@ impl NglodArchitecture {
 /// NGLOD's default run on a CPU adapter: as many epochs as about a minute of training buys
 /// there (issue 14: "the best fit that about a minute buys"), planned from the first epoch,
 /// between [`default_length`]'s and a GPU's default. On the 2-core box that is ~13 epochs with Debian 12's
-/// Mesa 22.3 and ~35 with Mesa 26.1 (BENCHMARKS.md).
+/// Mesa 22.3 and ~35 with Mesa 26.1 (docs/benchmarks).
 pub const CPU_TIME_BUDGET: sdf_nn::nglod::TimeBudget = sdf_nn::nglod::TimeBudget {
     seconds: 55.0,
     max_epochs: DEFAULT_EPOCHS,

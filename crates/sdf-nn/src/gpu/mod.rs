@@ -48,7 +48,7 @@ struct PipelineKey {
 /// How long a wait for the GPU polls without blocking before it blocks, by default (GPUs
 /// only; [`GpuContext::set_spin_wait`] changes it). A blocking wait wakes up late: on an H100
 /// through Vulkan an empty submit and readback took 62.7 µs blocking and 25.9 µs polling
-/// (BENCHMARKS "The query path"), which is most of a small query's wall time. Work that runs
+/// (docs/benchmarks "The query path"), which is most of a small query's wall time. Work that runs
 /// longer than this gets the blocking wait, so a long training step spins for at most this
 /// long per wait.
 pub const SPIN_WAIT: Duration = Duration::from_millis(2);

@@ -71,7 +71,7 @@ pub(crate) const NO_SLOT: u32 = u32::MAX;
 ///
 /// Why 0: over the 20 shared meshes at the GPU default's 100 epochs it fits within 0.001 of the
 /// old band of 1 on average (F1 0.9966 / 0.9814 against 0.9969 / 0.9820) for 15-30 % smaller
-/// files (median 0.56 MB against 0.71 MB), BENCHMARKS.md "Band width".
+/// files (median 0.56 MB against 0.71 MB), docs/benchmarks "Band width".
 pub const DEFAULT_BAND_CELLS: u32 = 0;
 /// The band of every model file written before the band width was a setting.
 const LEGACY_BAND_CELLS: u32 = 1;
@@ -175,7 +175,7 @@ impl NglodConfig {
     /// Why: the 24-cell finest grid cannot resolve parts thinner than a cell (0.08 of the box),
     /// and near-surface F1 is limited by it. A dense 48-cell level raises near-surface F1 by
     /// 0.02–0.08 but costs 1.09 M parameters; the sparse one does as well or better for a
-    /// quarter of that (BENCHMARKS.md, "Sparse levels").
+    /// quarter of that (docs/benchmarks, "Sparse levels").
     pub fn default_preset() -> Self {
         NglodConfig {
             resolutions: vec![6, 12, 24, 48],

@@ -50,7 +50,7 @@ impl DistanceMode {
 /// runs on a GPU (their CPU time budget stops there too). 100: the default preset on the 20
 /// shared meshes, 12 epochs 0.993 / 0.963 F1 (box / near the surface), 100 epochs 0.997 / 0.982
 /// (0.997 / 0.981 with today's band of 0 cells); on six of them 50 epochs 0.969 near, 100
-/// epochs 0.976 (BENCHMARKS.md, measured on lavapipe). The pool makes it cheap.
+/// epochs 0.976 (docs/benchmarks, measured on lavapipe). The pool makes it cheap.
 pub const DEFAULT_EPOCHS: usize = 100;
 
 /// Training settings. The defaults are the design document's, plus the sample pool.
@@ -154,7 +154,7 @@ impl Default for NglodTrainConfig {
             refresh_every: 4,
             // Cosine decay to 0.1: on lavapipe, 8 epochs of `default`, spot/fandisk/rocker-arm
             // near-surface F1 0.943/0.934/0.942 constant, 0.957/0.951/0.939 decayed
-            // (BENCHMARKS.md). Progressive levels did not help there, so they stay off.
+            // (docs/benchmarks). Progressive levels did not help there, so they stay off.
             lr_final: Some(0.1),
             grow_every: None,
             distance: DistanceMode::Signed,
@@ -844,7 +844,7 @@ mod tests {
             ..Default::default()
         };
         assert_eq!(constant.lr_at(0.7), 1e-3);
-        // The default decays by a cosine to a tenth (BENCHMARKS.md, the NGLOD schedule study).
+        // The default decays by a cosine to a tenth (docs/benchmarks, the NGLOD schedule study).
         let d = NglodTrainConfig::default();
         assert_eq!(d.lr_at(0.0), 1e-3);
         assert!((d.lr_at(1.0) - 1e-4).abs() < 1e-9);

@@ -408,7 +408,7 @@ impl NeuralSdf {
                         space,
                         // Every host-side query reads its results back: no copies where the
                         // device maps storage (on an H100 15–18 µs less per query than
-                        // through staging; BENCHMARKS.md).
+                        // through staging; docs/benchmarks).
                         transfer: if gpu.maps_storage() {
                             QueryTransfer::Mapped
                         } else {

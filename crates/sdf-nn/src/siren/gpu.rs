@@ -64,7 +64,7 @@ type Families = (
 
 /// Whether [`TrainStep::Auto`] picks the reverse-over-reverse step on the row-blocked kernels:
 /// on lavapipe it measured 529–565 ms per `small` step of 10⁴ points against 852–894 ms for
-/// the tangents (BENCHMARKS.md, "The reverse-over-reverse training step").
+/// the tangents (docs/benchmarks, "The reverse-over-reverse training step").
 const ROW_BLOCKED_AUTO_ROR: bool = true;
 
 /// A SIREN's parameters (and gradients) on the GPU, with its kernels.

@@ -69,7 +69,7 @@ pub const ARCHITECTURE: &str = "siren";
 /// the surface. (The hidden layers' contribution at initialisation is ~0.1 for `small` and
 /// ~0.03 for `default`, so +0.5 dominates it.) For `default` only a 300-step run exists: there
 /// the deep inside is carved later than from a zero bias (94.8% against 97.2%); its effect at full
-/// length is not yet measured (BENCHMARKS.md, SIREN).
+/// length is not yet measured (docs/benchmarks, SIREN).
 pub const OUTPUT_BIAS_INIT: f32 = 0.5;
 
 /// Shape of a SIREN: `3 → width × hidden_layers → 1`, with sine activations of frequency `omega0`
@@ -137,7 +137,7 @@ impl SirenConfig {
     /// ω0 is lower than the reference's 30 because a network this small, trained for the few
     /// hundred to few thousand steps a CPU affords, keeps spurious sign changes far from the
     /// surface at ω0 = 30: after 1000 steps of 1000 + 1000 points on `spot`, 79% of uniform box
-    /// points had the right sign at ω0 = 15 and 98.2% at ω0 = 10 (BENCHMARKS.md, SIREN).
+    /// points had the right sign at ω0 = 15 and 98.2% at ω0 = 10 (docs/benchmarks, SIREN).
     pub fn small() -> Self {
         SirenConfig {
             width: 64,

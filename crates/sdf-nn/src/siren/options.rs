@@ -30,7 +30,7 @@ pub fn auto_coop_min_points(cpu_adapter: bool, config: &SirenConfig) -> Option<u
 /// Default of [`SirenGpuOptions::fused_max_points`] on CPU adapters: the latency-bound batches
 /// (the 3000 points). GPUs run every inference batch on the fused kernel: on an H100
 /// it took 15–17 % less time than the per-layer kernels at 50 000 points (`default` preset,
-/// two alternating runs; BENCHMARKS "NVIDIA H100"), and at 3000 it is the only way to fill
+/// two alternating runs; docs/benchmarks "NVIDIA H100"), and at 3000 it is the only way to fill
 /// the GPU.
 pub const DEFAULT_FUSED_MAX_POINTS: u32 = 8192;
 

@@ -176,7 +176,7 @@ pub struct QueryBuffers {
     /// by [`NeuralSdf::submit_query`](crate::NeuralSdf::submit_query) right after it submits, for the same count and level of
     /// detail, while the GPU works and the host would only wait (one slot for plain queries,
     /// one for timed ones). On an H100 that takes the 3.4–3.7 µs of encoding out of the next
-    /// query's wall time (BENCHMARKS.md, session 21).
+    /// query's wall time (docs/benchmarks, session 21).
     prepared: [Option<Prepared>; 2],
     /// How many queries were submitted from `prepared` (for tests).
     prepared_used: u64,
@@ -550,7 +550,7 @@ impl QueryBuffers {
 ///
 /// One 16-byte store per point, straight from the caller's slice: one pass over the points
 /// instead of packing a host vector and copying it (on an H100 host, into its mapped
-/// write-combined memory: 4.2 µs against 3.0 + 3.2 µs for 3000 points; BENCHMARKS.md).
+/// write-combined memory: 4.2 µs against 3.0 + 3.2 µs for 3000 points; docs/benchmarks).
 pub fn write_points(dst: wgpu::WriteOnly<'_, [u8]>, points: &[Vec3]) {
     dst.into_chunks::<16>().0.write_iter(
         points

@@ -459,7 +459,7 @@ fn workgroups((mb, nb): (u32, u32), m: u32, n: u32) -> u32 {
 /// `workgroup_bytes` of workgroup memory, or `None` where not even 4 × 4 fits.
 ///
 /// [`TiledBlock::Auto`] is 4 × 4 on GPUs and 8 × 8 on CPUs, each measured fastest for every
-/// product of the `default` preset there (BENCHMARKS "Tiled GEMM register blocks"): on an H100,
+/// product of the `default` preset there (docs/benchmarks "Tiled GEMM register blocks"): on an H100,
 /// 8 × 8 took 19 % more time for 50 000 points of inference and 36 % more per training step
 /// (its fewer, larger workgroups keep fewer warps in flight per multiprocessor); on lavapipe it
 /// took 31 % and 12 % less. Auto falls back to 4 × 4 where 8 × 8's tiles do not fit; a forced

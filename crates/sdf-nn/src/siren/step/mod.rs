@@ -22,7 +22,7 @@ pub mod tangents;
 pub enum TrainStep {
     /// [`TrainStep::ReverseOverReverse`] wherever it runs (the tiled kernels, GPUs' default,
     /// and the row-blocked kernels covering every hidden layer, CPU adapters' default, where
-    /// it measured 1.6× faster on lavapipe for the `small` preset: BENCHMARKS.md);
+    /// it measured 1.6× faster on lavapipe for the `small` preset: docs/benchmarks);
     /// [`TrainStep::Tangents`] otherwise (the plain GEMM family, or row-blocked kernels that
     /// leave a layer to the GEMM).
     #[default]
