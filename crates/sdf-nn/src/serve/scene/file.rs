@@ -1,0 +1,784 @@
+//! Scene files: a scene in TOML, with models by path relative to the file.
+//!
+//! ```
+//! use std::path::Path;
+//! use glam::Vec3;
+//! use sdf_nn::serve::scene::Scene;
+//!
+//! let text = r#"
+//! [root]
+//! type = "difference"
+//!
+//! [[root.children]]
+//! type = "box"
+//! half_extents = [1, 1, 1]
+//!
+//! [[root.children]]
+//! type = "sphere"
+//! radius = 0.5
+//! translation = [1, 1, 1]
+//! "#;
+//! let scene = Scene::from_toml(text, Path::new("."))?;
+//! assert_eq!(scene.distance(Vec3::new(3.0, 0.0, 0.0), 0.0), 2.0);
+//! # Ok::<(), sdf_nn::serve::scene::SceneFileError>(())
+//! ```
+//!
+//! # Format
+//!
+//! ```toml
+//! # Models, by a name the tree uses, at paths relative to this file.
+//! [models]
+//! bunny = "models/bunny.safetensors"
+//!
+//! # The tree: one table per node, `type` naming the operator or leaf; inner nodes list
+//! # their children (arrays of tables nest with dotted headers, or write inline tables).
+//! [root]
+//! type = "smooth_union"
+//! k = 0.1
+//!
+//! [[root.children]]
+//! type = "model"
+//! model = "bunny"
+//! translation = [0.0, 0.5, 0.0]
+//! rotation = { axis = [0, 1, 0], degrees = 90 }
+//! scale = 2.0
+//!
+//! [[root.children]]
+//! type = "transform"
+//! translation = [2, 0, 0]
+//!
+//! [[root.children.children]]
+//! type = "torus"
+//! major = 1.0
+//! minor = 0.25
+//! ```
+//!
+//! Leaves (each takes the optional placement keys `translation`, `rotation`, `scale`):
+//!
+//! | `type` | keys |
+//! | --- | --- |
+//! | `model` | `model`: a name from `[models]` |
+//! | `sphere` | `radius` |
+//! | `box` | `half_extents = [x, y, z]` |
+//! | `round_box` | `half_extents`, `radius` (the rounding, at most the smallest half extent) |
+//! | `capsule` | `a = [x, y, z]`, `b`, `radius` |
+//! | `torus` | `major`, `minor` (around the y axis) |
+//! | `plane` | `normal = [x, y, z]`, `offset` (the half space `n·p ≤ offset`) |
+//! | `cylinder` | `radius`, `half_height` (along the y axis) |
+//!
+//! Inner nodes (each has `children = [...]`): `union`, `intersection`, `difference` (the first
+//! child minus the others), `smooth_union`, `smooth_intersection`, `smooth_difference` (with the
+//! blend radius `k > 0`), `offset` (`r`, one child), `shell` (`t > 0`, one child), and
+//! `transform` (the placement keys, one child). See [`super::tree`] for what each computes.
+//!
+//! The TOML parser refuses inline tables and arrays nested more than about 40 deep (a syntax
+//! error with its place); write deeper trees with dotted headers, as above, which reach
+//! [`MAX_DEPTH`].
+//!
+//! Placement: `translation = [x, y, z]` (default zero); `rotation = { axis = [x, y, z],
+//! degrees = a }`, a right-handed rotation by `a` degrees about the axis (any non-zero length;
+//! default none); `scale = s` or `scale = [s, s, s]`, uniform and `> 0` (default 1). A node's
+//! point `x` maps to `translation + rotation(scale · x)` in its parent.
+//!
+//! # Errors
+//!
+//! Every bad input is a [`SceneFileError`] that says what and where: TOML errors with the line
+//! and column, the others with the node's path (`root.children[1].children[0]`), a model error
+//! with the model's name and file. Numbers may be integers or floats; `nan` and `inf` are
+//! refused, as are values that overflow f32.
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+
+use glam::{DQuat, DVec3, Vec3};
+use serde::Deserialize;
+
+use crate::NeuralSdf;
+use crate::serve::error::NeuralSdfError;
+use crate::serve::scene::primitive::Primitive;
+use crate::serve::scene::tree::{MAX_DEPTH, MAX_MODELS, Scene, SceneError, SceneNode, Transform};
+
+/// How deeply the TOML text may nest (tables, arrays, dotted keys), checked before parsing so
+/// that no document can exhaust the parser's stack: each tree level costs two (a table and its
+/// `children` array), plus a few for a leaf's `rotation`.
+pub const MAX_NESTING: usize = 2 * MAX_DEPTH + 8;
+
+/// Errors of reading a scene file.
+#[derive(Debug, thiserror::Error)]
+pub enum SceneFileError {
+    /// The scene file could not be read.
+    #[error("cannot read scene file {path}: {source}")]
+    Io {
+        /// The file.
+        path: PathBuf,
+        /// Why.
+        source: std::io::Error,
+    },
+    /// The text is not TOML.
+    #[error("TOML syntax error at line {line}, column {column}: {message}")]
+    Syntax {
+        /// 1-based line.
+        line: usize,
+        /// 1-based column (in characters).
+        column: usize,
+        /// The parser's message.
+        message: String,
+    },
+    /// A table has a key its node does not take (or the file a top-level key other than
+    /// `models` and `root`).
+    #[error("unknown key `{key}` at line {line}, column {column}: {message}")]
+    UnknownKey {
+        /// The key.
+        key: String,
+        /// 1-based line.
+        line: usize,
+        /// 1-based column.
+        column: usize,
+        /// The full message, with the keys expected.
+        message: String,
+    },
+    /// A node's `type` is not an operator or leaf we know.
+    #[error("unknown node type `{name}` at line {line}, column {column}: {message}")]
+    UnknownOperator {
+        /// The name given.
+        name: String,
+        /// 1-based line.
+        line: usize,
+        /// 1-based column.
+        column: usize,
+        /// The full message, with the names expected.
+        message: String,
+    },
+    /// A key is missing or has the wrong type.
+    #[error("at line {line}, column {column}: {message}")]
+    Schema {
+        /// 1-based line.
+        line: usize,
+        /// 1-based column.
+        column: usize,
+        /// What is wrong.
+        message: String,
+    },
+    /// The text nests deeper than [`MAX_NESTING`] (a tree deeper than [`MAX_DEPTH`]).
+    #[error("line {line}: the file nests deeper than a tree of at most {limit} levels needs")]
+    TooDeep {
+        /// Where the limit was passed.
+        line: usize,
+        /// [`MAX_DEPTH`].
+        limit: usize,
+    },
+    /// More models are declared than [`MAX_MODELS`].
+    #[error("{count} models are declared; a scene holds at most {limit}")]
+    TooManyModels {
+        /// Models declared.
+        count: usize,
+        /// [`MAX_MODELS`].
+        limit: usize,
+    },
+    /// A model file is missing or does not hold a valid model.
+    #[error("model `{name}` ({path}): {source}")]
+    Model {
+        /// Its name in `[models]`.
+        name: String,
+        /// The path it was loaded from.
+        path: PathBuf,
+        /// Why it failed (boxed: it is large, and this error is rare).
+        source: Box<NeuralSdfError>,
+    },
+    /// A node names a model that `[models]` does not declare.
+    #[error("{node}: model `{name}` is not declared in [models]")]
+    UnknownModel {
+        /// The node.
+        node: String,
+        /// The name.
+        name: String,
+    },
+    /// A number is NaN, infinite, or too large for f32.
+    #[error("{node}: `{field}` = {value} is not a finite f32")]
+    NonFinite {
+        /// The node.
+        node: String,
+        /// The key.
+        field: &'static str,
+        /// The value read.
+        value: f64,
+    },
+    /// A scale given per axis differs between axes.
+    #[error("{node}: scale {scale:?} is not uniform")]
+    NonUniformScale {
+        /// The node.
+        node: String,
+        /// The scale.
+        scale: [f64; 3],
+    },
+    /// A rotation's axis is zero.
+    #[error("{node}: rotation axis is zero")]
+    ZeroAxis {
+        /// The node.
+        node: String,
+    },
+    /// A unary node (`offset`, `shell`, `transform`) does not have exactly one child.
+    #[error("{node}: `{op}` needs exactly one child, it has {found}")]
+    Children {
+        /// The node.
+        node: String,
+        /// Its type.
+        op: &'static str,
+        /// Children given.
+        found: usize,
+    },
+    /// The tree does not make a valid scene: a bad parameter (`k ≤ 0`, a zero scale, ...), a
+    /// tree deeper than [`MAX_DEPTH`], too many leaves.
+    #[error(transparent)]
+    Scene(#[from] SceneError),
+}
+
+impl Scene {
+    /// Loads a scene file; model paths are relative to its folder.
+    pub fn load(path: impl AsRef<Path>) -> Result<Scene, SceneFileError> {
+        let path = path.as_ref();
+        let text = std::fs::read_to_string(path).map_err(|source| SceneFileError::Io {
+            path: path.to_owned(),
+            source,
+        })?;
+        let base = path.parent().unwrap_or(Path::new(""));
+        Scene::from_toml(&text, base)
+    }
+
+    /// A scene from TOML text; model paths are relative to `base_dir`.
+    pub fn from_toml(text: &str, base_dir: &Path) -> Result<Scene, SceneFileError> {
+        Ok(Scene::new(tree_from_toml(text, base_dir)?)?)
+    }
+}
+
+/// The tree of a scene file (models loaded), before [`Scene::new`] validates its parameters.
+pub fn tree_from_toml(text: &str, base_dir: &Path) -> Result<SceneNode, SceneFileError> {
+    if let Some(line) = nesting_exceeded(text) {
+        return Err(SceneFileError::TooDeep {
+            line,
+            limit: MAX_DEPTH,
+        });
+    }
+    let file: FileScene = toml::from_str(text).map_err(|e| toml_error(text, e))?;
+    if file.models.len() > MAX_MODELS {
+        return Err(SceneFileError::TooManyModels {
+            count: file.models.len(),
+            limit: MAX_MODELS,
+        });
+    }
+    let mut models = BTreeMap::new();
+    for (name, rel) in file.models {
+        let path = base_dir.join(&rel);
+        let model = NeuralSdf::load(&path).map_err(|source| SceneFileError::Model {
+            name: name.clone(),
+            path: path.clone(),
+            source: Box::new(source),
+        })?;
+        models.insert(name, Arc::new(model));
+    }
+    Converter { models: &models }.node(file.root, "root".to_owned(), 1)
+}
+
+/// The file's top level.
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct FileScene {
+    #[serde(default)]
+    models: BTreeMap<String, String>,
+    root: FileNode,
+}
+
+/// `rotation = { axis = [x, y, z], degrees = a }`.
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct FileRotation {
+    axis: [f64; 3],
+    degrees: f64,
+}
+
+/// `scale = s` or `scale = [s, s, s]`.
+#[derive(Deserialize)]
+#[serde(untagged)]
+enum FileScale {
+    Uniform(f64),
+    PerAxis([f64; 3]),
+}
+
+/// One node; `type` picks the variant. The placement keys are repeated per leaf because serde
+/// cannot flatten a struct into a variant that denies unknown keys.
+#[derive(Deserialize)]
+#[serde(tag = "type", rename_all = "snake_case", deny_unknown_fields)]
+enum FileNode {
+    Model {
+        model: String,
+        translation: Option<[f64; 3]>,
+        rotation: Option<FileRotation>,
+        scale: Option<FileScale>,
+    },
+    Sphere {
+        radius: f64,
+        translation: Option<[f64; 3]>,
+        rotation: Option<FileRotation>,
+        scale: Option<FileScale>,
+    },
+    Box {
+        half_extents: [f64; 3],
+        translation: Option<[f64; 3]>,
+        rotation: Option<FileRotation>,
+        scale: Option<FileScale>,
+    },
+    RoundBox {
+        half_extents: [f64; 3],
+        radius: f64,
+        translation: Option<[f64; 3]>,
+        rotation: Option<FileRotation>,
+        scale: Option<FileScale>,
+    },
+    Capsule {
+        a: [f64; 3],
+        b: [f64; 3],
+        radius: f64,
+        translation: Option<[f64; 3]>,
+        rotation: Option<FileRotation>,
+        scale: Option<FileScale>,
+    },
+    Torus {
+        major: f64,
+        minor: f64,
+        translation: Option<[f64; 3]>,
+        rotation: Option<FileRotation>,
+        scale: Option<FileScale>,
+    },
+    Plane {
+        normal: [f64; 3],
+        offset: f64,
+        translation: Option<[f64; 3]>,
+        rotation: Option<FileRotation>,
+        scale: Option<FileScale>,
+    },
+    Cylinder {
+        radius: f64,
+        half_height: f64,
+        translation: Option<[f64; 3]>,
+        rotation: Option<FileRotation>,
+        scale: Option<FileScale>,
+    },
+    Union {
+        children: Vec<FileNode>,
+    },
+    Intersection {
+        children: Vec<FileNode>,
+    },
+    Difference {
+        children: Vec<FileNode>,
+    },
+    SmoothUnion {
+        k: f64,
+        children: Vec<FileNode>,
+    },
+    SmoothIntersection {
+        k: f64,
+        children: Vec<FileNode>,
+    },
+    SmoothDifference {
+        k: f64,
+        children: Vec<FileNode>,
+    },
+    Offset {
+        r: f64,
+        children: Vec<FileNode>,
+    },
+    Shell {
+        t: f64,
+        children: Vec<FileNode>,
+    },
+    Transform {
+        translation: Option<[f64; 3]>,
+        rotation: Option<FileRotation>,
+        scale: Option<FileScale>,
+        children: Vec<FileNode>,
+    },
+}
+
+/// Turns the file's nodes into [`SceneNode`]s.
+struct Converter<'a> {
+    models: &'a BTreeMap<String, Arc<NeuralSdf>>,
+}
+
+/// A leaf's placement as read.
+type Placement = (Option<[f64; 3]>, Option<FileRotation>, Option<FileScale>);
+
+impl Converter<'_> {
+    /// Converts `node` at `path`, `depth` levels down (the root is 1).
+    fn node(
+        &self,
+        node: FileNode,
+        path: String,
+        depth: usize,
+    ) -> Result<SceneNode, SceneFileError> {
+        if depth > MAX_DEPTH {
+            return Err(SceneError::TooDeep {
+                node: path,
+                limit: MAX_DEPTH,
+            }
+            .into());
+        }
+        let p = &path;
+        let leaf = |primitive: Primitive, placement: Placement| -> Result<_, SceneFileError> {
+            Ok(SceneNode::primitive(primitive, transform(p, placement)?))
+        };
+        match node {
+            FileNode::Model {
+                model,
+                translation,
+                rotation,
+                scale,
+            } => {
+                let Some(m) = self.models.get(&model) else {
+                    return Err(SceneFileError::UnknownModel {
+                        node: path,
+                        name: model,
+                    });
+                };
+                let t = transform(p, (translation, rotation, scale))?;
+                Ok(SceneNode::model(m.clone(), t))
+            }
+            FileNode::Sphere {
+                radius,
+                translation,
+                rotation,
+                scale,
+            } => leaf(
+                Primitive::Sphere {
+                    radius: num(p, "radius", radius)?,
+                },
+                (translation, rotation, scale),
+            ),
+            FileNode::Box {
+                half_extents,
+                translation,
+                rotation,
+                scale,
+            } => leaf(
+                Primitive::Box {
+                    half_extents: vec3(p, "half_extents", half_extents)?,
+                },
+                (translation, rotation, scale),
+            ),
+            FileNode::RoundBox {
+                half_extents,
+                radius,
+                translation,
+                rotation,
+                scale,
+            } => leaf(
+                Primitive::RoundBox {
+                    half_extents: vec3(p, "half_extents", half_extents)?,
+                    radius: num(p, "radius", radius)?,
+                },
+                (translation, rotation, scale),
+            ),
+            FileNode::Capsule {
+                a,
+                b,
+                radius,
+                translation,
+                rotation,
+                scale,
+            } => leaf(
+                Primitive::Capsule {
+                    a: vec3(p, "a", a)?,
+                    b: vec3(p, "b", b)?,
+                    radius: num(p, "radius", radius)?,
+                },
+                (translation, rotation, scale),
+            ),
+            FileNode::Torus {
+                major,
+                minor,
+                translation,
+                rotation,
+                scale,
+            } => leaf(
+                Primitive::Torus {
+                    major: num(p, "major", major)?,
+                    minor: num(p, "minor", minor)?,
+                },
+                (translation, rotation, scale),
+            ),
+            FileNode::Plane {
+                normal,
+                offset,
+                translation,
+                rotation,
+                scale,
+            } => leaf(
+                Primitive::Plane {
+                    normal: vec3(p, "normal", normal)?,
+                    offset: num(p, "offset", offset)?,
+                },
+                (translation, rotation, scale),
+            ),
+            FileNode::Cylinder {
+                radius,
+                half_height,
+                translation,
+                rotation,
+                scale,
+            } => leaf(
+                Primitive::Cylinder {
+                    radius: num(p, "radius", radius)?,
+                    half_height: num(p, "half_height", half_height)?,
+                },
+                (translation, rotation, scale),
+            ),
+            inner => self.inner(inner, path, depth),
+        }
+    }
+
+    /// Converts an inner node.
+    fn inner(
+        &self,
+        node: FileNode,
+        path: String,
+        depth: usize,
+    ) -> Result<SceneNode, SceneFileError> {
+        let p = &path;
+        let children = |children: Vec<FileNode>| -> Result<Vec<SceneNode>, SceneFileError> {
+            children
+                .into_iter()
+                .enumerate()
+                .map(|(i, c)| self.node(c, format!("{p}.children[{i}]"), depth + 1))
+                .collect()
+        };
+        let only =
+            |op: &'static str, children: Vec<FileNode>| -> Result<Box<SceneNode>, SceneFileError> {
+                let found = children.len();
+                let [child]: [FileNode; 1] =
+                    children.try_into().map_err(|_| SceneFileError::Children {
+                        node: p.clone(),
+                        op,
+                        found,
+                    })?;
+                self.node(child, format!("{p}.children[0]"), depth + 1)
+                    .map(Box::new)
+            };
+        Ok(match node {
+            FileNode::Union { children: c } => SceneNode::Union(children(c)?),
+            FileNode::Intersection { children: c } => SceneNode::Intersection(children(c)?),
+            FileNode::Difference { children: c } => SceneNode::Difference(children(c)?),
+            FileNode::SmoothUnion { k, children: c } => SceneNode::SmoothUnion {
+                k: num(p, "k", k)?,
+                children: children(c)?,
+            },
+            FileNode::SmoothIntersection { k, children: c } => SceneNode::SmoothIntersection {
+                k: num(p, "k", k)?,
+                children: children(c)?,
+            },
+            FileNode::SmoothDifference { k, children: c } => SceneNode::SmoothDifference {
+                k: num(p, "k", k)?,
+                children: children(c)?,
+            },
+            FileNode::Offset { r, children: c } => SceneNode::Offset {
+                r: num(p, "r", r)?,
+                child: only("offset", c)?,
+            },
+            FileNode::Shell { t, children: c } => SceneNode::Shell {
+                t: num(p, "t", t)?,
+                child: only("shell", c)?,
+            },
+            FileNode::Transform {
+                translation,
+                rotation,
+                scale,
+                children: c,
+            } => SceneNode::Transform {
+                transform: transform(p, (translation, rotation, scale))?,
+                child: only("transform", c)?,
+            },
+            _ => unreachable!("leaves are converted by Converter::node"),
+        })
+    }
+}
+
+/// A number as a finite f32.
+fn num(node: &str, field: &'static str, value: f64) -> Result<f32, SceneFileError> {
+    let v = value as f32;
+    if v.is_finite() {
+        Ok(v)
+    } else {
+        Err(SceneFileError::NonFinite {
+            node: node.to_owned(),
+            field,
+            value,
+        })
+    }
+}
+
+/// Three numbers as a finite vector.
+fn vec3(node: &str, field: &'static str, v: [f64; 3]) -> Result<Vec3, SceneFileError> {
+    Ok(Vec3::new(
+        num(node, field, v[0])?,
+        num(node, field, v[1])?,
+        num(node, field, v[2])?,
+    ))
+}
+
+/// The placement keys as a [`Transform`] (the scale's sign is checked by [`Scene::new`]).
+fn transform(
+    node: &str,
+    (translation, rotation, scale): Placement,
+) -> Result<Transform, SceneFileError> {
+    let translation = vec3(node, "translation", translation.unwrap_or_default())?;
+    let rotation = match rotation {
+        None => glam::Quat::IDENTITY,
+        Some(r) => {
+            let axis = DVec3::from_array(r.axis);
+            vec3(node, "rotation.axis", r.axis)?;
+            num(node, "rotation.degrees", r.degrees)?;
+            if axis.length_squared() == 0.0 {
+                return Err(SceneFileError::ZeroAxis {
+                    node: node.to_owned(),
+                });
+            }
+            DQuat::from_axis_angle(axis.normalize(), r.degrees.to_radians()).as_quat()
+        }
+    };
+    let scale = match scale {
+        None => 1.0,
+        Some(FileScale::Uniform(s)) => num(node, "scale", s)?,
+        Some(FileScale::PerAxis(s)) => {
+            vec3(node, "scale", s)?;
+            if s[0] != s[1] || s[1] != s[2] {
+                return Err(SceneFileError::NonUniformScale {
+                    node: node.to_owned(),
+                    scale: s,
+                });
+            }
+            num(node, "scale", s[0])?
+        }
+    };
+    Ok(Transform::new(translation, rotation, scale))
+}
+
+/// Classifies a TOML error and locates it.
+fn toml_error(text: &str, e: toml::de::Error) -> SceneFileError {
+    let (line, column) = e
+        .span()
+        .map(|s| line_column(text, s.start))
+        .unwrap_or((1, 1));
+    let message = e.message().trim().to_owned();
+    // Serde's own wording for these two (`unknown field `x`, expected ...`).
+    let quoted = || message.split('`').nth(1).unwrap_or_default().to_owned();
+    if toml::from_str::<toml::Table>(text).is_err() {
+        SceneFileError::Syntax {
+            line,
+            column,
+            message,
+        }
+    } else if message.starts_with("unknown field") {
+        SceneFileError::UnknownKey {
+            key: quoted(),
+            line,
+            column,
+            message,
+        }
+    } else if message.starts_with("unknown variant") {
+        SceneFileError::UnknownOperator {
+            name: quoted(),
+            line,
+            column,
+            message,
+        }
+    } else {
+        SceneFileError::Schema {
+            line,
+            column,
+            message,
+        }
+    }
+}
+
+/// The 1-based line and column (in characters) of byte `offset`.
+fn line_column(text: &str, offset: usize) -> (usize, usize) {
+    let mut end = offset.min(text.len());
+    while !text.is_char_boundary(end) {
+        end -= 1;
+    }
+    let before = &text[..end];
+    let line = before.matches('\n').count() + 1;
+    let column = before.rsplit('\n').next().unwrap_or("").chars().count() + 1;
+    (line, column)
+}
+
+/// The first line where the text nests deeper than [`MAX_NESTING`], by a conservative count
+/// (never below the real depth): open brackets and braces, plus the dots of the keys of the
+/// statement being read, plus twice the parts of the current table header (an array of tables
+/// and its last table per part). Strings and comments are skipped.
+fn nesting_exceeded(text: &str) -> Option<usize> {
+    #[derive(PartialEq)]
+    enum State {
+        Code,
+        Comment,
+        Basic,
+        Literal,
+        MultiBasic,
+        MultiLiteral,
+    }
+    let b = text.as_bytes();
+    let (mut state, mut stack, mut line) = (State::Code, Vec::<u8>::new(), 1usize);
+    let (mut table, mut dots, mut key, mut header) = (0usize, 0usize, true, false);
+    let mut i = 0;
+    while i < b.len() {
+        let c = b[i];
+        let three = |q: u8| b.get(i..i + 3) == Some(&[q, q, q][..]);
+        match state {
+            State::Comment if c == b'\n' => state = State::Code,
+            State::Basic | State::MultiBasic if c == b'\\' => i += 1,
+            State::Basic if c == b'"' => state = State::Code,
+            State::Literal if c == b'\'' => state = State::Code,
+            State::MultiBasic if three(b'"') => (state, i) = (State::Code, i + 2),
+            State::MultiLiteral if three(b'\'') => (state, i) = (State::Code, i + 2),
+            State::Code => match c {
+                b'#' => state = State::Comment,
+                b'"' if three(b'"') => (state, i) = (State::MultiBasic, i + 2),
+                b'"' => state = State::Basic,
+                b'\'' if three(b'\'') => (state, i) = (State::MultiLiteral, i + 2),
+                b'\'' => state = State::Literal,
+                b'[' | b'{' => {
+                    // A `[` at the start of a statement opens a table header.
+                    if stack.is_empty() && key && c == b'[' {
+                        // The header names the table afresh.
+                        (header, table) = (true, 0);
+                    }
+                    key = header || c == b'{';
+                    stack.push(c);
+                }
+                b']' | b'}' => {
+                    stack.pop();
+                    key = header;
+                }
+                b',' => key = stack.last() == Some(&b'{'),
+                b'=' => key = false,
+                b'.' if key => dots += 1,
+                _ => {}
+            },
+            _ => {}
+        }
+        if c == b'\n' {
+            line += 1;
+            if stack.is_empty() && state == State::Code {
+                if header {
+                    table = 2 * (dots + 1);
+                }
+                (dots, key, header) = (0, true, false);
+            }
+        }
+        if table + dots + stack.len() > MAX_NESTING {
+            return Some(line);
+        }
+        i += 1;
+    }
+    None
+}
