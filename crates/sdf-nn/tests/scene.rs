@@ -1100,30 +1100,73 @@ fn bad_scene_files_are_typed_errors() {
     }
     match parse("[root]\ntype = \"sphere\"\nradius = 1\nradiuss = 2\n") {
         SceneFileError::UnknownKey { key, line, .. } => {
-            assert_eq!(key, "radiuss");
-            assert!((1..=4).contains(&line), "{line}");
+            assert_eq!((key.as_str(), line), ("radiuss", 4))
         }
         e => panic!("{e:?}"),
     }
+    // A key another node type takes is unknown to this one; in inline tables too.
+    let text = "[root]\ntype = \"union\"\nchildren = [\n  { type = \"sphere\", radius = 1 },\n  \
+                { type = \"box\", radius = 1, half_extents = [1, 1, 1] },\n]\n";
+    match parse(text) {
+        SceneFileError::UnknownKey {
+            key,
+            line,
+            column,
+            message,
+        } => {
+            assert_eq!((key.as_str(), line, column), ("radius", 5, 28), "{message}");
+            assert!(message.contains("half_extents"), "{message}");
+        }
+        e => panic!("{e:?}"),
+    }
+    assert!(matches!(
+        parse("[root]\ntype = \"union\"\nchildren = []\nscale = 2\n"),
+        SceneFileError::UnknownKey { key, line: 4, .. } if key == "scale"
+    ));
     assert!(matches!(
         parse("scene = 1\n[root]\ntype = \"sphere\"\nradius = 1\n"),
         SceneFileError::UnknownKey { key, line: 1, .. } if key == "scene"
     ));
     match parse("[root]\ntype = \"union\"\n[[root.children]]\ntype = \"unoin\"\n") {
-        SceneFileError::UnknownOperator { name, message, .. } => {
-            assert_eq!(name, "unoin");
+        SceneFileError::UnknownOperator {
+            name,
+            line,
+            column,
+            message,
+        } => {
+            assert_eq!((name.as_str(), line, column), ("unoin", 4, 8));
             assert!(message.contains("smooth_union"), "{message}");
         }
         e => panic!("{e:?}"),
     }
     assert!(matches!(
-        parse("[root]\ntype = \"sphere\"\n"),
-        SceneFileError::Schema { message, .. } if message.contains("radius")
+        parse("[root]\ntype = \"union\"\n[[root.children]]\ntype = \"sphere\"\n"),
+        SceneFileError::MissingKey {
+            key: "radius",
+            node_type: "sphere",
+            line: 3,
+            ..
+        }
+    ));
+    assert!(matches!(
+        parse("[root]\ntype = \"smooth_union\"\nk = 1\n"),
+        SceneFileError::MissingKey {
+            key: "children",
+            line: 1,
+            ..
+        }
     ));
     assert!(matches!(
         parse("[root]\ntype = \"sphere\"\nradius = \"big\"\n"),
-        SceneFileError::Schema { .. }
+        SceneFileError::Schema { line: 3, .. }
     ));
+    assert!(matches!(
+        parse("[root]\ntype = \"box\"\nhalf_extents = [1, 2]\n"),
+        SceneFileError::Schema { line: 3, .. }
+    ));
+    assert!(
+        matches!(parse("[models]\n"), SceneFileError::Schema { message, .. } if message.contains("root"))
+    );
     let model =
         |file: &str| format!("[models]\nm = \"{file}\"\n[root]\ntype = \"model\"\nmodel = \"m\"\n");
     match parse(&model("models/missing.safetensors")) {
@@ -1162,6 +1205,10 @@ fn bad_scene_files_are_typed_errors() {
              [[root.children]]\ntype = \"sphere\"\nradius = 1\n{keys}\n"
         )
     };
+    assert!(matches!(
+        parse(&child("scale = [1, 2]")),
+        SceneFileError::Schema { line: 9, .. }
+    ));
     match parse(&child("scale = [1, 2, 1]")) {
         SceneFileError::NonUniformScale { node, scale } => {
             assert_eq!(

@@ -82,17 +82,20 @@
 //!
 //! # Errors
 //!
-//! Every bad input is a [`SceneFileError`] that says what and where: TOML errors with the line
-//! and column, the others with the node's path (`root.children[1].children[0]`), a model error
-//! with the model's name and file. Numbers may be integers or floats; `nan` and `inf` are
+//! Every bad input is a [`SceneFileError`] that says what and where: syntax errors, unknown
+//! keys and node types, missing keys and values of the wrong type with the line and column;
+//! bad values (a zero scale, `k ≤ 0`, ...) with the node's path (`root.children[1].children[0]`);
+//! a model error with the model's name and file. Numbers may be integers or floats; `nan` and `inf` are
 //! refused, as are values that overflow f32.
 
 use std::collections::BTreeMap;
+use std::ops::Range;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
 use glam::{DQuat, DVec3, Vec3};
 use serde::Deserialize;
+use toml::Spanned;
 
 use crate::NeuralSdf;
 use crate::serve::error::NeuralSdfError;
@@ -126,7 +129,7 @@ pub enum SceneFileError {
         message: String,
     },
     /// A table has a key its node does not take (or the file a top-level key other than
-    /// `models` and `root`).
+    /// `models` and `root`); the place is that of the key's value.
     #[error("unknown key `{key}` at line {line}, column {column}: {message}")]
     UnknownKey {
         /// The key.
@@ -150,7 +153,19 @@ pub enum SceneFileError {
         /// The full message, with the names expected.
         message: String,
     },
-    /// A key is missing or has the wrong type.
+    /// A node lacks a key its type needs.
+    #[error("`{node_type}` at line {line}, column {column} needs `{key}`")]
+    MissingKey {
+        /// The key.
+        key: &'static str,
+        /// The node's type.
+        node_type: &'static str,
+        /// 1-based line of the node.
+        line: usize,
+        /// 1-based column.
+        column: usize,
+    },
+    /// A key has the wrong type, or the file has no `root`.
     #[error("at line {line}, column {column}: {message}")]
     Schema {
         /// 1-based line.
@@ -277,7 +292,11 @@ pub fn tree_from_toml(text: &str, base_dir: &Path) -> Result<SceneNode, SceneFil
         })?;
         models.insert(name, Arc::new(model));
     }
-    Converter { models: &models }.node(file.root, "root".to_owned(), 1)
+    let converter = Converter {
+        text,
+        models: &models,
+    };
+    converter.node(file.root, "root".to_owned(), 1)
 }
 
 /// The file's top level.
@@ -286,7 +305,7 @@ pub fn tree_from_toml(text: &str, base_dir: &Path) -> Result<SceneNode, SceneFil
 struct FileScene {
     #[serde(default)]
     models: BTreeMap<String, String>,
-    root: FileNode,
+    root: Spanned<FileNode>,
 }
 
 /// `rotation = { axis = [x, y, z], degrees = a }`.
@@ -305,115 +324,187 @@ enum FileScale {
     PerAxis([f64; 3]),
 }
 
-/// One node; `type` picks the variant. The placement keys are repeated per leaf because serde
-/// cannot flatten a struct into a variant that denies unknown keys.
+/// One node as read: every key that some node takes; `type` says which this one takes, checked
+/// with the place of each key by [`Converter`]. A plain struct rather than an enum tagged by
+/// `type`: serde buffers tagged enums, and the buffer loses the places of the keys.
 #[derive(Deserialize)]
-#[serde(tag = "type", rename_all = "snake_case", deny_unknown_fields)]
-enum FileNode {
-    Model {
-        model: String,
-        translation: Option<[f64; 3]>,
-        rotation: Option<FileRotation>,
-        scale: Option<FileScale>,
-    },
-    Sphere {
-        radius: f64,
-        translation: Option<[f64; 3]>,
-        rotation: Option<FileRotation>,
-        scale: Option<FileScale>,
-    },
-    Box {
-        half_extents: [f64; 3],
-        translation: Option<[f64; 3]>,
-        rotation: Option<FileRotation>,
-        scale: Option<FileScale>,
-    },
-    RoundBox {
-        half_extents: [f64; 3],
-        radius: f64,
-        translation: Option<[f64; 3]>,
-        rotation: Option<FileRotation>,
-        scale: Option<FileScale>,
-    },
-    Capsule {
-        a: [f64; 3],
-        b: [f64; 3],
-        radius: f64,
-        translation: Option<[f64; 3]>,
-        rotation: Option<FileRotation>,
-        scale: Option<FileScale>,
-    },
-    Torus {
-        major: f64,
-        minor: f64,
-        translation: Option<[f64; 3]>,
-        rotation: Option<FileRotation>,
-        scale: Option<FileScale>,
-    },
-    Plane {
-        normal: [f64; 3],
-        offset: f64,
-        translation: Option<[f64; 3]>,
-        rotation: Option<FileRotation>,
-        scale: Option<FileScale>,
-    },
-    Cylinder {
-        radius: f64,
-        half_height: f64,
-        translation: Option<[f64; 3]>,
-        rotation: Option<FileRotation>,
-        scale: Option<FileScale>,
-    },
-    Union {
-        children: Vec<FileNode>,
-    },
-    Intersection {
-        children: Vec<FileNode>,
-    },
-    Difference {
-        children: Vec<FileNode>,
-    },
-    SmoothUnion {
-        k: f64,
-        children: Vec<FileNode>,
-    },
-    SmoothIntersection {
-        k: f64,
-        children: Vec<FileNode>,
-    },
-    SmoothDifference {
-        k: f64,
-        children: Vec<FileNode>,
-    },
-    Offset {
-        r: f64,
-        children: Vec<FileNode>,
-    },
-    Shell {
-        t: f64,
-        children: Vec<FileNode>,
-    },
-    Transform {
-        translation: Option<[f64; 3]>,
-        rotation: Option<FileRotation>,
-        scale: Option<FileScale>,
-        children: Vec<FileNode>,
-    },
+#[serde(deny_unknown_fields)]
+struct FileNode {
+    #[serde(rename = "type")]
+    kind: Spanned<String>,
+    model: Option<Spanned<String>>,
+    radius: Option<Spanned<f64>>,
+    half_extents: Option<Spanned<[f64; 3]>>,
+    a: Option<Spanned<[f64; 3]>>,
+    b: Option<Spanned<[f64; 3]>>,
+    major: Option<Spanned<f64>>,
+    minor: Option<Spanned<f64>>,
+    normal: Option<Spanned<[f64; 3]>>,
+    offset: Option<Spanned<f64>>,
+    half_height: Option<Spanned<f64>>,
+    k: Option<Spanned<f64>>,
+    r: Option<Spanned<f64>>,
+    t: Option<Spanned<f64>>,
+    translation: Option<Spanned<[f64; 3]>>,
+    rotation: Option<Spanned<FileRotation>>,
+    scale: Option<Spanned<FileScale>>,
+    children: Option<Spanned<Vec<Spanned<FileNode>>>>,
 }
+
+impl FileNode {
+    /// The keys given besides `type`, each with the place of its value.
+    fn given(&self) -> Vec<(&'static str, Range<usize>)> {
+        let mut out = Vec::new();
+        macro_rules! given {
+            ($($key:ident),*) => {$(
+                if let Some(v) = &self.$key {
+                    out.push((stringify!($key), v.span()));
+                }
+            )*};
+        }
+        given!(
+            model,
+            radius,
+            half_extents,
+            a,
+            b,
+            major,
+            minor,
+            normal,
+            offset,
+            half_height,
+            k,
+            r,
+            t,
+            translation,
+            rotation,
+            scale,
+            children
+        );
+        out
+    }
+}
+
+/// The keys of a leaf's placement.
+const PLACEMENT: [&str; 3] = ["translation", "rotation", "scale"];
+
+/// Each node type and the keys it takes besides `type` and, for leaves and `transform`, the
+/// placement keys.
+const NODE_TYPES: [(&str, &[&str]); 17] = [
+    ("model", &["model"]),
+    ("sphere", &["radius"]),
+    ("box", &["half_extents"]),
+    ("round_box", &["half_extents", "radius"]),
+    ("capsule", &["a", "b", "radius"]),
+    ("torus", &["major", "minor"]),
+    ("plane", &["normal", "offset"]),
+    ("cylinder", &["radius", "half_height"]),
+    ("union", &["children"]),
+    ("intersection", &["children"]),
+    ("difference", &["children"]),
+    ("smooth_union", &["k", "children"]),
+    ("smooth_intersection", &["k", "children"]),
+    ("smooth_difference", &["k", "children"]),
+    ("offset", &["r", "children"]),
+    ("shell", &["t", "children"]),
+    ("transform", &["children"]),
+];
 
 /// Turns the file's nodes into [`SceneNode`]s.
 struct Converter<'a> {
+    text: &'a str,
     models: &'a BTreeMap<String, Arc<NeuralSdf>>,
 }
 
-/// A leaf's placement as read.
-type Placement = (Option<[f64; 3]>, Option<FileRotation>, Option<FileScale>);
+/// A node being converted: its keys, type, place and path.
+struct Node<'a> {
+    keys: FileNode,
+    kind: &'static str,
+    at: Range<usize>,
+    path: &'a str,
+    text: &'a str,
+}
+
+impl Node<'_> {
+    /// The error for a missing key.
+    fn missing(&self, key: &'static str) -> SceneFileError {
+        let (line, column) = line_column(self.text, self.at.start);
+        SceneFileError::MissingKey {
+            key,
+            node_type: self.kind,
+            line,
+            column,
+        }
+    }
+
+    /// A required number.
+    fn number(&self, v: &Option<Spanned<f64>>, key: &'static str) -> Result<f32, SceneFileError> {
+        let v = v.as_ref().ok_or_else(|| self.missing(key))?;
+        num(self.path, key, *v.get_ref())
+    }
+
+    /// A required vector.
+    fn vector(
+        &self,
+        v: &Option<Spanned<[f64; 3]>>,
+        key: &'static str,
+    ) -> Result<Vec3, SceneFileError> {
+        let v = v.as_ref().ok_or_else(|| self.missing(key))?;
+        vec3(self.path, key, *v.get_ref())
+    }
+
+    /// The placement keys as a transform.
+    fn transform(&self) -> Result<Transform, SceneFileError> {
+        let k = &self.keys;
+        transform(
+            self.path,
+            k.translation.as_ref().map(|v| *v.get_ref()),
+            k.rotation.as_ref().map(|v| v.get_ref()),
+            k.scale.as_ref().map(|v| v.get_ref()),
+        )
+    }
+
+    /// The primitive of a leaf type.
+    fn primitive(&self) -> Result<Primitive, SceneFileError> {
+        let k = &self.keys;
+        Ok(match self.kind {
+            "sphere" => Primitive::Sphere {
+                radius: self.number(&k.radius, "radius")?,
+            },
+            "box" => Primitive::Box {
+                half_extents: self.vector(&k.half_extents, "half_extents")?,
+            },
+            "round_box" => Primitive::RoundBox {
+                half_extents: self.vector(&k.half_extents, "half_extents")?,
+                radius: self.number(&k.radius, "radius")?,
+            },
+            "capsule" => Primitive::Capsule {
+                a: self.vector(&k.a, "a")?,
+                b: self.vector(&k.b, "b")?,
+                radius: self.number(&k.radius, "radius")?,
+            },
+            "torus" => Primitive::Torus {
+                major: self.number(&k.major, "major")?,
+                minor: self.number(&k.minor, "minor")?,
+            },
+            "plane" => Primitive::Plane {
+                normal: self.vector(&k.normal, "normal")?,
+                offset: self.number(&k.offset, "offset")?,
+            },
+            "cylinder" => Primitive::Cylinder {
+                radius: self.number(&k.radius, "radius")?,
+                half_height: self.number(&k.half_height, "half_height")?,
+            },
+            other => unreachable!("`{other}` is not a primitive"),
+        })
+    }
+}
 
 impl Converter<'_> {
     /// Converts `node` at `path`, `depth` levels down (the root is 1).
     fn node(
         &self,
-        node: FileNode,
+        node: Spanned<FileNode>,
         path: String,
         depth: usize,
     ) -> Result<SceneNode, SceneFileError> {
@@ -424,181 +515,125 @@ impl Converter<'_> {
             }
             .into());
         }
-        let p = &path;
-        let leaf = |primitive: Primitive, placement: Placement| -> Result<_, SceneFileError> {
-            Ok(SceneNode::primitive(primitive, transform(p, placement)?))
+        let at = node.span();
+        let keys = node.into_inner();
+        let kind = self.check_keys(&keys)?;
+        let mut n = Node {
+            keys,
+            kind,
+            at,
+            path: &path,
+            text: self.text,
         };
-        match node {
-            FileNode::Model {
-                model,
-                translation,
-                rotation,
-                scale,
-            } => {
-                let Some(m) = self.models.get(&model) else {
-                    return Err(SceneFileError::UnknownModel {
-                        node: path,
-                        name: model,
-                    });
-                };
-                let t = transform(p, (translation, rotation, scale))?;
-                Ok(SceneNode::model(m.clone(), t))
+        let unary = ["offset", "shell", "transform"].contains(&kind);
+        let children = match n.keys.children.take() {
+            Some(c) => c.into_inner(),
+            None if [
+                "model",
+                "sphere",
+                "box",
+                "round_box",
+                "capsule",
+                "torus",
+                "plane",
+                "cylinder",
+            ]
+            .contains(&kind) =>
+            {
+                Vec::new()
             }
-            FileNode::Sphere {
-                radius,
-                translation,
-                rotation,
-                scale,
-            } => leaf(
-                Primitive::Sphere {
-                    radius: num(p, "radius", radius)?,
-                },
-                (translation, rotation, scale),
-            ),
-            FileNode::Box {
-                half_extents,
-                translation,
-                rotation,
-                scale,
-            } => leaf(
-                Primitive::Box {
-                    half_extents: vec3(p, "half_extents", half_extents)?,
-                },
-                (translation, rotation, scale),
-            ),
-            FileNode::RoundBox {
-                half_extents,
-                radius,
-                translation,
-                rotation,
-                scale,
-            } => leaf(
-                Primitive::RoundBox {
-                    half_extents: vec3(p, "half_extents", half_extents)?,
-                    radius: num(p, "radius", radius)?,
-                },
-                (translation, rotation, scale),
-            ),
-            FileNode::Capsule {
-                a,
-                b,
-                radius,
-                translation,
-                rotation,
-                scale,
-            } => leaf(
-                Primitive::Capsule {
-                    a: vec3(p, "a", a)?,
-                    b: vec3(p, "b", b)?,
-                    radius: num(p, "radius", radius)?,
-                },
-                (translation, rotation, scale),
-            ),
-            FileNode::Torus {
-                major,
-                minor,
-                translation,
-                rotation,
-                scale,
-            } => leaf(
-                Primitive::Torus {
-                    major: num(p, "major", major)?,
-                    minor: num(p, "minor", minor)?,
-                },
-                (translation, rotation, scale),
-            ),
-            FileNode::Plane {
-                normal,
-                offset,
-                translation,
-                rotation,
-                scale,
-            } => leaf(
-                Primitive::Plane {
-                    normal: vec3(p, "normal", normal)?,
-                    offset: num(p, "offset", offset)?,
-                },
-                (translation, rotation, scale),
-            ),
-            FileNode::Cylinder {
-                radius,
-                half_height,
-                translation,
-                rotation,
-                scale,
-            } => leaf(
-                Primitive::Cylinder {
-                    radius: num(p, "radius", radius)?,
-                    half_height: num(p, "half_height", half_height)?,
-                },
-                (translation, rotation, scale),
-            ),
-            inner => self.inner(inner, path, depth),
+            None => return Err(n.missing("children")),
+        };
+        if unary && children.len() != 1 {
+            return Err(SceneFileError::Children {
+                node: path.clone(),
+                op: kind,
+                found: children.len(),
+            });
         }
-    }
-
-    /// Converts an inner node.
-    fn inner(
-        &self,
-        node: FileNode,
-        path: String,
-        depth: usize,
-    ) -> Result<SceneNode, SceneFileError> {
-        let p = &path;
-        let children = |children: Vec<FileNode>| -> Result<Vec<SceneNode>, SceneFileError> {
+        let convert = |children: Vec<Spanned<FileNode>>| -> Result<Vec<SceneNode>, _> {
             children
                 .into_iter()
                 .enumerate()
-                .map(|(i, c)| self.node(c, format!("{p}.children[{i}]"), depth + 1))
+                .map(|(i, c)| self.node(c, format!("{path}.children[{i}]"), depth + 1))
                 .collect()
         };
-        let only =
-            |op: &'static str, children: Vec<FileNode>| -> Result<Box<SceneNode>, SceneFileError> {
-                let found = children.len();
-                let [child]: [FileNode; 1] =
-                    children.try_into().map_err(|_| SceneFileError::Children {
-                        node: p.clone(),
-                        op,
-                        found,
-                    })?;
-                self.node(child, format!("{p}.children[0]"), depth + 1)
-                    .map(Box::new)
-            };
-        Ok(match node {
-            FileNode::Union { children: c } => SceneNode::Union(children(c)?),
-            FileNode::Intersection { children: c } => SceneNode::Intersection(children(c)?),
-            FileNode::Difference { children: c } => SceneNode::Difference(children(c)?),
-            FileNode::SmoothUnion { k, children: c } => SceneNode::SmoothUnion {
-                k: num(p, "k", k)?,
-                children: children(c)?,
+        let k = &n.keys;
+        Ok(match kind {
+            "model" => {
+                let name = k
+                    .model
+                    .as_ref()
+                    .ok_or_else(|| n.missing("model"))?
+                    .get_ref();
+                let Some(model) = self.models.get(name) else {
+                    return Err(SceneFileError::UnknownModel {
+                        node: path.clone(),
+                        name: name.clone(),
+                    });
+                };
+                SceneNode::model(model.clone(), n.transform()?)
+            }
+            "union" => SceneNode::Union(convert(children)?),
+            "intersection" => SceneNode::Intersection(convert(children)?),
+            "difference" => SceneNode::Difference(convert(children)?),
+            "smooth_union" => SceneNode::SmoothUnion {
+                k: n.number(&k.k, "k")?,
+                children: convert(children)?,
             },
-            FileNode::SmoothIntersection { k, children: c } => SceneNode::SmoothIntersection {
-                k: num(p, "k", k)?,
-                children: children(c)?,
+            "smooth_intersection" => SceneNode::SmoothIntersection {
+                k: n.number(&k.k, "k")?,
+                children: convert(children)?,
             },
-            FileNode::SmoothDifference { k, children: c } => SceneNode::SmoothDifference {
-                k: num(p, "k", k)?,
-                children: children(c)?,
+            "smooth_difference" => SceneNode::SmoothDifference {
+                k: n.number(&k.k, "k")?,
+                children: convert(children)?,
             },
-            FileNode::Offset { r, children: c } => SceneNode::Offset {
-                r: num(p, "r", r)?,
-                child: only("offset", c)?,
+            "offset" => SceneNode::Offset {
+                r: n.number(&k.r, "r")?,
+                child: Box::new(convert(children)?.remove(0)),
             },
-            FileNode::Shell { t, children: c } => SceneNode::Shell {
-                t: num(p, "t", t)?,
-                child: only("shell", c)?,
+            "shell" => SceneNode::Shell {
+                t: n.number(&k.t, "t")?,
+                child: Box::new(convert(children)?.remove(0)),
             },
-            FileNode::Transform {
-                translation,
-                rotation,
-                scale,
-                children: c,
-            } => SceneNode::Transform {
-                transform: transform(p, (translation, rotation, scale))?,
-                child: only("transform", c)?,
+            "transform" => SceneNode::Transform {
+                transform: n.transform()?,
+                child: Box::new(convert(children)?.remove(0)),
             },
-            _ => unreachable!("leaves are converted by Converter::node"),
+            _ => SceneNode::primitive(n.primitive()?, n.transform()?),
         })
+    }
+
+    /// The node's type, checked, and its keys checked against it.
+    fn check_keys(&self, node: &FileNode) -> Result<&'static str, SceneFileError> {
+        let name = node.kind.get_ref();
+        let Some(&(kind, keys)) = NODE_TYPES.iter().find(|(n, _)| n == name) else {
+            let (line, column) = line_column(self.text, node.kind.span().start);
+            let known: Vec<&str> = NODE_TYPES.iter().map(|(n, _)| *n).collect();
+            return Err(SceneFileError::UnknownOperator {
+                name: name.clone(),
+                line,
+                column,
+                message: format!("expected one of `{}`", known.join("`, `")),
+            });
+        };
+        let placed = !keys.contains(&"children") || kind == "transform";
+        let takes = |key: &str| keys.contains(&key) || (placed && PLACEMENT.contains(&key));
+        if let Some((key, at)) = node.given().into_iter().find(|(key, _)| !takes(key)) {
+            let (line, column) = line_column(self.text, at.start);
+            let mut all: Vec<&str> = keys.to_vec();
+            if placed {
+                all.extend(PLACEMENT);
+            }
+            return Err(SceneFileError::UnknownKey {
+                key: key.to_owned(),
+                line,
+                column,
+                message: format!("`{kind}` takes `type`, `{}`", all.join("`, `")),
+            });
+        }
+        Ok(kind)
     }
 }
 
@@ -628,7 +663,9 @@ fn vec3(node: &str, field: &'static str, v: [f64; 3]) -> Result<Vec3, SceneFileE
 /// The placement keys as a [`Transform`] (the scale's sign is checked by [`Scene::new`]).
 fn transform(
     node: &str,
-    (translation, rotation, scale): Placement,
+    translation: Option<[f64; 3]>,
+    rotation: Option<&FileRotation>,
+    scale: Option<&FileScale>,
 ) -> Result<Transform, SceneFileError> {
     let translation = vec3(node, "translation", translation.unwrap_or_default())?;
     let rotation = match rotation {
@@ -647,13 +684,13 @@ fn transform(
     };
     let scale = match scale {
         None => 1.0,
-        Some(FileScale::Uniform(s)) => num(node, "scale", s)?,
+        Some(FileScale::Uniform(s)) => num(node, "scale", *s)?,
         Some(FileScale::PerAxis(s)) => {
-            vec3(node, "scale", s)?;
+            vec3(node, "scale", *s)?;
             if s[0] != s[1] || s[1] != s[2] {
                 return Err(SceneFileError::NonUniformScale {
                     node: node.to_owned(),
-                    scale: s,
+                    scale: *s,
                 });
             }
             num(node, "scale", s[0])?
@@ -669,7 +706,7 @@ fn toml_error(text: &str, e: toml::de::Error) -> SceneFileError {
         .map(|s| line_column(text, s.start))
         .unwrap_or((1, 1));
     let message = e.message().trim().to_owned();
-    // Serde's own wording for these two (`unknown field `x`, expected ...`).
+    // Serde's own wording (`unknown field `x`, expected ...`) for the top level's keys.
     let quoted = || message.split('`').nth(1).unwrap_or_default().to_owned();
     if toml::from_str::<toml::Table>(text).is_err() {
         SceneFileError::Syntax {
@@ -680,13 +717,6 @@ fn toml_error(text: &str, e: toml::de::Error) -> SceneFileError {
     } else if message.starts_with("unknown field") {
         SceneFileError::UnknownKey {
             key: quoted(),
-            line,
-            column,
-            message,
-        }
-    } else if message.starts_with("unknown variant") {
-        SceneFileError::UnknownOperator {
-            name: quoted(),
             line,
             column,
             message,

@@ -25,7 +25,7 @@
 //! their exact distances), [`lipschitz`] (a model's measured Lipschitz estimate), [`tree`]
 //! (the tree, its validation, and its compiled form: a flat post-order program that every
 //! evaluator walks), [`cpu`] (the CPU reference: distances, gradients, rays, closest points)
-//! and [`file`] (the TOML scene file).
+//! and [`file`](mod@file) (the TOML scene file).
 
 pub mod cpu;
 pub mod file;
