@@ -192,3 +192,61 @@ fn lipschitz_estimates_follow_the_slope() {
         Err(SceneError::Lipschitz { .. })
     ));
 }
+
+/// The guarantee, observed: on untrained networks of both architectures (a random SIREN, whose
+/// slopes are nothing like a distance's), no pair of points, inside the box or out, differs by
+/// more than the estimate times their distance.
+#[test]
+fn lipschitz_estimates_bound_observed_slopes() {
+    use sdf_nn::{Siren, SirenConfig};
+    let n = normalization();
+    let siren = Siren::new(SirenConfig::small(), 3).unwrap();
+    let siren = NeuralSdf::from_model_file(siren.to_model_file(n, serde_json::Value::Null));
+    let models = [Arc::new(siren.unwrap()), Arc::new(sphere_model(2.0))];
+    let nodes = models
+        .iter()
+        .map(|m| SceneNode::model(m.clone(), Transform::IDENTITY))
+        .collect();
+    let scene = Scene::new(SceneNode::Union(nodes)).unwrap();
+    let mut rng = Pcg64::seed_from_u64(11);
+    for (i, model) in models.iter().enumerate() {
+        let l = scene.model_lipschitz(i).unwrap() as f64;
+        // Pairs a short step apart, over 1.5 times the box (mesh units: the box is ±4 about
+        // the centre).
+        let (mut a, mut b) = (Vec::new(), Vec::new());
+        for _ in 0..20_000 {
+            let p = n.center
+                + Vec3::new(
+                    rng.random_range(-6.0..6.0),
+                    rng.random_range(-6.0..6.0),
+                    rng.random_range(-6.0..6.0),
+                );
+            let step = Vec3::new(
+                rng.random_range(-1.0..1.0),
+                rng.random_range(-1.0..1.0),
+                rng.random_range(-1.0..1.0),
+            ) * 0.05;
+            a.push(p);
+            b.push(p + step);
+        }
+        let (da, db) = (model.eval_cpu(&a), model.eval_cpu(&b));
+        let steepest = a
+            .iter()
+            .zip(&b)
+            .zip(da.iter().zip(&db))
+            .map(|((p, q), (x, y))| (x - y).abs() as f64 / p.distance(*q) as f64)
+            .fold(0.0, f64::max);
+        assert!(
+            steepest <= l,
+            "model {i}: slope {steepest} over the estimate {l}"
+        );
+        // And the estimate is not absurdly loose: within the safety factor and the box term.
+        assert!(
+            steepest > 0.5 * l / SAFETY_FOR_TESTS,
+            "model {i}: {steepest} vs {l}"
+        );
+    }
+}
+
+/// [`sdf_nn::serve::scene::lipschitz::SAFETY`], as f64.
+const SAFETY_FOR_TESTS: f64 = sdf_nn::serve::scene::lipschitz::SAFETY as f64;
