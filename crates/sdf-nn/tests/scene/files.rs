@@ -1,12 +1,13 @@
 //! Bad trees built in code, and scene files: loading, depth, and every bad input.
 
-use std::f32::consts::FRAC_PI_2;
+use std::f32::consts::{FRAC_PI_2, FRAC_PI_4};
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
 use glam::{Quat, Vec3};
 use sdf_nn::serve::scene::{
-    MAX_DEPTH, MAX_LEAVES, MAX_MODELS, Scene, SceneError, SceneFileError, SceneNode, Transform,
+    MAX_DEPTH, MAX_LEAVES, MAX_MODELS, Primitive, Scene, SceneError, SceneFileError, SceneNode,
+    Transform,
 };
 use sdf_nn::{NeuralSdf, Nglod, Normalization};
 
@@ -509,4 +510,138 @@ fn bad_scene_files_are_typed_errors() {
         other => panic!("{other:?}"),
     }
     std::fs::remove_dir_all(&dir).ok();
+}
+
+/// Every node type read from a file is the node built in code.
+#[test]
+fn every_node_type_reads_as_built() {
+    let text = r#"
+[root]
+type = "smooth_union"
+k = 0.3
+
+[[root.children]]
+type = "intersection"
+children = [
+    { type = "round_box", half_extents = [0.8, 0.5, 0.6], radius = 0.1, translation = [-1, 0, 0] },
+    { type = "plane", normal = [0, 1, 0.2], offset = 0.1 },
+]
+
+[[root.children]]
+type = "smooth_intersection"
+k = 0.2
+children = [
+    { type = "capsule", a = [-0.5, 0, 0], b = [0.5, 0, 0], radius = 0.2, scale = 1.5 },
+    { type = "torus", major = 0.7, minor = 0.15, rotation = { axis = [1, 0, 0], degrees = 30 } },
+]
+
+[[root.children]]
+type = "smooth_difference"
+k = 0.1
+children = [
+    { type = "cylinder", radius = 0.4, half_height = 0.3, translation = [0, 1, 0] },
+    { type = "shell", t = 0.05, children = [{ type = "sphere", radius = 0.3, translation = [0, 1.2, 0] }] },
+]
+
+[[root.children]]
+type = "transform"
+translation = [0.5, -1, 0]
+rotation = { axis = [0, 0, 1], degrees = -45 }
+scale = 0.8
+
+[[root.children.children]]
+type = "offset"
+r = 0.05
+children = [{ type = "box", half_extents = [0.3, 0.3, 0.3] }]
+"#;
+    let from_file = Scene::from_toml(text, Path::new(".")).unwrap();
+    let prim = |p: Primitive, t: Transform| SceneNode::primitive(p, t);
+    let at = Transform::from_translation;
+    let built = SceneNode::SmoothUnion {
+        k: 0.3,
+        children: vec![
+            SceneNode::Intersection(vec![
+                prim(
+                    Primitive::RoundBox {
+                        half_extents: Vec3::new(0.8, 0.5, 0.6),
+                        radius: 0.1,
+                    },
+                    at(Vec3::new(-1.0, 0.0, 0.0)),
+                ),
+                prim(
+                    Primitive::Plane {
+                        normal: Vec3::new(0.0, 1.0, 0.2),
+                        offset: 0.1,
+                    },
+                    Transform::IDENTITY,
+                ),
+            ]),
+            SceneNode::SmoothIntersection {
+                k: 0.2,
+                children: vec![
+                    prim(
+                        Primitive::Capsule {
+                            a: Vec3::new(-0.5, 0.0, 0.0),
+                            b: Vec3::new(0.5, 0.0, 0.0),
+                            radius: 0.2,
+                        },
+                        Transform::new(Vec3::ZERO, Quat::IDENTITY, 1.5),
+                    ),
+                    prim(
+                        Primitive::Torus {
+                            major: 0.7,
+                            minor: 0.15,
+                        },
+                        Transform::new(Vec3::ZERO, Quat::from_rotation_x(30f32.to_radians()), 1.0),
+                    ),
+                ],
+            },
+            SceneNode::SmoothDifference {
+                k: 0.1,
+                children: vec![
+                    prim(
+                        Primitive::Cylinder {
+                            radius: 0.4,
+                            half_height: 0.3,
+                        },
+                        at(Vec3::Y),
+                    ),
+                    SceneNode::Shell {
+                        t: 0.05,
+                        child: Box::new(sphere_at(Vec3::new(0.0, 1.2, 0.0), 0.3)),
+                    },
+                ],
+            },
+            SceneNode::Offset {
+                r: 0.05,
+                child: Box::new(prim(
+                    Primitive::Box {
+                        half_extents: Vec3::splat(0.3),
+                    },
+                    Transform::IDENTITY,
+                )),
+            }
+            .transformed(Transform::new(
+                Vec3::new(0.5, -1.0, 0.0),
+                Quat::from_rotation_z(-FRAC_PI_4),
+                0.8,
+            )),
+        ],
+    };
+    let built = Scene::new(built).unwrap();
+    assert_eq!(from_file.program(), built.program());
+    let points: Vec<Vec3> = (0..1000)
+        .map(|i| {
+            let t = i as f32 * 0.618;
+            Vec3::new(t.sin() * 2.0, (1.7 * t).cos() * 2.0, (0.3 * t).sin() * 2.0)
+        })
+        .collect();
+    for (p, (a, b)) in points.iter().zip(
+        from_file
+            .distances(&points, 0.0)
+            .into_iter()
+            .zip(built.distances(&points, 0.0)),
+    ) {
+        assert_close(a, b as f64, 1e-5, &format!("{p}"));
+    }
 }
