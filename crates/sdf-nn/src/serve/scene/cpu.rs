@@ -24,9 +24,9 @@
 //!
 //! Gradients are analytic through every operator (the smooth minimum's weights, the sign of a
 //! shell, the negation of a difference); a primitive's is its exact gradient, a model's is its
-//! unit normal rotated into the scene's frame. A NaN or infinite query point gives NaN
-//! distances, as [`NeuralSdf::eval_cpu`](crate::NeuralSdf::eval_cpu) does; rays and closest
-//! points refuse bad input with a [`SceneQueryError`].
+//! unit normal rotated into the scene's frame. A NaN or infinite query point (or level) gives
+//! NaN distances, as [`NeuralSdf::eval_cpu`](crate::NeuralSdf::eval_cpu) does; rays and
+//! closest points refuse bad input with a [`SceneQueryError`].
 
 use glam::{DQuat, DVec3, Vec3};
 use rayon::prelude::*;

@@ -812,3 +812,44 @@ fn nesting_exceeded(text: &str) -> Option<usize> {
     }
     None
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn nesting_skips_strings_and_comments_and_counts_the_rest() {
+        let deep = "[".repeat(MAX_NESTING + 1);
+        let quiet = [
+            format!("a = \"{deep}\"\n"),
+            format!("a = '{deep}'\n"),
+            format!("a = \"\"\"\n{deep}\n\"\"\"\n"),
+            format!("a = '''\n{deep}\n'''\n"),
+            format!("a = \"\\\"{deep}\"\n"),
+            format!("# {deep}\n"),
+            format!("a = [{}]\n", "1.5, ".repeat(1000)),
+        ];
+        for text in &quiet {
+            assert_eq!(nesting_exceeded(text), None, "{text}");
+        }
+        assert_eq!(nesting_exceeded(&format!("x = 1\na = {deep}")), Some(2));
+        let dotted = format!("{} = 1\n", vec!["a"; MAX_NESTING + 2].join("."));
+        assert_eq!(nesting_exceeded(&dotted), Some(1));
+        let header = format!("[{}]\nx = 1\n", vec!["a"; MAX_NESTING / 2 + 2].join("."));
+        assert!(nesting_exceeded(&header).is_some());
+        // Values' dots (floats, times) are not keys.
+        assert_eq!(nesting_exceeded("[t]\nx = 1.25\ny = 07:32:00.5\n"), None);
+    }
+
+    #[test]
+    fn places_count_lines_and_characters() {
+        let text = "a = 1\nb = \"é\" x\n";
+        assert_eq!(line_column(text, 0), (1, 1));
+        assert_eq!(line_column(text, 6), (2, 1));
+        // Byte 15 is the `x`, after the two-byte é: the 9th character of its line.
+        assert_eq!(line_column(text, 15), (2, 9));
+        // Inside the é: the character it belongs to.
+        assert_eq!(line_column(text, 12), (2, 6));
+        assert_eq!(line_column(text, 1000), (3, 1));
+    }
+}

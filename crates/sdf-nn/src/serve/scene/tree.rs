@@ -726,3 +726,86 @@ fn parameter_error(
         requirement,
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn ball(x: f32) -> SceneNode {
+        SceneNode::primitive(
+            Primitive::Sphere { radius: 1.0 },
+            Transform::from_translation(Vec3::X * x),
+        )
+    }
+
+    /// The most values the program's stack holds.
+    fn stack_height(program: &[Instruction]) -> usize {
+        let (mut height, mut most) = (0usize, 0usize);
+        for i in program {
+            match i {
+                Instruction::Leaf(_) => height += 1,
+                Instruction::Offset(_) | Instruction::Shell(_) => {}
+                _ => height -= 1,
+            }
+            most = most.max(height);
+        }
+        assert_eq!(height, 1, "one value is left");
+        most
+    }
+
+    /// A shader can size its stack by the depth: wide n-ary nodes fold as they go, so the
+    /// stack holds at most one pending value per level plus the current one.
+    #[test]
+    fn the_stack_stays_within_the_depth() {
+        let mut node = ball(0.0);
+        for level in 1..MAX_DEPTH {
+            let children = vec![ball(level as f32), node, ball(-(level as f32)), ball(0.5)];
+            node = match level % 4 {
+                0 => SceneNode::Union(children),
+                1 => SceneNode::SmoothDifference { k: 0.1, children },
+                2 => SceneNode::Intersection(children),
+                _ => SceneNode::SmoothUnion { k: 0.2, children },
+            };
+        }
+        let scene = Scene::new(node).unwrap();
+        assert_eq!(scene.depth(), MAX_DEPTH);
+        let height = stack_height(scene.program());
+        assert!(height <= MAX_DEPTH + 1, "{height}");
+        // The deep child is second: every level waits on one value.
+        assert!(height >= MAX_DEPTH - 1, "{height}");
+    }
+
+    /// Transforms fold into the leaves, and operator parameters take the scale above them.
+    #[test]
+    fn transforms_fold_into_leaves_and_parameters() {
+        let inner = SceneNode::SmoothUnion {
+            k: 0.5,
+            children: vec![ball(1.0), ball(-1.0)],
+        };
+        let outer = Transform::new(Vec3::Y, Quat::from_rotation_z(1.0), 3.0);
+        let scene = Scene::new(
+            SceneNode::Offset {
+                r: 0.25,
+                child: Box::new(inner),
+            }
+            .transformed(outer),
+        )
+        .unwrap();
+        assert_eq!(
+            scene.program(),
+            [
+                Instruction::Leaf(0),
+                Instruction::Leaf(1),
+                Instruction::SmoothUnion(1.5),
+                Instruction::Offset(0.75),
+            ]
+        );
+        let leaf = scene.leaves()[0].transform;
+        assert!((leaf.apply(Vec3::ZERO) - outer.apply(Vec3::X)).length() < 1e-6);
+        assert_eq!(leaf.scale, 3.0);
+        assert_eq!(
+            scene.leaf_path(1),
+            Some("root.children[0].children[0].children[1]")
+        );
+    }
+}
