@@ -44,5 +44,6 @@ pub use serve::query::{
     QueryTransfer,
 };
 pub use serve::render::{RenderError, RenderOptions, Renderer, RgbaImage, render};
+pub use serve::scene::{Scene, SceneError, SceneFileError, SceneNode};
 pub use serve::wgsl::{EmbedError, SdfBindGroup};
 pub use siren::{LossWeights, Siren, SirenConfig, SirenGpu, SirenTrainConfig, SirenTrainer};

@@ -4,7 +4,8 @@
 //! The rooms depend on each other in one direction: [`network`] (the network and its GPU
 //! side) and [`error`] are used by [`query`] (caller-owned buffers, recording, submission) and
 //! [`wgsl`] (snippets for renderers); [`neural`] owns every method of `NeuralSdf` and drives
-//! them; [`render`] draws a `NeuralSdf`. The models (`crate::siren`, `crate::nglod`) know
+//! them; [`render`] draws a `NeuralSdf`; [`scene`] combines many models and primitives into
+//! one scene. The models (`crate::siren`, `crate::nglod`) know
 //! nothing of this module.
 
 pub mod error;
@@ -12,4 +13,5 @@ pub mod network;
 pub mod neural;
 pub mod query;
 pub mod render;
+pub mod scene;
 pub mod wgsl;
