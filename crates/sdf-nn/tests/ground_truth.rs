@@ -289,3 +289,50 @@ fn trees_that_do_not_fit_are_refused() {
         "{err:?}"
     );
 }
+
+/// Triangles whose spacing shrinks geometrically (PLOC's worst case, the deepest trees the
+/// builder makes): either the kernels' stack holds the tree and the answers are the CPU's, or
+/// the mesh is refused with `TreeTooDeep` (never a stack overflow or a wrong answer).
+#[test]
+fn geometric_chains_are_answered_or_refused() {
+    let n = 5000;
+    let mut vertices = Vec::with_capacity(3 * n);
+    let mut x = 1.0f32;
+    for _ in 0..n {
+        let s = x * 0.2;
+        vertices.extend([
+            Vec3::new(x, 0.0, 0.0),
+            Vec3::new(x, s, 0.0),
+            Vec3::new(x, 0.0, s),
+        ]);
+        x /= 1.002;
+    }
+    let triangles = (0..n as u32)
+        .map(|i| [3 * i, 3 * i + 1, 3 * i + 2])
+        .collect();
+    let mesh = Mesh {
+        vertices,
+        triangles,
+    };
+    let cpu = SignedDistance::new(&mesh).unwrap();
+    let needed = cpu.gpu_trees().max_stack;
+    let gpu = gpu();
+    match GpuGroundTruth::new(gpu, &cpu) {
+        Ok(gt) => {
+            assert!(needed <= MAX_STACK);
+            let mut pts = sample::uniform_box(500, 5);
+            pts.extend(sample::surface(&mesh, 500, 6).points);
+            let want = cpu.signed_distance_batch(&pts);
+            let got = gt.signed_distance(gpu, &pts).unwrap();
+            for ((p, w), g) in pts.iter().zip(&want).zip(&got) {
+                assert!((w.abs() - g.abs()).abs() <= 1e-6, "{p}: {g} vs {w}");
+            }
+            eprintln!("geometric chain: stack {needed}, answered");
+        }
+        Err(GroundTruthError::TreeTooDeep { needed: k, limit }) => {
+            assert_eq!((k, limit), (needed, MAX_STACK));
+            eprintln!("geometric chain: stack {needed}, refused");
+        }
+        Err(e) => panic!("{e}"),
+    }
+}
