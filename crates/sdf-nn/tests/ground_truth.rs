@@ -165,8 +165,8 @@ fn agree(name: &str, cpu: &SignedDistance, gt: &GpuGroundTruth, pts: &[Vec3], re
     }
 }
 
-/// Far queries (up to `f32::MAX`) take the far path without overflow; meshes far from the origin,
-/// huge or tiny, take the power-of-two rescaling; nothing turns into NaN.
+/// Far queries (up to `f32::MAX`) take the far path without overflow; meshes far from the origin
+/// or tiny take the power-of-two rescaling; nothing turns into NaN.
 #[test]
 fn far_queries_and_huge_coordinates_stay_finite() {
     let gpu = gpu();
@@ -218,6 +218,23 @@ fn far_queries_and_huge_coordinates_stay_finite() {
         &far_points(Vec3::ZERO, 1e-30),
         1e-5,
         1e-36,
+    );
+
+    // Near the smallest normal f32: an internal scale of 2^122, applied in two steps.
+    let tinier = Mesh {
+        vertices: mesh.vertices.iter().map(|v| *v * 1e-37).collect(),
+        triangles: mesh.triangles.clone(),
+    };
+    let cpu = SignedDistance::new(&tinier).unwrap();
+    assert!(cpu.gpu_trees().exponent > 120);
+    let gt = GpuGroundTruth::new(gpu, &cpu).unwrap();
+    agree(
+        "spot × 1e-37",
+        &cpu,
+        &gt,
+        &far_points(Vec3::ZERO, 1e-37),
+        1e-4,
+        1e-43,
     );
 }
 

@@ -3,8 +3,8 @@
 // `winding.wgsl` is compiled after this file (it needs the search for the signed distance).
 //
 // Coordinates: the trees are in internal units (the mesh's times 2^exponent); points come in mesh
-// units, results go out in mesh units. Every rescaling is an `ldexp` (exact), so the near path
-// computes what the CPU computes, operation for operation.
+// units, results go out in mesh units. Every rescaling is by a power of two (exact), so the near
+// path computes what the CPU computes, operation for operation.
 
 const WG: u32 = 64u;
 // Entries of the traversal stacks: the host refuses trees whose `max_stack` is larger.
@@ -76,6 +76,18 @@ fn is_finite3(p: vec3<f32>) -> bool {
     return all((bitcast<vec3<u32>>(p) & e) != e);
 }
 
+// v · 2^e, in two steps: WGSL leaves `ldexp` indeterminate for exponents above 128 and lets it
+// flush to zero below −126, and the tamed meshes' exponents reach ±150.
+fn scale3(v: vec3<f32>, e: i32) -> vec3<f32> {
+    let h = e / 2;
+    return ldexp(ldexp(v, vec3<i32>(h)), vec3<i32>(e - h));
+}
+
+fn scale1(x: f32, e: i32) -> f32 {
+    let h = e / 2;
+    return ldexp(ldexp(x, h), e - h);
+}
+
 fn max3(v: vec3<f32>) -> f32 {
     return max(v.x, max(v.y, v.z));
 }
@@ -103,7 +115,7 @@ fn classify(q: vec3<f32>) -> Query {
     if len > params.far_half {
         return Query(params.center + dir * params.far, true);
     }
-    return Query(ldexp(q, vec3<i32>(params.exponent)), false);
+    return Query(scale3(q, params.exponent), false);
 }
 
 // Squared distances from p to the four children's boxes.
@@ -312,16 +324,19 @@ fn corners(tri: u32) -> Corners {
 // only if it exceeds the largest f32, as on the CPU.
 fn far_closest(q: vec3<f32>, t: Corners) -> vec4<f32> {
     let e = params.exponent;
-    let ap = q * 0.5 - ldexp(t.a, vec3<i32>(-e - 1));
+    let ap = q * 0.5 - scale3(t.a, -e - 1);
     let k = frexp(max3(abs(ap))).exp;
-    let aps = ldexp(ap, vec3<i32>(-k));
-    let s = vec3<i32>(-e - 1 - k);
+    let aps = scale3(ap, -k);
+    let s = -e - 1 - k;
     let ab = t.b - t.a;
     let ac = t.c - t.a;
-    let vw = far_weights(aps, ldexp(ab, s), ldexp(ac, s));
-    let x = ldexp(ab, s) * vw.x + ldexp(ac, s) * vw.y;
-    let dist = ldexp(length(aps - x), k + 1);
-    let point = ldexp(t.a + ab * vw.x + ac * vw.y, vec3<i32>(-e));
+    let ab_s = scale3(ab, s);
+    let ac_s = scale3(ac, s);
+    let vw = far_weights(aps, ab_s, ac_s);
+    let x = ab_s * vw.x + ac_s * vw.y;
+    // Times 2 last: a distance above the largest f32 overflows to +inf, as on the CPU.
+    let dist = scale1(length(aps - x), k) * 2.0;
+    let point = scale3(t.a + ab * vw.x + ac * vw.y, -e);
     return vec4<f32>(point, dist);
 }
 
@@ -433,7 +448,7 @@ fn closest(
         } else {
             let x = closest_on_triangle(query.p, t.a, t.b, t.c);
             let e = -params.exponent;
-            r = vec4<f32>(ldexp(x, vec3<i32>(e)), ldexp(sqrt(nr.d2), e));
+            r = vec4<f32>(scale3(x, e), scale1(sqrt(nr.d2), e));
         }
     }
     out[4u * i] = r.x;

@@ -166,7 +166,7 @@ fn signed_distance(
             if d > params.surface_eps && winding_refined(query.p) >= params.inside {
                 r = -d;
             }
-            r = ldexp(r, -params.exponent);
+            r = scale1(r, -params.exponent);
         }
     }
     out[i] = r;
