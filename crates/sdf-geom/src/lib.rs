@@ -37,7 +37,8 @@
 //!   objects / instances merged, validated and cleaned, with a [`LoadReport`].
 //! - [`Mesh`], [`Aabb`], [`Normalization`]: the data and the map to the normalised box.
 //! - [`SignedDistance`]: exact closest point on an `obvhs` BVH, sign from the fast generalised winding
-//!   number (see its documentation for the method and its accuracy).
+//!   number (see its documentation for the method and its accuracy); [`GpuTrees`] lends its trees
+//!   to GPU kernels (`sdf_nn::ground_truth`).
 //! - [`sample`]: seeded samplers (box, surface, Poisson-disk, near-surface).
 //! - [`npy`]: `.npy` input and output for the `sdf` binary.
 //! - [`reference`](mod@reference): brute-force f64 versions for tests.
@@ -72,7 +73,10 @@ pub mod npy;
 pub mod reference;
 pub mod sample;
 
-pub use distance::{ClosestPoint, FAR_QUERY_RADII, SignedDistance, SignedDistanceOptions};
+pub use distance::{
+    ClosestPoint, FAR_QUERY_RADII, GpuBvhNode, GpuTrees, GpuTriPacket, GpuWindingNode,
+    SignedDistance, SignedDistanceOptions,
+};
 pub use error::GeomError;
 pub use load::{
     LoadOptions, MAX_FILE_BYTES, MAX_INSTANCED_TRIANGLES, MAX_INSTANCED_VERTICES, MAX_INSTANCES,

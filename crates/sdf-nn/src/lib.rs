@@ -25,6 +25,7 @@
 
 pub mod adam;
 pub mod gpu;
+pub mod ground_truth;
 pub mod model_file;
 pub mod nglod;
 pub mod serve;
@@ -33,6 +34,7 @@ pub mod siren;
 
 pub use adam::{Adam, AdamConfig, AdamCpu, AdamState};
 pub use gpu::{GpuContext, GpuError, GpuOptions, SPIN_WAIT, StepLayout};
+pub use ground_truth::{GpuGroundTruth, GroundTruthError};
 pub use model_file::{ModelFile, ModelFileError, Normalization};
 pub use nglod::{
     DistanceMode, Nglod, NglodConfig, NglodError, NglodGpu, NglodTrainConfig, NglodTrainer,

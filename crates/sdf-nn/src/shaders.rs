@@ -1,6 +1,7 @@
 //! Every WGSL shader of the crate, with the device features each one needs. Each file lives
 //! beside the Rust that dispatches it (`nglod/shaders/`, `siren/shaders/`, `serve/shaders/`,
-//! `adam.wgsl`) and is embedded with `include_str!`, so the crate packages alone.
+//! `ground_truth/shaders/`, `adam.wgsl`) and is embedded with `include_str!`, so the crate
+//! packages alone.
 
 /// A WGSL source file and what it needs from the device.
 #[derive(Clone, Copy, Debug)]
@@ -120,6 +121,16 @@ pub const QUERY: Shader = shader!("serve/shaders/" "query.wgsl" with ["serve/sha
 pub const SPHERE_TRACE: Shader =
     shader!("serve/shaders/" "sphere_trace.wgsl", wgpu::Features::empty());
 
+/// Ground truth on the GPU: the nearest triangle on the mesh's 4-wide BVH, the closest point.
+pub const GROUND_TRUTH_CLOSEST: Shader =
+    shader!("ground_truth/shaders/" "closest.wgsl", wgpu::Features::empty());
+/// Ground truth on the GPU: the fast winding number and the signed distance (after
+/// `closest.wgsl`, whose search and bindings it uses).
+pub const GROUND_TRUTH_WINDING: Shader = shader!(
+    "ground_truth/shaders/" "winding.wgsl" with ["ground_truth/shaders/" "closest.wgsl"],
+    wgpu::Features::empty()
+);
+
 /// Files of shared WGSL that the `shader!` macro prepends to the shaders that use them; they
 /// are validated as part of those.
 pub const SHARED_PARTS: &[&str] = &[
@@ -150,6 +161,8 @@ pub const ALL: &[Shader] = &[
     NGLOD_TRAIN_CAS,
     NGLOD_REDUCE,
     QUERY,
+    GROUND_TRUTH_CLOSEST,
+    GROUND_TRUTH_WINDING,
 ];
 
 /// Asserts, in a test, that the Rust struct `$rust`, written into a uniform or storage buffer,

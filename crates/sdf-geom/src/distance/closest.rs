@@ -9,7 +9,8 @@ use super::triangle::closest_on_triangle;
 
 /// A node of the 4-wide BVH used by the closest-point search (collapsed from the binary one): the
 /// boxes of up to four children in SoA form, so that one SIMD pass gives all four box distances.
-#[derive(Clone, Copy, Debug)]
+/// `Pod` so that [`GpuTrees`](super::GpuTrees) lends it to the GPU as it is.
+#[derive(Clone, Copy, Debug, bytemuck::Pod, bytemuck::Zeroable)]
 #[repr(C, align(64))]
 pub(super) struct Node4 {
     /// Per-axis (x, y, z) lower corners of the four children's boxes; +∞ in unused slots.

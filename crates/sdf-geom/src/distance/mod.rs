@@ -2,10 +2,11 @@
 //! number: the public [`SignedDistance`] (construction, queries, batches) and its options. The
 //! rooms: `build` makes the trees, `closest` searches them for the nearest triangle, `winding`
 //! sums the winding number, `triangle` holds the point–triangle routines (f32, f64 and 4-wide),
-//! `simd` the 4-wide helpers.
+//! `simd` the 4-wide helpers, `gpu` lends the trees to GPU kernels.
 
 mod build;
 mod closest;
+mod gpu;
 mod simd;
 mod triangle;
 mod wide;
@@ -18,6 +19,7 @@ use rayon::prelude::*;
 use crate::{GeomError, Mesh};
 use build::{area_triangles, build_nodes, depth_first_order, tame_exponent};
 use closest::Node4;
+pub use gpu::{GpuBvhNode, GpuTrees, GpuTriPacket, GpuWindingNode};
 pub use triangle::closest_on_triangle_f64;
 use triangle::{TriPacket, closest_on_triangle};
 use wide::collapse4;

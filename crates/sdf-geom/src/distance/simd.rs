@@ -5,8 +5,10 @@ use std::f32::consts::PI;
 
 use glam::{BVec4A, Vec3A, Vec4};
 
-/// Three SoA vectors: the x, y and z coordinates of four points.
-#[derive(Clone, Copy, Debug)]
+/// Three SoA vectors: the x, y and z coordinates of four points (`repr(C)`: x, y, z in that
+/// order, as [`GpuTriPacket`](super::GpuTriPacket) reads them).
+#[derive(Clone, Copy, Debug, bytemuck::Pod, bytemuck::Zeroable)]
+#[repr(C)]
 pub(super) struct P4 {
     pub(super) x: Vec4,
     pub(super) y: Vec4,

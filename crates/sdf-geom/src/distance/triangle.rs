@@ -9,7 +9,7 @@ use glam::{DVec3, Vec3A, Vec4};
 use super::simd::P4;
 
 /// Four triangles in SoA form (one leaf's worth; a short leaf repeats its first triangle).
-#[derive(Clone, Copy, Debug)]
+#[derive(Clone, Copy, Debug, bytemuck::Pod, bytemuck::Zeroable)]
 #[repr(C, align(16))]
 pub(super) struct TriPacket {
     pub(super) a: P4,

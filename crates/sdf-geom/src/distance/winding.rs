@@ -31,7 +31,7 @@ pub(super) struct WindingNode {
 /// so that the far-field test and expansion of all four run in one SIMD pass. It has the same shape
 /// and indices as the [`Node4`](super::closest::Node4) at the same position (inner child: index into `wnodes4`; leaf child:
 /// first index into `packets`).
-#[derive(Clone, Copy, Debug)]
+#[derive(Clone, Copy, Debug, bytemuck::Pod, bytemuck::Zeroable)]
 #[repr(C, align(64))]
 pub(super) struct WNode4 {
     /// Per-axis area-weighted centroids.

@@ -182,7 +182,16 @@ impl GpuContext {
 
     /// Checks a buffer size against the device limits for a buffer bound as storage.
     pub fn check_storage_size(&self, label: &str, bytes: u64) -> Result<(), GpuError> {
-        let limits = self.device.limits();
+        Self::check_storage_size_in(&self.device.limits(), label, bytes)
+    }
+
+    /// [`GpuContext::check_storage_size`] against given `limits`: for checks before a device
+    /// exists, or with limits smaller than the device's (tests of the error paths).
+    pub fn check_storage_size_in(
+        limits: &wgpu::Limits,
+        label: &str,
+        bytes: u64,
+    ) -> Result<(), GpuError> {
         if bytes > limits.max_buffer_size {
             return Err(GpuError::BufferTooLarge {
                 label: label.to_owned(),
