@@ -1,14 +1,15 @@
 //! The WGSL embedding of `NeuralSdf`: the snippet plus a caller's shader validates with naga for
 //! both architectures and several shapes (levels of detail included), declares only `hwsdf_`
 //! names, and, run on the device through `NeuralSdf::bind_group`, matches the CPU's distances
-//! and normals at points inside and outside the box. One test binary, one shared device.
+//! and normals at points inside and outside the box; two models under their own prefixes share
+//! one shader. One test binary, one shared device.
 
 use glam::Vec3;
 use rand::{Rng, SeedableRng};
 use rand_pcg::Pcg64;
 use sdf_nn::{
-    GpuContext, NeuralSdf, Nglod, NglodConfig, Normalization, Siren, SirenConfig,
-    serve::network::Network,
+    EmbedError, GpuContext, NeuralSdf, Nglod, NglodConfig, Normalization, SdfBindGroup, Siren,
+    SirenConfig, serve::network::Network,
 };
 
 fn gpu() -> &'static GpuContext {
@@ -229,9 +230,21 @@ fn eval_on_device(
     sdf: &NeuralSdf,
     pts: &[Vec3],
 ) -> Vec<[f32; 4]> {
-    use wgpu::util::DeviceExt;
     let source = format!("{}\n{}", sdf.wgsl(1), user_shader(0));
     let sdf_group = sdf.bind_group(device).expect("weights fit");
+    run_user_shader(device, queue, &source, &[&sdf_group], pts)
+}
+
+/// Runs the compute entry point `eval_points` of `source` over `pts`: the caller's points and
+/// results at group 0 (`vec4` each), the models' bind groups at groups 1, 2, ….
+fn run_user_shader(
+    device: &wgpu::Device,
+    queue: &wgpu::Queue,
+    source: &str,
+    sdf_groups: &[&SdfBindGroup],
+    pts: &[Vec3],
+) -> Vec<[f32; 4]> {
+    use wgpu::util::DeviceExt;
     let input: Vec<f32> = pts.iter().flat_map(|p| p.extend(0.0).to_array()).collect();
     let points = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
         label: Some("points"),
@@ -265,9 +278,12 @@ fn eval_on_device(
         label: Some("user"),
         entries: &[storage(0, true), storage(1, false)],
     });
+    let layouts: Vec<Option<&wgpu::BindGroupLayout>> = std::iter::once(Some(&user_layout))
+        .chain(sdf_groups.iter().map(|g| Some(&g.layout)))
+        .collect();
     let layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
         label: Some("user"),
-        bind_group_layouts: &[Some(&user_layout), Some(&sdf_group.layout)],
+        bind_group_layouts: &layouts,
         immediate_size: 0,
     });
     let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
@@ -301,7 +317,9 @@ fn eval_on_device(
         let mut pass = enc.begin_compute_pass(&Default::default());
         pass.set_pipeline(&pipeline);
         pass.set_bind_group(0, &user_group, &[]);
-        pass.set_bind_group(1, &sdf_group.bind_group, &[]);
+        for (i, g) in sdf_groups.iter().enumerate() {
+            pass.set_bind_group(i as u32 + 1, &g.bind_group, &[]);
+        }
         pass.dispatch_workgroups((pts.len() as u32).div_ceil(64), 1, 1);
     }
     enc.copy_buffer_to_buffer(&results, 0, &readback, 0, bytes);
@@ -314,6 +332,92 @@ fn eval_on_device(
         .expect("device alive");
     let view = readback.slice(..).get_mapped_range().expect("mapped");
     bytemuck::pod_collect_to_vec(&view)
+}
+
+/// Two models in one shader, each under its own prefix at its own group (a SIREN as `left`
+/// at 1, a sparse NGLOD as `right_2` at 2): naga validates the module, it runs, and each
+/// name answers with its own model (against `eval_cpu`). Their sum and difference are written
+/// too, as a scene would combine them.
+#[test]
+fn two_prefixed_models_share_one_shader() {
+    let left = siren(
+        SirenConfig {
+            width: 16,
+            hidden_layers: 2,
+            omega0: 30.0,
+        },
+        5,
+    );
+    let right = nglod(sparse_small(), 6, None);
+    let user = r#"
+@group(0) @binding(0) var<storage, read> points: array<vec4<f32>>;
+@group(0) @binding(1) var<storage, read_write> results: array<vec4<f32>>;
+
+@compute @workgroup_size(64)
+fn eval_points(@builtin(global_invocation_id) gid: vec3<u32>) {
+    let i = gid.x;
+    if i >= arrayLength(&points) {
+        return;
+    }
+    let p = points[i].xyz;
+    let a = left_distance(p);
+    let b = right_2_distance(p);
+    let n = left_normal(p) + right_2_normal(p);
+    results[i] = vec4<f32>(a, b, min(a, b), n.x * 0.0 + a - b);
+}
+"#;
+    let source = format!(
+        "{}\n{}\n{user}",
+        left.wgsl_with_prefix(1, "left").unwrap(),
+        right.wgsl_with_prefix(2, "right_2").unwrap()
+    );
+    let module = validate(&source);
+    // Nothing of either snippet is left under the default prefix.
+    assert!(!source.contains("hwsdf_") && !source.contains("HWSDF_"));
+    assert!(
+        module
+            .functions
+            .iter()
+            .any(|(_, f)| f.name.as_deref() == Some("left_distance"))
+    );
+    let gpu = gpu();
+    let (gl, gr) = (
+        left.bind_group(gpu.device()).unwrap(),
+        right.bind_group(gpu.device()).unwrap(),
+    );
+    let pts = points(300, 21);
+    let out = run_user_shader(gpu.device(), gpu.queue(), &source, &[&gl, &gr], &pts);
+    let (cl, cr) = (left.eval_cpu(&pts), right.eval_cpu(&pts));
+    let unit = 1.0 / left.normalization().scale;
+    for (i, o) in out.iter().enumerate() {
+        for (got, want, what) in [
+            (o[0], cl[i], "left"),
+            (o[1], cr[i], "right"),
+            (o[2], cl[i].min(cr[i]), "min"),
+            (o[3], cl[i] - cr[i], "difference"),
+        ] {
+            let err = (got - want).abs() / (unit * (1.0 + (want / unit).abs()));
+            assert!(err < 1e-3, "{what} at point {i}: GPU {got} vs CPU {want}");
+        }
+    }
+}
+
+/// A prefix is an identifier, or a clear error: nothing else reaches the caller's shader.
+#[test]
+fn prefixes_that_are_not_identifiers_are_refused() {
+    let sdf = nglod(NglodConfig::small(), 1, None);
+    for bad in ["", "1abc", "_x", "a-b", "a b", "ünï", &"x".repeat(65)] {
+        let err = sdf.wgsl_with_prefix(0, bad).unwrap_err();
+        assert!(matches!(err, EmbedError::Prefix(_)), "{bad}: {err}");
+        assert!(err.to_string().contains("identifier"), "{err}");
+    }
+    for good in ["a", "Bunny2", "scene_left", &"x".repeat(64)] {
+        let snippet = sdf.wgsl_with_prefix(0, good).unwrap();
+        validate(&snippet);
+        assert!(snippet.contains(&format!("fn {good}_distance(")));
+    }
+    // The default prefix gives the plain snippet back.
+    assert_eq!(sdf.wgsl_with_prefix(3, "hwsdf").unwrap(), sdf.wgsl(3));
 }
 
 /// The network's raw gradient magnitude at each point's clamped normalised image: where it is

@@ -209,6 +209,16 @@ impl NeuralSdf {
         wgsl::generate(self.network(), self.normalization(), self.lod(), group)
     }
 
+    /// [`NeuralSdf::wgsl`] with every name the snippet declares starting with `prefix` instead
+    /// of `hwsdf` (`{prefix}_distance`, `{prefix}_normal`, `{prefix}_params`, …) and its upper
+    /// case instead of `HWSDF` (`{PREFIX}_CENTER`, …), so that several models live in one
+    /// shader, each at its own group; give them prefixes that differ other than in case. The
+    /// prefix is an ASCII letter followed by letters, digits or underscores
+    /// ([`EmbedError::Prefix`] otherwise).
+    pub fn wgsl_with_prefix(&self, group: u32, prefix: &str) -> Result<String, EmbedError> {
+        wgsl::with_prefix(&self.wgsl(group), prefix)
+    }
+
     /// Uploads the weights to `device` and creates the bind group (and its layout) that the
     /// snippet of [`NeuralSdf::wgsl`] reads, visible to compute and fragment stages.
     pub fn bind_group(&self, device: &wgpu::Device) -> Result<SdfBindGroup, EmbedError> {

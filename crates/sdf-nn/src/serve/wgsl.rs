@@ -42,9 +42,16 @@ use crate::nglod::Nglod;
 use crate::serve::network::Network;
 use crate::siren::Siren;
 
-/// Errors of [`NeuralSdf::bind_group`](crate::NeuralSdf::bind_group).
+/// Errors of [`NeuralSdf::bind_group`](crate::NeuralSdf::bind_group) and
+/// [`NeuralSdf::wgsl_with_prefix`](crate::NeuralSdf::wgsl_with_prefix).
 #[derive(Debug, thiserror::Error)]
 pub enum EmbedError {
+    /// A prefix that would not make WGSL identifiers.
+    #[error(
+        "the WGSL prefix {0:?} is not an identifier: use an ASCII letter followed by at most \
+         {MAX_PREFIX} letters, digits or underscores"
+    )]
+    Prefix(String),
     /// The weights do not fit one storage binding on this device.
     #[error(
         "the model's {bytes}-byte weight buffer exceeds this device's \
@@ -155,6 +162,26 @@ fn lit(x: f32) -> String {
 
 fn vec3_lit(v: Vec3) -> String {
     format!("vec3<f32>({}, {}, {})", lit(v.x), lit(v.y), lit(v.z))
+}
+
+/// Longest prefix [`with_prefix`] takes, beyond its first letter.
+pub const MAX_PREFIX: usize = 63;
+
+/// `snippet` (as [`generate`] writes it, every global `hwsdf_…` or `HWSDF_…`) with `prefix` in
+/// place of `hwsdf` and its upper case in place of `HWSDF`: `hwsdf_distance` becomes
+/// `{prefix}_distance` and `HWSDF_CENTER` `{PREFIX}_CENTER`, so the names of two snippets whose
+/// prefixes differ (other than in case) never meet.
+pub(crate) fn with_prefix(snippet: &str, prefix: &str) -> Result<String, EmbedError> {
+    let mut chars = prefix.chars();
+    let valid = chars.next().is_some_and(|c| c.is_ascii_alphabetic())
+        && chars.all(|c| c.is_ascii_alphanumeric() || c == '_')
+        && prefix.len() <= MAX_PREFIX + 1;
+    if !valid {
+        return Err(EmbedError::Prefix(prefix.to_owned()));
+    }
+    Ok(snippet
+        .replace("hwsdf_", &format!("{prefix}_"))
+        .replace("HWSDF_", &format!("{}_", prefix.to_ascii_uppercase())))
 }
 
 /// The whole snippet.
