@@ -164,7 +164,8 @@ fn vec3_lit(v: Vec3) -> String {
     format!("vec3<f32>({}, {}, {})", lit(v.x), lit(v.y), lit(v.z))
 }
 
-/// Longest prefix [`with_prefix`] takes, beyond its first letter.
+/// Longest prefix [`NeuralSdf::wgsl_with_prefix`](crate::NeuralSdf::wgsl_with_prefix) takes, beyond
+/// its first letter.
 pub const MAX_PREFIX: usize = 63;
 
 /// `snippet` (as [`generate`] writes it, every global `hwsdf_…` or `HWSDF_…`) with `prefix` in
