@@ -75,7 +75,7 @@ pub mod sample;
 
 pub use distance::{
     ClosestPoint, FAR_QUERY_RADII, GpuBvhNode, GpuTrees, GpuTriPacket, GpuWindingNode,
-    SignedDistance, SignedDistanceOptions,
+    SignedDistance, SignedDistanceOptions, morton_order,
 };
 pub use error::GeomError;
 pub use load::{

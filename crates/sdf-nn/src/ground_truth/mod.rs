@@ -52,8 +52,7 @@
 //! device's buffer and dispatch limits.
 
 use glam::Vec3;
-use rayon::prelude::*;
-use sdf_geom::{GpuTrees, SignedDistance};
+use sdf_geom::{GpuTrees, SignedDistance, morton_order};
 
 use crate::gpu::{GpuContext, GpuError, entry};
 use crate::shaders::{self, Shader};
@@ -401,43 +400,6 @@ impl GpuGroundTruth {
 /// Batches from this size on are dispatched in Morton order.
 const MORTON_MIN: usize = 4096;
 
-/// The indices of `points` in Morton (Z-curve) order over their bounding box (non-finite points
-/// last): neighbouring invocations, which run in lock step in one SIMD group or warp, then walk
-/// mostly the same nodes, and those nodes stay in cache. (The CPU batches sort for the cache.)
-fn morton_order(points: &[Vec3]) -> Vec<u32> {
-    let (mut lo, mut hi) = (Vec3::INFINITY, Vec3::NEG_INFINITY);
-    for p in points.iter().filter(|p| p.is_finite()) {
-        lo = lo.min(*p);
-        hi = hi.max(*p);
-    }
-    let inv = 1023.0 / (hi - lo).max(Vec3::splat(1e-30));
-    let mut keys: Vec<u64> = points
-        .par_iter()
-        .enumerate()
-        .map(|(i, p)| {
-            let code = if p.is_finite() {
-                let c = ((*p - lo) * inv).clamp(Vec3::ZERO, Vec3::splat(1023.0));
-                (spread10(c.x as u32) << 2) | (spread10(c.y as u32) << 1) | spread10(c.z as u32)
-            } else {
-                u32::MAX
-            };
-            (u64::from(code) << 32) | i as u64
-        })
-        .collect();
-    keys.par_sort_unstable();
-    keys.into_iter().map(|k| k as u32).collect()
-}
-
-/// The low 10 bits of `v` with two zero bits between each (a Morton code's axis).
-fn spread10(v: u32) -> u32 {
-    let mut x = v & 0x3ff;
-    x = (x | (x << 16)) & 0x0300_00ff;
-    x = (x | (x << 8)) & 0x0300_f00f;
-    x = (x | (x << 4)) & 0x030c_30c3;
-    x = (x | (x << 2)) & 0x0924_9249;
-    x
-}
-
 #[cfg(test)]
 mod tests {
     use crate::shaders;
@@ -464,18 +426,6 @@ mod tests {
                 ]
             );
         }
-    }
-
-    /// The dispatch order is a permutation, with non-finite points last.
-    #[test]
-    fn morton_order_is_a_permutation() {
-        let mut points = sdf_geom::sample::uniform_box(5000, 3);
-        points[17] = glam::Vec3::NAN;
-        let order = super::morton_order(&points);
-        assert_eq!(*order.last().unwrap(), 17);
-        let mut sorted = order.clone();
-        sorted.sort_unstable();
-        assert!(sorted.into_iter().eq(0..5000));
     }
 
     /// The WGSL tree structs have the sizes of sdf-geom's (which are the CPU's nodes), and the
