@@ -121,6 +121,17 @@ pub const QUERY: Shader = shader!("serve/shaders/" "query.wgsl" with ["serve/sha
 pub const SPHERE_TRACE: Shader =
     shader!("serve/shaders/" "sphere_trace.wgsl", wgpu::Features::empty());
 
+/// The batch queries of a scene ([`crate::serve::scene::GpuScene`]). They call
+/// `scene_distance` / `scene_sample`, so they compile only after a scene's snippet (listed in
+/// [`NEEDS_MODEL`]).
+pub const SCENE_QUERY: Shader =
+    shader!("serve/scene/shaders/" "scene_query.wgsl", wgpu::Features::empty());
+
+/// The analytic primitives and operators of a scene's snippet
+/// ([`crate::serve::scene::Scene::wgsl_with_prefix`], which renames them).
+pub const SCENE_PRIMITIVES: Shader =
+    shader!("serve/scene/shaders/" "primitives.wgsl", wgpu::Features::empty());
+
 /// Ground truth on the GPU: the nearest triangle on the mesh's 4-wide BVH, the closest point.
 pub const GROUND_TRUTH_CLOSEST: Shader =
     shader!("ground_truth/shaders/" "closest.wgsl", wgpu::Features::empty());
@@ -141,7 +152,7 @@ pub const SHARED_PARTS: &[&str] = &[
 ];
 
 /// Shaders that are completed by a model's WGSL snippet (prepended at group 1).
-pub const NEEDS_MODEL: &[&str] = &[SPHERE_TRACE.name];
+pub const NEEDS_MODEL: &[&str] = &[SPHERE_TRACE.name, SCENE_QUERY.name];
 
 /// Every shader, for validation.
 pub const ALL: &[Shader] = &[
@@ -161,6 +172,8 @@ pub const ALL: &[Shader] = &[
     NGLOD_TRAIN_CAS,
     NGLOD_REDUCE,
     QUERY,
+    SCENE_QUERY,
+    SCENE_PRIMITIVES,
     GROUND_TRUTH_CLOSEST,
     GROUND_TRUTH_WINDING,
 ];
@@ -184,6 +197,15 @@ macro_rules! assert_mirrors {
 #[cfg(test)]
 pub(crate) use assert_mirrors;
 
+/// Stand-ins for what a model's or a scene's snippet defines, for [`check_mirror`] of the
+/// shaders in [`NEEDS_MODEL`] (only their own types matter there).
+#[cfg(test)]
+const MODEL_STAND_INS: &str = "fn hwsdf_distance(p: vec3<f32>) -> f32 { return 0.0; }
+fn hwsdf_normal(p: vec3<f32>) -> vec3<f32> { return p; }
+struct scene_Sample { d: f32, g: vec3<f32>, leaf: u32 }
+fn scene_distance(p: vec3<f32>) -> f32 { return 0.0; }
+fn scene_sample(p: vec3<f32>) -> scene_Sample { return scene_Sample(0.0, p, 0u); }";
+
 /// The check of [`assert_mirrors`]: `fields` are the Rust fields' names and byte offsets.
 #[cfg(test)]
 pub(crate) fn check_mirror(
@@ -194,11 +216,7 @@ pub(crate) fn check_mirror(
 ) {
     // A shader that calls a model's snippet gets stand-ins: only its own types matter here.
     let source = if NEEDS_MODEL.contains(&shader.name) {
-        format!(
-            "fn hwsdf_distance(p: vec3<f32>) -> f32 {{ return 0.0; }}\n\
-             fn hwsdf_normal(p: vec3<f32>) -> vec3<f32> {{ return p; }}\n{}",
-            shader.source
-        )
+        format!("{MODEL_STAND_INS}\n{}", shader.source)
     } else {
         shader.source.to_owned()
     };
@@ -260,7 +278,9 @@ mod tests {
         for shader in ALL {
             // A shader completed by a model's snippet is validated with the snippet of a small
             // model of each architecture; every other one on its own.
-            let sources: Vec<String> = if NEEDS_MODEL.contains(&shader.name) {
+            let sources: Vec<String> = if shader.name == SCENE_QUERY.name {
+                vec![format!("{}\n{}", small_scene_wgsl(), shader.source)]
+            } else if NEEDS_MODEL.contains(&shader.name) {
                 small_models()
                     .iter()
                     .map(|m| format!("{}\n{}", m.wgsl(1), shader.source))
@@ -272,6 +292,89 @@ mod tests {
                 validate(shader, source);
             }
         }
+    }
+
+    /// The snippet (prefix `scene`, group 1) of a scene of both small models and every
+    /// primitive under every operator.
+    fn small_scene_wgsl() -> String {
+        use crate::serve::scene::{Primitive as P, Scene, SceneNode as N, Transform};
+        use glam::{Quat, Vec3};
+        use std::sync::Arc;
+        let at = |x: f32| Transform::new(Vec3::X * x, Quat::from_rotation_y(x), 1.0 + x);
+        let prim = |p, x| N::primitive(p, at(x));
+        let e = Vec3::new(0.3, 0.4, 0.5);
+        let prims = [
+            prim(P::Sphere { radius: 0.5 }, 0.1),
+            prim(P::Box { half_extents: e }, 0.2),
+            prim(
+                P::RoundBox {
+                    half_extents: e,
+                    radius: 0.1,
+                },
+                0.3,
+            ),
+            prim(
+                P::Capsule {
+                    a: -e,
+                    b: e,
+                    radius: 0.2,
+                },
+                0.4,
+            ),
+            prim(
+                P::Torus {
+                    major: 0.5,
+                    minor: 0.1,
+                },
+                0.5,
+            ),
+            prim(
+                P::Plane {
+                    normal: e,
+                    offset: 0.1,
+                },
+                0.6,
+            ),
+            prim(
+                P::Cylinder {
+                    radius: 0.3,
+                    half_height: 0.6,
+                },
+                0.7,
+            ),
+        ];
+        let models: Vec<N> = small_models()
+            .into_iter()
+            .map(|m| N::model(Arc::new(m), at(0.8)))
+            .collect();
+        let root = N::Union(vec![
+            N::SmoothUnion {
+                k: 0.1,
+                children: models,
+            },
+            N::SmoothIntersection {
+                k: 0.2,
+                children: prims[..2].to_vec(),
+            },
+            N::SmoothDifference {
+                k: 0.3,
+                children: prims[2..4].to_vec(),
+            },
+            N::Intersection(prims[4..6].to_vec()),
+            N::Difference(vec![prims[6].clone(), prims[0].clone()]),
+            N::Offset {
+                r: 0.1,
+                child: Box::new(prims[1].clone()),
+            },
+            N::Shell {
+                t: 0.05,
+                child: Box::new(prims[2].clone()),
+            },
+        ]);
+        Scene::new(root)
+            .expect("a valid scene")
+            .wgsl_with_prefix(1, "scene", &wgpu::Limits::default())
+            .expect("fits the default limits")
     }
 
     /// A tiny SIREN and a tiny NGLOD model.

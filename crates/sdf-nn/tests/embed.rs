@@ -8,8 +8,8 @@ use glam::Vec3;
 use rand::{Rng, SeedableRng};
 use rand_pcg::Pcg64;
 use sdf_nn::{
-    EmbedError, GpuContext, NeuralSdf, Nglod, NglodConfig, Normalization, SdfBindGroup, Siren,
-    SirenConfig, serve::network::Network,
+    EmbedError, GpuContext, NeuralSdf, Nglod, NglodConfig, Normalization, Siren, SirenConfig,
+    serve::network::Network,
 };
 
 fn gpu() -> &'static GpuContext {
@@ -232,7 +232,13 @@ fn eval_on_device(
 ) -> Vec<[f32; 4]> {
     let source = format!("{}\n{}", sdf.wgsl(1), user_shader(0));
     let sdf_group = sdf.bind_group(device).expect("weights fit");
-    run_user_shader(device, queue, &source, &[&sdf_group], pts)
+    run_user_shader(
+        device,
+        queue,
+        &source,
+        &[(&sdf_group.layout, &sdf_group.bind_group)],
+        pts,
+    )
 }
 
 /// Runs the compute entry point `eval_points` of `source` over `pts`: the caller's points and
@@ -241,7 +247,7 @@ fn run_user_shader(
     device: &wgpu::Device,
     queue: &wgpu::Queue,
     source: &str,
-    sdf_groups: &[&SdfBindGroup],
+    groups: &[(&wgpu::BindGroupLayout, &wgpu::BindGroup)],
     pts: &[Vec3],
 ) -> Vec<[f32; 4]> {
     use wgpu::util::DeviceExt;
@@ -279,7 +285,7 @@ fn run_user_shader(
         entries: &[storage(0, true), storage(1, false)],
     });
     let layouts: Vec<Option<&wgpu::BindGroupLayout>> = std::iter::once(Some(&user_layout))
-        .chain(sdf_groups.iter().map(|g| Some(&g.layout)))
+        .chain(groups.iter().map(|g| Some(g.0)))
         .collect();
     let layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
         label: Some("user"),
@@ -317,8 +323,8 @@ fn run_user_shader(
         let mut pass = enc.begin_compute_pass(&Default::default());
         pass.set_pipeline(&pipeline);
         pass.set_bind_group(0, &user_group, &[]);
-        for (i, g) in sdf_groups.iter().enumerate() {
-            pass.set_bind_group(i as u32 + 1, &g.bind_group, &[]);
+        for (i, g) in groups.iter().enumerate() {
+            pass.set_bind_group(i as u32 + 1, g.1, &[]);
         }
         pass.dispatch_workgroups((pts.len() as u32).div_ceil(64), 1, 1);
     }
@@ -386,7 +392,8 @@ fn eval_points(@builtin(global_invocation_id) gid: vec3<u32>) {
         right.bind_group(gpu.device()).unwrap(),
     );
     let pts = points(300, 21);
-    let out = run_user_shader(gpu.device(), gpu.queue(), &source, &[&gl, &gr], &pts);
+    let groups = [(&gl.layout, &gl.bind_group), (&gr.layout, &gr.bind_group)];
+    let out = run_user_shader(gpu.device(), gpu.queue(), &source, &groups, &pts);
     let (cl, cr) = (left.eval_cpu(&pts), right.eval_cpu(&pts));
     let unit = 1.0 / left.normalization().scale;
     for (i, o) in out.iter().enumerate() {
@@ -571,6 +578,110 @@ fn bind_group_works_on_a_callers_own_device() {
             (g[0] - d).abs() <= 2e-5 * unit * (1.0 + (d / unit).abs()),
             "{} vs {d}",
             g[0]
+        );
+    }
+}
+
+/// Two scenes and a single model in one user shader, each under its own prefix at its own
+/// group: a scene with a model and primitives (`city`, group 1), a scene of primitives alone
+/// (`robot`, group 2, no weights) and the model alone (`single`, group 3). naga validates the
+/// module, it runs, and each name answers as its CPU reference does.
+#[test]
+fn two_prefixed_scenes_and_a_model_share_one_shader() {
+    use glam::Quat;
+    use sdf_nn::serve::scene::{Primitive, Scene, SceneNode, Transform};
+    use std::sync::Arc;
+    let model = Arc::new(nglod(NglodConfig::small(), 8, None));
+    let place = Transform::new(Vec3::new(0.5, 0.0, 0.0), Quat::from_rotation_y(0.7), 0.5);
+    let city = Scene::new(SceneNode::SmoothUnion {
+        k: 0.3,
+        children: vec![
+            SceneNode::model(model.clone(), place),
+            SceneNode::primitive(
+                Primitive::Box {
+                    half_extents: Vec3::new(0.4, 0.2, 0.3),
+                },
+                Transform::from_translation(Vec3::new(-0.5, 0.1, 0.0)),
+            ),
+        ],
+    })
+    .unwrap();
+    let robot = Scene::new(SceneNode::Difference(vec![
+        SceneNode::primitive(
+            Primitive::Torus {
+                major: 0.8,
+                minor: 0.25,
+            },
+            Transform::IDENTITY,
+        ),
+        SceneNode::primitive(
+            Primitive::Sphere { radius: 0.4 },
+            Transform::from_translation(Vec3::X * 0.8),
+        ),
+    ]))
+    .unwrap();
+    let user = r#"
+@group(0) @binding(0) var<storage, read> points: array<vec4<f32>>;
+@group(0) @binding(1) var<storage, read_write> results: array<vec4<f32>>;
+
+@compute @workgroup_size(64)
+fn eval_points(@builtin(global_invocation_id) gid: vec3<u32>) {
+    let i = gid.x;
+    if i >= arrayLength(&points) {
+        return;
+    }
+    let p = points[i].xyz;
+    let n = city_normal(p);
+    results[i] = vec4<f32>(city_distance(p), robot_distance(p), single_distance(p), dot(n, n));
+}
+"#;
+    let gpu = gpu();
+    let limits = gpu.device().limits();
+    let source = format!(
+        "{}\n{}\n{}\n{user}",
+        city.wgsl_with_prefix(1, "city", &limits).unwrap(),
+        robot.wgsl_with_prefix(2, "robot", &limits).unwrap(),
+        model.wgsl_with_prefix(3, "single").unwrap()
+    );
+    validate(&source);
+    assert!(!source.contains("hwsdf_") && !source.contains("HWSDF_"));
+    let (gc, gr) = (
+        city.bind_group(gpu.device()).unwrap(),
+        robot.bind_group(gpu.device()).unwrap(),
+    );
+    assert!(
+        gr.params.is_empty(),
+        "a scene of primitives binds no weights"
+    );
+    let gm = model.bind_group(gpu.device()).unwrap();
+    let groups = [
+        (&gc.layout, &gc.bind_group),
+        (&gr.layout, &gr.bind_group),
+        (&gm.layout, &gm.bind_group),
+    ];
+    let pts = points(300, 23);
+    let out = run_user_shader(gpu.device(), gpu.queue(), &source, &groups, &pts);
+    let (dc, dr, dm) = (
+        city.distances(&pts, 0.0),
+        robot.distances(&pts, 0.0),
+        model.eval_cpu(&pts),
+    );
+    for (i, o) in out.iter().enumerate() {
+        for (got, want, what) in [
+            (o[0], dc[i], "city"),
+            (o[1], dr[i], "robot"),
+            (o[2], dm[i], "single"),
+        ] {
+            assert!(
+                (got - want).abs() <= 1e-4 * (1.0 + want.abs()),
+                "{what} at point {i} {}: GPU {got} vs CPU {want}",
+                pts[i]
+            );
+        }
+        assert!(
+            (o[3] - 1.0).abs() < 1e-3,
+            "city's normal at point {i} has length² {}",
+            o[3]
         );
     }
 }

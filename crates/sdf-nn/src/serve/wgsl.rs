@@ -5,6 +5,8 @@
 //! - `fn hwsdf_distance(p: vec3<f32>) -> f32`: the signed distance;
 //! - `fn hwsdf_normal(p: vec3<f32>) -> vec3<f32>`: the unit normal (the normalised analytic
 //!   gradient, or the direction away from the model's box outside it);
+//! - `fn hwsdf_distance_normal(p: vec3<f32>) -> vec4<f32>`: both from one evaluation (x: the
+//!   distance, yzw: the normal);
 //!
 //! and in the model's normalised cube `[-1, 1]³`: `hwsdf_distance_normalized` and
 //! `hwsdf_normal_normalized`. The normalisation (centre and scale) and the architecture (widths,
@@ -80,16 +82,22 @@ pub struct SdfBindGroup {
     pub table: Option<wgpu::Buffer>,
 }
 
+/// What the snippet reads: the flat `f32` parameters (binding 0) and an NGLOD model's
+/// sparse-level vertex tables (binding 1; empty for dense models and SIRENs).
+pub(crate) fn weights(network: &Network) -> (&[f32], Vec<u32>) {
+    match network {
+        Network::Siren(s) => (s.params(), Vec::new()),
+        Network::Nglod(m) => (m.params(), m.sparse_tables()),
+    }
+}
+
 /// The weights of `network` on `device` and the bind group that reads them: see
 /// [`NeuralSdf::bind_group`](crate::NeuralSdf::bind_group).
 pub(crate) fn bind_group(
     network: &Network,
     device: &wgpu::Device,
 ) -> Result<SdfBindGroup, EmbedError> {
-    let (params, tables): (&[f32], Vec<u32>) = match network {
-        Network::Siren(s) => (s.params(), Vec::new()),
-        Network::Nglod(m) => (m.params(), m.sparse_tables()),
-    };
+    let (params, tables) = weights(network);
     let limits = device.limits();
     let limit = limits
         .max_storage_buffer_binding_size
@@ -151,7 +159,7 @@ pub(crate) fn bind_group(
 }
 
 /// A WGSL `f32` literal that parses back to exactly `x` (Rust's shortest round-trip form).
-fn lit(x: f32) -> String {
+pub(crate) fn lit(x: f32) -> String {
     // Normalisations and weights are finite (model files are checked); keep the output valid
     // WGSL regardless.
     let x = if x.is_finite() { x } else { 0.0 };
@@ -160,7 +168,7 @@ fn lit(x: f32) -> String {
     format!("{s}f")
 }
 
-fn vec3_lit(v: Vec3) -> String {
+pub(crate) fn vec3_lit(v: Vec3) -> String {
     format!("vec3<f32>({}, {}, {})", lit(v.x), lit(v.y), lit(v.z))
 }
 
@@ -180,9 +188,15 @@ pub(crate) fn with_prefix(snippet: &str, prefix: &str) -> Result<String, EmbedEr
     if !valid {
         return Err(EmbedError::Prefix(prefix.to_owned()));
     }
-    Ok(snippet
+    Ok(rename(snippet, prefix))
+}
+
+/// `snippet` with `prefix` in place of `hwsdf` and its upper case in place of `HWSDF` (the
+/// prefix unchecked: see [`with_prefix`]).
+pub(crate) fn rename(snippet: &str, prefix: &str) -> String {
+    snippet
         .replace("hwsdf_", &format!("{prefix}_"))
-        .replace("HWSDF_", &format!("{}_", prefix.to_ascii_uppercase())))
+        .replace("HWSDF_", &format!("{}_", prefix.to_ascii_uppercase()))
 }
 
 /// The whole snippet.
@@ -258,6 +272,24 @@ fn hwsdf_distance(p: vec3<f32>) -> f32 {
 // Unit outward normal at a point in mesh coordinates (a uniform scale keeps directions).
 fn hwsdf_normal(p: vec3<f32>) -> vec3<f32> {
     return hwsdf_normal_normalized((p - HWSDF_CENTER) * HWSDF_SCALE);
+}
+
+// The signed distance (x, mesh units) and the unit outward normal (yzw) at a point in mesh
+// coordinates, from one evaluation of the network with its gradient (scenes use it).
+fn hwsdf_distance_normal(p: vec3<f32>) -> vec4<f32> {
+    let x = (p - HWSDF_CENTER) * HWSDF_SCALE;
+    let c = clamp(x, vec3<f32>(-1.0), vec3<f32>(1.0));
+    let away = x - c;
+    let v = hwsdf_phi_grad(c);
+    let d = (v.x + length(away)) / HWSDF_SCALE;
+    if any(away != vec3<f32>(0.0)) {
+        return vec4<f32>(d, normalize(away));
+    }
+    let len = length(v.yzw);
+    if len > 0.0 {
+        return vec4<f32>(d, v.yzw / len);
+    }
+    return vec4<f32>(d, vec3<f32>(0.0));
 }
 // ---- end of HW SDF model ----
 "#;

@@ -1,8 +1,9 @@
 //! Scenes (`sdf_nn::serve::scene`) on the CPU: every operator against its closed form,
 //! gradients against finite differences, rays against analytic intersections, closest points,
 //! levels, trained models placed twice against the analytic sphere they hold, and every bad
-//! scene (built in code or read from TOML) refused with its typed error. No GPU. Analytic
-//! scenes here; trained models in `models.rs`, bad trees and scene files in `files.rs`.
+//! scene (built in code or read from TOML) refused with its typed error. Analytic scenes here;
+//! trained models in `models.rs`, bad trees and scene files in `files.rs`, the GPU's queries
+//! against this CPU reference in `gpu.rs` (one shared device).
 
 use std::f32::consts::FRAC_PI_2;
 
@@ -14,6 +15,7 @@ use sdf_nn::serve::scene::{
 };
 
 mod files;
+mod gpu;
 mod models;
 
 pub(crate) fn sphere_at(center: Vec3, radius: f32) -> SceneNode {

@@ -550,7 +550,7 @@ fn smooth_min(a: Value, b: Value, k: f64) -> Value {
     }
 }
 
-fn check_level_and_tolerance(level: f32, tolerance: f32) -> Result<(), SceneQueryError> {
+pub(crate) fn check_level_and_tolerance(level: f32, tolerance: f32) -> Result<(), SceneQueryError> {
     if !level.is_finite() {
         return Err(SceneQueryError::Level(level));
     }
@@ -560,7 +560,7 @@ fn check_level_and_tolerance(level: f32, tolerance: f32) -> Result<(), SceneQuer
     Ok(())
 }
 
-fn check_ray(index: usize, ray: &Ray) -> Result<(), SceneQueryError> {
+pub(crate) fn check_ray(index: usize, ray: &Ray) -> Result<(), SceneQueryError> {
     if !ray.origin.is_finite() {
         return Err(SceneQueryError::Point {
             index,

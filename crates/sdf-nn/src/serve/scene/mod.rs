@@ -24,11 +24,15 @@
 //! The rooms, each depending only on those before it: [`primitive`] (the analytic shapes and
 //! their exact distances), [`lipschitz`] (a model's measured Lipschitz estimate), [`tree`]
 //! (the tree, its validation, and its compiled form: a flat post-order program that every
-//! evaluator walks), [`cpu`] (the CPU reference: distances, gradients, rays, closest points)
-//! and [`file`](mod@file) (the TOML scene file).
+//! evaluator walks), [`cpu`] (the CPU reference: distances, gradients, rays, closest points),
+//! [`embed`] (the scene as WGSL for the caller's shader, and its weights' bind group),
+//! [`gpu`] (batch queries on the GPU, [`GpuScene`]) and [`file`](mod@file) (the TOML scene
+//! file).
 
 pub mod cpu;
+pub mod embed;
 pub mod file;
+pub mod gpu;
 pub mod lipschitz;
 pub mod primitive;
 pub mod tree;
@@ -36,7 +40,9 @@ pub mod tree;
 pub use cpu::{
     ClosestPoint, ProjectOptions, Ray, RayHit, SceneQueryError, SceneSample, TraceOptions,
 };
+pub use embed::{MAX_SCENE_PREFIX, SceneBindGroup, SceneGpuError};
 pub use file::{SceneFileError, tree_from_toml};
+pub use gpu::{GpuScene, SceneQueryBuffers, SceneQueryKind, SceneQueryParams};
 pub use primitive::Primitive;
 pub use tree::{
     Instruction, Leaf, LeafKind, MAX_DEPTH, MAX_LEAVES, MAX_MODELS, Scene, SceneError, SceneNode,

@@ -1,0 +1,605 @@
+//! A whole scene as WGSL: `fn {prefix}_distance(p)`, `fn {prefix}_normal(p)` and
+//! `fn {prefix}_sample(p)` (distance, gradient and deciding leaf) for the caller's own shader,
+//! and the bind group that feeds it every model's weights in as few buffers as the device
+//! allows. The GPU queries of [`super::gpu`] and the scene renderer compile the same snippet.
+//!
+//! ```no_run
+//! # fn demo(scene: &sdf_nn::serve::scene::Scene, device: &wgpu::Device) -> Result<(), sdf_nn::serve::scene::SceneGpuError> {
+//! // Two scenes in one shader: each its own prefix and group.
+//! let limits = device.limits();
+//! let source = format!(
+//!     "{}\n{}\n/* the caller's code, calling city_distance(p) and robot_normal(p) */",
+//!     scene.wgsl_with_prefix(1, "city", &limits)?,
+//!     scene.wgsl_with_prefix(2, "robot", &limits)?,
+//! );
+//! let weights = scene.bind_group(device)?; // set at group 1 (and a second one at group 2)
+//! # let _ = (source, weights); Ok(()) }
+//! ```
+//!
+//! # What the snippet is
+//! Every model of [`Scene::models`] once, as [`NeuralSdf::wgsl`](crate::NeuralSdf::wgsl)
+//! writes it under the prefix `{prefix}_m{i}`, its weights read at an offset baked into the
+//! code from the scene's shared buffers; the primitives of `shaders/primitives.wgsl`; one
+//! function per leaf (its placement as constants: the inverse rotation, the translation and the
+//! scale); and the compiled program ([`Scene::program`]) as straight-line code, once for the
+//! distance alone and once with gradients and the deciding leaf. Every value is the CPU
+//! reference's ([`super::cpu`]) in f32: the same operators, the same tie rules, the same
+//! gradients.
+//!
+//! # Bindings
+//! `@group(G) @binding(k)`, `k = 0, 1, …`: read-only `array<f32>` buffers holding the models'
+//! parameters (`{prefix}_params_k`), then read-only `array<u32>` buffers holding NGLOD models'
+//! sparse vertex tables (`{prefix}_tables_k`). A buffer holds as many models as fit the
+//! device's `max_storage_buffer_binding_size`; usually there is one of each (none for a scene of
+//! primitives). [`Scene::bind_group`] creates them with the layout the snippet expects, for the
+//! same device limits.
+
+use std::fmt::Write;
+
+use glam::DMat3;
+
+use crate::gpu::GpuError;
+use crate::serve::scene::cpu::SceneQueryError;
+use crate::serve::scene::primitive::Primitive;
+use crate::serve::scene::tree::{Instruction, LeafKind, Scene};
+use crate::serve::wgsl::{self, EmbedError, MAX_PREFIX};
+
+/// The primitives, the sample type and the operators (names `hwsdf_…`, renamed per scene).
+const PRIMITIVES: &str = crate::shaders::SCENE_PRIMITIVES.source;
+
+/// Longest scene prefix beyond its first letter: the models' names add `_m{i}`.
+pub const MAX_SCENE_PREFIX: usize = MAX_PREFIX - 8;
+
+/// Errors of a scene on the GPU: its WGSL, its weights, its queries.
+#[derive(Debug, thiserror::Error)]
+pub enum SceneGpuError {
+    /// A bad prefix, or a model whose weights exceed one storage binding.
+    #[error(transparent)]
+    Embed(#[from] EmbedError),
+    /// The scene's weights need more storage buffers than a shader stage may bind.
+    #[error(
+        "the scene's weights need {needed} storage buffers (and its queries {reserved} more), \
+         above this device's max_storage_buffers_per_shader_stage = {limit}: use fewer or \
+         smaller models"
+    )]
+    TooManyBuffers {
+        /// Buffers the weights need.
+        needed: u32,
+        /// Buffers the query kernels bind besides them.
+        reserved: u32,
+        /// The device's `max_storage_buffers_per_shader_stage`.
+        limit: u32,
+    },
+    /// A query's input is refused (a bad ray, level or tolerance).
+    #[error(transparent)]
+    Query(#[from] SceneQueryError),
+    /// The device failed.
+    #[error(transparent)]
+    Gpu(#[from] GpuError),
+}
+
+/// Where each model's weights go: which buffer and at which element.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub(crate) struct Packing {
+    /// Per model: (parameter buffer, first element).
+    params: Vec<(usize, u64)>,
+    /// Per model: (table buffer, first element), for NGLOD models with sparse levels.
+    tables: Vec<Option<(usize, u64)>>,
+    /// Elements of each parameter buffer.
+    param_lengths: Vec<u64>,
+    /// Elements of each table buffer.
+    table_lengths: Vec<u64>,
+}
+
+impl Packing {
+    /// Storage buffers the snippet binds.
+    pub(crate) fn bindings(&self) -> u32 {
+        (self.param_lengths.len() + self.table_lengths.len()) as u32
+    }
+}
+
+/// First-fit packing of arrays of `lengths` elements of 4 bytes into buffers of at most
+/// `limit` bytes: per array (buffer, offset), and the buffers' lengths.
+fn pack(lengths: &[Option<u64>], limit: u64) -> Result<PackedArrays, EmbedError> {
+    let mut places = Vec::with_capacity(lengths.len());
+    let mut buffers: Vec<u64> = Vec::new();
+    for len in lengths {
+        let Some(len) = *len else {
+            places.push(None);
+            continue;
+        };
+        let bytes = len * 4;
+        if bytes > limit {
+            return Err(EmbedError::TooLarge { bytes, limit });
+        }
+        let k = match buffers.iter().position(|used| (used + len) * 4 <= limit) {
+            Some(k) => k,
+            None => {
+                buffers.push(0);
+                buffers.len() - 1
+            }
+        };
+        places.push(Some((k, buffers[k])));
+        buffers[k] += len;
+    }
+    Ok((places, buffers))
+}
+
+/// Per array its (buffer, offset), and the buffers' lengths.
+type PackedArrays = (Vec<Option<(usize, u64)>>, Vec<u64>);
+
+/// The largest buffer the device binds as storage.
+fn binding_limit(limits: &wgpu::Limits) -> u64 {
+    limits
+        .max_storage_buffer_binding_size
+        .min(limits.max_buffer_size)
+}
+
+impl Scene {
+    /// How the models' weights are packed for a device with `limits`.
+    pub(crate) fn packing(&self, limits: &wgpu::Limits) -> Result<Packing, EmbedError> {
+        let limit = binding_limit(limits);
+        let weights: Vec<(&[f32], Vec<u32>)> = self
+            .models()
+            .iter()
+            .map(|m| wgsl::weights(m.network()))
+            .collect();
+        let param_lengths: Vec<Option<u64>> =
+            weights.iter().map(|(p, _)| Some(p.len() as u64)).collect();
+        let table_lengths: Vec<Option<u64>> = weights
+            .iter()
+            .map(|(_, t)| (!t.is_empty()).then_some(t.len() as u64))
+            .collect();
+        let (params, param_buffers) = pack(&param_lengths, limit)?;
+        let (tables, table_buffers) = pack(&table_lengths, limit)?;
+        Ok(Packing {
+            params: params
+                .into_iter()
+                .map(|p| p.expect("every model"))
+                .collect(),
+            tables,
+            param_lengths: param_buffers,
+            table_lengths: table_buffers,
+        })
+    }
+
+    /// The whole scene as WGSL, every name it declares starting with `prefix` (`{prefix}_…`,
+    /// `{PREFIX}_…`), its weights at `@group(group)` as [`Scene::bind_group`] creates them for a
+    /// device with `limits` (see the [module](self)):
+    /// - `fn {prefix}_distance(p: vec3<f32>) -> f32`: the scene's signed distance (or bound:
+    ///   see [`super::tree`]) at a point of the scene's frame;
+    /// - `fn {prefix}_normal(p: vec3<f32>) -> vec3<f32>`: the unit normal (the normalised
+    ///   analytic gradient; zero where it vanishes);
+    /// - `fn {prefix}_sample(p: vec3<f32>) -> {prefix}_Sample`: the distance, its gradient
+    ///   (not normalised) and the index of the deciding leaf ([`Scene::leaves`]).
+    ///
+    /// The prefix is an ASCII letter followed by at most [`MAX_SCENE_PREFIX`] letters, digits
+    /// or underscores; two snippets in one shader need prefixes that differ other than in case.
+    pub fn wgsl_with_prefix(
+        &self,
+        group: u32,
+        prefix: &str,
+        limits: &wgpu::Limits,
+    ) -> Result<String, EmbedError> {
+        if prefix.len() > MAX_SCENE_PREFIX + 1 {
+            return Err(EmbedError::Prefix(prefix.to_owned()));
+        }
+        // Checks the prefix (the snippet below is written under `hwsdf`).
+        wgsl::with_prefix("", prefix)?;
+        let packing = self.packing(limits)?;
+        Ok(self.generate(group, prefix, &packing))
+    }
+
+    /// The snippet for `packing`, under `prefix` (already checked).
+    pub(crate) fn generate(&self, group: u32, prefix: &str, packing: &Packing) -> String {
+        let mut s = String::new();
+        let _ = writeln!(
+            s,
+            "// ---- HW SDF scene: {} leaves, {} models; generated by sdf_nn::serve::scene::Scene::wgsl_with_prefix. ----",
+            self.leaves().len(),
+            self.models().len()
+        );
+        let np = packing.param_lengths.len();
+        for k in 0..np {
+            let _ = writeln!(
+                s,
+                "@group({group}) @binding({k}) var<storage, read> {prefix}_params_{k}: array<f32>;"
+            );
+        }
+        for k in 0..packing.table_lengths.len() {
+            let _ = writeln!(
+                s,
+                "@group({group}) @binding({b}) var<storage, read> {prefix}_tables_{k}: array<u32>;",
+                b = np + k
+            );
+        }
+        for (i, model) in self.models().iter().enumerate() {
+            let name = format!("{prefix}_m{i}");
+            let snippet = wgsl::rename(&model.wgsl(group), &name);
+            let (buffer, offset) = packing.params[i];
+            let mut snippet: String = snippet
+                .lines()
+                .filter(|line| !line.starts_with("@group("))
+                .collect::<Vec<_>>()
+                .join("\n")
+                .replace(
+                    &format!("{name}_params["),
+                    &format!("{prefix}_params_{buffer}[{offset}u + "),
+                );
+            if let Some((buffer, offset)) = packing.tables[i] {
+                snippet = snippet.replace(
+                    &format!("{name}_table["),
+                    &format!("{prefix}_tables_{buffer}[{offset}u + "),
+                );
+            }
+            s.push_str(&snippet);
+            s.push('\n');
+        }
+        s.push_str(&wgsl::rename(PRIMITIVES, prefix));
+        let up = prefix.to_ascii_uppercase();
+        for (l, leaf) in self.leaves().iter().enumerate() {
+            self.leaf_functions(&mut s, prefix, &up, l, leaf);
+        }
+        self.program_functions(&mut s, prefix);
+        let _ = writeln!(s, "// ---- end of HW SDF scene ----");
+        s
+    }
+
+    /// `{prefix}_leaf_{l}` (value, gradient and leaf in the scene's frame) and
+    /// `{prefix}_leaf_{l}_d` (the value alone) of leaf `l`.
+    fn leaf_functions(
+        &self,
+        s: &mut String,
+        prefix: &str,
+        up: &str,
+        l: usize,
+        leaf: &crate::serve::scene::tree::Leaf,
+    ) {
+        let t = &leaf.transform;
+        let rotation = t.rotation.as_dquat().normalize();
+        let (inv, rot) = (
+            DMat3::from_quat(rotation.inverse()),
+            DMat3::from_quat(rotation),
+        );
+        let mat = |m: DMat3| {
+            let c = |v: glam::DVec3| vec3(v.as_vec3());
+            format!(
+                "mat3x3<f32>({}, {}, {})",
+                c(m.x_axis),
+                c(m.y_axis),
+                c(m.z_axis)
+            )
+        };
+        let _ = write!(
+            s,
+            "\n// Leaf {l}: {what}.\n\
+             const {up}_L{l}_INV: mat3x3<f32> = {inv};\n\
+             const {up}_L{l}_ROT: mat3x3<f32> = {rot};\n\
+             const {up}_L{l}_T: vec3<f32> = {tr};\n\
+             const {up}_L{l}_S: f32 = {sc};\n",
+            what = self.leaf_path(l).unwrap_or(""),
+            inv = mat(inv),
+            rot = mat(rot),
+            tr = vec3(t.translation),
+            sc = lit(t.scale),
+        );
+        let local = format!("{up}_L{l}_INV * (p - {up}_L{l}_T) / {up}_L{l}_S");
+        let (value, distance) = match leaf.kind {
+            LeafKind::Model(m) => (
+                format!("{prefix}_m{m}_distance_normal(q)"),
+                format!("{prefix}_m{m}_distance(q)"),
+            ),
+            LeafKind::Primitive(p) => {
+                let call = primitive_call(prefix, &p);
+                (call.clone(), format!("{call}.x"))
+            }
+        };
+        let _ = write!(
+            s,
+            "fn {prefix}_leaf_{l}(p: vec3<f32>) -> {prefix}_Sample {{\n\
+             \x20   let q = {local};\n\
+             \x20   let v = {value};\n\
+             \x20   return {prefix}_Sample({up}_L{l}_S * v.x, {up}_L{l}_ROT * v.yzw, {l}u);\n\
+             }}\n\
+             fn {prefix}_leaf_{l}_d(p: vec3<f32>) -> f32 {{\n\
+             \x20   let q = {local};\n\
+             \x20   return {up}_L{l}_S * {distance};\n\
+             }}\n"
+        );
+    }
+
+    /// The program as straight-line code: `{prefix}_distance`, `{prefix}_sample` and
+    /// `{prefix}_normal`.
+    fn program_functions(&self, s: &mut String, prefix: &str) {
+        for with_gradient in [false, true] {
+            let mut stack: Vec<usize> = Vec::new();
+            let mut body = String::new();
+            for (v, instruction) in self.program().iter().enumerate() {
+                let expr = if with_gradient {
+                    sample_expression(prefix, instruction, &mut stack)
+                } else {
+                    distance_expression(prefix, instruction, &mut stack)
+                };
+                let _ = writeln!(body, "    let v{v} = {expr};");
+                stack.push(v);
+            }
+            let last = stack.pop().expect("a balanced program leaves one value");
+            if with_gradient {
+                let _ = write!(
+                    s,
+                    "\n// The scene's value, gradient and deciding leaf at a point of its frame.\n\
+                     fn {prefix}_sample(p: vec3<f32>) -> {prefix}_Sample {{\n{body}    return v{last};\n}}\n"
+                );
+            } else {
+                let _ = write!(
+                    s,
+                    "\n// The scene's signed distance at a point of its frame.\n\
+                     fn {prefix}_distance(p: vec3<f32>) -> f32 {{\n{body}    return v{last};\n}}\n"
+                );
+            }
+        }
+        let _ = write!(
+            s,
+            "\n// The unit normal (zero where the gradient vanishes).\n\
+             fn {prefix}_normal(p: vec3<f32>) -> vec3<f32> {{\n\
+             \x20   let g = {prefix}_sample(p).g;\n\
+             \x20   let len = length(g);\n\
+             \x20   if len > 0.0 {{\n\
+             \x20       return g / len;\n\
+             \x20   }}\n\
+             \x20   return vec3<f32>(0.0);\n\
+             }}\n"
+        );
+    }
+}
+
+/// One instruction on distances alone; pops its operands' variable numbers from `stack`.
+fn distance_expression(prefix: &str, instruction: &Instruction, stack: &mut Vec<usize>) -> String {
+    let mut pop = || format!("v{}", stack.pop().expect("balanced program"));
+    match *instruction {
+        Instruction::Leaf(l) => format!("{prefix}_leaf_{l}_d(p)"),
+        Instruction::Offset(r) => format!("{} - {}", pop(), lit(r)),
+        Instruction::Shell(t) => format!("abs({}) - {}", pop(), lit(t)),
+        binary => {
+            let (b, a) = (pop(), pop());
+            match binary {
+                Instruction::Union => format!("min({a}, {b})"),
+                Instruction::Intersection => format!("max({a}, {b})"),
+                Instruction::Difference => format!("max({a}, -{b})"),
+                Instruction::SmoothUnion(k) => format!("{prefix}_smin_d({a}, {b}, {})", lit(k)),
+                Instruction::SmoothIntersection(k) => {
+                    format!("-{prefix}_smin_d(-{a}, -{b}, {})", lit(k))
+                }
+                Instruction::SmoothDifference(k) => {
+                    format!("-{prefix}_smin_d(-{a}, {b}, {})", lit(k))
+                }
+                _ => unreachable!("unary instructions are matched above"),
+            }
+        }
+    }
+}
+
+/// One instruction on samples (value, gradient, leaf), as the CPU's `combine`.
+fn sample_expression(prefix: &str, instruction: &Instruction, stack: &mut Vec<usize>) -> String {
+    let mut pop = || format!("v{}", stack.pop().expect("balanced program"));
+    let neg = |x: &str| format!("{prefix}_negate({x})");
+    match *instruction {
+        Instruction::Leaf(l) => format!("{prefix}_leaf_{l}(p)"),
+        Instruction::Offset(r) => {
+            let a = pop();
+            format!("{prefix}_Sample({a}.d - {}, {a}.g, {a}.leaf)", lit(r))
+        }
+        Instruction::Shell(t) => format!("{prefix}_shell({}, {})", pop(), lit(t)),
+        binary => {
+            let (b, a) = (pop(), pop());
+            match binary {
+                Instruction::Union => format!("{prefix}_pick_min({a}, {b})"),
+                Instruction::Intersection => format!("{prefix}_pick_max({a}, {b})"),
+                Instruction::Difference => format!("{prefix}_pick_max({a}, {})", neg(&b)),
+                Instruction::SmoothUnion(k) => format!("{prefix}_smin({a}, {b}, {})", lit(k)),
+                Instruction::SmoothIntersection(k) => neg(&format!(
+                    "{prefix}_smin({}, {}, {})",
+                    neg(&a),
+                    neg(&b),
+                    lit(k)
+                )),
+                Instruction::SmoothDifference(k) => {
+                    neg(&format!("{prefix}_smin({}, {b}, {})", neg(&a), lit(k)))
+                }
+                _ => unreachable!("unary instructions are matched above"),
+            }
+        }
+    }
+}
+
+/// The WGSL call that evaluates primitive `p` at the local point `q` (a `vec4<f32>`: distance,
+/// gradient).
+fn primitive_call(prefix: &str, p: &Primitive) -> String {
+    match *p {
+        Primitive::Sphere { radius } => format!("{prefix}_sphere(q, {})", lit(radius)),
+        Primitive::Box { half_extents } => format!("{prefix}_box(q, {})", vec3(half_extents)),
+        Primitive::RoundBox {
+            half_extents,
+            radius,
+        } => format!(
+            "{prefix}_round_box(q, {}, {})",
+            vec3(half_extents),
+            lit(radius)
+        ),
+        Primitive::Capsule { a, b, radius } => format!(
+            "{prefix}_capsule(q, {}, {}, {})",
+            vec3(a),
+            vec3(b),
+            lit(radius)
+        ),
+        Primitive::Torus { major, minor } => {
+            format!("{prefix}_torus(q, {}, {})", lit(major), lit(minor))
+        }
+        Primitive::Plane { normal, offset } => format!(
+            "{prefix}_plane(q, {}, {})",
+            vec3(normal.as_dvec3().normalize().as_vec3()),
+            lit(offset)
+        ),
+        Primitive::Cylinder {
+            radius,
+            half_height,
+        } => format!(
+            "{prefix}_cylinder(q, {}, {})",
+            lit(radius),
+            lit(half_height)
+        ),
+    }
+}
+
+fn lit(x: f32) -> String {
+    wgsl::lit(x)
+}
+
+fn vec3(v: glam::Vec3) -> String {
+    wgsl::vec3_lit(v)
+}
+
+/// The scene's weights on a device, bound as its snippet expects.
+#[derive(Debug)]
+pub struct SceneBindGroup {
+    /// Layout: the parameter buffers, then the table buffers, read-only storage visible to
+    /// compute and fragment shaders. Put it at the snippet's group.
+    pub layout: wgpu::BindGroupLayout,
+    /// The bind group to set there.
+    pub bind_group: wgpu::BindGroup,
+    /// The parameter buffers (`{prefix}_params_k`).
+    pub params: Vec<wgpu::Buffer>,
+    /// The table buffers (`{prefix}_tables_k`).
+    pub tables: Vec<wgpu::Buffer>,
+}
+
+impl Scene {
+    /// Uploads the models' weights to `device`, packed as
+    /// [`Scene::wgsl_with_prefix`] expects for this device's limits, and creates the bind
+    /// group (and its layout).
+    pub fn bind_group(&self, device: &wgpu::Device) -> Result<SceneBindGroup, SceneGpuError> {
+        let limits = device.limits();
+        let packing = self.packing(&limits)?;
+        check_bindings(&packing, &limits, 0)?;
+        Ok(self.upload(device, &packing))
+    }
+
+    /// The buffers and bind group of `packing`.
+    pub(crate) fn upload(&self, device: &wgpu::Device, packing: &Packing) -> SceneBindGroup {
+        let mut params: Vec<Vec<f32>> = packing
+            .param_lengths
+            .iter()
+            .map(|&n| Vec::with_capacity(n as usize))
+            .collect();
+        let mut tables: Vec<Vec<u32>> = packing
+            .table_lengths
+            .iter()
+            .map(|&n| Vec::with_capacity(n as usize))
+            .collect();
+        // First fit places each model at the end of its buffer, in model order.
+        for (i, model) in self.models().iter().enumerate() {
+            let (p, t) = wgsl::weights(model.network());
+            let (k, offset) = packing.params[i];
+            debug_assert_eq!(params[k].len() as u64, offset);
+            params[k].extend_from_slice(p);
+            if let Some((k, offset)) = packing.tables[i] {
+                debug_assert_eq!(tables[k].len() as u64, offset);
+                tables[k].extend_from_slice(&t);
+            }
+        }
+        use wgpu::util::DeviceExt;
+        let storage = |label, contents: &[u8]| {
+            device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                label: Some(label),
+                contents,
+                usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST,
+            })
+        };
+        let params: Vec<wgpu::Buffer> = params
+            .iter()
+            .map(|p| storage("scene params", bytemuck::cast_slice(p)))
+            .collect();
+        let tables: Vec<wgpu::Buffer> = tables
+            .iter()
+            .map(|t| storage("scene tables", bytemuck::cast_slice(t)))
+            .collect();
+        let buffers: Vec<&wgpu::Buffer> = params.iter().chain(&tables).collect();
+        let layout_entries: Vec<_> = (0..buffers.len() as u32)
+            .map(|binding| wgpu::BindGroupLayoutEntry {
+                binding,
+                visibility: wgpu::ShaderStages::COMPUTE | wgpu::ShaderStages::FRAGMENT,
+                ty: wgpu::BindingType::Buffer {
+                    ty: wgpu::BufferBindingType::Storage { read_only: true },
+                    has_dynamic_offset: false,
+                    min_binding_size: None,
+                },
+                count: None,
+            })
+            .collect();
+        let layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+            label: Some("scene weights layout"),
+            entries: &layout_entries,
+        });
+        let entries: Vec<_> = buffers
+            .iter()
+            .enumerate()
+            .map(|(i, b)| crate::gpu::entry(i as u32, b))
+            .collect();
+        let bind_group = device.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: Some("scene weights"),
+            layout: &layout,
+            entries: &entries,
+        });
+        SceneBindGroup {
+            layout,
+            bind_group,
+            params,
+            tables,
+        }
+    }
+}
+
+/// Checks that `packing`'s buffers and `reserved` more fit the device's storage bindings.
+pub(crate) fn check_bindings(
+    packing: &Packing,
+    limits: &wgpu::Limits,
+    reserved: u32,
+) -> Result<(), SceneGpuError> {
+    let limit = limits.max_storage_buffers_per_shader_stage;
+    if packing.bindings() + reserved > limit {
+        return Err(SceneGpuError::TooManyBuffers {
+            needed: packing.bindings(),
+            reserved,
+            limit,
+        });
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// First fit: arrays share a buffer until it is full, an array larger than the limit is
+    /// refused with the limit named.
+    #[test]
+    fn weights_pack_first_fit() {
+        let (places, buffers) = pack(&[Some(10), None, Some(20), Some(5)], 100).unwrap();
+        assert_eq!(
+            places,
+            vec![Some((0, 0)), None, Some((1, 0)), Some((0, 10))]
+        );
+        assert_eq!(buffers, vec![15, 20]);
+        let err = pack(&[Some(30)], 100).unwrap_err();
+        assert!(
+            matches!(
+                err,
+                EmbedError::TooLarge {
+                    bytes: 120,
+                    limit: 100
+                }
+            ),
+            "{err}"
+        );
+    }
+}

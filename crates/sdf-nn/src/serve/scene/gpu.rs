@@ -1,0 +1,589 @@
+//! Batch queries of a whole [`Scene`] on the GPU: the scene compiled to WGSL once
+//! ([`super::embed`]), every model's weights in as few buffers as the device allows, and one
+//! submission per batch (per buffer-sized part of a batch) whatever the number of models.
+//!
+//! ```no_run
+//! use glam::Vec3;
+//! use sdf_nn::GpuContext;
+//! use sdf_nn::serve::scene::{GpuScene, Ray, Scene, TraceOptions};
+//!
+//! # fn main() -> Result<(), Box<dyn std::error::Error>> {
+//! let scene = Scene::load("examples/scene/scene.toml")?;
+//! let gpu = GpuContext::shared()?;
+//! let on_gpu = GpuScene::new(gpu, &scene)?; // compiles the scene, uploads the weights
+//! let d = on_gpu.distances(&[Vec3::ZERO, Vec3::X], 0.0)?;
+//! let ray = Ray { origin: Vec3::new(0.0, 0.0, -5.0), direction: Vec3::Z, max_distance: 10.0 };
+//! let hits = on_gpu.trace_rays(&[ray], &TraceOptions::default())?;
+//! # let _ = (d, hits); Ok(()) }
+//! ```
+//!
+//! Every query means what the CPU reference ([`super::cpu`]) computes, in f32 instead of f64
+//! through the operators: distances agree to f32 rounding (the tests hold primitives to 1e-5),
+//! rays step by the same bound (`|d − c| / L`, [`Scene::lipschitz`]) and stop by the same rules,
+//! projections take the same steps.
+//!
+//! # Serving
+//! The plain calls ([`GpuScene::distances`], [`GpuScene::samples`], [`GpuScene::trace_rays`],
+//! [`GpuScene::closest_points`]) upload, dispatch and read back. For results that stay on the
+//! GPU or a submission that overlaps the caller's work, [`GpuScene::record`] records a query
+//! into the caller's encoder on the caller's buffers ([`SceneQueryBuffers`]); the caller
+//! submits it and reads (or keeps) the results. A `GpuScene` is `Send + Sync`: threads may query
+//! one scene at once, each call with its own buffers.
+//!
+//! Pipelines are compiled on first use of each query kind (seconds on lavapipe, whose shader
+//! compiler is slow; milliseconds on a GPU driver).
+
+use std::borrow::Cow;
+use std::sync::OnceLock;
+
+use glam::Vec3;
+
+use crate::gpu::{GpuContext, GpuError, entry};
+use crate::serve::scene::cpu::{
+    ClosestPoint, ProjectOptions, Ray, RayHit, SceneQueryError, SceneSample, TraceOptions,
+    check_level_and_tolerance, check_ray,
+};
+use crate::serve::scene::embed::{Packing, SceneBindGroup, SceneGpuError, check_bindings};
+use crate::serve::scene::tree::Scene;
+
+/// The group of the scene's weights in the query kernels.
+const SCENE_GROUP: u32 = 1;
+/// Storage buffers the query kernels bind besides the scene's.
+const QUERY_BUFFERS: u32 = 2;
+/// Invocations per workgroup (`QUERY_WG`).
+const WG: u32 = 64;
+
+/// What a query computes: its kernel and the size of one element's input and output.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum SceneQueryKind {
+    /// `d − c` per point (1 float).
+    Distance,
+    /// `d − c`, its gradient and the deciding leaf per point (5 floats; the leaf bit for bit).
+    Sample,
+    /// A sphere-traced ray per element (input: two `vec4`s, origin and maximum distance, then
+    /// direction; output: 10 floats, hit (0 or 1), t, point, normal, leaf and steps).
+    Trace,
+    /// A projection per point (7 floats: point, residual, iterations, converged (0 or 1),
+    /// leaf).
+    Project,
+}
+
+impl SceneQueryKind {
+    const ALL: [SceneQueryKind; 4] = [
+        SceneQueryKind::Distance,
+        SceneQueryKind::Sample,
+        SceneQueryKind::Trace,
+        SceneQueryKind::Project,
+    ];
+
+    fn entry_point(self) -> &'static str {
+        match self {
+            SceneQueryKind::Distance => "query_distance",
+            SceneQueryKind::Sample => "query_sample",
+            SceneQueryKind::Trace => "query_trace",
+            SceneQueryKind::Project => "query_project",
+        }
+    }
+
+    /// `vec4<f32>` inputs per element.
+    pub fn inputs_per_element(self) -> u32 {
+        match self {
+            SceneQueryKind::Trace => 2,
+            _ => 1,
+        }
+    }
+
+    /// `f32` outputs per element.
+    pub fn outputs_per_element(self) -> u32 {
+        match self {
+            SceneQueryKind::Distance => 1,
+            SceneQueryKind::Sample => 5,
+            SceneQueryKind::Trace => 10,
+            SceneQueryKind::Project => 7,
+        }
+    }
+
+    fn index(self) -> usize {
+        self as usize
+    }
+}
+
+/// The kernels' uniform (`SceneQuery` in `shaders/scene_query.wgsl`).
+#[repr(C)]
+#[derive(Clone, Copy, Debug, bytemuck::Pod, bytemuck::Zeroable)]
+struct SceneQueryUniform {
+    count: u32,
+    max_steps: u32,
+    max_iterations: u32,
+    first: u32,
+    level: f32,
+    tolerance: f32,
+    inv_lipschitz: f32,
+    _pad: f32,
+}
+
+/// The parameters of one recorded query.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct SceneQueryParams {
+    /// The level `c`.
+    pub level: f32,
+    /// Hit tolerance (rays) or convergence tolerance (projections); unused otherwise.
+    pub tolerance: f32,
+    /// Sphere-tracing steps per ray at most.
+    pub max_steps: u32,
+    /// Projection steps per point at most.
+    pub max_iterations: u32,
+}
+
+impl SceneQueryParams {
+    /// Distances or samples at level `c`.
+    pub fn at_level(level: f32) -> Self {
+        SceneQueryParams {
+            level,
+            tolerance: 1.0,
+            max_steps: 0,
+            max_iterations: 0,
+        }
+    }
+}
+
+impl From<&TraceOptions> for SceneQueryParams {
+    fn from(o: &TraceOptions) -> Self {
+        SceneQueryParams {
+            level: o.level,
+            tolerance: o.tolerance,
+            max_steps: o.max_steps,
+            max_iterations: 0,
+        }
+    }
+}
+
+impl From<&ProjectOptions> for SceneQueryParams {
+    fn from(o: &ProjectOptions) -> Self {
+        SceneQueryParams {
+            level: o.level,
+            tolerance: o.tolerance,
+            max_steps: 0,
+            max_iterations: o.max_iterations,
+        }
+    }
+}
+
+/// Caller-owned buffers for up to `capacity` elements of one query kind: the inputs (storage,
+/// written by the caller or by another kernel) and the outputs (storage, copyable), which may
+/// stay on the GPU.
+#[derive(Debug)]
+pub struct SceneQueryBuffers {
+    /// The query kind they are sized for.
+    pub kind: SceneQueryKind,
+    /// Elements they hold.
+    pub capacity: u32,
+    /// `vec4<f32>` inputs (see [`SceneQueryKind`]).
+    pub inputs: wgpu::Buffer,
+    /// `f32` outputs (see [`SceneQueryKind`]).
+    pub outputs: wgpu::Buffer,
+}
+
+/// A scene compiled for one device: its query kernels and its weights.
+#[derive(Debug)]
+pub struct GpuScene<'g> {
+    gpu: &'g GpuContext,
+    module: wgpu::ShaderModule,
+    layout: wgpu::PipelineLayout,
+    query_layout: wgpu::BindGroupLayout,
+    weights: SceneBindGroup,
+    pipelines: [OnceLock<wgpu::ComputePipeline>; 4],
+    lipschitz: f32,
+    leaves: usize,
+    /// Most elements of one part of a batch, per kind (buffer and dispatch limits).
+    max_elements: [u32; 4],
+    /// See [`GpuScene::set_max_part`].
+    max_part: u32,
+}
+
+impl<'g> GpuScene<'g> {
+    /// Compiles `scene` for `gpu`'s device and uploads its weights. Measures the models'
+    /// Lipschitz estimates (for rays) if the scene has not yet.
+    pub fn new(gpu: &'g GpuContext, scene: &Scene) -> Result<GpuScene<'g>, SceneGpuError> {
+        let device = gpu.device();
+        let limits = gpu.limits();
+        let packing: Packing = scene.packing(&limits)?;
+        check_bindings(&packing, &limits, QUERY_BUFFERS)?;
+        let weights = scene.upload(device, &packing);
+        let source = format!(
+            "{}\n{}",
+            scene.generate(SCENE_GROUP, "scene", &packing),
+            crate::shaders::SCENE_QUERY.source
+        );
+        let scope = device.push_error_scope(wgpu::ErrorFilter::Validation);
+        let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
+            label: Some("scene_query.wgsl"),
+            source: wgpu::ShaderSource::Wgsl(Cow::Owned(source)),
+        });
+        let storage = |binding, read_only| wgpu::BindGroupLayoutEntry {
+            binding,
+            visibility: wgpu::ShaderStages::COMPUTE,
+            ty: wgpu::BindingType::Buffer {
+                ty: wgpu::BufferBindingType::Storage { read_only },
+                has_dynamic_offset: false,
+                min_binding_size: None,
+            },
+            count: None,
+        };
+        let query_layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+            label: Some("scene query"),
+            entries: &[
+                wgpu::BindGroupLayoutEntry {
+                    binding: 0,
+                    visibility: wgpu::ShaderStages::COMPUTE,
+                    ty: wgpu::BindingType::Buffer {
+                        ty: wgpu::BufferBindingType::Uniform,
+                        has_dynamic_offset: false,
+                        min_binding_size: None,
+                    },
+                    count: None,
+                },
+                storage(1, true),
+                storage(2, false),
+            ],
+        });
+        let layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
+            label: Some("scene query"),
+            bind_group_layouts: &[Some(&query_layout), Some(&weights.layout)],
+            immediate_size: 0,
+        });
+        if let Some(err) = pollster::block_on(scope.pop()) {
+            return Err(GpuError::Wgpu {
+                context: "compiling the scene's WGSL".into(),
+                message: err.to_string(),
+            }
+            .into());
+        }
+        let binding = limits
+            .max_storage_buffer_binding_size
+            .min(limits.max_buffer_size);
+        let max_dispatch = u64::from(limits.max_compute_workgroups_per_dimension);
+        let max_elements = SceneQueryKind::ALL.map(|kind| {
+            let bytes_per_element = (16 * u64::from(kind.inputs_per_element()))
+                .max(4 * u64::from(kind.outputs_per_element()));
+            (binding / bytes_per_element)
+                .min(max_dispatch * max_dispatch * u64::from(WG))
+                .min(u64::from(u32::MAX / 16)) as u32
+        });
+        Ok(GpuScene {
+            gpu,
+            module,
+            layout,
+            query_layout,
+            weights,
+            pipelines: Default::default(),
+            lipschitz: scene.lipschitz(),
+            leaves: scene.leaves().len(),
+            max_elements,
+            max_part: u32::MAX,
+        })
+    }
+
+    /// The Lipschitz constant the tracer divides by ([`Scene::lipschitz`]).
+    pub fn lipschitz(&self) -> f32 {
+        self.lipschitz
+    }
+
+    /// The scene's weights on the device (for binding them in the caller's own shader, whose
+    /// snippet [`Scene::wgsl_with_prefix`] gives).
+    pub fn weights(&self) -> &SceneBindGroup {
+        &self.weights
+    }
+
+    /// Most elements of `kind` one set of buffers may hold on this device; larger plain calls
+    /// are split into parts of this size.
+    pub fn max_elements(&self, kind: SceneQueryKind) -> u32 {
+        self.max_elements[kind.index()].min(self.max_part)
+    }
+
+    /// Splits the plain calls' batches into parts of at most `elements` (at least 1), one
+    /// submission each: for a driver whose watchdog ends long submissions (rays of a large
+    /// scene), or to bound the memory of one part. The answers do not change.
+    pub fn set_max_part(&mut self, elements: u32) {
+        self.max_part = elements.max(1);
+    }
+
+    /// The pipeline of `kind`, compiled on first use.
+    fn pipeline(&self, kind: SceneQueryKind) -> Result<&wgpu::ComputePipeline, GpuError> {
+        let cell = &self.pipelines[kind.index()];
+        if let Some(p) = cell.get() {
+            return Ok(p);
+        }
+        let device = self.gpu.device();
+        let scope = device.push_error_scope(wgpu::ErrorFilter::Validation);
+        let pipeline = device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+            label: Some(kind.entry_point()),
+            layout: Some(&self.layout),
+            module: &self.module,
+            entry_point: Some(kind.entry_point()),
+            compilation_options: Default::default(),
+            cache: None,
+        });
+        if let Some(err) = pollster::block_on(scope.pop()) {
+            return Err(GpuError::Wgpu {
+                context: format!("compiling the scene's {}", kind.entry_point()),
+                message: err.to_string(),
+            });
+        }
+        // Two threads may both compile; the first stored wins and both are valid.
+        Ok(cell.get_or_init(|| pipeline))
+    }
+
+    /// Buffers for up to `capacity` elements of `kind` (at most
+    /// [`GpuScene::max_elements`]).
+    pub fn create_buffers(
+        &self,
+        kind: SceneQueryKind,
+        capacity: u32,
+    ) -> Result<SceneQueryBuffers, GpuError> {
+        let capacity = capacity.max(1);
+        let in_bytes = 16 * u64::from(kind.inputs_per_element()) * u64::from(capacity);
+        let out_bytes = 4 * u64::from(kind.outputs_per_element()) * u64::from(capacity);
+        self.gpu
+            .check_storage_size("scene query inputs", in_bytes)?;
+        self.gpu
+            .check_storage_size("scene query outputs", out_bytes)?;
+        let device = self.gpu.device();
+        let buffer = |label, size, usage| {
+            device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some(label),
+                size,
+                usage,
+                mapped_at_creation: false,
+            })
+        };
+        use wgpu::BufferUsages as U;
+        Ok(SceneQueryBuffers {
+            kind,
+            capacity,
+            inputs: buffer("scene query inputs", in_bytes, U::STORAGE | U::COPY_DST),
+            outputs: buffer("scene query outputs", out_bytes, U::STORAGE | U::COPY_SRC),
+        })
+    }
+
+    /// Records a query of the first `count` elements of `buffers` into `encoder`. The inputs
+    /// must be written before the encoder's submission runs; the outputs are ready when it has
+    /// finished. `params` are not checked here (the plain calls check them).
+    pub fn record(
+        &self,
+        encoder: &mut wgpu::CommandEncoder,
+        buffers: &SceneQueryBuffers,
+        count: u32,
+        params: &SceneQueryParams,
+    ) -> Result<(), GpuError> {
+        let count = count.min(buffers.capacity);
+        if count == 0 {
+            return Ok(());
+        }
+        let pipeline = self.pipeline(buffers.kind)?;
+        let uniform = self.gpu.uniform(
+            "scene query",
+            &SceneQueryUniform {
+                count,
+                max_steps: params.max_steps,
+                max_iterations: params.max_iterations,
+                first: 0,
+                level: params.level,
+                tolerance: params.tolerance,
+                inv_lipschitz: 1.0 / self.lipschitz,
+                _pad: 0.0,
+            },
+        );
+        let group = self
+            .gpu
+            .device()
+            .create_bind_group(&wgpu::BindGroupDescriptor {
+                label: Some("scene query"),
+                layout: &self.query_layout,
+                entries: &[
+                    entry(0, &uniform),
+                    entry(1, &buffers.inputs),
+                    entry(2, &buffers.outputs),
+                ],
+            });
+        let (x, y) = self.gpu.dispatch_size(count.div_ceil(WG));
+        let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
+            label: Some(buffers.kind.entry_point()),
+            timestamp_writes: None,
+        });
+        pass.set_pipeline(pipeline);
+        pass.set_bind_group(0, &group, &[]);
+        pass.set_bind_group(SCENE_GROUP, &self.weights.bind_group, &[]);
+        pass.dispatch_workgroups(x, y, 1);
+        Ok(())
+    }
+
+    /// Runs `kind` on `inputs` (`inputs_per_element` `vec4`s per element), in parts that fit
+    /// the device, one submission each; returns the outputs of every element in order.
+    fn run(
+        &self,
+        kind: SceneQueryKind,
+        inputs: &[[f32; 4]],
+        params: &SceneQueryParams,
+    ) -> Result<Vec<f32>, GpuError> {
+        let per_in = kind.inputs_per_element() as usize;
+        let per_out = kind.outputs_per_element() as usize;
+        let elements = inputs.len() / per_in;
+        let mut out = Vec::with_capacity(elements * per_out);
+        let part = self.max_elements(kind).max(1) as usize;
+        let mut buffers: Option<SceneQueryBuffers> = None;
+        for chunk in inputs.chunks(part * per_in) {
+            let count = (chunk.len() / per_in) as u32;
+            let reuse = buffers.as_ref().is_some_and(|b| b.capacity >= count);
+            if !reuse {
+                buffers = Some(self.create_buffers(kind, count)?);
+            }
+            let b = buffers.as_ref().expect("created above");
+            let device = self.gpu.device();
+            let scope = device.push_error_scope(wgpu::ErrorFilter::Validation);
+            self.gpu
+                .queue()
+                .write_buffer(&b.inputs, 0, bytemuck::cast_slice(chunk));
+            let mut encoder = device.create_command_encoder(&Default::default());
+            self.record(&mut encoder, b, count, params)?;
+            self.gpu.queue().submit([encoder.finish()]);
+            if let Some(err) = pollster::block_on(scope.pop()) {
+                return Err(GpuError::Wgpu {
+                    context: format!("dispatching the scene's {}", kind.entry_point()),
+                    message: err.to_string(),
+                });
+            }
+            let values: Vec<f32> =
+                self.gpu
+                    .read_back_range(&b.outputs, 0, u64::from(count) * per_out as u64)?;
+            out.extend_from_slice(&values);
+        }
+        Ok(out)
+    }
+
+    /// `d − c` at each point (see [`Scene::distances`]).
+    pub fn distances(&self, points: &[Vec3], level: f32) -> Result<Vec<f32>, SceneGpuError> {
+        if !level.is_finite() {
+            return Err(SceneQueryError::Level(level).into());
+        }
+        let inputs: Vec<[f32; 4]> = points.iter().map(|p| p.extend(0.0).to_array()).collect();
+        Ok(self.run(
+            SceneQueryKind::Distance,
+            &inputs,
+            &SceneQueryParams::at_level(level),
+        )?)
+    }
+
+    /// `d − c`, its gradient and the deciding leaf at each point (see
+    /// [`Scene::distances_and_gradients`]).
+    pub fn samples(&self, points: &[Vec3], level: f32) -> Result<Vec<SceneSample>, SceneGpuError> {
+        if !level.is_finite() {
+            return Err(SceneQueryError::Level(level).into());
+        }
+        let inputs: Vec<[f32; 4]> = points.iter().map(|p| p.extend(0.0).to_array()).collect();
+        let out = self.run(
+            SceneQueryKind::Sample,
+            &inputs,
+            &SceneQueryParams::at_level(level),
+        )?;
+        Ok(out
+            .chunks_exact(5)
+            .map(|v| SceneSample {
+                distance: v[0],
+                gradient: Vec3::new(v[1], v[2], v[3]),
+                leaf: v[4].to_bits() as usize,
+            })
+            .collect())
+    }
+
+    /// Sphere-traces each ray (see [`Scene::trace_rays`]: the same steps, the same stops).
+    pub fn trace_rays(
+        &self,
+        rays: &[Ray],
+        options: &TraceOptions,
+    ) -> Result<Vec<Option<RayHit>>, SceneGpuError> {
+        check_level_and_tolerance(options.level, options.tolerance)?;
+        for (index, ray) in rays.iter().enumerate() {
+            check_ray(index, ray)?;
+        }
+        let inputs: Vec<[f32; 4]> = rays
+            .iter()
+            .flat_map(|r| {
+                // Normalised in f64, as the CPU does, so that huge directions stay finite.
+                let d = r.direction.as_dvec3().normalize().as_vec3();
+                [
+                    r.origin.extend(r.max_distance).to_array(),
+                    d.extend(0.0).to_array(),
+                ]
+            })
+            .collect();
+        let out = self.run(SceneQueryKind::Trace, &inputs, &options.into())?;
+        Ok(out
+            .chunks_exact(10)
+            .map(|v| {
+                (v[0] == 1.0).then(|| RayHit {
+                    t: v[1],
+                    point: Vec3::new(v[2], v[3], v[4]),
+                    normal: Vec3::new(v[5], v[6], v[7]),
+                    leaf: v[8].to_bits() as usize,
+                    steps: v[9].to_bits(),
+                })
+            })
+            .collect())
+    }
+
+    /// Projects each point onto the level set (see [`Scene::closest_points`]).
+    pub fn closest_points(
+        &self,
+        points: &[Vec3],
+        options: &ProjectOptions,
+    ) -> Result<Vec<ClosestPoint>, SceneGpuError> {
+        check_level_and_tolerance(options.level, options.tolerance)?;
+        if let Some(index) = points.iter().position(|p| !p.is_finite()) {
+            return Err(SceneQueryError::Point {
+                index,
+                point: points[index],
+            }
+            .into());
+        }
+        let inputs: Vec<[f32; 4]> = points.iter().map(|p| p.extend(0.0).to_array()).collect();
+        let out = self.run(SceneQueryKind::Project, &inputs, &options.into())?;
+        Ok(out
+            .chunks_exact(7)
+            .map(|v| ClosestPoint {
+                point: Vec3::new(v[0], v[1], v[2]),
+                residual: v[3],
+                iterations: v[4].to_bits(),
+                converged: v[5] == 1.0,
+                leaf: v[6].to_bits() as usize,
+            })
+            .collect())
+    }
+
+    /// Leaves of the scene.
+    pub fn leaf_count(&self) -> usize {
+        self.leaves
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    /// The kernels' uniform has the layout `scene_query.wgsl` reads.
+    #[test]
+    fn query_uniform_mirrors_the_shader() {
+        crate::shaders::assert_mirrors!(
+            super::SceneQueryUniform,
+            crate::shaders::SCENE_QUERY,
+            "SceneQuery",
+            [
+                count,
+                max_steps,
+                max_iterations,
+                first,
+                level,
+                tolerance,
+                inv_lipschitz
+            ]
+        );
+    }
+}

@@ -1,0 +1,167 @@
+// Batch queries of a scene, one invocation per point or ray: distances, distances with
+// gradients, sphere-traced rays and closest points. The host prepends the scene's snippet
+// (`Scene::wgsl_with_prefix(1, "scene", ..)`), which defines `scene_distance`, `scene_sample`
+// and the `scene_Sample` type and binds the weights at @group(1). The meaning of every query is
+// the CPU reference's (`serve/scene/cpu.rs`), in f32.
+
+struct SceneQuery {
+    // Points or rays in this dispatch.
+    count: u32,
+    // Sphere-tracing steps per ray at most.
+    max_steps: u32,
+    // Projection steps per point at most.
+    max_iterations: u32,
+    // The first element of this dispatch in the buffers.
+    first: u32,
+    // The level c: every query answers for d - c.
+    level: f32,
+    // Hit or convergence tolerance on |d - c|.
+    tolerance: f32,
+    // 1 / L, with L the scene's Lipschitz constant: the sphere tracer's step factor.
+    inv_lipschitz: f32,
+    _pad: f32,
+}
+
+@group(0) @binding(0) var<uniform> query: SceneQuery;
+// Points: (x, y, z, unused). Rays: two per ray, (origin, max_distance), (direction, unused).
+@group(0) @binding(1) var<storage, read> query_in: array<vec4<f32>>;
+// Per element: distance (1 float), sample (5: d, gradient, leaf), hit (10: hit, t, point,
+// normal, leaf, steps), closest point (7: point, residual, iterations, converged, leaf).
+// Integers are stored bit for bit (bitcast).
+@group(0) @binding(2) var<storage, read_write> query_out: array<f32>;
+
+const QUERY_WG: u32 = 64u;
+
+fn query_index(wid: vec3<u32>, nwg: vec3<u32>, lid: u32) -> u32 {
+    return (wid.y * nwg.x + wid.x) * QUERY_WG + lid;
+}
+
+// Whether x is NaN or infinite (WGSL has no isnan; compilers may fold x != x away).
+fn query_non_finite(x: f32) -> bool {
+    return (bitcast<u32>(x) & 0x7f800000u) == 0x7f800000u;
+}
+
+@compute @workgroup_size(64)
+fn query_distance(
+    @builtin(workgroup_id) wid: vec3<u32>,
+    @builtin(num_workgroups) nwg: vec3<u32>,
+    @builtin(local_invocation_index) lid: u32,
+) {
+    let i = query_index(wid, nwg, lid);
+    if i >= query.count {
+        return;
+    }
+    let e = query.first + i;
+    query_out[e] = scene_distance(query_in[e].xyz) - query.level;
+}
+
+@compute @workgroup_size(64)
+fn query_sample(
+    @builtin(workgroup_id) wid: vec3<u32>,
+    @builtin(num_workgroups) nwg: vec3<u32>,
+    @builtin(local_invocation_index) lid: u32,
+) {
+    let i = query_index(wid, nwg, lid);
+    if i >= query.count {
+        return;
+    }
+    let e = query.first + i;
+    let s = scene_sample(query_in[e].xyz);
+    let o = 5u * e;
+    query_out[o] = s.d - query.level;
+    query_out[o + 1u] = s.g.x;
+    query_out[o + 2u] = s.g.y;
+    query_out[o + 3u] = s.g.z;
+    query_out[o + 4u] = bitcast<f32>(s.leaf);
+}
+
+@compute @workgroup_size(64)
+fn query_trace(
+    @builtin(workgroup_id) wid: vec3<u32>,
+    @builtin(num_workgroups) nwg: vec3<u32>,
+    @builtin(local_invocation_index) lid: u32,
+) {
+    let i = query_index(wid, nwg, lid);
+    if i >= query.count {
+        return;
+    }
+    let e = query.first + i;
+    let origin = query_in[2u * e].xyz;
+    let max_distance = query_in[2u * e].w;
+    let dir = normalize(query_in[2u * e + 1u].xyz);
+    var t = 0.0;
+    var steps = 0u;
+    var hit = false;
+    for (var step = 0u; step < query.max_steps; step++) {
+        let gap = scene_distance(origin + dir * t) - query.level;
+        steps = step + 1u;
+        if abs(gap) <= query.tolerance {
+            hit = true;
+            break;
+        }
+        t += abs(gap) * query.inv_lipschitz;
+        // NaN from a broken model ends the ray as a miss.
+        if !(t <= max_distance) || query_non_finite(gap) {
+            break;
+        }
+    }
+    let o = 10u * e;
+    if hit {
+        let p = origin + dir * t;
+        let s = scene_sample(p);
+        let len = length(s.g);
+        var n = -dir;
+        if len > 0.0 {
+            n = s.g / len;
+        }
+        query_out[o] = 1.0;
+        query_out[o + 1u] = t;
+        query_out[o + 2u] = p.x;
+        query_out[o + 3u] = p.y;
+        query_out[o + 4u] = p.z;
+        query_out[o + 5u] = n.x;
+        query_out[o + 6u] = n.y;
+        query_out[o + 7u] = n.z;
+        query_out[o + 8u] = bitcast<f32>(s.leaf);
+    } else {
+        for (var k = 0u; k < 9u; k++) {
+            query_out[o + k] = 0.0;
+        }
+    }
+    query_out[o + 9u] = bitcast<f32>(steps);
+}
+
+@compute @workgroup_size(64)
+fn query_project(
+    @builtin(workgroup_id) wid: vec3<u32>,
+    @builtin(num_workgroups) nwg: vec3<u32>,
+    @builtin(local_invocation_index) lid: u32,
+) {
+    let i = query_index(wid, nwg, lid);
+    if i >= query.count {
+        return;
+    }
+    let e = query.first + i;
+    var x = query_in[e].xyz;
+    var iteration = 0u;
+    loop {
+        let s = scene_sample(x);
+        let gap = s.d - query.level;
+        let g2 = dot(s.g, s.g);
+        let converged = abs(gap) < query.tolerance;
+        // A vanished gradient or a NaN cannot be stepped from.
+        if converged || iteration == query.max_iterations || g2 < 1e-24 || query_non_finite(gap) {
+            let o = 7u * e;
+            query_out[o] = x.x;
+            query_out[o + 1u] = x.y;
+            query_out[o + 2u] = x.z;
+            query_out[o + 3u] = abs(gap);
+            query_out[o + 4u] = bitcast<f32>(iteration);
+            query_out[o + 5u] = select(0.0, 1.0, converged);
+            query_out[o + 6u] = bitcast<f32>(s.leaf);
+            return;
+        }
+        x -= s.g * (gap / g2);
+        iteration++;
+    }
+}

@@ -1,0 +1,510 @@
+//! Scenes on the GPU (`GpuScene`) against the CPU reference: every primitive and operator,
+//! placed models, gradients and deciding leaves, rays, closest points, levels, batches split
+//! into parts, bad input, and eight threads querying one scene at once.
+
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use glam::{Quat, Vec3};
+use sdf_nn::GpuContext;
+use sdf_nn::serve::scene::{
+    GpuScene, Primitive, ProjectOptions, Ray, Scene, SceneGpuError, SceneNode, SceneQueryError,
+    SceneQueryKind, TraceOptions, Transform,
+};
+
+use crate::models::sphere_model;
+use crate::random_points;
+
+fn gpu() -> &'static GpuContext {
+    GpuContext::shared().expect("a GPU adapter (lavapipe in CI)")
+}
+
+/// Every primitive, each placed (moved, turned, scaled), under every operator.
+fn analytic_scene() -> Scene {
+    let at = |x: f32, y: f32, turn: f32, s: f32| {
+        Transform::new(
+            Vec3::new(x, y, 0.0),
+            Quat::from_rotation_y(turn) * Quat::from_rotation_x(0.3 * turn),
+            s,
+        )
+    };
+    let prim = |p, t| SceneNode::primitive(p, t);
+    let e = Vec3::new(0.5, 0.3, 0.4);
+    let sphere = prim(Primitive::Sphere { radius: 0.6 }, at(-2.0, 0.0, 0.0, 1.0));
+    let cube = prim(Primitive::Box { half_extents: e }, at(-1.6, 0.3, 0.4, 1.3));
+    let round = prim(
+        Primitive::RoundBox {
+            half_extents: e,
+            radius: 0.1,
+        },
+        at(0.0, 0.0, 0.9, 0.8),
+    );
+    let capsule = prim(
+        Primitive::Capsule {
+            a: -e,
+            b: e,
+            radius: 0.25,
+        },
+        at(0.2, 0.4, -0.5, 1.0),
+    );
+    let torus = prim(
+        Primitive::Torus {
+            major: 0.6,
+            minor: 0.2,
+        },
+        at(2.0, 0.0, 1.1, 1.0),
+    );
+    let plane = prim(
+        Primitive::Plane {
+            normal: Vec3::new(0.1, 1.0, 0.2),
+            offset: -1.0,
+        },
+        Transform::IDENTITY,
+    );
+    let cylinder = prim(
+        Primitive::Cylinder {
+            radius: 0.3,
+            half_height: 0.7,
+        },
+        at(2.2, 0.3, 0.2, 1.2),
+    );
+    SceneNode::Union(vec![
+        SceneNode::SmoothUnion {
+            k: 0.3,
+            children: vec![sphere.clone(), cube.clone()],
+        },
+        SceneNode::SmoothDifference {
+            k: 0.2,
+            children: vec![round.clone(), capsule.clone()],
+        },
+        SceneNode::SmoothIntersection {
+            k: 0.25,
+            children: vec![torus.clone(), cylinder.clone()],
+        },
+        SceneNode::Difference(vec![cylinder, torus]),
+        SceneNode::Intersection(vec![capsule, round]),
+        SceneNode::Shell {
+            t: 0.05,
+            child: Box::new(sphere),
+        },
+        SceneNode::Offset {
+            r: 0.1,
+            child: Box::new(plane),
+        },
+    ])
+    .transformed(Transform::new(
+        Vec3::new(0.3, -0.2, 0.1),
+        Quat::from_rotation_z(0.4),
+        1.5,
+    ))
+    .pipe(|root| Scene::new(root).unwrap())
+}
+
+trait Pipe: Sized {
+    fn pipe<T>(self, f: impl FnOnce(Self) -> T) -> T {
+        f(self)
+    }
+}
+impl<T> Pipe for T {}
+
+/// The GPU's distances, gradients and leaves against the CPU's (f64 through the operators) on
+/// an analytic scene: distances within 1e-5 (scene units ≈ 1), gradients within 1e-4, the same
+/// leaf except where two children are within rounding of each other.
+#[test]
+fn analytic_scene_matches_the_cpu() {
+    let scene = analytic_scene();
+    let on_gpu = GpuScene::new(gpu(), &scene).unwrap();
+    let points = random_points(4000, 4.0, 3);
+    for level in [0.0, 0.2] {
+        let cpu = scene.distances_and_gradients(&points, level);
+        let gpu_d = on_gpu.distances(&points, level).unwrap();
+        let gpu_s = on_gpu.samples(&points, level).unwrap();
+        let mut leaf_differs = 0;
+        for (i, c) in cpu.iter().enumerate() {
+            let tol = 1e-5 * (1.0 + c.distance.abs());
+            assert!(
+                (gpu_d[i] - c.distance).abs() <= tol,
+                "distance at {}: GPU {} vs CPU {}",
+                points[i],
+                gpu_d[i],
+                c.distance
+            );
+            assert!(
+                (gpu_s[i].distance - c.distance).abs() <= tol,
+                "sample at {}: {} vs {}",
+                points[i],
+                gpu_s[i].distance,
+                c.distance
+            );
+            if gpu_s[i].leaf != c.leaf {
+                leaf_differs += 1;
+                continue;
+            }
+            assert!(
+                gpu_s[i].gradient.abs_diff_eq(c.gradient, 1e-4),
+                "gradient at {}: GPU {} vs CPU {}",
+                points[i],
+                gpu_s[i].gradient,
+                c.gradient
+            );
+        }
+        assert!(
+            leaf_differs <= 4,
+            "{leaf_differs} of 4000 points decided by another leaf"
+        );
+    }
+}
+
+/// Rays and closest points on the GPU stop where the CPU's do.
+#[test]
+fn analytic_rays_and_closest_points_match_the_cpu() {
+    let scene = analytic_scene();
+    let on_gpu = GpuScene::new(gpu(), &scene).unwrap();
+    let origins = random_points(500, 5.0, 4);
+    let targets = random_points(500, 1.5, 5);
+    let rays: Vec<Ray> = origins
+        .iter()
+        .zip(&targets)
+        .map(|(&o, &t)| Ray {
+            origin: o * 2.0,
+            direction: t - o * 2.0,
+            max_distance: 40.0,
+        })
+        .collect();
+    let options = TraceOptions {
+        level: 0.05,
+        ..TraceOptions::default()
+    };
+    let cpu = scene.trace_rays(&rays, &options).unwrap();
+    let gpu_hits = on_gpu.trace_rays(&rays, &options).unwrap();
+    let mut hits = 0;
+    for (i, (c, g)) in cpu.iter().zip(&gpu_hits).enumerate() {
+        match (c, g) {
+            (Some(c), Some(g)) => {
+                hits += 1;
+                assert!(
+                    (c.t - g.t).abs() < 2e-3 * (1.0 + c.t),
+                    "ray {i}: t {} vs {}",
+                    g.t,
+                    c.t
+                );
+                assert!(
+                    c.point.abs_diff_eq(g.point, 1e-2),
+                    "ray {i}: point {} vs {}",
+                    g.point,
+                    c.point
+                );
+                // The hit point's distance on the CPU is the level within the tolerance.
+                let d = scene.distance(g.point, options.level);
+                assert!(
+                    d.abs() < 2e-3,
+                    "ray {i}: GPU hit at distance {d} from the level set"
+                );
+                if c.leaf == g.leaf && (c.t - g.t).abs() < 1e-4 {
+                    assert!(
+                        c.normal.abs_diff_eq(g.normal, 2e-2),
+                        "ray {i}: normal {} vs {}",
+                        g.normal,
+                        c.normal
+                    );
+                }
+            }
+            (None, None) => {}
+            (c, g) => panic!("ray {i}: CPU {c:?}, GPU {g:?}"),
+        }
+    }
+    assert!(hits > 100, "only {hits} of 500 rays hit");
+
+    let project = ProjectOptions {
+        level: 0.05,
+        ..ProjectOptions::default()
+    };
+    let points = random_points(500, 3.0, 6);
+    let cpu = scene.closest_points(&points, &project).unwrap();
+    let gpu_p = on_gpu.closest_points(&points, &project).unwrap();
+    let mut converged = 0;
+    for (i, (c, g)) in cpu.iter().zip(&gpu_p).enumerate() {
+        if g.converged {
+            converged += 1;
+            assert!(g.residual < project.tolerance);
+            let d = scene.distance(g.point, project.level);
+            assert!(d.abs() < 1e-4, "point {i}: projected to distance {d}");
+        }
+        if c.converged && g.converged && c.leaf == g.leaf {
+            assert!(
+                c.point.abs_diff_eq(g.point, 1e-3),
+                "point {i}: {} vs {}",
+                g.point,
+                c.point
+            );
+        }
+    }
+    assert!(
+        converged > 450,
+        "only {converged} of 500 projections converged"
+    );
+}
+
+/// A baked model placed twice (one weight copy) with primitives, under a smooth union and a
+/// difference: the GPU's distances, normals, rays and closest points agree with the CPU's.
+#[test]
+fn placed_models_match_the_cpu() {
+    let model = Arc::new(sphere_model(1.0));
+    let other = Arc::new(sphere_model(0.8));
+    let scene = Scene::new(SceneNode::Difference(vec![
+        SceneNode::SmoothUnion {
+            k: 0.5,
+            children: vec![
+                SceneNode::model(
+                    model.clone(),
+                    Transform::new(Vec3::new(-3.0, 0.0, 0.0), Quat::from_rotation_y(0.5), 0.5),
+                ),
+                SceneNode::model(
+                    model.clone(),
+                    Transform::new(Vec3::new(2.0, 1.0, 0.0), Quat::from_rotation_x(1.0), 0.7),
+                ),
+                SceneNode::model(
+                    other,
+                    Transform::from_translation(Vec3::new(0.0, -2.0, 1.0)),
+                ),
+            ],
+        },
+        SceneNode::primitive(
+            Primitive::Box {
+                half_extents: Vec3::new(0.5, 3.0, 0.5),
+            },
+            Transform::from_translation(Vec3::new(-3.5, 0.0, 0.0)),
+        ),
+    ]))
+    .unwrap();
+    assert_eq!(scene.models().len(), 2);
+    let on_gpu = GpuScene::new(gpu(), &scene).unwrap();
+    let points = random_points(2000, 5.0, 7);
+    let cpu = scene.distances_and_gradients(&points, 0.0);
+    let gpu_s = on_gpu.samples(&points, 0.0).unwrap();
+    let gpu_d = on_gpu.distances(&points, 0.0).unwrap();
+    for (i, c) in cpu.iter().enumerate() {
+        let tol = 2e-5 * (1.0 + c.distance.abs());
+        assert!(
+            (gpu_d[i] - c.distance).abs() <= tol,
+            "distance at {}: {} vs {}",
+            points[i],
+            gpu_d[i],
+            c.distance
+        );
+        assert!((gpu_s[i].distance - c.distance).abs() <= tol);
+        if gpu_s[i].leaf == c.leaf {
+            assert!(
+                gpu_s[i].gradient.abs_diff_eq(c.gradient, 1e-3),
+                "gradient at {}: {} vs {}",
+                points[i],
+                gpu_s[i].gradient,
+                c.gradient
+            );
+        }
+    }
+    let rays: Vec<Ray> = random_points(200, 1.0, 8)
+        .into_iter()
+        .map(|t| Ray {
+            origin: Vec3::new(0.0, 0.0, -12.0),
+            direction: t * 3.0 - Vec3::new(0.0, 0.0, -12.0),
+            max_distance: 30.0,
+        })
+        .collect();
+    let options = TraceOptions::default();
+    let (cpu, gpu_hits) = (
+        scene.trace_rays(&rays, &options).unwrap(),
+        on_gpu.trace_rays(&rays, &options).unwrap(),
+    );
+    let mut hits = 0;
+    for (i, (c, g)) in cpu.iter().zip(&gpu_hits).enumerate() {
+        match (c, g) {
+            (Some(c), Some(g)) => {
+                hits += 1;
+                assert!(
+                    (c.t - g.t).abs() < 1e-3 * (1.0 + c.t),
+                    "ray {i}: t {} vs {}",
+                    g.t,
+                    c.t
+                );
+                assert_eq!(c.leaf, g.leaf, "ray {i}");
+            }
+            (None, None) => {}
+            (c, g) => panic!("ray {i}: CPU {c:?}, GPU {g:?}"),
+        }
+    }
+    assert!(hits > 40, "only {hits} of 200 rays hit");
+    let points = random_points(300, 4.0, 9);
+    let options = ProjectOptions::default();
+    for (i, g) in on_gpu
+        .closest_points(&points, &options)
+        .unwrap()
+        .iter()
+        .enumerate()
+    {
+        if g.converged {
+            let d = scene.distance(g.point, 0.0);
+            assert!(d.abs() < 1e-4, "point {i}: projected to distance {d}");
+        }
+    }
+}
+
+/// A batch larger than one part is split into parts (one submission each) with the same answers.
+#[test]
+fn batches_are_split_into_parts() {
+    let scene = analytic_scene();
+    let mut on_gpu = GpuScene::new(gpu(), &scene).unwrap();
+    let points = random_points(1000, 3.0, 10);
+    let whole = on_gpu.distances(&points, 0.0).unwrap();
+    on_gpu.set_max_part(96);
+    assert_eq!(on_gpu.max_elements(SceneQueryKind::Distance), 96);
+    let parts = on_gpu.distances(&points, 0.0).unwrap();
+    assert_eq!(whole, parts);
+}
+
+/// Bad rays and levels are refused with the CPU's typed errors, naming the element.
+#[test]
+fn bad_queries_are_refused() {
+    let scene = analytic_scene();
+    let on_gpu = GpuScene::new(gpu(), &scene).unwrap();
+    let good = Ray {
+        origin: Vec3::ZERO,
+        direction: Vec3::X,
+        max_distance: 1.0,
+    };
+    for (bad, want) in [
+        (
+            Ray {
+                direction: Vec3::ZERO,
+                ..good
+            },
+            "direction",
+        ),
+        (
+            Ray {
+                direction: Vec3::new(f32::NAN, 0.0, 0.0),
+                ..good
+            },
+            "direction",
+        ),
+        (
+            Ray {
+                origin: Vec3::splat(f32::INFINITY),
+                ..good
+            },
+            "not finite",
+        ),
+        (
+            Ray {
+                max_distance: -1.0,
+                ..good
+            },
+            "maximum distance",
+        ),
+    ] {
+        let err = on_gpu
+            .trace_rays(&[good, bad], &TraceOptions::default())
+            .unwrap_err();
+        assert!(matches!(err, SceneGpuError::Query(_)), "{err}");
+        let text = err.to_string();
+        assert!(text.contains("1") && text.contains(want), "{text}");
+    }
+    assert!(matches!(
+        on_gpu.distances(&[Vec3::ZERO], f32::NAN),
+        Err(SceneGpuError::Query(SceneQueryError::Level(_)))
+    ));
+    let bad_tolerance = ProjectOptions {
+        tolerance: 0.0,
+        ..ProjectOptions::default()
+    };
+    assert!(matches!(
+        on_gpu.closest_points(&[Vec3::ZERO], &bad_tolerance),
+        Err(SceneGpuError::Query(SceneQueryError::Tolerance(_)))
+    ));
+}
+
+/// Eight threads query one scene at once for a bounded time (distances and rays, each thread
+/// its own points): every answer matches the CPU's.
+#[test]
+fn eight_threads_query_one_scene() {
+    let model = Arc::new(sphere_model(1.0));
+    let scene = Scene::new(SceneNode::SmoothUnion {
+        k: 0.4,
+        children: vec![
+            SceneNode::model(model, Transform::new(Vec3::X, Quat::IDENTITY, 0.5)),
+            SceneNode::primitive(
+                Primitive::Torus {
+                    major: 1.0,
+                    minor: 0.3,
+                },
+                Transform::IDENTITY,
+            ),
+        ],
+    })
+    .unwrap();
+    let on_gpu = GpuScene::new(gpu(), &scene).unwrap();
+    // Compile both kernels before the clock starts.
+    on_gpu.distances(&[Vec3::ZERO], 0.0).unwrap();
+    on_gpu
+        .trace_rays(
+            &[Ray {
+                origin: Vec3::Z * 5.0,
+                direction: -Vec3::Z,
+                max_distance: 10.0,
+            }],
+            &TraceOptions::default(),
+        )
+        .unwrap();
+    let deadline = Instant::now() + Duration::from_secs(4);
+    let checked: usize = std::thread::scope(|s| {
+        let handles: Vec<_> = (0..8u64)
+            .map(|t| {
+                let (scene, on_gpu) = (&scene, &on_gpu);
+                s.spawn(move || {
+                    let mut checked = 0;
+                    let mut round = 0;
+                    while Instant::now() < deadline || round == 0 {
+                        let points = random_points(200 + 37 * t as usize, 3.0, 100 * t + round);
+                        let want = scene.distances(&points, 0.0);
+                        let got = on_gpu.distances(&points, 0.0).unwrap();
+                        for (i, (g, w)) in got.iter().zip(&want).enumerate() {
+                            assert!(
+                                (g - w).abs() <= 2e-5 * (1.0 + w.abs()),
+                                "thread {t} round {round} point {i}: {g} vs {w}"
+                            );
+                        }
+                        let rays: Vec<Ray> = points[..50]
+                            .iter()
+                            .map(|&p| Ray {
+                                origin: p * 3.0,
+                                direction: -p,
+                                max_distance: 20.0,
+                            })
+                            .collect();
+                        let want = scene.trace_rays(&rays, &TraceOptions::default()).unwrap();
+                        let got = on_gpu.trace_rays(&rays, &TraceOptions::default()).unwrap();
+                        for (i, (g, w)) in got.iter().zip(&want).enumerate() {
+                            match (g, w) {
+                                (Some(g), Some(w)) => assert!(
+                                    (g.t - w.t).abs() < 1e-3 * (1.0 + w.t),
+                                    "thread {t} ray {i}: {} vs {}",
+                                    g.t,
+                                    w.t
+                                ),
+                                (None, None) => {}
+                                _ => panic!(
+                                    "thread {t} round {round} ray {i}: GPU {g:?} vs CPU {w:?}"
+                                ),
+                            }
+                        }
+                        checked += got.len() + points.len();
+                        round += 1;
+                    }
+                    checked
+                })
+            })
+            .collect();
+        handles.into_iter().map(|h| h.join().unwrap()).sum()
+    });
+    assert!(checked >= 8 * 250, "{checked}");
+}
