@@ -1,8 +1,9 @@
-//! Extracts a mesh from a trained model: sparse surface nets, evaluated on the GPU in chunks,
-//! written as OBJ in the original mesh's coordinates.
+//! Extracts a mesh from a trained model or a scene: sparse surface nets, evaluated on the GPU in
+//! chunks, written as OBJ in the original mesh's coordinates (a scene's frame).
 //!
 //! ```sh
 //! cargo run --release --bin extract -- spot.nglod.safetensors --resolution 256 --out spot.obj
+//! cargo run --release --bin extract -- --scene examples/scene/scene.toml --level 0.02 --out s.obj
 //! ```
 
 use std::path::PathBuf;
@@ -10,17 +11,20 @@ use std::process::ExitCode;
 use std::time::Instant;
 
 use clap::Parser;
-use hwsdf::cli::GpuFlags;
-use hwsdf::eval::run::extract_mesh_with;
+use hwsdf::cli::{GpuFlags, Source, SourceFlags, check_level};
+use hwsdf::eval::run::{extract_mesh_with, extract_scene_mesh};
 use hwsdf::geom::extract::{EXTRACT_MEMORY_BUDGET, ExtractOptions, MAX_RESOLUTION};
-use hwsdf::nn::NeuralSdf;
 
-/// Extract the zero level set of a trained neural SDF as an OBJ mesh.
+/// Extract the zero level set (or the level set d = c) of a trained neural SDF or a scene as an
+/// OBJ mesh.
 #[derive(Parser, Debug)]
 #[command(version, about)]
 struct Args {
-    /// Model file written by `train`.
-    model: PathBuf,
+    #[command(flatten)]
+    source: SourceFlags,
+    /// The level c: extract the surface d = c (mesh or scene units; an offset surface).
+    #[arg(long, default_value_t = 0.0, allow_negative_numbers = true)]
+    level: f32,
     /// Cells per axis over the model's box (the surface is never sampled densely: memory grows
     /// with the surface area).
     #[arg(long, default_value_t = 256)]
@@ -65,16 +69,30 @@ fn extract(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
     if !(args.max_memory_gib.is_finite() && args.max_memory_gib > 0.0) {
         return Err(format!("--max-memory-gib {} must be positive", args.max_memory_gib).into());
     }
-    hwsdf::geom::io::check_outputs(&[&args.model], &[&args.out])?;
-    let mut model = NeuralSdf::load(&args.model)?;
-    model.set_lod(args.lod)?;
+    hwsdf::geom::io::check_outputs(&[args.source.path()], &[&args.out])?;
+    let mut source = args.source.load()?;
+    let what = match &mut source {
+        Source::Model(model) => {
+            model.set_lod(args.lod)?;
+            "the model's"
+        }
+        Source::Scene(_) if args.lod.is_some() => {
+            return Err("--lod applies to a model, not to a scene".into());
+        }
+        Source::Scene(_) => "the scene's",
+    };
+    check_level(args.level, source.frame(), what)?;
     let gpu = args.gpu.open()?;
     let start = Instant::now();
     let options = ExtractOptions {
         max_bytes: (args.max_memory_gib * GIB).min(u64::MAX as f64) as u64,
         ..ExtractOptions::new(args.resolution)
     };
-    let (mesh, stats) = extract_mesh_with(&gpu, &model, &options)?;
+    let (mesh, stats) = match source {
+        Source::Model(model) if args.level == 0.0 => extract_mesh_with(&gpu, &model, &options)?,
+        // A model's offset surface is that of a scene of one leaf.
+        source => extract_scene_mesh(&gpu, &source.into_scene()?, args.level, &options)?,
+    };
     if mesh.triangles.is_empty() {
         // An empty OBJ would look like a result, and no loader takes it back.
         return Err(format!(

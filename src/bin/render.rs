@@ -1,25 +1,28 @@
-//! Sphere-traces a trained model on the GPU and writes a PNG.
+//! Sphere-traces a trained model or a scene on the GPU and writes a PNG.
 //!
 //! ```sh
 //! cargo run --release --bin render -- model.safetensors --out image.png --size 512x512 --lod 2
+//! cargo run --release --bin render -- --scene examples/scene/scene.toml --out scene.png
 //! ```
 //!
 //! The camera orbits the model's normalised box (`--yaw`, `--pitch`), framed from the model's
-//! normalisation so any model fills the image the same way. The image is written atomically.
+//! normalisation so any model fills the image the same way; a scene's box is the one that holds
+//! its surface (`Scene::frame`). `--level c` draws the offset surface `d = c`. The image is
+//! written atomically.
 
 use std::path::PathBuf;
 use std::process::ExitCode;
 
 use clap::Parser;
-use hwsdf::cli::GpuFlags;
-use hwsdf::nn::{NeuralSdf, RenderOptions, Renderer};
+use hwsdf::cli::{GpuFlags, Source, SourceFlags, check_level};
+use hwsdf::nn::{RenderOptions, Renderer};
 
-/// Render a neural SDF model (SIREN or NGLOD) to a PNG by sphere tracing on the GPU.
+/// Render a neural SDF model (SIREN or NGLOD) or a scene to a PNG by sphere tracing on the GPU.
 #[derive(Parser, Debug)]
 #[command(version, about)]
 struct Args {
-    /// Model file written by `train` (.safetensors).
-    model: PathBuf,
+    #[command(flatten)]
+    source: SourceFlags,
     /// Output PNG.
     #[arg(long)]
     out: PathBuf,
@@ -41,6 +44,9 @@ struct Args {
     /// Transparent background instead of a dark grey one.
     #[arg(long)]
     transparent: bool,
+    /// The level c: draw the surface d = c (mesh or scene units; an offset surface).
+    #[arg(long, default_value_t = 0.0, allow_negative_numbers = true)]
+    level: f32,
     #[command(flatten)]
     gpu: GpuFlags,
 }
@@ -81,16 +87,28 @@ fn main() -> ExitCode {
 
 fn run(args: &Args) -> Result<(), String> {
     // Fail before the slow GPU work if the image could not be written, or would replace the model.
-    hwsdf::geom::io::check_outputs(&[&args.model], &[&args.out]).map_err(|e| e.to_string())?;
-    let mut sdf =
-        NeuralSdf::load(&args.model).map_err(|e| format!("cannot load the model: {e}"))?;
-    sdf.set_lod(args.lod).map_err(|e| e.to_string())?;
+    hwsdf::geom::io::check_outputs(&[args.source.path()], &[&args.out])
+        .map_err(|e| e.to_string())?;
+    let mut source = args.source.load()?;
+    match &mut source {
+        Source::Model(sdf) => sdf.set_lod(args.lod).map_err(|e| e.to_string())?,
+        Source::Scene(_) if args.lod.is_some() => {
+            return Err("--lod applies to a model, not to a scene".into());
+        }
+        Source::Scene(_) => {}
+    }
+    let what = match source {
+        Source::Model(_) => "the model's",
+        Source::Scene(_) => "the scene's",
+    };
+    check_level(args.level, source.frame(), what)?;
     let mut options = RenderOptions {
         width: args.size.0,
         height: args.size.1,
         yaw_degrees: args.yaw,
         pitch_degrees: args.pitch,
         frame_radius: args.frame_radius,
+        level: args.level,
         ..RenderOptions::default()
     };
     if args.transparent {
@@ -101,24 +119,45 @@ fn run(args: &Args) -> Result<(), String> {
 
     let gpu = args.gpu.open().map_err(|e| e.to_string())?;
     let start = std::time::Instant::now();
-    // A model whose sums overflow (NaN or ∞ everywhere) would sphere-trace every pixel to its
-    // step limit and save a blank image: refuse it, as `eval` does.
-    let probe = probe_grid(PROBE_SIDE);
-    let values = sdf
-        .eval_normalized(&gpu, &probe)
-        .map_err(|e| e.to_string())?;
-    hwsdf::eval::run::finite_values(&probe, values).map_err(|e| e.to_string())?;
-    let renderer = Renderer::new(&gpu, &sdf).map_err(|e| e.to_string())?;
+    let (renderer, described) = match &source {
+        Source::Model(sdf) => {
+            // A model whose sums overflow (NaN or ∞ everywhere) would sphere-trace every pixel
+            // to its step limit and save a blank image: refuse it, as `eval` does.
+            let probe = probe_grid(PROBE_SIDE);
+            let values = sdf
+                .eval_normalized(&gpu, &probe)
+                .map_err(|e| e.to_string())?;
+            hwsdf::eval::run::finite_values(&probe, values).map_err(|e| e.to_string())?;
+            let described = format!(
+                "{} model ({} parameters{})",
+                sdf.architecture(),
+                sdf.param_count(),
+                match sdf.lod() {
+                    Some(k) => format!(", LOD {k}"),
+                    None => String::new(),
+                }
+            );
+            (
+                Renderer::new(&gpu, sdf).map_err(|e| e.to_string())?,
+                described,
+            )
+        }
+        Source::Scene(scene) => {
+            let described = format!(
+                "scene ({} leaves, {} models)",
+                scene.leaves().len(),
+                scene.models().len()
+            );
+            (
+                Renderer::for_scene(&gpu, scene).map_err(|e| e.to_string())?,
+                described,
+            )
+        }
+    };
     let image = renderer.render(&gpu, &options).map_err(|e| e.to_string())?;
     image.save_png(&args.out).map_err(|e| e.to_string())?;
     eprintln!(
-        "{} model ({} parameters{}) rendered at {}x{} on {} in {:.2?}: {}",
-        sdf.architecture(),
-        sdf.param_count(),
-        match sdf.lod() {
-            Some(k) => format!(", LOD {k}"),
-            None => String::new(),
-        },
+        "{described} rendered at {}x{} on {} in {:.2?}: {}",
         options.width,
         options.height,
         gpu.describe(),

@@ -3,11 +3,13 @@
 //! through) and how to train ([`TrainingFlags`], `train`'s and `corpus`'s), with the few
 //! helpers their output shares.
 
+mod source;
 mod training;
 
 use sdf_eval::run::{self, RunError};
 use sdf_nn::{GpuContext, GpuError, GpuOptions};
 
+pub use source::{Source, SourceFlags, check_level};
 pub use training::{DistanceArg, PresetArg, TrainingFlags};
 
 /// Which GPU to run on. The environment's settings (`HWSDF_ADAPTER`, `WGPU_ADAPTER_NAME`,

@@ -14,6 +14,7 @@ pub fn bin(name: &str) -> Command {
         "corpus" => env!("CARGO_BIN_EXE_corpus"),
         "gpu-info" => env!("CARGO_BIN_EXE_gpu-info"),
         "render" => env!("CARGO_BIN_EXE_render"),
+        "query" => env!("CARGO_BIN_EXE_query"),
         other => panic!("no binary {other}"),
     })
 }

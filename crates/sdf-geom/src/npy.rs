@@ -94,6 +94,21 @@ pub fn read_points(path: impl AsRef<Path>) -> Result<Vec<Vec3>, GeomError> {
 
 /// Parses `.npy` bytes (see [`read_points`]); `path` is only used in error messages.
 pub fn parse_points(path: &Path, bytes: &[u8]) -> Result<Vec<Vec3>, GeomError> {
+    Ok(parse_table(path, bytes, 3)?
+        .chunks_exact(3)
+        .map(|c| Vec3::new(c[0], c[1], c[2]))
+        .collect())
+}
+
+/// Reads an `(N, columns)` float32 or float64 `.npy` file (C or Fortran order) as `N · columns`
+/// f32 values, row after row. Errors as [`read_points`].
+pub fn read_table(path: impl AsRef<Path>, columns: usize) -> Result<Vec<f32>, GeomError> {
+    let path = path.as_ref();
+    parse_table(path, &crate::read_input_file(path)?, columns)
+}
+
+/// Parses `.npy` bytes (see [`read_table`]); `path` is only used in error messages.
+pub fn parse_table(path: &Path, bytes: &[u8], columns: usize) -> Result<Vec<f32>, GeomError> {
     if bytes.len() < 10 || &bytes[..6] != MAGIC {
         return Err(bad(path, "not a .npy file (missing \\x93NUMPY magic)"));
     }
@@ -131,16 +146,16 @@ pub fn parse_points(path: &Path, bytes: &[u8]) -> Result<Vec<Vec3>, GeomError> {
         }
     };
     let n = match header.shape.as_slice() {
-        [n, 3] => *n,
+        [n, c] if *c == columns => *n,
         s => {
             return Err(bad(
                 path,
-                format!("shape {s:?} is not supported (expected (N, 3))"),
+                format!("shape {s:?} is not supported (expected (N, {columns}))"),
             ));
         }
     };
     let count = n
-        .checked_mul(3)
+        .checked_mul(columns)
         .ok_or_else(|| bad(path, "shape too large"))?;
     let need = count
         .checked_mul(size)
@@ -150,7 +165,7 @@ pub fn parse_points(path: &Path, bytes: &[u8]) -> Result<Vec<Vec3>, GeomError> {
         return Err(bad(
             path,
             format!(
-                "truncated data: {} bytes for {n}×3 values of {size} bytes ({need} needed)",
+                "truncated data: {} bytes for {n}×{columns} values of {size} bytes ({need} needed)",
                 data.len()
             ),
         ));
@@ -173,12 +188,13 @@ pub fn parse_points(path: &Path, bytes: &[u8]) -> Result<Vec<Vec3>, GeomError> {
             }
         }
     };
-    Ok((0..n)
-        .map(|i| {
+    Ok((0..n * columns)
+        .map(|k| {
+            let (row, column) = (k / columns, k % columns);
             if header.fortran {
-                Vec3::new(value(i), value(n + i), value(2 * n + i))
+                value(column * n + row)
             } else {
-                Vec3::new(value(3 * i), value(3 * i + 1), value(3 * i + 2))
+                value(k)
             }
         })
         .collect())
@@ -226,6 +242,20 @@ pub fn write_points(path: impl AsRef<Path>, points: &[Vec3]) -> Result<(), GeomE
     write_atomic(
         path.as_ref(),
         &npy_bytes("<f4", &format!("({}, 3)", points.len()), &data),
+    )
+}
+
+/// Writes an `(N, columns)` float32 array (`values` row after row), atomically.
+pub fn write_table(
+    path: impl AsRef<Path>,
+    values: &[f32],
+    columns: usize,
+) -> Result<(), GeomError> {
+    let rows = values.len() / columns.max(1);
+    let data: Vec<u8> = values.iter().flat_map(|v| v.to_le_bytes()).collect();
+    write_atomic(
+        path.as_ref(),
+        &npy_bytes("<f4", &format!("({rows}, {columns})"), &data),
     )
 }
 

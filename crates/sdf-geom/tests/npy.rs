@@ -153,3 +153,20 @@ fn repeated_header_keys_take_the_last_value() {
         vec![Vec3::new(1.0, 2.0, 3.0)]
     );
 }
+
+/// Tables of any width round-trip, and a table of another width is refused with the shape.
+#[test]
+fn tables_round_trip_and_check_their_width() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("rays.npy");
+    let values: Vec<f32> = (0..12).map(|i| i as f32 * 0.5 - 1.0).collect();
+    sdf_geom::npy::write_table(&path, &values, 6).unwrap();
+    assert_eq!(sdf_geom::npy::read_table(&path, 6).unwrap(), values);
+    let err = sdf_geom::npy::read_table(&path, 3).unwrap_err().to_string();
+    assert!(err.contains("[2, 6]") && err.contains("(N, 3)"), "{err}");
+    // Points are tables of width 3.
+    let points = dir.path().join("points.npy");
+    sdf_geom::npy::write_table(&points, &values, 3).unwrap();
+    let p = sdf_geom::npy::read_points(&points).unwrap();
+    assert_eq!(p[3], glam::Vec3::new(3.5, 4.0, 4.5));
+}

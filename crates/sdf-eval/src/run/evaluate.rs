@@ -156,6 +156,47 @@ pub fn extract_mesh_with(
     Ok((mesh, stats))
 }
 
+/// Extracts the level set `d = level` of a scene over its [`Scene::frame`] (grown by a
+/// positive level), evaluating the whole scene on the GPU ([`GpuScene`]) batch by batch, and
+/// returns it in the scene's frame. The pruning's distance bound is divided by the scene's
+/// Lipschitz constant ([`Scene::lipschitz`]) besides `options.lipschitz`.
+///
+/// [`Scene::frame`]: sdf_nn::serve::scene::Scene::frame
+/// [`Scene::lipschitz`]: sdf_nn::serve::scene::Scene::lipschitz
+/// [`GpuScene`]: sdf_nn::serve::scene::GpuScene
+pub fn extract_scene_mesh(
+    gpu: &GpuContext,
+    scene: &sdf_nn::serve::scene::Scene,
+    level: f32,
+    options: &ExtractOptions,
+) -> Result<(Mesh, ExtractStats), RunError> {
+    let on_gpu = sdf_nn::serve::scene::GpuScene::new(gpu, scene)?;
+    let frame = scene.frame(level);
+    let half = 1.0 / frame.scale;
+    let options = ExtractOptions {
+        lipschitz: options.lipschitz * on_gpu.lipschitz(),
+        ..*options
+    };
+    let (mut mesh, stats) = extract_surface(
+        |p: &[Vec3]| {
+            let world: Vec<Vec3> = p.iter().map(|&q| frame.center + q * half).collect();
+            let d = on_gpu.distances(&world, level)?;
+            Ok::<_, sdf_nn::serve::scene::SceneGpuError>(
+                d.into_iter().map(|x| x * frame.scale).collect::<Vec<_>>(),
+            )
+        },
+        &options,
+    )
+    .map_err(|e| match e {
+        ExtractError::Eval(e) => RunError::Scene(e),
+        other => RunError::Options(other.to_string()),
+    })?;
+    for v in &mut mesh.vertices {
+        *v = frame.center + *v * half;
+    }
+    Ok((mesh, stats))
+}
+
 /// The surface of [`extract_mesh_with`] in normalised coordinates.
 fn extract_normalized(
     gpu: &GpuContext,

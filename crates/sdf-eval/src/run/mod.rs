@@ -28,8 +28,8 @@ use sdf_nn::{AdamState, GpuContext, ModelFile, NeuralSdf};
 pub use checkpoint::{Checkpoint, MAX_CHECKPOINT_PROGRESS};
 pub use evaluate::{
     EVAL_BYTES_PER_POINT, EVAL_MEMORY_BUDGET, Evaluation, UNSIGNED_EXTRACT_RESOLUTION,
-    UNSIGNED_LEVEL, check_eval_points, evaluate, extract_mesh, extract_mesh_with, finite_values,
-    is_unsigned,
+    UNSIGNED_LEVEL, check_eval_points, evaluate, extract_mesh, extract_mesh_with,
+    extract_scene_mesh, finite_values, is_unsigned,
 };
 pub use ground_truth::{GroundTruth, load_normalized, load_normalized_with, no_inside_check};
 pub use options::{
@@ -61,6 +61,9 @@ pub enum RunError {
     /// A model file could not be written or read.
     #[error(transparent)]
     ModelFile(#[from] sdf_nn::ModelFileError),
+    /// A scene could not be compiled or queried on the GPU.
+    #[error(transparent)]
+    Scene(#[from] sdf_nn::serve::scene::SceneGpuError),
     /// The report could not be written.
     #[error("writing {path}: {source}")]
     Write {

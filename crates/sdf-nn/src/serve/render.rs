@@ -23,6 +23,8 @@ use glam::{Vec3, Vec4};
 use crate::gpu::{GpuContext, GpuError};
 use crate::model_file::{Normalization, write_atomic};
 use crate::serve::neural::NeuralSdf;
+use crate::serve::scene::embed::check_bindings;
+use crate::serve::scene::{Scene, SceneBindGroup, SceneGpuError};
 use crate::serve::wgsl::{EmbedError, SdfBindGroup};
 use crate::shaders::SPHERE_TRACE;
 
@@ -54,6 +56,9 @@ pub enum RenderError {
     /// The model's weights cannot be bound on this device.
     #[error(transparent)]
     Embed(#[from] EmbedError),
+    /// The scene's weights cannot be bound on this device.
+    #[error(transparent)]
+    Scene(#[from] SceneGpuError),
     /// A GPU error (buffer limits, shader compilation, readback).
     #[error(transparent)]
     Gpu(#[from] GpuError),
@@ -104,6 +109,9 @@ pub struct RenderOptions {
     pub albedo: Vec3,
     /// Colour of pixels whose ray misses (RGBA, written as is; alpha 0 for a transparent PNG).
     pub background: Vec4,
+    /// The level `c` (mesh or scene units): the surface drawn is the set `d = c`, an offset
+    /// surface for `c ≠ 0`.
+    pub level: f32,
 }
 
 impl Default for RenderOptions {
@@ -122,6 +130,7 @@ impl Default for RenderOptions {
             ambient: 0.15,
             albedo: Vec3::new(0.85, 0.72, 0.55),
             background: Vec4::new(0.12, 0.13, 0.16, 1.0),
+            level: 0.0,
         }
     }
 }
@@ -148,6 +157,9 @@ impl RenderOptions {
                 "frame_radius {} is not positive",
                 self.frame_radius
             ));
+        }
+        if !self.level.is_finite() {
+            return bad(format!("level {} is not finite", self.level));
         }
         if !(self.step_scale > 0.0 && self.step_scale <= 1.0) {
             return bad(format!("step_scale {} is not in (0, 1]", self.step_scale));
@@ -297,17 +309,44 @@ impl RgbaImage {
     }
 }
 
-/// A model's sphere-tracing pipeline and weights on one device, for rendering many images.
+/// A model's or a scene's sphere-tracing pipeline and weights on one device, for rendering
+/// many images.
 #[derive(Debug)]
 pub struct Renderer {
     pipeline: wgpu::ComputePipeline,
     frame_layout: wgpu::BindGroupLayout,
-    sdf: SdfBindGroup,
+    weights: Weights,
+    /// The box traced and framed: a model's normalised cube, a scene's [`Scene::frame`].
     normalization: Normalization,
     /// Parameters of the model: the multiply-adds of one evaluation, at most.
     macs_per_eval: u64,
     /// See [`Renderer::set_max_submission_macs`].
     max_submission_macs: u64,
+    /// The step factor's divisor: 1 for a model, the scene's Lipschitz constant for a scene.
+    lipschitz: f32,
+}
+
+/// What the tracer's group 1 binds: a model's weights or a scene's.
+#[derive(Debug)]
+enum Weights {
+    Model(SdfBindGroup),
+    Scene(SceneBindGroup),
+}
+
+impl Weights {
+    fn layout(&self) -> &wgpu::BindGroupLayout {
+        match self {
+            Weights::Model(w) => &w.layout,
+            Weights::Scene(w) => &w.layout,
+        }
+    }
+
+    fn bind_group(&self) -> &wgpu::BindGroup {
+        match self {
+            Weights::Model(w) => &w.bind_group,
+            Weights::Scene(w) => &w.bind_group,
+        }
+    }
 }
 
 impl Renderer {
@@ -333,9 +372,60 @@ impl Renderer {
     /// Compiles the sphere tracer for `sdf` (its current level of detail) and uploads its
     /// weights. Compilation is the slow part (seconds on lavapipe): keep the renderer.
     pub fn new(gpu: &GpuContext, sdf: &NeuralSdf) -> Result<Self, RenderError> {
+        let weights = Weights::Model(sdf.bind_group(gpu.device())?);
+        Self::compile(
+            gpu,
+            sphere_trace_source(sdf),
+            weights,
+            sdf.normalization(),
+            sdf.param_count() as u64,
+            1.0,
+        )
+    }
+
+    /// Compiles the sphere tracer for a whole scene ([`Scene::wgsl_with_prefix`]) and uploads
+    /// its weights. The camera frames [`Scene::frame`] (at the options' level, when the image is
+    /// rendered); rays step by the scene's Lipschitz bound ([`Scene::lipschitz`]).
+    pub fn for_scene(gpu: &GpuContext, scene: &Scene) -> Result<Self, RenderError> {
+        let limits = gpu.limits();
+        let packing = scene.packing(&limits)?;
+        // The tracer binds its image besides the weights.
+        check_bindings(&packing, &limits, 1)?;
+        let weights = Weights::Scene(scene.upload(gpu.device(), &packing));
+        let source = format!(
+            "{}\n\
+             fn hwsdf_distance(p: vec3<f32>) -> f32 {{ return scene_distance(p); }}\n\
+             fn hwsdf_normal(p: vec3<f32>) -> vec3<f32> {{ return scene_normal(p); }}\n{}",
+            scene.generate(SDF_GROUP, "scene", &packing),
+            SPHERE_TRACE.source
+        );
+        let params: u64 = scene
+            .models()
+            .iter()
+            .map(|m| m.param_count() as u64)
+            .sum::<u64>()
+            + scene.leaves().len() as u64 * 64;
+        Self::compile(
+            gpu,
+            source,
+            weights,
+            scene.frame(0.0),
+            params,
+            scene.lipschitz(),
+        )
+    }
+
+    /// The pipeline of `source` (a snippet defining `hwsdf_distance` and `hwsdf_normal`, then
+    /// the tracer) with `weights` at group 1.
+    fn compile(
+        gpu: &GpuContext,
+        source: String,
+        weights: Weights,
+        normalization: Normalization,
+        macs_per_eval: u64,
+        lipschitz: f32,
+    ) -> Result<Self, RenderError> {
         let device = gpu.device();
-        let sdf_group = sdf.bind_group(device)?;
-        let source = sphere_trace_source(sdf);
         let frame_layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
             label: Some("sphere_trace frame"),
             entries: &[
@@ -366,11 +456,11 @@ impl Renderer {
             label: Some(SPHERE_TRACE.name),
             source: wgpu::ShaderSource::Wgsl(Cow::Owned(source)),
         });
-        // An explicit layout: the model's group is created from its own layout (by
-        // `NeuralSdf::bind_group`), which a derived layout would not accept.
+        // An explicit layout: the weights' group is created from its own layout (by
+        // `NeuralSdf::bind_group` or `Scene::upload`), which a derived layout would not accept.
         let layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
             label: Some("sphere_trace"),
-            bind_group_layouts: &[Some(&frame_layout), Some(&sdf_group.layout)],
+            bind_group_layouts: &[Some(&frame_layout), Some(weights.layout())],
             immediate_size: 0,
         });
         let pipeline = device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
@@ -391,10 +481,11 @@ impl Renderer {
         Ok(Renderer {
             pipeline,
             frame_layout,
-            sdf: sdf_group,
-            normalization: sdf.normalization(),
-            macs_per_eval: sdf.param_count() as u64,
+            weights,
+            normalization,
+            macs_per_eval,
             max_submission_macs: MAX_SUBMISSION_MACS,
+            lipschitz: lipschitz.max(1.0),
         })
     }
 
@@ -406,7 +497,11 @@ impl Renderer {
     ) -> Result<RgbaImage, RenderError> {
         options.validate()?;
         let (w, h) = (options.width, options.height);
-        let n = self.normalization;
+        // A positive level grows the surface: grow the traced box with it.
+        let n = Normalization {
+            scale: 1.0 / (1.0 / self.normalization.scale + options.level.max(0.0)),
+            ..self.normalization
+        };
         let cam = Camera::orbit(n, options);
         // The light is given in the camera's frame so that it follows the orbit.
         let l = options.light.normalize();
@@ -420,7 +515,10 @@ impl Renderer {
                 .right
                 .extend(options.hit_tolerance_px * pixel_angle)
                 .to_array(),
-            up: cam.up.extend(options.step_scale).to_array(),
+            up: cam
+                .up
+                .extend(options.step_scale / self.lipschitz)
+                .to_array(),
             light: light.extend(options.ambient.clamp(0.0, 1.0)).to_array(),
             albedo: options.albedo.extend(1.0).to_array(),
             background: options.background.to_array(),
@@ -428,7 +526,9 @@ impl Renderer {
             box_min: (n.center - Vec3::splat(half))
                 .extend(1e-5 * half)
                 .to_array(),
-            box_max: (n.center + Vec3::splat(half)).extend(0.0).to_array(),
+            box_max: (n.center + Vec3::splat(half))
+                .extend(options.level)
+                .to_array(),
             size: [w, h, options.max_steps, 0],
         };
         let pixels_bytes = u64::from(w) * u64::from(h) * 4;
@@ -467,7 +567,7 @@ impl Renderer {
                 });
                 pass.set_pipeline(&self.pipeline);
                 pass.set_bind_group(0, &frame, &[]);
-                pass.set_bind_group(SDF_GROUP, &self.sdf.bind_group, &[]);
+                pass.set_bind_group(SDF_GROUP, self.weights.bind_group(), &[]);
                 pass.dispatch_workgroups(w.div_ceil(TILE), rows.min(h - first).div_ceil(TILE), 1);
             }
             gpu.queue().submit([enc.finish()]);

@@ -29,6 +29,7 @@
 //! [`gpu`] (batch queries on the GPU, [`GpuScene`]) and [`file`](mod@file) (the TOML scene
 //! file).
 
+pub mod bounds;
 pub mod cpu;
 pub mod embed;
 pub mod file;

@@ -20,7 +20,8 @@ struct TraceUniforms {
     albedo: vec4<f32>,
     // rgba: colour of pixels whose ray misses (written as is).
     background: vec4<f32>,
-    // The model's box in mesh coordinates; box_min.w: smallest hit tolerance (mesh units).
+    // The model's box in mesh coordinates; box_min.w: smallest hit tolerance (mesh units);
+    // box_max.w: the level c drawn (the surface d = c).
     box_min: vec4<f32>,
     box_max: vec4<f32>,
     // x: width, y: height, z: maximum steps per ray, w: the first row of this dispatch (the
@@ -73,7 +74,7 @@ fn sphere_trace(@builtin(global_invocation_id) gid: vec3<u32>) {
         var t = span.x;
         var hit = false;
         for (var i = 0u; i < trace.size.z; i++) {
-            let d = hwsdf_distance(origin + t * dir);
+            let d = hwsdf_distance(origin + t * dir) - trace.box_max.w;
             if d < max(trace.right.w * t, trace.box_min.w) {
                 hit = true;
                 break;

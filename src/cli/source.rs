@@ -1,0 +1,100 @@
+//! What `render`, `extract` and `query` draw from: one trained model, or a scene of models and
+//! primitives (`--scene S.toml`), and the level `c` they draw at.
+
+use std::path::{Path, PathBuf};
+
+use sdf_nn::serve::scene::Scene;
+use sdf_nn::{NeuralSdf, Normalization};
+
+/// The positional model and `--scene`: exactly one of them.
+#[derive(clap::Args, Clone, Debug, Default)]
+#[group(required = true, multiple = false)]
+pub struct SourceFlags {
+    /// Model file written by `train` (.safetensors).
+    #[arg(value_name = "MODEL")]
+    pub model: Option<PathBuf>,
+    /// A scene file (TOML): models placed and combined with primitives (docs/scenes.md).
+    #[arg(long, value_name = "S.toml")]
+    pub scene: Option<PathBuf>,
+}
+
+/// A loaded model or scene.
+#[derive(Debug)]
+pub enum Source {
+    /// One trained model.
+    Model(Box<NeuralSdf>),
+    /// A scene.
+    Scene(Scene),
+}
+
+impl SourceFlags {
+    /// The input file (for `check_outputs`).
+    pub fn path(&self) -> &Path {
+        self.model
+            .as_deref()
+            .or(self.scene.as_deref())
+            .expect("clap requires one of them")
+    }
+
+    /// Loads the model or the scene (and the models it names).
+    pub fn load(&self) -> Result<Source, String> {
+        match (&self.model, &self.scene) {
+            (Some(model), _) => NeuralSdf::load(model)
+                .map(|m| Source::Model(Box::new(m)))
+                .map_err(|e| format!("cannot load the model {}: {e}", model.display())),
+            (None, Some(scene)) => Scene::load(scene)
+                .map(Source::Scene)
+                .map_err(|e| format!("scene {}: {e}", scene.display())),
+            (None, None) => Err("give a model file or --scene S.toml".into()),
+        }
+    }
+}
+
+impl Source {
+    /// The box drawn from: a model's normalised cube (mesh coordinates), a scene's
+    /// [`Scene::frame`] at level 0.
+    pub fn frame(&self) -> Normalization {
+        match self {
+            Source::Model(m) => m.normalization(),
+            Source::Scene(s) => s.frame(0.0),
+        }
+    }
+
+    /// A model as a scene of one leaf, a scene as it is: the queries of rays and closest
+    /// points are the scene's.
+    pub fn into_scene(self) -> Result<Scene, String> {
+        match self {
+            Source::Scene(s) => Ok(s),
+            Source::Model(m) => Scene::new(sdf_nn::serve::scene::SceneNode::model(
+                std::sync::Arc::new(*m),
+                sdf_nn::serve::scene::Transform::IDENTITY,
+            ))
+            .map_err(|e| e.to_string()),
+        }
+    }
+}
+
+/// Checks `--level c` against the box it is drawn in: `|c|` below the box's half side, since
+/// beyond it the level set leaves the box a model was trained in (and outside a model's box its
+/// distance is only the box's). `what` names the box ("the model's", "the scene's").
+///
+/// ```
+/// use hwsdf::nn::Normalization;
+/// let frame = Normalization { center: glam::Vec3::ZERO, scale: 0.5 }; // half side 2
+/// assert!(hwsdf::cli::check_level(1.5, frame, "the model's").is_ok());
+/// assert!(hwsdf::cli::check_level(-2.5, frame, "the model's").is_err());
+/// ```
+pub fn check_level(level: f32, frame: Normalization, what: &str) -> Result<(), String> {
+    let half = 1.0 / frame.scale;
+    if !level.is_finite() {
+        return Err(format!("--level {level} is not finite"));
+    }
+    if level.abs() >= half {
+        return Err(format!(
+            "--level {level} is beyond {what} box (half side {half} units around {}): the level \
+             set would leave the box; use |c| < {half}",
+            frame.center
+        ));
+    }
+    Ok(())
+}

@@ -1,0 +1,402 @@
+//! Scenes from the command line, as a user runs them on the shipped example
+//! (`examples/scene/scene.toml`, two trained models): `query` (points, normals, rays, closest
+//! points, levels; a single model too), `render --scene`, `extract --scene --level`, and every
+//! bad input refused with a clear error and a non-zero exit, never a panic.
+
+mod common;
+
+use std::path::{Path, PathBuf};
+use std::sync::OnceLock;
+
+use common::{bin, scratch_in, stderr};
+use glam::Vec3;
+use hwsdf::geom::npy;
+use hwsdf::nn::serve::scene::Scene;
+use hwsdf::nn::{NeuralSdf, Nglod, Normalization};
+
+fn scratch(name: &str) -> PathBuf {
+    scratch_in("scene-cli", name)
+}
+
+fn example() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("examples/scene/scene.toml")
+}
+
+/// The example scene, loaded once (the CPU reference of every answer).
+fn scene() -> &'static Scene {
+    static SCENE: OnceLock<Scene> = OnceLock::new();
+    SCENE.get_or_init(|| Scene::load(example()).expect("the shipped example loads"))
+}
+
+/// A baked sphere of radius 0.5 around (1, 0, 0), in a box of half side 1 (mesh units).
+fn sphere_model() -> &'static PathBuf {
+    static PATH: OnceLock<PathBuf> = OnceLock::new();
+    PATH.get_or_init(|| {
+        let path = scratch("sphere.safetensors");
+        let n = Normalization {
+            center: Vec3::X,
+            scale: 1.0,
+        };
+        Nglod::from_sdf(16, |p| p.length() - 0.5)
+            .unwrap()
+            .to_model_file(n, serde_json::Value::Null)
+            .save(&path)
+            .unwrap();
+        path
+    })
+}
+
+fn points(n: usize, half: f32) -> Vec<Vec3> {
+    // A fixed low-discrepancy set: no RNG needed.
+    (0..n)
+        .map(|i| {
+            let f = |k: f32| ((i as f32 + 0.5) * k).fract() * 2.0 - 1.0;
+            Vec3::new(f(0.618_034), f(0.754_877_7), f(0.569_840_3)) * half
+        })
+        .collect()
+}
+
+fn run_ok(cmd: &mut std::process::Command) {
+    let o = cmd.output().unwrap();
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(!stderr(&o).contains("panicked"));
+}
+
+fn assert_clean_failure(cmd: &mut std::process::Command, needle: &str) {
+    let o = cmd.output().unwrap();
+    let err = stderr(&o);
+    assert!(!o.status.success(), "expected failure; stderr: {err}");
+    assert!(!err.contains("panicked"), "panicked: {err}");
+    assert!(
+        err.to_lowercase().contains(&needle.to_lowercase()),
+        "{needle:?} not in: {err}"
+    );
+}
+
+/// Distances and normals of the scene at points, at level 0 and at a level c: the CPU's.
+#[test]
+fn query_points_of_a_scene() {
+    let (p, d, n) = (scratch("p.npy"), scratch("d.npy"), scratch("n.npy"));
+    let pts = points(500, 1.5);
+    npy::write_points(&p, &pts).unwrap();
+    for level in [0.0f32, 0.1] {
+        run_ok(
+            bin("query")
+                .arg("--scene")
+                .arg(example())
+                .arg("--points")
+                .arg(&p)
+                .arg("--out")
+                .arg(&d)
+                .arg("--normals")
+                .arg(&n)
+                .args(["--level", &level.to_string()]),
+        );
+        let got = npy::read_f32(&d).unwrap();
+        let normals = npy::read_points(&n).unwrap();
+        let want = scene().distances_and_gradients(&pts, level);
+        let mut other_normal = 0;
+        for (i, w) in want.iter().enumerate() {
+            assert!(
+                (got[i] - w.distance).abs() < 1e-4,
+                "point {i}: {} vs {}",
+                got[i],
+                w.distance
+            );
+            assert!(
+                (normals[i].length() - 1.0).abs() < 1e-3,
+                "normal {i}: {}",
+                normals[i]
+            );
+            // Where two leaves tie within rounding the GPU may take the other one's normal.
+            if !normals[i].abs_diff_eq(w.gradient.normalize_or_zero(), 1e-2) {
+                other_normal += 1;
+            }
+        }
+        assert!(
+            other_normal <= 5,
+            "{other_normal} of 500 normals differ from the CPU's"
+        );
+    }
+}
+
+/// Rays hit where the CPU's tracer says, misses are marked, and the rows have 9 columns.
+#[test]
+fn query_rays_and_closest_points_of_a_scene() {
+    let (r, h) = (scratch("r.npy"), scratch("h.npy"));
+    // Rays from a ring around the scene towards its middle, and two that look away.
+    let mut rays: Vec<f32> = (0..40)
+        .flat_map(|i| {
+            let a = i as f32 * 0.157;
+            let o = Vec3::new(3.0 * a.cos(), -0.4 + 0.02 * i as f32, 3.0 * a.sin());
+            let dir = -o + Vec3::new(0.0, -0.3, 0.0);
+            [o.x, o.y, o.z, dir.x, dir.y, dir.z]
+        })
+        .collect();
+    rays.extend([3.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 5.0, 0.0, 0.0, 1.0, 0.0]);
+    npy::write_table(&r, &rays, 6).unwrap();
+    run_ok(
+        bin("query")
+            .arg("--scene")
+            .arg(example())
+            .arg("--rays")
+            .arg(&r)
+            .arg("--out")
+            .arg(&h),
+    );
+    let hits = npy::read_table(&h, 9).unwrap();
+    let cpu = scene()
+        .trace_rays(
+            &rays
+                .chunks_exact(6)
+                .map(|c| hwsdf::nn::serve::scene::Ray {
+                    origin: Vec3::new(c[0], c[1], c[2]),
+                    direction: Vec3::new(c[3], c[4], c[5]),
+                    max_distance: f32::INFINITY,
+                })
+                .collect::<Vec<_>>(),
+            &Default::default(),
+        )
+        .unwrap();
+    let mut hit_count = 0;
+    for (i, (row, want)) in hits.chunks_exact(9).zip(&cpu).enumerate() {
+        match want {
+            Some(w) => {
+                hit_count += 1;
+                assert_eq!(row[0], 1.0, "ray {i}");
+                assert!(
+                    (row[1] - w.t).abs() < 1e-3 * (1.0 + w.t),
+                    "ray {i}: t {} vs {}",
+                    row[1],
+                    w.t
+                );
+                assert_eq!(row[8] as usize, w.leaf, "ray {i}");
+            }
+            None => assert_eq!((row[0], row[8]), (0.0, -1.0), "ray {i}"),
+        }
+    }
+    assert!(hit_count >= 30, "{hit_count} of 42 rays hit");
+
+    let (p, c) = (scratch("cp.npy"), scratch("c.npy"));
+    let pts = points(200, 1.2);
+    npy::write_points(&p, &pts).unwrap();
+    run_ok(
+        bin("query")
+            .arg("--scene")
+            .arg(example())
+            .arg("--closest")
+            .arg(&p)
+            .arg("--out")
+            .arg(&c)
+            .args(["--level", "0.05"]),
+    );
+    let rows = npy::read_table(&c, 6).unwrap();
+    let mut converged = 0;
+    for row in rows.chunks_exact(6) {
+        if row[5] == 1.0 {
+            converged += 1;
+            let at = Vec3::new(row[0], row[1], row[2]);
+            assert!(scene().distance(at, 0.05).abs() < 1e-4, "{at}");
+            assert!(row[3] < 1e-5);
+        }
+    }
+    assert!(converged >= 150, "{converged} of 200 converged");
+}
+
+/// A single model answers the same forms: distances at points, rays, closest points.
+#[test]
+fn query_a_single_model() {
+    let model = NeuralSdf::load(sphere_model()).unwrap();
+    let (p, d) = (scratch("sp.npy"), scratch("sd.npy"));
+    let pts = points(100, 0.9)
+        .into_iter()
+        .map(|q| q + Vec3::X)
+        .collect::<Vec<_>>();
+    npy::write_points(&p, &pts).unwrap();
+    run_ok(
+        bin("query")
+            .arg(sphere_model())
+            .arg("--points")
+            .arg(&p)
+            .arg("--out")
+            .arg(&d),
+    );
+    let got = npy::read_f32(&d).unwrap();
+    for (g, w) in got.iter().zip(model.eval_cpu(&pts)) {
+        assert!((g - w).abs() < 1e-4, "{g} vs {w}");
+    }
+    let (r, h) = (scratch("sr.npy"), scratch("sh.npy"));
+    npy::write_table(&r, &[1.0, 0.0, -0.9, 0.0, 0.0, 1.0], 6).unwrap();
+    run_ok(
+        bin("query")
+            .arg(sphere_model())
+            .arg("--rays")
+            .arg(&r)
+            .arg("--out")
+            .arg(&h),
+    );
+    let hit = npy::read_table(&h, 9).unwrap();
+    assert_eq!(hit[0], 1.0);
+    assert!((hit[1] - 0.4).abs() < 0.02, "t = {}", hit[1]);
+}
+
+/// `render --scene` writes the PNG, and the scene is in it (not only background).
+#[test]
+fn render_a_scene() {
+    let out = scratch("scene.png");
+    run_ok(
+        bin("render")
+            .arg("--scene")
+            .arg(example())
+            .args(["--size", "40x32", "--out"])
+            .arg(&out),
+    );
+    let bytes = std::fs::read(&out).unwrap();
+    assert_eq!(&bytes[..8], b"\x89PNG\r\n\x1a\n");
+    let image = image_pixels(&bytes);
+    let background = image[0];
+    let lit = image.iter().filter(|p| **p != background).count();
+    assert!(lit > 40 * 32 / 10, "only {lit} pixels show the scene");
+}
+
+fn image_pixels(png: &[u8]) -> Vec<[u8; 4]> {
+    let decoder = png::Decoder::new(std::io::Cursor::new(png));
+    let mut reader = decoder.read_info().unwrap();
+    let mut buf = vec![0; reader.output_buffer_size().unwrap()];
+    let info = reader.next_frame(&mut buf).unwrap();
+    buf[..info.buffer_size()]
+        .chunks_exact(4)
+        .map(|c| [c[0], c[1], c[2], c[3]])
+        .collect()
+}
+
+/// `extract --scene --level c` writes a mesh whose vertices lie on the level set.
+#[test]
+fn extract_a_scene_at_a_level() {
+    let out = scratch("scene.obj");
+    run_ok(
+        bin("extract")
+            .arg("--scene")
+            .arg(example())
+            .args(["--resolution", "48", "--level", "0.03", "--out"])
+            .arg(&out),
+    );
+    let (mesh, _) = hwsdf::geom::load_mesh(&out).unwrap();
+    assert!(
+        mesh.triangles.len() > 500,
+        "{} triangles",
+        mesh.triangles.len()
+    );
+    let d = scene().distances(&mesh.vertices, 0.03);
+    let h = 2.0 / scene().frame(0.03).scale / 48.0;
+    let worst = d.iter().fold(0f32, |m, x| m.max(x.abs()));
+    assert!(
+        worst < h,
+        "a vertex is {worst} from the level set (cell {h})"
+    );
+}
+
+/// Bad input: clear errors, non-zero exits, no panics.
+#[test]
+fn bad_scene_input_is_refused() {
+    let out = scratch("bad.npy");
+    let p = scratch("bp.npy");
+    npy::write_points(&p, &[Vec3::ZERO]).unwrap();
+    // A level beyond the box.
+    assert_clean_failure(
+        bin("query")
+            .arg("--scene")
+            .arg(example())
+            .arg("--points")
+            .arg(&p)
+            .arg("--out")
+            .arg(&out)
+            .args(["--level", "40"]),
+        "beyond the scene's box",
+    );
+    assert_clean_failure(
+        bin("query")
+            .arg(sphere_model())
+            .arg("--points")
+            .arg(&p)
+            .arg("--out")
+            .arg(&out)
+            .args(["--level", "-1.5"]),
+        "beyond the model's box",
+    );
+    // A zero direction names the ray.
+    let r = scratch("br.npy");
+    npy::write_table(
+        &r,
+        &[0.0, 0.0, 3.0, 0.0, 0.0, -1.0, 0.0, 0.0, 3.0, 0.0, 0.0, 0.0],
+        6,
+    )
+    .unwrap();
+    assert_clean_failure(
+        bin("query")
+            .arg("--scene")
+            .arg(example())
+            .arg("--rays")
+            .arg(&r)
+            .arg("--out")
+            .arg(&out),
+        "ray 1: direction",
+    );
+    // Rays need six columns.
+    assert_clean_failure(
+        bin("query")
+            .arg("--scene")
+            .arg(example())
+            .arg("--rays")
+            .arg(&p)
+            .arg("--out")
+            .arg(&out),
+        "(N, 6)",
+    );
+    // A scene file with a syntax error, and one naming a missing model file.
+    let broken = scratch("broken.toml");
+    std::fs::write(&broken, "[root]\ntype = \"sphere\"\nradius = \n").unwrap();
+    assert_clean_failure(
+        bin("render")
+            .arg("--scene")
+            .arg(&broken)
+            .arg("--out")
+            .arg(scratch("x.png")),
+        "line 3",
+    );
+    let missing = scratch("missing.toml");
+    std::fs::write(
+        &missing,
+        "[models]\nghost = \"ghost.safetensors\"\n[root]\ntype = \"model\"\nmodel = \"ghost\"\n",
+    )
+    .unwrap();
+    assert_clean_failure(
+        bin("extract")
+            .arg("--scene")
+            .arg(&missing)
+            .arg("--out")
+            .arg(scratch("x.obj")),
+        "ghost",
+    );
+    // --lod is a model's.
+    assert_clean_failure(
+        bin("render")
+            .arg("--scene")
+            .arg(example())
+            .args(["--lod", "1", "--out"])
+            .arg(scratch("y.png")),
+        "--lod applies to a model",
+    );
+    // A model and a scene at once.
+    assert_clean_failure(
+        bin("query")
+            .arg(sphere_model())
+            .arg("--scene")
+            .arg(example())
+            .arg("--points")
+            .arg(&p)
+            .arg("--out")
+            .arg(&out),
+        "cannot be used with",
+    );
+}
