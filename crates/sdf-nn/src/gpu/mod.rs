@@ -316,7 +316,11 @@ impl GpuContext {
 
     /// Waits for the submitted work, then maps `buffer` (`MAP_READ`) and copies it out as `T`s.
     /// `label` names the data in errors.
-    fn map_read<T: Pod>(&self, buffer: &wgpu::Buffer, label: &str) -> Result<Vec<T>, GpuError> {
+    pub(crate) fn map_read<T: Pod>(
+        &self,
+        buffer: &wgpu::Buffer,
+        label: &str,
+    ) -> Result<Vec<T>, GpuError> {
         let error = |reason: String| GpuError::Readback {
             label: label.to_owned(),
             reason,

@@ -233,7 +233,13 @@ impl Scene {
                 );
             }
             s.push_str(&snippet);
-            s.push('\n');
+            let _ = writeln!(
+                s,
+                "// A lower bound of the network's value over its cube (scene culling).\n\
+                 const {UP}_M{i}_PHI_LO: f32 = {lo};",
+                UP = prefix.to_ascii_uppercase(),
+                lo = lit(wgsl::phi_lower_bound(model.network(), model.lod())),
+            );
         }
         s.push_str(&wgsl::rename(PRIMITIVES, prefix));
         let up = prefix.to_ascii_uppercase();
@@ -294,6 +300,19 @@ impl Scene {
                 (call.clone(), format!("{call}.x"))
             }
         };
+        if let LeafKind::Model(m) = leaf.kind {
+            // The model's value is (phi(c) + |x − c|) / scale at the normalised point x, c its
+            // clamp to the cube: at least (PHI_LO + |x − c|) / scale.
+            let mp = format!("{up}_M{m}");
+            let _ = write!(
+                s,
+                "fn {prefix}_leaf_{l}_lb(p: vec3<f32>) -> f32 {{\n\
+                 \x20   let x = ({local} - {mp}_CENTER) * {mp}_SCALE;\n\
+                 \x20   let c = clamp(x, vec3<f32>(-1.0), vec3<f32>(1.0));\n\
+                 \x20   return {up}_L{l}_S * (length(x - c) + {mp}_PHI_LO) / {mp}_SCALE;\n\
+                 }}\n"
+            );
+        }
         let _ = write!(
             s,
             "fn {prefix}_leaf_{l}(p: vec3<f32>) -> {prefix}_Sample {{\n\
@@ -311,17 +330,27 @@ impl Scene {
     /// The program as straight-line code: `{prefix}_distance`, `{prefix}_sample` and
     /// `{prefix}_normal`.
     fn program_functions(&self, s: &mut String, prefix: &str) {
+        let program = self.program();
         for with_gradient in [false, true] {
             let mut stack: Vec<usize> = Vec::new();
             let mut body = String::new();
-            for (v, instruction) in self.program().iter().enumerate() {
+            let mut v = 0;
+            while v < program.len() {
+                if let Some((code, skip)) = self.culled_union(prefix, v, &stack, with_gradient) {
+                    stack.pop();
+                    body.push_str(&code);
+                    stack.push(v + skip);
+                    v += skip + 1;
+                    continue;
+                }
                 let expr = if with_gradient {
-                    sample_expression(prefix, instruction, &mut stack)
+                    sample_expression(prefix, &program[v], &mut stack)
                 } else {
-                    distance_expression(prefix, instruction, &mut stack)
+                    distance_expression(prefix, &program[v], &mut stack)
                 };
                 let _ = writeln!(body, "    let v{v} = {expr};");
                 stack.push(v);
+                v += 1;
             }
             let last = stack.pop().expect("a balanced program leaves one value");
             if with_gradient {
@@ -350,6 +379,56 @@ impl Scene {
              \x20   return vec3<f32>(0.0);\n\
              }}\n"
         );
+    }
+
+    /// A model leaf at `v` that a union or smooth union at `v + 1` combines with the value
+    /// on top of `stack`, as code that evaluates the model only where its lower bound says it
+    /// can change the result: `min(a, b) = a` where `b ≥ a`, and the polynomial smooth minimum
+    /// is `a` where `b ≥ a + k`. Exact (the bound is a bound), and most points of a scene are
+    /// far from most of its models. `(code, 1)`: the code defines `v{v + 1}`.
+    fn culled_union(
+        &self,
+        prefix: &str,
+        v: usize,
+        stack: &[usize],
+        with_gradient: bool,
+    ) -> Option<(String, usize)> {
+        let program = self.program();
+        let Instruction::Leaf(l) = program[v] else {
+            return None;
+        };
+        if !matches!(self.leaves()[l as usize].kind, LeafKind::Model(_)) {
+            return None;
+        }
+        let a = *stack.last()?;
+        let (combine, k) = match program.get(v + 1)? {
+            Instruction::Union if with_gradient => (format!("{prefix}_pick_min"), 0.0),
+            Instruction::Union => ("min".to_owned(), 0.0),
+            Instruction::SmoothUnion(k) if with_gradient => (format!("{prefix}_smin"), *k),
+            Instruction::SmoothUnion(k) => (format!("{prefix}_smin_d"), *k),
+            _ => return None,
+        };
+        let (value, leaf) = if with_gradient {
+            (format!("v{a}.d"), format!("{prefix}_leaf_{l}(p)"))
+        } else {
+            (format!("v{a}"), format!("{prefix}_leaf_{l}_d(p)"))
+        };
+        let extra = if k > 0.0 {
+            format!(", {}", lit(k))
+        } else {
+            String::new()
+        };
+        let u = v + 1;
+        Some((
+            format!(
+                "    var v{u} = v{a};\n\
+                 \x20   if {prefix}_leaf_{l}_lb(p) < {value} + {k_lit} {{\n\
+                 \x20       v{u} = {combine}(v{a}, {leaf}{extra});\n\
+                 \x20   }}\n",
+                k_lit = lit(k),
+            ),
+            1,
+        ))
     }
 }
 

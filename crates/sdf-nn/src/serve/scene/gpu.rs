@@ -34,7 +34,7 @@
 //! compiler is slow; milliseconds on a GPU driver).
 
 use std::borrow::Cow;
-use std::sync::OnceLock;
+use std::sync::{Mutex, OnceLock};
 
 use glam::Vec3;
 
@@ -199,7 +199,22 @@ pub struct GpuScene<'g> {
     max_elements: [u32; 4],
     /// See [`GpuScene::set_max_part`].
     max_part: u32,
+    /// Buffers and bind groups of earlier plain calls, per kind, for the next ones (a call
+    /// takes one set, so threads never share a set).
+    pools: [Mutex<Vec<Pooled>>; 4],
 }
+
+/// One plain call's GPU side, kept for reuse: its buffers, uniform, bind group and readback.
+#[derive(Debug)]
+struct Pooled {
+    buffers: SceneQueryBuffers,
+    uniform: wgpu::Buffer,
+    group: wgpu::BindGroup,
+    readback: wgpu::Buffer,
+}
+
+/// Sets kept per kind.
+const POOL: usize = 8;
 
 impl<'g> GpuScene<'g> {
     /// Compiles `scene` for `gpu`'s device and uploads its weights. Measures the models'
@@ -281,6 +296,7 @@ impl<'g> GpuScene<'g> {
             leaves: scene.leaves().len(),
             max_elements,
             max_part: u32::MAX,
+            pools: Default::default(),
         })
     }
 
@@ -380,42 +396,102 @@ impl<'g> GpuScene<'g> {
         if count == 0 {
             return Ok(());
         }
-        let pipeline = self.pipeline(buffers.kind)?;
-        let uniform = self.gpu.uniform(
-            "scene query",
-            &SceneQueryUniform {
-                count,
-                max_steps: params.max_steps,
-                max_iterations: params.max_iterations,
-                first: 0,
-                level: params.level,
-                tolerance: params.tolerance,
-                inv_lipschitz: 1.0 / self.lipschitz,
-                _pad: 0.0,
-            },
-        );
-        let group = self
+        let uniform = self
             .gpu
+            .uniform("scene query", &self.uniform(count, params));
+        let group = self.query_group(&uniform, buffers);
+        self.encode(encoder, buffers.kind, &group, count)
+    }
+
+    fn uniform(&self, count: u32, params: &SceneQueryParams) -> SceneQueryUniform {
+        SceneQueryUniform {
+            count,
+            max_steps: params.max_steps,
+            max_iterations: params.max_iterations,
+            first: 0,
+            level: params.level,
+            tolerance: params.tolerance,
+            inv_lipschitz: 1.0 / self.lipschitz,
+            _pad: 0.0,
+        }
+    }
+
+    fn query_group(&self, uniform: &wgpu::Buffer, buffers: &SceneQueryBuffers) -> wgpu::BindGroup {
+        self.gpu
             .device()
             .create_bind_group(&wgpu::BindGroupDescriptor {
                 label: Some("scene query"),
                 layout: &self.query_layout,
                 entries: &[
-                    entry(0, &uniform),
+                    entry(0, uniform),
                     entry(1, &buffers.inputs),
                     entry(2, &buffers.outputs),
                 ],
-            });
+            })
+    }
+
+    /// The dispatch of `kind` over `count` elements bound by `group`.
+    fn encode(
+        &self,
+        encoder: &mut wgpu::CommandEncoder,
+        kind: SceneQueryKind,
+        group: &wgpu::BindGroup,
+        count: u32,
+    ) -> Result<(), GpuError> {
+        let pipeline = self.pipeline(kind)?;
         let (x, y) = self.gpu.dispatch_size(count.div_ceil(WG));
         let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
-            label: Some(buffers.kind.entry_point()),
+            label: Some(kind.entry_point()),
             timestamp_writes: None,
         });
         pass.set_pipeline(pipeline);
-        pass.set_bind_group(0, &group, &[]);
+        pass.set_bind_group(0, group, &[]);
         pass.set_bind_group(SCENE_GROUP, &self.weights.bind_group, &[]);
         pass.dispatch_workgroups(x, y, 1);
         Ok(())
+    }
+
+    /// A pooled set for `count` elements of `kind`: one kept from an earlier call, or a new
+    /// one (sized to a power of two, so that similar batches reuse it).
+    fn take(&self, kind: SceneQueryKind, count: u32) -> Result<Pooled, GpuError> {
+        let mut pool = self.pools[kind.index()]
+            .lock()
+            .unwrap_or_else(|e| e.into_inner());
+        if let Some(i) = pool.iter().position(|p| p.buffers.capacity >= count) {
+            return Ok(pool.swap_remove(i));
+        }
+        drop(pool);
+        let capacity = count
+            .checked_next_power_of_two()
+            .unwrap_or(count)
+            .clamp(count, self.max_elements(kind).max(count));
+        let buffers = self.create_buffers(kind, capacity)?;
+        let uniform = self.gpu.uniform(
+            "scene query",
+            &self.uniform(0, &SceneQueryParams::at_level(0.0)),
+        );
+        let group = self.query_group(&uniform, &buffers);
+        let readback = self.gpu.device().create_buffer(&wgpu::BufferDescriptor {
+            label: Some("scene query readback"),
+            size: buffers.outputs.size(),
+            usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+            mapped_at_creation: false,
+        });
+        Ok(Pooled {
+            buffers,
+            uniform,
+            group,
+            readback,
+        })
+    }
+
+    fn give(&self, kind: SceneQueryKind, pooled: Pooled) {
+        let mut pool = self.pools[kind.index()]
+            .lock()
+            .unwrap_or_else(|e| e.into_inner());
+        if pool.len() < POOL {
+            pool.push(pooled);
+        }
     }
 
     /// Runs `kind` on `inputs` (`inputs_per_element` `vec4`s per element), in parts that fit
@@ -431,32 +507,31 @@ impl<'g> GpuScene<'g> {
         let elements = inputs.len() / per_in;
         let mut out = Vec::with_capacity(elements * per_out);
         let part = self.max_elements(kind).max(1) as usize;
-        let mut buffers: Option<SceneQueryBuffers> = None;
         for chunk in inputs.chunks(part * per_in) {
             let count = (chunk.len() / per_in) as u32;
-            let reuse = buffers.as_ref().is_some_and(|b| b.capacity >= count);
-            if !reuse {
-                buffers = Some(self.create_buffers(kind, count)?);
-            }
-            let b = buffers.as_ref().expect("created above");
-            let device = self.gpu.device();
+            let pooled = self.take(kind, count)?;
+            let (device, queue) = (self.gpu.device(), self.gpu.queue());
             let scope = device.push_error_scope(wgpu::ErrorFilter::Validation);
-            self.gpu
-                .queue()
-                .write_buffer(&b.inputs, 0, bytemuck::cast_slice(chunk));
+            queue.write_buffer(
+                &pooled.uniform,
+                0,
+                bytemuck::bytes_of(&self.uniform(count, params)),
+            );
+            queue.write_buffer(&pooled.buffers.inputs, 0, bytemuck::cast_slice(chunk));
             let mut encoder = device.create_command_encoder(&Default::default());
-            self.record(&mut encoder, b, count, params)?;
-            self.gpu.queue().submit([encoder.finish()]);
+            self.encode(&mut encoder, kind, &pooled.group, count)?;
+            let bytes = u64::from(count) * per_out as u64 * 4;
+            encoder.copy_buffer_to_buffer(&pooled.buffers.outputs, 0, &pooled.readback, 0, bytes);
+            queue.submit([encoder.finish()]);
             if let Some(err) = pollster::block_on(scope.pop()) {
                 return Err(GpuError::Wgpu {
                     context: format!("dispatching the scene's {}", kind.entry_point()),
                     message: err.to_string(),
                 });
             }
-            let values: Vec<f32> =
-                self.gpu
-                    .read_back_range(&b.outputs, 0, u64::from(count) * per_out as u64)?;
-            out.extend_from_slice(&values);
+            let values: Vec<f32> = self.gpu.map_read(&pooled.readback, kind.entry_point())?;
+            out.extend_from_slice(&values[..count as usize * per_out]);
+            self.give(kind, pooled);
         }
         Ok(out)
     }
