@@ -23,6 +23,11 @@ use super::pool::{Block, Pool, PoolSchedule, sample_block};
 use super::{Nglod, NglodError, NglodGpu, Objective, ScatterMode};
 use crate::adam::{Adam, AdamConfig};
 use crate::gpu::GpuContext;
+use crate::ground_truth::{LabelledDraw, SampleSpec};
+
+mod gpu_points;
+
+pub use gpu_points::SampleSource;
 
 /// What the network is fitted to.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
@@ -102,6 +107,8 @@ pub struct NglodTrainConfig {
     pub distance: DistanceMode,
     /// Plan the run's length from its first epoch instead of `epochs` alone (`None`: `epochs`).
     pub time_budget: Option<TimeBudget>,
+    /// Where the points come from: the CPU pool (default) or fresh every epoch from the GPU.
+    pub sample_source: SampleSource,
 }
 
 /// A training time to fill ([`NglodTrainConfig::time_budget`]): after each of the first two
@@ -159,6 +166,7 @@ impl Default for NglodTrainConfig {
             grow_every: None,
             distance: DistanceMode::Signed,
             time_budget: None,
+            sample_source: SampleSource::CpuPool,
         }
     }
 }
@@ -271,6 +279,8 @@ pub struct NglodTrainer<'g> {
     points: wgpu::Buffer,
     targets: wgpu::Buffer,
     kernels: TrainKernels,
+    /// The sampler and ground truth on the GPU, with [`SampleSource::Gpu`].
+    gpu_points: Option<gpu_points::GpuPoints>,
     epochs_done: usize,
     epoch_steps_done: usize,
     steps_done: usize,
@@ -350,6 +360,16 @@ impl<'g> NglodTrainer<'g> {
         let targets = gpu.storage_zeroed("nglod epoch targets", n as u64 * 4)?;
         let batch = config.batch_size.min(n32);
         let kernels = TrainKernels::new(gpu, &gm, &points, &targets, batch, config.objective)?;
+        let gpu_points = match config.sample_source {
+            SampleSource::CpuPool => None,
+            SampleSource::Gpu => Some(gpu_points::GpuPoints::new(
+                gpu,
+                mesh,
+                &sdf,
+                &config,
+                (&points, &targets),
+            )?),
+        };
         Ok(NglodTrainer {
             gpu,
             model: gm,
@@ -360,6 +380,7 @@ impl<'g> NglodTrainer<'g> {
             points,
             targets,
             kernels,
+            gpu_points,
             epochs_done: 0,
             epoch_steps_done: 0,
             steps_done: 0,
@@ -443,6 +464,7 @@ impl<'g> NglodTrainer<'g> {
             "grow_every": c.grow_every,
             "time_budget": c.time_budget,
             "distance": c.distance,
+            "sample_source": c.sample_source.name(),
         });
         if let Some(r) = report {
             v["final_loss"] = serde_json::json!(r.final_loss);
@@ -475,6 +497,9 @@ impl<'g> NglodTrainer<'g> {
         if epochs == 0 {
             return Ok(report);
         }
+        if self.gpu_points.is_some() {
+            return self.train_on_gpu_points(on_epoch);
+        }
         let levels = self.model.config().levels();
         let NglodTrainer {
             gpu,
@@ -486,6 +511,7 @@ impl<'g> NglodTrainer<'g> {
             points,
             targets,
             kernels,
+            gpu_points: _,
             epochs_done,
             epoch_steps_done,
             steps_done,
@@ -573,7 +599,7 @@ impl<'g> NglodTrainer<'g> {
                 let run = EpochSteps::run(
                     &mut stepper,
                     (e, lod, end_epoch),
-                    (p, t),
+                    EpochData::Host(p, t),
                     skip.unwrap_or(0),
                     steps_done,
                     should_stop,
@@ -642,6 +668,13 @@ struct Stepper<'a> {
     steps_per_epoch: usize,
 }
 
+/// An epoch's points and labels: drawn on the host (uploaded first), or drawn and labelled
+/// on the GPU in the epoch's first submission.
+enum EpochData<'a> {
+    Host(Vec<Vec3>, Vec<f32>),
+    Gpu(&'a LabelledDraw, SampleSpec),
+}
+
 /// What one epoch's optimiser steps did.
 #[derive(Clone, Copy)]
 struct EpochSteps {
@@ -664,14 +697,14 @@ struct EpochSteps {
 }
 
 impl EpochSteps {
-    /// Uploads epoch `e`'s points and targets and runs the epoch on its first `lod` levels, in a
+    /// Uploads epoch `e`'s points and targets (or records their draw) and runs the epoch on its first `lod` levels, in a
     /// run planned to `end_epoch`, from its step `skip` on, reading the loss
     /// back every `loss_every` steps and at the end, and stopping after a read-back once
     /// `should_stop` says so. `steps_done` counts every step of the run.
     fn run(
         s: &mut Stepper<'_>,
         (e, lod, end_epoch): (usize, usize, usize),
-        (points, targets): (Vec<Vec3>, Vec<f32>),
+        data: EpochData<'_>,
         skip: usize,
         steps_done: &mut usize,
         should_stop: impl Fn() -> bool,
@@ -688,9 +721,14 @@ impl EpochSteps {
             batch,
             steps_per_epoch,
         } = *s;
-        gpu.write(points_buffer, bytemuck::cast_slice::<Vec3, f32>(&points))?;
-        gpu.write(targets_buffer, &targets)?;
-        drop((points, targets));
+        let mut draw = match data {
+            EpochData::Host(points, targets) => {
+                gpu.write(points_buffer, bytemuck::cast_slice::<Vec3, f32>(&points))?;
+                gpu.write(targets_buffer, &targets)?;
+                None
+            }
+            EpochData::Gpu(draw, spec) => Some((draw, spec)),
+        };
         kernels.set_lod(config.objective, lod);
         let mut steps = 0;
         let (mut loss_sum, mut loss_reads) = (0.0f64, 0usize);
@@ -707,6 +745,9 @@ impl EpochSteps {
             );
             adam.config.lr = lr;
             let mut enc = gpu.device().create_command_encoder(&Default::default());
+            if let Some((draw, spec)) = draw.take() {
+                draw.record(gpu, &mut enc, &spec)?;
+            }
             kernels.record(gpu, &mut enc, first, nb)?;
             adam.record_step(gpu, &mut enc, 1.0 / nb as f32);
             gpu.queue().submit([enc.finish()]);
