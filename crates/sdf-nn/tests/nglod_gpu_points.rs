@@ -111,3 +111,50 @@ fn gpu_points_fit_spot_as_well_as_the_cpu_pool() {
     assert!(gpu_acc >= cpu_acc - 0.05, "{gpu_acc} vs {cpu_acc}");
     assert!(gpu_loss <= 2.0 * cpu_loss, "{gpu_loss} vs {cpu_loss}");
 }
+
+/// The steps of an epoch recorded into shared submissions (up to the next loss read-back) train
+/// as steps submitted one by one (`loss_every: 1`): each step stages its own uniforms. Float
+/// atomics add in any order, so the parameters agree to rounding, not bit for bit; steps that
+/// saw another step's batch or Adam counters would differ by far more.
+#[test]
+fn steps_sharing_a_submission_train_as_steps_submitted_alone() {
+    let gpu = gpu();
+    let mesh = Mesh::icosphere(0.6, 2);
+    let run = |loss_every: usize, source: SampleSource| {
+        let model = Nglod::new(NglodConfig::small()).unwrap();
+        let config = NglodTrainConfig {
+            epochs: 2,
+            uniform_points: 1024,
+            near_points: 2048,
+            surface_points: 1024,
+            batch_size: 512,
+            loss_every,
+            seed: 11,
+            sample_source: source,
+            ..Default::default()
+        };
+        let mut trainer = NglodTrainer::new(gpu, &model, &mesh, config).unwrap();
+        let report = trainer.train().unwrap();
+        assert_eq!(report.steps, 16);
+        trainer.model().unwrap().params().to_vec()
+    };
+    for source in [SampleSource::CpuPool, SampleSource::Gpu] {
+        let alone = run(1, source);
+        let shared = run(100, source);
+        let worst = alone
+            .iter()
+            .zip(&shared)
+            .map(|(a, b)| (a - b).abs())
+            .fold(0.0f32, f32::max);
+        let moved = alone
+            .iter()
+            .zip(Nglod::new(NglodConfig::small()).unwrap().params())
+            .map(|(a, b)| (a - b).abs())
+            .fold(0.0f32, f32::max);
+        eprintln!(
+            "{}: largest difference {worst:e}, largest move {moved:e}",
+            source.name()
+        );
+        assert!(worst <= 1e-3 * moved, "{worst} vs a move of {moved}");
+    }
+}

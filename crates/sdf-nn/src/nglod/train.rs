@@ -22,10 +22,16 @@ use super::gpu::TrainKernels;
 use super::pool::{Block, Pool, PoolSchedule, sample_block};
 use super::{Nglod, NglodError, NglodGpu, Objective, ScatterMode};
 use crate::adam::{Adam, AdamConfig};
-use crate::gpu::GpuContext;
+use crate::gpu::{GpuContext, UniformStager};
 use crate::ground_truth::{LabelledDraw, SampleSpec};
 
 mod gpu_points;
+
+/// Optimiser steps recorded into one submission at most (fewer where a loss read-back is due
+/// sooner): a submission costs tens of µs on a GPU, where a small step takes about as long.
+const STEPS_PER_SUBMISSION: usize = 32;
+/// Bytes of uniforms a step stages: the training kernels' and Adam's, each rounded up.
+const STAGED_BYTES_PER_STEP: u64 = 256;
 
 pub use gpu_points::SampleSource;
 
@@ -281,6 +287,8 @@ pub struct NglodTrainer<'g> {
     kernels: TrainKernels,
     /// The sampler and ground truth on the GPU, with [`SampleSource::Gpu`].
     gpu_points: Option<gpu_points::GpuPoints>,
+    /// The uniforms of the steps of one submission.
+    stager: UniformStager,
     epochs_done: usize,
     epoch_steps_done: usize,
     steps_done: usize,
@@ -381,6 +389,11 @@ impl<'g> NglodTrainer<'g> {
             targets,
             kernels,
             gpu_points,
+            stager: UniformStager::new(
+                gpu,
+                "nglod staged uniforms",
+                STEPS_PER_SUBMISSION as u64 * STAGED_BYTES_PER_STEP,
+            ),
             epochs_done: 0,
             epoch_steps_done: 0,
             steps_done: 0,
@@ -512,6 +525,7 @@ impl<'g> NglodTrainer<'g> {
             targets,
             kernels,
             gpu_points: _,
+            stager,
             epochs_done,
             epoch_steps_done,
             steps_done,
@@ -531,6 +545,7 @@ impl<'g> NglodTrainer<'g> {
             targets,
             adam,
             kernels,
+            stager,
             config,
             n,
             batch,
@@ -660,6 +675,7 @@ struct Stepper<'a> {
     targets: &'a wgpu::Buffer,
     adam: &'a mut Adam,
     kernels: &'a mut TrainKernels,
+    stager: &'a mut UniformStager,
     config: &'a NglodTrainConfig,
     /// Points per epoch.
     n: u32,
@@ -716,6 +732,7 @@ impl EpochSteps {
             targets: targets_buffer,
             ref mut adam,
             ref mut kernels,
+            ref mut stager,
             config,
             n,
             batch,
@@ -739,24 +756,34 @@ impl EpochSteps {
         let mut first = (skip as u32).saturating_mul(batch).min(n);
         let mut step_in_epoch = skip;
         while first < n {
-            let nb = batch.min(n - first);
-            lr = config.lr_at(
-                (e as f64 + step_in_epoch as f64 / steps_per_epoch as f64) / end_epoch as f64,
-            );
-            adam.config.lr = lr;
+            // The steps up to the next loss read-back (at most STEPS_PER_SUBMISSION) share a
+            // submission, the epoch's draw (if on the GPU) leading the first.
             let mut enc = gpu.device().create_command_encoder(&Default::default());
             if let Some((draw, spec)) = draw.take() {
                 draw.record(gpu, &mut enc, &spec)?;
             }
-            kernels.record(gpu, &mut enc, first, nb)?;
-            adam.record_step(gpu, &mut enc, 1.0 / nb as f32);
+            let mut read_due = false;
+            for _ in 0..STEPS_PER_SUBMISSION {
+                let nb = batch.min(n - first);
+                lr = config.lr_at(
+                    (e as f64 + step_in_epoch as f64 / steps_per_epoch as f64) / end_epoch as f64,
+                );
+                adam.config.lr = lr;
+                kernels.record_staged(gpu, &mut enc, stager, first, nb)?;
+                adam.record_step_staged(gpu, &mut enc, stager, 1.0 / nb as f32)?;
+                first += nb;
+                steps += 1;
+                step_in_epoch += 1;
+                since_read += nb;
+                *steps_done += 1;
+                read_due = steps % config.loss_every == 0 || first >= n;
+                if read_due {
+                    break;
+                }
+            }
+            stager.flush(gpu);
             gpu.queue().submit([enc.finish()]);
-            first += nb;
-            steps += 1;
-            step_in_epoch += 1;
-            since_read += nb;
-            *steps_done += 1;
-            if steps % config.loss_every == 0 || first >= n {
+            if read_due {
                 let s: Vec<f32> = gpu.read_back_range(&kernels.stats, 0, 1)?;
                 gpu.zero(&kernels.stats);
                 let loss = s[0] / since_read as f32;

@@ -109,6 +109,7 @@ impl NglodTrainer<'_> {
             targets: &self.targets,
             adam: &mut self.adam,
             kernels: &mut self.kernels,
+            stager: &mut self.stager,
             config,
             n,
             batch,
