@@ -324,8 +324,9 @@ fn surface_points_lie_on_the_mesh() {
     assert!((mean / expect - 1.0).abs() < 0.1, "{mean} vs {expect}");
 }
 
-/// A draw labelled on the GPU in one submission: the labels are the CPU's signed distances of
-/// the drawn points (to 1e-6 of the diagonal), and their absolute values for unsigned labels.
+/// A draw labelled on the GPU in one submission: the points are the plain draw's, the labels
+/// the CPU's signed distances of them (to 1e-6 of the diagonal; exactly 0 on the surface), and
+/// their absolute values for unsigned labels.
 #[test]
 fn draw_and_label_matches_the_cpu() {
     let gpu = gpu();
@@ -339,6 +340,8 @@ fn draw_and_label_matches_the_cpu() {
         .unwrap();
     assert_eq!(points, sampler.draw(gpu, &s).unwrap());
     let tol = 1e-6 * mesh.bounds().diagonal();
+    // The surface points are labelled 0 without a query, as the CPU pool labels them.
+    assert_eq!(labels.iter().filter(|&&d| d == 0.0).count(), 500);
     let inside = labels.iter().filter(|&&d| d < 0.0).count();
     assert!(inside > 300, "{inside} points inside");
     for (p, d) in points.iter().zip(&labels) {

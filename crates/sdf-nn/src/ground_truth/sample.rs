@@ -250,21 +250,7 @@ impl GpuSampler {
 
     /// The uniform of `spec` (checked by [`check_spec`]).
     fn params(&self, spec: &SampleSpec, n: u32) -> SampleParams {
-        let s = spec.shuffle();
-        SampleParams {
-            n_points: n,
-            n_uniform: spec.uniform,
-            n_near: spec.near,
-            n_triangles: self.triangles,
-            key: spec.key(),
-            stream: spec.stream,
-            shuffle_half: s.half,
-            shuffle_keys: s.keys,
-            sigma: spec.sigma,
-            _pad0: 0,
-            _pad1: 0,
-            _pad2: 0,
-        }
+        params(spec, n, self.triangles)
     }
 
     /// The points of `spec`, read back (for tests and diagnostics: training keeps them on the
@@ -380,16 +366,27 @@ impl GpuSampler {
 /// The sampler and the ground truth bound to a caller's point and label buffers: records a
 /// draw and its labelling into an encoder, so that the points never leave the GPU (the
 /// training loop's source of points on the GPU).
+///
+/// The draw is made without its shuffle into scratch buffers, so that the points to label
+/// (uniform and near-surface) lie together and the surface points (distance 0, as the CPU
+/// pool labels them) cost nothing; the labelling runs over those, and a gather writes the
+/// shuffled draw and its labels into the caller's buffers. The points are those of
+/// [`GpuSampler::draw`] for the same [`SampleSpec`].
 pub struct LabelledDraw {
-    sample_uniform: wgpu::Buffer,
+    /// The draw without its shuffle, and the gather with it.
+    draw_uniform: wgpu::Buffer,
+    gather_uniform: wgpu::Buffer,
     label_uniform: wgpu::Buffer,
     draw: (wgpu::ComputePipeline, wgpu::BindGroup),
     label: (wgpu::ComputePipeline, wgpu::BindGroup),
+    gather: (wgpu::ComputePipeline, wgpu::BindGroup),
     absolute: Option<(wgpu::ComputePipeline, wgpu::BindGroup)>,
-    sampler_params: SampleParams,
+    triangles: u32,
     label_params: Params,
     /// Points the buffers hold.
-    capacity: u64,
+    capacity: u32,
+    /// The scratch buffers (bound above; kept for clarity).
+    _scratch: (wgpu::Buffer, wgpu::Buffer),
 }
 
 impl std::fmt::Debug for LabelledDraw {
@@ -405,7 +402,7 @@ impl LabelledDraw {
     /// (1 f32 per point); draws hold at most as many points as both buffers do.
     ///
     /// # Errors
-    /// The GPU's (pipeline compilation).
+    /// The GPU's (pipeline compilation, scratch buffers beyond the device's limits).
     pub fn new(
         gpu: &GpuContext,
         sampler: &GpuSampler,
@@ -415,21 +412,15 @@ impl LabelledDraw {
         labels: LabelKind,
     ) -> Result<Self, SampleError> {
         let dev = gpu.device();
-        let sampler_params = sampler.params(
-            &SampleSpec {
-                uniform: 0,
-                near: 0,
-                surface: 0,
-                sigma: 0.0,
-                seed: 0,
-                stream: 0,
-                shuffle: false,
-            },
-            0,
-        );
-        let sample_uniform = gpu.uniform("sample params", &sampler_params);
-        let label_params = gt.params;
-        let label_uniform = gpu.uniform("sample label params", &label_params);
+        let capacity =
+            u32::try_from((points.size() / 12).min(targets.size() / 4)).unwrap_or(u32::MAX);
+        let drawn = gpu.storage_zeroed("labelled draw: points", u64::from(capacity) * 12)?;
+        // Never written beyond the labelled points: the surface points' labels stay 0.
+        let drawn_labels = gpu.storage_zeroed("labelled draw: labels", u64::from(capacity) * 4)?;
+        let zero = sampler.params(&EMPTY, 0);
+        let draw_uniform = gpu.uniform("labelled draw: draw params", &zero);
+        let gather_uniform = gpu.uniform("labelled draw: gather params", &zero);
+        let label_uniform = gpu.uniform("labelled draw: label params", &gt.params);
         let bind = |p: &wgpu::ComputePipeline, entries: &[wgpu::BindGroupEntry<'_>]| {
             dev.create_bind_group(&wgpu::BindGroupDescriptor {
                 label: Some("labelled draw"),
@@ -437,14 +428,15 @@ impl LabelledDraw {
                 entries,
             })
         };
-        let draw = gpu.pipeline(&shaders::GROUND_TRUTH_SAMPLE, "draw", &[])?;
+        let pipeline = |name| gpu.pipeline(&shaders::GROUND_TRUTH_SAMPLE, name, &[]);
+        let draw = pipeline("draw")?;
         let draw_bg = bind(
             &draw,
             &[
-                entry(0, &sample_uniform),
+                entry(0, &draw_uniform),
                 entry(1, &sampler.corners),
                 entry(2, &sampler.bounds),
-                entry(3, points),
+                entry(3, &drawn),
             ],
         );
         let label = gpu.pipeline(&shaders::GROUND_TRUTH_WINDING, "signed_distance", &[])?;
@@ -455,27 +447,41 @@ impl LabelledDraw {
                 entry(1, &gt.nodes),
                 entry(2, &gt.packets),
                 entry(3, &gt.winding),
-                entry(4, points),
+                entry(4, &drawn),
+                entry(5, &drawn_labels),
+            ],
+        );
+        let gather = pipeline("gather")?;
+        let gather_bg = bind(
+            &gather,
+            &[
+                entry(0, &gather_uniform),
+                entry(3, points),
                 entry(5, targets),
+                entry(6, &drawn),
+                entry(7, &drawn_labels),
             ],
         );
         let absolute = match labels {
             LabelKind::Signed => None,
             LabelKind::Unsigned => {
-                let p = gpu.pipeline(&shaders::GROUND_TRUTH_SAMPLE, "absolute", &[])?;
-                let bg = bind(&p, &[entry(0, &sample_uniform), entry(5, targets)]);
+                let p = pipeline("absolute")?;
+                let bg = bind(&p, &[entry(0, &gather_uniform), entry(5, targets)]);
                 Some((p, bg))
             }
         };
         Ok(LabelledDraw {
-            sample_uniform,
+            draw_uniform,
+            gather_uniform,
             label_uniform,
             draw: (draw, draw_bg),
             label: (label, label_bg),
+            gather: (gather, gather_bg),
             absolute,
-            sampler_params,
-            label_params,
-            capacity: (points.size() / 12).min(targets.size() / 4),
+            triangles: sampler.triangles,
+            label_params: gt.params,
+            capacity,
+            _scratch: (drawn, drawn_labels),
         })
     }
 
@@ -491,32 +497,29 @@ impl LabelledDraw {
         spec: &SampleSpec,
     ) -> Result<(), SampleError> {
         let n = check_spec(spec)?;
-        if u64::from(n) > self.capacity {
+        if n > self.capacity {
             return Err(SampleError::TooManyPoints {
                 requested: u64::from(n),
-                limit: self.capacity,
+                limit: u64::from(self.capacity),
             });
         }
         if n == 0 {
             return Ok(());
         }
-        let s = spec.shuffle();
-        let sp = SampleParams {
-            n_points: n,
-            n_uniform: spec.uniform,
-            n_near: spec.near,
-            key: spec.key(),
-            stream: spec.stream,
-            shuffle_half: s.half,
-            shuffle_keys: s.keys,
-            sigma: spec.sigma,
-            ..self.sampler_params
+        let unshuffled = SampleSpec {
+            shuffle: false,
+            ..*spec
         };
-        gpu.write(&self.sample_uniform, &[sp])?;
+        let labelled = spec.uniform + spec.near;
+        gpu.write(
+            &self.draw_uniform,
+            &[params(&unshuffled, n, self.triangles)],
+        )?;
+        gpu.write(&self.gather_uniform, &[params(spec, n, self.triangles)])?;
         gpu.write(
             &self.label_uniform,
             &[Params {
-                n_points: n,
+                n_points: labelled,
                 ..self.label_params
             }],
         )?;
@@ -528,16 +531,52 @@ impl LabelledDraw {
         pass.set_pipeline(&self.draw.0);
         pass.set_bind_group(0, &self.draw.1, &[]);
         pass.dispatch_workgroups(x, y, 1);
-        let (lx, ly) = gpu.dispatch_size(n.div_ceil(super::WG));
-        pass.set_pipeline(&self.label.0);
-        pass.set_bind_group(0, &self.label.1, &[]);
-        pass.dispatch_workgroups(lx, ly, 1);
+        if labelled > 0 {
+            let (lx, ly) = gpu.dispatch_size(labelled.div_ceil(super::WG));
+            pass.set_pipeline(&self.label.0);
+            pass.set_bind_group(0, &self.label.1, &[]);
+            pass.dispatch_workgroups(lx, ly, 1);
+        }
+        pass.set_pipeline(&self.gather.0);
+        pass.set_bind_group(0, &self.gather.1, &[]);
+        pass.dispatch_workgroups(x, y, 1);
         if let Some((p, bg)) = &self.absolute {
             pass.set_pipeline(p);
             pass.set_bind_group(0, bg, &[]);
             pass.dispatch_workgroups(x, y, 1);
         }
         Ok(())
+    }
+}
+
+/// A draw of no points.
+const EMPTY: SampleSpec = SampleSpec {
+    uniform: 0,
+    near: 0,
+    surface: 0,
+    sigma: 0.0,
+    seed: 0,
+    stream: 0,
+    shuffle: false,
+};
+
+/// The sampler's uniform for `n` points of `spec` (checked by [`check_spec`]) on a table of
+/// `triangles` triangles.
+fn params(spec: &SampleSpec, n: u32, triangles: u32) -> SampleParams {
+    let s = spec.shuffle();
+    SampleParams {
+        n_points: n,
+        n_uniform: spec.uniform,
+        n_near: spec.near,
+        n_triangles: triangles,
+        key: spec.key(),
+        stream: spec.stream,
+        shuffle_half: s.half,
+        shuffle_keys: s.keys,
+        sigma: spec.sigma,
+        _pad0: 0,
+        _pad1: 0,
+        _pad2: 0,
     }
 }
 

@@ -32,8 +32,11 @@ struct SampleParams {
 @group(0) @binding(3) var<storage, read_write> points: array<f32>;
 // The table index of each surface or near-surface point's triangle (`draw_with_triangles`).
 @group(0) @binding(4) var<storage, read_write> tri_out: array<u32>;
-// Distances made absolute in place (`absolute`).
+// Labels: gathered into (`gather`), made absolute in place (`absolute`).
 @group(0) @binding(5) var<storage, read_write> targets: array<f32>;
+// A draw without its shuffle and its labels (the surface points' left 0), for `gather`.
+@group(0) @binding(6) var<storage, read> drawn: array<f32>;
+@group(0) @binding(7) var<storage, read> drawn_labels: array<f32>;
 
 // High and low words of a * b (WGSL has no 32 x 32 -> 64 product).
 fn mulhilo(a: u32, b: u32) -> vec2<u32> {
@@ -220,4 +223,22 @@ fn absolute(
         return;
     }
     targets[i] = abs(targets[i]);
+}
+
+// Point i of the shuffled draw and its label from the unshuffled draw `drawn`: the labels are
+// computed over the uniform and near-surface points only (the first n_uniform + n_near of the
+// unshuffled draw), which lie together there.
+@compute @workgroup_size(WG)
+fn gather(
+    @builtin(workgroup_id) wid: vec3<u32>,
+    @builtin(num_workgroups) nwg: vec3<u32>,
+    @builtin(local_invocation_id) lid: vec3<u32>,
+) {
+    let i = point_id(wid, nwg, lid);
+    if i >= sp.n_points {
+        return;
+    }
+    let j = shuffle(i);
+    store(i, vec3<f32>(drawn[3u * j], drawn[3u * j + 1u], drawn[3u * j + 2u]));
+    targets[i] = drawn_labels[j];
 }

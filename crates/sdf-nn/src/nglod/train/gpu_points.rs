@@ -23,8 +23,8 @@ pub enum SampleSource {
     /// ([`crate::ground_truth::GpuSampler`], [`crate::ground_truth::GpuGroundTruth`]): the same
     /// mixture of uniform, near-surface (σ) and surface points as a pool block, spread over the
     /// epoch by a random permutation; `pool_blocks` and `refresh_every` do not apply. Epoch `e`'s
-    /// points are a function of the seed and `e` (a resume redraws them). The surface points'
-    /// labels are the GPU's distance at them (0 to f32 rounding) rather than an exact 0.
+    /// points are a function of the seed and `e` (a resume redraws them). As in the pool, the
+    /// surface points are labelled 0 without a query.
     Gpu,
 }
 
