@@ -158,3 +158,61 @@ fn steps_sharing_a_submission_train_as_steps_submitted_alone() {
         assert!(worst <= 1e-3 * moved, "{worst} vs a move of {moved}");
     }
 }
+
+/// With points from the GPU, a run stopped part-way through an epoch and resumed ends where an
+/// uninterrupted run ends: the resumed epoch redraws the same points (a function of the seed
+/// and the epoch) and finishes its steps.
+#[test]
+fn an_interrupted_gpu_epoch_resumes_on_the_same_points() {
+    use std::sync::Arc;
+    use std::sync::atomic::{AtomicBool, Ordering};
+    let gpu = gpu();
+    let mesh = Mesh::icosphere(0.5, 2);
+    let model = Nglod::new(NglodConfig::small()).unwrap();
+    let config = NglodTrainConfig {
+        epochs: 2,
+        uniform_points: 2_000,
+        near_points: 2_000,
+        surface_points: 2_000,
+        // 12 steps per epoch, loss read (and stop flag polled) every 4.
+        batch_size: 512,
+        loss_every: 4,
+        seed: 11,
+        sample_source: SampleSource::Gpu,
+        ..Default::default()
+    };
+    let mut straight = NglodTrainer::new(gpu, &model, &mesh, config.clone()).unwrap();
+    assert_eq!(straight.train().unwrap().steps, 24);
+    let want = straight.model().unwrap();
+
+    let mut first = NglodTrainer::new(gpu, &model, &mesh, config.clone()).unwrap();
+    let stop = Arc::new(AtomicBool::new(false));
+    first.set_stop_flag(stop.clone());
+    let part = first
+        .train_with(|_| stop.store(true, Ordering::Relaxed))
+        .unwrap();
+    assert!(part.stopped_early);
+    assert_eq!((first.epochs_done(), first.epoch_steps_done()), (1, 4));
+    let state = first.optimizer_state().unwrap();
+    let halfway = first.model().unwrap();
+    let rest = NglodTrainConfig {
+        epochs: 1,
+        ..config
+    };
+    let mut resumed = NglodTrainer::new(gpu, &halfway, &mesh, rest).unwrap();
+    resumed.resume(&state, 1, 4).unwrap();
+    assert_eq!(resumed.train().unwrap().epochs[0].steps, 8);
+    let diff = |a: &Nglod, b: &Nglod| {
+        a.params()
+            .iter()
+            .zip(b.params())
+            .map(|(x, y)| (x - y).abs())
+            .fold(0.0f32, f32::max)
+    };
+    let (err, skipped) = (
+        diff(&resumed.model().unwrap(), &want),
+        diff(&halfway, &want),
+    );
+    eprintln!("resumed vs straight: {err:.3e}; stopped vs straight: {skipped:.3e}");
+    assert!(err < 1e-4 && err * 20.0 < skipped, "{err} vs {skipped}");
+}

@@ -58,7 +58,7 @@ use crate::gpu::{GpuContext, GpuError, entry};
 use crate::shaders::{self, Shader};
 
 pub mod counter_rng;
-mod sample;
+pub mod sample;
 
 pub use counter_rng::{Kind, SampleSpec};
 pub use sample::{GpuSampler, LabelKind, LabelledDraw, SampleError, SampleTable};

@@ -8,6 +8,11 @@
 //! draws its points without replacement from the whole pool, and once the pool is full one new
 //! block replaces the oldest every `refresh_every` epochs, so sampling costs `1/refresh_every` of
 //! what it did per epoch.
+//!
+//! With [`SampleSource::Gpu`] the pool is not used: each epoch's points are drawn and labelled
+//! on the GPU in the epoch's first submission (`train/gpu_points.rs`). Either way the steps up
+//! to the next loss read-back (at most [`STEPS_PER_SUBMISSION`]) share one submission, each
+//! with its own staged uniforms.
 
 use std::collections::VecDeque;
 use std::sync::Arc;

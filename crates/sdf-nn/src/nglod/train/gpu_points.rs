@@ -16,7 +16,8 @@ use crate::nglod::{NglodError, NglodTrainConfig};
 /// Where the trainer's points and their labels come from ([`NglodTrainConfig::sample_source`]).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub enum SampleSource {
-    /// The pool of blocks drawn and labelled on CPU threads ([the trainer's module](super)).
+    /// The pool of blocks drawn and labelled on CPU threads, partly redrawn every few epochs
+    /// ([`NglodTrainConfig::pool_blocks`], [`NglodTrainConfig::refresh_every`]).
     #[default]
     CpuPool,
     /// Fresh points every epoch, drawn and labelled on the GPU
