@@ -94,6 +94,26 @@ fn main() -> Result<(), Box<dyn Error>> {
         p.len()
     );
 
+    // The labelling's share: the same uniform and near-surface points labelled by
+    // GpuGroundTruth::signed_distance, which dispatches them in Morton order.
+    let unshuffled = sampler.draw(
+        &gpu,
+        &SampleSpec {
+            shuffle: false,
+            ..spec(1)
+        },
+    )?;
+    let to_label = &unshuffled[..uniform + near];
+    gt.signed_distance(&gpu, to_label)?;
+    let t = Instant::now();
+    gt.signed_distance(&gpu, to_label)?;
+    println!(
+        "labels alone, GPU, in Morton order (GpuGroundTruth::signed_distance, uploaded and read \
+         back): {:.3} s for {} points",
+        t.elapsed().as_secs_f64(),
+        to_label.len()
+    );
+
     for source in [SampleSource::CpuPool, SampleSource::Gpu] {
         let config = NglodTrainConfig {
             epochs,
