@@ -32,6 +32,12 @@
 //! The triangle is found by a binary search over the cumulative areas, rounded to multiples of
 //! 2⁻³² of the total (built on the CPU once per mesh, in f64): a triangle's probability is its
 //! area fraction within 2⁻³².
+//!
+//! # Speed
+//! On lavapipe (2 shared cores, November 2026, `examples/nglod_sample_source.rs`, spot) drawing
+//! 5·10⁴ points takes 6–10 ms; labelling them (the 3·10⁴ off the surface) 0.35–0.55 s, where
+//! the CPU samplers and `SignedDistance` draw and label the same in 0.04–0.08 s: as for
+//! [`GpuGroundTruth`], the GPU path is for real GPUs.
 
 use glam::Vec3;
 use sdf_geom::Mesh;
