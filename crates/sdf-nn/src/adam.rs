@@ -5,7 +5,7 @@
 //! the same length, so one dispatch updates everything. The kernel zeroes the gradient as it
 //! consumes it, ready for the next step's accumulation.
 
-use crate::gpu::{GpuContext, GpuError, entry};
+use crate::gpu::{GpuContext, GpuError, UniformStager, entry};
 use crate::shaders;
 
 /// Adam hyperparameters.
@@ -231,6 +231,30 @@ impl Adam {
         let u = self.uniforms_for_step(grad_scale);
         gpu.queue()
             .write_buffer(&self.uniforms, 0, bytemuck::bytes_of(&u));
+        self.dispatch(gpu, pass);
+    }
+
+    /// [`Adam::record_step`] with its uniforms staged in `stager` (flush it before the
+    /// submission), so that several steps can share one submission.
+    pub(crate) fn record_step_staged(
+        &mut self,
+        gpu: &GpuContext,
+        encoder: &mut wgpu::CommandEncoder,
+        stager: &mut UniformStager,
+        grad_scale: f32,
+    ) -> Result<(), GpuError> {
+        self.step = self.step.saturating_add(1);
+        stager.stage(encoder, &self.uniforms, &self.uniforms_for_step(grad_scale))?;
+        let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
+            label: Some("adam"),
+            timestamp_writes: None,
+        });
+        self.dispatch(gpu, &mut pass);
+        Ok(())
+    }
+
+    /// The step's dispatch, its uniforms in place.
+    fn dispatch(&self, gpu: &GpuContext, pass: &mut wgpu::ComputePass<'_>) {
         pass.set_pipeline(&self.pipeline);
         pass.set_bind_group(0, &self.bind_group, &[]);
         let (x, y) = gpu.dispatch_size(self.len.div_ceil(WORKGROUP));

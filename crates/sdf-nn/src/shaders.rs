@@ -141,6 +141,9 @@ pub const GROUND_TRUTH_WINDING: Shader = shader!(
     "ground_truth/shaders/" "winding.wgsl" with ["ground_truth/shaders/" "closest.wgsl"],
     wgpu::Features::empty()
 );
+/// Training points on the GPU: uniform, on and near the surface, from Philox4x32-10.
+pub const GROUND_TRUTH_SAMPLE: Shader =
+    shader!("ground_truth/shaders/" "sample.wgsl", wgpu::Features::empty());
 
 /// Files of shared WGSL that the `shader!` macro prepends to the shaders that use them; they
 /// are validated as part of those.
@@ -176,6 +179,7 @@ pub const ALL: &[Shader] = &[
     SCENE_PRIMITIVES,
     GROUND_TRUTH_CLOSEST,
     GROUND_TRUTH_WINDING,
+    GROUND_TRUTH_SAMPLE,
 ];
 
 /// Asserts, in a test, that the Rust struct `$rust`, written into a uniform or storage buffer,

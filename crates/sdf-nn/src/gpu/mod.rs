@@ -17,6 +17,7 @@
 mod adapter;
 mod error;
 mod options;
+mod staged;
 mod timer;
 
 use std::borrow::Cow;
@@ -35,6 +36,7 @@ pub use adapter::list_adapters;
 use adapter::{describe_info, shares_host_memory};
 pub use error::GpuError;
 pub use options::{ENV_VARIABLES, GpuOptions, StepLayout, skip_device_select_layer_when_headless};
+pub(crate) use staged::UniformStager;
 pub use timer::{GpuTimer, PassProfiler, PassTime};
 
 /// Cache key of a compiled compute pipeline: shader, entry point and override constants.

@@ -57,6 +57,12 @@ use sdf_geom::{GpuTrees, SignedDistance, morton_order};
 use crate::gpu::{GpuContext, GpuError, entry};
 use crate::shaders::{self, Shader};
 
+pub mod counter_rng;
+pub mod sample;
+
+pub use counter_rng::{Kind, SampleSpec};
+pub use sample::{GpuSampler, LabelKind, LabelledDraw, SampleError, SampleTable};
+
 /// Invocations per workgroup (`WG` in `closest.wgsl`).
 const WG: u32 = 64;
 /// Entries of the kernels' traversal stacks (`STACK` in `closest.wgsl`): trees whose

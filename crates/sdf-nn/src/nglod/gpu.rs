@@ -9,7 +9,7 @@ use glam::Vec3;
 use super::{
     Band, MAX_LEVELS, MAX_MLP_FLOATS, Nglod, NglodConfig, NglodError, Objective, ParamLayout,
 };
-use crate::gpu::{GpuContext, GpuError, GpuTimer, entry};
+use crate::gpu::{GpuContext, GpuError, GpuTimer, UniformStager, entry};
 use crate::shaders;
 
 /// Invocations per workgroup of every NGLOD kernel (the `WG` constant of the shaders).
@@ -644,6 +644,30 @@ impl TrainKernels {
         first: u32,
         n: u32,
     ) -> Result<(), NglodError> {
+        let u = self.uniforms_for(first, n)?;
+        gpu.write(&self.uniforms, &[u])?;
+        self.record_passes(gpu, enc, &u);
+        Ok(())
+    }
+
+    /// [`TrainKernels::record`] with the uniforms staged in `stager` (flush it before the
+    /// submission), so that several steps can share one submission.
+    pub(crate) fn record_staged(
+        &self,
+        gpu: &GpuContext,
+        enc: &mut wgpu::CommandEncoder,
+        stager: &mut UniformStager,
+        first: u32,
+        n: u32,
+    ) -> Result<(), NglodError> {
+        let u = self.uniforms_for(first, n)?;
+        stager.stage(enc, &self.uniforms, &u)?;
+        self.record_passes(gpu, enc, &u);
+        Ok(())
+    }
+
+    /// The uniforms of a step over points `first..first + n`.
+    fn uniforms_for(&self, first: u32, n: u32) -> Result<TrainUniforms, NglodError> {
         if n > self.max_points {
             return Err(NglodError::LengthMismatch {
                 what: "points in one step (at most the batch size)",
@@ -652,14 +676,16 @@ impl TrainKernels {
             });
         }
         let n_rows = n * self.base.n_prefix;
-        let n_chunks = n_rows.div_ceil(CHUNK);
-        let u = TrainUniforms {
+        Ok(TrainUniforms {
             n_rows,
             first,
-            n_chunks,
+            n_chunks: n_rows.div_ceil(CHUNK),
             ..self.base
-        };
-        gpu.write(&self.uniforms, &[u])?;
+        })
+    }
+
+    /// The MLP copy and the passes of a step whose uniforms `u` are in place.
+    fn record_passes(&self, gpu: &GpuContext, enc: &mut wgpu::CommandEncoder, u: &TrainUniforms) {
         let (start, bytes) = self.mlp_range;
         enc.copy_buffer_to_buffer(&self.params, start, &self.mlp, 0, bytes);
         let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
@@ -668,16 +694,15 @@ impl TrainKernels {
         });
         pass.set_pipeline(&self.train);
         pass.set_bind_group(0, &self.bg_train, &[]);
-        let (x, y) = gpu.dispatch_size(n_rows.div_ceil(WG));
+        let (x, y) = gpu.dispatch_size(u.n_rows.div_ceil(WG));
         pass.dispatch_workgroups(x, y, 1);
         pass.set_pipeline(&self.partial);
         pass.set_bind_group(0, &self.bg_partial, &[]);
         // One invocation per hidden unit plus one for b1 and the loss.
-        pass.dispatch_workgroups((self.hidden + 1).div_ceil(WG), n_chunks, 1);
+        pass.dispatch_workgroups((self.hidden + 1).div_ceil(WG), u.n_chunks, 1);
         pass.set_pipeline(&self.reduce);
         pass.set_bind_group(0, &self.bg_reduce, &[]);
         pass.dispatch_workgroups(self.n_out.div_ceil(WG), 1, 1);
-        Ok(())
     }
 }
 

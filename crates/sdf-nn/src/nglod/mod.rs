@@ -45,8 +45,8 @@ pub use band::Band;
 pub use gpu::{NglodGpu, ScatterMode};
 pub use pool::PoolSchedule;
 pub use train::{
-    DEFAULT_EPOCHS, DistanceMode, EpochStats, NglodTrainConfig, NglodTrainer, TimeBudget,
-    TrainReport,
+    DEFAULT_EPOCHS, DistanceMode, EpochStats, NglodTrainConfig, NglodTrainer, SampleSource,
+    TimeBudget, TrainReport,
 };
 
 /// Largest number of levels the kernels accept.
@@ -127,6 +127,12 @@ pub enum NglodError {
     /// A model-file error.
     #[error(transparent)]
     ModelFile(#[from] ModelFileError),
+    /// The GPU sampler's error ([`SampleSource::Gpu`]).
+    #[error(transparent)]
+    Sample(#[from] crate::ground_truth::SampleError),
+    /// The GPU ground truth's error ([`SampleSource::Gpu`]): a mesh too large or too deep for it.
+    #[error(transparent)]
+    GroundTruth(#[from] crate::ground_truth::GroundTruthError),
 }
 
 /// Architecture hyperparameters.

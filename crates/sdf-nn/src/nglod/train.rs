@@ -8,6 +8,11 @@
 //! draws its points without replacement from the whole pool, and once the pool is full one new
 //! block replaces the oldest every `refresh_every` epochs, so sampling costs `1/refresh_every` of
 //! what it did per epoch.
+//!
+//! With [`SampleSource::Gpu`] the pool is not used: each epoch's points are drawn and labelled
+//! on the GPU in the epoch's first submission (`train/gpu_points.rs`). Either way the steps up
+//! to the next loss read-back (at most [`STEPS_PER_SUBMISSION`]) share one submission, each
+//! with its own staged uniforms.
 
 use std::collections::VecDeque;
 use std::sync::Arc;
@@ -22,7 +27,18 @@ use super::gpu::TrainKernels;
 use super::pool::{Block, Pool, PoolSchedule, sample_block};
 use super::{Nglod, NglodError, NglodGpu, Objective, ScatterMode};
 use crate::adam::{Adam, AdamConfig};
-use crate::gpu::GpuContext;
+use crate::gpu::{GpuContext, UniformStager};
+use crate::ground_truth::{LabelledDraw, SampleSpec};
+
+mod gpu_points;
+
+/// Optimiser steps recorded into one submission at most (fewer where a loss read-back is due
+/// sooner): a submission costs tens of µs on a GPU, where a small step takes about as long.
+const STEPS_PER_SUBMISSION: usize = 32;
+/// Bytes of uniforms a step stages: the training kernels' and Adam's, each rounded up.
+const STAGED_BYTES_PER_STEP: u64 = 256;
+
+pub use gpu_points::SampleSource;
 
 /// What the network is fitted to.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
@@ -102,6 +118,8 @@ pub struct NglodTrainConfig {
     pub distance: DistanceMode,
     /// Plan the run's length from its first epoch instead of `epochs` alone (`None`: `epochs`).
     pub time_budget: Option<TimeBudget>,
+    /// Where the points come from: the CPU pool (default) or fresh every epoch from the GPU.
+    pub sample_source: SampleSource,
 }
 
 /// A training time to fill ([`NglodTrainConfig::time_budget`]): after each of the first two
@@ -159,6 +177,7 @@ impl Default for NglodTrainConfig {
             grow_every: None,
             distance: DistanceMode::Signed,
             time_budget: None,
+            sample_source: SampleSource::CpuPool,
         }
     }
 }
@@ -271,6 +290,10 @@ pub struct NglodTrainer<'g> {
     points: wgpu::Buffer,
     targets: wgpu::Buffer,
     kernels: TrainKernels,
+    /// The sampler and ground truth on the GPU, with [`SampleSource::Gpu`].
+    gpu_points: Option<gpu_points::GpuPoints>,
+    /// The uniforms of the steps of one submission.
+    stager: UniformStager,
     epochs_done: usize,
     epoch_steps_done: usize,
     steps_done: usize,
@@ -350,6 +373,16 @@ impl<'g> NglodTrainer<'g> {
         let targets = gpu.storage_zeroed("nglod epoch targets", n as u64 * 4)?;
         let batch = config.batch_size.min(n32);
         let kernels = TrainKernels::new(gpu, &gm, &points, &targets, batch, config.objective)?;
+        let gpu_points = match config.sample_source {
+            SampleSource::CpuPool => None,
+            SampleSource::Gpu => Some(gpu_points::GpuPoints::new(
+                gpu,
+                mesh,
+                &sdf,
+                &config,
+                (&points, &targets),
+            )?),
+        };
         Ok(NglodTrainer {
             gpu,
             model: gm,
@@ -360,6 +393,12 @@ impl<'g> NglodTrainer<'g> {
             points,
             targets,
             kernels,
+            gpu_points,
+            stager: UniformStager::new(
+                gpu,
+                "nglod staged uniforms",
+                STEPS_PER_SUBMISSION as u64 * STAGED_BYTES_PER_STEP,
+            ),
             epochs_done: 0,
             epoch_steps_done: 0,
             steps_done: 0,
@@ -443,6 +482,7 @@ impl<'g> NglodTrainer<'g> {
             "grow_every": c.grow_every,
             "time_budget": c.time_budget,
             "distance": c.distance,
+            "sample_source": c.sample_source.name(),
         });
         if let Some(r) = report {
             v["final_loss"] = serde_json::json!(r.final_loss);
@@ -475,6 +515,9 @@ impl<'g> NglodTrainer<'g> {
         if epochs == 0 {
             return Ok(report);
         }
+        if self.gpu_points.is_some() {
+            return self.train_on_gpu_points(on_epoch);
+        }
         let levels = self.model.config().levels();
         let NglodTrainer {
             gpu,
@@ -486,6 +529,8 @@ impl<'g> NglodTrainer<'g> {
             points,
             targets,
             kernels,
+            gpu_points: _,
+            stager,
             epochs_done,
             epoch_steps_done,
             steps_done,
@@ -505,6 +550,7 @@ impl<'g> NglodTrainer<'g> {
             targets,
             adam,
             kernels,
+            stager,
             config,
             n,
             batch,
@@ -573,7 +619,7 @@ impl<'g> NglodTrainer<'g> {
                 let run = EpochSteps::run(
                     &mut stepper,
                     (e, lod, end_epoch),
-                    (p, t),
+                    EpochData::Host(p, t),
                     skip.unwrap_or(0),
                     steps_done,
                     should_stop,
@@ -634,12 +680,20 @@ struct Stepper<'a> {
     targets: &'a wgpu::Buffer,
     adam: &'a mut Adam,
     kernels: &'a mut TrainKernels,
+    stager: &'a mut UniformStager,
     config: &'a NglodTrainConfig,
     /// Points per epoch.
     n: u32,
     /// Points per step.
     batch: u32,
     steps_per_epoch: usize,
+}
+
+/// An epoch's points and labels: drawn on the host (uploaded first), or drawn and labelled
+/// on the GPU in the epoch's first submission.
+enum EpochData<'a> {
+    Host(Vec<Vec3>, Vec<f32>),
+    Gpu(&'a LabelledDraw, SampleSpec),
 }
 
 /// What one epoch's optimiser steps did.
@@ -664,14 +718,14 @@ struct EpochSteps {
 }
 
 impl EpochSteps {
-    /// Uploads epoch `e`'s points and targets and runs the epoch on its first `lod` levels, in a
+    /// Uploads epoch `e`'s points and targets (or records their draw) and runs the epoch on its first `lod` levels, in a
     /// run planned to `end_epoch`, from its step `skip` on, reading the loss
     /// back every `loss_every` steps and at the end, and stopping after a read-back once
     /// `should_stop` says so. `steps_done` counts every step of the run.
     fn run(
         s: &mut Stepper<'_>,
         (e, lod, end_epoch): (usize, usize, usize),
-        (points, targets): (Vec<Vec3>, Vec<f32>),
+        data: EpochData<'_>,
         skip: usize,
         steps_done: &mut usize,
         should_stop: impl Fn() -> bool,
@@ -683,14 +737,20 @@ impl EpochSteps {
             targets: targets_buffer,
             ref mut adam,
             ref mut kernels,
+            ref mut stager,
             config,
             n,
             batch,
             steps_per_epoch,
         } = *s;
-        gpu.write(points_buffer, bytemuck::cast_slice::<Vec3, f32>(&points))?;
-        gpu.write(targets_buffer, &targets)?;
-        drop((points, targets));
+        let mut draw = match data {
+            EpochData::Host(points, targets) => {
+                gpu.write(points_buffer, bytemuck::cast_slice::<Vec3, f32>(&points))?;
+                gpu.write(targets_buffer, &targets)?;
+                None
+            }
+            EpochData::Gpu(draw, spec) => Some((draw, spec)),
+        };
         kernels.set_lod(config.objective, lod);
         let mut steps = 0;
         let (mut loss_sum, mut loss_reads) = (0.0f64, 0usize);
@@ -701,21 +761,34 @@ impl EpochSteps {
         let mut first = (skip as u32).saturating_mul(batch).min(n);
         let mut step_in_epoch = skip;
         while first < n {
-            let nb = batch.min(n - first);
-            lr = config.lr_at(
-                (e as f64 + step_in_epoch as f64 / steps_per_epoch as f64) / end_epoch as f64,
-            );
-            adam.config.lr = lr;
+            // The steps up to the next loss read-back (at most STEPS_PER_SUBMISSION) share a
+            // submission, the epoch's draw (if on the GPU) leading the first.
             let mut enc = gpu.device().create_command_encoder(&Default::default());
-            kernels.record(gpu, &mut enc, first, nb)?;
-            adam.record_step(gpu, &mut enc, 1.0 / nb as f32);
+            if let Some((draw, spec)) = draw.take() {
+                draw.record(gpu, &mut enc, &spec)?;
+            }
+            let mut read_due = false;
+            for _ in 0..STEPS_PER_SUBMISSION {
+                let nb = batch.min(n - first);
+                lr = config.lr_at(
+                    (e as f64 + step_in_epoch as f64 / steps_per_epoch as f64) / end_epoch as f64,
+                );
+                adam.config.lr = lr;
+                kernels.record_staged(gpu, &mut enc, stager, first, nb)?;
+                adam.record_step_staged(gpu, &mut enc, stager, 1.0 / nb as f32)?;
+                first += nb;
+                steps += 1;
+                step_in_epoch += 1;
+                since_read += nb;
+                *steps_done += 1;
+                read_due = steps % config.loss_every == 0 || first >= n;
+                if read_due {
+                    break;
+                }
+            }
+            stager.flush(gpu);
             gpu.queue().submit([enc.finish()]);
-            first += nb;
-            steps += 1;
-            step_in_epoch += 1;
-            since_read += nb;
-            *steps_done += 1;
-            if steps % config.loss_every == 0 || first >= n {
+            if read_due {
                 let s: Vec<f32> = gpu.read_back_range(&kernels.stats, 0, 1)?;
                 gpu.zero(&kernels.stats);
                 let loss = s[0] / since_read as f32;
