@@ -43,8 +43,13 @@
 # time goes, launch by launch, from GPU timestamps (SIREN_BENCH_PROFILE; issue 12's ≤ 2 ms per
 # step); its log is DIR/results/siren-profile.txt. Environment:
 #   GPU_COMPARE_PRESETS=small,default   presets to run (both by default)
-#   GPU_COMPARE_STAGES=checks,bench,coop,blocks,split,phases,profile,torch,fit,corpus
-#                                       what to run (default all; split a session's runs with it)
+#   GPU_COMPARE_STAGES=checks,bench,coop,blocks,split,phases,profile,torch,fit,scene,groundtruth,corpus
+#                                       what to run (default all; split a session's runs with it).
+#                                       `scene` runs benches/scene (issue 37's targets, with the
+#                                       fit stage's NGLOD model when it ran); `groundtruth` the
+#                                       ground_truth_bench example: GPU against CPU labels on
+#                                       spot and on armadillo split to 1.4 M triangles (needs
+#                                       GPU_COMPARE_MESHES at pack time; else spot twice)
 #   GPU_COMPARE_BLOCKS=                 register blocks of the tiled GEMM the `blocks` stage
 #                                       forces (e.g. 4x4,8x8; none by default: session 13's
 #                                       H100 run set TiledBlock::Auto's rule)
@@ -82,7 +87,7 @@
 set -euo pipefail
 
 # The `checks` stage's test binaries (target names).
-GPU_CHECKS="siren_gpu|nglod|adam|embed|render|gpu_timer|neural_sdf|serve_queries"
+GPU_CHECKS="siren_gpu|nglod|adam|embed|render|gpu_timer|neural_sdf|serve_queries|scene|ground_truth"
 
 usage() {
     awk 'NR > 1 && !/^#/ { exit } NR > 1 { sub(/^# ?/, ""); print }' "$0"
@@ -103,6 +108,7 @@ pack() {
     command -v cargo >/dev/null || { echo "pack needs cargo (run it where the project builds)" >&2; exit 1; }
     echo "== building release binaries and bench executables"
     cargo build --release --bins
+    cargo build --release -p sdf-nn --example ground_truth_bench --example nglod_sample_source
     cargo bench --no-run
     # The test binaries that run kernels against their CPU and f64 references (the `checks`
     # stage): sdf-nn's GPU tests, the query API's and the serving example's.
@@ -118,20 +124,21 @@ pack() {
     benches=$(cargo bench --no-run --message-format=json 2>/dev/null \
         | python3 scripts/cargo_executables.py --kind bench)
     [ -n "$benches" ] || { echo "no bench executables were built" >&2; exit 1; }
-    rm -rf "$dir/bin" "$dir/benches" "$dir/tests" "$dir/scripts" "$dir/checks"
-    mkdir -p "$dir/bin" "$dir/benches" "$dir/tests" "$dir/scripts" "$dir/checks"
+    rm -rf "$dir/bin" "$dir/benches" "$dir/tests" "$dir/scripts" "$dir/checks" "$dir/examples"
+    mkdir -p "$dir/bin" "$dir/benches" "$dir/tests" "$dir/scripts" "$dir/checks" "$dir/examples"
+    cp target/release/examples/ground_truth_bench target/release/examples/nglod_sample_source "$dir/examples/"
     local name path
     while read -r name path; do cp "$path" "$dir/checks/$name"; done <<<"$checks"
     local exe
-    for exe in train eval corpus extract render sdf gpu-info; do
+    for exe in train eval corpus extract render sdf query gpu-info; do
         cp "target/release/$exe" "$dir/bin/"
     done
     while read -r name path; do
         case "$name" in
-            siren | nglod | query*) cp "$path" "$dir/benches/$name" ;;
+            siren | nglod | query* | scene) cp "$path" "$dir/benches/$name" ;;
         esac
     done <<<"$benches"
-    strip "$dir"/bin/* "$dir"/benches/* "$dir"/checks/* 2>/dev/null || true
+    strip "$dir"/bin/* "$dir"/benches/* "$dir"/checks/* "$dir"/examples/* 2>/dev/null || true
     cp -r tests/data "$dir/tests/"
     cp scripts/siren_torch_bench.py scripts/nglod_torch_bench.py "$dir/scripts/"
     cp scripts/gpu-compare.sh "$dir/"
@@ -229,7 +236,7 @@ run() {
     fi
     export CRITERION_HOME="$res/criterion"
     export SIREN_BENCH_PRESETS=${GPU_COMPARE_PRESETS:-small,default}
-    local stages=",${GPU_COMPARE_STAGES:-checks,bench,coop,blocks,split,phases,profile,torch,fit,corpus},"
+    local stages=",${GPU_COMPARE_STAGES:-checks,bench,coop,blocks,split,phases,profile,torch,fit,scene,groundtruth,corpus},"
     if [[ $stages == *,checks,* ]]; then
         # Kernels designed on lavapipe meet a real GPU here: other subgroup sizes, real
         # parallelism within a workgroup, other limits. Figures from kernels that fail their
@@ -482,6 +489,35 @@ PY
                 done
             fi
         done
+    fi
+    if [[ $stages == *,scene,* ]] && [ -x benches/scene ]; then
+        # Issue 37's targets: 8 NGLOD `default` models and 4 primitives; the fit stage's NGLOD
+        # model when there is one (trained weights give real sphere-tracing step counts).
+        echo "== bench scene (8 models, 4 primitives: distances, rays, 1920x1080 render)"
+        local model=""
+        [ -e "$res/fit-nglod.safetensors" ] && model="$res/fit-nglod.safetensors"
+        SCENE_BENCH_MODEL="$model" SCENE_BENCH_SECONDS="${SCENE_BENCH_SECONDS:-2}" \
+            CRITERION_HOME="$res/criterion-scene" benches/scene --bench 2>&1 \
+            | grep -v XDG_RUNTIME_DIR | tee "$res/bench-scene.txt" || echo "(failed)"
+    fi
+    if [[ $stages == *,groundtruth,* ]] && [ -x examples/ground_truth_bench ]; then
+        # Issue 38: GPU against CPU labels on every core, spot and a 1.4 M-triangle scan
+        # (armadillo split twice into four), 10^7 points.
+        echo "== ground truth: GPU against the CPU's $(nproc) cores"
+        local scan=tests/data/spot.obj
+        [ -e meshes/armadillo.obj ] && scan=meshes/armadillo.obj
+        examples/ground_truth_bench tests/data/spot.obj --points "${GT_BENCH_POINTS:-1000000}" --reps 2 2>&1 \
+            | grep -v XDG_RUNTIME_DIR | tee "$res/ground-truth.txt" || echo "(failed)"
+        examples/ground_truth_bench "$scan" --subdivide 2 --points "${GT_BENCH_SCAN_POINTS:-10000000}" --reps 1 2>&1 \
+            | grep -v XDG_RUNTIME_DIR | tee -a "$res/ground-truth.txt" || echo "(failed)"
+    fi
+    if [[ $stages == *,groundtruth,* ]] && [ -x examples/nglod_sample_source ]; then
+        # Issue 38: NGLOD `default` epochs of spot with points from the CPU pool against points
+        # drawn and labelled on the GPU.
+        echo "== NGLOD default epochs: CPU pool against GPU draws"
+        examples/nglod_sample_source tests/data/spot.obj --points 500000 \
+            --epochs "${GT_EPOCHS:-20}" --preset default --batch 2048 2>&1 \
+            | grep -v XDG_RUNTIME_DIR | tee "$res/sample-source.txt" || echo "(failed)"
     fi
     if [[ $stages == *,corpus,* ]] && [ -d meshes ]; then
         echo "== corpus over the packed meshes"

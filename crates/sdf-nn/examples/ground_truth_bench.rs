@@ -6,12 +6,16 @@
 //! `cargo run --release -p sdf-nn --example ground_truth_bench -- tests/data/spot.obj
 //! ../shared/meshes/stanford-bunny.obj --points 100000 --reps 3`
 //!
+//! `--subdivide K` splits every triangle into 4 (at its edge midpoints) K times before the
+//! trees are built: the shape stays, the triangle count grows 4^K-fold, so a 86 k-triangle
+//! scan (armadillo) becomes the 1.4 M-triangle scan of issue 38's target with `--subdivide 2`.
+//!
 //! Each figure is the best of `--reps` runs, after one untimed GPU run (shader compilation).
 
 use std::error::Error;
 use std::time::{Duration, Instant};
 
-use sdf_geom::{SignedDistance, load_mesh, sample};
+use sdf_geom::{Mesh, SignedDistance, load_mesh, sample};
 use sdf_nn::{GpuContext, GpuGroundTruth};
 
 /// The best wall time of `reps` runs of `f`, and its last result.
@@ -35,14 +39,42 @@ fn rate(n: usize, t: Duration) -> String {
     )
 }
 
+/// Every triangle split into four at its edge midpoints (shared edges share their midpoint).
+fn split_in_four(mesh: &Mesh) -> Mesh {
+    let mut vertices = mesh.vertices.clone();
+    let mut midpoints = std::collections::HashMap::new();
+    let mut mid = |a: u32, b: u32, vertices: &mut Vec<glam::Vec3>| -> u32 {
+        *midpoints.entry((a.min(b), a.max(b))).or_insert_with(|| {
+            vertices.push((vertices[a as usize] + vertices[b as usize]) * 0.5);
+            vertices.len() as u32 - 1
+        })
+    };
+    let mut triangles = Vec::with_capacity(mesh.triangles.len() * 4);
+    for &[a, b, c] in &mesh.triangles {
+        let (ab, bc, ca) = (
+            mid(a, b, &mut vertices),
+            mid(b, c, &mut vertices),
+            mid(c, a, &mut vertices),
+        );
+        triangles.extend([[a, ab, ca], [ab, b, bc], [ca, bc, c], [ab, bc, ca]]);
+    }
+    Mesh {
+        vertices,
+        triangles,
+    }
+}
+
 fn main() -> Result<(), Box<dyn Error>> {
     let mut meshes = Vec::new();
-    let (mut n, mut reps) = (100_000usize, 3usize);
+    let (mut n, mut reps, mut subdivide) = (100_000usize, 3usize, 0usize);
     let mut args = std::env::args().skip(1);
     while let Some(a) = args.next() {
         match a.as_str() {
             "--points" => n = args.next().ok_or("--points needs a value")?.parse()?,
             "--reps" => reps = args.next().ok_or("--reps needs a value")?.parse()?,
+            "--subdivide" => {
+                subdivide = args.next().ok_or("--subdivide needs a value")?.parse()?
+            }
             _ => meshes.push(a),
         }
     }
@@ -56,7 +88,10 @@ fn main() -> Result<(), Box<dyn Error>> {
         rayon::current_num_threads()
     );
     for path in &meshes {
-        let unit = load_mesh(path)?.0.normalized().0;
+        let mut unit = load_mesh(path)?.0.normalized().0;
+        for _ in 0..subdivide {
+            unit = split_in_four(&unit);
+        }
         let t = Instant::now();
         let cpu = SignedDistance::new(&unit)?;
         let build = t.elapsed();
