@@ -72,9 +72,7 @@ fn main() -> Result<(), Box<dyn Error>> {
         match a.as_str() {
             "--points" => n = args.next().ok_or("--points needs a value")?.parse()?,
             "--reps" => reps = args.next().ok_or("--reps needs a value")?.parse()?,
-            "--subdivide" => {
-                subdivide = args.next().ok_or("--subdivide needs a value")?.parse()?
-            }
+            "--subdivide" => subdivide = args.next().ok_or("--subdivide needs a value")?.parse()?,
             _ => meshes.push(a),
         }
     }

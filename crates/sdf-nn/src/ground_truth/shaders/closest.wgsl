@@ -76,16 +76,24 @@ fn is_finite3(p: vec3<f32>) -> bool {
     return all((bitcast<vec3<u32>>(p) & e) != e);
 }
 
-// v · 2^e, in two steps: WGSL leaves `ldexp` indeterminate for exponents above 128 and lets it
-// flush to zero below −126, and the tamed meshes' exponents reach ±150.
+// 2^e for −126 ≤ e ≤ 127, exactly (built from its bits).
+fn pow2(e: i32) -> f32 {
+    return bitcast<f32>(u32(e + 127) << 23u);
+}
+
+// v · 2^e as three multiplications by exact powers of two of the same sign: IEEE multiplication
+// overflows to infinity and rounds once, where WGSL leaves `ldexp` indeterminate above 2^128
+// (NVIDIA's gave 2^64 for an overflowing product) and lets it flush below 2^-126; the tamed
+// meshes' exponents reach ±150.
 fn scale3(v: vec3<f32>, e: i32) -> vec3<f32> {
-    let h = e / 2;
-    return ldexp(ldexp(v, vec3<i32>(h)), vec3<i32>(e - h));
+    let a = clamp(e, -126, 127);
+    let b = clamp(e - a, -126, 127);
+    let c = clamp(e - a - b, -126, 127);
+    return v * pow2(a) * pow2(b) * pow2(c);
 }
 
 fn scale1(x: f32, e: i32) -> f32 {
-    let h = e / 2;
-    return ldexp(ldexp(x, h), e - h);
+    return scale3(vec3<f32>(x, 0.0, 0.0), e).x;
 }
 
 fn max3(v: vec3<f32>) -> f32 {

@@ -681,4 +681,51 @@ mod tests {
             "{err}"
         );
     }
+
+    /// Models share buffers up to the binding size; a scene whose weights need more buffers
+    /// than a stage binds is refused with the limit named, and one model larger than a binding
+    /// with its size.
+    #[test]
+    fn the_device_limits_are_named() {
+        use crate::serve::scene::{SceneNode, Transform};
+        use std::sync::Arc;
+        let model = |r: f32| {
+            let m = crate::Nglod::from_sdf(8, move |p| p.length() - r).unwrap();
+            Arc::new(
+                crate::NeuralSdf::from_model_file(
+                    m.to_model_file(crate::Normalization::identity(), serde_json::Value::Null),
+                )
+                .unwrap(),
+            )
+        };
+        let models: Vec<_> = (0..3).map(|i| model(0.3 + 0.1 * i as f32)).collect();
+        let bytes = 4 * models[0].param_count() as u64;
+        let scene = Scene::new(SceneNode::Union(
+            models
+                .iter()
+                .map(|m| SceneNode::model(m.clone(), Transform::IDENTITY))
+                .collect(),
+        ))
+        .unwrap();
+        let limits = |binding: u64, buffers: u32| wgpu::Limits {
+            max_storage_buffer_binding_size: binding,
+            max_storage_buffers_per_shader_stage: buffers,
+            ..wgpu::Limits::default()
+        };
+        // All three in one buffer.
+        let one = scene.packing(&limits(3 * bytes, 8)).unwrap();
+        assert_eq!(one.bindings(), 1);
+        // One per buffer: three bindings, two more for the queries, a stage of four.
+        let three = scene.packing(&limits(bytes, 4)).unwrap();
+        assert_eq!(three.bindings(), 3);
+        let err = check_bindings(&three, &limits(bytes, 4), 2).unwrap_err();
+        let text = err.to_string();
+        assert!(
+            text.contains("max_storage_buffers_per_shader_stage = 4") && text.contains("3 storage"),
+            "{text}"
+        );
+        assert!(check_bindings(&three, &limits(bytes, 5), 2).is_ok());
+        let err = scene.packing(&limits(bytes - 4, 8)).unwrap_err();
+        assert!(matches!(err, EmbedError::TooLarge { .. }), "{err}");
+    }
 }
