@@ -72,6 +72,13 @@ fn train_writes_a_model_and_a_complete_report() {
     }
     assert_eq!(report["model"], "nglod");
     assert_eq!(report["preset"], "small");
+    // `--ground-truth auto`: the GPU's kernels unless the adapter is a CPU (lavapipe).
+    let cpu_adapter = report["adapter"].as_str().unwrap().contains("(Cpu,");
+    assert_eq!(
+        report["ground_truth"],
+        if cpu_adapter { "cpu" } else { "gpu" },
+        "{report}"
+    );
     assert_eq!(
         report["file_bytes"].as_u64().unwrap(),
         std::fs::metadata(model).unwrap().len()
@@ -880,4 +887,39 @@ fn eval_reports_a_model_without_a_surface() {
             assert!(out.contains("surface          n/a:"), "{out}");
         }
     }
+}
+
+/// `--ground-truth gpu` labels the training samples and the evaluation sets on the GPU's
+/// kernels, on any adapter (lavapipe included), and the report says so; an unknown value is
+/// clap's error naming the allowed ones.
+#[test]
+fn train_takes_the_ground_truth_path_asked_for() {
+    let out = scratch("gt-gpu.nglod.safetensors");
+    let report = scratch("gt-gpu.nglod.json");
+    let o = bin("train")
+        .arg(data("spot.obj"))
+        .args(["--model", "nglod", "--preset", "small", "--epochs", "1"])
+        .args(["--eval-points", "2000", "--ground-truth", "gpu", "--out"])
+        .arg(&out)
+        .arg("--report")
+        .arg(&report)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "train failed: {}", stderr(&o));
+    assert!(
+        stderr(&o).contains("ground truth on the GPU"),
+        "{}",
+        stderr(&o)
+    );
+    let json: serde_json::Value = serde_json::from_slice(&std::fs::read(&report).unwrap()).unwrap();
+    assert_eq!(json["ground_truth"], "gpu", "{json}");
+    let f1 = json["f1_bbox"].as_f64().unwrap();
+    assert!(f1 > 0.5, "{json}");
+
+    let o = bin("train")
+        .arg(data("spot.obj"))
+        .args(["--ground-truth", "tpu"])
+        .output()
+        .unwrap();
+    assert_clean_failure(&o, "possible values: gpu, cpu, auto");
 }

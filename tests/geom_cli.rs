@@ -154,3 +154,69 @@ fn clear_errors_and_no_partial_output() {
     assert!(String::from_utf8_lossy(&o.stderr).contains("nope.npy"));
     assert!(!out.exists());
 }
+
+/// `--ground-truth gpu` gives the CPU's distances within 1e-6 of the box diagonal (closed, open
+/// and multi-part meshes, OBJ and GLB, points in mesh coordinates), `auto` one of the two, and
+/// an unknown value is clap's error.
+#[test]
+fn gpu_and_cpu_ground_truth_agree() {
+    let dir = temp_dir("gt");
+    for name in ["spot.obj", "suzanne.obj", "pins.glb"] {
+        let mesh_path = data(name);
+        let (mesh, _) = load_mesh(&mesh_path).unwrap();
+        let (unit, norm) = mesh.normalized();
+        let mut unit_pts = sample::uniform_box(1000, 2);
+        unit_pts.extend(sample::near_surface(&unit, 1000, 0.01, 3));
+        let pts: Vec<Vec3> = unit_pts.iter().map(|&p| norm.to_original(p)).collect();
+        let inp = dir.join(format!("{name}.npy"));
+        npy::write_points(&inp, &pts).unwrap();
+        let run = |device: &str| {
+            let out = dir.join(format!("{name}.{device}.npy"));
+            let o = sdf(&[
+                mesh_path.as_os_str(),
+                "--points".as_ref(),
+                inp.as_os_str(),
+                "--out".as_ref(),
+                out.as_os_str(),
+                "--ground-truth".as_ref(),
+                device.as_ref(),
+            ]);
+            assert!(
+                o.status.success(),
+                "{name} {device}: {}",
+                String::from_utf8_lossy(&o.stderr)
+            );
+            npy::read_f32(&out).unwrap()
+        };
+        let (gpu, cpu, auto) = (run("gpu"), run("cpu"), run("auto"));
+        assert_eq!(
+            cpu,
+            SignedDistance::new(&mesh)
+                .unwrap()
+                .signed_distance_batch(&pts)
+        );
+        let tol = 1e-6 * mesh.bounds().diagonal();
+        let worst = gpu
+            .iter()
+            .zip(&cpu)
+            .map(|(g, c)| (g - c).abs())
+            .fold(0.0f32, f32::max);
+        eprintln!("{name}: max |gpu - cpu| = {worst:e} (tolerance {tol:e})");
+        assert!(worst <= tol, "{name}: {worst} > {tol}");
+        assert!(auto == cpu || auto == gpu, "{name}: auto is neither path");
+    }
+    let o = sdf(&[
+        data("spot.obj").as_os_str(),
+        "--points".as_ref(),
+        "x.npy".as_ref(),
+        "--out".as_ref(),
+        "y.npy".as_ref(),
+        "--ground-truth".as_ref(),
+        "fast".as_ref(),
+    ]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        !o.status.success() && err.contains("possible values: gpu, cpu, auto"),
+        "{err}"
+    );
+}

@@ -9,7 +9,7 @@ use std::path::PathBuf;
 use std::process::ExitCode;
 
 use clap::Parser;
-use hwsdf::cli::{GpuFlags, check_eval_points};
+use hwsdf::cli::{GpuFlags, GroundTruthFlags, check_eval_points};
 use hwsdf::eval::metrics::{DEFAULT_EVAL_POINTS, EVAL_SEED, SurfaceMetrics};
 use hwsdf::eval::run::{self, Evaluation};
 use hwsdf::nn::siren::LayerKernels;
@@ -46,6 +46,8 @@ struct Args {
     allow_external_uris: bool,
     #[command(flatten)]
     gpu: GpuFlags,
+    #[command(flatten)]
+    ground_truth: GroundTruthFlags,
 }
 
 fn main() -> ExitCode {
@@ -91,7 +93,10 @@ fn eval(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
         );
     }
     let gpu = args.gpu.open()?;
-    let truth = run::GroundTruth::new(mesh, &args.mesh)?;
+    let truth = run::GroundTruth::on(&gpu, mesh, &args.mesh, args.ground_truth.device())?;
+    if let Some(why) = truth.labels.fallback() {
+        eprintln!("warning: {}: {why}", args.mesh.display());
+    }
     if args.siren_kernels == LayerKernels::CoopF16 && gpu.coop_f16_tile().is_none() {
         eprintln!(
             "warning: {} has no f16 cooperative matrices; --siren-kernels coop evaluates on the tiled f32 kernels",
@@ -132,6 +137,7 @@ fn eval(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
         "surface_null_reason": surface_null_reason,
         "surface_resolution": args.surface_resolution,
         "adapter": gpu.describe(),
+        "ground_truth": truth.labels.path(),
     });
     if args.json {
         println!("{}", serde_json::to_string_pretty(&report)?);
@@ -189,6 +195,7 @@ fn eval(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
             println!("surface          n/a: {reason}");
         }
         println!("adapter          {}", gpu.describe());
+        println!("ground truth     {}", truth.labels.path());
     }
     Ok(())
 }
@@ -218,7 +225,7 @@ fn surface(
             Some(SurfaceMetrics::between(
                 &extracted,
                 &truth.mesh,
-                &truth.sdf,
+                truth.sdf(),
                 args.points.min(100_000),
                 EVAL_SEED,
             )?)

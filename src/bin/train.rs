@@ -15,7 +15,7 @@ use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 
 use clap::{Parser, ValueEnum};
-use hwsdf::cli::{GpuFlags, TrainingFlags, format_loss};
+use hwsdf::cli::{GpuFlags, GroundTruthFlags, TrainingFlags, format_loss};
 use hwsdf::eval::run::{self, ModelKind, NglodArchitecture, Progress};
 use hwsdf::geom::io;
 use hwsdf::nn::{DistanceMode, NeuralSdf};
@@ -52,6 +52,8 @@ struct Args {
     training: TrainingFlags,
     #[command(flatten)]
     gpu: GpuFlags,
+    #[command(flatten)]
+    ground_truth: GroundTruthFlags,
 }
 
 /// The exit status of a run stopped by Ctrl-C or SIGTERM (its checkpoint written), as a shell
@@ -118,9 +120,12 @@ fn train(args: &Args) -> Result<Outcome, Box<dyn std::error::Error>> {
     }
     // The exact SDF once, for the check below, the trainer's samples and the evaluation; after
     // every cheap check, since on a scan of millions of triangles it takes seconds.
-    let truth = run::GroundTruth::new(mesh, &args.mesh)?;
+    let truth = run::GroundTruth::on(&gpu, mesh, &args.mesh, args.ground_truth.device())?;
+    if let Some(why) = truth.labels.fallback() {
+        eprintln!("warning: {}: {why}", args.mesh.display());
+    }
     if options.distance == DistanceMode::Signed
-        && let Some(reason) = run::no_inside_check(&truth)
+        && let Some(reason) = run::no_inside_check(&truth)?
     {
         eprintln!(
             "warning: {}: {reason}. Its F1 will be reported as null (n/a); sign accuracy and \
@@ -137,12 +142,13 @@ fn train(args: &Args) -> Result<Outcome, Box<dyn std::error::Error>> {
         ModelKind::Siren => Vec::new(),
     };
     eprintln!(
-        "training {} ({}{}) on {} with {}",
+        "training {} ({}{}) on {} with {}; ground truth on the {}",
         model.name(),
         options.preset.name(),
         changed.iter().map(|c| format!("; {c}")).collect::<String>(),
         args.mesh.display(),
-        gpu.describe()
+        gpu.describe(),
+        truth.labels.path().name().to_uppercase()
     );
 
     let signals = Signals::install()?;
@@ -194,6 +200,7 @@ fn train(args: &Args) -> Result<Outcome, Box<dyn std::error::Error>> {
         file_bytes,
         &eval,
         gpu.describe(),
+        truth.labels.path(),
     );
     report.write(&paths.report)?;
     print_summary(&args.mesh, model, &report);

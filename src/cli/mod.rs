@@ -6,7 +6,7 @@
 mod training;
 
 use sdf_eval::run::{self, RunError};
-use sdf_nn::{GpuContext, GpuError, GpuOptions};
+use sdf_nn::{GpuContext, GpuError, GpuOptions, GroundTruthDevice};
 
 pub use training::{DistanceArg, PresetArg, TrainingFlags};
 
@@ -31,6 +31,40 @@ impl GpuFlags {
     /// Opens the GPU these flags choose.
     pub fn open(&self) -> Result<GpuContext, GpuError> {
         GpuContext::with_options(&self.options()?)
+    }
+}
+
+/// `--ground-truth`: where exact distances are computed (the training samples' labels, the
+/// evaluation sets', `sdf`'s output).
+#[derive(clap::Args, Clone, Copy, Debug, Default)]
+pub struct GroundTruthFlags {
+    /// Where exact distances (training labels, evaluation sets) are computed. `auto`: on the GPU
+    /// unless the adapter is a CPU (lavapipe: the CPU path is faster there) or the mesh does not
+    /// fit the GPU's limits (then on the CPU, with a warning).
+    #[arg(long, value_enum, default_value = "auto")]
+    pub ground_truth: GroundTruthArg,
+}
+
+/// The values of `--ground-truth`.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, clap::ValueEnum)]
+pub enum GroundTruthArg {
+    /// The GPU kernels; an error naming the limit where the mesh does not fit the device.
+    Gpu,
+    /// The CPU (rayon).
+    Cpu,
+    /// The GPU unless the adapter is a CPU or the mesh does not fit it.
+    #[default]
+    Auto,
+}
+
+impl GroundTruthFlags {
+    /// The device asked for.
+    pub fn device(&self) -> GroundTruthDevice {
+        match self.ground_truth {
+            GroundTruthArg::Gpu => GroundTruthDevice::Gpu,
+            GroundTruthArg::Cpu => GroundTruthDevice::Cpu,
+            GroundTruthArg::Auto => GroundTruthDevice::Auto,
+        }
     }
 }
 

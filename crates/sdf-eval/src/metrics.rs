@@ -6,6 +6,7 @@
 
 use glam::Vec3;
 use sdf_geom::{Mesh, SignedDistance, sample};
+use sdf_nn::{GroundTruthError, Labeller};
 use serde::{Deserialize, Serialize};
 
 /// Default number of points in each evaluation set (the design document's 10^5).
@@ -32,22 +33,29 @@ pub fn inside_fraction(truth: &[f32]) -> f64 {
     truth.iter().filter(|&&d| d < 0.0).count() as f64 / truth.len().max(1) as f64
 }
 
-/// Fraction of `points` (labelled `truth` by `sdf`) that are clearly inside: negative, with a
-/// winding number of at least [`CLEAR_INSIDE_WINDING`]. Only the negative points pay for a
+/// Fraction of `points` (labelled `truth` by `labels`) that are clearly inside: negative, with
+/// a winding number of at least [`CLEAR_INSIDE_WINDING`]. Only the negative points pay for a
 /// winding number.
-pub fn clear_inside_fraction(sdf: &SignedDistance, points: &[Vec3], truth: &[f32]) -> f64 {
+///
+/// # Errors
+/// The labels' (the GPU failed).
+pub fn clear_inside_fraction(
+    labels: &Labeller<'_>,
+    points: &[Vec3],
+    truth: &[f32],
+) -> Result<f64, GroundTruthError> {
     let inside: Vec<Vec3> = points
         .iter()
         .zip(truth)
         .filter(|&(_, &d)| d < 0.0)
         .map(|(p, _)| *p)
         .collect();
-    let clear = sdf
-        .winding_number_batch(&inside)
+    let clear = labels
+        .winding_number_batch(&inside)?
         .iter()
         .filter(|&&w| w >= CLEAR_INSIDE_WINDING)
         .count();
-    clear as f64 / points.len().max(1) as f64
+    Ok(clear as f64 / points.len().max(1) as f64)
 }
 
 /// Why the inside class cannot be scored on a mesh with these fractions of box and
@@ -285,9 +293,17 @@ pub struct EvalSets {
 }
 
 impl EvalSets {
-    /// `n` points in each set, drawn with `seed`, labelled by `sdf` (built on the same
-    /// normalised `mesh`).
-    pub fn new(mesh: &Mesh, sdf: &SignedDistance, n: usize, seed: u64) -> Self {
+    /// `n` points in each set, drawn with `seed`, labelled by `labels` (built on the same
+    /// normalised `mesh`; on the CPU or the GPU, as the run chose).
+    ///
+    /// # Errors
+    /// The labels' (the GPU failed).
+    pub fn new(
+        mesh: &Mesh,
+        labels: &Labeller<'_>,
+        n: usize,
+        seed: u64,
+    ) -> Result<Self, GroundTruthError> {
         let bbox = sample::uniform_box(n, seed);
         let near = sample::perturb(
             &sample::poisson_disk(mesh, n, seed ^ 0x9E37_79B9)
@@ -297,13 +313,13 @@ impl EvalSets {
             seed ^ 0x7F4A_7C15,
         );
         let (tb, tn) = (
-            sdf.signed_distance_batch(&bbox),
-            sdf.signed_distance_batch(&near),
+            labels.signed_distance_batch(&bbox)?,
+            labels.signed_distance_batch(&near)?,
         );
-        EvalSets {
+        Ok(EvalSets {
             clear_inside: (
-                clear_inside_fraction(sdf, &bbox, &tb),
-                clear_inside_fraction(sdf, &near, &tn),
+                clear_inside_fraction(labels, &bbox, &tb)?,
+                clear_inside_fraction(labels, &near, &tn)?,
             ),
             bbox: EvalSet {
                 truth: tb,
@@ -313,7 +329,7 @@ impl EvalSets {
                 truth: tn,
                 points: near,
             },
-        }
+        })
     }
 
     /// Scores a model given as a batch prediction function (normalised coordinates in,
@@ -509,6 +525,11 @@ fn one_way(from: &Mesh, to: &Mesh, to_sdf: &SignedDistance, n: usize, seed: u64)
 
 #[cfg(test)]
 mod tests {
+    /// `sdf`'s labels on the CPU.
+    fn cpu(sdf: &SignedDistance) -> sdf_nn::Labeller<'static> {
+        sdf_nn::Labeller::cpu(std::sync::Arc::new(sdf.clone()))
+    }
+
     use super::*;
 
     #[test]
@@ -667,7 +688,7 @@ mod tests {
     fn eval_sets_on_a_cube_score_the_exact_sdf_perfectly() {
         let (unit, _) = unit_cube().normalized();
         let sdf = SignedDistance::new(&unit).unwrap();
-        let sets = EvalSets::new(&unit, &sdf, 2000, EVAL_SEED);
+        let sets = EvalSets::new(&unit, &cpu(&sdf), 2000, EVAL_SEED).unwrap();
         assert_eq!(sets.bbox.points.len(), 2000);
         // The normalised cube fills the box: almost every box point is inside.
         let inside = sets.bbox.truth.iter().filter(|&&d| d < 0.0).count();
@@ -685,9 +706,9 @@ mod tests {
         let outside = sets.score(|p| Ok::<_, ()>(vec![1.0; p.len()])).unwrap();
         assert_eq!(outside.f1_bbox, Some(0.0));
         // Deterministic for a seed, different for another.
-        let again = EvalSets::new(&unit, &sdf, 2000, EVAL_SEED);
+        let again = EvalSets::new(&unit, &cpu(&sdf), 2000, EVAL_SEED).unwrap();
         assert_eq!(again.near_surface.points, sets.near_surface.points);
-        let other = EvalSets::new(&unit, &sdf, 2000, EVAL_SEED + 1);
+        let other = EvalSets::new(&unit, &cpu(&sdf), 2000, EVAL_SEED + 1).unwrap();
         assert_ne!(other.bbox.points, sets.bbox.points);
     }
 
@@ -724,7 +745,7 @@ mod tests {
     fn reason(m: &Mesh) -> (Option<String>, f64, f64) {
         let (unit, _) = m.normalized();
         let sdf = SignedDistance::new(&unit).unwrap();
-        let sets = EvalSets::new(&unit, &sdf, 5000, EVAL_SEED);
+        let sets = EvalSets::new(&unit, &cpu(&sdf), 5000, EVAL_SEED).unwrap();
         (
             sets.no_inside_reason(),
             sets.clear_inside.0,
@@ -762,7 +783,7 @@ mod tests {
         // Scores of a mesh without an inside: no F1, with the reason; sign accuracy and errors.
         let (unit, _) = flat.normalized();
         let sdf = SignedDistance::new(&unit).unwrap();
-        let sets = EvalSets::new(&unit, &sdf, 2000, EVAL_SEED);
+        let sets = EvalSets::new(&unit, &cpu(&sdf), 2000, EVAL_SEED).unwrap();
         let s = sets
             .score(|p| Ok::<_, ()>(sdf.signed_distance_batch(p)))
             .unwrap();

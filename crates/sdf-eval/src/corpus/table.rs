@@ -118,6 +118,11 @@ impl Merge {
             .collect();
         let presets: BTreeSet<&str> = reports.iter().map(|r| r.preset.as_str()).collect();
         let adapters: BTreeSet<&str> = reports.iter().map(|r| r.adapter.as_str()).collect();
+        // Reports from before the path was recorded labelled on the CPU.
+        let paths: BTreeSet<&str> = reports
+            .iter()
+            .map(|r| r.ground_truth.map_or("cpu", |p| p.name()))
+            .collect();
         let list = |set: &BTreeSet<&str>| {
             if set.is_empty() {
                 "none yet".to_owned()
@@ -127,9 +132,10 @@ impl Merge {
         };
         let _ = writeln!(
             s,
-            "Preset `{}`, adapter {}. {}.\n",
+            "Preset `{}`, adapter {}, ground truth on {}. {}.\n",
             list(&presets),
             list(&adapters),
+            list(&paths),
             self.status()
         );
         for model in ["siren", "nglod"] {

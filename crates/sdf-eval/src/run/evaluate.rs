@@ -76,7 +76,7 @@ pub fn evaluate(
 ) -> Result<Evaluation, RunError> {
     check_eval_points(points)?;
     let mesh = &truth.mesh;
-    let sets = EvalSets::new(mesh, &truth.sdf, points, EVAL_SEED);
+    let sets = EvalSets::new(mesh, &truth.labels, points, EVAL_SEED)?;
     let unsigned = is_unsigned(model.model_file());
     let predict = |p: &[Vec3]| finite_values(p, model.eval_normalized(gpu, p)?);
     let scores = if unsigned {
@@ -91,7 +91,7 @@ pub fn evaluate(
         crate::metrics::SurfaceMetrics::between(
             &level_set,
             mesh,
-            &truth.sdf,
+            truth.sdf(),
             points.min(20_000),
             EVAL_SEED,
         )

@@ -2,8 +2,8 @@
 
 use std::path::Path;
 
-use sdf_nn::DistanceMode;
 use sdf_nn::model_file::write_atomic;
+use sdf_nn::{DistanceMode, GroundTruthPath};
 use serde::{Deserialize, Serialize};
 
 use super::{Evaluation, RunError, TrainOptions, Trained};
@@ -86,6 +86,10 @@ pub struct Report {
     pub eval_points: usize,
     /// Adapter the run used.
     pub adapter: String,
+    /// Where the labels (training samples, evaluation sets) were computed: `"gpu"` or `"cpu"`
+    /// (null in reports written before it was recorded).
+    #[serde(default)]
+    pub ground_truth: Option<GroundTruthPath>,
     /// hwsdf version.
     pub hwsdf_version: String,
     /// Training details (e.g. NGLOD's GPU/sampling time split).
@@ -101,6 +105,7 @@ impl Report {
         file_bytes: u64,
         eval: &Evaluation,
         adapter: String,
+        ground_truth: GroundTruthPath,
     ) -> Self {
         let s = &eval.scores;
         Report {
@@ -134,6 +139,7 @@ impl Report {
             final_lr: Some(trained.lr),
             eval_points: eval.eval_points,
             adapter,
+            ground_truth: Some(ground_truth),
             hwsdf_version: sdf_nn::model_file::HWSDF_VERSION.into(),
             training: trained.details.clone(),
         }

@@ -24,7 +24,7 @@ pub(super) fn train(
         gpu,
         &model,
         &plan.truth.mesh,
-        plan.truth.sdf.clone(),
+        plan.truth.labels.clone(),
         train_config,
     )?;
     trainer.set_stop_flag(plan.stop.clone());

@@ -127,6 +127,9 @@ pub enum NglodError {
     /// A model-file error.
     #[error(transparent)]
     ModelFile(#[from] ModelFileError),
+    /// Labelling the samples on the GPU failed.
+    #[error("ground truth: {0}")]
+    GroundTruth(#[from] crate::ground_truth::GroundTruthError),
 }
 
 /// Architecture hyperparameters.
