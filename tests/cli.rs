@@ -923,3 +923,43 @@ fn train_takes_the_ground_truth_path_asked_for() {
         .unwrap();
     assert_clean_failure(&o, "possible values: gpu, cpu, auto");
 }
+
+/// spot moved 10⁷ away (a georeferenced file): `train` keeps its shape (no "no inside"
+/// warning, a defined F1), and the model file's normalisation maps back to the file's
+/// coordinates through an f64 centre.
+#[test]
+fn train_keeps_the_shape_of_a_mesh_far_from_the_origin() {
+    let (spot, _) = hwsdf::geom::load_mesh(data("spot.obj")).unwrap();
+    let offset = glam::DVec3::new(1e7, -2e7, 3e7);
+    let mut obj = String::new();
+    for v in &spot.vertices {
+        let p = v.as_dvec3() + offset;
+        obj.push_str(&format!("v {} {} {}\n", p.x, p.y, p.z));
+    }
+    for t in &spot.triangles {
+        obj.push_str(&format!("f {} {} {}\n", t[0] + 1, t[1] + 1, t[2] + 1));
+    }
+    let mesh = scratch("far_spot.obj");
+    std::fs::write(&mesh, obj).unwrap();
+    let out = scratch("far_spot.nglod.safetensors");
+    let o = bin("train")
+        .arg(&mesh)
+        .args(["--model", "nglod", "--preset", "small", "--epochs", "1"])
+        .args(["--eval-points", "2000", "--out"])
+        .arg(&out)
+        .output()
+        .unwrap();
+    let err = stderr(&o);
+    assert!(o.status.success(), "train failed: {err}");
+    assert!(!err.contains("no inside"), "{err}");
+    let report: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.with_extension("json")).unwrap()).unwrap();
+    assert!(report["f1_bbox"].as_f64().is_some(), "{report}");
+    let file = hwsdf::nn::ModelFile::load(&out).unwrap();
+    let (_, n0) = spot.normalized();
+    let center = file.metadata.normalization.center;
+    assert!(
+        (center - (n0.center + offset)).abs().max_element() < 1e-6,
+        "{center}"
+    );
+}

@@ -220,3 +220,62 @@ fn gpu_and_cpu_ground_truth_agree() {
         "{err}"
     );
 }
+
+/// A mesh far from the origin (spot moved by 10⁷) with float64 points in its own coordinates
+/// (moved the same way): the distances of the mesh where it was.
+#[test]
+fn a_mesh_far_from_the_origin_gives_the_distances_of_the_mesh_near_it() {
+    let dir = temp_dir("far");
+    let (spot, _) = load_mesh(data("spot.obj")).unwrap();
+    let (_, norm) = spot.normalized();
+    let offset = glam::DVec3::new(1e7, -2e7, 3e7);
+    let mut obj = String::new();
+    for v in &spot.vertices {
+        let p = v.as_dvec3() + offset;
+        obj.push_str(&format!("v {} {} {}\n", p.x, p.y, p.z));
+    }
+    for t in &spot.triangles {
+        obj.push_str(&format!("f {} {} {}\n", t[0] + 1, t[1] + 1, t[2] + 1));
+    }
+    let far = dir.join("far_spot.obj");
+    std::fs::write(&far, obj).unwrap();
+    let pts: Vec<Vec3> = sample::uniform_box(1000, 4)
+        .iter()
+        .map(|&p| norm.to_original(p))
+        .collect();
+    let write64 = |name: &str, shift: glam::DVec3| {
+        let mut bytes = npy_header("<f8", pts.len());
+        for p in &pts {
+            let q = p.as_dvec3() + shift;
+            bytes.extend(q.to_array().iter().flat_map(|v| v.to_le_bytes()));
+        }
+        let path = dir.join(name);
+        std::fs::write(&path, bytes).unwrap();
+        path
+    };
+    let (near_pts, far_pts) = (
+        write64("near.npy", glam::DVec3::ZERO),
+        write64("far.npy", offset),
+    );
+    let run = |mesh: &Path, points: &Path, out: &str| {
+        let out = dir.join(out);
+        let o = sdf(&[
+            mesh.as_os_str(),
+            "--points".as_ref(),
+            points.as_os_str(),
+            "--out".as_ref(),
+            out.as_os_str(),
+            "--ground-truth".as_ref(),
+            "cpu".as_ref(),
+        ]);
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        npy::read_f32(&out).unwrap()
+    };
+    let want = run(&data("spot.obj"), &near_pts, "near.npy.out");
+    let got = run(&far, &far_pts, "far.npy.out");
+    let tol = 1e-6 * spot.bounds().diagonal();
+    for (g, w) in got.iter().zip(&want) {
+        assert!((g - w).abs() <= tol, "{g} {w}");
+    }
+    assert!(want.iter().any(|&d| d < 0.0));
+}

@@ -83,7 +83,7 @@ fn eval(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
     let uris = hwsdf::geom::LoadOptions::with_external_uris(args.allow_external_uris);
     let (mesh, normalization) = run::load_normalized_with(&args.mesh, &uris)?;
     if (normalization.center - model.normalization().center).length()
-        > 1e-4 * normalization.scale.recip()
+        > 1e-4 * f64::from(normalization.scale.recip())
         || (normalization.scale / model.normalization().scale - 1.0).abs() > 1e-4
     {
         eprintln!(

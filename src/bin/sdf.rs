@@ -18,6 +18,7 @@ use std::process::ExitCode;
 use std::time::Instant;
 
 use clap::Parser;
+use glam::{DVec3, Vec3};
 use hwsdf::cli::{GpuFlags, GroundTruthFlags};
 use hwsdf::geom::{GeomError, LoadOptions, SignedDistance, load_mesh_with, npy};
 use hwsdf::nn::{GpuContext, GroundTruthDevice, Labeller};
@@ -75,11 +76,19 @@ fn run(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
     } else {
         mesh
     };
-    let points = npy::read_points(&args.points)?;
+    // Read in f64: a mesh far from the origin is loaded relative to its centre
+    // (`report.origin`), and its points move with it before they become f32.
+    let read = npy::read_points_f64(&args.points)?;
+    let origin = if args.normalized {
+        DVec3::ZERO
+    } else {
+        report.origin
+    };
+    let points: Vec<Vec3> = read.iter().map(|&p| (p - origin).as_vec3()).collect();
     if let Some(i) = points.iter().position(|p| !p.is_finite()) {
         return Err(GeomError::Npy {
             path: args.points.clone(),
-            message: format!("point {i} is not finite: {:?}", points[i]),
+            message: format!("point {i} is not finite: {:?}", read[i].as_vec3()),
         }
         .into());
     }

@@ -6,7 +6,7 @@
 
 use std::path::Path;
 
-use glam::Vec3;
+use glam::{DVec3, Vec3};
 
 use crate::GeomError;
 
@@ -94,6 +94,25 @@ pub fn read_points(path: impl AsRef<Path>) -> Result<Vec<Vec3>, GeomError> {
 
 /// Parses `.npy` bytes (see [`read_points`]); `path` is only used in error messages.
 pub fn parse_points(path: &Path, bytes: &[u8]) -> Result<Vec<Vec3>, GeomError> {
+    Ok(parse_points_f64(path, bytes)?
+        .into_iter()
+        .map(|p| p.as_vec3())
+        .collect())
+}
+
+/// [`read_points`] keeping float64 input in f64 (float32 input is widened exactly): points far
+/// from the origin, where f32 would round them, for a mesh loaded relative to its
+/// [`crate::LoadReport::origin`].
+///
+/// # Errors
+/// As [`read_points`].
+pub fn read_points_f64(path: impl AsRef<Path>) -> Result<Vec<DVec3>, GeomError> {
+    let path = path.as_ref();
+    parse_points_f64(path, &crate::read_input_file(path)?)
+}
+
+/// Parses `.npy` bytes (see [`read_points_f64`]); `path` is only used in error messages.
+pub fn parse_points_f64(path: &Path, bytes: &[u8]) -> Result<Vec<DVec3>, GeomError> {
     if bytes.len() < 10 || &bytes[..6] != MAGIC {
         return Err(bad(path, "not a .npy file (missing \\x93NUMPY magic)"));
     }
@@ -155,30 +174,30 @@ pub fn parse_points(path: &Path, bytes: &[u8]) -> Result<Vec<Vec3>, GeomError> {
             ),
         ));
     }
-    let value = |k: usize| -> f32 {
+    let value = |k: usize| -> f64 {
         let b = &data[k * size..(k + 1) * size];
         if is64 {
             let a: [u8; 8] = b.try_into().unwrap_or([0; 8]);
-            (if big {
+            if big {
                 f64::from_be_bytes(a)
             } else {
                 f64::from_le_bytes(a)
-            }) as f32
+            }
         } else {
             let a: [u8; 4] = b.try_into().unwrap_or([0; 4]);
-            if big {
+            f64::from(if big {
                 f32::from_be_bytes(a)
             } else {
                 f32::from_le_bytes(a)
-            }
+            })
         }
     };
     Ok((0..n)
         .map(|i| {
             if header.fortran {
-                Vec3::new(value(i), value(n + i), value(2 * n + i))
+                DVec3::new(value(i), value(n + i), value(2 * n + i))
             } else {
-                Vec3::new(value(3 * i), value(3 * i + 1), value(3 * i + 2))
+                DVec3::new(value(3 * i), value(3 * i + 1), value(3 * i + 2))
             }
         })
         .collect())

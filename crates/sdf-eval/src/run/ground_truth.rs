@@ -17,16 +17,19 @@ pub fn load_normalized(path: &Path) -> Result<(Mesh, sdf_geom::Normalization), R
 }
 
 /// [`load_normalized`] with explicit [`sdf_geom::LoadOptions`] (the bins' `--allow-external-uris`).
+/// The normalisation maps to the file's coordinates, also for a mesh loaded relative to its
+/// [`sdf_geom::LoadReport::origin`] (far from the origin): its centre is then in f64.
 pub fn load_normalized_with(
     path: &Path,
     options: &sdf_geom::LoadOptions,
 ) -> Result<(Mesh, sdf_geom::Normalization), RunError> {
-    let (mesh, _report) =
+    let (mesh, report) =
         sdf_geom::load_mesh_with(path, options).map_err(|source| RunError::Mesh {
             path: path.to_owned(),
             source,
         })?;
-    Ok(mesh.normalized())
+    let (unit, normalization) = mesh.normalized();
+    Ok((unit, normalization.translated(report.origin)))
 }
 
 /// A normalised mesh with its exact signed distance, built once per run: the no-inside check,
