@@ -109,6 +109,17 @@ fn eval_and_extract_use_the_trained_model() {
     // exactly the signs the accuracy counts wrong.
     assert_eq!(json["f1_bbox"], report["f1_bbox"]);
     assert_eq!(json["sign_errors_bbox"], report["sign_errors_bbox"]);
+    // And the same ambiguous fractions (suzanne is open: some of its near-surface points).
+    assert_eq!(json["ambiguous_bbox"], report["ambiguous_bbox"]);
+    assert_eq!(
+        json["ambiguous_near_surface"],
+        report["ambiguous_near_surface"]
+    );
+    assert!(
+        json["ambiguous_near_surface"].as_f64().unwrap() > 0.0,
+        "{json}"
+    );
+    assert_eq!(json["ground_truth"], report["ground_truth"]);
     for set in ["bbox", "near_surface"] {
         let errors: hwsdf::eval::SignErrors =
             serde_json::from_value(json[format!("sign_errors_{set}")].clone()).unwrap();
@@ -915,6 +926,13 @@ fn train_takes_the_ground_truth_path_asked_for() {
     assert_eq!(json["ground_truth"], "gpu", "{json}");
     let f1 = json["f1_bbox"].as_f64().unwrap();
     assert!(f1 > 0.5, "{json}");
+    // spot is closed: nothing ambiguous, which the report and the summary line say.
+    assert_eq!(json["ambiguous_bbox"], 0.0, "{json}");
+    let summary = String::from_utf8_lossy(&o.stdout);
+    assert!(
+        summary.contains("(ambiguous box 0.0%, near 0.0%)"),
+        "{summary}"
+    );
 
     let o = bin("train")
         .arg(data("spot.obj"))

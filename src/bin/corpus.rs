@@ -267,9 +267,10 @@ fn train_one(
         }
         Ok(RunOutcome::Finished(report, _)) => {
             eprintln!(
-                "{rel} {tag}: F1 box {}, near {}, {:.0} s (ground truth on the {})",
+                "{rel} {tag}: F1 box {}, near {} ({}), {:.0} s (ground truth on the {})",
                 corpus::f1_cell(report.f1_bbox),
                 corpus::f1_cell(report.f1_near_surface),
+                report.ambiguity_summary(),
                 report.train_seconds,
                 report
                     .ground_truth

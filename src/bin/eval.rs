@@ -124,6 +124,8 @@ fn eval(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
         "sign_errors_bbox": scores.sign_errors_bbox,
         "sign_errors_near_surface": scores.sign_errors_near_surface,
         "f1_null_reason": scores.f1_null_reason,
+        "ambiguous_bbox": scores.ambiguous_bbox,
+        "ambiguous_near_surface": scores.ambiguous_near_surface,
         "inside_fraction_bbox": scores.inside_fraction_bbox,
         "bbox_mean_abs_error": scores.bbox_error.mean_abs,
         "near_surface_mean_abs_error": scores.near_surface_error.mean_abs,
@@ -160,6 +162,13 @@ fn eval(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
         if let Some(reason) = &scores.f1_null_reason {
             println!("                 n/a: {reason}");
         }
+        println!(
+            "inside/outside   {} (winding number between 0.2 and 0.8: open meshes)",
+            hwsdf::eval::metrics::ambiguity_summary(
+                scores.ambiguous_bbox,
+                scores.ambiguous_near_surface
+            )
+        );
         println!(
             "sign accuracy    {} / {}",
             f4(scores.sign_accuracy_bbox),

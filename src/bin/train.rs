@@ -291,12 +291,13 @@ fn print_summary(mesh: &Path, model: ModelKind, report: &run::Report) {
         .map(|c| format!(", Chamfer-L1 {c:.5} (level set {})", run::UNSIGNED_LEVEL))
         .unwrap_or_default();
     println!(
-        "{} {}: F1 box {}, near surface {}, mean {}; |Φ−d| near {:.5}{chamfer}; {:.1} ns/point, {:.0} µs per 3000; {} params, {} bytes; trained in {:.1} s",
+        "{} {}: F1 box {}, near surface {}, mean {} ({}); |Φ−d| near {:.5}{chamfer}; {:.1} ns/point, {:.0} µs per 3000; {} params, {} bytes; trained in {:.1} s",
         mesh.display(),
         model.name(),
         f4(report.f1_bbox),
         f4(report.f1_near_surface),
         f4(report.f1_mean),
+        report.ambiguity_summary(),
         report.near_surface_mean_abs_error,
         report.per_point_ns,
         report.batch3000_us,
