@@ -910,7 +910,8 @@ fn train_takes_the_ground_truth_path_asked_for() {
     let o = bin("train")
         .arg(data("spot.obj"))
         .args(["--model", "nglod", "--preset", "small", "--epochs", "1"])
-        .args(["--eval-points", "2000", "--ground-truth", "gpu", "--out"])
+        .args(["--eval-points", "2000", "--ground-truth", "gpu"])
+        .args(["--label-estimate-after", "0", "--out"])
         .arg(&out)
         .arg("--report")
         .arg(&report)
@@ -919,6 +920,13 @@ fn train_takes_the_ground_truth_path_asked_for() {
     assert!(o.status.success(), "train failed: {}", stderr(&o));
     assert!(
         stderr(&o).contains("ground truth on the GPU"),
+        "{}",
+        stderr(&o)
+    );
+    // The labelling estimate (forced by the hidden threshold): 40 000 for the no-inside
+    // check, one pool block of 300 000, 4 × 2000 for the evaluation.
+    assert!(
+        stderr(&o).contains("labelling: about 348 k exact distances on the GPU, estimated "),
         "{}",
         stderr(&o)
     );

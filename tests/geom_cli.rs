@@ -279,3 +279,70 @@ fn a_mesh_far_from_the_origin_gives_the_distances_of_the_mesh_near_it() {
     }
     assert!(want.iter().any(|&d| d < 0.0));
 }
+
+/// A mesh that labels slowly (50 000 random triangles spanning the box: about 1 ms per point on
+/// 2 cores) says how long labelling will take before it starts, and how far it has got while it
+/// runs. The thresholds are forced to 0 (hidden flags) so that the lines do not depend on the
+/// machine's speed; their format is checked, not their times.
+#[test]
+fn slow_labelling_says_how_long_and_how_far() {
+    let dir = temp_dir("slow");
+    let mut rng = 0x2545_F491_4F6C_DD1Du64;
+    let mut uniform = || {
+        rng ^= rng << 13;
+        rng ^= rng >> 7;
+        rng ^= rng << 17;
+        (rng >> 40) as f32 / (1u64 << 24) as f32 * 2.0 - 1.0
+    };
+    let n = 50_000;
+    let mut obj = String::with_capacity(n * 100);
+    for _ in 0..3 * n {
+        obj.push_str(&format!("v {} {} {}\n", uniform(), uniform(), uniform()));
+    }
+    for i in 0..n {
+        obj.push_str(&format!("f {} {} {}\n", 3 * i + 1, 3 * i + 2, 3 * i + 3));
+    }
+    let mesh = dir.join("soup.obj");
+    std::fs::write(&mesh, obj).unwrap();
+    let points = dir.join("points.npy");
+    npy::write_points(&points, &sample::uniform_box(5000, 6)).unwrap();
+    let out = dir.join("d.npy");
+    let o = sdf(&[
+        mesh.as_os_str(),
+        "--points".as_ref(),
+        points.as_os_str(),
+        "--out".as_ref(),
+        out.as_os_str(),
+        "--ground-truth".as_ref(),
+        "cpu".as_ref(),
+        "--label-estimate-after".as_ref(),
+        "0".as_ref(),
+        "--label-progress-every".as_ref(),
+        "0".as_ref(),
+    ]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{err}");
+    let estimate = err
+        .lines()
+        .find(|l| l.starts_with("labelling: about 5000 exact distances on the CPU, estimated "))
+        .unwrap_or_else(|| panic!("no estimate line: {err}"));
+    assert!(estimate.contains(" µs each, measured on "), "{estimate}");
+    // 5000 points in parts of 1024: five progress lines, the last one complete.
+    let progress: Vec<&str> = err
+        .lines()
+        .filter(|l| l.starts_with("labelling: ") && l.contains(" so far, ETA "))
+        .collect();
+    assert_eq!(progress.len(), 5, "{err}");
+    assert!(
+        progress[0].starts_with("labelling: 1024/5000 (20%), "),
+        "{err}"
+    );
+    assert!(
+        progress[4].starts_with("labelling: 5000/5000 (100%), "),
+        "{err}"
+    );
+    assert!(progress[4].ends_with("ETA 0 s"), "{err}");
+    // The estimate came before the first progress line.
+    assert!(err.find(estimate) < err.find(progress[0]));
+    assert_eq!(npy::read_f32(&out).unwrap().len(), 5000);
+}

@@ -19,7 +19,7 @@ use std::time::Instant;
 
 use clap::Parser;
 use glam::{DVec3, Vec3};
-use hwsdf::cli::{GpuFlags, GroundTruthFlags};
+use hwsdf::cli::{GpuFlags, GroundTruthFlags, LabelFlags};
 use hwsdf::geom::{GeomError, LoadOptions, SignedDistance, load_mesh_with, npy};
 use hwsdf::nn::{GpuContext, GroundTruthDevice, Labeller};
 
@@ -49,6 +49,8 @@ struct Args {
     ground_truth: GroundTruthFlags,
     #[command(flatten)]
     gpu: GpuFlags,
+    #[command(flatten)]
+    labelling: LabelFlags,
 }
 
 fn run(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
@@ -111,6 +113,21 @@ fn run(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
         eprintln!("warning: {}: {why}", args.mesh.display());
     }
     let t_build = t.elapsed();
+    // No minutes of silence: the estimate (measured on a spread of the points) first, then
+    // progress lines.
+    let stride = (points.len() / PROBE_POINTS).max(1);
+    let probe: Vec<Vec3> = points.iter().step_by(stride).copied().collect();
+    let (per_label, measured) = labels.time_per_label(&probe)?;
+    if let Some(line) = hwsdf::eval::run::estimate_line(
+        points.len(),
+        per_label,
+        measured,
+        labels.path(),
+        args.labelling.label_estimate_after,
+    ) {
+        eprintln!("{line}");
+    }
+    let labels = labels.with_progress(args.labelling.progress());
     let d = labels.signed_distance_batch(&points)?;
     if args.verbose {
         eprintln!(
@@ -123,6 +140,9 @@ fn run(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
     }
     Ok(npy::write_f32(&args.out, &d)?)
 }
+
+/// Points the labelling estimate is measured on, at most (a spread of the query points).
+const PROBE_POINTS: usize = 4096;
 
 /// The labels of `sdf` on `device`, on `gpu` where one is open.
 fn labeller(

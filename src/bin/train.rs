@@ -15,7 +15,7 @@ use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 
 use clap::{Parser, ValueEnum};
-use hwsdf::cli::{GpuFlags, GroundTruthFlags, TrainingFlags, format_loss};
+use hwsdf::cli::{GpuFlags, GroundTruthFlags, LabelFlags, TrainingFlags, format_loss};
 use hwsdf::eval::run::{self, ModelKind, NglodArchitecture, Progress};
 use hwsdf::geom::io;
 use hwsdf::nn::{DistanceMode, NeuralSdf};
@@ -54,6 +54,8 @@ struct Args {
     gpu: GpuFlags,
     #[command(flatten)]
     ground_truth: GroundTruthFlags,
+    #[command(flatten)]
+    labelling: LabelFlags,
 }
 
 /// The exit status of a run stopped by Ctrl-C or SIGTERM (its checkpoint written), as a shell
@@ -120,10 +122,18 @@ fn train(args: &Args) -> Result<Outcome, Box<dyn std::error::Error>> {
     }
     // The exact SDF once, for the check below, the trainer's samples and the evaluation; after
     // every cheap check, since on a scan of millions of triangles it takes seconds.
-    let truth = run::GroundTruth::on(&gpu, mesh, &args.mesh, args.ground_truth.device())?;
+    let mut truth = run::GroundTruth::on(&gpu, mesh, &args.mesh, args.ground_truth.device())?;
     if let Some(why) = truth.labels.fallback() {
         eprintln!("warning: {}: {why}", args.mesh.display());
     }
+    // No minutes of silence on a mesh that labels slowly: the estimate first, then progress.
+    let planned = run::planned_labels(&options, gpu.is_cpu(), flags.eval_points);
+    if let Some(line) =
+        run::labelling_estimate(&truth, planned, args.labelling.label_estimate_after)?
+    {
+        eprintln!("{line}");
+    }
+    truth.labels = truth.labels.with_progress(args.labelling.progress());
     if options.distance == DistanceMode::Signed
         && let Some(reason) = run::no_inside_check(&truth)?
     {

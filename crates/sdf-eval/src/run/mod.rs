@@ -31,7 +31,10 @@ pub use evaluate::{
     UNSIGNED_LEVEL, check_eval_points, evaluate, extract_mesh, extract_mesh_with, finite_values,
     is_unsigned,
 };
-pub use ground_truth::{GroundTruth, load_normalized, load_normalized_with, no_inside_check};
+pub use ground_truth::{
+    GroundTruth, duration, estimate_line, labelling_estimate, load_normalized,
+    load_normalized_with, no_inside_check, planned_labels,
+};
 pub use options::{
     CPU_TIME_BUDGET, Length, MAX_EPOCHS, MAX_STEPS, ModelKind, NglodArchitecture, Preset,
     RunSettings, TrainOptions, default_length,

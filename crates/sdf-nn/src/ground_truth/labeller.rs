@@ -27,6 +27,7 @@
 use std::fmt;
 use std::str::FromStr;
 use std::sync::Arc;
+use std::time::{Duration, Instant};
 
 use glam::Vec3;
 use sdf_geom::SignedDistance;
@@ -155,6 +156,36 @@ fn fallback_reason(e: &GroundTruthError) -> String {
     format!("ground truth on the CPU instead of the GPU: {e}")
 }
 
+/// How far a long labelling call has got, for progress lines ([`Labeller::with_progress`]).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct LabelProgress {
+    /// Points labelled so far in this call.
+    pub done: usize,
+    /// Points of the call.
+    pub total: usize,
+    /// Time since the call began.
+    pub elapsed: Duration,
+}
+
+impl LabelProgress {
+    /// The time left at the rate so far (`None` before any point is done).
+    pub fn eta(&self) -> Option<Duration> {
+        (self.done > 0).then(|| {
+            self.elapsed
+                .mul_f64((self.total - self.done.min(self.total)) as f64 / self.done as f64)
+        })
+    }
+}
+
+/// Where a [`Labeller`] reports progress: called after each part of a long call, from the
+/// labelling thread (NGLOD's samplers label on their own threads).
+pub type ProgressSink = Arc<dyn Fn(&LabelProgress) + Send + Sync>;
+
+/// A call with a progress sink is labelled in about this many parts...
+const PROGRESS_PARTS: usize = 64;
+/// ...of at least this many points (smaller calls in one part, with no progress call).
+const MIN_PART: usize = 1024;
+
 /// A mesh's exact labels on the path a run chose: signed and unsigned distances, winding
 /// numbers and sides, for batches of points (normalised or mesh units: those of the
 /// [`SignedDistance`]). Cheap to clone (the trees are shared).
@@ -163,6 +194,7 @@ pub struct Labeller<'g> {
     cpu: Arc<SignedDistance>,
     gpu: Option<(&'g GpuContext, Arc<GpuGroundTruth>)>,
     fallback: Option<String>,
+    progress: Option<ProgressSink>,
 }
 
 impl fmt::Debug for Labeller<'_> {
@@ -181,6 +213,7 @@ impl Labeller<'static> {
             cpu: sdf,
             gpu: None,
             fallback: None,
+            progress: None,
         }
     }
 }
@@ -206,9 +239,8 @@ impl<'g> Labeller<'g> {
             }),
             Decision::Gpu => match (device, GpuGroundTruth::new(gpu, &sdf)) {
                 (_, Ok(g)) => Ok(Labeller {
-                    cpu: sdf,
                     gpu: Some((gpu, Arc::new(g))),
-                    fallback: None,
+                    ..Labeller::cpu(sdf)
                 }),
                 // The upload itself failed (out of device memory): `auto` still has the CPU.
                 (GroundTruthDevice::Auto, Err(e)) => Ok(Labeller {
@@ -227,9 +259,8 @@ impl<'g> Labeller<'g> {
     pub fn on_gpu(gpu: &'g GpuContext, sdf: Arc<SignedDistance>) -> Result<Self, GroundTruthError> {
         let g = GpuGroundTruth::new(gpu, &sdf)?;
         Ok(Labeller {
-            cpu: sdf,
             gpu: Some((gpu, Arc::new(g))),
-            fallback: None,
+            ..Labeller::cpu(sdf)
         })
     }
 
@@ -253,12 +284,50 @@ impl<'g> Labeller<'g> {
         &self.cpu
     }
 
+    /// These labels, reporting the progress of every call of more than a few thousand points
+    /// to `sink` (after each of about 64 parts; the parts are labelled one after another, each
+    /// as one batch).
+    pub fn with_progress(self, sink: ProgressSink) -> Self {
+        Labeller {
+            progress: Some(sink),
+            ..self
+        }
+    }
+
+    /// Seconds per signed distance on this path, measured on a prefix of `probe` (points like
+    /// those the run will label): a first few points untimed (a GPU compiles its kernels on the
+    /// first call), then batches that double until a quarter of a second has passed or the
+    /// probe is spent. Returns the rate and the number of points it was measured on.
+    ///
+    /// # Errors
+    /// As [`Labeller::signed_distance_batch`].
+    pub fn time_per_label(&self, probe: &[Vec3]) -> Result<(f64, usize), GroundTruthError> {
+        let warm = probe.len().min(64);
+        self.signed(&probe[..warm])?;
+        let (mut at, mut batch, mut timed) = (warm, 256usize, Duration::ZERO);
+        while at < probe.len() && timed < PROBE_TIME {
+            let end = (at + batch).min(probe.len());
+            let t = Instant::now();
+            self.signed(&probe[at..end])?;
+            timed += t.elapsed();
+            at = end;
+            batch *= 2;
+        }
+        let n = at - warm;
+        Ok((timed.as_secs_f64() / n.max(1) as f64, n))
+    }
+
     /// Signed distances, as [`SignedDistance::signed_distance_batch`]: negative inside, NaN
     /// for non-finite points.
     ///
     /// # Errors
     /// The GPU's ([`GroundTruthError::Gpu`]); the CPU path does not fail.
     pub fn signed_distance_batch(&self, points: &[Vec3]) -> Result<Vec<f32>, GroundTruthError> {
+        self.in_parts(points, |p| self.signed(p))
+    }
+
+    /// [`Labeller::signed_distance_batch`] in one batch.
+    fn signed(&self, points: &[Vec3]) -> Result<Vec<f32>, GroundTruthError> {
         match &self.gpu {
             Some((gpu, g)) => g.signed_distance(gpu, points),
             None => Ok(self.cpu.signed_distance_batch(points)),
@@ -270,18 +339,20 @@ impl<'g> Labeller<'g> {
     /// # Errors
     /// As [`Labeller::signed_distance_batch`].
     pub fn unsigned_distance_batch(&self, points: &[Vec3]) -> Result<Vec<f32>, GroundTruthError> {
-        Ok(match &self.gpu {
-            Some((gpu, g)) => g
-                .closest_points(gpu, points)?
-                .into_iter()
-                .map(|(_, d)| d)
-                .collect(),
-            None => self
-                .cpu
-                .closest_point_batch(points)
-                .iter()
-                .map(|c| c.distance)
-                .collect(),
+        self.in_parts(points, |points| {
+            Ok(match &self.gpu {
+                Some((gpu, g)) => g
+                    .closest_points(gpu, points)?
+                    .into_iter()
+                    .map(|(_, d)| d)
+                    .collect(),
+                None => self
+                    .cpu
+                    .closest_point_batch(points)
+                    .iter()
+                    .map(|c| c.distance)
+                    .collect(),
+            })
         })
     }
 
@@ -290,10 +361,10 @@ impl<'g> Labeller<'g> {
     /// # Errors
     /// As [`Labeller::signed_distance_batch`].
     pub fn winding_number_batch(&self, points: &[Vec3]) -> Result<Vec<f32>, GroundTruthError> {
-        match &self.gpu {
+        self.in_parts(points, |points| match &self.gpu {
             Some((gpu, g)) => g.winding_numbers(gpu, points),
             None => Ok(self.cpu.winding_number_batch(points)),
-        }
+        })
     }
 
     /// Whether each point is inside (a winding number of at least 1/2), as
@@ -302,16 +373,45 @@ impl<'g> Labeller<'g> {
     /// # Errors
     /// As [`Labeller::signed_distance_batch`].
     pub fn is_inside_batch(&self, points: &[Vec3]) -> Result<Vec<bool>, GroundTruthError> {
-        Ok(match &self.gpu {
-            Some(_) => self
-                .winding_number_batch(points)?
-                .into_iter()
-                .map(|w| w >= INSIDE_WINDING)
-                .collect(),
-            None => self.cpu.is_inside_batch(points),
+        self.in_parts(points, |points| {
+            Ok(match &self.gpu {
+                Some((gpu, g)) => g
+                    .winding_numbers(gpu, points)?
+                    .into_iter()
+                    .map(|w| w >= INSIDE_WINDING)
+                    .collect(),
+                None => self.cpu.is_inside_batch(points),
+            })
         })
     }
+
+    /// `label` over `points`: in one batch, or with a progress sink and many points in parts,
+    /// reporting after each.
+    fn in_parts<T>(
+        &self,
+        points: &[Vec3],
+        label: impl Fn(&[Vec3]) -> Result<Vec<T>, GroundTruthError>,
+    ) -> Result<Vec<T>, GroundTruthError> {
+        let part = (points.len() / PROGRESS_PARTS).max(MIN_PART);
+        let Some(sink) = self.progress.as_ref().filter(|_| points.len() > part) else {
+            return label(points);
+        };
+        let start = Instant::now();
+        let mut out = Vec::with_capacity(points.len());
+        for p in points.chunks(part) {
+            out.extend(label(p)?);
+            sink(&LabelProgress {
+                done: out.len(),
+                total: points.len(),
+                elapsed: start.elapsed(),
+            });
+        }
+        Ok(out)
+    }
 }
+
+/// How long [`Labeller::time_per_label`] measures, at least (unless its probe runs out).
+const PROBE_TIME: Duration = Duration::from_millis(250);
 
 #[cfg(test)]
 mod tests {
@@ -361,6 +461,38 @@ mod tests {
             "{err:?}"
         );
         assert_eq!(decide(Gpu, true, roomy).unwrap(), Decision::Gpu);
+    }
+
+    /// With a progress sink a long call comes in parts, each reported, and gives the same
+    /// labels; a short call is one batch, unreported; the probe measures a positive rate.
+    #[test]
+    fn long_calls_report_their_progress() {
+        use std::sync::Mutex;
+        let sdf = Arc::new(SignedDistance::new(&sdf_geom::Mesh::icosphere(0.5, 2)).unwrap());
+        let seen: Arc<Mutex<Vec<LabelProgress>>> = Arc::default();
+        let sink = seen.clone();
+        let labels = Labeller::cpu(sdf.clone())
+            .with_progress(Arc::new(move |p| sink.lock().unwrap().push(*p)));
+        let points = sdf_geom::sample::uniform_box(20_000, 5);
+        assert_eq!(
+            labels.signed_distance_batch(&points).unwrap(),
+            sdf.signed_distance_batch(&points)
+        );
+        let seen = std::mem::take(&mut *seen.lock().unwrap());
+        assert_eq!(seen.len(), 20_000usize.div_ceil(MIN_PART));
+        assert!(seen.windows(2).all(|w| w[0].done < w[1].done));
+        let last = seen.last().unwrap();
+        assert_eq!((last.done, last.total), (20_000, 20_000));
+        assert_eq!(last.eta(), Some(Duration::ZERO));
+        let half = LabelProgress {
+            done: 50,
+            total: 100,
+            elapsed: Duration::from_secs(3),
+        };
+        assert_eq!(half.eta(), Some(Duration::from_secs(3)));
+        labels.is_inside_batch(&points[..100]).unwrap();
+        let (rate, n) = labels.time_per_label(&points).unwrap();
+        assert!(rate > 0.0 && n > 0 && n <= 20_000 - 64, "{rate} {n}");
     }
 
     #[test]

@@ -56,7 +56,9 @@ mod labeller;
 use glam::Vec3;
 use sdf_geom::{GpuTrees, SignedDistance, morton_order};
 
-pub use labeller::{GroundTruthDevice, GroundTruthPath, Labeller, UnknownDevice};
+pub use labeller::{
+    GroundTruthDevice, GroundTruthPath, LabelProgress, Labeller, ProgressSink, UnknownDevice,
+};
 
 use crate::gpu::{GpuContext, GpuError, entry};
 use crate::shaders::{self, Shader};
