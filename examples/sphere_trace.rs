@@ -215,7 +215,7 @@ fn camera(sdf: &NeuralSdf) -> [f32; 16] {
     let tan_half = (35f32.to_radians() / 2.0).tan();
     let distance = radius * (1.0 + tan_half * tan_half).sqrt() / tan_half; // radius / sin(fov/2)
     let from_center = Vec3::new(0.55, 0.35, 0.75).normalize();
-    let eye = n.center + distance * from_center;
+    let eye = n.center.as_vec3() + distance * from_center;
     let forward = -from_center;
     let right = forward.cross(Vec3::Y).normalize();
     let up = right.cross(forward);

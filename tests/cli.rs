@@ -72,6 +72,13 @@ fn train_writes_a_model_and_a_complete_report() {
     }
     assert_eq!(report["model"], "nglod");
     assert_eq!(report["preset"], "small");
+    // `--ground-truth auto`: the GPU's kernels unless the adapter is a CPU (lavapipe).
+    let cpu_adapter = report["adapter"].as_str().unwrap().contains("(Cpu,");
+    assert_eq!(
+        report["ground_truth"],
+        if cpu_adapter { "cpu" } else { "gpu" },
+        "{report}"
+    );
     assert_eq!(
         report["file_bytes"].as_u64().unwrap(),
         std::fs::metadata(model).unwrap().len()
@@ -102,6 +109,17 @@ fn eval_and_extract_use_the_trained_model() {
     // exactly the signs the accuracy counts wrong.
     assert_eq!(json["f1_bbox"], report["f1_bbox"]);
     assert_eq!(json["sign_errors_bbox"], report["sign_errors_bbox"]);
+    // And the same ambiguous fractions (suzanne is open: some of its near-surface points).
+    assert_eq!(json["ambiguous_bbox"], report["ambiguous_bbox"]);
+    assert_eq!(
+        json["ambiguous_near_surface"],
+        report["ambiguous_near_surface"]
+    );
+    assert!(
+        json["ambiguous_near_surface"].as_f64().unwrap() > 0.0,
+        "{json}"
+    );
+    assert_eq!(json["ground_truth"], report["ground_truth"]);
     for set in ["bbox", "near_surface"] {
         let errors: hwsdf::eval::SignErrors =
             serde_json::from_value(json[format!("sign_errors_{set}")].clone()).unwrap();
@@ -880,4 +898,94 @@ fn eval_reports_a_model_without_a_surface() {
             assert!(out.contains("surface          n/a:"), "{out}");
         }
     }
+}
+
+/// `--ground-truth gpu` labels the training samples and the evaluation sets on the GPU's
+/// kernels, on any adapter (lavapipe included), and the report says so; an unknown value is
+/// clap's error naming the allowed ones.
+#[test]
+fn train_takes_the_ground_truth_path_asked_for() {
+    let out = scratch("gt-gpu.nglod.safetensors");
+    let report = scratch("gt-gpu.nglod.json");
+    let o = bin("train")
+        .arg(data("spot.obj"))
+        .args(["--model", "nglod", "--preset", "small", "--epochs", "1"])
+        .args(["--eval-points", "2000", "--ground-truth", "gpu"])
+        .args(["--label-estimate-after", "0", "--out"])
+        .arg(&out)
+        .arg("--report")
+        .arg(&report)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "train failed: {}", stderr(&o));
+    assert!(
+        stderr(&o).contains("ground truth on the GPU"),
+        "{}",
+        stderr(&o)
+    );
+    // The labelling estimate (forced by the hidden threshold): 40 000 for the no-inside
+    // check, one pool block of 300 000, 4 × 2000 for the evaluation.
+    assert!(
+        stderr(&o).contains("labelling: about 348 k exact distances on the GPU, estimated "),
+        "{}",
+        stderr(&o)
+    );
+    let json: serde_json::Value = serde_json::from_slice(&std::fs::read(&report).unwrap()).unwrap();
+    assert_eq!(json["ground_truth"], "gpu", "{json}");
+    let f1 = json["f1_bbox"].as_f64().unwrap();
+    assert!(f1 > 0.5, "{json}");
+    // spot is closed: nothing ambiguous, which the report and the summary line say.
+    assert_eq!(json["ambiguous_bbox"], 0.0, "{json}");
+    let summary = String::from_utf8_lossy(&o.stdout);
+    assert!(
+        summary.contains("(ambiguous box 0.0%, near 0.0%)"),
+        "{summary}"
+    );
+
+    let o = bin("train")
+        .arg(data("spot.obj"))
+        .args(["--ground-truth", "tpu"])
+        .output()
+        .unwrap();
+    assert_clean_failure(&o, "possible values: gpu, cpu, auto");
+}
+
+/// spot moved 10⁷ away (a georeferenced file): `train` keeps its shape (no "no inside"
+/// warning, a defined F1), and the model file's normalisation maps back to the file's
+/// coordinates through an f64 centre.
+#[test]
+fn train_keeps_the_shape_of_a_mesh_far_from_the_origin() {
+    let (spot, _) = hwsdf::geom::load_mesh(data("spot.obj")).unwrap();
+    let offset = glam::DVec3::new(1e7, -2e7, 3e7);
+    let mut obj = String::new();
+    for v in &spot.vertices {
+        let p = v.as_dvec3() + offset;
+        obj.push_str(&format!("v {} {} {}\n", p.x, p.y, p.z));
+    }
+    for t in &spot.triangles {
+        obj.push_str(&format!("f {} {} {}\n", t[0] + 1, t[1] + 1, t[2] + 1));
+    }
+    let mesh = scratch("far_spot.obj");
+    std::fs::write(&mesh, obj).unwrap();
+    let out = scratch("far_spot.nglod.safetensors");
+    let o = bin("train")
+        .arg(&mesh)
+        .args(["--model", "nglod", "--preset", "small", "--epochs", "1"])
+        .args(["--eval-points", "2000", "--out"])
+        .arg(&out)
+        .output()
+        .unwrap();
+    let err = stderr(&o);
+    assert!(o.status.success(), "train failed: {err}");
+    assert!(!err.contains("no inside"), "{err}");
+    let report: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.with_extension("json")).unwrap()).unwrap();
+    assert!(report["f1_bbox"].as_f64().is_some(), "{report}");
+    let file = hwsdf::nn::ModelFile::load(&out).unwrap();
+    let (_, n0) = spot.normalized();
+    let center = file.metadata.normalization.center;
+    assert!(
+        (center - (n0.center + offset)).abs().max_element() < 1e-6,
+        "{center}"
+    );
 }

@@ -453,7 +453,7 @@ impl Fixtures {
 
 fn identity() -> Normalization {
     Normalization {
-        center: glam::Vec3::ZERO,
+        center: glam::Vec3::ZERO.as_dvec3(),
         scale: 1.0,
     }
 }

@@ -19,7 +19,7 @@ fn gpu() -> &'static GpuContext {
 /// Mesh coordinates that differ from the normalised ones.
 fn normalization() -> Normalization {
     Normalization {
-        center: Vec3::new(3.0, -1.0, 0.25),
+        center: Vec3::new(3.0, -1.0, 0.25).as_dvec3(),
         scale: 0.5,
     }
 }
@@ -179,7 +179,7 @@ fn a_sphere_model_extracts_to_the_sphere() {
     // interpolation error plus the surface-nets vertex placement, well under one cell.
     let cell = 2.1 / 64.0 / norm.scale;
     for v in &mesh.vertices {
-        let r = (*v - norm.center).length();
+        let r = (*v - norm.center.as_vec3()).length();
         assert!(
             (r - radius / norm.scale).abs() < 0.2 * cell,
             "vertex at radius {r}"

@@ -34,7 +34,7 @@ fn sphere_model() -> &'static PathBuf {
     PATH.get_or_init(|| {
         let path = scratch("sphere.safetensors");
         let n = Normalization {
-            center: Vec3::X,
+            center: glam::DVec3::X,
             scale: 1.0,
         };
         Nglod::from_sdf(16, |p| p.length() - 0.5)

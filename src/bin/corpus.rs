@@ -26,7 +26,7 @@ use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 
 use clap::{Parser, ValueEnum};
-use hwsdf::cli::{GpuFlags, TrainingFlags};
+use hwsdf::cli::{GpuFlags, GroundTruthFlags, TrainingFlags};
 use hwsdf::eval::corpus::{self, CorpusMesh, CorpusSettings, Entry, Record, Shard, StateDir};
 use hwsdf::eval::run::{self, Checkpoint, ModelKind, Preset, RunOutcome, TrainOptions};
 use hwsdf::geom::io::write_atomic;
@@ -67,6 +67,8 @@ struct Args {
     merge: bool,
     #[command(flatten)]
     gpu: GpuFlags,
+    #[command(flatten)]
+    ground_truth: GroundTruthFlags,
     /// Every mesh's training, as `train` takes it.
     #[command(flatten)]
     training: TrainingFlags,
@@ -160,8 +162,7 @@ fn corpus(args: &Args) -> Result<ExitCode, BoxError> {
         .flat_map(|m| options.iter().map(move |o| (*m, o)));
     for (mesh, options) in pairs {
         if stop.load(Ordering::Relaxed)
-            || train_one(&gpu, &state, mesh, options, flags.eval_points, &stop)?
-                == Trained::Interrupted
+            || train_one(&gpu, &state, mesh, options, args, &stop)? == Trained::Interrupted
         {
             eprintln!("stopped; run the same command again to resume");
             return Ok(ExitCode::from(130));
@@ -225,7 +226,7 @@ fn train_one(
     state: &StateDir,
     mesh: &CorpusMesh,
     options: &TrainOptions,
-    eval_points: usize,
+    args: &Args,
     stop: &Arc<AtomicBool>,
 ) -> Result<Trained, BoxError> {
     let model = options.model;
@@ -247,8 +248,9 @@ fn train_one(
         gpu,
         &mesh.path,
         options,
+        args.ground_truth.device(),
         &state.model_file(rel, model),
-        eval_points,
+        args.training.eval_points,
         checkpoint.as_ref(),
         stop,
         |_| {},
@@ -265,10 +267,14 @@ fn train_one(
         }
         Ok(RunOutcome::Finished(report, _)) => {
             eprintln!(
-                "{rel} {tag}: F1 box {}, near {}, {:.0} s",
+                "{rel} {tag}: F1 box {}, near {} ({}), {:.0} s (ground truth on the {})",
                 corpus::f1_cell(report.f1_bbox),
                 corpus::f1_cell(report.f1_near_surface),
-                report.train_seconds
+                report.ambiguity_summary(),
+                report.train_seconds,
+                report
+                    .ground_truth
+                    .map_or("CPU".to_owned(), |p| p.name().to_uppercase())
             );
             Entry::Done(report)
         }

@@ -9,7 +9,7 @@ use std::path::PathBuf;
 use std::process::ExitCode;
 
 use clap::Parser;
-use hwsdf::cli::{GpuFlags, check_eval_points};
+use hwsdf::cli::{GpuFlags, GroundTruthFlags, check_eval_points};
 use hwsdf::eval::metrics::{DEFAULT_EVAL_POINTS, EVAL_SEED, SurfaceMetrics};
 use hwsdf::eval::run::{self, Evaluation};
 use hwsdf::nn::siren::LayerKernels;
@@ -46,6 +46,8 @@ struct Args {
     allow_external_uris: bool,
     #[command(flatten)]
     gpu: GpuFlags,
+    #[command(flatten)]
+    ground_truth: GroundTruthFlags,
 }
 
 fn main() -> ExitCode {
@@ -81,7 +83,7 @@ fn eval(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
     let uris = hwsdf::geom::LoadOptions::with_external_uris(args.allow_external_uris);
     let (mesh, normalization) = run::load_normalized_with(&args.mesh, &uris)?;
     if (normalization.center - model.normalization().center).length()
-        > 1e-4 * normalization.scale.recip()
+        > 1e-4 * f64::from(normalization.scale.recip())
         || (normalization.scale / model.normalization().scale - 1.0).abs() > 1e-4
     {
         eprintln!(
@@ -91,7 +93,10 @@ fn eval(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
         );
     }
     let gpu = args.gpu.open()?;
-    let truth = run::GroundTruth::new(mesh, &args.mesh)?;
+    let truth = run::GroundTruth::on(&gpu, mesh, &args.mesh, args.ground_truth.device())?;
+    if let Some(why) = truth.labels.fallback() {
+        eprintln!("warning: {}: {why}", args.mesh.display());
+    }
     if args.siren_kernels == LayerKernels::CoopF16 && gpu.coop_f16_tile().is_none() {
         eprintln!(
             "warning: {} has no f16 cooperative matrices; --siren-kernels coop evaluates on the tiled f32 kernels",
@@ -119,6 +124,8 @@ fn eval(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
         "sign_errors_bbox": scores.sign_errors_bbox,
         "sign_errors_near_surface": scores.sign_errors_near_surface,
         "f1_null_reason": scores.f1_null_reason,
+        "ambiguous_bbox": scores.ambiguous_bbox,
+        "ambiguous_near_surface": scores.ambiguous_near_surface,
         "inside_fraction_bbox": scores.inside_fraction_bbox,
         "bbox_mean_abs_error": scores.bbox_error.mean_abs,
         "near_surface_mean_abs_error": scores.near_surface_error.mean_abs,
@@ -132,6 +139,7 @@ fn eval(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
         "surface_null_reason": surface_null_reason,
         "surface_resolution": args.surface_resolution,
         "adapter": gpu.describe(),
+        "ground_truth": truth.labels.path(),
     });
     if args.json {
         println!("{}", serde_json::to_string_pretty(&report)?);
@@ -154,6 +162,13 @@ fn eval(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
         if let Some(reason) = &scores.f1_null_reason {
             println!("                 n/a: {reason}");
         }
+        println!(
+            "inside/outside   {} (winding number between 0.2 and 0.8: open meshes)",
+            hwsdf::eval::metrics::ambiguity_summary(
+                scores.ambiguous_bbox,
+                scores.ambiguous_near_surface
+            )
+        );
         println!(
             "sign accuracy    {} / {}",
             f4(scores.sign_accuracy_bbox),
@@ -189,6 +204,7 @@ fn eval(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
             println!("surface          n/a: {reason}");
         }
         println!("adapter          {}", gpu.describe());
+        println!("ground truth     {}", truth.labels.path());
     }
     Ok(())
 }
@@ -218,7 +234,7 @@ fn surface(
             Some(SurfaceMetrics::between(
                 &extracted,
                 &truth.mesh,
-                &truth.sdf,
+                truth.sdf(),
                 args.points.min(100_000),
                 EVAL_SEED,
             )?)

@@ -15,7 +15,7 @@ use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 
 use clap::{Parser, ValueEnum};
-use hwsdf::cli::{GpuFlags, TrainingFlags, format_loss};
+use hwsdf::cli::{GpuFlags, GroundTruthFlags, LabelFlags, TrainingFlags, format_loss};
 use hwsdf::eval::run::{self, ModelKind, NglodArchitecture, Progress};
 use hwsdf::geom::io;
 use hwsdf::nn::{DistanceMode, NeuralSdf};
@@ -52,6 +52,10 @@ struct Args {
     training: TrainingFlags,
     #[command(flatten)]
     gpu: GpuFlags,
+    #[command(flatten)]
+    ground_truth: GroundTruthFlags,
+    #[command(flatten)]
+    labelling: LabelFlags,
 }
 
 /// The exit status of a run stopped by Ctrl-C or SIGTERM (its checkpoint written), as a shell
@@ -118,9 +122,20 @@ fn train(args: &Args) -> Result<Outcome, Box<dyn std::error::Error>> {
     }
     // The exact SDF once, for the check below, the trainer's samples and the evaluation; after
     // every cheap check, since on a scan of millions of triangles it takes seconds.
-    let truth = run::GroundTruth::new(mesh, &args.mesh)?;
+    let mut truth = run::GroundTruth::on(&gpu, mesh, &args.mesh, args.ground_truth.device())?;
+    if let Some(why) = truth.labels.fallback() {
+        eprintln!("warning: {}: {why}", args.mesh.display());
+    }
+    // No minutes of silence on a mesh that labels slowly: the estimate first, then progress.
+    let planned = run::planned_labels(&options, gpu.is_cpu(), flags.eval_points);
+    if let Some(line) =
+        run::labelling_estimate(&truth, planned, args.labelling.label_estimate_after)?
+    {
+        eprintln!("{line}");
+    }
+    truth.labels = truth.labels.with_progress(args.labelling.progress());
     if options.distance == DistanceMode::Signed
-        && let Some(reason) = run::no_inside_check(&truth)
+        && let Some(reason) = run::no_inside_check(&truth)?
     {
         eprintln!(
             "warning: {}: {reason}. Its F1 will be reported as null (n/a); sign accuracy and \
@@ -137,12 +152,13 @@ fn train(args: &Args) -> Result<Outcome, Box<dyn std::error::Error>> {
         ModelKind::Siren => Vec::new(),
     };
     eprintln!(
-        "training {} ({}{}) on {} with {}",
+        "training {} ({}{}) on {} with {}; ground truth on the {}",
         model.name(),
         options.preset.name(),
         changed.iter().map(|c| format!("; {c}")).collect::<String>(),
         args.mesh.display(),
-        gpu.describe()
+        gpu.describe(),
+        truth.labels.path().name().to_uppercase()
     );
 
     let signals = Signals::install()?;
@@ -194,6 +210,7 @@ fn train(args: &Args) -> Result<Outcome, Box<dyn std::error::Error>> {
         file_bytes,
         &eval,
         gpu.describe(),
+        truth.labels.path(),
     );
     report.write(&paths.report)?;
     print_summary(&args.mesh, model, &report);
@@ -284,12 +301,13 @@ fn print_summary(mesh: &Path, model: ModelKind, report: &run::Report) {
         .map(|c| format!(", Chamfer-L1 {c:.5} (level set {})", run::UNSIGNED_LEVEL))
         .unwrap_or_default();
     println!(
-        "{} {}: F1 box {}, near surface {}, mean {}; |Φ−d| near {:.5}{chamfer}; {:.1} ns/point, {:.0} µs per 3000; {} params, {} bytes; trained in {:.1} s",
+        "{} {}: F1 box {}, near surface {}, mean {} ({}); |Φ−d| near {:.5}{chamfer}; {:.1} ns/point, {:.0} µs per 3000; {} params, {} bytes; trained in {:.1} s",
         mesh.display(),
         model.name(),
         f4(report.f1_bbox),
         f4(report.f1_near_surface),
         f4(report.f1_mean),
+        report.ambiguity_summary(),
         report.near_surface_mean_abs_error,
         report.per_point_ns,
         report.batch3000_us,

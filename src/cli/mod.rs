@@ -7,7 +7,11 @@ mod source;
 mod training;
 
 use sdf_eval::run::{self, RunError};
-use sdf_nn::{GpuContext, GpuError, GpuOptions};
+use std::sync::{Arc, Mutex};
+use std::time::Instant;
+
+use sdf_nn::ground_truth::{LabelProgress, ProgressSink};
+use sdf_nn::{GpuContext, GpuError, GpuOptions, GroundTruthDevice};
 
 pub use source::{Source, SourceFlags, check_level};
 pub use training::{DistanceArg, PresetArg, TrainingFlags};
@@ -33,6 +37,85 @@ impl GpuFlags {
     /// Opens the GPU these flags choose.
     pub fn open(&self) -> Result<GpuContext, GpuError> {
         GpuContext::with_options(&self.options()?)
+    }
+}
+
+/// `--ground-truth`: where exact distances are computed (the training samples' labels, the
+/// evaluation sets', `sdf`'s output).
+#[derive(clap::Args, Clone, Copy, Debug, Default)]
+pub struct GroundTruthFlags {
+    /// Where exact distances (training labels, evaluation sets) are computed. `auto`: on the GPU
+    /// unless the adapter is a CPU (lavapipe: the CPU path is faster there) or the mesh does not
+    /// fit the GPU's limits (then on the CPU, with a warning).
+    #[arg(long, value_enum, default_value = "auto")]
+    pub ground_truth: GroundTruthArg,
+}
+
+/// The values of `--ground-truth`.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, clap::ValueEnum)]
+pub enum GroundTruthArg {
+    /// The GPU kernels; an error naming the limit where the mesh does not fit the device.
+    Gpu,
+    /// The CPU (rayon).
+    Cpu,
+    /// The GPU unless the adapter is a CPU or the mesh does not fit it.
+    #[default]
+    Auto,
+}
+
+/// When `train` and `sdf` speak while they label: the estimate before, progress lines during.
+/// Hidden: the defaults are what a user wants; tests set them to 0 to see the lines on small
+/// runs.
+#[derive(clap::Args, Clone, Copy, Debug)]
+pub struct LabelFlags {
+    /// Print the estimate of the labelling time when it passes this many seconds.
+    #[arg(long, hide = true, default_value_t = 2.0)]
+    pub label_estimate_after: f64,
+    /// Print a progress line once a labelling call has run this many seconds, and every this
+    /// many seconds after.
+    #[arg(long, hide = true, default_value_t = 3.0)]
+    pub label_progress_every: f64,
+}
+
+impl LabelFlags {
+    /// Progress lines on stderr for [`sdf_nn::Labeller::with_progress`]: `labelling:
+    /// 120000/300000 (40%), 12 s so far, ETA 18 s`, for calls that run longer than
+    /// `--label-progress-every` seconds, at most one line per that many seconds (and the last
+    /// part's).
+    pub fn progress(&self) -> ProgressSink {
+        let every = self.label_progress_every;
+        let last: Mutex<Option<Instant>> = Mutex::new(None);
+        Arc::new(move |p: &LabelProgress| {
+            if p.elapsed.as_secs_f64() < every {
+                return;
+            }
+            let mut last = last.lock().unwrap_or_else(|e| e.into_inner());
+            let finished = p.done >= p.total;
+            if !finished && last.is_some_and(|t| t.elapsed().as_secs_f64() < every) {
+                return;
+            }
+            *last = Some(Instant::now());
+            eprintln!(
+                "labelling: {}/{} ({:.0}%), {} so far, ETA {}",
+                p.done,
+                p.total,
+                100.0 * p.done as f64 / p.total.max(1) as f64,
+                run::duration(p.elapsed.as_secs_f64()),
+                p.eta()
+                    .map_or_else(|| "?".to_owned(), |d| run::duration(d.as_secs_f64()))
+            );
+        })
+    }
+}
+
+impl GroundTruthFlags {
+    /// The device asked for.
+    pub fn device(&self) -> GroundTruthDevice {
+        match self.ground_truth {
+            GroundTruthArg::Gpu => GroundTruthDevice::Gpu,
+            GroundTruthArg::Cpu => GroundTruthDevice::Cpu,
+            GroundTruthArg::Auto => GroundTruthDevice::Auto,
+        }
     }
 }
 

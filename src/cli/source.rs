@@ -80,7 +80,7 @@ impl Source {
 ///
 /// ```
 /// use hwsdf::nn::Normalization;
-/// let frame = Normalization { center: glam::Vec3::ZERO, scale: 0.5 }; // half side 2
+/// let frame = Normalization { center: glam::DVec3::ZERO, scale: 0.5 }; // half side 2
 /// assert!(hwsdf::cli::check_level(1.5, frame, "the model's").is_ok());
 /// assert!(hwsdf::cli::check_level(-2.5, frame, "the model's").is_err());
 /// ```

@@ -66,10 +66,16 @@ impl Aabb {
 
 /// The uniform similarity that maps a mesh into the normalised box `[-1, 1]^3`:
 /// `normalized = (p - center) * scale`, with the longest half-extent of the bounding box mapped to 1.
+///
+/// The centre is kept in f64: a mesh far from the origin (georeferenced, CAD) is loaded relative
+/// to its own centre ([`LoadReport::origin`]), and its normalisation maps back to the file's
+/// coordinates through the f64 centre ([`Normalization::to_original_f64`]). For a centre that is
+/// an f32 value (any mesh normalised from its f32 bounds) the maps compute in f32, bit for bit
+/// as they always did.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Normalization {
     /// Bounding-box centre in the original coordinates.
-    pub center: Vec3,
+    pub center: DVec3,
     /// Uniform scale factor (1 / longest half-extent).
     pub scale: f32,
 }
@@ -78,7 +84,7 @@ impl Normalization {
     /// The identity transform.
     pub fn identity() -> Self {
         Normalization {
-            center: Vec3::ZERO,
+            center: DVec3::ZERO,
             scale: 1.0,
         }
     }
@@ -97,46 +103,74 @@ impl Normalization {
         let (center, half) = (bounds.center(), bounds.half_extent().max_element());
         if center.is_finite() && half > 0.0 && half.is_finite() && (1.0 / half).is_normal() {
             return Normalization {
-                center,
+                center: center.as_dvec3(),
                 scale: 1.0 / half,
             };
         }
         let (lo, hi) = (bounds.min.as_dvec3(), bounds.max.as_dvec3());
         let half = ((hi - lo) * 0.5).max_element();
         let mut scale = (1.0 / half) as f32;
+        // The centre rounded to f32, as it always was: the f32 maps then stay exact.
+        let center = ((lo + hi) * 0.5).as_vec3().as_dvec3();
         if !(half > 0.0 && scale.is_finite() && scale > 0.0) {
-            return Normalization {
-                center: ((lo + hi) * 0.5).as_vec3(),
-                scale: 1.0,
-            };
+            return Normalization { center, scale: 1.0 };
         }
         if scale as f64 * half > 1.0 {
             scale = scale.next_down();
         }
+        Normalization { center, scale }
+    }
+
+    /// The same normalisation of a mesh moved by `origin`: its centre moved by `origin`, in f64.
+    /// A mesh loaded relative to [`LoadReport::origin`] and normalised gets the normalisation of
+    /// the file's coordinates this way.
+    pub fn translated(self, origin: DVec3) -> Self {
         Normalization {
-            center: ((lo + hi) * 0.5).as_vec3(),
-            scale,
+            center: self.center + origin,
+            ..self
         }
+    }
+
+    /// The centre as f32, where it is exactly one (the maps then compute in f32).
+    fn center_f32(&self) -> Option<Vec3> {
+        let c = self.center.as_vec3();
+        (c.as_dvec3() == self.center).then_some(c)
     }
 
     /// Maps a point from the original coordinates to the normalised ones (in f32, or in f64 where
-    /// f32 overflows on the way).
+    /// f32 overflows on the way or the centre is not an f32).
     pub fn to_normalized(&self, p: Vec3) -> Vec3 {
-        let q = (p - self.center) * self.scale;
-        if q.is_finite() || !p.is_finite() {
-            return q;
+        if let Some(center) = self.center_f32() {
+            let q = (p - center) * self.scale;
+            if q.is_finite() || !p.is_finite() {
+                return q;
+            }
         }
-        ((p.as_dvec3() - self.center.as_dvec3()) * self.scale as f64).as_vec3()
+        self.to_normalized_f64(p.as_dvec3())
+    }
+
+    /// [`Normalization::to_normalized`] of a point given in f64 (far from the origin, f32 would
+    /// have rounded it), computed in f64.
+    pub fn to_normalized_f64(&self, p: DVec3) -> Vec3 {
+        ((p - self.center) * self.scale as f64).as_vec3()
     }
 
     /// Maps a point from normalised coordinates back to the original ones (in f32, or in f64 where
-    /// f32 overflows on the way).
+    /// f32 overflows on the way or the centre is not an f32).
     pub fn to_original(&self, p: Vec3) -> Vec3 {
-        let q = p / self.scale + self.center;
-        if q.is_finite() || !p.is_finite() {
-            return q;
+        if let Some(center) = self.center_f32() {
+            let q = p / self.scale + center;
+            if q.is_finite() || !p.is_finite() {
+                return q;
+            }
         }
-        (p.as_dvec3() / self.scale as f64 + self.center.as_dvec3()).as_vec3()
+        self.to_original_f64(p).as_vec3()
+    }
+
+    /// [`Normalization::to_original`] in f64: the original coordinates of a mesh far from the
+    /// origin, which f32 would round.
+    pub fn to_original_f64(&self, p: Vec3) -> DVec3 {
+        p.as_dvec3() / self.scale as f64 + self.center
     }
 
     /// Maps a (signed) distance measured in normalised coordinates to original units.
@@ -188,6 +222,44 @@ pub struct LoadReport {
     pub morphed_primitives: usize,
     /// Non-fatal oddities, e.g. a missing material library or texture, a primitive without positions.
     pub warnings: Vec<String>,
+    /// Where the mesh's coordinates start: the file's coordinates are `origin + vertex`. Zero,
+    /// except for a mesh far from the origin for its size (more than [`FAR_MESH_RATIO`]
+    /// half-extents), whose positions are read in f64 and recentred on their f64 bounding-box
+    /// centre before they become f32 (in f32 a mesh at 10⁷ would collapse onto a 1-unit grid).
+    /// [`Normalization::translated`] by it maps the normalised mesh back to the file's coordinates.
+    pub origin: DVec3,
+}
+
+/// A mesh whose bounding-box centre lies farther from the origin than this many of its longest
+/// half-extents is loaded relative to that centre ([`LoadReport::origin`]): f32 coordinates
+/// there would round the shape by more than 2⁻²⁰ of its size.
+pub const FAR_MESH_RATIO: f64 = 16.0;
+
+/// Positions read in f64 as f32 vertices: unchanged (rounded to f32) where the mesh lies near
+/// the origin, else relative to their f64 bounding-box centre, which goes into `report.origin`
+/// with a warning. Positions beyond f32's range are left to [`clean`]'s check (an error), as
+/// before.
+pub(crate) fn recentre(positions: &[DVec3], report: &mut LoadReport) -> Vec<Vec3> {
+    let (mut lo, mut hi) = (DVec3::INFINITY, DVec3::NEG_INFINITY);
+    for p in positions {
+        lo = lo.min(*p);
+        hi = hi.max(*p);
+    }
+    let (center, half) = ((lo + hi) * 0.5, ((hi - lo) * 0.5).max_element());
+    let in_range = |v: DVec3| v.abs().max_element() <= f32::MAX as f64;
+    let far = !positions.is_empty()
+        && in_range(lo)
+        && in_range(hi)
+        && half > 0.0
+        && center.abs().max_element() > FAR_MESH_RATIO * half;
+    if !far {
+        return positions.iter().map(|p| p.as_vec3()).collect();
+    }
+    report.origin = center;
+    report.warnings.push(format!(
+        "the mesh lies far from the origin for its size (centre {center}, half-extent {half}):          its coordinates are taken relative to that centre (read in f64), so f32 keeps its shape"
+    ));
+    positions.iter().map(|p| (*p - center).as_vec3()).collect()
 }
 
 impl Mesh {

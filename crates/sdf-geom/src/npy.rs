@@ -6,7 +6,7 @@
 
 use std::path::Path;
 
-use glam::Vec3;
+use glam::{DVec3, Vec3};
 
 use crate::GeomError;
 
@@ -94,9 +94,28 @@ pub fn read_points(path: impl AsRef<Path>) -> Result<Vec<Vec3>, GeomError> {
 
 /// Parses `.npy` bytes (see [`read_points`]); `path` is only used in error messages.
 pub fn parse_points(path: &Path, bytes: &[u8]) -> Result<Vec<Vec3>, GeomError> {
-    Ok(parse_table(path, bytes, 3)?
+    Ok(parse_points_f64(path, bytes)?
+        .into_iter()
+        .map(|p| p.as_vec3())
+        .collect())
+}
+
+/// [`read_points`] keeping float64 input in f64 (float32 input is widened exactly): points far
+/// from the origin, where f32 would round them, for a mesh loaded relative to its
+/// [`crate::LoadReport::origin`].
+///
+/// # Errors
+/// As [`read_points`].
+pub fn read_points_f64(path: impl AsRef<Path>) -> Result<Vec<DVec3>, GeomError> {
+    let path = path.as_ref();
+    parse_points_f64(path, &crate::read_input_file(path)?)
+}
+
+/// Parses `.npy` bytes (see [`read_points_f64`]); `path` is only used in error messages.
+pub fn parse_points_f64(path: &Path, bytes: &[u8]) -> Result<Vec<DVec3>, GeomError> {
+    Ok(parse_table_f64(path, bytes, 3)?
         .chunks_exact(3)
-        .map(|c| Vec3::new(c[0], c[1], c[2]))
+        .map(|c| DVec3::new(c[0], c[1], c[2]))
         .collect())
 }
 
@@ -104,11 +123,17 @@ pub fn parse_points(path: &Path, bytes: &[u8]) -> Result<Vec<Vec3>, GeomError> {
 /// f32 values, row after row. Errors as [`read_points`].
 pub fn read_table(path: impl AsRef<Path>, columns: usize) -> Result<Vec<f32>, GeomError> {
     let path = path.as_ref();
-    parse_table(path, &crate::read_input_file(path)?, columns)
+    Ok(
+        parse_table_f64(path, &crate::read_input_file(path)?, columns)?
+            .into_iter()
+            .map(|v| v as f32)
+            .collect(),
+    )
 }
 
-/// Parses `.npy` bytes (see [`read_table`]); `path` is only used in error messages.
-pub fn parse_table(path: &Path, bytes: &[u8], columns: usize) -> Result<Vec<f32>, GeomError> {
+/// Parses `.npy` bytes as an `(N, columns)` table of f64 values, row after row (see
+/// [`read_table`]); `path` is only used in error messages.
+pub fn parse_table_f64(path: &Path, bytes: &[u8], columns: usize) -> Result<Vec<f64>, GeomError> {
     if bytes.len() < 10 || &bytes[..6] != MAGIC {
         return Err(bad(path, "not a .npy file (missing \\x93NUMPY magic)"));
     }
@@ -170,22 +195,22 @@ pub fn parse_table(path: &Path, bytes: &[u8], columns: usize) -> Result<Vec<f32>
             ),
         ));
     }
-    let value = |k: usize| -> f32 {
+    let value = |k: usize| -> f64 {
         let b = &data[k * size..(k + 1) * size];
         if is64 {
             let a: [u8; 8] = b.try_into().unwrap_or([0; 8]);
-            (if big {
+            if big {
                 f64::from_be_bytes(a)
             } else {
                 f64::from_le_bytes(a)
-            }) as f32
+            }
         } else {
             let a: [u8; 4] = b.try_into().unwrap_or([0; 4]);
-            if big {
+            f64::from(if big {
                 f32::from_be_bytes(a)
             } else {
                 f32::from_le_bytes(a)
-            }
+            })
         }
     };
     Ok((0..n * columns)

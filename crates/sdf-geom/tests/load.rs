@@ -742,3 +742,102 @@ fn cleaning_keeps_the_first_of_each_face_as_a_sequential_pass_does() {
         "soups without every case: {totals:?}"
     );
 }
+
+/// Normalised vertices of two loads of one mesh agree within `tol` of the box (the same
+/// vertices in the same order).
+fn assert_same_shape(a: &Mesh, b: &Mesh, tol: f32) {
+    assert_eq!(a.triangles, b.triangles);
+    assert_eq!(a.vertices.len(), b.vertices.len());
+    let worst = a
+        .vertices
+        .iter()
+        .zip(&b.vertices)
+        .map(|(p, q)| (*p - *q).abs().max_element())
+        .fold(0.0f32, f32::max);
+    assert!(worst <= tol, "normalised vertices differ by {worst}");
+}
+
+/// A mesh far from the origin for its size (spot moved by 10⁷, as a georeferenced or CAD file
+/// places it) keeps its shape: positions are read in f64 and recentred on their f64 centre
+/// before they become f32, the report says where (`origin`), and the normalisation, moved by
+/// the origin, maps back to the file's coordinates. In f32 the 10⁷ offset would have put
+/// every vertex on a 1-unit grid (spot is about 2 units wide): a handful of distinct points.
+#[test]
+fn far_meshes_keep_their_shape() {
+    let dir = temp_dir("far");
+    let (spot, report) = load_mesh(data("spot.obj")).unwrap();
+    assert_eq!(report.origin, glam::DVec3::ZERO);
+    let (unit, n0) = spot.normalized();
+    let offset = glam::DVec3::new(1e7, -2e7, 3e7);
+    let mut obj = String::new();
+    for v in &spot.vertices {
+        let p = v.as_dvec3() + offset;
+        obj.push_str(&format!("v {} {} {}\n", p.x, p.y, p.z));
+    }
+    for t in &spot.triangles {
+        obj.push_str(&format!("f {} {} {}\n", t[0] + 1, t[1] + 1, t[2] + 1));
+    }
+    let far_path = write(&dir, "far_spot.obj", obj);
+    let (far, far_report) = load_mesh(&far_path).unwrap();
+    let origin = far_report.origin;
+    assert!(
+        (origin - (n0.center + offset)).abs().max_element() < 1e-6,
+        "{origin}"
+    );
+    assert!(
+        far_report
+            .warnings
+            .iter()
+            .any(|w| w.contains("far from the origin")),
+        "{:?}",
+        far_report.warnings
+    );
+    let (far_unit, local) = far.normalized();
+    assert_same_shape(&unit, &far_unit, 1e-6);
+    assert!((local.scale / n0.scale - 1.0).abs() < 1e-6);
+    // Back to the file's coordinates: within 1e-6 of the mesh's size, in f64.
+    let n = local.translated(origin);
+    let size = 1.0 / n0.scale as f64;
+    for (u, v) in far_unit.vertices.iter().zip(&spot.vertices) {
+        let back = n.to_original_f64(*u);
+        let want = v.as_dvec3() + offset;
+        assert!(
+            (back - want).abs().max_element() <= 1e-6 * size,
+            "{back} {want}"
+        );
+    }
+    // What f32 coordinates would have made of it.
+    let mut grid: Vec<[u32; 3]> = spot
+        .vertices
+        .iter()
+        .map(|v| {
+            (v.as_dvec3() + offset)
+                .as_vec3()
+                .to_array()
+                .map(f32::to_bits)
+        })
+        .collect();
+    grid.sort_unstable();
+    grid.dedup();
+    assert!(grid.len() < 100, "{} distinct f32 positions", grid.len());
+
+    // glTF: spot's positions placed by a node 10⁷ away, composed in f64.
+    let positions: Vec<[f32; 3]> = spot.vertices.iter().map(|v| v.to_array()).collect();
+    let indices: Vec<u32> = spot.triangles.iter().flatten().copied().collect();
+    let mut m = common::IDENTITY;
+    m[12..15].copy_from_slice(&[1e7, -2e7, 3e7]);
+    let g = common::Gltf {
+        positions: &positions,
+        indices: Some(&indices),
+        matrices: vec![m],
+        ..Default::default()
+    };
+    let (far_gltf, gltf_report) = load_mesh(write_gltf(&dir, "far_spot.gltf", &g)).unwrap();
+    assert!(
+        (gltf_report.origin - (n0.center + offset))
+            .abs()
+            .max_element()
+            < 1e-6
+    );
+    assert_same_shape(&unit, &far_gltf.normalized().0, 1e-6);
+}

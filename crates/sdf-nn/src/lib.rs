@@ -34,7 +34,9 @@ pub mod siren;
 
 pub use adam::{Adam, AdamConfig, AdamCpu, AdamState};
 pub use gpu::{GpuContext, GpuError, GpuOptions, SPIN_WAIT, StepLayout};
-pub use ground_truth::{GpuGroundTruth, GroundTruthError};
+pub use ground_truth::{
+    GpuGroundTruth, GroundTruthDevice, GroundTruthError, GroundTruthPath, Labeller,
+};
 pub use model_file::{ModelFile, ModelFileError, Normalization};
 pub use nglod::{
     DistanceMode, Nglod, NglodConfig, NglodError, NglodGpu, NglodTrainConfig, NglodTrainer,

@@ -137,9 +137,16 @@ pub use sdf_geom::Normalization;
 /// parameters.
 pub const INDEX_SUFFIX: &str = ".vertices";
 
-/// The JSON form of a normalisation in the file's metadata.
+/// The JSON form of a normalisation in the file's metadata: the centre as f32 numbers where it
+/// is an f32 (every mesh near the origin: the files are as they always were), else as f64 (a
+/// mesh loaded far from the origin, whose centre f32 would round).
 fn normalization_json(n: &Normalization) -> String {
-    serde_json::json!({"center": n.center.to_array(), "scale": n.scale}).to_string()
+    let c32 = n.center.as_vec3();
+    if c32.as_dvec3() == n.center {
+        serde_json::json!({"center": c32.to_array(), "scale": n.scale}).to_string()
+    } else {
+        serde_json::json!({"center": n.center.to_array(), "scale": n.scale}).to_string()
+    }
 }
 
 fn normalization_from_json(v: &serde_json::Value) -> Option<Normalization> {
@@ -147,12 +154,20 @@ fn normalization_from_json(v: &serde_json::Value) -> Option<Normalization> {
     if c.len() != 3 {
         return None;
     }
-    let mut center = [0.0f32; 3];
+    let mut center = [0.0f64; 3];
     for (dst, src) in center.iter_mut().zip(c) {
-        *dst = src.as_f64()? as f32;
+        let x = src.as_f64()?;
+        // A number written from an f32 is that f32, as it always was read (serde_json may read
+        // it an ulp or two of f64 off); one farther from every f32 is an f64 centre.
+        let x32 = f64::from(x as f32);
+        *dst = if (x32 - x).abs() <= 4.0 * f64::EPSILON * x.abs() {
+            x32
+        } else {
+            x
+        };
     }
     Some(Normalization {
-        center: glam::Vec3::from_array(center),
+        center: glam::DVec3::from_array(center),
         scale: v.get("scale")?.as_f64()? as f32,
     })
 }
@@ -517,7 +532,7 @@ fn metadata_from_header(
     // The box [-1, 1]³ must map back to finite coordinates: a scale of 1e-45 or a centre
     // near f32::MAX would put every extracted vertex and evaluated distance at infinity.
     let half = 1.0 / normalization.scale;
-    let corner = normalization.center.abs() + glam::Vec3::splat(half);
+    let corner = (normalization.center.abs() + half as f64).as_vec3();
     if !normalization.scale.is_finite()
         || normalization.scale <= 0.0
         || !normalization.center.is_finite()
@@ -603,7 +618,7 @@ mod tests {
                 config: serde_json::json!({"hidden": [4, 4], "omega0": 30.0}),
                 training: serde_json::json!({"steps": 3}),
                 normalization: Normalization {
-                    center: glam::Vec3::new(0.5, -1.0, 2.0),
+                    center: glam::Vec3::new(0.5, -1.0, 2.0).as_dvec3(),
                     scale: 0.25,
                 },
                 hwsdf_version: HWSDF_VERSION.into(),
@@ -624,6 +639,37 @@ mod tests {
                 ),
             ],
         }
+    }
+
+    /// A centre that is an f32 is written and read as the f32 it is (files as they always
+    /// were); one that is not (a mesh far from the origin) keeps its f64 digits.
+    #[test]
+    fn normalisation_centres_keep_their_precision() {
+        let p = Path::new("n.safetensors");
+        for center in [
+            glam::Vec3::new(0.1, -1.3e-5, 7.25).as_dvec3(),
+            glam::DVec3::new(1e7 + 0.123456789, -2e7 - 1e-3, 3e7 + 0.5),
+        ] {
+            let mut f = sample();
+            f.metadata.normalization.center = center;
+            let back = ModelFile::from_bytes(&f.to_bytes().unwrap(), p).unwrap();
+            let got = back.metadata.normalization.center;
+            if center.as_vec3().as_dvec3() == center {
+                assert_eq!(got, center);
+            } else {
+                // serde_json reads f64 to within an ulp or two.
+                assert!((got - center).abs().max_element() < 1e-8, "{got} {center}");
+                assert_ne!(got.as_vec3().as_dvec3(), got);
+            }
+        }
+        // An f32 centre is written as it always was (its f32 values).
+        let c = glam::Vec3::new(0.1, 0.2, 0.3);
+        let json = normalization_json(&Normalization {
+            center: c.as_dvec3(),
+            scale: 1.0,
+        });
+        let before = serde_json::json!({"center": c.to_array(), "scale": 1.0f32}).to_string();
+        assert_eq!(json, before);
     }
 
     #[test]
@@ -746,9 +792,9 @@ mod tests {
         // Bad normalisation: no scale, or a box [-1, 1]³ that maps to infinity (a subnormal
         // scale, or a centre whose box passes f32::MAX).
         for (center, scale) in [
-            (glam::Vec3::ZERO, 0.0),
-            (glam::Vec3::ZERO, 1e-45),
-            (glam::Vec3::new(3.4e38, 0.0, 0.0), 1e-38),
+            (glam::DVec3::ZERO, 0.0),
+            (glam::DVec3::ZERO, 1e-45),
+            (glam::DVec3::new(3.4e38, 0.0, 0.0), 1e-38),
         ] {
             let mut f = sample();
             f.metadata.normalization.scale = scale;

@@ -21,7 +21,7 @@ fn gpu() -> &'static GpuContext {
 /// A normalisation that is not the identity, so the baked constants are exercised.
 fn normalization() -> Normalization {
     Normalization {
-        center: Vec3::new(0.3, -1.25, 2.0),
+        center: Vec3::new(0.3, -1.25, 2.0).as_dvec3(),
         scale: 0.4,
     }
 }

@@ -99,7 +99,7 @@ fn neural_sdf_reports_gpu_time_for_nglod() {
     };
     let file = model().to_model_file(
         Normalization {
-            center: Vec3::ZERO,
+            center: Vec3::ZERO.as_dvec3(),
             scale: 1.0,
         },
         serde_json::json!({}),

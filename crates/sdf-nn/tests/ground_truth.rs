@@ -353,3 +353,47 @@ fn geometric_chains_are_answered_or_refused() {
         Err(e) => panic!("{e}"),
     }
 }
+
+/// The labeller a run asks for: `gpu` labels on the kernels, as the CPU does (distances within
+/// 1e-6 of the diagonal, sides equal away from the surface); `auto` takes the GPU exactly where
+/// the adapter is not a CPU; `cpu` is the CPU's own answer.
+#[test]
+fn labellers_on_each_path_agree_with_the_cpu() {
+    use sdf_nn::ground_truth::{GroundTruthDevice, GroundTruthPath, Labeller};
+    let gpu = gpu();
+    let mesh = unit("spot.obj");
+    let cpu = std::sync::Arc::new(SignedDistance::new(&mesh).unwrap());
+    let pts = queries(&mesh, 1000, 5);
+    let diag = mesh.bounds().diagonal();
+    let on_gpu = Labeller::choose(gpu, cpu.clone(), GroundTruthDevice::Gpu).unwrap();
+    assert_eq!(on_gpu.path(), GroundTruthPath::Gpu);
+    assert!(on_gpu.fallback().is_none());
+    let want = cpu.signed_distance_batch(&pts);
+    let got = on_gpu.signed_distance_batch(&pts).unwrap();
+    let unsigned = on_gpu.unsigned_distance_batch(&pts).unwrap();
+    let inside = on_gpu.is_inside_batch(&pts).unwrap();
+    let cpu_inside = cpu.is_inside_batch(&pts);
+    for i in 0..pts.len() {
+        assert!(
+            (got[i] - want[i]).abs() <= 1e-6 * diag,
+            "{}: {} {}",
+            pts[i],
+            got[i],
+            want[i]
+        );
+        assert!((unsigned[i] - want[i].abs()).abs() <= 1e-6 * diag);
+        if want[i].abs() > 1e-5 * diag {
+            assert_eq!(inside[i], cpu_inside[i], "{}", pts[i]);
+        }
+    }
+    let auto = Labeller::choose(gpu, cpu.clone(), GroundTruthDevice::Auto).unwrap();
+    let expect = if gpu.is_cpu() {
+        GroundTruthPath::Cpu
+    } else {
+        GroundTruthPath::Gpu
+    };
+    assert_eq!(auto.path(), expect);
+    let on_cpu = Labeller::choose(gpu, cpu.clone(), GroundTruthDevice::Cpu).unwrap();
+    assert_eq!(on_cpu.path(), GroundTruthPath::Cpu);
+    assert_eq!(on_cpu.signed_distance_batch(&pts).unwrap(), want);
+}

@@ -431,7 +431,7 @@ fn divergence_is_a_typed_error() {
 fn model_file_round_trips_bit_for_bit() {
     let model = lively_model(NglodConfig::small(), 20);
     let norm = sdf_nn::Normalization {
-        center: Vec3::new(0.5, -1.0, 2.0),
+        center: Vec3::new(0.5, -1.0, 2.0).as_dvec3(),
         scale: 0.25,
     };
     let file = model.to_model_file(norm, serde_json::json!({"epochs": 3}));

@@ -31,7 +31,7 @@ fn sphere_model(normalization: Normalization) -> NeuralSdf {
 /// its radius is `RADIUS / scale` in mesh units.
 fn normalization() -> Normalization {
     Normalization {
-        center: Vec3::new(1.0, -2.0, 0.5),
+        center: Vec3::new(1.0, -2.0, 0.5).as_dvec3(),
         scale: 0.25,
     }
 }
@@ -46,7 +46,7 @@ fn sphere_model_is_a_sphere_on_the_cpu() {
         .enumerate()
     {
         for k in [0.5, 0.95, 1.0, 1.05, 2.0, 3.0] {
-            let p = n.center + dir * r * k;
+            let p = n.center.as_vec3() + dir * r * k;
             let d = sdf.eval_cpu(&[p])[0];
             // Outside the box (|q| > 1 on some axis) the box rule still gives the exact value
             // along an axis; along a diagonal it is an upper bound.
@@ -96,7 +96,7 @@ fn sphere_silhouette_and_shading_match_analytic() {
         // around the view axis, a circle of radius f·tan(α) pixels with f = (H/2)/tan(fov/2).
         let cam = Camera::orbit(n, &options);
         let rho = RADIUS / n.scale;
-        let dist = cam.eye.distance(n.center);
+        let dist = cam.eye.distance(n.center.as_vec3());
         let alpha = (rho / dist).asin();
         let f = height as f32 * 0.5 / cam.tan_half_fov_y;
         let radius_px = f * alpha.tan();

@@ -190,7 +190,7 @@ fn initialisation_follows_the_design_document() {
 fn model_file_round_trips_bit_for_bit() {
     let net = Siren::new(SirenConfig::small(), 11).unwrap();
     let norm = Normalization {
-        center: glam::Vec3::new(0.5, -1.0, 2.0),
+        center: glam::Vec3::new(0.5, -1.0, 2.0).as_dvec3(),
         scale: 0.25,
     };
     let file = net.to_model_file(norm, serde_json::json!({"steps": 3}));

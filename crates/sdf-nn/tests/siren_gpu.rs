@@ -269,7 +269,7 @@ fn coop_f16_inference_matches_cpu_reference() {
     // against its CPU evaluation.
     let net = Siren::new(SirenConfig::small(), 9).unwrap();
     let norm = Normalization {
-        center: Vec3::new(1.0, -3.0, 0.5),
+        center: Vec3::new(1.0, -3.0, 0.5).as_dvec3(),
         scale: 0.5,
     };
     let file = net.to_model_file(norm, serde_json::Value::Null);

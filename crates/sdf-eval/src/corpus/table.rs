@@ -118,6 +118,11 @@ impl Merge {
             .collect();
         let presets: BTreeSet<&str> = reports.iter().map(|r| r.preset.as_str()).collect();
         let adapters: BTreeSet<&str> = reports.iter().map(|r| r.adapter.as_str()).collect();
+        // Reports from before the path was recorded labelled on the CPU.
+        let paths: BTreeSet<&str> = reports
+            .iter()
+            .map(|r| r.ground_truth.map_or("cpu", |p| p.name()))
+            .collect();
         let list = |set: &BTreeSet<&str>| {
             if set.is_empty() {
                 "none yet".to_owned()
@@ -127,9 +132,10 @@ impl Merge {
         };
         let _ = writeln!(
             s,
-            "Preset `{}`, adapter {}. {}.\n",
+            "Preset `{}`, adapter {}, ground truth on {}. {}.\n",
             list(&presets),
             list(&adapters),
+            list(&paths),
             self.status()
         );
         for model in ["siren", "nglod"] {
@@ -149,9 +155,12 @@ impl Merge {
             }
             let _ = writeln!(
                 s,
-                "| mesh | F1 in bounding box | F1 near surface | mean | train s | ns/point | µs/3000 | params | file bytes |"
+                "| mesh | F1 in bounding box | F1 near surface | mean | ambiguous box / near | train s | ns/point | µs/3000 | params | file bytes |"
             );
-            let _ = writeln!(s, "| --- | --- | --- | --- | --- | --- | --- | --- | --- |");
+            let _ = writeln!(
+                s,
+                "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"
+            );
             let (mut fb, mut fnr, mut n, mut left_out) = (0.0, 0.0, 0usize, 0usize);
             let mut done: Vec<(&str, &Report)> = Vec::new();
             for ((_, mesh), e) in &rows {
@@ -160,10 +169,11 @@ impl Merge {
                         done.push((mesh.as_str(), r.as_ref()));
                         let _ = writeln!(
                             s,
-                            "| {mesh} | {} | {} | {} | {:.0} | {:.0} | {:.0} | {} | {} |",
+                            "| {mesh} | {} | {} | {} | {} | {:.0} | {:.0} | {:.0} | {} | {} |",
                             f1_cell(r.f1_bbox),
                             f1_cell(r.f1_near_surface),
                             f1_cell(r.f1_mean),
+                            ambiguous_cell(r),
                             r.train_seconds,
                             r.per_point_ns,
                             r.batch3000_us,
@@ -182,7 +192,7 @@ impl Merge {
                     Entry::Failed { error, .. } => {
                         let _ = writeln!(
                             s,
-                            "| {mesh} | failed: {} | | | | | | | |",
+                            "| {mesh} | failed: {} | | | | | | | | |",
                             error.replace('|', "/").replace('\n', " ")
                         );
                     }
@@ -191,21 +201,21 @@ impl Merge {
             if left_out > 0 {
                 let _ = writeln!(
                     s,
-                    "| n/a: {left_out} mesh(es) without an inside (F1 undefined), left out of the average | | | | | | | | |"
+                    "| n/a: {left_out} mesh(es) without an inside (F1 undefined), left out of the average | | | | | | | | | |"
                 );
             }
             if n > 0 {
                 let (rb, rn) = reference(model);
                 let _ = writeln!(
                     s,
-                    "| **average ({n} meshes)** | **{:.3}** | **{:.3}** | **{:.3}** | | | | | |",
+                    "| **average ({n} meshes)** | **{:.3}** | **{:.3}** | **{:.3}** | | | | | | |",
                     fb / n as f64,
                     fnr / n as f64,
                     0.5 * (fb + fnr) / n as f64
                 );
                 let _ = writeln!(
                     s,
-                    "| design document (50 meshes) | {rb:.2} | {rn:.2} | {:.3} | | | | | |",
+                    "| design document (50 meshes) | {rb:.2} | {rn:.2} | {:.3} | | | | | | |",
                     0.5 * (rb + rn)
                 );
             }
@@ -215,6 +225,16 @@ impl Merge {
             let _ = writeln!(s);
         }
         s
+    }
+}
+
+/// The fractions of a result's box and near-surface points whose inside or outside is
+/// ambiguous (winding number between 0.2 and 0.8: open meshes), which explain a low or null F1:
+/// `"0.0% / 12.3%"`, or `n/a` in results from before they were recorded.
+fn ambiguous_cell(r: &Report) -> String {
+    match (r.ambiguous_bbox, r.ambiguous_near_surface) {
+        (Some(b), Some(n)) => format!("{:.1}% / {:.1}%", b * 100.0, n * 100.0),
+        _ => "n/a".to_owned(),
     }
 }
 
@@ -341,6 +361,49 @@ mod tests {
             "{line}"
         );
         assert!(line.ends_with("m2.obj 3 / 0, ...."), "{line}");
+    }
+
+    /// The table has the ambiguous fractions beside F1, so that a low F1 on an open mesh
+    /// explains itself; results from before they were recorded show `n/a`.
+    #[test]
+    fn the_table_shows_the_ambiguous_fractions() {
+        let root = std::env::temp_dir().join(format!("hwsdf-corpus-amb-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&root);
+        let state = StateDir::for_table(&root.join("results.md"));
+        state.create().unwrap();
+        let mut open = report("open.obj", None);
+        open.ambiguous_bbox = Some(0.0123);
+        open.ambiguous_near_surface = Some(0.25);
+        let old = report("old.obj", None);
+        for (rel, r) in [("open.obj", open), ("old.obj", old)] {
+            state
+                .write(rel, ModelKind::Nglod, &Entry::Done(Box::new(r)))
+                .unwrap();
+        }
+        let all = vec![
+            CorpusMesh::new(&root, "open.obj"),
+            CorpusMesh::new(&root, "old.obj"),
+        ];
+        let table = merge(&state, &all, &[ModelKind::Nglod]).markdown();
+        assert!(
+            table.contains("| mean | ambiguous box / near | train s |"),
+            "{table}"
+        );
+        assert!(
+            table.contains("| open.obj | 0.990 | 0.950 | 0.970 | 1.2% / 25.0% |"),
+            "{table}"
+        );
+        assert!(
+            table.contains("| old.obj | 0.990 | 0.950 | 0.970 | n/a |"),
+            "{table}"
+        );
+        // Every row has the header's number of cells.
+        let cells = |line: &str| line.matches('|').count();
+        let header = table.lines().find(|l| l.starts_with("| mesh")).unwrap();
+        for line in table.lines().filter(|l| l.starts_with('|')) {
+            assert_eq!(cells(line), cells(header), "{line}");
+        }
+        let _ = std::fs::remove_dir_all(&root);
     }
 
     #[test]

@@ -76,7 +76,7 @@ pub fn evaluate(
 ) -> Result<Evaluation, RunError> {
     check_eval_points(points)?;
     let mesh = &truth.mesh;
-    let sets = EvalSets::new(mesh, &truth.sdf, points, EVAL_SEED);
+    let sets = EvalSets::new(mesh, &truth.labels, points, EVAL_SEED)?;
     let unsigned = is_unsigned(model.model_file());
     let predict = |p: &[Vec3]| finite_values(p, model.eval_normalized(gpu, p)?);
     let scores = if unsigned {
@@ -91,7 +91,7 @@ pub fn evaluate(
         crate::metrics::SurfaceMetrics::between(
             &level_set,
             mesh,
-            &truth.sdf,
+            truth.sdf(),
             points.min(20_000),
             EVAL_SEED,
         )
@@ -173,13 +173,14 @@ pub fn extract_scene_mesh(
     let on_gpu = sdf_nn::serve::scene::GpuScene::new(gpu, scene)?;
     let frame = scene.frame(level);
     let half = 1.0 / frame.scale;
+    let centre = frame.center.as_vec3();
     let options = ExtractOptions {
         lipschitz: options.lipschitz * on_gpu.lipschitz(),
         ..*options
     };
     let (mut mesh, stats) = extract_surface(
         |p: &[Vec3]| {
-            let world: Vec<Vec3> = p.iter().map(|&q| frame.center + q * half).collect();
+            let world: Vec<Vec3> = p.iter().map(|&q| centre + q * half).collect();
             let d = on_gpu.distances(&world, level)?;
             Ok::<_, sdf_nn::serve::scene::SceneGpuError>(
                 d.into_iter().map(|x| x * frame.scale).collect::<Vec<_>>(),
@@ -192,7 +193,7 @@ pub fn extract_scene_mesh(
         other => RunError::Options(other.to_string()),
     })?;
     for v in &mut mesh.vertices {
-        *v = frame.center + *v * half;
+        *v = centre + *v * half;
     }
     Ok((mesh, stats))
 }

@@ -23,7 +23,7 @@ use std::time::Instant;
 
 use glam::Vec3;
 use sdf_nn::nglod::TimeBudget;
-use sdf_nn::{AdamState, GpuContext, ModelFile, NeuralSdf};
+use sdf_nn::{AdamState, GpuContext, GroundTruthDevice, ModelFile, NeuralSdf};
 
 pub use checkpoint::{Checkpoint, MAX_CHECKPOINT_PROGRESS};
 pub use evaluate::{
@@ -31,7 +31,10 @@ pub use evaluate::{
     UNSIGNED_LEVEL, check_eval_points, evaluate, extract_mesh, extract_mesh_with,
     extract_scene_mesh, finite_values, is_unsigned,
 };
-pub use ground_truth::{GroundTruth, load_normalized, load_normalized_with, no_inside_check};
+pub use ground_truth::{
+    GroundTruth, duration, estimate_line, labelling_estimate, load_normalized,
+    load_normalized_with, no_inside_check, planned_labels,
+};
 pub use options::{
     CPU_TIME_BUDGET, Length, MAX_EPOCHS, MAX_STEPS, ModelKind, NglodArchitecture, Preset,
     RunSettings, TrainOptions, default_length,
@@ -118,6 +121,9 @@ pub enum RunError {
         /// Its value.
         value: f32,
     },
+    /// Labelling on the GPU failed, or the mesh does not fit it (`--ground-truth gpu`).
+    #[error("ground truth: {0}")]
+    GroundTruth(#[from] sdf_nn::GroundTruthError),
     /// `--distance unsigned` with SIREN, whose loss (eikonal, normal alignment, the off-surface
     /// term pushing |Φ| up away from the surface) assumes a signed field.
     #[error(
@@ -187,7 +193,7 @@ pub struct Trained {
 /// What both trainers get: the run's inputs and the length it plans, settled by [`train`].
 struct Plan<'a> {
     gpu: &'a GpuContext,
-    truth: &'a GroundTruth,
+    truth: &'a GroundTruth<'a>,
     normalization: sdf_geom::Normalization,
     options: &'a TrainOptions,
     resume: Option<&'a Checkpoint>,
@@ -292,12 +298,14 @@ pub enum RunOutcome {
 }
 
 /// The whole experiment for one mesh: train (from `resume` if given), save to `out`, evaluate,
-/// report.
+/// report. The samples' and the evaluation's labels come from `ground_truth`'s path
+/// ([`GroundTruth::on`]); a fallback of `auto` to the CPU is printed as a warning.
 #[allow(clippy::too_many_arguments)]
 pub fn run(
     gpu: &GpuContext,
     mesh_path: &Path,
     options: &TrainOptions,
+    ground_truth: GroundTruthDevice,
     out: &Path,
     eval_points: usize,
     resume: Option<&Checkpoint>,
@@ -305,7 +313,10 @@ pub fn run(
     progress: impl FnMut(&Progress),
 ) -> Result<RunOutcome, RunError> {
     let (mesh, normalization) = load_normalized(mesh_path)?;
-    let truth = GroundTruth::new(mesh, mesh_path)?;
+    let truth = GroundTruth::on(gpu, mesh, mesh_path, ground_truth)?;
+    if let Some(why) = truth.labels.fallback() {
+        eprintln!("warning: {}: {why}", mesh_path.display());
+    }
     let trained = train(gpu, &truth, normalization, options, resume, stop, progress)?;
     if trained.interrupted {
         return Ok(RunOutcome::Interrupted(Box::new(trained)));
@@ -326,6 +337,7 @@ pub fn run(
         file_bytes,
         &eval,
         gpu.describe(),
+        truth.labels.path(),
     );
     Ok(RunOutcome::Finished(Box::new(report), Box::new(trained)))
 }

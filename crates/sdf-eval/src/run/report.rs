@@ -2,8 +2,8 @@
 
 use std::path::Path;
 
-use sdf_nn::DistanceMode;
 use sdf_nn::model_file::write_atomic;
+use sdf_nn::{DistanceMode, GroundTruthPath};
 use serde::{Deserialize, Serialize};
 
 use super::{Evaluation, RunError, TrainOptions, Trained};
@@ -34,6 +34,15 @@ pub struct Report {
     /// Why the F1 fields are null: a mesh without an inside, or an unsigned field.
     #[serde(default)]
     pub f1_null_reason: Option<String>,
+    /// Fraction of the box points whose inside or outside is ambiguous: generalised winding
+    /// number strictly between 0.2 and 0.8 (open meshes; see
+    /// [`AMBIGUOUS_WINDING`](crate::metrics::AMBIGUOUS_WINDING)). A large one explains a low F1
+    /// (null in reports written before it was recorded).
+    #[serde(default)]
+    pub ambiguous_bbox: Option<f64>,
+    /// The same fraction of the near-surface points.
+    #[serde(default)]
+    pub ambiguous_near_surface: Option<f64>,
     /// `"signed"` or `"unsigned"`: what the model fits.
     #[serde(default)]
     pub distance: Option<DistanceMode>,
@@ -86,6 +95,10 @@ pub struct Report {
     pub eval_points: usize,
     /// Adapter the run used.
     pub adapter: String,
+    /// Where the labels (training samples, evaluation sets) were computed: `"gpu"` or `"cpu"`
+    /// (null in reports written before it was recorded).
+    #[serde(default)]
+    pub ground_truth: Option<GroundTruthPath>,
     /// hwsdf version.
     pub hwsdf_version: String,
     /// Training details (e.g. NGLOD's GPU/sampling time split).
@@ -93,6 +106,12 @@ pub struct Report {
 }
 
 impl Report {
+    /// The ambiguous fractions as summary lines print them: `"ambiguous box 0.0%, near 12.3%"`
+    /// (`n/a` where not recorded).
+    pub fn ambiguity_summary(&self) -> String {
+        crate::metrics::ambiguity_summary(self.ambiguous_bbox, self.ambiguous_near_surface)
+    }
+
     /// Assembles a report.
     pub fn new(
         mesh: &Path,
@@ -101,6 +120,7 @@ impl Report {
         file_bytes: u64,
         eval: &Evaluation,
         adapter: String,
+        ground_truth: GroundTruthPath,
     ) -> Self {
         let s = &eval.scores;
         Report {
@@ -114,6 +134,8 @@ impl Report {
             f1_near_surface: s.f1_near_surface,
             f1_mean: s.f1_mean,
             f1_null_reason: s.f1_null_reason.clone(),
+            ambiguous_bbox: s.ambiguous_bbox,
+            ambiguous_near_surface: s.ambiguous_near_surface,
             distance: Some(options.distance),
             sign_accuracy_bbox: s.sign_accuracy_bbox,
             sign_accuracy_near_surface: s.sign_accuracy_near_surface,
@@ -134,6 +156,7 @@ impl Report {
             final_lr: Some(trained.lr),
             eval_points: eval.eval_points,
             adapter,
+            ground_truth: Some(ground_truth),
             hwsdf_version: sdf_nn::model_file::HWSDF_VERSION.into(),
             training: trained.details.clone(),
         }

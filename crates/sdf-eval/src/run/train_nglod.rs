@@ -24,7 +24,7 @@ pub(super) fn train(
         gpu,
         &model,
         &plan.truth.mesh,
-        plan.truth.sdf.clone(),
+        plan.truth.labels.clone(),
         train_config,
     )?;
     trainer.set_stop_flag(plan.stop.clone());
@@ -116,6 +116,11 @@ fn config(plan: &Plan<'_>, epochs: usize) -> NglodTrainConfig {
     if let Some((blocks, every)) = options.pool {
         c.pool_blocks = blocks;
         c.refresh_every = every;
+    }
+    // Ground truth on the GPU: the epochs' points are drawn and labelled there too, so that no
+    // epoch waits for the CPU (issue 38).
+    if plan.truth.labels.path() == sdf_nn::ground_truth::GroundTruthPath::Gpu {
+        c.sample_source = sdf_nn::nglod::SampleSource::Gpu;
     }
     c
 }

@@ -39,7 +39,7 @@ pub(super) fn train(
         gpu,
         &siren,
         &plan.truth.mesh,
-        &plan.truth.sdf,
+        &plan.truth.labels,
         train_config,
     )?;
     if let Some(c) = plan.resume {

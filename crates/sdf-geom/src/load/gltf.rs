@@ -3,14 +3,14 @@
 
 use std::path::Path;
 
-use glam::Mat4;
+use glam::DMat4;
 
 use super::buffers::read_buffers;
 use super::primitive::{Merged, add_gltf_mesh};
 use super::scene::{GpuInstancing, check_scene_size, expand_scene, gpu_instancing, node_graph};
 use super::{LoadOptions, parse_error};
 use crate::GeomError;
-use crate::mesh::{LoadReport, Mesh, clean};
+use crate::mesh::{LoadReport, Mesh, clean, recentre};
 
 /// Whether a glTF that lists the compression extension `ext` as used (not required) holds its
 /// geometry uncompressed too, as the specification asks of such files: with Draco, every
@@ -110,7 +110,7 @@ pub(super) fn load_gltf(
                     path,
                     None,
                     &mesh,
-                    Mat4::IDENTITY,
+                    DMat4::IDENTITY,
                     mesh.weights().unwrap_or_default(),
                     true,
                     &buffers,
@@ -119,7 +119,9 @@ pub(super) fn load_gltf(
             }
         }
     }
-    let mesh = clean(out.vertices, out.triangles, &mut out.report)?;
+    let vertices = recentre(&out.vertices, &mut out.report);
+    drop(out.vertices);
+    let mesh = clean(vertices, out.triangles, &mut out.report)?;
     Ok((mesh, out.report))
 }
 

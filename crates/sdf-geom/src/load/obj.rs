@@ -6,12 +6,12 @@ use std::cell::RefCell;
 use std::io::Cursor;
 use std::path::{Path, PathBuf};
 
-use glam::Vec3;
+use glam::DVec3;
 use rayon::prelude::*;
 
 use super::{MAX_INSTANCED_TRIANGLES, MAX_INSTANCED_VERTICES, check_limits};
 use crate::GeomError;
-use crate::mesh::{LoadReport, Mesh, clean};
+use crate::mesh::{LoadReport, Mesh, clean, recentre};
 
 /// OBJ text as `tobj` can take it, keeping only what the geometry needs:
 /// - no byte-order mark, and lossy UTF-8 (names in Latin-1 and the like only lose their odd
@@ -213,15 +213,16 @@ pub(super) fn load_obj(
         }
     }
 
-    let mut vertices: Vec<Vec3> = Vec::new();
+    // Positions in f64 (tobj's `use_f64`), recentred before they become f32 ([`recentre`]).
+    let mut positions: Vec<DVec3> = Vec::new();
     let mut triangles: Vec<[u32; 3]> = Vec::new();
     for model in &models {
         let m = &model.mesh;
-        let base = vertices.len() as u64;
-        vertices.extend(
+        let base = positions.len() as u64;
+        positions.extend(
             m.positions
                 .chunks_exact(3)
-                .map(|c| Vec3::new(c[0], c[1], c[2])),
+                .map(|c| DVec3::new(c[0], c[1], c[2])),
         );
         let idx = |i: u32| -> Result<u32, GeomError> {
             let g = base + i as u64;
@@ -261,6 +262,8 @@ pub(super) fn load_obj(
             counts.short_faces
         ));
     }
+    let vertices = recentre(&positions, &mut report);
+    drop(positions);
     let mesh = clean(vertices, triangles, &mut report)?;
     Ok((mesh, report))
 }

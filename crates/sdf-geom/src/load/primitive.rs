@@ -4,7 +4,7 @@
 use std::path::Path;
 use std::rc::Rc;
 
-use glam::{Mat4, Vec3};
+use glam::{DMat4, DVec3, Vec3};
 
 use super::accessors::{Vec3Format, read_accessor, vec3_format};
 use super::{in_message, node_error};
@@ -70,7 +70,9 @@ fn morph(
 /// the report of what was read.
 #[derive(Default)]
 pub(super) struct Merged {
-    pub(super) vertices: Vec<Vec3>,
+    /// In f64: a node's transform may place the mesh far from the origin, where f32 would round
+    /// its shape; the loader recentres them before they become f32.
+    pub(super) vertices: Vec<DVec3>,
     pub(super) triangles: Vec<[u32; 3]>,
     pub(super) report: LoadReport,
 }
@@ -83,7 +85,7 @@ pub(super) fn add_gltf_mesh(
     path: &Path,
     node: Option<&gltf::Node>,
     mesh: &gltf::Mesh,
-    world: Mat4,
+    world: DMat4,
     morph_weights: &[f32],
     warn: bool,
     buffers: &[Rc<[u8]>],
@@ -147,12 +149,17 @@ pub(super) fn add_gltf_mesh(
         }
         let base = out.vertices.len();
         let vertices = &mut out.vertices;
-        vertices.extend(local_positions.iter().map(|&p| world.transform_point3(p)));
+        vertices.extend(
+            local_positions
+                .iter()
+                .map(|&p| world.transform_point3(p.as_dvec3())),
+        );
         // A finite transform can still overflow a finite vertex: blame the transform, not the
         // vertex data (a non-finite position in the data is left for `clean` to report).
         if let Some(node) = node
-            && let Some(i) =
-                (0..n).find(|&i| local_positions[i].is_finite() && !vertices[base + i].is_finite())
+            && let Some(i) = (0..n).find(|&i| {
+                local_positions[i].is_finite() && !vertices[base + i].as_vec3().is_finite()
+            })
         {
             return Err(node_error(
                 path,
@@ -162,7 +169,7 @@ pub(super) fn add_gltf_mesh(
                     mesh.index(),
                     prim.index(),
                     local_positions[i],
-                    vertices[base + i]
+                    vertices[base + i].as_vec3()
                 ),
             ));
         }

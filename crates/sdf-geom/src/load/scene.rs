@@ -5,7 +5,7 @@
 use std::path::Path;
 use std::rc::Rc;
 
-use glam::{Mat4, Vec3};
+use glam::{DMat4, Mat4, Vec3};
 
 use super::accessors::{Vec3Format, component, read_accessor};
 use super::primitive::{Merged, add_gltf_mesh};
@@ -179,16 +179,17 @@ pub(super) fn expand_scene(
 ) -> Result<(), GeomError> {
     // A mesh's warnings are given at its first instance only (a million instances, one warning).
     let mut warned = vec![false; doc.meshes().len()];
-    let mut stack: Vec<(gltf::Node, Mat4)> = scene
+    let mut stack: Vec<(gltf::Node, DMat4)> = scene
         .nodes()
         .filter(|n| graph.mesh_below[n.index()])
-        .map(|n| (n, Mat4::IDENTITY))
+        .map(|n| (n, DMat4::IDENTITY))
         .collect();
     stack.reverse();
     while let Some((node, parent)) = stack.pop() {
-        let local = node_matrix(path, &node)?;
+        // Composed in f64: a far translation keeps the mesh's shape (f32 would round it).
+        let local = node_matrix(path, &node)?.as_dmat4();
         let world = parent * local;
-        if !world.is_finite() {
+        if !world.as_mat4().is_finite() {
             return Err(node_error(
                 path,
                 &node,
@@ -228,17 +229,17 @@ pub(super) fn expand_scene(
 fn instance_worlds(
     path: &Path,
     node: &gltf::Node,
-    world: Mat4,
+    world: DMat4,
     instancing: &Option<GpuInstancing>,
     buffers: &[Rc<[u8]>],
-) -> Result<Vec<Mat4>, GeomError> {
+) -> Result<Vec<DMat4>, GeomError> {
     match instancing {
         Some(inst) => instance_matrices(path, node.index(), inst, buffers)?
             .into_iter()
             .enumerate()
             .map(|(i, m)| {
-                let w = world * m;
-                if w.is_finite() {
+                let w = world * m.as_dmat4();
+                if w.as_mat4().is_finite() {
                     Ok(w)
                 } else {
                     Err(node_error(

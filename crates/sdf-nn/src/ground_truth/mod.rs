@@ -51,8 +51,14 @@
 //! returns [`GroundTruthError`] naming the limit. Queries are split into dispatches that fit the
 //! device's buffer and dispatch limits.
 
+mod labeller;
+
 use glam::Vec3;
 use sdf_geom::{GpuTrees, SignedDistance, morton_order};
+
+pub use labeller::{
+    GroundTruthDevice, GroundTruthPath, LabelProgress, Labeller, ProgressSink, UnknownDevice,
+};
 
 use crate::gpu::{GpuContext, GpuError, entry};
 use crate::shaders::{self, Shader};

@@ -130,8 +130,9 @@ pub enum NglodError {
     /// The GPU sampler's error ([`SampleSource::Gpu`]).
     #[error(transparent)]
     Sample(#[from] crate::ground_truth::SampleError),
-    /// The GPU ground truth's error ([`SampleSource::Gpu`]): a mesh too large or too deep for it.
-    #[error(transparent)]
+    /// Labelling the samples on the GPU failed: a mesh too large or too deep for the GPU
+    /// ground truth.
+    #[error("ground truth: {0}")]
     GroundTruth(#[from] crate::ground_truth::GroundTruthError),
 }
 

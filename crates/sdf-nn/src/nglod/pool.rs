@@ -10,9 +10,10 @@ use glam::Vec3;
 use rand::{Rng, SeedableRng};
 use rand_pcg::Pcg64;
 use rayon::prelude::*;
-use sdf_geom::{Mesh, SignedDistance};
+use sdf_geom::Mesh;
 
 use super::{DistanceMode, NglodTrainConfig};
+use crate::ground_truth::{GroundTruthError, Labeller};
 
 /// When each block of the sample pool is drawn and which blocks an epoch draws from. Block `k`
 /// is sampled with a seed derived from `k`, so the pool of any epoch can be rebuilt (resume).
@@ -59,10 +60,10 @@ pub(super) struct Block {
 /// Draws and labels block `k` of the pool (on the calling thread plus rayon's pool).
 pub(super) fn sample_block(
     mesh: &Mesh,
-    sdf: &SignedDistance,
+    labels: &Labeller<'_>,
     c: &NglodTrainConfig,
     k: usize,
-) -> Block {
+) -> Result<Block, GroundTruthError> {
     let t = Instant::now();
     let seed = c.seed ^ (k as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15);
     let mut points = sdf_geom::sample::uniform_box(c.uniform_points, seed);
@@ -73,24 +74,20 @@ pub(super) fn sample_block(
         seed ^ 1,
     ));
     let mut targets = match c.distance {
-        DistanceMode::Signed => sdf.signed_distance_batch(&points),
+        DistanceMode::Signed => labels.signed_distance_batch(&points)?,
         // No winding number needed: the closest point alone gives |d|.
-        DistanceMode::Unsigned => sdf
-            .closest_point_batch(&points)
-            .iter()
-            .map(|c| c.distance)
-            .collect(),
+        DistanceMode::Unsigned => labels.unsigned_distance_batch(&points)?,
     };
     // Surface samples lie on the mesh by construction: their exact distance is 0, so the
     // distance query is skipped for them (40% of the points).
     let surface = sdf_geom::sample::surface(mesh, c.surface_points, seed ^ 2).points;
     targets.resize(points.len() + surface.len(), 0.0);
     points.extend(surface);
-    Block {
+    Ok(Block {
         points,
         targets,
         seconds: t.elapsed().as_secs_f64(),
-    }
+    })
 }
 
 /// The order in which epoch `epoch` visits the pool: `n` distinct indices below `pool_len`, in
@@ -164,12 +161,12 @@ impl Pool {
 mod tests {
     use super::*;
 
-    fn spot() -> (Mesh, SignedDistance) {
+    fn spot() -> (Mesh, Labeller<'static>) {
         let path = concat!(env!("CARGO_MANIFEST_DIR"), "/../../tests/data/spot.obj");
         let (mesh, _) = sdf_geom::load_mesh(path).expect("tests/data/spot.obj");
         let (unit, _) = mesh.normalized();
-        let sdf = SignedDistance::new(&unit).unwrap();
-        (unit, sdf)
+        let sdf = sdf_geom::SignedDistance::new(&unit).unwrap();
+        (unit, Labeller::cpu(std::sync::Arc::new(sdf)))
     }
 
     fn small_config(seed: u64) -> NglodTrainConfig {
@@ -184,7 +181,7 @@ mod tests {
 
     fn pool_at(
         mesh: &Mesh,
-        sdf: &SignedDistance,
+        sdf: &Labeller<'_>,
         c: &NglodTrainConfig,
         epoch: usize,
     ) -> (Vec<usize>, Pool) {
@@ -194,7 +191,7 @@ mod tests {
             cap: c.pool_blocks,
         };
         for k in blocks.clone() {
-            pool.push(k, sample_block(mesh, sdf, c, k));
+            pool.push(k, sample_block(mesh, sdf, c, k).unwrap());
         }
         (blocks.collect(), pool)
     }
@@ -280,7 +277,7 @@ mod tests {
         assert_eq!(blocks_hit(&p[..200]), [true; 4]);
         // Every drawn point keeps its label.
         for (q, d) in p.iter().zip(&t).take(300) {
-            let exact = sdf.signed_distance(*q);
+            let exact = sdf.sdf().signed_distance(*q);
             assert!(*d == 0.0 || (*d - exact).abs() < 1e-6, "{q} {d} {exact}");
         }
         // Partial redraw: at epoch 7 (refresh every 4) block 4 replaces block 0, the rest stay.
@@ -295,7 +292,7 @@ mod tests {
     #[test]
     fn unsigned_targets_are_absolute_distances() {
         let (mesh, sdf) = spot();
-        let signed = sample_block(&mesh, &sdf, &small_config(1), 0);
+        let signed = sample_block(&mesh, &sdf, &small_config(1), 0).unwrap();
         let unsigned = sample_block(
             &mesh,
             &sdf,
@@ -304,7 +301,8 @@ mod tests {
                 ..small_config(1)
             },
             0,
-        );
+        )
+        .unwrap();
         assert_eq!(signed.points, unsigned.points);
         assert!(signed.targets.iter().any(|&d| d < 0.0));
         for (s, u) in signed.targets.iter().zip(&unsigned.targets) {

@@ -28,7 +28,7 @@ use super::pool::{Block, Pool, PoolSchedule, sample_block};
 use super::{Nglod, NglodError, NglodGpu, Objective, ScatterMode};
 use crate::adam::{Adam, AdamConfig};
 use crate::gpu::{GpuContext, UniformStager};
-use crate::ground_truth::{LabelledDraw, SampleSpec};
+use crate::ground_truth::{LabelledDraw, Labeller, SampleSpec};
 
 mod gpu_points;
 
@@ -285,7 +285,7 @@ pub struct NglodTrainer<'g> {
     model: NglodGpu,
     adam: Adam,
     mesh: Mesh,
-    sdf: Arc<SignedDistance>,
+    labels: Labeller<'g>,
     config: NglodTrainConfig,
     points: wgpu::Buffer,
     targets: wgpu::Buffer,
@@ -323,22 +323,24 @@ impl<'g> NglodTrainer<'g> {
     ) -> Result<Self, NglodError> {
         // Bad settings are refused before the BVH is built.
         let n = Self::check(mesh, &config)?;
-        let sdf = Arc::new(SignedDistance::new(mesh)?);
-        Self::checked(gpu, model, mesh, sdf, config, n)
+        let labels = Labeller::cpu(Arc::new(SignedDistance::new(mesh)?));
+        Self::checked(gpu, model, mesh, labels, config, n)
     }
 
-    /// [`NglodTrainer::new`] with the exact signed distance of `mesh` already built: `sdf` must
-    /// be `SignedDistance::new(mesh)`'s. A caller that also checks or evaluates against the mesh
-    /// builds its BVH once (1.3–1.6 s for 1.4 M triangles on 2 cores).
+    /// [`NglodTrainer::new`] with the exact ground truth of `mesh` already built: `labels`
+    /// must label `SignedDistance::new(mesh)`, on the path the run chose
+    /// ([`Labeller::choose`]: the sample pool's labels come from it). A caller that also checks
+    /// or evaluates against the mesh builds its BVH once (1.3–1.6 s for 1.4 M triangles on 2
+    /// cores).
     pub fn with_ground_truth(
         gpu: &'g GpuContext,
         model: &Nglod,
         mesh: &Mesh,
-        sdf: Arc<SignedDistance>,
+        labels: Labeller<'g>,
         config: NglodTrainConfig,
     ) -> Result<Self, NglodError> {
         let n = Self::check(mesh, &config)?;
-        Self::checked(gpu, model, mesh, sdf, config, n)
+        Self::checked(gpu, model, mesh, labels, config, n)
     }
 
     /// The trainer, once [`NglodTrainer::check`] has passed and given `n32` points per epoch.
@@ -346,7 +348,7 @@ impl<'g> NglodTrainer<'g> {
         gpu: &'g GpuContext,
         model: &Nglod,
         mesh: &Mesh,
-        sdf: Arc<SignedDistance>,
+        labels: Labeller<'g>,
         config: NglodTrainConfig,
         n32: u32,
     ) -> Result<Self, NglodError> {
@@ -355,7 +357,7 @@ impl<'g> NglodTrainer<'g> {
         let placed;
         let model = if model.needs_bands() {
             let mut m = model.clone();
-            m.place_bands(|p| sdf.unsigned_distance(p))?;
+            m.place_bands(|p| labels.sdf().unsigned_distance(p))?;
             placed = m;
             &placed
         } else {
@@ -378,7 +380,7 @@ impl<'g> NglodTrainer<'g> {
             SampleSource::Gpu => Some(gpu_points::GpuPoints::new(
                 gpu,
                 mesh,
-                &sdf,
+                labels.sdf(),
                 &config,
                 (&points, &targets),
             )?),
@@ -388,7 +390,7 @@ impl<'g> NglodTrainer<'g> {
             model: gm,
             adam,
             mesh: mesh.clone(),
-            sdf,
+            labels,
             config,
             points,
             targets,
@@ -524,7 +526,7 @@ impl<'g> NglodTrainer<'g> {
             model: _,
             adam,
             mesh,
-            sdf,
+            labels,
             config,
             points,
             targets,
@@ -537,7 +539,7 @@ impl<'g> NglodTrainer<'g> {
             stop: stop_flag,
         } = self;
         let gpu: &GpuContext = gpu;
-        let (mesh, sdf, config) = (&*mesh, &*sdf, &*config);
+        let (mesh, labels, config) = (&*mesh, &*labels, &*config);
         let first_epoch = *epochs_done;
         let mut end_epoch = first_epoch + epochs;
         let n = config.points_per_epoch() as u32;
@@ -566,8 +568,8 @@ impl<'g> NglodTrainer<'g> {
         };
 
         std::thread::scope(|scope| -> Result<(), NglodError> {
-            let spawn = |k: usize| scope.spawn(move || sample_block(mesh, sdf, config, k));
-            let join = |h: std::thread::ScopedJoinHandle<'_, Block>| match h.join() {
+            let spawn = |k: usize| scope.spawn(move || sample_block(mesh, labels, config, k));
+            let join = |h: std::thread::ScopedJoinHandle<'_, Result<Block, _>>| match h.join() {
                 Ok(b) => b,
                 // A panic in the sampler is a bug in sdf-geom, not bad input: re-raise it.
                 Err(p) => std::panic::resume_unwind(p),
@@ -582,7 +584,7 @@ impl<'g> NglodTrainer<'g> {
             let firsts: Vec<_> = initial.clone().map(spawn).collect();
             let mut new_sampling = 0.0;
             for (k, h) in initial.clone().zip(firsts) {
-                let b = join(h);
+                let b = join(h)?;
                 new_sampling += b.seconds;
                 pool.push(k, b);
             }
@@ -600,7 +602,7 @@ impl<'g> NglodTrainer<'g> {
                     let Some(h) = pending.take() else {
                         unreachable!("the next due block is always pending")
                     };
-                    let b = join(h);
+                    let b = join(h)?;
                     new_sampling += b.seconds;
                     pool.push(next_block, b);
                     next_block += 1;

@@ -212,7 +212,7 @@ impl Camera {
     /// `frame_radius` (normalised units) is tangent to the narrower side of the frustum. Derived
     /// from the normalisation alone, so any model fills the frame the same way.
     pub fn orbit(normalization: Normalization, options: &RenderOptions) -> Camera {
-        let target = normalization.center;
+        let target = normalization.center.as_vec3();
         let radius = options.frame_radius / normalization.scale;
         let aspect = options.width as f32 / options.height as f32;
         let tan_half_y = (options.fov_y_degrees.to_radians() * 0.5).tan();
@@ -523,10 +523,10 @@ impl Renderer {
             albedo: options.albedo.extend(1.0).to_array(),
             background: options.background.to_array(),
             // A floor on the tolerance for rays that start at the camera's own position.
-            box_min: (n.center - Vec3::splat(half))
+            box_min: (n.center.as_vec3() - Vec3::splat(half))
                 .extend(1e-5 * half)
                 .to_array(),
-            box_max: (n.center + Vec3::splat(half))
+            box_max: (n.center.as_vec3() + Vec3::splat(half))
                 .extend(options.level)
                 .to_array(),
             size: [w, h, options.max_steps, 0],

@@ -284,7 +284,7 @@ pub(crate) fn generate(
          // Mesh coordinates -> normalised cube: (p - HWSDF_CENTER) * HWSDF_SCALE.\n\
          const HWSDF_CENTER: vec3<f32> = {center};\n\
          const HWSDF_SCALE: f32 = {scale};\n\n",
-        center = vec3_lit(n.center),
+        center = vec3_lit(n.center.as_vec3()),
         scale = lit(n.scale),
     );
     match network {

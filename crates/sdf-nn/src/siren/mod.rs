@@ -47,7 +47,9 @@ pub use options::{
     auto_coop_min_points,
 };
 pub use step::TrainStep;
-pub use train::{SirenTrainConfig, SirenTrainer, TrainError, sided_box_points};
+pub use train::{
+    SirenTrainConfig, SirenTrainer, TrainError, sided_box_points, sided_box_points_with,
+};
 
 /// The largest ω0 a SIREN may have: the paper's is 30; far beyond it sin(ω0 z) of f32 arguments
 /// is rounding noise, and the GPU and CPU paths disagree (0.13 at 1e30).

@@ -17,6 +17,7 @@ use super::step::passes::TrainPasses;
 use super::{Siren, SirenConfigError};
 use crate::adam::{Adam, AdamConfig};
 use crate::gpu::{GpuContext, GpuError, PassProfiler, PassTime, entry};
+use crate::ground_truth::{GroundTruthError, Labeller};
 use crate::model_file::{self, ModelFile};
 use crate::shaders;
 
@@ -117,6 +118,9 @@ pub enum TrainError {
     /// The network configuration is unusable.
     #[error(transparent)]
     Config(#[from] SirenConfigError),
+    /// Labelling the box pool on the GPU failed.
+    #[error("ground truth: {0}")]
+    GroundTruth(#[from] crate::ground_truth::GroundTruthError),
     /// The training configuration is unusable.
     #[error("invalid training configuration: {0}")]
     BadTrainConfig(String),
@@ -168,6 +172,25 @@ pub const BOX_POOL: usize = 1 << 20;
 pub fn sided_box_points(sdf: &sdf_geom::SignedDistance, n: usize, seed: u64) -> Vec<Vec4> {
     let points = sdf_geom::sample::uniform_box(n, seed);
     let inside = sdf.is_inside_batch(&points);
+    sided(&points, inside)
+}
+
+/// [`sided_box_points`] with the sides from `labels` (the path the run chose: CPU or GPU).
+///
+/// # Errors
+/// The GPU's, where `labels` runs there.
+pub fn sided_box_points_with(
+    labels: &Labeller<'_>,
+    n: usize,
+    seed: u64,
+) -> Result<Vec<Vec4>, GroundTruthError> {
+    let points = sdf_geom::sample::uniform_box(n, seed);
+    let inside = labels.is_inside_batch(&points)?;
+    Ok(sided(&points, inside))
+}
+
+/// `(x, y, z, s)`, `s` = −1 where `inside`, else +1.
+fn sided(points: &[Vec3], inside: Vec<bool>) -> Vec<Vec4> {
     points
         .iter()
         .zip(inside)
@@ -274,28 +297,29 @@ impl SirenTrainer {
         Self::sampled(gpu, siren, mesh, None, config)
     }
 
-    /// [`SirenTrainer::from_mesh`] with the exact signed distance of `mesh` (normalised, as
-    /// there) already built: `sdf` must be `SignedDistance::new(mesh)`'s. It labels the box pool,
-    /// so a caller that also evaluates against the mesh builds its BVH once. (`from_mesh` labels
-    /// with the SDF of `mesh` normalised once more, which can differ from `mesh` by an ulp: a
-    /// label within about 1e-7 of the surface may differ between the two.)
+    /// [`SirenTrainer::from_mesh`] with the exact ground truth of `mesh` (normalised, as
+    /// there) already built: `labels` must label `SignedDistance::new(mesh)`, on the path the
+    /// run chose ([`Labeller::choose`]). It labels the box pool, so a caller that also evaluates
+    /// against the mesh builds its BVH once. (`from_mesh` labels with the SDF of `mesh`
+    /// normalised once more, which can differ from `mesh` by an ulp: a label within about 1e-7
+    /// of the surface may differ between the two.)
     pub fn with_ground_truth(
         gpu: &GpuContext,
         siren: &Siren,
         mesh: &sdf_geom::Mesh,
-        sdf: &sdf_geom::SignedDistance,
+        labels: &Labeller<'_>,
         config: SirenTrainConfig,
     ) -> Result<Self, TrainError> {
-        Self::sampled(gpu, siren, mesh, Some(sdf), config)
+        Self::sampled(gpu, siren, mesh, Some(labels), config)
     }
 
-    /// The dataset and the box pool sampled from `mesh` (the pool labelled by `sdf`, or by one
+    /// The dataset and the box pool sampled from `mesh` (the pool labelled by `labels`, or by one
     /// built here where it is `None` and the run needs a pool).
     fn sampled(
         gpu: &GpuContext,
         siren: &Siren,
         mesh: &sdf_geom::Mesh,
-        sdf: Option<&sdf_geom::SignedDistance>,
+        labels: Option<&Labeller<'_>>,
         config: SirenTrainConfig,
     ) -> Result<Self, TrainError> {
         let (normalized, norm) = mesh.normalized();
@@ -306,15 +330,13 @@ impl SirenTrainer {
             .box_pool
             .min(config.steps.saturating_mul(config.box_per_step));
         let mut pool = if pool_size > 0 && config.weights.sign > 0.0 {
-            let built;
-            let sdf = match sdf {
-                Some(sdf) => sdf,
+            match labels {
+                Some(labels) => sided_box_points_with(labels, pool_size, config.seed ^ 0x51DE)?,
                 None => {
-                    built = sdf_geom::SignedDistance::new(&normalized)?;
-                    &built
+                    let sdf = sdf_geom::SignedDistance::new(&normalized)?;
+                    sided_box_points(&sdf, pool_size, config.seed ^ 0x51DE)
                 }
-            };
-            sided_box_points(sdf, pool_size, config.seed ^ 0x51DE)
+            }
         } else {
             Vec::new()
         };

@@ -222,8 +222,8 @@ children = [
     );
     let n = normalization();
     let turn = Quat::from_rotation_z(FRAC_PI_2);
-    let a = Transform::new(Vec3::new(-10.0, 0.0, 0.0), turn, 0.5).apply(n.center);
-    let b = Vec3::new(10.0, 0.0, 0.0) + 2.0 * n.center;
+    let a = Transform::new(Vec3::new(-10.0, 0.0, 0.0), turn, 0.5).apply(n.center.as_vec3());
+    let b = Vec3::new(10.0, 0.0, 0.0) + 2.0 * n.center.as_vec3();
     let r = MODEL_RADIUS / n.scale;
     for (p, want, tol) in [
         // Inside the models' boxes (half size 4 mesh units: 1.67 radii).

@@ -21,7 +21,7 @@ pub(crate) const MODEL_RADIUS: f32 = 0.6;
 /// `center` and radius `MODEL_RADIUS / scale` = 2.4 mesh units.
 pub(crate) fn normalization() -> Normalization {
     Normalization {
-        center: Vec3::new(1.0, -2.0, 0.5),
+        center: Vec3::new(1.0, -2.0, 0.5).as_dvec3(),
         scale: 0.25,
     }
 }
@@ -56,7 +56,7 @@ fn a_model_placed_twice_is_two_spheres() {
     assert_eq!(scene.models().len(), 1, "one copy of the weights");
     assert_eq!(Arc::strong_count(&model), 2, "the test's and the scene's");
     // World spheres: centre t + R(s·c), radius s·2.4.
-    let spheres = [place_a, place_b].map(|t| (t.apply(n.center), t.scale * mesh_radius));
+    let spheres = [place_a, place_b].map(|t| (t.apply(n.center.as_vec3()), t.scale * mesh_radius));
     // The fitting error: trilinear interpolation and f16 features, ~4e-3 normalised units,
     // i.e. 0.016 mesh units, times each placement's scale.
     let tol = |leaf: usize| 0.02 * [place_a, place_b][leaf].scale as f64;
@@ -165,7 +165,7 @@ fn lipschitz_estimates_follow_the_slope() {
     assert_eq!(scene.model_lipschitz(2), None);
     // The steep field's zero set is still the sphere: the ray stops on it, not past it.
     let n = normalization();
-    let c = Vec3::X * 20.0 + n.center;
+    let c = Vec3::X * 20.0 + n.center.as_vec3();
     let ray = Ray {
         origin: c - Vec3::Y * 10.0,
         direction: Vec3::Y,
@@ -215,7 +215,7 @@ fn lipschitz_estimates_bound_observed_slopes() {
         // the centre).
         let (mut a, mut b) = (Vec::new(), Vec::new());
         for _ in 0..20_000 {
-            let p = n.center
+            let p = n.center.as_vec3()
                 + Vec3::new(
                     rng.random_range(-6.0..6.0),
                     rng.random_range(-6.0..6.0),

@@ -77,7 +77,7 @@ impl QueryBuffers {
             (points, results, staging)
         };
         let transform = match desc.space {
-            QuerySpace::Mesh => (normalization.center, normalization.scale),
+            QuerySpace::Mesh => (normalization.center.as_vec3(), normalization.scale),
             QuerySpace::Normalized => (Vec3::ZERO, 1.0),
         };
         let map = transform.0.extend(transform.1);

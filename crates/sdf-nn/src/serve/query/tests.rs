@@ -237,7 +237,7 @@ fn siren_queries_beyond_one_launch_are_split() {
 fn siren_queries_take_one_dispatch_where_the_kernels_allow() {
     let gpu = gpu();
     let norm = Normalization {
-        center: Vec3::new(-2.0, 0.5, 1.0),
+        center: Vec3::new(-2.0, 0.5, 1.0).as_dvec3(),
         scale: 0.25,
     };
     let siren = Siren::new(SirenConfig::small(), 5).unwrap();
@@ -295,7 +295,7 @@ fn siren_queries_take_one_dispatch_where_the_kernels_allow() {
 fn siren_one_dispatch_queries_with_row_blocks() {
     let gpu = gpu();
     let norm = Normalization {
-        center: Vec3::new(0.5, 1.0, -1.5),
+        center: Vec3::new(0.5, 1.0, -1.5).as_dvec3(),
         scale: 2.0,
     };
     let cfg = SirenConfig {

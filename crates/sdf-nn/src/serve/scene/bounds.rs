@@ -83,7 +83,7 @@ impl Scene {
         let grown = level.max(0.0);
         let half = ((hi - lo) * 0.5).max_element() + grown;
         Normalization {
-            center: (lo + hi) * 0.5,
+            center: ((lo + hi) * 0.5).as_dvec3(),
             scale: 1.0 / half.max(1e-6),
         }
     }
@@ -94,7 +94,8 @@ impl Scene {
             LeafKind::Model(m) => {
                 let n = self.models()[m].normalization();
                 let half = Vec3::splat(1.0 / n.scale);
-                (n.center - half, n.center + half)
+                let c = n.center.as_vec3();
+                (c - half, c + half)
             }
             LeafKind::Primitive(p) => {
                 let half = match p {
@@ -238,7 +239,7 @@ mod tests {
         .unwrap();
         assert_eq!(with_plane.bounds(), None);
         let frame = with_plane.frame(0.0);
-        assert_eq!((frame.center, frame.scale), (Vec3::X * 5.0, 1.0));
+        assert_eq!((frame.center, frame.scale), (glam::DVec3::X * 5.0, 1.0));
         // An intersection with a plane is bounded by the other child.
         let cut = Scene::new(SceneNode::Intersection(vec![
             prim(Primitive::Sphere { radius: 1.0 }, Transform::IDENTITY),
