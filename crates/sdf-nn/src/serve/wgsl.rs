@@ -175,17 +175,36 @@ pub(crate) fn bind_group(
             return Err(EmbedError::TooLarge { bytes, limit });
         }
     }
-    use wgpu::util::DeviceExt;
-    let storage = |label, contents: &[u8]| {
-        device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
-            label: Some(label),
-            contents,
-            usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST,
-        })
-    };
-    let buffer = storage("hwsdf_params", bytemuck::cast_slice(params));
-    let table = (!tables.is_empty()).then(|| storage("hwsdf_table", bytemuck::cast_slice(&tables)));
+    let buffer = weight_buffer(device, "hwsdf_params", bytemuck::cast_slice(params));
+    let table = (!tables.is_empty())
+        .then(|| weight_buffer(device, "hwsdf_table", bytemuck::cast_slice(&tables)));
     let buffers: Vec<&wgpu::Buffer> = std::iter::once(&buffer).chain(&table).collect();
+    let (layout, bind_group) = read_only_group(device, "hwsdf_params", &buffers);
+    Ok(SdfBindGroup {
+        layout,
+        bind_group,
+        buffer,
+        table,
+    })
+}
+
+/// A read-only storage buffer holding `contents` (weights or tables).
+pub(crate) fn weight_buffer(device: &wgpu::Device, label: &str, contents: &[u8]) -> wgpu::Buffer {
+    use wgpu::util::DeviceExt;
+    device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+        label: Some(label),
+        contents,
+        usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST,
+    })
+}
+
+/// A bind group of `buffers` at bindings 0, 1, …, read-only storage visible to compute and
+/// fragment shaders (where snippets run), and its layout: what a snippet's weights are bound as.
+pub(crate) fn read_only_group(
+    device: &wgpu::Device,
+    label: &str,
+    buffers: &[&wgpu::Buffer],
+) -> (wgpu::BindGroupLayout, wgpu::BindGroup) {
     let layout_entries: Vec<_> = (0..buffers.len() as u32)
         .map(|binding| wgpu::BindGroupLayoutEntry {
             binding,
@@ -199,28 +218,20 @@ pub(crate) fn bind_group(
         })
         .collect();
     let layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
-        label: Some("hwsdf_params layout"),
+        label: Some(label),
         entries: &layout_entries,
     });
     let entries: Vec<_> = buffers
         .iter()
         .enumerate()
-        .map(|(i, b)| wgpu::BindGroupEntry {
-            binding: i as u32,
-            resource: b.as_entire_binding(),
-        })
+        .map(|(i, b)| crate::gpu::entry(i as u32, b))
         .collect();
     let bind_group = device.create_bind_group(&wgpu::BindGroupDescriptor {
-        label: Some("hwsdf_params"),
+        label: Some(label),
         layout: &layout,
         entries: &entries,
     });
-    Ok(SdfBindGroup {
-        layout,
-        bind_group,
-        buffer,
-        table,
-    })
+    (layout, bind_group)
 }
 
 /// A WGSL `f32` literal that parses back to exactly `x` (Rust's shortest round-trip form).

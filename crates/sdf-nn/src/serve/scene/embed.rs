@@ -586,49 +586,16 @@ impl Scene {
                 tables[k].extend_from_slice(&t);
             }
         }
-        use wgpu::util::DeviceExt;
-        let storage = |label, contents: &[u8]| {
-            device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
-                label: Some(label),
-                contents,
-                usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST,
-            })
-        };
         let params: Vec<wgpu::Buffer> = params
             .iter()
-            .map(|p| storage("scene params", bytemuck::cast_slice(p)))
+            .map(|p| wgsl::weight_buffer(device, "scene params", bytemuck::cast_slice(p)))
             .collect();
         let tables: Vec<wgpu::Buffer> = tables
             .iter()
-            .map(|t| storage("scene tables", bytemuck::cast_slice(t)))
+            .map(|t| wgsl::weight_buffer(device, "scene tables", bytemuck::cast_slice(t)))
             .collect();
         let buffers: Vec<&wgpu::Buffer> = params.iter().chain(&tables).collect();
-        let layout_entries: Vec<_> = (0..buffers.len() as u32)
-            .map(|binding| wgpu::BindGroupLayoutEntry {
-                binding,
-                visibility: wgpu::ShaderStages::COMPUTE | wgpu::ShaderStages::FRAGMENT,
-                ty: wgpu::BindingType::Buffer {
-                    ty: wgpu::BufferBindingType::Storage { read_only: true },
-                    has_dynamic_offset: false,
-                    min_binding_size: None,
-                },
-                count: None,
-            })
-            .collect();
-        let layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
-            label: Some("scene weights layout"),
-            entries: &layout_entries,
-        });
-        let entries: Vec<_> = buffers
-            .iter()
-            .enumerate()
-            .map(|(i, b)| crate::gpu::entry(i as u32, b))
-            .collect();
-        let bind_group = device.create_bind_group(&wgpu::BindGroupDescriptor {
-            label: Some("scene weights"),
-            layout: &layout,
-            entries: &entries,
-        });
+        let (layout, bind_group) = wgsl::read_only_group(device, "scene weights", &buffers);
         SceneBindGroup {
             layout,
             bind_group,
