@@ -508,3 +508,89 @@ fn eight_threads_query_one_scene() {
     });
     assert!(checked >= 8 * 250, "{checked}");
 }
+
+/// Unions of many placed models and primitives (the compiled chains that evaluate the nearest
+/// model first and skip the others by their bounds), as a fresh union and continuing a smooth
+/// union: distances and rays agree with the CPU's.
+#[test]
+fn unions_of_many_models_match_the_cpu() {
+    let model = Arc::new(sphere_model(1.0));
+    let placed = |i: usize| {
+        SceneNode::model(
+            model.clone(),
+            Transform::new(
+                Vec3::new(i as f32 * 2.2 - 4.4, (i % 2) as f32, 0.0),
+                Quat::from_rotation_y(i as f32),
+                0.4,
+            ),
+        )
+    };
+    let ball = SceneNode::primitive(
+        Primitive::Sphere { radius: 0.5 },
+        Transform::from_translation(Vec3::Y * 3.0),
+    );
+    let slab = SceneNode::primitive(
+        Primitive::Box {
+            half_extents: Vec3::new(6.0, 0.1, 2.0),
+        },
+        Transform::from_translation(Vec3::Y * -1.5),
+    );
+    let fresh: Vec<SceneNode> = (0..5)
+        .map(placed)
+        .chain([ball.clone(), slab.clone()])
+        .collect();
+    let mut continued = vec![SceneNode::SmoothUnion {
+        k: 0.3,
+        children: vec![ball, slab],
+    }];
+    continued.extend((0..5).map(placed));
+    for children in [fresh, continued] {
+        let scene = Scene::new(SceneNode::Union(children)).unwrap();
+        // The chain is compiled as one union of leaves, not as five separate culled unions.
+        let wgsl = scene
+            .wgsl_with_prefix(0, "s", &gpu().device().limits())
+            .unwrap();
+        assert_eq!(wgsl.matches("nearest model bound first").count(), 1);
+        let on_gpu = GpuScene::new(gpu(), &scene).unwrap();
+        let points = random_points(3000, 6.0, 11);
+        let want = scene.distances(&points, 0.0);
+        let got = on_gpu.distances(&points, 0.0).unwrap();
+        for (i, (g, w)) in got.iter().zip(&want).enumerate() {
+            assert!(
+                (g - w).abs() <= 2e-5 * (1.0 + w.abs()),
+                "point {i} {}: {g} vs {w}",
+                points[i]
+            );
+        }
+        let rays: Vec<Ray> = random_points(300, 5.0, 12)
+            .into_iter()
+            .map(|t| Ray {
+                origin: Vec3::new(0.0, 8.0, 10.0),
+                direction: t - Vec3::new(0.0, 8.0, 10.0),
+                max_distance: 40.0,
+            })
+            .collect();
+        let options = TraceOptions::default();
+        let (cpu, hits) = (
+            scene.trace_rays(&rays, &options).unwrap(),
+            on_gpu.trace_rays(&rays, &options).unwrap(),
+        );
+        let mut hit = 0;
+        for (i, (c, g)) in cpu.iter().zip(&hits).enumerate() {
+            match (c, g) {
+                (Some(c), Some(g)) => {
+                    hit += 1;
+                    assert!(
+                        (c.t - g.t).abs() < 1e-3 * (1.0 + c.t),
+                        "ray {i}: {} vs {}",
+                        g.t,
+                        c.t
+                    );
+                }
+                (None, None) => {}
+                _ => panic!("ray {i}: CPU {c:?}, GPU {g:?}"),
+            }
+        }
+        assert!(hit > 50, "{hit} of 300 rays hit");
+    }
+}

@@ -336,6 +336,17 @@ impl Scene {
             let mut body = String::new();
             let mut v = 0;
             while v < program.len() {
+                if !with_gradient
+                    && let Some((code, end, popped)) = self.leaf_union(prefix, v, &stack)
+                {
+                    if popped {
+                        stack.pop();
+                    }
+                    body.push_str(&code);
+                    stack.push(end);
+                    v = end + 1;
+                    continue;
+                }
                 if let Some((code, skip)) = self.culled_union(prefix, v, &stack, with_gradient) {
                     stack.pop();
                     body.push_str(&code);
@@ -379,6 +390,75 @@ impl Scene {
              \x20   return vec3<f32>(0.0);\n\
              }}\n"
         );
+    }
+
+    /// A union of leaves starting at `v` (`Leaf, Leaf, Union, Leaf, Union, …`, as the
+    /// compiler folds an n-ary union whose children are leaves), with at least one model, as
+    /// distance-only code that takes the primitives first, then the model whose lower bound is
+    /// smallest, then each other model only where its bound is below the minimum so far: a
+    /// point near one of many placed models evaluates that one. Exact (`min` does not depend on
+    /// the order). The chain may also continue the value on top of `stack` (`Leaf, Union, Leaf,
+    /// Union, …` after any sub-tree). `(code, end, popped)`: the code defines `v{end}`, `end`
+    /// the chain's last union; `popped`: it consumed the top of the stack.
+    fn leaf_union(&self, prefix: &str, v: usize, stack: &[usize]) -> Option<(String, usize, bool)> {
+        let program = self.program();
+        let Instruction::Leaf(first) = program[v] else {
+            return None;
+        };
+        // Either the chain starts with two leaves, or it continues the value on the stack.
+        let continues = matches!(program.get(v + 1), Some(Instruction::Union)) && !stack.is_empty();
+        let (mut leaves, mut end, init) = if continues {
+            let a = *stack.last().expect("checked");
+            (Vec::new(), v - 1, format!("v{a}"))
+        } else {
+            (vec![first as usize], v, "3.4028235e38f".to_owned())
+        };
+        while let (Some(Instruction::Leaf(l)), Some(Instruction::Union)) =
+            (program.get(end + 1), program.get(end + 2))
+        {
+            leaves.push(*l as usize);
+            end += 2;
+        }
+        let is_model = |l: &usize| matches!(self.leaves()[*l].kind, LeafKind::Model(_));
+        let models: Vec<usize> = leaves.iter().copied().filter(is_model).collect();
+        if leaves.len() < 2 || models.is_empty() {
+            return None;
+        }
+        let mut c = format!(
+            "    // The union of leaves {leaves:?}: primitives, then the nearest model bound first.\n\
+             \x20   var v{end} = {init};\n"
+        );
+        for l in leaves.iter().filter(|l| !is_model(l)) {
+            let _ = writeln!(c, "    v{end} = min(v{end}, {prefix}_leaf_{l}_d(p));");
+        }
+        for (i, l) in models.iter().enumerate() {
+            let _ = writeln!(c, "    let b{end}_{i} = {prefix}_leaf_{l}_lb(p);");
+        }
+        let _ = writeln!(c, "    var lo{end} = b{end}_0;\n    var first{end} = 0u;");
+        for i in 1..models.len() {
+            let _ = writeln!(
+                c,
+                "    if b{end}_{i} < lo{end} {{\n        lo{end} = b{end}_{i};\n        first{end} = {i}u;\n    }}"
+            );
+        }
+        let _ = writeln!(
+            c,
+            "    if lo{end} < v{end} {{\n        switch first{end} {{"
+        );
+        for (i, l) in models.iter().enumerate() {
+            let _ = writeln!(
+                c,
+                "            case {i}u: {{ v{end} = min(v{end}, {prefix}_leaf_{l}_d(p)); }}"
+            );
+        }
+        let _ = writeln!(c, "            default: {{}}\n        }}\n    }}");
+        for (i, l) in models.iter().enumerate() {
+            let _ = writeln!(
+                c,
+                "    if first{end} != {i}u && b{end}_{i} < v{end} {{\n        v{end} = min(v{end}, {prefix}_leaf_{l}_d(p));\n    }}"
+            );
+        }
+        Some((c, end, continues))
     }
 
     /// A model leaf at `v` that a union or smooth union at `v + 1` combines with the value
