@@ -431,18 +431,7 @@ impl GpuContext {
             return Ok(p.clone());
         }
         let scope = self.device.push_error_scope(wgpu::ErrorFilter::Validation);
-        // SAFETY: our shaders index only within the bounds they check themselves (every kernel
-        // guards its global index against the element count); naga's inserted bounds checks
-        // cost measurably on lavapipe. `shaders::tests` validates every shader with naga.
-        let module = unsafe {
-            self.device.create_shader_module_trusted(
-                wgpu::ShaderModuleDescriptor {
-                    label: Some(shader.name),
-                    source: wgpu::ShaderSource::Wgsl(Cow::Borrowed(shader.source)),
-                },
-                wgpu::ShaderRuntimeChecks::unchecked(),
-            )
-        };
+        let module = self.trusted_module(shader.name, Cow::Borrowed(shader.source));
         let pipeline = self
             .device
             .create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
@@ -464,6 +453,24 @@ impl GpuContext {
         }
         cache.insert(key, pipeline.clone());
         Ok(pipeline)
+    }
+
+    /// A shader module of our own WGSL (the crate's kernels, or code generated from validated
+    /// models and scenes) without naga's inserted bounds checks.
+    pub(crate) fn trusted_module(&self, label: &str, source: Cow<'_, str>) -> wgpu::ShaderModule {
+        // SAFETY: our shaders index only within the bounds they check themselves (every kernel
+        // guards its global index against the element count; generated snippets index weights
+        // by offsets from the model's validated layout); naga's inserted bounds checks cost
+        // measurably on lavapipe. `shaders::tests` validates every shader with naga.
+        unsafe {
+            self.device.create_shader_module_trusted(
+                wgpu::ShaderModuleDescriptor {
+                    label: Some(label),
+                    source: wgpu::ShaderSource::Wgsl(source),
+                },
+                wgpu::ShaderRuntimeChecks::unchecked(),
+            )
+        }
     }
 
     /// Workgroup counts `(x, y)` covering `workgroups` groups, folding into the second dimension
