@@ -452,7 +452,7 @@ impl Renderer {
             ],
         });
         let scope = device.push_error_scope(wgpu::ErrorFilter::Validation);
-        let module = gpu.trusted_module(SPHERE_TRACE.name, Cow::Owned(source));
+        let module = gpu.generated_module(SPHERE_TRACE.name, Cow::Owned(source));
         // An explicit layout: the weights' group is created from its own layout (by
         // `NeuralSdf::bind_group` or `Scene::upload`), which a derived layout would not accept.
         let layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {

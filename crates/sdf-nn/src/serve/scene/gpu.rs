@@ -236,7 +236,7 @@ impl<'g> GpuScene<'g> {
             crate::shaders::SCENE_QUERY.source
         );
         let scope = device.push_error_scope(wgpu::ErrorFilter::Validation);
-        let module = gpu.trusted_module("scene_query.wgsl", Cow::Owned(source));
+        let module = gpu.generated_module("scene_query.wgsl", Cow::Owned(source));
         let storage = |binding, read_only| wgpu::BindGroupLayoutEntry {
             binding,
             visibility: wgpu::ShaderStages::COMPUTE,
