@@ -351,7 +351,11 @@ mod tests {
             .into_iter()
             .map(|m| N::model(Arc::new(m), at(0.8)))
             .collect();
+        // A union of leaves with models compiles to the nearest-bound chain.
+        let mut leaves = models.clone();
+        leaves.push(prims[0].clone());
         let root = N::Union(vec![
+            N::Union(leaves),
             N::SmoothUnion {
                 k: 0.1,
                 children: models,

@@ -441,23 +441,17 @@ impl Scene {
                 "    if b{end}_{i} < lo{end} {{\n        lo{end} = b{end}_{i};\n        first{end} = {i}u;\n    }}"
             );
         }
-        let _ = writeln!(
-            c,
-            "    if lo{end} < v{end} {{\n        switch first{end} {{"
-        );
+        // Two passes over one call site per model (a `switch` and a second list would inline
+        // every model twice): the nearest bound's model first, then the others that can still
+        // lower the minimum.
+        let _ = writeln!(c, "    for (var round{end} = 0u; round{end} < 2u; round{end}++) {{");
         for (i, l) in models.iter().enumerate() {
             let _ = writeln!(
                 c,
-                "            case {i}u: {{ v{end} = min(v{end}, {prefix}_leaf_{l}_d(p)); }}"
+                "        if (first{end} == {i}u) == (round{end} == 0u) && b{end}_{i} < v{end} {{\n            v{end} = min(v{end}, {prefix}_leaf_{l}_d(p));\n        }}"
             );
         }
-        let _ = writeln!(c, "            default: {{}}\n        }}\n    }}");
-        for (i, l) in models.iter().enumerate() {
-            let _ = writeln!(
-                c,
-                "    if first{end} != {i}u && b{end}_{i} < v{end} {{\n        v{end} = min(v{end}, {prefix}_leaf_{l}_d(p));\n    }}"
-            );
-        }
+        let _ = writeln!(c, "    }}");
         Some((c, end, continues))
     }
 
