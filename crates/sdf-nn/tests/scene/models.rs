@@ -250,3 +250,33 @@ fn lipschitz_estimates_bound_observed_slopes() {
 
 /// [`sdf_nn::serve::scene::lipschitz::SAFETY`], as f64.
 const SAFETY_FOR_TESTS: f64 = sdf_nn::serve::scene::lipschitz::SAFETY as f64;
+
+/// The value floor the GPU's culling uses lies below every value of the network on a grid
+/// finer than its own, and is tight (within a cell's worth of slope of the minimum); setting a
+/// Lipschitz bound measures it again.
+#[test]
+fn value_floors_bound_the_network_tightly() {
+    let model = Arc::new(sphere_model(1.0));
+    let mut scene = Scene::new(SceneNode::model(model.clone(), Transform::IDENTITY)).unwrap();
+    let floor = scene.model_value_floor(0).unwrap();
+    let side = 57;
+    let grid: Vec<Vec3> = (0..side * side * side)
+        .map(|i| {
+            let at = |k: usize| -1.0 + 2.0 * k as f32 / (side - 1) as f32;
+            Vec3::new(at(i % side), at(i / side % side), at(i / side / side))
+        })
+        .collect();
+    let min = model
+        .eval_cpu_normalized(&grid)
+        .into_iter()
+        .fold(f32::INFINITY, f32::min);
+    assert!(floor <= min, "floor {floor} above the minimum {min}");
+    assert!(
+        floor > min - 0.2,
+        "floor {floor} far below the minimum {min}"
+    );
+    assert!(scene.model_value_floor(1).is_none());
+    scene.set_model_lipschitz(0, 10.0).unwrap();
+    let lower = scene.model_value_floor(0).unwrap();
+    assert!(lower < floor - 0.2, "{lower} vs {floor}");
+}

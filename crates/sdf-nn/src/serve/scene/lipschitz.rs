@@ -74,6 +74,20 @@ pub fn estimate(model: &NeuralSdf) -> f32 {
     SAFETY * inside.max(outside).max(1.0)
 }
 
+/// A floor of `model`'s network value Φ over its normalised cube: the smallest value on the
+/// estimate's grid less `lipschitz` times the farthest any point of the cube is from the grid
+/// (half a cell's side, `1/GRID`: the grid holds the cells' vertices and centres). A bound
+/// wherever `lipschitz` bounds Φ's slope, which is what the ray tracer assumes of it; scenes
+/// take the tighter of it and the weights' interval bound to skip models far from a point.
+pub fn value_floor(model: &NeuralSdf, lipschitz: f32) -> f32 {
+    let values = model.eval_cpu_normalized(&sample_points());
+    let min = values
+        .par_iter()
+        .copied()
+        .reduce(|| f32::INFINITY, f32::min);
+    min - lipschitz / GRID as f32
+}
+
 /// The grid's vertices and cell centres in `[-1, 1]³`.
 fn sample_points() -> Vec<Vec3> {
     let vertex = |i: usize| i as f32 * (2.0 / GRID as f32) - 1.0;

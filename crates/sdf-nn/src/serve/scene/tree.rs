@@ -417,6 +417,8 @@ pub struct Scene {
     models: Vec<Arc<NeuralSdf>>,
     /// Each model's Lipschitz estimate, measured on first use.
     lipschitz: Vec<OnceLock<f32>>,
+    /// Each model's value floor ([`lipschitz::value_floor`]), measured on first use.
+    floors: Vec<OnceLock<f32>>,
     /// Each leaf's place in the tree.
     leaf_paths: Vec<String>,
     depth: usize,
@@ -428,11 +430,13 @@ impl Scene {
         let mut c = Compiler::default();
         c.node(&root, "root".to_owned(), 1, &Transform::IDENTITY)?;
         let lipschitz = c.models.iter().map(|_| OnceLock::new()).collect();
+        let floors = c.models.iter().map(|_| OnceLock::new()).collect();
         Ok(Scene {
             program: c.program,
             leaves: c.leaves,
             models: c.models,
             lipschitz,
+            floors,
             leaf_paths: c.paths,
             depth: c.depth,
         })
@@ -470,12 +474,23 @@ impl Scene {
         Some(*cell.get_or_init(|| lipschitz::estimate(&self.models[model])))
     }
 
+    /// A floor of model `model`'s network value over its normalised cube
+    /// ([`lipschitz::value_floor`] with [`Scene::model_lipschitz`]), measured on first call;
+    /// `None` for an index past [`Scene::models`].
+    pub fn model_value_floor(&self, model: usize) -> Option<f32> {
+        let cell = self.floors.get(model)?;
+        let lipschitz = self.model_lipschitz(model)?;
+        Some(*cell.get_or_init(|| lipschitz::value_floor(&self.models[model], lipschitz)))
+    }
+
     /// Replaces model `model`'s measured estimate by a bound the caller knows (finite, `> 0`).
     pub fn set_model_lipschitz(&mut self, model: usize, value: f32) -> Result<(), SceneError> {
         let models = self.models.len();
         match self.lipschitz.get_mut(model) {
             Some(cell) if value.is_finite() && value > 0.0 => {
                 *cell = OnceLock::from(value);
+                // The floor depends on the slope bound.
+                self.floors[model] = OnceLock::new();
                 Ok(())
             }
             _ => Err(SceneError::Lipschitz {
