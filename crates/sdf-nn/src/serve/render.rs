@@ -23,7 +23,6 @@ use glam::{Vec3, Vec4};
 use crate::gpu::{GpuContext, GpuError};
 use crate::model_file::{Normalization, write_atomic};
 use crate::serve::neural::NeuralSdf;
-use crate::serve::scene::embed::check_bindings;
 use crate::serve::scene::{Scene, SceneBindGroup, SceneGpuError};
 use crate::serve::wgsl::{EmbedError, SdfBindGroup};
 use crate::shaders::SPHERE_TRACE;
@@ -387,16 +386,13 @@ impl Renderer {
     /// its weights. The camera frames [`Scene::frame`] (at the options' level, when the image is
     /// rendered); rays step by the scene's Lipschitz bound ([`Scene::lipschitz`]).
     pub fn for_scene(gpu: &GpuContext, scene: &Scene) -> Result<Self, RenderError> {
-        let limits = gpu.limits();
-        let packing = scene.packing(&limits)?;
         // The tracer binds its image besides the weights.
-        check_bindings(&packing, &limits, 1)?;
-        let weights = Weights::Scene(scene.upload(gpu.device(), &packing));
+        let (snippet, weights) = scene.compile(gpu.device(), SDF_GROUP, "scene", 1)?;
+        let weights = Weights::Scene(weights);
         let source = format!(
-            "{}\n\
+            "{snippet}\n\
              fn hwsdf_distance(p: vec3<f32>) -> f32 {{ return scene_distance(p); }}\n\
              fn hwsdf_normal(p: vec3<f32>) -> vec3<f32> {{ return scene_normal(p); }}\n{}",
-            scene.generate(SDF_GROUP, "scene", &packing),
             SPHERE_TRACE.source
         );
         let params: u64 = scene

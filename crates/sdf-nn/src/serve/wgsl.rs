@@ -257,14 +257,21 @@ pub const MAX_PREFIX: usize = 63;
 /// `{prefix}_distance` and `HWSDF_CENTER` `{PREFIX}_CENTER`, so the names of two snippets whose
 /// prefixes differ (other than in case) never meet.
 pub(crate) fn with_prefix(snippet: &str, prefix: &str) -> Result<String, EmbedError> {
+    check_prefix(prefix, MAX_PREFIX)?;
+    Ok(rename(snippet, prefix))
+}
+
+/// Checks that `prefix` is an ASCII letter followed by at most `max` letters, digits or
+/// underscores ([`EmbedError::Prefix`] otherwise).
+pub(crate) fn check_prefix(prefix: &str, max: usize) -> Result<(), EmbedError> {
     let mut chars = prefix.chars();
     let valid = chars.next().is_some_and(|c| c.is_ascii_alphabetic())
         && chars.all(|c| c.is_ascii_alphanumeric() || c == '_')
-        && prefix.len() <= MAX_PREFIX + 1;
+        && prefix.len() <= max + 1;
     if !valid {
         return Err(EmbedError::Prefix(prefix.to_owned()));
     }
-    Ok(rename(snippet, prefix))
+    Ok(())
 }
 
 /// `snippet` with `prefix` in place of `hwsdf` and its upper case in place of `HWSDF` (the

@@ -181,17 +181,13 @@ impl Scene {
         prefix: &str,
         limits: &wgpu::Limits,
     ) -> Result<String, EmbedError> {
-        if prefix.len() > MAX_SCENE_PREFIX + 1 {
-            return Err(EmbedError::Prefix(prefix.to_owned()));
-        }
-        // Checks the prefix (the snippet below is written under `hwsdf`).
-        wgsl::with_prefix("", prefix)?;
+        wgsl::check_prefix(prefix, MAX_SCENE_PREFIX)?;
         let packing = self.packing(limits)?;
         Ok(self.generate(group, prefix, &packing))
     }
 
     /// The snippet for `packing`, under `prefix` (already checked).
-    pub(crate) fn generate(&self, group: u32, prefix: &str, packing: &Packing) -> String {
+    fn generate(&self, group: u32, prefix: &str, packing: &Packing) -> String {
         let mut s = String::new();
         let _ = writeln!(
             s,
@@ -645,14 +641,39 @@ impl Scene {
     /// [`Scene::wgsl_with_prefix`] expects for this device's limits, and creates the bind
     /// group (and its layout).
     pub fn bind_group(&self, device: &wgpu::Device) -> Result<SceneBindGroup, SceneGpuError> {
+        Ok(self.packed_for(device, 0)?.1)
+    }
+
+    /// The packing of the weights for `device`, checked to leave `reserved` storage bindings
+    /// to the shader that reads them, and the weights uploaded by it.
+    fn packed_for(
+        &self,
+        device: &wgpu::Device,
+        reserved: u32,
+    ) -> Result<(Packing, SceneBindGroup), SceneGpuError> {
         let limits = device.limits();
         let packing = self.packing(&limits)?;
-        check_bindings(&packing, &limits, 0)?;
-        Ok(self.upload(device, &packing))
+        check_bindings(&packing, &limits, reserved)?;
+        let weights = self.upload(device, &packing);
+        Ok((packing, weights))
+    }
+
+    /// The snippet (names `{prefix}_…`, weights at `@group(group)`) and its uploaded weights,
+    /// for a shader of ours that binds `reserved` storage buffers of its own besides them: what
+    /// the GPU queries and the scene renderer compile.
+    pub(crate) fn compile(
+        &self,
+        device: &wgpu::Device,
+        group: u32,
+        prefix: &str,
+        reserved: u32,
+    ) -> Result<(String, SceneBindGroup), SceneGpuError> {
+        let (packing, weights) = self.packed_for(device, reserved)?;
+        Ok((self.generate(group, prefix, &packing), weights))
     }
 
     /// The buffers and bind group of `packing`.
-    pub(crate) fn upload(&self, device: &wgpu::Device, packing: &Packing) -> SceneBindGroup {
+    fn upload(&self, device: &wgpu::Device, packing: &Packing) -> SceneBindGroup {
         let mut params: Vec<Vec<f32>> = packing
             .param_lengths
             .iter()
@@ -694,7 +715,7 @@ impl Scene {
 }
 
 /// Checks that `packing`'s buffers and `reserved` more fit the device's storage bindings.
-pub(crate) fn check_bindings(
+fn check_bindings(
     packing: &Packing,
     limits: &wgpu::Limits,
     reserved: u32,

@@ -43,7 +43,7 @@ use crate::serve::scene::cpu::{
     ClosestPoint, ProjectOptions, Ray, RayHit, SceneQueryError, SceneSample, TraceOptions,
     check_level_and_tolerance, check_ray,
 };
-use crate::serve::scene::embed::{Packing, SceneBindGroup, SceneGpuError, check_bindings};
+use crate::serve::scene::embed::{SceneBindGroup, SceneGpuError};
 use crate::serve::scene::tree::Scene;
 
 /// The group of the scene's weights in the query kernels.
@@ -227,14 +227,8 @@ impl<'g> GpuScene<'g> {
     pub fn new(gpu: &'g GpuContext, scene: &Scene) -> Result<GpuScene<'g>, SceneGpuError> {
         let device = gpu.device();
         let limits = gpu.limits();
-        let packing: Packing = scene.packing(&limits)?;
-        check_bindings(&packing, &limits, QUERY_BUFFERS)?;
-        let weights = scene.upload(device, &packing);
-        let source = format!(
-            "{}\n{}",
-            scene.generate(SCENE_GROUP, "scene", &packing),
-            crate::shaders::SCENE_QUERY.source
-        );
+        let (snippet, weights) = scene.compile(device, SCENE_GROUP, "scene", QUERY_BUFFERS)?;
+        let source = format!("{snippet}\n{}", crate::shaders::SCENE_QUERY.source);
         let scope = device.push_error_scope(wgpu::ErrorFilter::Validation);
         let module = gpu.generated_module("scene_query.wgsl", Cow::Owned(source));
         let storage = |binding, read_only| wgpu::BindGroupLayoutEntry {
