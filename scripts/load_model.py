@@ -24,25 +24,47 @@ def siren(t, cfg, x):
     return (h @ t[f"net.{i}.weight"].T + t[f"net.{i}.bias"])[:, 0]
 
 
-def nglod(t, cfg, x):
-    x = np.clip(x, -1.0, 1.0)
+def grid_features(t, cfg, x, level, r):
+    """The trilinearly interpolated features of one level at the points x (in [-1, 1]^3)."""
+    g = t[f"grids.{level}"]
+    n_features = g.shape[-1]
+    hashed = g.ndim == 2 and f"grids.{level}.vertices" not in t
+    if f"grids.{level}.vertices" in t:
+        # An NGLOD sparse level: [n, F] for the band's vertices, whose linear indices
+        # (ix·(r+1) + iy)·(r+1) + iz are listed; every other vertex has zero features.
+        dense = np.zeros(((r + 1) ** 3, n_features), dtype=g.dtype)
+        dense[t[f"grids.{level}.vertices"].astype(np.int64)] = g
+        g = dense.reshape(r + 1, r + 1, r + 1, n_features)
+    u = (x + 1.0) * 0.5 * r
+    i0 = np.clip(np.floor(u).astype(np.int64), 0, r - 1)
+    f = u - i0
     z = 0.0
-    for level, r in enumerate(cfg["resolutions"]):
-        g = t[f"grids.{level}"]  # [r+1, r+1, r+1, F], indexed [ix, iy, iz, f]
-        if f"grids.{level}.vertices" in t:
-            # A sparse level: [n, F] for the band's vertices, whose linear indices
-            # (ix·(r+1) + iy)·(r+1) + iz are listed; every other vertex has zero features.
-            dense = np.zeros(((r + 1) ** 3, g.shape[1]), dtype=g.dtype)
-            dense[t[f"grids.{level}.vertices"].astype(np.int64)] = g
-            g = dense.reshape(r + 1, r + 1, r + 1, g.shape[1])
-        u = (x + 1.0) * 0.5 * r
-        i0 = np.clip(np.floor(u).astype(int), 0, r - 1)
-        f = u - i0
-        for c in range(8):
-            d = np.array([(c >> 2) & 1, (c >> 1) & 1, c & 1])
-            w = np.prod(np.where(d == 1, f, 1.0 - f), axis=1)
-            i = i0 + d
-            z = z + w[:, None] * g[i[:, 0], i[:, 1], i[:, 2]]
+    for c in range(8):
+        d = np.array([(c >> 2) & 1, (c >> 1) & 1, c & 1])
+        w = np.prod(np.where(d == 1, f, 1.0 - f), axis=1)
+        i = (i0 + d).astype(np.uint64)
+        if hashed:
+            # A hash grid's level with more vertices than its table of T entries ([T, F]):
+            # instant-ngp's spatial hash, in wrapping 32-bit arithmetic.
+            m = np.uint64(0xFFFFFFFF)
+            h = i[:, 0] ^ ((i[:, 1] * np.uint64(2654435761)) & m) ^ ((i[:, 2] * np.uint64(805459861)) & m)
+            rows = g[(h & np.uint64(g.shape[0] - 1)).astype(np.int64)]
+        else:
+            # A dense level: [r+1, r+1, r+1, F], indexed [ix, iy, iz, f].
+            i = i.astype(np.int64)
+            rows = g[i[:, 0], i[:, 1], i[:, 2]]
+        z = z + w[:, None] * rows
+    return z
+
+
+def nglod(t, cfg, x):
+    """NGLOD sums its levels' features; a hash grid concatenates them."""
+    x = np.clip(x, -1.0, 1.0)
+    levels = [grid_features(t, cfg, x, level, r) for level, r in enumerate(cfg["resolutions"])]
+    if cfg.get("encoding", {}).get("kind") == "hashed":
+        z = np.concatenate(levels, axis=1)
+    else:
+        z = sum(levels)
     h = np.maximum(z @ t["mlp.0.weight"].T + t["mlp.0.bias"], 0.0)
     return (h @ t["mlp.2.weight"].T + t["mlp.2.bias"])[:, 0]
 
@@ -61,6 +83,7 @@ def main():
     pts = pts.reshape(-1, 3)
     local = (pts - np.array(norm["center"], dtype=np.float32)) * norm["scale"]
     inside = np.clip(local, -1.0, 1.0)
+    # "nglod" and "hashgrid" share one grid lookup and MLP.
     net = siren if meta["architecture"] == "siren" else nglod
     d = net(tensors, cfg, inside) + np.linalg.norm(local - inside, axis=1)
     for p, v in zip(pts, d / norm["scale"]):

@@ -471,6 +471,7 @@ fn plane_model_with_bias(bias: f32) -> ModelFile {
         seed: 0,
         sparse_levels: 0,
         band_cells: 0,
+        encoding: Default::default(),
     };
     // Grid `[ix, iy, iz, f]`, vertex ix at x = -1 + ix / 2.
     let mut params: Vec<f32> = (0..125)

@@ -108,6 +108,7 @@ fn shapes() -> Vec<(&'static str, NeuralSdf)> {
         seed: 3,
         sparse_levels: 0,
         band_cells: 0,
+        encoding: Default::default(),
     };
     vec![
         (
@@ -565,6 +566,7 @@ fn bind_group_works_on_a_callers_own_device() {
             seed: 9,
             sparse_levels: 0,
             band_cells: 0,
+            encoding: Default::default(),
         },
         9,
         None,

@@ -86,6 +86,7 @@ fn tiny() -> NglodConfig {
         seed: 7,
         sparse_levels: 0,
         band_cells: sdf_nn::nglod::DEFAULT_BAND_CELLS,
+        encoding: Default::default(),
     }
 }
 

@@ -418,6 +418,7 @@ impl NglodArchitecture {
             hidden: self.hidden.unwrap_or(base.hidden),
             seed,
             band_cells: self.band_cells.unwrap_or(base.band_cells),
+            encoding: base.encoding,
         };
         config.validate()?;
         Ok(config)

@@ -10,8 +10,9 @@ use super::{Nglod, NglodError, Objective, cell};
 
 /// Per-point trace of one forward pass, kept for the backward pass.
 struct Trace {
-    /// (param index of a corner's first feature, trilinear weight) for every level and corner.
-    corners: Vec<(usize, f64)>,
+    /// (param index of a corner's first feature, where its level's features start in the MLP's
+    /// input, trilinear weight) for every level and corner.
+    corners: Vec<(usize, usize, f64)>,
     z: Vec<f64>,
     h: Vec<f64>,
     out: f64,
@@ -21,12 +22,13 @@ fn forward_trace(model: &Nglod, params: &[f64], p: Vec3, lod: usize) -> Trace {
     let config = model.config();
     let layout = model.layout();
     let f = config.feature_dim as usize;
+    let input = config.input_dim() as usize;
     let hd = config.hidden as usize;
     let pd = [f64::from(p.x), f64::from(p.y), f64::from(p.z)];
-    let mut z = vec![0.0; f];
+    let mut z = vec![0.0; input];
     let mut corners = Vec::with_capacity(8 * lod);
     for (l, &res) in config.resolutions[..lod].iter().enumerate() {
-        let s = res as usize + 1;
+        let zo = config.input_offset(l);
         let (i0, t) = cell(pd, res);
         for c in 0..8 {
             let d = [(c >> 2) & 1, (c >> 1) & 1, c & 1];
@@ -36,13 +38,13 @@ fn forward_trace(model: &Nglod, params: &[f64], p: Vec3, lod: usize) -> Trace {
             }
             let v = [i0[0] + d[0], i0[1] + d[1], i0[2] + d[2]];
             // A sparse level's vertex outside its band has zero features.
-            let Some(base) = model.vertex_base(l, (v[0] * s + v[1]) * s + v[2]) else {
+            let Some(base) = model.vertex_base(l, v) else {
                 continue;
             };
-            for (k, zk) in z.iter_mut().enumerate() {
+            for (k, zk) in z[zo..zo + f].iter_mut().enumerate() {
                 *zk += w * params[base + k];
             }
-            corners.push((base, w));
+            corners.push((base, zo, w));
         }
     }
     let mut h = vec![0.0; hd];
@@ -50,7 +52,7 @@ fn forward_trace(model: &Nglod, params: &[f64], p: Vec3, lod: usize) -> Trace {
     for (j, hj) in h.iter_mut().enumerate() {
         let mut s = params[layout.b0 + j];
         for (k, zk) in z.iter().enumerate() {
-            s += params[layout.w0 + j * f + k] * zk;
+            s += params[layout.w0 + j * input + k] * zk;
         }
         *hj = s;
         out += params[layout.w1 + j] * s.max(0.0);
@@ -97,6 +99,7 @@ pub fn loss_and_gradient(
     }
     let layout = model.layout();
     let f = config.feature_dim as usize;
+    let input = config.input_dim() as usize;
     let (first, count) = objective.prefixes(config.levels());
     let n = points.len().max(1) as f64;
     let mut loss = 0.0;
@@ -108,21 +111,21 @@ pub fn loss_and_gradient(
             loss += r * r / n;
             let g = 2.0 * r / n;
             grad[layout.b1] += g;
-            let mut dz = vec![0.0; f];
+            let mut dz = vec![0.0; input];
             for (j, &hj) in t.h.iter().enumerate() {
                 grad[layout.w1 + j] += g * hj.max(0.0);
                 if hj > 0.0 {
                     let dh = g * params[layout.w1 + j];
                     grad[layout.b0 + j] += dh;
-                    for k in 0..f {
-                        grad[layout.w0 + j * f + k] += dh * t.z[k];
-                        dz[k] += dh * params[layout.w0 + j * f + k];
+                    for k in 0..input {
+                        grad[layout.w0 + j * input + k] += dh * t.z[k];
+                        dz[k] += dh * params[layout.w0 + j * input + k];
                     }
                 }
             }
-            for &(base, w) in &t.corners {
+            for &(base, zo, w) in &t.corners {
                 for k in 0..f {
-                    grad[base + k] += w * dz[k];
+                    grad[base + k] += w * dz[zo + k];
                 }
             }
         }

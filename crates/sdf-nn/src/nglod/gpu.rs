@@ -7,7 +7,8 @@ use std::sync::Mutex;
 use glam::Vec3;
 
 use super::{
-    Band, MAX_LEVELS, MAX_MLP_FLOATS, Nglod, NglodConfig, NglodError, Objective, ParamLayout,
+    Band, LevelStorage, MAX_LEVELS, MAX_MLP_FLOATS, Nglod, NglodConfig, NglodError, Objective,
+    ParamLayout,
 };
 use crate::gpu::{GpuContext, GpuError, GpuTimer, UniformStager, entry};
 use crate::shaders;
@@ -97,7 +98,8 @@ pub struct NglodGpu {
     /// model, see [`NglodGpu::new_frozen`]).
     frozen: bool,
     float_atomics: bool,
-    constants: [(&'static str, f64); 2],
+    /// F and H (every kernel), then FL and ZS (the grid lookups): nglod_grid.wgsl.
+    constants: [(&'static str, f64); 4],
     eval: Mutex<Option<EvalScratch>>,
     eval_chunk: usize,
 }
@@ -111,19 +113,19 @@ impl std::fmt::Debug for NglodGpu {
     }
 }
 
-/// The kernels' per-level uniform: resolution, offset in the parameters, offset of the level's
-/// table in the concatenated vertex tables, and 1 for a sparse level.
+/// The kernels' per-level uniform (nglod_grid.wgsl): resolution, offset in the parameters, and
+/// the storage: `(0, 0)` dense, `(offset of the level's table in the concatenated vertex tables,
+/// 1)` sparse, `(table size − 1, 2)` hashed.
 fn level_table(config: &NglodConfig, layout: &ParamLayout) -> [[u32; 4]; MAX_LEVELS] {
     let mut t = [[0u32; 4]; MAX_LEVELS];
     for (l, &r) in config.resolutions.iter().enumerate() {
         // validate() bounds the parameter count and the tables well below u32::MAX.
-        let table = config.table_offset(l);
-        t[l] = [
-            r,
-            layout.grid_offsets[l] as u32,
-            table.unwrap_or(0) as u32,
-            u32::from(table.is_some()),
-        ];
+        let (z, kind) = match config.storage(l) {
+            LevelStorage::Dense => (0, 0),
+            LevelStorage::Sparse => (config.table_offset(l).unwrap_or(0) as u32, 1),
+            LevelStorage::Hashed(entries) => (entries - 1, 2),
+        };
+        t[l] = [r, layout.grid_offsets[l] as u32, z, kind];
     }
     t
 }
@@ -162,8 +164,10 @@ impl NglodGpu {
             mapped_at_creation: false,
         });
         let constants = [
-            ("F", f64::from(config.feature_dim)),
+            ("F", f64::from(config.input_dim())),
             ("H", f64::from(config.hidden)),
+            ("FL", f64::from(config.feature_dim)),
+            ("ZS", f64::from(config.input_offset(1) as u32)),
         ];
         Ok(NglodGpu {
             config,
@@ -540,8 +544,8 @@ impl TrainKernels {
                 "a batch of {max_points} points × {n_prefix} prefixes is too large for one step"
             )));
         }
-        let stride = 2 + u64::from(c.feature_dim) + u64::from(c.hidden);
-        let n_out = c.hidden * c.feature_dim + 2 * c.hidden + 2;
+        let stride = 2 + u64::from(c.input_dim()) + u64::from(c.hidden);
+        let n_out = c.hidden * c.input_dim() + 2 * c.hidden + 2;
         let rows = gpu.storage_zeroed("nglod rows", max_rows * stride * 4)?;
         let partials = gpu.storage_zeroed("nglod partials", max_chunks * u64::from(n_out) * 4)?;
         let stats = gpu.storage_zeroed("nglod stats", 4)?;
@@ -563,8 +567,10 @@ impl TrainKernels {
             &shaders::NGLOD_TRAIN_CAS
         };
         let train = gpu.pipeline(train_shader, "train_rows", &model.constants)?;
-        let partial = gpu.pipeline(&shaders::NGLOD_REDUCE, "mlp_partial", &model.constants)?;
-        let reduce = gpu.pipeline(&shaders::NGLOD_REDUCE, "mlp_reduce", &model.constants)?;
+        // The reduction sees the MLP only: F and H.
+        let mlp_constants = &model.constants[..2];
+        let partial = gpu.pipeline(&shaders::NGLOD_REDUCE, "mlp_partial", mlp_constants)?;
+        let reduce = gpu.pipeline(&shaders::NGLOD_REDUCE, "mlp_reduce", mlp_constants)?;
         let dev = gpu.device();
         let bg_train = dev.create_bind_group(&wgpu::BindGroupDescriptor {
             label: Some("nglod train"),

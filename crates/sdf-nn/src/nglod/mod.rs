@@ -12,6 +12,15 @@
 //! at the vertices of the cells near the surface (a [`Band`], placed from the mesh before
 //! training), so a fine level costs storage in proportion to the surface's area.
 //!
+//! The same model family holds instant-ngp's **multiresolution hash grid** (Müller et al. 2022),
+//! NGLOD's successor in the design document: with [`Encoding::Hashed`] the levels' features are
+//! concatenated rather than summed (`z = [Z_0(x), …, Z_{K-1}(x)]`, `K·F` values), and a level
+//! whose `(r_l + 1)³` vertices do not fit its table of `T` entries keeps `T` entries that its
+//! vertices share through the spatial hash `(ix ⊕ iy·2654435761 ⊕ iz·805459861) mod T`
+//! ([`hash_vertex`]). Its presets are [`NglodConfig::hashgrid_default`] and
+//! [`NglodConfig::hashgrid_small`]; its model files say `architecture = "hashgrid"`. The
+//! kernels, the trainer, serving and scenes are shared: one grid lookup, one MLP.
+//!
 //! - [`Nglod`]: the model with its parameters in one flat `f32` vector (CPU evaluation, model files);
 //! - [`cpu`]: the f64 reference of the forward pass, loss and gradients;
 //! - [`NglodGpu`]: the WGSL kernels' host (inference and gradients);
@@ -49,10 +58,17 @@ pub use train::{
     TimeBudget, TrainReport,
 };
 
-/// Largest number of levels the kernels accept.
-pub const MAX_LEVELS: usize = 8;
-/// Largest feature dimension the kernels accept (private arrays in the shaders).
+/// Largest number of levels the kernels accept (instant-ngp's 16).
+pub const MAX_LEVELS: usize = 16;
+/// Largest input of the MLP the kernels accept (private arrays in the shaders): `F` summed, or
+/// `K·F` concatenated.
 pub const MAX_FEATURE_DIM: u32 = 32;
+/// Smallest and largest `log2` of a hash grid's table size ([`Encoding::Hashed`]): 2¹⁰ to 2²⁴
+/// entries per level.
+pub const HASH_TABLE_LOG2: std::ops::RangeInclusive<u32> = 10..=24;
+/// The largest resolution of a hashed level: its vertex coordinates are hashed as u32, and a
+/// finer grid than 4096 cells over the box resolves nothing a table of 2²⁴ entries could hold.
+pub const MAX_HASHED_RESOLUTION: u32 = 4096;
 /// Largest MLP (`H·F + 2H + 1` floats) the kernels keep in workgroup memory (15 KiB).
 pub const MAX_MLP_FLOATS: u32 = 3840;
 /// Largest resolution of a sparse level: a model file's tensors are f32 in memory, exact for
@@ -136,6 +152,43 @@ pub enum NglodError {
     GroundTruth(#[from] crate::ground_truth::GroundTruthError),
 }
 
+/// How the levels' features reach the MLP, and how a level stores them.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase", tag = "kind")]
+pub enum Encoding {
+    /// NGLOD: the levels' features are summed into `F` values; a level stores every vertex
+    /// (dense) or its band's (sparse, [`NglodConfig::sparse_levels`]).
+    #[default]
+    Summed,
+    /// instant-ngp's multiresolution hash encoding: the levels' features are concatenated into
+    /// `K·F` values; a level whose `(r + 1)³` vertices fit in `2^log2_table_size` entries stores
+    /// them all, a finer one hashes its vertices into a table of that many entries ([`hash_vertex`];
+    /// colliding vertices share their features, and training sorts out which matters).
+    Hashed {
+        /// `log2` of the table size `T` of every hashed level ([`HASH_TABLE_LOG2`]).
+        log2_table_size: u32,
+    },
+}
+
+/// How one level keeps its features.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum LevelStorage {
+    /// Every vertex of the grid, in row-major order.
+    Dense,
+    /// The vertices of its band, through a vertex table (NGLOD's sparse levels).
+    Sparse,
+    /// A table of this many entries (a power of two) indexed by [`hash_vertex`].
+    Hashed(u32),
+}
+
+/// instant-ngp's spatial hash of a grid vertex into a table of `mask + 1` entries (a power of
+/// two): `(ix·1 ⊕ iy·2654435761 ⊕ iz·805459861) mod T`, in wrapping u32 arithmetic as the
+/// kernels compute it.
+#[inline]
+pub fn hash_vertex(v: [u32; 3], mask: u32) -> u32 {
+    (v[0] ^ v[1].wrapping_mul(2_654_435_761) ^ v[2].wrapping_mul(805_459_861)) & mask
+}
+
 /// Architecture hyperparameters.
 #[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
 pub struct NglodConfig {
@@ -159,6 +212,10 @@ pub struct NglodConfig {
     /// reads so). Dense levels ignore it.
     #[serde(default = "legacy_band_cells")]
     pub band_cells: u32,
+    /// Summed levels (NGLOD, the default of every older file) or a hash grid's concatenated,
+    /// hashed ones.
+    #[serde(default)]
+    pub encoding: Encoding,
 }
 
 fn legacy_band_cells() -> u32 {
@@ -206,6 +263,7 @@ impl NglodConfig {
             seed: 0,
             sparse_levels: 0,
             band_cells: DEFAULT_BAND_CELLS,
+            encoding: Encoding::Summed,
         }
     }
 
@@ -219,12 +277,111 @@ impl NglodConfig {
             seed: 0,
             sparse_levels: 0,
             band_cells: DEFAULT_BAND_CELLS,
+            encoding: Encoding::Summed,
+        }
+    }
+
+    /// A multiresolution hash grid ([`Encoding::Hashed`]): `levels` levels from `coarsest` to
+    /// `finest` cells per axis in a geometric progression (rounded down, as instant-ngp's
+    /// `N_l = ⌊N_min · b^l⌋`), `feature_dim` features per level, tables of `2^log2_table_size`
+    /// entries, and an MLP of `hidden` ReLU units on the `levels · feature_dim` concatenated
+    /// features. [`NglodConfig::validate`] checks it.
+    pub fn hashgrid(
+        levels: usize,
+        coarsest: u32,
+        finest: u32,
+        feature_dim: u32,
+        log2_table_size: u32,
+        hidden: u32,
+    ) -> Self {
+        let growth = if levels > 1 {
+            (f64::from(finest.max(1)) / f64::from(coarsest.max(1))).powf(1.0 / (levels - 1) as f64)
+        } else {
+            1.0
+        };
+        let resolutions = (0..levels)
+            .map(|l| {
+                // The last level is `finest` exactly, whatever the rounding on the way.
+                if l + 1 == levels {
+                    finest
+                } else {
+                    (f64::from(coarsest) * growth.powi(l as i32) + 1e-9).floor() as u32
+                }
+            })
+            .collect();
+        NglodConfig {
+            resolutions,
+            feature_dim,
+            hidden,
+            seed: 0,
+            sparse_levels: 0,
+            band_cells: DEFAULT_BAND_CELLS,
+            encoding: Encoding::Hashed { log2_table_size },
+        }
+    }
+
+    /// The hash grid's default: 16 levels of 2 features from 16 to 512 cells, tables of 2¹⁸
+    /// entries, 64 hidden units (instant-ngp's SDF setting with the table one step smaller, the
+    /// MLP of one hidden layer that the kernels share with NGLOD).
+    pub fn hashgrid_default() -> Self {
+        Self::hashgrid(16, 16, 512, 2, 18, 64)
+    }
+
+    /// The hash grid at NGLOD's storage: 16 levels of 2 features from 8 to 256 cells, tables of
+    /// 2¹⁴ entries, 32 hidden units.
+    pub fn hashgrid_small() -> Self {
+        Self::hashgrid(16, 8, 256, 2, 14, 32)
+    }
+
+    /// `"hashgrid"` for a hash grid, `"nglod"` otherwise: the model file's architecture.
+    pub fn architecture(&self) -> &'static str {
+        match self.encoding {
+            Encoding::Summed => "nglod",
+            Encoding::Hashed { .. } => "hashgrid",
         }
     }
 
     /// Number of levels K.
     pub fn levels(&self) -> usize {
         self.resolutions.len()
+    }
+
+    /// Width of the MLP's input: `F` summed, `K·F` concatenated.
+    pub fn input_dim(&self) -> u32 {
+        match self.encoding {
+            Encoding::Summed => self.feature_dim,
+            Encoding::Hashed { .. } => self.feature_dim * self.resolutions.len() as u32,
+        }
+    }
+
+    /// Where level `l`'s features start in the MLP's input: 0 summed, `l·F` concatenated.
+    pub fn input_offset(&self, l: usize) -> usize {
+        match self.encoding {
+            Encoding::Summed => 0,
+            Encoding::Hashed { .. } => l * self.feature_dim as usize,
+        }
+    }
+
+    /// How level `l` keeps its features.
+    pub fn storage(&self, l: usize) -> LevelStorage {
+        let vertices = (u64::from(self.resolutions[l]) + 1).pow(3);
+        match self.encoding {
+            Encoding::Hashed { log2_table_size } if vertices > 1u64 << log2_table_size => {
+                LevelStorage::Hashed(1 << log2_table_size)
+            }
+            _ if self.is_sparse(l) => LevelStorage::Sparse,
+            _ => LevelStorage::Dense,
+        }
+    }
+
+    /// Entries of level `l` whatever the bands: every vertex of a dense level, the table of a
+    /// hashed one; `None` for a sparse level.
+    fn fixed_entries(&self, l: usize) -> Option<usize> {
+        match self.storage(l) {
+            LevelStorage::Dense => Some((self.resolutions[l] as usize + 1).pow(3)),
+            LevelStorage::Hashed(t) => Some(t as usize),
+            LevelStorage::Sparse => None,
+        }
     }
 
     /// Checks the configuration against the model's and the kernels' limits.
@@ -236,8 +393,18 @@ impl NglodConfig {
                 self.resolutions.len()
             ));
         }
-        if let Some(r) = self.resolutions.iter().find(|&&r| !(1..=1024).contains(&r)) {
-            return bad(format!("resolution {r}; each must be in 1..=1024 cells"));
+        let max_resolution = match self.encoding {
+            Encoding::Summed => 1024,
+            Encoding::Hashed { .. } => MAX_HASHED_RESOLUTION,
+        };
+        if let Some(r) = self
+            .resolutions
+            .iter()
+            .find(|&&r| !(1..=max_resolution).contains(&r))
+        {
+            return bad(format!(
+                "resolution {r}; each must be in 1..={max_resolution} cells"
+            ));
         }
         if !(1..=MAX_FEATURE_DIM).contains(&self.feature_dim) {
             return bad(format!(
@@ -245,13 +412,37 @@ impl NglodConfig {
                 self.feature_dim
             ));
         }
+        if let Encoding::Hashed { log2_table_size } = self.encoding {
+            if !HASH_TABLE_LOG2.contains(&log2_table_size) {
+                return bad(format!(
+                    "a hash table of 2^{log2_table_size} entries; log2_table_size must be in \
+                     {}..={}",
+                    HASH_TABLE_LOG2.start(),
+                    HASH_TABLE_LOG2.end()
+                ));
+            }
+            if self.sparse_levels != 0 {
+                return bad("a hash grid has no sparse levels (its fine levels are hashed)".into());
+            }
+            // Checked before input_dim() multiplies: K ≤ MAX_LEVELS and F ≤ 32 here.
+            let input = u64::from(self.feature_dim) * self.resolutions.len() as u64;
+            if input > u64::from(MAX_FEATURE_DIM) {
+                return bad(format!(
+                    "{} levels of {} features concatenate to {input} MLP inputs; the kernels \
+                     take at most {MAX_FEATURE_DIM}",
+                    self.resolutions.len(),
+                    self.feature_dim
+                ));
+            }
+        }
         let h = u64::from(self.hidden);
-        let mlp = h * u64::from(self.feature_dim) + 2 * h + 1;
+        let mlp = h * u64::from(self.input_dim()) + 2 * h + 1;
         if self.hidden == 0 || mlp > u64::from(MAX_MLP_FLOATS) {
             return bad(format!(
-                "hidden {} with feature_dim {} needs {mlp} MLP floats; the kernels keep at most \
+                "hidden {} with {} MLP inputs needs {mlp} MLP floats; the kernels keep at most \
                  {MAX_MLP_FLOATS} in workgroup memory (hidden >= 1)",
-                self.hidden, self.feature_dim
+                self.hidden,
+                self.input_dim()
             ));
         }
         if self.sparse_levels > self.resolutions.len() {
@@ -290,10 +481,14 @@ impl NglodConfig {
             ));
         }
         // The kernels index params with u32; a sparse level holds at most every vertex.
-        let total: u64 = self
-            .resolutions
-            .iter()
-            .map(|&r| (u64::from(r) + 1).pow(3) * u64::from(self.feature_dim))
+        let total: u64 = (0..self.levels())
+            .map(|l| {
+                let entries = match self.storage(l) {
+                    LevelStorage::Hashed(t) => u64::from(t),
+                    _ => (u64::from(self.resolutions[l]) + 1).pow(3),
+                };
+                entries * u64::from(self.feature_dim)
+            })
             .sum::<u64>()
             + mlp;
         if total > u64::from(u32::MAX / 4) {
@@ -354,16 +549,12 @@ impl NglodConfig {
         let h = self.hidden as usize;
         let mut grid_offsets = Vec::with_capacity(self.resolutions.len());
         let mut off = 0;
-        for (l, &r) in self.resolutions.iter().enumerate() {
+        for l in 0..self.resolutions.len() {
             grid_offsets.push(off);
-            off += if self.is_sparse(l) {
-                band_vertices(l)
-            } else {
-                (r as usize + 1).pow(3)
-            } * f;
+            off += self.fixed_entries(l).unwrap_or_else(|| band_vertices(l)) * f;
         }
         let w0 = off;
-        let b0 = w0 + h * f;
+        let b0 = w0 + h * self.input_dim() as usize;
         let w1 = b0 + h;
         let b1 = w1 + h;
         ParamLayout {
@@ -481,7 +672,7 @@ impl Nglod {
         for p in &mut params[..layout.w0] {
             *p = (0.01 * normal(&mut rng)) as f32;
         }
-        let k0 = 1.0 / f64::from(config.feature_dim).sqrt();
+        let k0 = 1.0 / f64::from(config.input_dim()).sqrt();
         for p in &mut params[layout.w0..layout.w1] {
             *p = rng.random_range(-k0..k0) as f32;
         }
@@ -516,13 +707,14 @@ impl Nglod {
         let f = c.feature_dim as usize;
         let mut rng = Pcg64::seed_from_u64(c.seed ^ 0x5ba7_5e1e);
         let mut params = Vec::with_capacity(layout.len);
-        for (l, &r) in c.resolutions.iter().enumerate() {
+        for l in 0..c.levels() {
             if c.is_sparse(l) {
                 let n = bands[l - c.dense_levels()].len() * f;
                 params.extend((0..n).map(|_| (0.01 * normal(&mut rng)) as f32));
             } else {
                 let start = self.layout.grid_offsets[l];
-                params.extend_from_slice(&self.params[start..start + (r as usize + 1).pow(3) * f]);
+                let entries = c.fixed_entries(l).unwrap_or(0);
+                params.extend_from_slice(&self.params[start..start + entries * f]);
             }
         }
         params.extend_from_slice(&self.params[self.layout.w0..]);
@@ -554,17 +746,23 @@ impl Nglod {
         self.layout.len
     }
 
-    /// Where vertex `v` (linear index) of level `l` keeps its first feature in the flat
+    /// Where vertex `v` (grid coordinates) of level `l` keeps its first feature in the flat
     /// parameters; `None` for a vertex of a sparse level outside its band.
     #[inline]
-    pub(crate) fn vertex_base(&self, l: usize, v: usize) -> Option<usize> {
-        let f = self.config.feature_dim as usize;
-        let slot = match self.config.dense_levels() {
-            d if l < d => v,
-            d => match self.bands[l - d].table[v] {
+    pub(crate) fn vertex_base(&self, l: usize, v: [usize; 3]) -> Option<usize> {
+        let c = &self.config;
+        let f = c.feature_dim as usize;
+        let s = c.resolutions[l] as usize + 1;
+        let linear = (v[0] * s + v[1]) * s + v[2];
+        let slot = match c.storage(l) {
+            LevelStorage::Dense => linear,
+            LevelStorage::Sparse => match self.bands[l - c.dense_levels()].table[linear] {
                 NO_SLOT => return None,
                 k => k as usize,
             },
+            LevelStorage::Hashed(t) => {
+                hash_vertex([v[0] as u32, v[1] as u32, v[2] as u32], t - 1) as usize
+            }
         };
         Some(self.layout.grid_offsets[l] + slot * f)
     }
@@ -584,6 +782,7 @@ impl Nglod {
             seed: 0,
             sparse_levels: 0,
             band_cells: DEFAULT_BAND_CELLS,
+            encoding: Encoding::Summed,
         };
         config.validate()?;
         let layout = config.layout_with(|_| 0);
@@ -651,8 +850,8 @@ impl Nglod {
         &mut self.params
     }
 
-    /// Summed interpolated features of the first `lod` levels at `p`, and (optionally) their
-    /// Jacobian rows d z_f / dp.
+    /// Interpolated features of the first `lod` levels at `p`, summed or concatenated (the
+    /// levels beyond `lod` zero), and (optionally) their Jacobian rows d z_f / dp.
     fn features(&self, p: Vec3, lod: usize, z: &mut [f32], dz: Option<&mut [[f32; 3]]>) {
         let f = self.config.feature_dim as usize;
         z.fill(0.0);
@@ -662,7 +861,7 @@ impl Nglod {
         }
         let pd = [f64::from(p.x), f64::from(p.y), f64::from(p.z)];
         for (l, &res) in self.config.resolutions[..lod].iter().enumerate() {
-            let s = res as usize + 1;
+            let zo = self.config.input_offset(l);
             let (i0, t) = cell(pd, res);
             let t = t.map(|v| v as f32);
             // d u / d x = r / 2 inside the box, 0 where clamped.
@@ -680,11 +879,11 @@ impl Nglod {
                     std::array::from_fn(|a| if d[a] == 1 { t[a] } else { 1.0 - t[a] });
                 let w = wv[0] * wv[1] * wv[2];
                 let v = [i0[0] + d[0], i0[1] + d[1], i0[2] + d[2]];
-                let Some(base) = self.vertex_base(l, (v[0] * s + v[1]) * s + v[2]) else {
+                let Some(base) = self.vertex_base(l, v) else {
                     continue;
                 };
                 let feats = &self.params[base..base + f];
-                for (zf, &g) in z.iter_mut().zip(feats) {
+                for (zf, &g) in z[zo..zo + f].iter_mut().zip(feats) {
                     *zf += w * g;
                 }
                 if let Some(dzs) = dz.as_deref_mut() {
@@ -694,7 +893,7 @@ impl Nglod {
                         wv[0] * sign(1) * wv[2] * du[1],
                         wv[0] * wv[1] * sign(2) * du[2],
                     ];
-                    for (row, &g) in dzs.iter_mut().zip(feats) {
+                    for (row, &g) in dzs[zo..zo + f].iter_mut().zip(feats) {
                         for a in 0..3 {
                             row[a] += dw[a] * g;
                         }
@@ -705,7 +904,7 @@ impl Nglod {
     }
 
     fn eval_one(&self, p: Vec3, lod: usize, grad: bool) -> (f32, Vec3) {
-        let f = self.config.feature_dim as usize;
+        let f = self.config.input_dim() as usize;
         let h = self.config.hidden as usize;
         let layout = &self.layout;
         let mut z = [0f32; MAX_FEATURE_DIM as usize];
@@ -760,8 +959,11 @@ impl Nglod {
     /// `mlp.0.bias` `[H]`, `mlp.2.weight` `[1, H]`, `mlp.2.bias` `[1]` (an
     /// `nn.Sequential(Linear(F, H), ReLU(), Linear(H, 1))`). A sparse level `l` is
     /// `grids.{l}` `[n, F]` for its `n` band vertices, with `grids.{l}.vertices` `[n]` their
-    /// linear indices `(ix·s + iy)·s + iz` (u32). Grid features are stored as f16, the MLP as
-    /// f32. The metadata `config` is the [`NglodConfig`] as JSON.
+    /// linear indices `(ix·s + iy)·s + iz` (u32). A hashed level `l` ([`Encoding::Hashed`]) is
+    /// `grids.{l}` `[T, F]`, entry [`hash_vertex`] of each vertex, and `mlp.0.weight` is
+    /// `[H, K·F]` on the concatenated features. Grid features are stored as f16, the MLP as
+    /// f32. The metadata `config` is the [`NglodConfig`] as JSON, and `architecture` is
+    /// [`NglodConfig::architecture`].
     pub fn to_model_file(
         &self,
         normalization: Normalization,
@@ -771,12 +973,20 @@ impl Nglod {
         let layout = &self.layout;
         let f = c.feature_dim as usize;
         let h = c.hidden as usize;
+        let input = c.input_dim() as usize;
         let dense = c.dense_levels();
         let mut tensors = Vec::with_capacity(c.levels() + c.sparse_levels + 4);
         for (l, &r) in c.resolutions.iter().enumerate() {
             let s = r as usize + 1;
             let start = layout.grid_offsets[l];
-            if c.is_sparse(l) {
+            if let LevelStorage::Hashed(t) = c.storage(l) {
+                let t = t as usize;
+                tensors.push(Tensor::f16(
+                    format!("grids.{l}"),
+                    vec![t, f],
+                    self.params[start..start + t * f].to_vec(),
+                ));
+            } else if c.is_sparse(l) {
                 let band = &self.bands[l - dense];
                 let n = band.len();
                 tensors.push(Tensor::f16(
@@ -800,13 +1010,13 @@ impl Nglod {
         let mut push = |name: &str, shape: Vec<usize>, range: std::ops::Range<usize>| {
             tensors.push(Tensor::f32(name, shape, self.params[range].to_vec()))
         };
-        push("mlp.0.weight", vec![h, f], layout.w0..layout.b0);
+        push("mlp.0.weight", vec![h, input], layout.w0..layout.b0);
         push("mlp.0.bias", vec![h], layout.b0..layout.w1);
         push("mlp.2.weight", vec![1, h], layout.w1..layout.b1);
         push("mlp.2.bias", vec![1], layout.b1..layout.len);
         ModelFile {
             metadata: ModelMetadata {
-                architecture: "nglod".into(),
+                architecture: c.architecture().into(),
                 config: serde_json::to_value(c).unwrap_or(serde_json::Value::Null),
                 training,
                 normalization,
@@ -817,14 +1027,25 @@ impl Nglod {
     }
 
     /// The model in a model file written by [`Nglod::to_model_file`] (or by PyTorch with the same
-    /// names and shapes).
+    /// names and shapes): an `"nglod"` or a `"hashgrid"` file, whose configuration must say the
+    /// same.
     pub fn from_model_file(file: &ModelFile) -> Result<Self, NglodError> {
-        file.expect_architecture("nglod")?;
+        let found = file.metadata.architecture.as_str();
+        if found != "hashgrid" {
+            file.expect_architecture("nglod")?;
+        }
         let config: NglodConfig = serde_json::from_value(file.metadata.config.clone())
             .map_err(|e| NglodError::InvalidConfig(format!("model file `config` metadata: {e}")))?;
         config.validate()?;
+        if config.architecture() != found {
+            return Err(NglodError::InvalidConfig(format!(
+                "the file says `{found}` but its configuration describes a `{}` model",
+                config.architecture()
+            )));
+        }
         let f = config.feature_dim as usize;
         let h = config.hidden as usize;
+        let input = config.input_dim() as usize;
         // The config's sizes come from the file: check the dense part against its real tensors
         // before allocating (a sparse level's size is its vertex tensor's, already read).
         file.ensure_holds(config.layout_with(|_| 0).len as u64)?;
@@ -832,7 +1053,9 @@ impl Nglod {
         let mut params = Vec::new();
         for (l, &r) in config.resolutions.iter().enumerate() {
             let s = r as usize + 1;
-            if config.is_sparse(l) {
+            if let LevelStorage::Hashed(t) = config.storage(l) {
+                params.extend_from_slice(file.tensor(&format!("grids.{l}"), &[t as usize, f])?);
+            } else if config.is_sparse(l) {
                 let name = format!("grids.{l}{INDEX_SUFFIX}");
                 let n = file.tensor_len(&name)?;
                 let vertices = file
@@ -855,7 +1078,7 @@ impl Nglod {
                 params.extend_from_slice(file.tensor(&format!("grids.{l}"), &[s, s, s, f])?);
             }
         }
-        params.extend_from_slice(file.tensor("mlp.0.weight", &[h, f])?);
+        params.extend_from_slice(file.tensor("mlp.0.weight", &[h, input])?);
         params.extend_from_slice(file.tensor("mlp.0.bias", &[h])?);
         params.extend_from_slice(file.tensor("mlp.2.weight", &[1, h])?);
         params.extend_from_slice(file.tensor("mlp.2.bias", &[1])?);

@@ -42,7 +42,10 @@ pub enum NeuralSdfError {
     #[error(transparent)]
     Query(#[from] QueryError),
     /// A level of detail was asked of a model without levels.
-    #[error("levels of detail exist only for NGLOD models; this is a {0} model")]
+    #[error(
+        "levels of detail exist only for NGLOD models (a hash grid's MLP reads all its levels at \
+         once); this is a {0} model"
+    )]
     NoLevels(&'static str),
     /// Layer kernels were chosen for a model that is not a SIREN.
     #[error("layer kernels are chosen only for SIREN models; this is a {0} model")]

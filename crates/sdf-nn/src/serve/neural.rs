@@ -33,6 +33,8 @@ const HOST_CHUNK: usize = 1 << 18;
 
 /// Architecture name of NGLOD model files.
 const NGLOD_ARCHITECTURE: &str = "nglod";
+/// Architecture name of hash-grid model files.
+const HASHGRID_ARCHITECTURE: &str = "hashgrid";
 
 /// A trained neural SDF, either architecture.
 pub struct NeuralSdf {
@@ -88,7 +90,9 @@ impl NeuralSdf {
     pub fn from_model_file(file: ModelFile) -> Result<Self, NeuralSdfError> {
         let network = match file.metadata.architecture.as_str() {
             siren::ARCHITECTURE => Network::Siren(Siren::from_model_file(&file)?),
-            NGLOD_ARCHITECTURE => Network::Nglod(Nglod::from_model_file(&file)?),
+            NGLOD_ARCHITECTURE | HASHGRID_ARCHITECTURE => {
+                Network::Nglod(Nglod::from_model_file(&file)?)
+            }
             other => return Err(NeuralSdfError::UnknownArchitecture(other.to_owned())),
         };
         Ok(NeuralSdf {
@@ -104,11 +108,12 @@ impl NeuralSdf {
         })
     }
 
-    /// `"siren"` or `"nglod"`.
+    /// `"siren"`, `"nglod"` or `"hashgrid"` (a hash grid is served by the NGLOD network's
+    /// code: [`crate::nglod::Encoding::Hashed`]).
     pub fn architecture(&self) -> &'static str {
-        match self.network {
+        match &self.network {
             Network::Siren(_) => siren::ARCHITECTURE,
-            Network::Nglod(_) => NGLOD_ARCHITECTURE,
+            Network::Nglod(m) => m.config().architecture(),
         }
     }
 
@@ -137,11 +142,20 @@ impl NeuralSdf {
     }
 
     /// Evaluates NGLOD models with only their first `lod` levels (`None`: all). An error for
-    /// SIREN, or for a level the model does not have.
+    /// SIREN, for a hash grid's levels short of all of them, or for a level the model does not
+    /// have.
     pub fn set_lod(&mut self, lod: Option<usize>) -> Result<(), NeuralSdfError> {
         match (&self.network, lod) {
             (_, None) => {}
             (Network::Siren(_), Some(_)) => return Err(NeuralSdfError::NoLevels("siren")),
+            // A hash grid's MLP reads every level's features at once, so a prefix of its levels
+            // is an input it never saw in training: only the whole model is a level.
+            (Network::Nglod(m), Some(k))
+                if m.config().architecture() == HASHGRID_ARCHITECTURE
+                    && k != m.config().levels() =>
+            {
+                return Err(NeuralSdfError::NoLevels(HASHGRID_ARCHITECTURE));
+            }
             (Network::Nglod(m), Some(k)) => {
                 m.config().lod(Some(k))?;
             }

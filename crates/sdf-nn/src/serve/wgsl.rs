@@ -40,7 +40,7 @@ use std::fmt::Write;
 use glam::Vec3;
 
 use crate::model_file::Normalization;
-use crate::nglod::Nglod;
+use crate::nglod::{LevelStorage, Nglod};
 use crate::serve::network::Network;
 use crate::siren::Siren;
 
@@ -114,14 +114,17 @@ pub(crate) fn phi_lower_bound(network: &Network, lod: Option<usize>) -> f32 {
             let layout = m.layout();
             let p = m.params();
             let f = c.feature_dim as usize;
+            let input = c.input_dim() as usize;
             let k = c
                 .lod(lod)
                 .expect("NeuralSdf::set_lod validated the level of detail");
-            let (mut z_lo, mut z_hi) = (vec![0f64; f], vec![0f64; f]);
+            // A hash grid's levels beyond `k` are zero, as a sparse level's vertices outside its band.
+            let (mut z_lo, mut z_hi) = (vec![0f64; input], vec![0f64; input]);
             for l in 0..k {
                 let end = layout.grid_offsets.get(l + 1).copied().unwrap_or(layout.w0);
                 let sparse = c.table_offset(l).is_some();
                 let grid = &p[layout.grid_offsets[l]..end];
+                let zo = c.input_offset(l);
                 for i in 0..f {
                     let values = grid.iter().skip(i).step_by(f).map(|v| *v as f64);
                     let (mut lo, mut hi) = values
@@ -132,15 +135,15 @@ pub(crate) fn phi_lower_bound(network: &Network, lod: Option<usize>) -> f32 {
                         lo = lo.min(0.0);
                         hi = hi.max(0.0);
                     }
-                    z_lo[i] += lo;
-                    z_hi[i] += hi;
+                    z_lo[zo + i] += lo;
+                    z_hi[zo + i] += hi;
                 }
             }
             let mut out = p[layout.b1] as f64;
             for j in 0..c.hidden as usize {
                 let (mut h_lo, mut h_hi) = (p[layout.b0 + j] as f64, p[layout.b0 + j] as f64);
-                for i in 0..f {
-                    let w = p[layout.w0 + j * f + i] as f64;
+                for i in 0..input {
+                    let w = p[layout.w0 + j * input + i] as f64;
                     let (a, b) = (w * z_lo[i], w * z_hi[i]);
                     h_lo += a.min(b);
                     h_hi += a.max(b);
@@ -470,16 +473,19 @@ fn hwsdf_phi_grad(x: vec3<f32>) -> vec4<f32> {
 }
 "#;
 
-/// Where a level's features are: its resolution, its offset in the parameters, and for a
-/// sparse level the offset of its vertex table.
+/// Where a level's features are: its resolution, its offset in the parameters, where they go in
+/// the MLP's input, and how it stores them (for a sparse level the offset of its vertex table).
 struct LevelAt {
     resolution: u32,
     offset: usize,
+    input_offset: usize,
+    storage: LevelStorage,
     table: Option<usize>,
 }
 
-/// NGLOD: one unrolled block per level in use (resolution and grid offset as literals), the
-/// summed features decoded by the ReLU MLP. The gradient differentiates the trilinear weights
+/// NGLOD and the hash grid: one unrolled block per level in use (resolution, grid offset and
+/// place in the MLP's input as literals), the summed or concatenated features decoded by the
+/// ReLU MLP. The gradient differentiates the trilinear weights
 /// (zero along an axis where the point is clamped, as on the CPU) and the active ReLUs.
 fn nglod(s: &mut String, m: &Nglod, lod: usize, group: u32) {
     let c = m.config();
@@ -488,6 +494,8 @@ fn nglod(s: &mut String, m: &Nglod, lod: usize, group: u32) {
         .map(|l| LevelAt {
             resolution: c.resolutions[l],
             offset: layout.grid_offsets[l],
+            input_offset: c.input_offset(l),
+            storage: c.storage(l),
             table: c.table_offset(l),
         })
         .collect();
@@ -500,8 +508,10 @@ fn nglod(s: &mut String, m: &Nglod, lod: usize, group: u32) {
     }
     let _ = write!(
         s,
-        "// NGLOD: {k} of {levels} levels (cells per axis {res:?}), F = {f}, H = {h}.\n\
+        "// {arch}: {k} of {levels} levels (cells per axis {res:?}), {fl} features per level, \
+         {f} MLP inputs, H = {h}.\n\
          const HWSDF_F: u32 = {f}u;\n\
+         const HWSDF_FL: u32 = {fl}u;\n\
          const HWSDF_H: u32 = {h}u;\n\
          const HWSDF_W0: u32 = {w0}u;\n\
          const HWSDF_B0: u32 = {b0}u;\n\
@@ -510,7 +520,9 @@ fn nglod(s: &mut String, m: &Nglod, lod: usize, group: u32) {
         k = lod,
         levels = c.levels(),
         res = &c.resolutions[..lod],
-        f = c.feature_dim,
+        arch = c.architecture(),
+        f = c.input_dim(),
+        fl = c.feature_dim,
         h = c.hidden,
         w0 = layout.w0,
         b0 = layout.b0,
@@ -566,20 +578,28 @@ fn nglod_fn(s: &mut String, levels: &[LevelAt], grad: bool) {
              \x20           let v = i0 + d;\n",
         );
         let linear = format!("(v.x * {s}u + v.y) * {s}u + v.z", s = res + 1);
-        match level.table {
-            None => {
-                let _ = writeln!(s, "            let base = {off}u + ({linear}) * HWSDF_F;");
+        match (level.storage, level.table) {
+            // instant-ngp's spatial hash (nglod::hash_vertex).
+            (LevelStorage::Hashed(entries), _) => {
+                let _ = writeln!(
+                    s,
+                    "            let base = {off}u + ((v.x ^ (v.y * 2654435761u) ^ (v.z * 805459861u)) & {mask}u) * HWSDF_FL;",
+                    mask = entries - 1
+                );
             }
             // A vertex outside a sparse level's band has zero features.
-            Some(t) => {
+            (_, Some(t)) => {
                 let _ = write!(
                     s,
                     "            let slot = hwsdf_table[{t}u + {linear}];\n\
                      \x20           if slot == 0xffffffffu {{\n\
                      \x20               continue;\n\
                      \x20           }}\n\
-                     \x20           let base = {off}u + slot * HWSDF_F;\n"
+                     \x20           let base = {off}u + slot * HWSDF_FL;\n"
                 );
+            }
+            (_, None) => {
+                let _ = writeln!(s, "            let base = {off}u + ({linear}) * HWSDF_FL;");
             }
         }
         if grad {
@@ -588,13 +608,15 @@ fn nglod_fn(s: &mut String, levels: &[LevelAt], grad: bool) {
                  \x20               * vec3<f32>(wv.y * wv.z, wv.x * wv.z, wv.x * wv.y) * du;\n",
             );
         }
-        s.push_str(
-            "            for (var f = 0u; f < HWSDF_F; f++) {\n\
+        let zo = level.input_offset;
+        let _ = write!(
+            s,
+            "            for (var f = 0u; f < HWSDF_FL; f++) {{\n\
              \x20               let g = hwsdf_params[base + f];\n\
-             \x20               z[f] += w * g;\n",
+             \x20               z[{zo}u + f] += w * g;\n",
         );
         if grad {
-            s.push_str("                dz[f] += dw * g;\n");
+            let _ = writeln!(s, "                dz[{zo}u + f] += dw * g;");
         }
         s.push_str("            }\n        }\n    }\n");
     }

@@ -13,8 +13,8 @@ struct Uniforms {
     lod: u32,
     mlp_offset: u32,
     _pad: u32,
-    // Per level: (resolution r, offset in params, offset in `table`, 1 if sparse): nglod_grid.wgsl.
-    levels: array<vec4<u32>, 8>,
+    // Per level: (resolution r, offset in params, z, kind): nglod_grid.wgsl.
+    levels: array<vec4<u32>, 16>,
     // The serving entry points (query, query_grad): xyz the mesh's centre, w its scale.
     query: vec4<f32>,
 }
@@ -25,6 +25,7 @@ const MAX_F: u32 = 32u;
 // offers.
 const MAX_MLP_VEC4: u32 = 960u;
 
+// The MLP's input width: FL summed levels, or K·FL concatenated ones (nglod_grid.wgsl).
 override F: u32 = 8u;
 override H: u32 = 128u;
 
@@ -81,8 +82,9 @@ fn value_at(p: vec3<f32>) -> f32 {
             if base == NO_SLOT {
                 continue;
             }
-            for (var f = 0u; f < F; f++) {
-                z[f] += w * params[base + f];
+            let zo = l * ZS;
+            for (var f = 0u; f < FL; f++) {
+                z[zo + f] += w * params[base + f];
             }
         }
     }
@@ -130,10 +132,11 @@ fn value_grad_at(p: vec3<f32>) -> vec4<f32> {
             if base == NO_SLOT {
                 continue;
             }
-            for (var f = 0u; f < F; f++) {
+            let zo = l * ZS;
+            for (var f = 0u; f < FL; f++) {
                 let g = params[base + f];
-                z[f] += w * g;
-                dz[f] += dw * g;
+                z[zo + f] += w * g;
+                dz[zo + f] += dw * g;
             }
         }
     }

@@ -24,7 +24,7 @@ struct Uniforms {
     chunk: u32,
     n_chunks: u32,
     _pad: u32,
-    levels: array<vec4<u32>, 8>,
+    levels: array<vec4<u32>, 16>,
 }
 
 const WG: u32 = 64u;

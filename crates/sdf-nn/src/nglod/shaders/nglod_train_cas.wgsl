@@ -29,14 +29,15 @@ struct Uniforms {
     chunk: u32,
     n_chunks: u32,
     _pad: u32,
-    // Per level: (resolution r, offset in params, offset in `table`, 1 if sparse): nglod_grid.wgsl.
-    levels: array<vec4<u32>, 8>,
+    // Per level: (resolution r, offset in params, z, kind): nglod_grid.wgsl.
+    levels: array<vec4<u32>, 16>,
 }
 
 const WG: u32 = 64u;
 const MAX_F: u32 = 32u;
 const MAX_MLP_VEC4: u32 = 960u;
 
+// The MLP's input width: FL summed levels, or K·FL concatenated ones (nglod_grid.wgsl).
 override F: u32 = 8u;
 override H: u32 = 128u;
 
@@ -105,8 +106,9 @@ fn train_rows(
             if base == NO_SLOT {
                 continue;
             }
-            for (var f = 0u; f < F; f++) {
-                z[f] += w * params[base + f];
+            let zo = l * ZS;
+            for (var f = 0u; f < FL; f++) {
+                z[zo + f] += w * params[base + f];
             }
         }
     }
@@ -163,8 +165,9 @@ fn train_rows(
             if base == NO_SLOT {
                 continue;
             }
-            for (var f = 0u; f < F; f++) {
-                grad_add(base + f, w * dz[f]);
+            let zo = l * ZS;
+            for (var f = 0u; f < FL; f++) {
+                grad_add(base + f, w * dz[zo + f]);
             }
         }
     }
