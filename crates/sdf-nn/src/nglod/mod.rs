@@ -54,8 +54,8 @@ pub use band::Band;
 pub use gpu::{NglodGpu, ScatterMode};
 pub use pool::PoolSchedule;
 pub use train::{
-    DEFAULT_EPOCHS, DistanceMode, EpochStats, NglodTrainConfig, NglodTrainer, SampleSource,
-    TimeBudget, TrainReport,
+    DEFAULT_EPOCHS, DistanceMode, EpochStats, HASHGRID_EPOCHS, NglodTrainConfig, NglodTrainer,
+    SampleSource, TimeBudget, TrainReport,
 };
 
 /// Largest number of levels the kernels accept (instant-ngp's 16).

@@ -182,7 +182,29 @@ impl Default for NglodTrainConfig {
     }
 }
 
+/// Epochs of a hash-grid run by default ([`NglodTrainConfig::hashgrid`]).
+pub const HASHGRID_EPOCHS: usize = 50;
+
 impl NglodTrainConfig {
+    /// The hash grid's schedule ([`crate::nglod::Encoding::Hashed`]): NGLOD's sampling and
+    /// pool, with instant-ngp's optimiser (learning rate 1e-2, β2 = 0.99, ε = 1e-15: a table
+    /// entry sees gradient only from the points in its cells, and a large ε would stall the
+    /// rarely touched ones), cosine decay to 0.1, larger batches (the hashed tables are
+    /// Adam's cost per step, whatever the batch) and [`HASHGRID_EPOCHS`].
+    pub fn hashgrid() -> Self {
+        NglodTrainConfig {
+            epochs: HASHGRID_EPOCHS,
+            batch_size: 4096,
+            adam: AdamConfig {
+                lr: 1e-2,
+                beta1: 0.9,
+                beta2: 0.99,
+                eps: 1e-15,
+            },
+            ..Self::default()
+        }
+    }
+
     pub(super) fn points_per_epoch(&self) -> usize {
         self.uniform_points + self.near_points + self.surface_points
     }
