@@ -231,13 +231,37 @@ fn hash_grid_model_file_round_trips_and_rejects_what_disagrees() {
 }
 
 #[test]
-fn a_served_hash_grid_has_one_level_of_detail() {
+fn a_served_hash_grid_answers_like_the_cpu_and_has_one_level_of_detail() {
     let model = lively_model(NglodConfig::hashgrid_small(), 33);
-    let mut sdf = NeuralSdf::from_model_file(
-        model.to_model_file(sdf_nn::Normalization::identity(), serde_json::Value::Null),
-    )
-    .unwrap();
+    let norm = sdf_nn::Normalization {
+        center: Vec3::new(1.0, -2.0, 0.5).as_dvec3(),
+        scale: 0.5,
+    };
+    let mut sdf =
+        NeuralSdf::from_model_file(model.to_model_file(norm, serde_json::Value::Null)).unwrap();
     assert_eq!(sdf.architecture(), "hashgrid");
+    // The serving kernels (distances, and distances with normals) in mesh coordinates, points
+    // inside and outside the box.
+    let gpu = gpu();
+    let pts: Vec<Vec3> = super::points(1000, 34)
+        .into_iter()
+        .map(|p| norm.to_original(p))
+        .collect();
+    let d = sdf.eval(gpu, &pts).unwrap();
+    let dn = sdf.eval_with_normals(gpu, &pts).unwrap();
+    let want = sdf.eval_with_normals_cpu(&pts);
+    let mut normal_outliers = 0;
+    for i in 0..pts.len() {
+        let (w, wn) = want[i];
+        let tol = 2e-5 * (1.0 + w.abs());
+        assert!((d[i] - w).abs() <= tol, "{}: {} vs {w}", pts[i], d[i]);
+        assert!((dn[i].0 - w).abs() <= tol, "{}: {} vs {w}", pts[i], dn[i].0);
+        // A ReLU or a cell face that rounding puts on different sides flips a normal.
+        if (dn[i].1 - wn).length() > 1e-3 {
+            normal_outliers += 1;
+        }
+    }
+    assert!(normal_outliers <= 3, "{normal_outliers} normals differ");
     sdf.set_lod(Some(16)).unwrap();
     sdf.set_lod(None).unwrap();
     assert!(matches!(
