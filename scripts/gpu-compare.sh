@@ -61,7 +61,8 @@
 #                                       about 10, 30, 30 and 30 s on an H100; the third is SIREN
 #                                       with --sign-weight 0, the design document's four loss
 #                                       terms alone, the last SIREN with --plateau-patience 0, a
-#                                       constant learning rate)
+#                                       constant learning rate; `hashgrid` adds the hash grid's
+#                                       default fit)
 #   GPU_COMPARE_MESHES=DIR              (pack) copy DIR's meshes into the pack for `corpus`
 #   GPU_COMPARE_CORPUS_ARGS="..."       extra `corpus` arguments (default: --model nglod); each
 #                                       set keeps its own results (e.g. add --band-cells 0)
@@ -458,13 +459,13 @@ PY
         for m in $(echo "${GPU_COMPARE_FITS:-nglod,siren,siren-design-loss,siren-constant-lr}" | tr ',' ' '); do
             local fit_args
             case "$m" in
-                nglod | siren) fit_args=(--model "$m") ;;
+                nglod | siren | hashgrid) fit_args=(--model "$m") ;;
                 # The SIREN reference code's schedule beside ours (the design document's divide
                 # by 10 on plateaus): the H100's default fit had reached the floor by step 5125.
                 siren-constant-lr) fit_args=(--model siren --plateau-patience 0) ;;
                 # Without the sign term: the design document's loss beside ours.
                 siren-design-loss) fit_args=(--model siren --sign-weight 0) ;;
-                *) echo "unknown fit $m (nglod, siren, siren-design-loss or siren-constant-lr)" >&2; continue ;;
+                *) echo "unknown fit $m (nglod, siren, hashgrid, siren-design-loss or siren-constant-lr)" >&2; continue ;;
             esac
             echo "== fit: $m on tests/data/spot.obj (the GPU default run; ${fit_args[*]})"
             local t0 t1
