@@ -11,7 +11,8 @@ use std::process::{Command, Output};
 use std::sync::OnceLock;
 
 use common::{bin, data, stderr};
-use hwsdf::nn::{ModelFile, NeuralSdf};
+use hwsdf::nn::nglod::Encoding;
+use hwsdf::nn::{ModelFile, NeuralSdf, NglodConfig, NglodTrainConfig};
 
 fn scratch(name: &str) -> PathBuf {
     common::scratch_in("hashgrid", name)
@@ -59,24 +60,27 @@ fn train_writes_a_hash_grid_model_and_its_report() {
     let file = ModelFile::load(model).unwrap();
     assert_eq!(file.metadata.architecture, "hashgrid");
     let config = &file.metadata.config;
-    // `small`: NglodConfig::hashgrid_small, 16 levels from 8 to 256 cells, tables of 2^14.
-    assert_eq!(
-        config["encoding"],
-        serde_json::json!({"kind": "hashed", "log2_table_size": 14}),
-        "{config}"
-    );
-    assert_eq!(config["resolutions"].as_array().unwrap().len(), 16);
-    assert_eq!(config["resolutions"][15], 256);
-    // Trained on the hash grid's own schedule, recorded as a hash-grid run.
+    // `small`: NglodConfig::hashgrid_small.
+    let small: NglodConfig = serde_json::from_value(config.clone()).unwrap();
+    assert_eq!(small, NglodConfig::hashgrid_small(), "{config}");
+    assert!(matches!(small.encoding, Encoding::Hashed { .. }));
+    // Trained on the hash grid's own schedule (learning rate 1e-2, Adam's β2 0.99, batch
+    // 4096 as it landed), recorded as a hash-grid run.
+    let schedule = NglodTrainConfig::hashgrid();
     let t = &file.metadata.training;
     assert_eq!(t["model"], "hashgrid", "{t}");
     assert_eq!(t["preset"], "small", "{t}");
     assert_eq!(t["done"], 1, "{t}");
-    assert_eq!(t["lr"].as_f64().unwrap() as f32, 1e-2, "{t}");
-    assert_eq!(t["batch_size"], 4096, "{t}");
-    assert_eq!(t["beta2"].as_f64().unwrap() as f32, 0.99, "{t}");
+    assert_eq!(t["lr"].as_f64().unwrap() as f32, schedule.adam.lr, "{t}");
+    assert_ne!(schedule.adam.lr, NglodTrainConfig::default().adam.lr);
+    assert_eq!(t["batch_size"], schedule.batch_size, "{t}");
+    assert_eq!(
+        t["beta2"].as_f64().unwrap() as f32,
+        schedule.adam.beta2,
+        "{t}"
+    );
     assert_eq!(t["grow_every"], serde_json::Value::Null, "{t}");
-    // The report: the model's name, its size, and the rate decayed from 1e-2 along a cosine.
+    // The report: the model's name, its size, and the rate decayed along a cosine.
     assert_eq!(report["model"], "hashgrid", "{report}");
     assert_eq!(report["preset"], "small", "{report}");
     assert_eq!(report["architecture"], *config, "{report}");
@@ -85,8 +89,9 @@ fn train_writes_a_hash_grid_model_and_its_report() {
         report["file_bytes"].as_u64().unwrap(),
         std::fs::metadata(model).unwrap().len()
     );
-    let lr = report["final_lr"].as_f64().unwrap();
-    assert!((0.99e-3..1e-2).contains(&lr), "{report}");
+    let lr = report["final_lr"].as_f64().unwrap() as f32;
+    let end = schedule.adam.lr * schedule.lr_final.unwrap_or(1.0);
+    assert!(lr >= 0.99 * end && lr < schedule.adam.lr, "{report}");
     // One epoch already gets most of the box right.
     let f1 = report["f1_bbox"].as_f64().unwrap();
     assert!(f1 > 0.8 && f1 <= 1.0, "{report}");
@@ -292,15 +297,24 @@ fn corpus_tabulates_the_hash_grid() {
     assert!(o.status.success(), "{}", stderr(&o));
     let table = std::fs::read_to_string(&out).unwrap();
     assert!(table.contains("### Hash grid"), "{table}");
-    assert!(
-        table.contains("Settings: architecture resolutions 8,"),
-        "{table}"
+    let small = NglodConfig::hashgrid_small();
+    let Encoding::Hashed { log2_table_size } = small.encoding else {
+        panic!("hashgrid_small is not hashed")
+    };
+    let settings = format!(
+        "Settings: architecture resolutions {}, table 2^{log2_table_size}, features {}, hidden \
+         {}; distance signed; epochs 1; lr {}; ",
+        small
+            .resolutions
+            .iter()
+            .map(u32::to_string)
+            .collect::<Vec<_>>()
+            .join(","),
+        small.feature_dim,
+        small.hidden,
+        NglodTrainConfig::hashgrid().adam.lr
     );
-    assert!(
-        table.contains("table 2^14, features 2, hidden 32;"),
-        "{table}"
-    );
-    assert!(table.contains("; lr 0.01;"), "{table}");
+    assert!(table.contains(&settings), "{settings} not in {table}");
     let row = table
         .lines()
         .find(|l| l.starts_with("| suzanne.obj |"))
@@ -364,8 +378,13 @@ fn options_that_do_not_apply_to_a_hash_grid_are_typed_errors() {
         (&["--plateau-patience", "5"], "--plateau-patience"),
         (&["--eikonal-weight", "1"], "loss weights apply to SIREN"),
         (
-            &["--features", "4"],
-            "hash grid: invalid configuration: 16 levels of 4 features",
+            &[
+                "--resolutions",
+                "8,12,16,24,32,48,64,96,128",
+                "--features",
+                "4",
+            ],
+            "hash grid: invalid configuration: 9 levels of 4 features concatenate to 36 MLP inputs",
         ),
         (&["--resolutions", "8,5000"], "resolution 5000"),
         (&["--lr", "0"], "learning rate"),

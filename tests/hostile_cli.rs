@@ -1684,7 +1684,7 @@ fn hashgrid_cases() -> Vec<Case> {
             "hashgrid table of 2^40 entries",
             "eval",
             &["hashgrid_table_2_40.safetensors", "cube.obj"],
-            Error("log2_table_size must be in 10..=24"),
+            Error("log2_table_size must be in"),
         ),
         case(
             "hashgrid table of 2^-3 entries",

@@ -353,7 +353,10 @@ fn python_with_numpy() -> Result<(), String> {
         Ok(o) if o.status.success() => return Ok(()),
         Ok(o) => format!(
             "python3 cannot import numpy and safetensors ({})",
-            String::from_utf8_lossy(&o.stderr).lines().last().unwrap_or("")
+            String::from_utf8_lossy(&o.stderr)
+                .lines()
+                .last()
+                .unwrap_or("")
         ),
         Err(e) => format!("python3 does not run: {e}"),
     };

@@ -921,8 +921,9 @@ mod tests {
         // Every place that defaults to a learning rate reads the model's own.
         assert_eq!(
             ModelKind::ALL.map(ModelKind::default_lr),
-            [1e-4, 1e-3, 1e-2]
+            [1e-4, 1e-3, NglodTrainConfig::hashgrid().adam.lr]
         );
+        assert_ne!(hashgrid.default_lr(), ModelKind::Nglod.default_lr());
         assert_eq!(hashgrid.grid_schedule(), Some(NglodTrainConfig::hashgrid()));
         // Its presets: `small` on a CPU adapter (as SIREN's), `default` on a GPU.
         assert_eq!(Preset::for_adapter(true, hashgrid), Preset::Small);
@@ -940,7 +941,10 @@ mod tests {
         // Its length: HASHGRID_EPOCHS on a GPU, its own time budget on a CPU adapter.
         let options = TrainOptions::new(hashgrid, Preset::Small);
         let gpu = options.length(false);
-        assert_eq!((gpu.asked, gpu.default, gpu.time_budget), (None, 50, None));
+        assert_eq!(
+            (gpu.asked, gpu.default, gpu.time_budget),
+            (None, HASHGRID_EPOCHS, None)
+        );
         let cpu = options.length(true);
         assert_eq!(cpu.time_budget, Some(HASHGRID_CPU_TIME_BUDGET));
         assert_eq!(HASHGRID_CPU_TIME_BUDGET.max_epochs, HASHGRID_EPOCHS);
@@ -954,18 +958,34 @@ mod tests {
         let settings = TrainOptions::new(hashgrid, Preset::Default)
             .settings(false)
             .unwrap();
-        let resolutions = comma_list(&NglodConfig::hashgrid_default().resolutions);
+        let (c, d) = (
+            NglodConfig::hashgrid_default(),
+            NglodTrainConfig::hashgrid(),
+        );
+        let Encoding::Hashed { log2_table_size } = c.encoding else {
+            panic!("hashgrid_default is not hashed")
+        };
         assert_eq!(
             settings.to_string(),
             format!(
-                "architecture resolutions {resolutions}, table 2^18, features 2, hidden 64; \
-                 distance signed; epochs 50; lr 0.01; lr final 0.1; pool 4,4; preset default; \
-                 seed 0"
+                "architecture resolutions {}, table 2^{log2_table_size}, features {}, hidden {}; \
+                 distance signed; epochs {HASHGRID_EPOCHS}; lr {}; lr final {}; pool {},{}; \
+                 preset default; seed 0",
+                comma_list(&c.resolutions),
+                c.feature_dim,
+                c.hidden,
+                d.adam.lr,
+                d.lr_final.unwrap_or(1.0),
+                d.pool_blocks,
+                d.refresh_every
             )
         );
         assert_eq!(
             options.settings(true).unwrap().0["epochs"],
-            format!("about 55 s of training ({} to 50)", cpu.default)
+            format!(
+                "about 55 s of training ({} to {HASHGRID_EPOCHS})",
+                cpu.default
+            )
         );
     }
 
@@ -1053,10 +1073,11 @@ mod tests {
             },
             "--plateau-patience applies to SIREN",
         );
-        // An architecture the kernels cannot take is the model's own typed error: 16 levels of
-        // 4 features are 64 MLP inputs.
+        // An architecture the kernels cannot take is the model's own typed error: 9 levels of
+        // 4 features are 36 MLP inputs.
         let wide = TrainOptions {
             nglod_architecture: NglodArchitecture {
+                resolutions: Some(vec![8, 12, 16, 24, 32, 48, 64, 96, 128]),
                 feature_dim: Some(4),
                 ..Default::default()
             },
