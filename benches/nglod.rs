@@ -7,7 +7,11 @@
 //! `tests/data/spot.obj` when `../shared/meshes` is absent), printing how each epoch's time splits
 //! between the GPU loop and the CPU sampling that overlaps it.
 //!
-//! Run: `cargo bench --bench nglod`. `NGLOD_BENCH_EPOCHS=0` skips the training epochs.
+//! The hash grid's presets (`hashgrid_default`, `hashgrid_small`) are measured beside them, and
+//! its `default` trains the same epochs with its own schedule.
+//!
+//! Run: `cargo bench --bench nglod`. `NGLOD_BENCH_EPOCHS=0` skips the training epochs;
+//! `NGLOD_BENCH_MODELS=nglod` or `hashgrid` trains only one of the two.
 
 use std::time::Duration;
 
@@ -20,6 +24,8 @@ fn inference(c: &mut Criterion, gpu: &GpuContext) {
         ("default", NglodConfig::default_preset()),
         ("design", NglodConfig::design_document()),
         ("small", NglodConfig::small()),
+        ("hashgrid_default", NglodConfig::hashgrid_default()),
+        ("hashgrid_small", NglodConfig::hashgrid_small()),
     ] {
         let mut model = Nglod::new(cfg).unwrap();
         if model.needs_bands() {
@@ -58,14 +64,39 @@ fn epoch_split(gpu: &GpuContext) {
     };
     let (mesh, _) = sdf_geom::load_mesh(path).expect("bench mesh");
     let (unit, _) = mesh.normalized();
-    let model = Nglod::new(NglodConfig::default_preset()).unwrap();
-    let config = NglodTrainConfig {
-        epochs,
-        ..Default::default()
-    };
-    let mut trainer = NglodTrainer::new(gpu, &model, &unit, config).unwrap();
+    let which = std::env::var("NGLOD_BENCH_MODELS").unwrap_or_default();
+    for (name, model, schedule) in [
+        (
+            "nglod_default",
+            NglodConfig::default_preset(),
+            NglodTrainConfig::default(),
+        ),
+        (
+            "hashgrid_default",
+            NglodConfig::hashgrid_default(),
+            NglodTrainConfig::hashgrid(),
+        ),
+    ] {
+        let family = name.split('_').next().unwrap_or(name);
+        if which.is_empty() || which.split(',').any(|w| w == family) {
+            let config = NglodTrainConfig { epochs, ..schedule };
+            split_one(gpu, name, path, &unit, Nglod::new(model).unwrap(), config);
+        }
+    }
+}
+
+/// Trains `model` on `unit` and prints each epoch's split.
+fn split_one(
+    gpu: &GpuContext,
+    name: &str,
+    path: &str,
+    unit: &sdf_geom::Mesh,
+    model: Nglod,
+    config: NglodTrainConfig,
+) {
+    let mut trainer = NglodTrainer::new(gpu, &model, unit, config).unwrap();
     println!(
-        "nglod_default epoch split on {path} ({} faces), 5e5 points/epoch, batch {}:",
+        "{name} epoch split on {path} ({} faces), 5e5 points/epoch, batch {}:",
         unit.triangles.len(),
         trainer.config().batch_size
     );

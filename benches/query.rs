@@ -16,6 +16,9 @@
 //!
 //! each at 10 points (where only the floor is left) and at 3000.
 //!
+//! The presets are NGLOD's `small` and `default` and the hash grid's `hashgrid_small` and
+//! `hashgrid_default` (served by the same kernels).
+//!
 //! Run: `cargo bench --bench query`. `QUERY_BENCH_PRESETS=small` runs one preset,
 //! `QUERY_BENCH_POINTS=1,10,64` other batch sizes (default 10 and 3000).
 //!
@@ -173,6 +176,8 @@ fn presets() -> Vec<(&'static str, NglodConfig)> {
     [
         ("small", NglodConfig::small()),
         ("default", NglodConfig::default_preset()),
+        ("hashgrid_small", NglodConfig::hashgrid_small()),
+        ("hashgrid_default", NglodConfig::hashgrid_default()),
     ]
     .into_iter()
     .filter(|(n, _)| which.is_empty() || which.split(',').any(|w| w == *n))

@@ -136,6 +136,14 @@ fn shapes() -> Vec<(&'static str, NeuralSdf)> {
             "nglod small, finest level sparse",
             nglod(sparse_small(), 4, None),
         ),
+        (
+            "hashgrid small, 11 of 16 levels hashed",
+            nglod(NglodConfig::hashgrid_small(), 5, None),
+        ),
+        (
+            "hashgrid 3 levels, the finest hashed",
+            nglod(NglodConfig::hashgrid(3, 4, 24, 2, 10, 8), 6, None),
+        ),
     ]
 }
 
@@ -540,6 +548,18 @@ fn nglod_snippet_matches_cpu_on_gpu() {
     check_against_cpu(
         "nglod small, finest level sparse",
         &nglod(sparse_small(), 5, None),
+        2e-5,
+        1e-3,
+        3,
+    );
+}
+
+#[test]
+fn hashgrid_snippet_matches_cpu_on_gpu() {
+    // Concatenated levels, the coarse ones indexed, the fine ones hashed.
+    check_against_cpu(
+        "hashgrid small",
+        &nglod(NglodConfig::hashgrid_small(), 5, None),
         2e-5,
         1e-3,
         3,

@@ -365,10 +365,14 @@ impl NglodConfig {
     /// How level `l` keeps its features.
     pub fn storage(&self, l: usize) -> LevelStorage {
         let vertices = (u64::from(self.resolutions[l]) + 1).pow(3);
+        // Clamped so that an unvalidated configuration cannot overflow the shift.
+        let entries = 1u64
+            << match self.encoding {
+                Encoding::Hashed { log2_table_size } => log2_table_size.min(31),
+                Encoding::Summed => 0,
+            };
         match self.encoding {
-            Encoding::Hashed { log2_table_size } if vertices > 1u64 << log2_table_size => {
-                LevelStorage::Hashed(1 << log2_table_size)
-            }
+            Encoding::Hashed { .. } if vertices > entries => LevelStorage::Hashed(entries as u32),
             _ if self.is_sparse(l) => LevelStorage::Sparse,
             _ => LevelStorage::Dense,
         }

@@ -12,7 +12,7 @@ use sdf_nn::serve::scene::{
     SceneQueryKind, TraceOptions, Transform,
 };
 
-use crate::models::sphere_model;
+use crate::models::{hashed_sphere_model, sphere_model};
 use crate::random_points;
 
 fn gpu() -> &'static GpuContext {
@@ -250,7 +250,8 @@ fn analytic_rays_and_closest_points_match_the_cpu() {
 #[test]
 fn placed_models_match_the_cpu() {
     let model = Arc::new(sphere_model(1.0));
-    let other = Arc::new(sphere_model(0.8));
+    // A hash grid beside the NGLOD model: one scene, both encodings.
+    let other = Arc::new(hashed_sphere_model(0.8));
     let scene = Scene::new(SceneNode::Difference(vec![
         SceneNode::SmoothUnion {
             k: 0.5,

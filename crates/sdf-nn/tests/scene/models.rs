@@ -7,10 +7,11 @@ use std::sync::Arc;
 use glam::{Quat, Vec3};
 use rand::{Rng, SeedableRng};
 use rand_pcg::Pcg64;
+use sdf_nn::nglod::{Encoding, LevelStorage};
 use sdf_nn::serve::scene::{
     ProjectOptions, Ray, Scene, SceneError, SceneNode, TraceOptions, Transform,
 };
-use sdf_nn::{NeuralSdf, Nglod, Normalization};
+use sdf_nn::{NeuralSdf, Nglod, NglodConfig, Normalization};
 
 use crate::assert_close;
 
@@ -30,6 +31,38 @@ pub(crate) fn normalization() -> Normalization {
 /// `slope`: no training.
 pub(crate) fn sphere_model(slope: f32) -> NeuralSdf {
     let model = Nglod::from_sdf(32, move |p| slope * (p.length() - MODEL_RADIUS)).unwrap();
+    NeuralSdf::from_model_file(model.to_model_file(normalization(), serde_json::Value::Null))
+        .unwrap()
+}
+
+/// A hash grid holding a sphere's SDF times `slope` plus small noise, no training: a level of
+/// 32 cells that fits its table of 2¹⁶ entries holds the SDF at its vertices, a level of 64
+/// cells hashed into the table holds noise of ±0.005, and the MLP passes their sum through
+/// (`relu(z₀ + z₁ + 10) − 10`). Both of the hash grid's lookups, concatenated.
+pub(crate) fn hashed_sphere_model(slope: f32) -> NeuralSdf {
+    let config = NglodConfig {
+        resolutions: vec![32, 64],
+        feature_dim: 1,
+        hidden: 1,
+        seed: 0,
+        sparse_levels: 0,
+        band_cells: 0,
+        encoding: Encoding::Hashed {
+            log2_table_size: 16,
+        },
+    };
+    assert_eq!(config.storage(1), LevelStorage::Hashed(1 << 16));
+    let s = 33;
+    let mut rng = Pcg64::seed_from_u64(4);
+    let mut params: Vec<f32> = (0..s * s * s)
+        .map(|i| {
+            let v = Vec3::new((i / (s * s)) as f32, ((i / s) % s) as f32, (i % s) as f32);
+            slope * ((v * (2.0 / 32.0) - 1.0).length() - MODEL_RADIUS)
+        })
+        .collect();
+    params.extend((0..1 << 16).map(|_| rng.random_range(-0.005..0.005)));
+    params.extend([1.0, 1.0, 10.0, 1.0, -10.0]);
+    let model = Nglod::from_params(config, params).unwrap();
     NeuralSdf::from_model_file(model.to_model_file(normalization(), serde_json::Value::Null))
         .unwrap()
 }

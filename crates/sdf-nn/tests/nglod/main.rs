@@ -1,13 +1,16 @@
-//! NGLOD: the f64 CPU reference against finite differences, the kernels against the reference
-//! (both grid-scatter paths, both objectives, batch sizes that are not multiples of the
-//! workgroup), levels of detail, training on a sphere, model files. One test binary so every
-//! test shares one device and its compiled pipelines (lavapipe JIT costs seconds per pipeline).
+//! NGLOD and the hash grid: the f64 CPU reference against finite differences, the kernels
+//! against the reference (both grid-scatter paths, both objectives, batch sizes that are not
+//! multiples of the workgroup), levels of detail, training on a sphere, model files; the hash
+//! grid's own tests are in `hashgrid.rs`. One test binary so every test shares one device and
+//! its compiled pipelines (lavapipe JIT costs seconds per pipeline).
+
+mod hashgrid;
 
 use glam::Vec3;
 use rand::{Rng, SeedableRng};
 use rand_pcg::Pcg64;
 use sdf_geom::Mesh;
-use sdf_nn::nglod::{Objective, ScatterMode, cpu};
+use sdf_nn::nglod::{Encoding, LevelStorage, Objective, ScatterMode, cpu};
 use sdf_nn::{
     GpuContext, Nglod, NglodConfig, NglodError, NglodGpu, NglodTrainConfig, NglodTrainer,
 };
@@ -77,6 +80,35 @@ fn sparse(config: NglodConfig) -> NglodConfig {
     }
 }
 
+/// `tiny()` as a hash grid: a fourth level of 12 cells (2197 vertices) hashed into a table of
+/// 1024 entries, so that colliding vertices share their features; the other levels fit
+/// theirs. The levels' 2 features each are concatenated into 8 MLP inputs.
+fn tiny_hashed() -> NglodConfig {
+    let c = NglodConfig {
+        resolutions: vec![2, 3, 8, 12],
+        feature_dim: 2,
+        encoding: Encoding::Hashed {
+            log2_table_size: 10,
+        },
+        ..tiny()
+    };
+    assert_eq!(c.storage(3), LevelStorage::Hashed(1024));
+    assert_eq!(c.storage(2), LevelStorage::Dense);
+    c
+}
+
+/// The `small` preset as a hash grid: its finest level (17³ vertices) hashed into 1024 entries.
+fn small_hashed() -> NglodConfig {
+    let c = NglodConfig {
+        encoding: Encoding::Hashed {
+            log2_table_size: 10,
+        },
+        ..NglodConfig::small()
+    };
+    assert_eq!(c.storage(2), LevelStorage::Hashed(1024));
+    c
+}
+
 /// A tiny configuration for finite differences: every parameter is checked.
 fn tiny() -> NglodConfig {
     NglodConfig {
@@ -92,7 +124,7 @@ fn tiny() -> NglodConfig {
 
 #[test]
 fn cpu_reference_gradient_matches_finite_differences() {
-    for config in [tiny(), sparse(tiny())] {
+    for config in [tiny(), sparse(tiny()), tiny_hashed()] {
         reference_gradient_matches_finite_differences(config);
     }
 }
@@ -102,7 +134,7 @@ fn reference_gradient_matches_finite_differences(config: NglodConfig) {
     let params = f64s(model.params());
     let pts = points(24, 2);
     let y = targets(24, 3);
-    let sparse = config.sparse_levels;
+    let sparse = format!("{} with {}", config.architecture(), config.sparse_levels);
     for objective in [Objective::Full, Objective::AllPrefixes] {
         let (_, grad) = cpu::loss_and_gradient(&model, &params, &pts, &y, objective).unwrap();
         let scale = grad.iter().fold(0.0f64, |m, g| m.max(g.abs()));
@@ -148,12 +180,13 @@ fn prefix_objective_is_the_sum_of_prefix_losses() {
 
 #[test]
 fn cpu_f32_eval_and_spatial_gradient_match_reference() {
-    for config in [tiny(), sparse(tiny())] {
+    for config in [tiny(), sparse(tiny()), tiny_hashed()] {
         cpu_f32_matches_reference(config);
     }
 }
 
 fn cpu_f32_matches_reference(config: NglodConfig) {
+    let levels = config.levels();
     let model = lively_model(config, 8);
     let params = f64s(model.params());
     // Inside the box only: the spatial gradient is zero across the faces, where the grid clamps.
@@ -161,7 +194,7 @@ fn cpu_f32_matches_reference(config: NglodConfig) {
         .into_iter()
         .filter(|p| p.abs().max_element() < 0.999)
         .collect();
-    for lod in [1, 2, 3] {
+    for lod in 1..=levels {
         let got = model.eval_cpu(&pts, Some(lod)).unwrap();
         let grads = model.gradient_cpu(&pts, Some(lod)).unwrap();
         let mut bad = 0;
@@ -198,12 +231,16 @@ fn cpu_f32_matches_reference(config: NglodConfig) {
             pts.len()
         );
     }
-    assert!(model.eval_cpu(&pts, None).unwrap() == model.eval_cpu(&pts, Some(3)).unwrap());
+    assert!(model.eval_cpu(&pts, None).unwrap() == model.eval_cpu(&pts, Some(levels)).unwrap());
 }
 
 #[test]
 fn gpu_forward_matches_cpu_at_every_lod() {
-    for config in [NglodConfig::small(), sparse(NglodConfig::small())] {
+    for config in [
+        NglodConfig::small(),
+        sparse(NglodConfig::small()),
+        small_hashed(),
+    ] {
         gpu_forward_matches_cpu(config);
     }
 }
@@ -254,7 +291,11 @@ fn gpu_forward_matches_cpu(config: NglodConfig) {
 
 #[test]
 fn gpu_gradients_match_cpu_on_both_scatter_paths() {
-    for config in [NglodConfig::small(), sparse(NglodConfig::small())] {
+    for config in [
+        NglodConfig::small(),
+        sparse(NglodConfig::small()),
+        small_hashed(),
+    ] {
         gpu_gradients_match_cpu(config);
     }
 }
