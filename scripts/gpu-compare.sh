@@ -56,13 +56,14 @@
 #   GPU_COMPARE_ROW_BLOCKS=2,3          the fused kernel's row blocks it forces too
 #   GPU_COMPARE_SPLIT_ROUNDS=500        rounds of the `split` and `phases` stages' query benches
 #   GPU_COMPARE_CHECK_TIMEOUT=300       seconds each kernel test binary may take (`checks`)
-#   GPU_COMPARE_FITS=nglod,siren,siren-design-loss,siren-constant-lr
-#                                       which fits the `fit` stage times (default all four:
-#                                       about 10, 30, 30 and 30 s on an H100; the third is SIREN
-#                                       with --sign-weight 0, the design document's four loss
-#                                       terms alone, the last SIREN with --plateau-patience 0, a
-#                                       constant learning rate; `hashgrid` adds the hash grid's
-#                                       default fit)
+#   GPU_COMPARE_FITS=nglod,hashgrid,hashgrid-small,siren,siren-design-loss,siren-constant-lr
+#                                       which fits the `fit` stage times (default all six:
+#                                       NGLOD about 10 s on an H100, the hash grid's presets
+#                                       (issue 39: ≤ 1 s of training), SIREN about 30 s each;
+#                                       siren-design-loss is SIREN with --sign-weight 0, the
+#                                       design document's four loss terms alone,
+#                                       siren-constant-lr SIREN with --plateau-patience 0, a
+#                                       constant learning rate)
 #   GPU_COMPARE_MESHES=DIR              (pack) copy DIR's meshes into the pack for `corpus`
 #   GPU_COMPARE_CORPUS_ARGS="..."       extra `corpus` arguments (default: --model nglod); each
 #                                       set keeps its own results (e.g. add --band-cells 0)
@@ -456,16 +457,17 @@ for est in sorted(glob.glob(os.path.join(res, "criterion*", "**", "new", "estima
 PY
     if [[ $stages == *,fit,* ]]; then
         local m
-        for m in $(echo "${GPU_COMPARE_FITS:-nglod,siren,siren-design-loss,siren-constant-lr}" | tr ',' ' '); do
+        for m in $(echo "${GPU_COMPARE_FITS:-nglod,hashgrid,hashgrid-small,siren,siren-design-loss,siren-constant-lr}" | tr ',' ' '); do
             local fit_args
             case "$m" in
                 nglod | siren | hashgrid) fit_args=(--model "$m") ;;
+                hashgrid-small) fit_args=(--model hashgrid --preset small) ;;
                 # The SIREN reference code's schedule beside ours (the design document's divide
                 # by 10 on plateaus): the H100's default fit had reached the floor by step 5125.
                 siren-constant-lr) fit_args=(--model siren --plateau-patience 0) ;;
                 # Without the sign term: the design document's loss beside ours.
                 siren-design-loss) fit_args=(--model siren --sign-weight 0) ;;
-                *) echo "unknown fit $m (nglod, siren, hashgrid, siren-design-loss or siren-constant-lr)" >&2; continue ;;
+                *) echo "unknown fit $m (nglod, hashgrid, hashgrid-small, siren, siren-design-loss or siren-constant-lr)" >&2; continue ;;
             esac
             echo "== fit: $m on tests/data/spot.obj (the GPU default run; ${fit_args[*]})"
             local t0 t1
@@ -567,7 +569,7 @@ for path, r in fits:
     except (OSError, StopIteration, IndexError):
         pass
     f1 = lambda k: "n/a" if r.get(k) is None else f"{r[k]:.4f}"
-    unit = "epochs" if r.get("model") == "nglod" else "steps"
+    unit = "steps" if r.get("model") == "siren" else "epochs"
     far = "—"
     e = r.get("sign_errors_bbox")
     if e:

@@ -342,8 +342,15 @@ fn far_closest(q: vec3<f32>, t: Corners) -> vec4<f32> {
     let ac_s = scale3(ac, s);
     let vw = far_weights(aps, ab_s, ac_s);
     let x = ab_s * vw.x + ac_s * vw.y;
-    // Times 2 last: a distance above the largest f32 overflows to +inf, as on the CPU.
-    let dist = scale1(length(aps - x), k) * 2.0;
+    // The distance is length · 2^(k+1): +inf, as on the CPU, where that exceeds the largest f32.
+    // Decided on the exponents rather than left to an overflowing product, which NVIDIA's
+    // compiler turned into 2^64 (it seems to fold multiplications by powers of two into an
+    // exponent add that does not saturate); every product below stays finite.
+    let m = frexp(length(aps - x));
+    var dist = bitcast<f32>(0x7f800000u);
+    if m.exp + k + 1 <= 128 {
+        dist = scale1(m.fract, m.exp + k + 1);
+    }
     let point = scale3(t.a + ab * vw.x + ac * vw.y, -e);
     return vec4<f32>(point, dist);
 }
