@@ -852,7 +852,10 @@ fn unsigned_mode_fits_a_flat_sheet_and_reports_distance_and_chamfer() {
         .args(["--distance", "unsigned"])
         .output()
         .unwrap();
-    assert_clean_failure(&o, "unsigned distance is supported for NGLOD only");
+    assert_clean_failure(
+        &o,
+        "unsigned distance is supported for NGLOD and the hash grid only",
+    );
 }
 
 /// A model that never changes sign (Φ ≡ 0.5: a SIREN with zero weights and a head bias) has no

@@ -43,6 +43,7 @@ fn bin_path(name: &str) -> &'static str {
         "render" => env!("CARGO_BIN_EXE_render"),
         "sdf" => env!("CARGO_BIN_EXE_sdf"),
         "corpus" => env!("CARGO_BIN_EXE_corpus"),
+        "query" => env!("CARGO_BIN_EXE_query"),
         other => panic!("no binary {other}"),
     }
 }
@@ -401,6 +402,8 @@ impl Fixtures {
         done5.metadata.training["done"] = 5.into();
         add("done5.checkpoint.safetensors", done5.to_bytes().unwrap());
 
+        hashgrid_fixtures(&mut add, &plane);
+
         // Meshes that load today's readers must refuse.
         add("empty.obj", Vec::new());
         add(
@@ -449,6 +452,106 @@ impl Fixtures {
         std::fs::create_dir(dir.join("folder")).unwrap();
         dir
     }
+}
+
+/// Hash-grid model files (issue 39) that disagree with themselves: see [`hashgrid_cases`].
+fn hashgrid_fixtures(add: &mut impl FnMut(&str, Vec<u8>), plane: &ModelFile) {
+    // Two levels: 4 cells (125 vertices, stored densely) and 64 cells hashed into a table of
+    // 2^10 entries, one feature each; an MLP of 2 hidden units.
+    let grid = |log2: u32| {
+        let config = NglodConfig {
+            seed: 1,
+            ..NglodConfig::hashgrid(2, 4, 64, 1, log2, 2)
+        };
+        Nglod::new(config)
+            .unwrap()
+            .to_model_file(identity(), serde_json::json!({}))
+    };
+    let good = grid(10);
+    assert_eq!(good.metadata.architecture, "hashgrid");
+    add("hashgrid.safetensors", good.to_bytes().unwrap());
+    let edited = |edit: &dyn Fn(&mut ModelFile)| {
+        let mut f = good.clone();
+        edit(&mut f);
+        f.to_bytes().unwrap()
+    };
+    // The config's table is 4 times the stored one (more than the file holds), then half of it.
+    add(
+        "hashgrid_table_larger.safetensors",
+        edited(&|f| f.metadata.config["encoding"]["log2_table_size"] = 12.into()),
+    );
+    let mut wide = grid(11);
+    wide.metadata.config["encoding"]["log2_table_size"] = 10.into();
+    add(
+        "hashgrid_table_smaller.safetensors",
+        wide.to_bytes().unwrap(),
+    );
+    add(
+        "hashgrid_table_2_40.safetensors",
+        edited(&|f| f.metadata.config["encoding"]["log2_table_size"] = 40.into()),
+    );
+    add(
+        "hashgrid_table_negative.safetensors",
+        edited(&|f| f.metadata.config["encoding"]["log2_table_size"] = (-3).into()),
+    );
+    add(
+        "hashgrid_17_levels.safetensors",
+        edited(&|f| f.metadata.config["resolutions"] = serde_json::json!(vec![4; 17])),
+    );
+    // The file says "hashgrid", its config describes NGLOD (no encoding: summed levels)...
+    add(
+        "hashgrid_summed.safetensors",
+        edited(&|f| {
+            f.metadata
+                .config
+                .as_object_mut()
+                .unwrap()
+                .remove("encoding");
+        }),
+    );
+    // ... and the reverse, an "nglod" file whose config is a hash grid's.
+    add(
+        "nglod_hashed.safetensors",
+        edited(&|f| f.metadata.architecture = "nglod".into()),
+    );
+    // A plane NGLOD under a hash grid's name.
+    let mut plane_named = plane.clone();
+    plane_named.metadata.architecture = "hashgrid".into();
+    add(
+        "plane_says_hashgrid.safetensors",
+        plane_named.to_bytes().unwrap(),
+    );
+    // Non-finite features in the hashed table and in the dense level.
+    for (name, tensor, v) in [
+        ("hashgrid_nan.safetensors", "grids.1", f32::NAN),
+        ("hashgrid_inf.safetensors", "grids.0", f32::INFINITY),
+    ] {
+        add(
+            name,
+            edited(&|f| {
+                let t = f.tensors.iter_mut().find(|t| t.name == tensor).unwrap();
+                t.data[5] = v;
+            }),
+        );
+    }
+    // A hash grid's checkpoint, and one whose run record says "hashgrid" over NGLOD's tensors.
+    let checkpoint = |file: &ModelFile| {
+        let mut c = file.clone();
+        let n = c.param_count();
+        for name in ["optimizer.m", "optimizer.v"] {
+            c.tensors.push(Tensor::f32(name, vec![n], vec![0.0; n]));
+        }
+        c.metadata.training = serde_json::json!({
+            "checkpoint": true, "adam_step": 1, "lr": 1e-2, "done": 1,
+            "model": "hashgrid", "preset": "small",
+        });
+        c.to_bytes().unwrap()
+    };
+    add("hashgrid.checkpoint.safetensors", checkpoint(&good));
+    add(
+        "nglod_says_hashgrid.checkpoint.safetensors",
+        checkpoint(plane),
+    );
 }
 
 fn identity() -> Normalization {
@@ -1555,4 +1658,166 @@ fn ctrl_c_during_the_evaluation_is_honoured() {
     let new: Vec<&String> = after.keys().filter(|k| !before.contains_key(*k)).collect();
     assert_eq!(new, ["m.safetensors"], "only the model is written");
     let _ = std::fs::remove_dir_all(&fixtures.root);
+}
+
+/// Hash-grid model files that disagree with themselves or claim what they do not hold: each
+/// ends in a typed error from the model's checks, before anything the size of its claims is
+/// allocated (the address-space cap of [`MEMORY_CAP`] would kill a run that tried).
+fn hashgrid_cases() -> Vec<Case> {
+    use Expect::{Error, Success};
+    vec![
+        case(
+            "hashgrid config's table larger than its tensors",
+            "extract",
+            &["hashgrid_table_larger.safetensors", "--out", "o.obj"],
+            Error("declares"),
+        )
+        .outputs(&["o.obj"]),
+        case(
+            "hashgrid config's table smaller than its tensors",
+            "render",
+            &["hashgrid_table_smaller.safetensors", "--out", "i.png"],
+            Error("grids.1"),
+        )
+        .outputs(&["i.png"]),
+        case(
+            "hashgrid table of 2^40 entries",
+            "eval",
+            &["hashgrid_table_2_40.safetensors", "cube.obj"],
+            Error("log2_table_size must be in"),
+        ),
+        case(
+            "hashgrid table of 2^-3 entries",
+            "extract",
+            &["hashgrid_table_negative.safetensors", "--out", "o.obj"],
+            Error("config"),
+        )
+        .outputs(&["o.obj"]),
+        case(
+            "hashgrid of 17 levels",
+            "query",
+            &[
+                "hashgrid_17_levels.safetensors",
+                "--points",
+                "points.npy",
+                "--out",
+                "d.npy",
+            ],
+            Error("17 levels; between 1 and 16"),
+        )
+        .outputs(&["d.npy"]),
+        case(
+            "a hashgrid file with NGLOD's config",
+            "extract",
+            &["hashgrid_summed.safetensors", "--out", "o.obj"],
+            Error("the file says `hashgrid` but its configuration describes a `nglod` model"),
+        )
+        .outputs(&["o.obj"]),
+        case(
+            "an nglod file with a hash grid's config",
+            "render",
+            &["nglod_hashed.safetensors", "--out", "i.png"],
+            Error("the file says `nglod` but its configuration describes a `hashgrid` model"),
+        )
+        .outputs(&["i.png"]),
+        case(
+            "NGLOD's plane named hashgrid",
+            "eval",
+            &["plane_says_hashgrid.safetensors", "cube.obj"],
+            Error("describes a `nglod` model"),
+        ),
+        case(
+            "hashgrid NaN in its hashed table",
+            "extract",
+            &["hashgrid_nan.safetensors", "--out", "o.obj"],
+            Error("finite"),
+        )
+        .outputs(&["o.obj"]),
+        case(
+            "hashgrid inf in its dense level",
+            "query",
+            &[
+                "hashgrid_inf.safetensors",
+                "--points",
+                "points.npy",
+                "--out",
+                "d.npy",
+            ],
+            Error("finite"),
+        )
+        .outputs(&["d.npy"]),
+        case(
+            "hashgrid --lod short of all its levels",
+            "render",
+            &["hashgrid.safetensors", "--lod", "1", "--out", "i.png"],
+            Error("levels of detail exist only for NGLOD models"),
+        )
+        .outputs(&["i.png"]),
+        case(
+            "resume a hash grid's checkpoint as NGLOD",
+            "train",
+            &[
+                "cube.obj",
+                "--model",
+                "nglod",
+                "--resume",
+                "hashgrid.checkpoint.safetensors",
+                "--out",
+                "m.safetensors",
+            ],
+            Error("the checkpoint is of a hashgrid model, not nglod"),
+        )
+        .outputs(&["m.safetensors", "m.json"]),
+        case(
+            "resume NGLOD's tensors recorded as a hash grid",
+            "train",
+            &[
+                "cube.obj",
+                "--model",
+                "hashgrid",
+                "--preset",
+                "small",
+                "--resume",
+                "nglod_says_hashgrid.checkpoint.safetensors",
+                "--out",
+                "m.safetensors",
+            ],
+            Error("the checkpoint holds a nglod model, not hashgrid"),
+        )
+        .outputs(&["m.safetensors", "m.json", "m.checkpoint.safetensors"])
+        .gpu(),
+        // The well-formed file loads: the cases above fail for what they claim, not for being
+        // hash grids.
+        case(
+            "hashgrid well formed",
+            "eval",
+            &[
+                "hashgrid.safetensors",
+                "cube.obj",
+                "--points",
+                "500",
+                "--surface-resolution",
+                "0",
+            ],
+            Success(|_| Ok(())),
+        )
+        .gpu(),
+    ]
+}
+
+#[test]
+fn hostile_hash_grid_files_end_in_typed_errors() {
+    let fixtures = Fixtures::new("hashgrid");
+    let cases = hashgrid_cases();
+    let failures = run_all(&cases, &fixtures);
+    if failures.is_empty() {
+        let _ = std::fs::remove_dir_all(&fixtures.root);
+    }
+    assert!(
+        failures.is_empty(),
+        "{} of {} hash-grid cases failed:\n{}",
+        failures.len(),
+        cases.len(),
+        failures.join("\n")
+    );
 }

@@ -1,6 +1,7 @@
 //! The query API on real GPU and CPU paths: `NeuralSdf::eval` agrees with `eval_cpu` for both
 //! architectures (in mesh coordinates, inside and outside the box, normals too), and a sphere
-//! model extracts to a mesh on the sphere.
+//! model extracts to a mesh on the sphere. `scripts/load_model.py`, which evaluates a model file
+//! from its tensors alone with numpy, agrees with `NeuralSdf` for SIREN, NGLOD and the hash grid.
 
 use glam::Vec3;
 use hwsdf::eval::run::extract_mesh;
@@ -339,4 +340,122 @@ fn serving_api_reuses_buffers_and_refuses_misuse() {
             );
         }
     }
+}
+
+/// How `python3 scripts/load_model.py` can run here: `Ok` when python3 imports numpy and
+/// safetensors; otherwise, under CI (`CI=true`, where `.ci/run` installs them) a failure, and
+/// elsewhere `Err` with the reason, which the caller prints as it skips.
+fn python_with_numpy() -> Result<(), String> {
+    let probe = std::process::Command::new("python3")
+        .args(["-c", "import numpy, safetensors"])
+        .output();
+    let missing = match probe {
+        Ok(o) if o.status.success() => return Ok(()),
+        Ok(o) => format!(
+            "python3 cannot import numpy and safetensors ({})",
+            String::from_utf8_lossy(&o.stderr)
+                .lines()
+                .last()
+                .unwrap_or("")
+        ),
+        Err(e) => format!("python3 does not run: {e}"),
+    };
+    assert!(
+        std::env::var("CI").as_deref() != Ok("true"),
+        "{missing} (CI installs them: python3 -m pip install numpy safetensors)"
+    );
+    Err(missing)
+}
+
+/// The distances `scripts/load_model.py` prints for `model` at `points`.
+fn load_model_py(model: &std::path::Path, points: &[Vec3]) -> Vec<f32> {
+    let script = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/load_model.py");
+    let coords: Vec<String> = points
+        .iter()
+        .flat_map(|p| p.to_array())
+        .map(|c| format!("{c:e}"))
+        .collect();
+    let o = std::process::Command::new("python3")
+        .arg(script)
+        .arg(model)
+        .args(&coords)
+        .output()
+        .unwrap();
+    let out = String::from_utf8_lossy(&o.stdout);
+    assert!(
+        o.status.success(),
+        "load_model.py failed: {}{out}",
+        String::from_utf8_lossy(&o.stderr)
+    );
+    // `sdf(x, y, z) = d`, one line per point.
+    out.lines()
+        .filter(|l| l.starts_with("sdf("))
+        .map(|l| l.rsplit("= ").next().unwrap().trim().parse().unwrap())
+        .collect()
+}
+
+/// `scripts/load_model.py` evaluates every architecture's file as `NeuralSdf` does, within
+/// 1e-4 relative (its printed six decimals are the floor): a SIREN, an NGLOD and a hash grid
+/// whose features and weights are all of order one (a fresh model's grids are 0.01·N(0, 1),
+/// which would hide a wrong lookup), with coarse dense levels and finer hashed ones, at points
+/// inside and outside the box of a normalisation that is not the identity.
+#[test]
+fn load_model_py_agrees_with_neural_sdf() {
+    if let Err(why) = python_with_numpy() {
+        eprintln!("note: skipping the load_model.py check: {why}");
+        return;
+    }
+    let mut rng = Pcg64::seed_from_u64(39);
+    let mut order_one = |config: NglodConfig| {
+        let n = Nglod::new(config.clone()).unwrap().param_count();
+        let params = (0..n).map(|_| rng.random_range(-1.0..1.0)).collect();
+        Nglod::from_params(config, params).unwrap()
+    };
+    // Levels of 4, 10, 25 and 64 cells: the first (125 vertices) dense, the others hashed
+    // into tables of 2^10 entries.
+    let hashgrid = order_one(NglodConfig::hashgrid(4, 4, 64, 2, 10, 8));
+    assert_eq!(
+        hashgrid.config().storage(1),
+        hwsdf::nn::nglod::LevelStorage::Hashed(1024)
+    );
+    let nglod = order_one(NglodConfig::small());
+    let files = [
+        (
+            "siren",
+            Siren::new(SirenConfig::small(), 5)
+                .unwrap()
+                .to_model_file(normalization(), serde_json::Value::Null),
+        ),
+        (
+            "nglod",
+            nglod.to_model_file(normalization(), serde_json::Value::Null),
+        ),
+        (
+            "hashgrid",
+            hashgrid.to_model_file(normalization(), serde_json::Value::Null),
+        ),
+    ];
+    let dir = std::env::temp_dir().join(format!("hwsdf-load-model-py-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let pts = points(40);
+    for (name, file) in files {
+        assert_eq!(file.metadata.architecture, name);
+        let path = dir.join(format!("{name}.safetensors"));
+        file.save(&path).unwrap();
+        // The file as saved (f16 grids) is what both read.
+        let rust = NeuralSdf::load(&path).unwrap().eval_cpu(&pts);
+        let python = load_model_py(&path, &pts);
+        assert_eq!(python.len(), pts.len(), "{name}");
+        for (i, (p, r)) in python.iter().zip(&rust).enumerate() {
+            assert!(
+                (p - r).abs() <= 1e-4 * r.abs().max(1e-2),
+                "{name} at {}: load_model.py {p}, NeuralSdf {r}",
+                pts[i]
+            );
+        }
+        // Not all alike: the check compares distances that vary.
+        let spread = rust.iter().fold(0.0f32, |m, d| m.max((d - rust[0]).abs()));
+        assert!(spread > 0.1, "{name}: {rust:?}");
+    }
+    let _ = std::fs::remove_dir_all(&dir);
 }

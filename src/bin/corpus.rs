@@ -2,6 +2,7 @@
 //!
 //! ```sh
 //! cargo run --release --bin corpus -- ../shared/meshes --model both --out results.md
+//! cargo run --release --bin corpus -- ../shared/meshes --model all --out results.md
 //! ```
 //!
 //! The corpus is a folder (walked recursively) or a list file (`--list`, one path a line,
@@ -34,9 +35,16 @@ use hwsdf::nn::GpuContext;
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
 enum Models {
+    /// SIREN.
     Siren,
+    /// NGLOD.
     Nglod,
+    /// instant-ngp's multiresolution hash grid.
+    Hashgrid,
+    /// SIREN and NGLOD, the design document's two.
     Both,
+    /// SIREN, NGLOD and the hash grid.
+    All,
 }
 
 /// Train and evaluate every OBJ, glTF and GLB mesh of a corpus.
@@ -49,7 +57,8 @@ struct Args {
     /// A list of meshes instead of a folder: one path a line, relative to the list's folder.
     #[arg(long)]
     list: Option<PathBuf>,
-    /// Which architectures.
+    /// Which architectures: one, `both` (SIREN and NGLOD) or `all` (SIREN, NGLOD and the hash
+    /// grid).
     #[arg(long, value_enum, default_value = "both")]
     model: Models,
     /// Markdown table to write; per-mesh results go to `<out>.d/`.
@@ -102,7 +111,9 @@ fn corpus(args: &Args) -> Result<ExitCode, BoxError> {
     let models: Vec<ModelKind> = match args.model {
         Models::Siren => vec![ModelKind::Siren],
         Models::Nglod => vec![ModelKind::Nglod],
+        Models::Hashgrid => vec![ModelKind::Hashgrid],
         Models::Both => vec![ModelKind::Siren, ModelKind::Nglod],
+        Models::All => ModelKind::ALL.to_vec(),
     };
     let state = StateDir::for_table(&args.out);
     if args.merge {
@@ -129,15 +140,9 @@ fn corpus(args: &Args) -> Result<ExitCode, BoxError> {
     }
     state.create()?;
     let gpu = args.gpu.open()?;
-    // SIREN's CPU preset wins when both run: one preset for the whole table.
-    let preset = flags.preset_for(
-        if models.contains(&ModelKind::Siren) {
-            ModelKind::Siren
-        } else {
-            ModelKind::Nglod
-        },
-        gpu.is_cpu(),
-    );
+    // One preset for the whole table: `small` where any model's CPU preset is (SIREN's, the
+    // hash grid's).
+    let preset = flags.preset_for_all(&models, gpu.is_cpu());
     let options = claim(&state, flags.eval_points, options, preset, gpu.is_cpu())?;
     let stop = Arc::new(AtomicBool::new(false));
     {

@@ -33,7 +33,8 @@ struct Args {
     /// Resolution of the mesh extracted for Chamfer-L1 and normal consistency (0: skip).
     #[arg(long, default_value_t = 128)]
     surface_resolution: u32,
-    /// NGLOD only: evaluate with the first k levels.
+    /// NGLOD only: evaluate with the first k levels (a hash grid has no levels of detail short
+    /// of all of them).
     #[arg(long)]
     lod: Option<usize>,
     /// SIREN only: the kernels to evaluate on. `coop` runs on f16 cooperative matrices (tensor

@@ -32,7 +32,8 @@ struct Args {
     /// Output OBJ.
     #[arg(long)]
     out: PathBuf,
-    /// NGLOD only: use the first k levels.
+    /// NGLOD only: use the first k levels (a hash grid has no levels of detail short of all of
+    /// them).
     #[arg(long)]
     lod: Option<usize>,
     /// Memory budget in GiB: a resolution whose surface would need more is refused with the

@@ -17,7 +17,8 @@ use clap::Parser;
 use hwsdf::cli::{GpuFlags, Source, SourceFlags, check_level};
 use hwsdf::nn::{RenderOptions, Renderer};
 
-/// Render a neural SDF model (SIREN or NGLOD) or a scene to a PNG by sphere tracing on the GPU.
+/// Render a neural SDF model (SIREN, NGLOD or hash grid) or a scene to a PNG by sphere tracing on
+/// the GPU.
 #[derive(Parser, Debug)]
 #[command(version, about)]
 struct Args {
@@ -29,7 +30,8 @@ struct Args {
     /// Image size, `WIDTHxHEIGHT` or one number for a square.
     #[arg(long, default_value = "512x512", value_parser = parse_size)]
     size: (u32, u32),
-    /// Level of detail for NGLOD models: evaluate only the first K levels (default: all).
+    /// Level of detail for NGLOD models: evaluate only the first K levels (default: all; a hash
+    /// grid has no levels of detail short of all of them).
     #[arg(long, value_name = "K")]
     lod: Option<usize>,
     /// Camera azimuth in degrees around the vertical axis.

@@ -2,10 +2,11 @@
 //!
 //! ```sh
 //! cargo run --release --bin train -- tests/data/spot.obj --model nglod
+//! cargo run --release --bin train -- tests/data/spot.obj --model hashgrid
 //! ```
 //!
-//! Ctrl-C stops after the current step (SIREN) or epoch (NGLOD) and saves what was learnt as a
-//! checkpoint next to the output; `--resume CHECKPOINT` continues from it.
+//! Ctrl-C stops after the current step (SIREN) or epoch (NGLOD, the hash grid) and saves what
+//! was learnt as a checkpoint next to the output; `--resume CHECKPOINT` continues from it.
 
 use std::ffi::OsString;
 use std::io::IsTerminal;
@@ -23,8 +24,13 @@ use indicatif::{ProgressBar, ProgressStyle};
 
 #[derive(Clone, Copy, Debug, ValueEnum)]
 enum Model {
+    /// SIREN: a sine MLP, trained for --steps.
     Siren,
+    /// NGLOD: levels of feature grids summed into a small MLP, trained for --epochs.
     Nglod,
+    /// instant-ngp's multiresolution hash grid: 16 hashed levels concatenated into a small
+    /// MLP, trained for --epochs.
+    Hashgrid,
 }
 
 /// Fit a neural signed distance function to a mesh on the GPU.
@@ -87,6 +93,7 @@ fn train(args: &Args) -> Result<Outcome, Box<dyn std::error::Error>> {
     let model = match args.model {
         Model::Siren => ModelKind::Siren,
         Model::Nglod => ModelKind::Nglod,
+        Model::Hashgrid => ModelKind::Hashgrid,
     };
     let flags = &args.training;
     // One model, one set of options.
@@ -146,9 +153,15 @@ fn train(args: &Args) -> Result<Outcome, Box<dyn std::error::Error>> {
     }
     // A changed architecture is named against its preset's: "resolutions 8,16,32, not 6,12,24".
     let changed = match model {
-        ModelKind::Nglod => options
-            .nglod_architecture
-            .differences(&NglodArchitecture::default().config(options.preset, flags.seed)?),
+        ModelKind::Nglod | ModelKind::Hashgrid => {
+            options
+                .nglod_architecture
+                .differences(&NglodArchitecture::default().config(
+                    model,
+                    options.preset,
+                    flags.seed,
+                )?)
+        }
         ModelKind::Siren => Vec::new(),
     };
     eprintln!(

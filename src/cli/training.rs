@@ -29,14 +29,16 @@ pub enum DistanceArg {
 /// How long to train, on what, and with which architecture and loss.
 #[derive(clap::Args, Debug)]
 pub struct TrainingFlags {
-    /// Size preset (default: `default`; SIREN's is `small` on a CPU adapter).
+    /// Size preset (default: `default`; SIREN's and the hash grid's are `small` on a CPU
+    /// adapter).
     #[arg(long, value_enum)]
     pub preset: Option<PresetArg>,
     /// SIREN training steps (default: 10000 on a GPU, a few hundred on a CPU adapter).
     #[arg(long)]
     pub steps: Option<usize>,
-    /// NGLOD epochs of 5·10^5 points (default: 100 on a GPU; on a CPU adapter as many as about
-    /// a minute of training buys, at least 12).
+    /// NGLOD and hash-grid epochs of 5·10^5 points (default on a GPU: 100 for NGLOD, 50 for the
+    /// hash grid; on a CPU adapter as many as about a minute of training buys, at least 12 for
+    /// NGLOD).
     #[arg(long)]
     pub epochs: Option<usize>,
     /// Seed of initialisation and sampling.
@@ -45,50 +47,58 @@ pub struct TrainingFlags {
     /// Points in each evaluation set.
     #[arg(long, default_value_t = DEFAULT_EVAL_POINTS)]
     pub eval_points: usize,
-    /// Initial learning rate (default: 1e-4 for SIREN, 1e-3 for NGLOD).
+    /// Initial learning rate (default: 1e-4 for SIREN, 1e-3 for NGLOD, 1e-2 for the hash grid).
     // The float flags take negative numbers, so that the checks say what is wrong with
     // `--lr -1` (clap would read `-1` as an unknown flag).
     #[arg(long, allow_negative_numbers = true)]
     pub lr: Option<f32>,
-    /// NGLOD: final learning rate as a fraction of the first, by cosine decay over the run
-    /// (default 0.1; 1 keeps it constant).
+    /// NGLOD and the hash grid: final learning rate as a fraction of the first, by cosine decay
+    /// over the run (default 0.1; 1 keeps it constant).
     #[arg(long, allow_negative_numbers = true)]
     pub lr_final: Option<f32>,
     /// SIREN: steps without a 0.1 % improvement of the loss before the learning rate is
     /// divided by 10 (default 500; 0 keeps it constant, as the SIREN reference code trains).
     #[arg(long)]
     pub plateau_patience: Option<usize>,
-    /// NGLOD: progressive levels of detail, one more every this many epochs (0: all at once).
+    /// NGLOD only: progressive levels of detail, one more every this many epochs (0: all at
+    /// once). A hash grid has no levels of detail.
     #[arg(long)]
     pub grow_every: Option<usize>,
-    /// NGLOD: blocks of one epoch's worth of labelled points in the sample pool, and epochs
-    /// between fresh blocks once it is full, as BLOCKS,EVERY (default 4,4; 1,1 samples fresh
-    /// points every epoch).
+    /// NGLOD and the hash grid: blocks of one epoch's worth of labelled points in the sample
+    /// pool, and epochs between fresh blocks once it is full, as BLOCKS,EVERY (default 4,4; 1,1
+    /// samples fresh points every epoch).
     #[arg(long, value_parser = parse_pool)]
     pub pool: Option<(usize, usize)>,
     /// Fit the signed distance, or the unsigned one |d| for meshes without an inside (flat or
     /// open sheets, two-sided triangle soups); unsigned is scored by distance error and Chamfer
-    /// distance, not F1. NGLOD only.
+    /// distance, not F1. NGLOD and the hash grid only.
     #[arg(long, value_enum, default_value = "signed")]
     pub distance: DistanceArg,
-    /// NGLOD: cells per axis of each level of detail, coarse to fine, comma-separated
-    /// (`default`: 6,12,24,48; `small`: 4,8,16).
-    #[arg(long, value_delimiter = ',', help_heading = "NGLOD architecture")]
+    /// Cells per axis of each level, coarse to fine, comma-separated (NGLOD `default`:
+    /// 6,12,24,48; `small`: 4,8,16. Hash grid: one level per value, `default` 16 levels from 16
+    /// to 512 cells, `small` from 8 to 256).
+    #[arg(
+        long,
+        value_delimiter = ',',
+        help_heading = "NGLOD and hash grid architecture"
+    )]
     pub resolutions: Option<Vec<u32>>,
-    /// NGLOD: how many of the finest levels keep features only near the surface, at most 255
-    /// cells each (`default`: 1; `small`: 0).
-    #[arg(long, help_heading = "NGLOD architecture")]
+    /// NGLOD only: how many of the finest levels keep features only near the surface, at most
+    /// 255 cells each (`default`: 1; `small`: 0).
+    #[arg(long, help_heading = "NGLOD and hash grid architecture")]
     pub sparse_levels: Option<usize>,
-    /// NGLOD: how far the sparse levels reach beyond the cells the surface passes through, in
-    /// cells, at most 4 (default 0; 1, the default before, makes files 18-43 % larger for F1
+    /// NGLOD only: how far the sparse levels reach beyond the cells the surface passes through,
+    /// in cells, at most 4 (default 0; 1, the default before, makes files 18-43 % larger for F1
     /// within 0.001 on average, docs/benchmarks/2026-11-23-nglod-band-width.md).
-    #[arg(long, help_heading = "NGLOD architecture")]
+    #[arg(long, help_heading = "NGLOD and hash grid architecture")]
     pub band_cells: Option<u32>,
-    /// NGLOD: features per grid vertex (`default`: 8; `small`: 4).
-    #[arg(long, help_heading = "NGLOD architecture")]
+    /// Features per grid vertex (NGLOD `default`: 8; `small`: 4. Hash grid: per level, 2; its
+    /// levels' features together are at most 32).
+    #[arg(long, help_heading = "NGLOD and hash grid architecture")]
     pub features: Option<u32>,
-    /// NGLOD: hidden width of the MLP (`default`: 128; `small`: 32).
-    #[arg(long, help_heading = "NGLOD architecture")]
+    /// Hidden width of the MLP (NGLOD `default`: 128; `small`: 32. Hash grid `default`: 64;
+    /// `small`: 32).
+    #[arg(long, help_heading = "NGLOD and hash grid architecture")]
     pub hidden: Option<u32>,
     /// SIREN loss: weight of the on-surface |Φ| term (default 3000).
     #[arg(long, help_heading = "SIREN loss", allow_negative_numbers = true)]
@@ -127,6 +137,20 @@ impl TrainingFlags {
             .unwrap_or_else(|| Preset::for_adapter(cpu_adapter, model))
     }
 
+    /// The one preset of a run of `models` (a corpus table has one): the one asked for, else
+    /// `small` where the adapter's preset of any of them is (SIREN and the hash grid on a CPU
+    /// adapter), else `default`.
+    pub fn preset_for_all(&self, models: &[ModelKind], cpu_adapter: bool) -> Preset {
+        let small = models
+            .iter()
+            .any(|&m| self.preset_for(m, cpu_adapter) == Preset::Small);
+        if small {
+            Preset::Small
+        } else {
+            Preset::Default
+        }
+    }
+
     /// Every model's options for a run of `models`, each flag checked once, before the GPU is
     /// opened or a mesh is read: the evaluation's size, then [`TrainOptions::validate`] of each
     /// model's options. Their preset is the one asked for, else `default` until the adapter is
@@ -140,61 +164,70 @@ impl TrainingFlags {
             .collect()
     }
 
-    /// The options of `model`'s runs in a run of `models`, validated. A flag that applies to one
-    /// model only goes to that model when both run (`--steps` to SIREN, `--epochs` and the
-    /// NGLOD flags to NGLOD, the loss weights to SIREN), and is an error when only the other
-    /// runs. `--lr` is refused when both run: their defaults differ tenfold.
+    /// The options of `model`'s runs in a run of `models`, validated. With one model every flag
+    /// goes to it, and one that does not apply to it is an error. With several, a flag goes to
+    /// the models it applies to (`--steps` and the loss weights to SIREN; `--epochs`,
+    /// `--lr-final`, `--pool` and the architecture flags to NGLOD and the hash grid;
+    /// `--grow-every`, `--sparse-levels` and `--band-cells` to NGLOD). `--lr` is refused when
+    /// several run, their defaults differ tenfold; so are `--resolutions`, `--features` and
+    /// `--hidden` when both NGLOD and the hash grid run, whose architectures they describe
+    /// differently.
     fn model_options(
         &self,
         model: ModelKind,
         preset: Preset,
         models: &[ModelKind],
     ) -> Result<TrainOptions, RunError> {
-        let both = models.contains(&ModelKind::Siren) && models.contains(&ModelKind::Nglod);
-        if both && self.lr.is_some() {
+        let several = models.iter().any(|&m| m != model);
+        if several && self.lr.is_some() {
             return Err(RunError::Options(
-                "--lr sets one model's learning rate (SIREN's default is 1e-4, NGLOD's 1e-3); \
-                 with both models, run each with its own --model"
+                "--lr sets one model's learning rate (SIREN's default is 1e-4, NGLOD's 1e-3, \
+                 the hash grid's 1e-2); with several models, run each with its own --model"
                     .into(),
             ));
         }
-        // With both models, a flag of the other model is not this one's.
-        let keep = |of: ModelKind| !both || of == model;
+        let both_grids =
+            models.contains(&ModelKind::Nglod) && models.contains(&ModelKind::Hashgrid);
+        if both_grids
+            && (self.resolutions.is_some() || self.features.is_some() || self.hidden.is_some())
+        {
+            return Err(RunError::Options(
+                "--resolutions, --features and --hidden describe NGLOD's architecture and the \
+                 hash grid's differently; with both models, run each with its own --model"
+                    .into(),
+            ));
+        }
+        // With several models, a flag goes only to the models it applies to.
+        const SIREN: &[ModelKind] = &[ModelKind::Siren];
+        const GRIDS: &[ModelKind] = &[ModelKind::Nglod, ModelKind::Hashgrid];
+        const NGLOD: &[ModelKind] = &[ModelKind::Nglod];
+        let keep = |to: &[ModelKind]| !several || to.contains(&model);
         let options = TrainOptions {
             model,
             preset,
-            steps: self.steps.filter(|_| keep(ModelKind::Siren)),
-            epochs: self.epochs.filter(|_| keep(ModelKind::Nglod)),
+            steps: self.steps.filter(|_| keep(SIREN)),
+            epochs: self.epochs.filter(|_| keep(GRIDS)),
             seed: self.seed,
             lr: self.lr,
-            siren_weights: self.siren_weights().filter(|_| keep(ModelKind::Siren)),
-            plateau_patience: self.plateau_patience.filter(|_| keep(ModelKind::Siren)),
-            lr_final: self.lr_final.filter(|_| keep(ModelKind::Nglod)),
-            grow_every: self.grow_every.filter(|_| keep(ModelKind::Nglod)),
+            siren_weights: self.siren_weights().filter(|_| keep(SIREN)),
+            plateau_patience: self.plateau_patience.filter(|_| keep(SIREN)),
+            lr_final: self.lr_final.filter(|_| keep(GRIDS)),
+            grow_every: self.grow_every.filter(|_| keep(NGLOD)),
             distance: match self.distance {
                 DistanceArg::Signed => DistanceMode::Signed,
                 DistanceArg::Unsigned => DistanceMode::Unsigned,
             },
-            pool: self.pool.filter(|_| keep(ModelKind::Nglod)),
-            nglod_architecture: if keep(ModelKind::Nglod) {
-                self.nglod_architecture()
-            } else {
-                NglodArchitecture::default()
+            pool: self.pool.filter(|_| keep(GRIDS)),
+            nglod_architecture: NglodArchitecture {
+                resolutions: self.resolutions.clone().filter(|_| keep(GRIDS)),
+                sparse_levels: self.sparse_levels.filter(|_| keep(NGLOD)),
+                feature_dim: self.features.filter(|_| keep(GRIDS)),
+                hidden: self.hidden.filter(|_| keep(GRIDS)),
+                band_cells: self.band_cells.filter(|_| keep(NGLOD)),
             },
         };
         options.validate()?;
         Ok(options)
-    }
-
-    /// The NGLOD architecture flags given.
-    fn nglod_architecture(&self) -> NglodArchitecture {
-        NglodArchitecture {
-            resolutions: self.resolutions.clone(),
-            sparse_levels: self.sparse_levels,
-            feature_dim: self.features,
-            hidden: self.hidden,
-            band_cells: self.band_cells,
-        }
     }
 
     /// The SIREN loss weights, if any flag sets one (the others keep their defaults).
@@ -233,4 +266,88 @@ fn parse_pool(s: &str) -> Result<(usize, usize), String> {
             .map_err(|_| format!("{x:?} is not a positive integer"))
     };
     Ok((parse(a)?, parse(b)?))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use clap::Parser;
+
+    #[derive(Parser)]
+    struct Flags {
+        #[command(flatten)]
+        training: TrainingFlags,
+    }
+
+    fn flags(args: &[&str]) -> TrainingFlags {
+        Flags::parse_from(std::iter::once("test").chain(args.iter().copied())).training
+    }
+
+    /// With several models a flag goes to those it applies to; with one, to it (and is refused
+    /// where it does not apply).
+    #[test]
+    fn flags_go_to_the_models_they_apply_to() {
+        let all = ModelKind::ALL;
+        let f = flags(&["--epochs", "3", "--grow-every", "2", "--steps", "5"]);
+        let options = f.options(&all).unwrap();
+        let of = |m: ModelKind| options.iter().find(|o| o.model == m).unwrap();
+        assert_eq!(of(ModelKind::Siren).steps, Some(5));
+        assert_eq!(of(ModelKind::Siren).epochs, None);
+        assert_eq!(of(ModelKind::Nglod).grow_every, Some(2));
+        assert_eq!(of(ModelKind::Hashgrid).epochs, Some(3));
+        assert_eq!(of(ModelKind::Hashgrid).grow_every, None);
+        assert!(
+            flags(&["--grow-every", "2"])
+                .options(&[ModelKind::Hashgrid])
+                .is_err()
+        );
+        // NGLOD's sparse levels go to NGLOD; the hash grid keeps its preset.
+        let f = flags(&["--sparse-levels", "0", "--band-cells", "1"]);
+        let options = f.options(&all).unwrap();
+        assert!(options[2].nglod_architecture.is_preset());
+        assert_eq!(options[1].nglod_architecture.band_cells, Some(1));
+        // Both grid models: the shared architecture flags would mean two things.
+        for flag in [
+            ["--resolutions", "4,8"],
+            ["--features", "1"],
+            ["--hidden", "16"],
+        ] {
+            let e = flags(&flag).options(&all).unwrap_err().to_string();
+            assert!(e.contains("run each with its own --model"), "{e}");
+            for one in [ModelKind::Nglod, ModelKind::Hashgrid] {
+                assert!(flags(&flag).options(&[one]).is_ok(), "{flag:?} {one:?}");
+            }
+            let both = flags(&flag)
+                .options(&[ModelKind::Siren, ModelKind::Nglod])
+                .unwrap();
+            assert!(
+                both[0].nglod_architecture.is_preset() && !both[1].nglod_architecture.is_preset()
+            );
+        }
+        let e = flags(&["--lr", "1e-3"])
+            .options(&all)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("the hash grid's 1e-2"), "{e}");
+        assert!(
+            flags(&["--lr", "1e-3"])
+                .options(&[ModelKind::Hashgrid])
+                .is_ok()
+        );
+    }
+
+    /// A corpus table has one preset: `small` on a CPU adapter when SIREN or the hash grid runs.
+    #[test]
+    fn one_preset_for_a_run_of_several_models() {
+        let none = flags(&[]);
+        let grids = [ModelKind::Nglod, ModelKind::Hashgrid];
+        assert_eq!(none.preset_for_all(&grids, true), Preset::Small);
+        assert_eq!(
+            none.preset_for_all(&[ModelKind::Nglod], true),
+            Preset::Default
+        );
+        assert_eq!(none.preset_for_all(&ModelKind::ALL, false), Preset::Default);
+        let asked = flags(&["--preset", "default"]);
+        assert_eq!(asked.preset_for_all(&grids, true), Preset::Default);
+    }
 }

@@ -58,7 +58,7 @@ pub enum Entry {
     Failed {
         /// The mesh file.
         mesh: String,
-        /// `"siren"` or `"nglod"`.
+        /// `"siren"`, `"nglod"` or `"hashgrid"`.
         model: String,
         /// The error.
         error: String,
@@ -290,7 +290,7 @@ mod tests {
         ];
         let mut stems = BTreeSet::new();
         for rel in rels {
-            for model in [ModelKind::Siren, ModelKind::Nglod] {
+            for model in ModelKind::ALL {
                 let stem = StateDir::stem(rel, model);
                 assert!(!stem.contains('/') && !stem.starts_with('.'), "{stem}");
                 assert!(

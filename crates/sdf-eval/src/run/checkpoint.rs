@@ -3,6 +3,7 @@
 
 use std::path::Path;
 
+use sdf_nn::nglod::Encoding;
 use sdf_nn::{AdamState, ModelFile, NeuralSdf, Nglod};
 
 use super::{ModelKind, NglodArchitecture, RunError, TrainOptions, Trained};
@@ -79,7 +80,7 @@ impl Checkpoint {
         self.file.metadata.training["done"].as_u64().unwrap_or(0) as usize
     }
 
-    /// NGLOD: the epochs its run planned (with the CPU time budget, more than the default), which
+    /// NGLOD and the hash grid: the epochs its run planned (with the CPU time budget, more than the default), which
     /// a resume without `--epochs` goes on to.
     pub fn planned(&self) -> Option<usize> {
         self.file.metadata.training["planned"]
@@ -87,7 +88,7 @@ impl Checkpoint {
             .map(|p| p as usize)
     }
 
-    /// NGLOD: optimiser steps done within the unfinished epoch `done()`, which a resume finishes.
+    /// NGLOD and the hash grid: optimiser steps done within the unfinished epoch `done()`, which a resume finishes.
     pub fn epoch_steps_done(&self) -> usize {
         self.file.metadata.training["epoch_steps_done"]
             .as_u64()
@@ -154,9 +155,10 @@ impl Checkpoint {
     }
 
     /// What of `options`' model, preset and architecture this checkpoint does not have, as
-    /// `name asked, not checkpoint's` lines (empty when a run of `options` may resume it). A
-    /// NGLOD checkpoint must have every value of the architecture `options` resolve to, not only
-    /// those given on the command line: `corpus` resumes into a table of one set of settings.
+    /// `name asked, not checkpoint's` lines (empty when a run of `options` may resume it). An
+    /// NGLOD or hash-grid checkpoint must have every value of the architecture `options` resolve
+    /// to (a hash grid's table size too), not only those given on the command line: `corpus`
+    /// resumes into a table of one set of settings.
     pub fn differences(&self, options: &TrainOptions) -> Result<Vec<String>, RunError> {
         let mut out = Vec::new();
         let (model, preset) = self.options();
@@ -171,10 +173,21 @@ impl Checkpoint {
                 ));
             }
         }
-        if out.is_empty() && options.model == ModelKind::Nglod {
-            let resolved = options
-                .nglod_architecture
-                .config(options.preset, options.seed)?;
+        if out.is_empty() && options.model.is_grid() {
+            let resolved =
+                options
+                    .nglod_architecture
+                    .config(options.model, options.preset, options.seed)?;
+            let model = Nglod::from_model_file(&self.model_file())
+                .map_err(|e| super::grid_error(options.model, e))?;
+            let has = model.config();
+            if has.encoding != resolved.encoding {
+                out.push(format!(
+                    "{}, not {}",
+                    encoding_name(resolved.encoding),
+                    encoding_name(has.encoding)
+                ));
+            }
             let every = NglodArchitecture {
                 resolutions: Some(resolved.resolutions),
                 sparse_levels: Some(resolved.sparse_levels),
@@ -182,8 +195,7 @@ impl Checkpoint {
                 hidden: Some(resolved.hidden),
                 band_cells: Some(resolved.band_cells),
             };
-            let model = Nglod::from_model_file(&self.model_file())?;
-            out.extend(every.differences(model.config()));
+            out.extend(every.differences(has));
         }
         Ok(out)
     }
@@ -195,6 +207,14 @@ impl Checkpoint {
             t["model"].as_str().map(str::to_owned),
             t["preset"].as_str().map(str::to_owned),
         )
+    }
+}
+
+/// How a grid model's levels reach its MLP, as [`Checkpoint::differences`] names it.
+fn encoding_name(encoding: Encoding) -> String {
+    match encoding {
+        Encoding::Summed => "summed levels (NGLOD)".to_owned(),
+        Encoding::Hashed { log2_table_size } => format!("hash tables of 2^{log2_table_size}"),
     }
 }
 
@@ -272,6 +292,49 @@ mod tests {
         let d = c.differences(&wider).unwrap();
         assert_eq!(d.len(), 1, "{d:?}");
         assert!(d[0].starts_with("hidden "), "{d:?}");
+    }
+
+    /// A hash grid's checkpoint resumes only into a hash-grid run of its preset, and one whose
+    /// run record says "hashgrid" over NGLOD's tensors (or the reverse) is named for what it
+    /// holds.
+    #[test]
+    fn hash_grid_checkpoints_name_their_model_and_table() {
+        let grid = Nglod::new(NglodConfig::hashgrid_small()).unwrap();
+        let file = grid.to_model_file(sdf_geom::Normalization::identity(), Default::default());
+        assert_eq!(file.metadata.architecture, "hashgrid");
+        let c = interrupted(file, "hashgrid", grid.param_count(), 2).checkpoint();
+        let small = TrainOptions::new(ModelKind::Hashgrid, Preset::Small);
+        assert!(c.differences(&small).unwrap().is_empty());
+        c.check_resumes(&small).unwrap();
+        assert_eq!(c.optimizer().unwrap().m.len(), grid.param_count());
+        let nglod = TrainOptions::new(ModelKind::Nglod, Preset::Small);
+        assert_eq!(
+            c.differences(&nglod).unwrap(),
+            ["model nglod, not hashgrid"]
+        );
+        assert!(c.check_model(ModelKind::Nglod).is_err());
+        let default = TrainOptions::new(ModelKind::Hashgrid, Preset::Default);
+        assert_eq!(
+            c.differences(&default).unwrap(),
+            ["preset default, not small"]
+        );
+        let mut fewer = small.clone();
+        fewer.nglod_architecture.resolutions = Some(vec![8, 64]);
+        let d = c.differences(&fewer).unwrap();
+        assert_eq!(d.len(), 1, "{d:?}");
+        assert!(d[0].starts_with("resolutions 8,64, not 8,"), "{d:?}");
+        // An NGLOD's tensors under a hash grid's run record.
+        let nglod_model = Nglod::new(NglodConfig::small()).unwrap();
+        let file =
+            nglod_model.to_model_file(sdf_geom::Normalization::identity(), Default::default());
+        let mislabelled = interrupted(file, "hashgrid", nglod_model.param_count(), 1).checkpoint();
+        let d = mislabelled.differences(&small).unwrap();
+        let tables = encoding_name(NglodConfig::hashgrid_small().encoding);
+        assert!(tables.starts_with("hash tables of 2^"), "{tables}");
+        assert!(
+            d.contains(&format!("{tables}, not summed levels (NGLOD)")),
+            "{d:?}"
+        );
     }
 
     /// A checkpoint's claimed progress is checked when it loads: counts beyond any run, more

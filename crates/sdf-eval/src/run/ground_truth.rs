@@ -122,9 +122,10 @@ const NO_INSIDE_POINTS: usize = 40_000;
 
 /// About how many exact queries a run of `options` makes (on a CPU adapter or not, with
 /// `eval_points` per evaluation set): the no-inside check, the training samples' labels
-/// (SIREN's box pool; NGLOD's uniform and near-surface points of every pool block drawn over
-/// the planned epochs, at least the time budget's minimum), and the evaluation's signed
-/// distances and winding numbers. For the estimate of [`labelling_estimate`].
+/// (SIREN's box pool; NGLOD's and the hash grid's uniform and near-surface points of every pool
+/// block drawn over the planned epochs, at least the time budget's minimum), and the
+/// evaluation's signed distances and winding numbers. For the estimate of
+/// [`labelling_estimate`].
 pub fn planned_labels(options: &TrainOptions, cpu_adapter: bool, eval_points: usize) -> usize {
     let length = options.length(cpu_adapter);
     let units = length.asked.unwrap_or(length.default).max(1);
@@ -138,8 +139,8 @@ pub fn planned_labels(options: &TrainOptions, cpu_adapter: bool, eval_points: us
                 0
             }
         }
-        ModelKind::Nglod => {
-            let c = sdf_nn::NglodTrainConfig::default();
+        ModelKind::Nglod | ModelKind::Hashgrid => {
+            let c = options.model.grid_schedule().unwrap_or_default();
             let (blocks, refresh_every) = options.pool.unwrap_or((c.pool_blocks, c.refresh_every));
             let schedule = sdf_nn::nglod::PoolSchedule {
                 blocks,
@@ -275,6 +276,12 @@ mod tests {
         // One block of 3·10^5 labelled points for the first epoch; 4 + 1 blocks by epoch 10.
         assert_eq!(one, 40_000 + 300_000 + 4000);
         assert_eq!(ten, 40_000 + 5 * 300_000 + 4000);
+        // The hash grid samples as NGLOD does.
+        let hashgrid = TrainOptions {
+            model: ModelKind::Hashgrid,
+            ..nglod(10)
+        };
+        assert_eq!(planned_labels(&hashgrid, true, 1000), ten);
         let siren = |steps| TrainOptions {
             steps: Some(steps),
             ..TrainOptions::new(ModelKind::Siren, crate::run::Preset::Small)

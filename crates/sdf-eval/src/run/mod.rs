@@ -3,8 +3,8 @@
 //!
 //! - [`options`](TrainOptions): what a run is asked for, its validation and its defaults;
 //! - [`GroundTruth`]: the normalised mesh and its exact SDF;
-//! - [`train`]: one trainer per model (`train_siren`, `train_nglod`), stopped and resumed
-//!   through a [`Checkpoint`];
+//! - [`train`]: one trainer per model family (`train_siren`; `train_nglod`, which trains NGLOD
+//!   and the hash grid), stopped and resumed through a [`Checkpoint`];
 //! - [`evaluate`] and [`Report`]: the scores and the JSON report;
 //! - [`run`]: all of it for one mesh.
 
@@ -36,8 +36,8 @@ pub use ground_truth::{
     load_normalized_with, no_inside_check, planned_labels,
 };
 pub use options::{
-    CPU_TIME_BUDGET, Length, MAX_EPOCHS, MAX_STEPS, ModelKind, NglodArchitecture, Preset,
-    RunSettings, TrainOptions, default_length,
+    CPU_TIME_BUDGET, HASHGRID_CPU_TIME_BUDGET, Length, MAX_EPOCHS, MAX_STEPS, ModelKind,
+    NglodArchitecture, Preset, RunSettings, TrainOptions, cpu_time_budget, default_length,
 };
 pub use report::Report;
 
@@ -58,6 +58,10 @@ pub enum RunError {
     /// NGLOD training failed.
     #[error("NGLOD: {0}")]
     Nglod(#[from] sdf_nn::NglodError),
+    /// The hash grid's configuration or training failed (NGLOD's code, under the model's own
+    /// name: [`grid_error`]).
+    #[error("hash grid: {0}")]
+    Hashgrid(sdf_nn::NglodError),
     /// Building or evaluating the trained model failed.
     #[error(transparent)]
     Model(#[from] sdf_nn::NeuralSdfError),
@@ -127,13 +131,23 @@ pub enum RunError {
     /// `--distance unsigned` with SIREN, whose loss (eikonal, normal alignment, the off-surface
     /// term pushing |Φ| up away from the surface) assumes a signed field.
     #[error(
-        "unsigned distance is supported for NGLOD only: SIREN's loss (normals, eikonal and \
-         off-surface terms) fits a signed field; use --model nglod"
+        "unsigned distance is supported for NGLOD and the hash grid only: SIREN's loss \
+         (normals, eikonal and off-surface terms) fits a signed field; use --model nglod or \
+         --model hashgrid"
     )]
     UnsignedSiren,
 }
 
 const GIB: f64 = (1u64 << 30) as f64;
+
+/// An error of NGLOD's code in a run of `model`, named after the model: [`RunError::Hashgrid`]
+/// for the hash grid, [`RunError::Nglod`] otherwise.
+pub fn grid_error(model: ModelKind, e: sdf_nn::NglodError) -> RunError {
+    match model {
+        ModelKind::Hashgrid => RunError::Hashgrid(e),
+        _ => RunError::Nglod(e),
+    }
+}
 
 /// Errors with [`RunError::Diverged`] on the first NaN or infinite value of a trained model.
 fn check_trained(file: &ModelFile, done: usize, unit: &'static str) -> Result<(), RunError> {
@@ -154,7 +168,7 @@ fn check_trained(file: &ModelFile, done: usize, unit: &'static str) -> Result<()
 /// Progress of a training run, for progress bars and logs.
 #[derive(Clone, Copy, Debug)]
 pub struct Progress {
-    /// Steps (SIREN) or epochs (NGLOD) done.
+    /// Steps (SIREN) or epochs (NGLOD, the hash grid) done.
     pub done: usize,
     /// Total planned.
     pub total: usize,
@@ -271,7 +285,7 @@ pub fn train(
     };
     match options.model {
         ModelKind::Siren => train_siren::train(&plan, progress),
-        ModelKind::Nglod => train_nglod::train(&plan, progress),
+        ModelKind::Nglod | ModelKind::Hashgrid => train_nglod::train(&plan, progress),
     }
 }
 

@@ -5,7 +5,7 @@
 
 use std::collections::{BTreeMap, BTreeSet};
 
-use sdf_nn::nglod::{DEFAULT_EPOCHS, TimeBudget};
+use sdf_nn::nglod::{DEFAULT_EPOCHS, Encoding, HASHGRID_EPOCHS, TimeBudget};
 use sdf_nn::{DistanceMode, LossWeights, NglodConfig, NglodTrainConfig, SirenTrainConfig};
 use serde::{Deserialize, Serialize};
 
@@ -15,8 +15,8 @@ use super::RunError;
 /// an H100), so that a mistyped length is refused instead of running for ever.
 pub const MAX_STEPS: usize = 10_000_000;
 
-/// The most NGLOD epochs a run may ask for: a thousand times the default (about 2 hours on an
-/// H100).
+/// The most NGLOD or hash-grid epochs a run may ask for: a thousand times NGLOD's default
+/// (about 2 hours on an H100).
 pub const MAX_EPOCHS: usize = 100_000;
 
 /// Which architecture to train.
@@ -27,22 +27,66 @@ pub enum ModelKind {
     Siren,
     /// NGLOD.
     Nglod,
+    /// instant-ngp's multiresolution hash grid: NGLOD's model family with hashed, concatenated
+    /// levels ([`Encoding::Hashed`]), trained by NGLOD's trainer on its own schedule
+    /// ([`NglodTrainConfig::hashgrid`]).
+    Hashgrid,
 }
 
 impl ModelKind {
-    /// `"siren"` or `"nglod"`.
+    /// Every model, in the order tables list them.
+    pub const ALL: [ModelKind; 3] = [ModelKind::Siren, ModelKind::Nglod, ModelKind::Hashgrid];
+
+    /// `"siren"`, `"nglod"` or `"hashgrid"`: the `--model` value, the model file's
+    /// architecture and the name reports and corpus tables record.
     pub fn name(self) -> &'static str {
         match self {
             ModelKind::Siren => "siren",
             ModelKind::Nglod => "nglod",
+            ModelKind::Hashgrid => "hashgrid",
         }
     }
 
-    /// What its length counts: `"step"` (SIREN) or `"epoch"` (NGLOD).
+    /// As messages and table headings write it: `"SIREN"`, `"NGLOD"` or `"hash grid"`.
+    pub fn label(self) -> &'static str {
+        match self {
+            ModelKind::Siren => "SIREN",
+            ModelKind::Nglod => "NGLOD",
+            ModelKind::Hashgrid => "hash grid",
+        }
+    }
+
+    /// What its length counts: `"step"` (SIREN) or `"epoch"` (NGLOD, the hash grid).
     pub fn unit(self) -> &'static str {
         match self {
             ModelKind::Siren => "step",
-            ModelKind::Nglod => "epoch",
+            ModelKind::Nglod | ModelKind::Hashgrid => "epoch",
+        }
+    }
+
+    /// Whether NGLOD's trainer trains it (NGLOD and the hash grid: grids of features and an
+    /// MLP, trained for epochs).
+    pub fn is_grid(self) -> bool {
+        self != ModelKind::Siren
+    }
+
+    /// The NGLOD trainer's defaults a run of this model starts from:
+    /// [`NglodTrainConfig::hashgrid`] for the hash grid (learning rate 1e-2, batch 4096,
+    /// [`HASHGRID_EPOCHS`]), [`NglodTrainConfig::default`] for NGLOD; `None` for SIREN, which
+    /// has its own trainer.
+    pub fn grid_schedule(self) -> Option<NglodTrainConfig> {
+        match self {
+            ModelKind::Siren => None,
+            ModelKind::Nglod => Some(NglodTrainConfig::default()),
+            ModelKind::Hashgrid => Some(NglodTrainConfig::hashgrid()),
+        }
+    }
+
+    /// Its default learning rate: 1e-4 (SIREN), 1e-3 (NGLOD), 1e-2 (the hash grid).
+    pub fn default_lr(self) -> f32 {
+        match self.grid_schedule() {
+            Some(c) => c.adam.lr,
+            None => SirenTrainConfig::default().lr,
         }
     }
 }
@@ -52,9 +96,10 @@ impl ModelKind {
 #[serde(rename_all = "lowercase")]
 pub enum Preset {
     /// The design document's architecture (for NGLOD with a sparse fourth level near the surface:
-    /// `NglodConfig::default_preset`).
+    /// `NglodConfig::default_preset`; for the hash grid `NglodConfig::hashgrid_default`).
     Default,
-    /// A small network for CPU-only machines and tests.
+    /// A small network for CPU-only machines and tests (the hash grid's:
+    /// `NglodConfig::hashgrid_small`).
     Small,
 }
 
@@ -62,9 +107,11 @@ impl Preset {
     /// The preset used when none is asked for: `small` on a CPU adapter (lavapipe), where the
     /// design document's networks train too slowly, `default` on a GPU.
     /// NGLOD: `default` everywhere (`small` is capacity-bound and no longer saves time on
-    /// lavapipe: issue 14, docs/benchmarks). SIREN: `small` on a CPU adapter, `default` on a GPU.
+    /// lavapipe: issue 14, docs/benchmarks). SIREN and the hash grid: `small` on a CPU adapter,
+    /// `default` on a GPU (the hash grid's default tables are 16 times its small ones, and every
+    /// Adam step on lavapipe walks all of them).
     pub fn for_adapter(cpu_adapter: bool, model: ModelKind) -> Self {
-        if cpu_adapter && model == ModelKind::Siren {
+        if cpu_adapter && model != ModelKind::Nglod {
             Preset::Small
         } else {
             Preset::Default
@@ -89,30 +136,32 @@ pub struct TrainOptions {
     pub preset: Preset,
     /// SIREN steps (`None`: the preset's default for the adapter).
     pub steps: Option<usize>,
-    /// NGLOD epochs (`None`: the preset's default for the adapter).
+    /// NGLOD and hash-grid epochs (`None`: the preset's default for the adapter).
     pub epochs: Option<usize>,
     /// Seed of initialisation and sampling.
     pub seed: u64,
-    /// Initial learning rate (`None`: the model's default, 1e-4 for SIREN and 1e-3 for NGLOD).
+    /// Initial learning rate (`None`: the model's default, [`ModelKind::default_lr`]: 1e-4 for
+    /// SIREN, 1e-3 for NGLOD, 1e-2 for the hash grid).
     pub lr: Option<f32>,
-    /// SIREN loss weights (`None`: the design document's). An error for NGLOD.
+    /// SIREN loss weights (`None`: the design document's). An error for the grid models.
     pub siren_weights: Option<LossWeights>,
     /// SIREN: steps without progress of the loss before the learning rate is divided by 10
-    /// (`None`: the trainer's 500; 0 keeps it constant). An error for NGLOD.
+    /// (`None`: the trainer's 500; 0 keeps it constant). An error for the grid models.
     pub plateau_patience: Option<usize>,
-    /// NGLOD: final learning rate as a fraction of the first, reached by cosine decay (`None`:
-    /// the trainer's default; 1 keeps it constant).
+    /// NGLOD and the hash grid: final learning rate as a fraction of the first, reached by
+    /// cosine decay (`None`: the trainer's default; 1 keeps it constant).
     pub lr_final: Option<f32>,
     /// NGLOD: add a level of detail every this many epochs (`None`: the trainer's default; 0
-    /// trains all levels from the start).
+    /// trains all levels from the start). An error for the hash grid, which has no levels of
+    /// detail.
     pub grow_every: Option<usize>,
-    /// Signed or unsigned distance (unsigned: NGLOD only).
+    /// Signed or unsigned distance (unsigned: NGLOD and the hash grid only).
     pub distance: DistanceMode,
-    /// NGLOD sample pool: `(blocks, refresh_every)` (`None`: the trainer's default; `(1, 1)`
-    /// draws fresh points every epoch as before the pool).
+    /// NGLOD's and the hash grid's sample pool: `(blocks, refresh_every)` (`None`: the
+    /// trainer's default; `(1, 1)` draws fresh points every epoch as before the pool).
     pub pool: Option<(usize, usize)>,
-    /// NGLOD: an architecture other than the preset's (each value given replaces the preset's).
-    /// An error for SIREN unless empty.
+    /// NGLOD and the hash grid: an architecture other than the preset's (each value given
+    /// replaces the preset's). An error for SIREN unless empty.
     pub nglod_architecture: NglodArchitecture,
 }
 
@@ -155,35 +204,50 @@ impl TrainOptions {
         match self.model {
             ModelKind::Siren => {
                 if self.epochs.is_some() {
-                    return refuse("--epochs applies to NGLOD; SIREN trains for --steps");
+                    return refuse(
+                        "--epochs applies to NGLOD and the hash grid; SIREN trains for --steps",
+                    );
                 }
                 if self.distance == DistanceMode::Unsigned {
                     return Err(RunError::UnsignedSiren);
                 }
                 if self.lr_final.is_some() || self.grow_every.is_some() || self.pool.is_some() {
                     return refuse(
-                        "--lr-final, --grow-every and --pool apply to NGLOD; SIREN samples its \
-                         batch every step and divides its learning rate by 10 when its loss \
-                         plateaus (--plateau-patience)",
+                        "--lr-final, --grow-every and --pool apply to NGLOD (and the first and \
+                         last to the hash grid); SIREN samples its batch every step and divides \
+                         its learning rate by 10 when its loss plateaus (--plateau-patience)",
                     );
                 }
                 if let Some(w) = self.siren_weights {
                     w.validate()?;
                 }
             }
-            ModelKind::Nglod => {
+            ModelKind::Nglod | ModelKind::Hashgrid => {
+                let model = match self.model {
+                    ModelKind::Hashgrid => "the hash grid",
+                    _ => "NGLOD",
+                };
                 if self.steps.is_some() {
-                    return refuse("--steps applies to SIREN; NGLOD trains for --epochs");
+                    return Err(RunError::Options(format!(
+                        "--steps applies to SIREN; {model} trains for --epochs"
+                    )));
                 }
                 if self.siren_weights.is_some() {
-                    return refuse(
-                        "loss weights apply to SIREN; NGLOD's loss is the squared error",
-                    );
+                    return Err(RunError::Options(format!(
+                        "loss weights apply to SIREN; {model}'s loss is the squared error"
+                    )));
                 }
                 if self.plateau_patience.is_some() {
+                    return Err(RunError::Options(format!(
+                        "--plateau-patience applies to SIREN; {model}'s learning rate decays \
+                         along a cosine (--lr-final)"
+                    )));
+                }
+                if self.model == ModelKind::Hashgrid && self.grow_every.is_some() {
                     return refuse(
-                        "--plateau-patience applies to SIREN; NGLOD's learning rate decays \
-                         along a cosine (--lr-final)",
+                        "--grow-every adds NGLOD's levels of detail one at a time; a hash grid \
+                         has no levels of detail (its MLP reads every level's features at \
+                         once), so it trains them all from the start",
                     );
                 }
                 if let Some(f) = self.lr_final
@@ -204,8 +268,8 @@ impl TrainOptions {
         self.nglod_architecture.check(self.model, self.preset)
     }
 
-    /// These options over `preset` instead, e.g. the adapter's once it is open. Only NGLOD's
-    /// architecture depends on the preset, so only it is checked again.
+    /// These options over `preset` instead, e.g. the adapter's once it is open. Only the grid
+    /// models' architecture depends on the preset, so only it is checked again.
     pub fn with_preset(self, preset: Preset) -> Result<Self, RunError> {
         if preset != self.preset {
             self.nglod_architecture.check(self.model, preset)?;
@@ -214,19 +278,19 @@ impl TrainOptions {
     }
 
     /// How long this run trains on a CPU adapter or not: the steps or epochs asked for, else
-    /// [`default_length`] (for NGLOD on a CPU adapter, [`CPU_TIME_BUDGET`] from it). The one
+    /// [`default_length`] (for NGLOD and the hash grid on a CPU adapter, [`cpu_time_budget`]
+    /// from it). The one
     /// place a run's length is settled: [`super::train`], [`TrainOptions::settings`] and the
     /// binaries' notes read it.
     pub fn length(&self, cpu_adapter: bool) -> Length {
         let asked = match self.model {
             ModelKind::Siren => self.steps,
-            ModelKind::Nglod => self.epochs,
+            ModelKind::Nglod | ModelKind::Hashgrid => self.epochs,
         };
         Length {
             asked,
             default: default_length(self.model, self.preset, cpu_adapter),
-            time_budget: (self.model == ModelKind::Nglod && asked.is_none() && cpu_adapter)
-                .then_some(CPU_TIME_BUDGET),
+            time_budget: cpu_time_budget(self.model).filter(|_| asked.is_none() && cpu_adapter),
         }
     }
 
@@ -235,8 +299,8 @@ impl TrainOptions {
     /// spelt (`--epochs 100` on a GPU and no `--epochs` there are the same run). The length
     /// defaults depend on the adapter, hence `cpu_adapter`. A corpus run keeps these beside its
     /// results and refuses to mix results of other settings into one table. The options are
-    /// taken as [`TrainOptions::validate`] passed them; the NGLOD architecture they resolve to
-    /// is checked as it is built.
+    /// taken as [`TrainOptions::validate`] passed them; the NGLOD or hash-grid architecture they
+    /// resolve to is checked as it is built.
     pub fn settings(&self, cpu_adapter: bool) -> Result<RunSettings, RunError> {
         let mut s = BTreeMap::new();
         let mut put = |k: &str, v: String| s.insert(k.to_owned(), v);
@@ -263,29 +327,40 @@ impl TrainOptions {
                     ),
                 );
             }
-            ModelKind::Nglod => {
-                let d = NglodTrainConfig::default();
-                let c = self.nglod_architecture.config(self.preset, self.seed)?;
+            ModelKind::Nglod | ModelKind::Hashgrid => {
+                let d = self.model.grid_schedule().unwrap_or_default();
+                let c = self
+                    .nglod_architecture
+                    .config(self.model, self.preset, self.seed)?;
                 put("epochs", length);
                 put("lr", self.lr.unwrap_or(d.adam.lr).to_string());
                 let lr_final = self.lr_final.or(d.lr_final).unwrap_or(1.0);
                 put("lr final", lr_final.to_string());
-                let grow = self.grow_every.or(d.grow_every).unwrap_or(0);
-                put("grow every", grow.to_string());
                 let (blocks, every) = self.pool.unwrap_or((d.pool_blocks, d.refresh_every));
                 put("pool", format!("{blocks},{every}"));
                 put("distance", self.distance.name().to_owned());
-                put(
-                    "architecture",
-                    format!(
-                        "resolutions {}, sparse levels {}, band cells {}, features {}, hidden {}",
+                let architecture = match c.encoding {
+                    Encoding::Summed => {
+                        let grow = self.grow_every.or(d.grow_every).unwrap_or(0);
+                        put("grow every", grow.to_string());
+                        format!(
+                            "resolutions {}, sparse levels {}, band cells {}, features {}, \
+                             hidden {}",
+                            comma_list(&c.resolutions),
+                            c.sparse_levels,
+                            c.band_cells,
+                            c.feature_dim,
+                            c.hidden
+                        )
+                    }
+                    Encoding::Hashed { log2_table_size } => format!(
+                        "resolutions {}, table 2^{log2_table_size}, features {}, hidden {}",
                         comma_list(&c.resolutions),
-                        c.sparse_levels,
-                        c.band_cells,
                         c.feature_dim,
                         c.hidden
                     ),
-                );
+                };
+                put("architecture", architecture);
             }
         }
         Ok(RunSettings(s))
@@ -299,7 +374,8 @@ pub struct Length {
     pub asked: Option<usize>,
     /// The preset's default for the adapter, when none is asked for ([`default_length`]).
     pub default: usize,
-    /// NGLOD's default on a CPU adapter: a time to fill, with `default` the least it trains.
+    /// NGLOD's and the hash grid's default on a CPU adapter: a time to fill, with `default` the
+    /// least it trains.
     pub time_budget: Option<TimeBudget>,
 }
 
@@ -355,12 +431,15 @@ fn comma_list(resolutions: &[u32]) -> String {
         .join(",")
 }
 
-/// NGLOD architecture values over a preset (`train --resolutions --sparse-levels --band-cells
-/// --features --hidden`): each one given replaces the preset's, the others stay. The result is
-/// checked by [`NglodConfig::validate`], so a bad combination is a typed error before any work.
+/// NGLOD or hash-grid architecture values over a preset (`train --resolutions --sparse-levels
+/// --band-cells --features --hidden`): each one given replaces the preset's, the others stay. The
+/// result is checked by [`NglodConfig::validate`], so a bad combination is a typed error before
+/// any work. A hash grid takes `--resolutions` (one level per value, its table size the
+/// preset's), `--features` (per level) and `--hidden`; it has no sparse levels, so
+/// `--sparse-levels` and `--band-cells` are refused for it.
 ///
 /// ```
-/// use sdf_eval::run::{NglodArchitecture, Preset};
+/// use sdf_eval::run::{ModelKind, NglodArchitecture, Preset};
 ///
 /// // Two sparse levels of 32 and 64 cells under dense ones of 8 and 16.
 /// let fine = NglodArchitecture {
@@ -368,8 +447,16 @@ fn comma_list(resolutions: &[u32]) -> String {
 ///     sparse_levels: Some(2),
 ///     ..Default::default()
 /// };
-/// let config = fine.config(Preset::Default, 0).unwrap();
+/// let config = fine.config(ModelKind::Nglod, Preset::Default, 0).unwrap();
 /// assert_eq!((config.feature_dim, config.hidden), (8, 128)); // the preset's
+/// // A hash grid of four levels, with the preset's 2 features per level and 2^18 tables.
+/// let grid = NglodArchitecture {
+///     resolutions: Some(vec![16, 64, 256, 1024]),
+///     ..Default::default()
+/// };
+/// let config = grid.config(ModelKind::Hashgrid, Preset::Default, 0).unwrap();
+/// assert_eq!((config.architecture(), config.input_dim()), ("hashgrid", 8));
+/// assert!(fine.config(ModelKind::Hashgrid, Preset::Default, 0).is_err()); // sparse levels
 /// ```
 #[derive(Clone, Debug, Default, PartialEq, Eq)]
 pub struct NglodArchitecture {
@@ -392,25 +479,56 @@ impl NglodArchitecture {
     }
 
     /// Checks these values for a run of `model` over `preset`: for SIREN none may be given, for
-    /// NGLOD the configuration they make must be valid.
+    /// NGLOD and the hash grid the configuration they make must be valid
+    /// ([`NglodArchitecture::config`]).
     pub fn check(&self, model: ModelKind, preset: Preset) -> Result<(), RunError> {
         match model {
             ModelKind::Siren if !self.is_preset() => Err(RunError::Options(
                 "--resolutions, --sparse-levels, --band-cells, --features and --hidden set \
-                 NGLOD's architecture; SIREN's comes from its preset"
+                 NGLOD's and the hash grid's architecture; SIREN's comes from its preset"
                     .into(),
             )),
             ModelKind::Siren => Ok(()),
-            ModelKind::Nglod => self.config(preset, 0).map(drop),
+            ModelKind::Nglod | ModelKind::Hashgrid => self.config(model, preset, 0).map(drop),
         }
     }
 
-    /// The preset's configuration with these values over it, seeded and validated.
-    pub fn config(&self, preset: Preset, seed: u64) -> Result<NglodConfig, RunError> {
-        let base = match preset {
-            Preset::Default => NglodConfig::default_preset(),
-            Preset::Small => NglodConfig::small(),
+    /// The configuration of `model`'s `preset` ([`NglodConfig::default_preset`] and
+    /// [`NglodConfig::small`] for NGLOD, [`NglodConfig::hashgrid_default`] and
+    /// [`NglodConfig::hashgrid_small`] for the hash grid; SIREN, which has none, gets NGLOD's)
+    /// with these values over it, seeded and validated. For the hash grid, `--sparse-levels`
+    /// and `--band-cells` are an error ([`RunError::Options`]) and an invalid configuration is
+    /// [`RunError::Hashgrid`].
+    pub fn config(
+        &self,
+        model: ModelKind,
+        preset: Preset,
+        seed: u64,
+    ) -> Result<NglodConfig, RunError> {
+        let base = match (model, preset) {
+            (ModelKind::Hashgrid, Preset::Default) => NglodConfig::hashgrid_default(),
+            (ModelKind::Hashgrid, Preset::Small) => NglodConfig::hashgrid_small(),
+            (_, Preset::Default) => NglodConfig::default_preset(),
+            (_, Preset::Small) => NglodConfig::small(),
         };
+        if model == ModelKind::Hashgrid {
+            let given: Vec<&str> = [
+                ("--sparse-levels", self.sparse_levels.is_some()),
+                ("--band-cells", self.band_cells.is_some()),
+            ]
+            .into_iter()
+            .filter_map(|(flag, given)| given.then_some(flag))
+            .collect();
+            if !given.is_empty() {
+                return Err(RunError::Options(format!(
+                    "{} set{} NGLOD's sparse levels; a hash grid has none (its fine levels are \
+                     hashed into tables): leave {} out, or use --model nglod",
+                    given.join(" and "),
+                    if given.len() == 1 { "s" } else { "" },
+                    if given.len() == 1 { "it" } else { "them" },
+                )));
+            }
+        }
         let config = NglodConfig {
             resolutions: self.resolutions.clone().unwrap_or(base.resolutions),
             sparse_levels: self.sparse_levels.unwrap_or(base.sparse_levels),
@@ -420,7 +538,7 @@ impl NglodArchitecture {
             band_cells: self.band_cells.unwrap_or(base.band_cells),
             encoding: base.encoding,
         };
-        config.validate()?;
+        config.validate().map_err(|e| super::grid_error(model, e))?;
         Ok(config)
     }
 
@@ -471,10 +589,39 @@ pub const CPU_TIME_BUDGET: sdf_nn::nglod::TimeBudget = sdf_nn::nglod::TimeBudget
     max_epochs: DEFAULT_EPOCHS,
 };
 
-/// Default SIREN steps and NGLOD epochs: what converges on a GPU for the design document's
-/// presets (the trainers' own defaults, [`SirenTrainConfig`]'s steps and
-/// [`DEFAULT_EPOCHS`]), and a budget of a few minutes on a CPU adapter (lavapipe); for NGLOD
-/// there, the least of [`CPU_TIME_BUDGET`]. Runs read it through [`TrainOptions::length`].
+/// The hash grid's default run on a CPU adapter: as [`CPU_TIME_BUDGET`], about a minute of
+/// training, up to its GPU default [`HASHGRID_EPOCHS`].
+pub const HASHGRID_CPU_TIME_BUDGET: sdf_nn::nglod::TimeBudget = sdf_nn::nglod::TimeBudget {
+    seconds: CPU_TIME_BUDGET.seconds,
+    max_epochs: HASHGRID_EPOCHS,
+};
+
+/// The time a grid model's default run fills on a CPU adapter: [`CPU_TIME_BUDGET`] (NGLOD),
+/// [`HASHGRID_CPU_TIME_BUDGET`] (the hash grid); `None` for SIREN, which trains a fixed number
+/// of steps.
+pub fn cpu_time_budget(model: ModelKind) -> Option<TimeBudget> {
+    match model {
+        ModelKind::Siren => None,
+        ModelKind::Nglod => Some(CPU_TIME_BUDGET),
+        ModelKind::Hashgrid => Some(HASHGRID_CPU_TIME_BUDGET),
+    }
+}
+
+/// The least a hash grid's `small` run trains on a CPU adapter by default (its time budget
+/// plans more where they fit): an epoch takes about 5 s on the 2-core box with Debian 12's
+/// lavapipe (suzanne; 2 epochs already give F1 0.995 in the box, 0.95 near the surface), so
+/// about 20 s, and the budget plans about 11.
+const HASHGRID_CPU_SMALL_EPOCHS: usize = 4;
+
+/// The least a hash grid's `default` run trains on a CPU adapter by default: an epoch of its
+/// 5.8 M parameters takes about 18 s there, so about 36 s (and the budget plans about 3).
+const HASHGRID_CPU_DEFAULT_EPOCHS: usize = 2;
+
+/// Default SIREN steps and NGLOD and hash-grid epochs: what converges on a GPU for the design
+/// document's presets (the trainers' own defaults, [`SirenTrainConfig`]'s steps,
+/// [`DEFAULT_EPOCHS`] and [`HASHGRID_EPOCHS`]), and a budget of a few minutes on a CPU adapter
+/// (lavapipe); for the grid models there, the least of their [`cpu_time_budget`]. Runs read it
+/// through [`TrainOptions::length`].
 pub fn default_length(model: ModelKind, preset: Preset, cpu_adapter: bool) -> usize {
     match (model, preset, cpu_adapter) {
         (ModelKind::Siren, _, false) => SirenTrainConfig::default().steps,
@@ -484,6 +631,9 @@ pub fn default_length(model: ModelKind, preset: Preset, cpu_adapter: bool) -> us
         (ModelKind::Nglod, Preset::Small, true) => 4,
         // About a minute on the 2-core box with lavapipe (8 epochs: 31-77 s of training under load).
         (ModelKind::Nglod, Preset::Default, true) => 12,
+        (ModelKind::Hashgrid, _, false) => HASHGRID_EPOCHS,
+        (ModelKind::Hashgrid, Preset::Small, true) => HASHGRID_CPU_SMALL_EPOCHS,
+        (ModelKind::Hashgrid, Preset::Default, true) => HASHGRID_CPU_DEFAULT_EPOCHS,
     }
 }
 
@@ -526,7 +676,7 @@ mod tests {
                 distance: DistanceMode::Unsigned,
                 ..siren.clone()
             },
-            "NGLOD only",
+            "NGLOD and the hash grid only",
         );
         refused(
             TrainOptions {
@@ -678,8 +828,14 @@ mod tests {
             seed: 7,
             ..NglodConfig::default_preset()
         };
-        assert_eq!(none.config(Preset::Default, 7).unwrap(), seeded);
-        assert_eq!(none.config(Preset::Small, 0).unwrap(), NglodConfig::small());
+        assert_eq!(
+            none.config(ModelKind::Nglod, Preset::Default, 7).unwrap(),
+            seeded
+        );
+        assert_eq!(
+            none.config(ModelKind::Nglod, Preset::Small, 0).unwrap(),
+            NglodConfig::small()
+        );
         let fine = NglodArchitecture {
             resolutions: Some(vec![8, 16, 32, 64]),
             sparse_levels: Some(2),
@@ -693,7 +849,7 @@ mod tests {
             Err(RunError::Options(_))
         ));
         assert!(fine.check(ModelKind::Nglod, Preset::Small).is_ok());
-        let c = fine.config(Preset::Small, 3).unwrap();
+        let c = fine.config(ModelKind::Nglod, Preset::Small, 3).unwrap();
         assert_eq!(c.resolutions, [8, 16, 32, 64]);
         assert_eq!(
             (c.sparse_levels, c.feature_dim, c.hidden, c.seed),
@@ -747,11 +903,191 @@ mod tests {
                 bad.check(ModelKind::Nglod, Preset::Default).is_err(),
                 "{bad:?}"
             );
-            let e = bad.config(Preset::Default, 0).unwrap_err();
+            let e = bad
+                .config(ModelKind::Nglod, Preset::Default, 0)
+                .unwrap_err();
             assert!(
                 matches!(e, RunError::Nglod(sdf_nn::NglodError::InvalidConfig(_))),
                 "{bad:?}: {e}"
             );
         }
+    }
+
+    #[test]
+    fn the_hash_grid_has_its_presets_schedule_and_length() {
+        let hashgrid = ModelKind::Hashgrid;
+        assert_eq!((hashgrid.name(), hashgrid.unit()), ("hashgrid", "epoch"));
+        assert!(hashgrid.is_grid() && ModelKind::Nglod.is_grid() && !ModelKind::Siren.is_grid());
+        // Every place that defaults to a learning rate reads the model's own.
+        assert_eq!(
+            ModelKind::ALL.map(ModelKind::default_lr),
+            [1e-4, 1e-3, NglodTrainConfig::hashgrid().adam.lr]
+        );
+        assert_ne!(hashgrid.default_lr(), ModelKind::Nglod.default_lr());
+        assert_eq!(hashgrid.grid_schedule(), Some(NglodTrainConfig::hashgrid()));
+        // Its presets: `small` on a CPU adapter (as SIREN's), `default` on a GPU.
+        assert_eq!(Preset::for_adapter(true, hashgrid), Preset::Small);
+        assert_eq!(Preset::for_adapter(false, hashgrid), Preset::Default);
+        assert_eq!(Preset::for_adapter(true, ModelKind::Nglod), Preset::Default);
+        let none = NglodArchitecture::default();
+        assert_eq!(
+            none.config(hashgrid, Preset::Default, 0).unwrap(),
+            NglodConfig::hashgrid_default()
+        );
+        assert_eq!(
+            none.config(hashgrid, Preset::Small, 0).unwrap(),
+            NglodConfig::hashgrid_small()
+        );
+        // Its length: HASHGRID_EPOCHS on a GPU, its own time budget on a CPU adapter.
+        let options = TrainOptions::new(hashgrid, Preset::Small);
+        let gpu = options.length(false);
+        assert_eq!(
+            (gpu.asked, gpu.default, gpu.time_budget),
+            (None, HASHGRID_EPOCHS, None)
+        );
+        let cpu = options.length(true);
+        assert_eq!(cpu.time_budget, Some(HASHGRID_CPU_TIME_BUDGET));
+        assert_eq!(HASHGRID_CPU_TIME_BUDGET.max_epochs, HASHGRID_EPOCHS);
+        assert!(cpu.default >= 1 && cpu.default <= HASHGRID_EPOCHS);
+        let asked = TrainOptions {
+            epochs: Some(3),
+            ..options.clone()
+        };
+        assert_eq!(asked.length(true).time_budget, None);
+        // Its settings: its schedule's rate and its table, no levels of detail.
+        let settings = TrainOptions::new(hashgrid, Preset::Default)
+            .settings(false)
+            .unwrap();
+        let (c, d) = (
+            NglodConfig::hashgrid_default(),
+            NglodTrainConfig::hashgrid(),
+        );
+        let Encoding::Hashed { log2_table_size } = c.encoding else {
+            panic!("hashgrid_default is not hashed")
+        };
+        assert_eq!(
+            settings.to_string(),
+            format!(
+                "architecture resolutions {}, table 2^{log2_table_size}, features {}, hidden {}; \
+                 distance signed; epochs {HASHGRID_EPOCHS}; lr {}; lr final {}; pool {},{}; \
+                 preset default; seed 0",
+                comma_list(&c.resolutions),
+                c.feature_dim,
+                c.hidden,
+                d.adam.lr,
+                d.lr_final.unwrap_or(1.0),
+                d.pool_blocks,
+                d.refresh_every
+            )
+        );
+        assert_eq!(
+            options.settings(true).unwrap().0["epochs"],
+            format!(
+                "about 55 s of training ({} to {HASHGRID_EPOCHS})",
+                cpu.default
+            )
+        );
+    }
+
+    #[test]
+    fn options_that_do_not_apply_to_a_hash_grid_are_refused() {
+        let hashgrid = TrainOptions::new(ModelKind::Hashgrid, Preset::Small);
+        assert!(hashgrid.validate().is_ok());
+        // What applies to NGLOD applies to it.
+        let nglod_like = TrainOptions {
+            epochs: Some(2),
+            lr: Some(3e-3),
+            lr_final: Some(1.0),
+            pool: Some((1, 1)),
+            distance: DistanceMode::Unsigned,
+            nglod_architecture: NglodArchitecture {
+                resolutions: Some(vec![8, 16, 32, 64]),
+                feature_dim: Some(4),
+                hidden: Some(16),
+                ..Default::default()
+            },
+            ..hashgrid.clone()
+        };
+        nglod_like.validate().unwrap();
+        let c = nglod_like
+            .nglod_architecture
+            .config(ModelKind::Hashgrid, Preset::Small, 0)
+            .unwrap();
+        assert_eq!(
+            (c.architecture(), c.input_dim(), c.hidden),
+            ("hashgrid", 16, 16)
+        );
+        let refused = |o: TrainOptions, says: &str| {
+            let e = o.validate().unwrap_err();
+            assert!(matches!(e, RunError::Options(_)), "{e:?}");
+            let e = e.to_string();
+            assert!(e.contains(says), "{says:?} not in {e:?}");
+        };
+        for grow in [0, 2] {
+            refused(
+                TrainOptions {
+                    grow_every: Some(grow),
+                    ..hashgrid.clone()
+                },
+                "--grow-every adds NGLOD's levels of detail",
+            );
+        }
+        refused(
+            TrainOptions {
+                nglod_architecture: NglodArchitecture {
+                    sparse_levels: Some(0),
+                    ..Default::default()
+                },
+                ..hashgrid.clone()
+            },
+            "--sparse-levels sets NGLOD's sparse levels; a hash grid has none",
+        );
+        refused(
+            TrainOptions {
+                nglod_architecture: NglodArchitecture {
+                    band_cells: Some(1),
+                    ..Default::default()
+                },
+                ..hashgrid.clone()
+            },
+            "--band-cells sets NGLOD's sparse levels",
+        );
+        refused(
+            TrainOptions {
+                steps: Some(3),
+                ..hashgrid.clone()
+            },
+            "--steps applies to SIREN; the hash grid trains for --epochs",
+        );
+        refused(
+            TrainOptions {
+                siren_weights: Some(LossWeights::default()),
+                ..hashgrid.clone()
+            },
+            "loss weights apply to SIREN",
+        );
+        refused(
+            TrainOptions {
+                plateau_patience: Some(3),
+                ..hashgrid.clone()
+            },
+            "--plateau-patience applies to SIREN",
+        );
+        // An architecture the kernels cannot take is the model's own typed error: 9 levels of
+        // 4 features are 36 MLP inputs.
+        let wide = TrainOptions {
+            nglod_architecture: NglodArchitecture {
+                resolutions: Some(vec![8, 12, 16, 24, 32, 48, 64, 96, 128]),
+                feature_dim: Some(4),
+                ..Default::default()
+            },
+            ..hashgrid
+        };
+        let e = wide.validate().unwrap_err();
+        assert!(
+            matches!(e, RunError::Hashgrid(sdf_nn::NglodError::InvalidConfig(_))),
+            "{e:?}"
+        );
+        assert!(e.to_string().starts_with("hash grid: "), "{e}");
     }
 }

@@ -13,7 +13,7 @@ use super::{Evaluation, RunError, TrainOptions, Trained};
 pub struct Report {
     /// Mesh file.
     pub mesh: String,
-    /// `"siren"` or `"nglod"`.
+    /// `"siren"`, `"nglod"` or `"hashgrid"`.
     pub model: String,
     /// `"default"` or `"small"`.
     pub preset: String,
@@ -84,7 +84,7 @@ pub struct Report {
     pub gpu_batch3000_us: Option<f64>,
     /// Training wall time, s.
     pub train_seconds: f64,
-    /// Steps (SIREN) or epochs (NGLOD) run.
+    /// Steps (SIREN) or epochs (NGLOD, the hash grid) run.
     pub trained: usize,
     /// Final training loss.
     pub final_loss: f32,

@@ -1,19 +1,24 @@
-//! NGLOD's trainer in a run: the model from its architecture or a checkpoint (whose
-//! architecture must agree with the one asked for), the trainer's configuration from the run's
-//! options, and the epochs with progress, stopping and the record of what they planned.
+//! NGLOD's trainer in a run of NGLOD or the hash grid: the model from its architecture or a
+//! checkpoint (whose architecture must agree with the one asked for), the trainer's
+//! configuration from the model's schedule and the run's options, and the epochs with progress,
+//! stopping and the record of what they planned.
 
 use std::sync::atomic::Ordering;
 
 use sdf_nn::{Nglod, NglodTrainConfig, NglodTrainer};
 
-use super::{Checkpoint, Plan, Progress, RunError, Trained, check_trained, with_run_record};
+use super::{
+    Checkpoint, Plan, Progress, RunError, Trained, check_trained, grid_error, with_run_record,
+};
 
-/// Trains an NGLOD to `plan.total` epochs (or what its time budget plans).
+/// Trains an NGLOD or a hash grid to `plan.total` epochs (or what its time budget plans).
 pub(super) fn train(
     plan: &Plan<'_>,
     mut progress: impl FnMut(&Progress),
 ) -> Result<Trained, RunError> {
     let (gpu, total) = (plan.gpu, plan.total);
+    // NGLOD's code, named after the model it trains.
+    let named = |e| grid_error(plan.options.model, e);
     let model = model(plan)?;
     let first = plan.resume.map_or(0, Checkpoint::done).min(total);
     let train_config = config(plan, total - first);
@@ -26,26 +31,31 @@ pub(super) fn train(
         &plan.truth.mesh,
         plan.truth.labels.clone(),
         train_config,
-    )?;
+    )
+    .map_err(named)?;
     trainer.set_stop_flag(plan.stop.clone());
     if let Some(c) = plan.resume {
-        trainer.resume(&c.optimizer()?, first, c.epoch_steps_done())?;
+        trainer
+            .resume(&c.optimizer()?, first, c.epoch_steps_done())
+            .map_err(named)?;
     }
     let mut planned = total;
-    let report = trainer.train_with(|e| {
-        let done = e.epoch + 1;
-        planned = first + e.planned;
-        progress(&Progress {
-            done,
-            total: planned,
-            unit: "epoch",
-            loss: e.loss,
-            lr: e.lr,
-            points_per_second: plan.points_per_second(done - first, per_epoch),
-        });
-    })?;
-    let trained = trainer.model()?;
-    let optimizer = trainer.optimizer_state()?;
+    let report = trainer
+        .train_with(|e| {
+            let done = e.epoch + 1;
+            planned = first + e.planned;
+            progress(&Progress {
+                done,
+                total: planned,
+                unit: "epoch",
+                loss: e.loss,
+                lr: e.lr,
+                points_per_second: plan.points_per_second(done - first, per_epoch),
+            });
+        })
+        .map_err(named)?;
+    let trained = trainer.model().map_err(named)?;
+    let optimizer = trainer.optimizer_state().map_err(named)?;
     let done = trainer.epochs_done();
     let lr = report
         .epochs
@@ -71,18 +81,27 @@ pub(super) fn train(
     })
 }
 
-/// The model to train: the checkpoint's, whose architecture must have every value asked for,
-/// or a fresh one of the asked architecture over the preset.
+/// The model to train: the checkpoint's, which must be of the model asked for and have every
+/// architecture value asked for, or a fresh one of the asked architecture over the preset.
 fn model(plan: &Plan<'_>) -> Result<Nglod, RunError> {
     let options = plan.options;
+    let named = |e| grid_error(options.model, e);
     let Some(c) = plan.resume else {
-        return Ok(Nglod::new(
+        let config =
             options
                 .nglod_architecture
-                .config(options.preset, options.seed)?,
-        )?);
+                .config(options.model, options.preset, options.seed)?;
+        return Nglod::new(config).map_err(named);
     };
-    let model = Nglod::from_model_file(&c.model_file())?;
+    let model = Nglod::from_model_file(&c.model_file()).map_err(named)?;
+    // Its run record names the model (checked before), and its tensors must be one.
+    let holds = model.config().architecture();
+    if holds != options.model.name() {
+        return Err(c.refusal(format!(
+            "the checkpoint holds a {holds} model, not {}",
+            options.model.name()
+        )));
+    }
     let differences = options.nglod_architecture.differences(model.config());
     if !differences.is_empty() {
         return Err(c.refusal(format!(
@@ -93,8 +112,9 @@ fn model(plan: &Plan<'_>) -> Result<Nglod, RunError> {
     Ok(model)
 }
 
-/// The trainer's configuration for `epochs` more epochs: its defaults with the run's options
-/// over them.
+/// The trainer's configuration for `epochs` more epochs: the model's schedule
+/// ([`super::ModelKind::grid_schedule`]: NGLOD's defaults, or the hash grid's) with the run's
+/// options over it.
 fn config(plan: &Plan<'_>, epochs: usize) -> NglodTrainConfig {
     let options = plan.options;
     let mut c = NglodTrainConfig {
@@ -102,7 +122,7 @@ fn config(plan: &Plan<'_>, epochs: usize) -> NglodTrainConfig {
         seed: options.seed,
         distance: options.distance,
         time_budget: plan.time_budget,
-        ..Default::default()
+        ..options.model.grid_schedule().unwrap_or_default()
     };
     if let Some(lr) = options.lr {
         c.adam.lr = lr;
