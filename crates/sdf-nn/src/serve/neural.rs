@@ -172,10 +172,10 @@ impl NeuralSdf {
     /// Chooses the kernels a SIREN model runs on (default [`LayerKernels::Auto`]), for example
     /// [`LayerKernels::CoopF16`]: f16 cooperative matrices (tensor cores) where the device has
     /// them, at some cost in accuracy. [`QueryBuffers`] made before the change are refused
-    /// after it ([`QueryError::Foreign`]); make new ones. An error for NGLOD models.
+    /// after it ([`QueryError::Foreign`]); make new ones. An error for NGLOD models and hash grids.
     pub fn set_siren_kernels(&mut self, kernels: LayerKernels) -> Result<(), NeuralSdfError> {
         if let Network::Nglod(_) = self.network {
-            return Err(NeuralSdfError::NoLayerKernels("nglod"));
+            return Err(NeuralSdfError::NoLayerKernels(self.architecture()));
         }
         if kernels != self.siren_kernels {
             self.siren_kernels = kernels;
@@ -194,10 +194,11 @@ impl NeuralSdf {
     /// [`crate::siren::SirenGpuOptions::coop_min_points`]). The default is
     /// [`crate::siren::auto_coop_min_points`]: [`crate::siren::COOP_AUTO_MIN_POINTS`] on GPUs
     /// for networks at least [`crate::siren::COOP_AUTO_MIN_WIDTH`] wide. [`QueryBuffers`] made
-    /// before the change are refused after it; make new ones. An error for NGLOD models.
+    /// before the change are refused after it; make new ones. An error for NGLOD models and hash
+    /// grids.
     pub fn set_siren_coop_min_points(&mut self, points: Option<u32>) -> Result<(), NeuralSdfError> {
         if let Network::Nglod(_) = self.network {
-            return Err(NeuralSdfError::NoLayerKernels("nglod"));
+            return Err(NeuralSdfError::NoLayerKernels(self.architecture()));
         }
         self.siren_coop_min_points = Some(points);
         self.reset_gpu_side();
