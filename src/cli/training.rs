@@ -47,7 +47,7 @@ pub struct TrainingFlags {
     /// Points in each evaluation set.
     #[arg(long, default_value_t = DEFAULT_EVAL_POINTS)]
     pub eval_points: usize,
-    /// Initial learning rate (default: 1e-4 for SIREN, 1e-3 for NGLOD, 1e-2 for the hash grid).
+    /// Initial learning rate (default: 1e-4 for SIREN, 1e-3 for NGLOD, 2.5e-3 for the hash grid).
     // The float flags take negative numbers, so that the checks say what is wrong with
     // `--lr -1` (clap would read `-1` as an unknown flag).
     #[arg(long, allow_negative_numbers = true)]
@@ -182,7 +182,7 @@ impl TrainingFlags {
         if several && self.lr.is_some() {
             return Err(RunError::Options(
                 "--lr sets one model's learning rate (SIREN's default is 1e-4, NGLOD's 1e-3, \
-                 the hash grid's 1e-2); with several models, run each with its own --model"
+                 the hash grid's 2.5e-3); with several models, run each with its own --model"
                     .into(),
             ));
         }
@@ -328,7 +328,7 @@ mod tests {
             .options(&all)
             .unwrap_err()
             .to_string();
-        assert!(e.contains("the hash grid's 1e-2"), "{e}");
+        assert!(e.contains("the hash grid's 2.5e-3"), "{e}");
         assert!(
             flags(&["--lr", "1e-3"])
                 .options(&[ModelKind::Hashgrid])

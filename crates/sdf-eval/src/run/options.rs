@@ -71,7 +71,7 @@ impl ModelKind {
     }
 
     /// The NGLOD trainer's defaults a run of this model starts from:
-    /// [`NglodTrainConfig::hashgrid`] for the hash grid (learning rate 1e-2, batch 4096,
+    /// [`NglodTrainConfig::hashgrid`] for the hash grid (learning rate 2.5e-3, batch 4096,
     /// [`HASHGRID_EPOCHS`]), [`NglodTrainConfig::default`] for NGLOD; `None` for SIREN, which
     /// has its own trainer.
     pub fn grid_schedule(self) -> Option<NglodTrainConfig> {
@@ -82,7 +82,7 @@ impl ModelKind {
         }
     }
 
-    /// Its default learning rate: 1e-4 (SIREN), 1e-3 (NGLOD), 1e-2 (the hash grid).
+    /// Its default learning rate: 1e-4 (SIREN), 1e-3 (NGLOD), 2.5e-3 (the hash grid).
     pub fn default_lr(self) -> f32 {
         match self.grid_schedule() {
             Some(c) => c.adam.lr,
@@ -141,7 +141,7 @@ pub struct TrainOptions {
     /// Seed of initialisation and sampling.
     pub seed: u64,
     /// Initial learning rate (`None`: the model's default, [`ModelKind::default_lr`]: 1e-4 for
-    /// SIREN, 1e-3 for NGLOD, 1e-2 for the hash grid).
+    /// SIREN, 1e-3 for NGLOD, 2.5e-3 for the hash grid).
     pub lr: Option<f32>,
     /// SIREN loss weights (`None`: the design document's). An error for the grid models.
     pub siren_weights: Option<LossWeights>,

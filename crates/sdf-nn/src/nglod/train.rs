@@ -189,16 +189,17 @@ impl NglodTrainConfig {
     /// The hash grid's schedule ([`crate::nglod::Encoding::Hashed`]): NGLOD's sampling and
     /// pool, with instant-ngp's β2 = 0.99 and ε = 1e-15 (a table entry sees gradient only from
     /// the points in its cells, and a large ε would stall the rarely touched ones), a learning
-    /// rate of 5e-3 (instant-ngp's 1e-2 was worse near the surface on spot and on the CAD part
-    /// idler-riser, 0.9840 and 0.9541 against 0.9856 and 0.9673 after 10 epochs on lavapipe;
-    /// docs/hashgrid.md), cosine decay to 0.1, larger batches (the hashed tables are Adam's
-    /// cost per step, whatever the batch) and [`HASHGRID_EPOCHS`].
+    /// rate of 2.5e-3 (the best of 1e-3, 2.5e-3 and 5e-3 near the surface on spot and on the
+    /// CAD parts idler-riser and adis16480 after 10 epochs of `small` on lavapipe, and
+    /// instant-ngp's 1e-2 worse still; docs/hashgrid.md), cosine decay to 0.1, larger batches
+    /// (the hashed tables are Adam's cost per step, whatever the batch) and
+    /// [`HASHGRID_EPOCHS`].
     pub fn hashgrid() -> Self {
         NglodTrainConfig {
             epochs: HASHGRID_EPOCHS,
             batch_size: 4096,
             adam: AdamConfig {
-                lr: 5e-3,
+                lr: 2.5e-3,
                 beta1: 0.9,
                 beta2: 0.99,
                 eps: 1e-15,
