@@ -71,7 +71,7 @@ impl ModelKind {
     }
 
     /// The NGLOD trainer's defaults a run of this model starts from:
-    /// [`NglodTrainConfig::hashgrid`] for the hash grid (learning rate 2.5e-3, batch 4096,
+    /// [`NglodTrainConfig::hashgrid`] for the hash grid (learning rate 2.5e-3, batch 2048,
     /// [`HASHGRID_EPOCHS`]), [`NglodTrainConfig::default`] for NGLOD; `None` for SIREN, which
     /// has its own trainer.
     pub fn grid_schedule(self) -> Option<NglodTrainConfig> {
