@@ -1,6 +1,7 @@
 //! Measures grid-model settings side by side on one mesh: each trains for the same time budget
 //! (planned from its first epoch, as `train` plans a CPU run) and is scored on the design
-//! document's two sets (F1 in the box and near the surface, 100 000 points each). How the hash
+//! document's two sets (F1 in the box and near the surface, 100 000 points each), as trained
+//! (f32 on the GPU) and as saved (f16 grids, evaluated on the CPU). How the hash
 //! grid's presets and schedule were chosen (docs/benchmarks).
 //!
 //! ```sh
@@ -77,7 +78,7 @@ fn main() -> Result<(), Box<dyn Error>> {
     let (unit, _) = mesh.normalized();
     let labels = Labeller::cpu(Arc::new(SignedDistance::new(&unit)?));
     let sets = EvalSets::new(&unit, &labels, DEFAULT_EVAL_POINTS, EVAL_SEED)?;
-    println!("spec\tparams\tbytes\tepochs\ttrain_s\tf1_box\tf1_near");
+    println!("spec\tparams\tbytes\tepochs\ttrain_s\tf1_box\tf1_near\tf16_box\tf16_near");
     for spec in specs {
         let (config, mut train) = parse(spec)?;
         match length {
@@ -97,17 +98,22 @@ fn main() -> Result<(), Box<dyn Error>> {
         let g = trainer.gpu_model();
         let scores = sets.score(|p| g.eval(gpu, p, None))?;
         let model = trainer.model()?;
-        // As saved: f16 grids, f32 MLP.
+        // As saved: f16 grids, f32 MLP; scored again on the CPU to see what f16 costs.
         let w0 = model.layout().w0;
         let bytes = 2 * w0 + 4 * (model.param_count() - w0);
+        let file = model.to_model_file(sdf_nn::Normalization::identity(), serde_json::Value::Null);
+        let saved = Nglod::from_model_file(&file)?;
+        let saved_scores = sets.score(|p| saved.eval_cpu(p, None))?;
         let f1 = |x: Option<f64>| x.map_or("-".into(), |v| format!("{v:.4}"));
         println!(
-            "{spec}\t{}\t{bytes}\t{}\t{:.1}\t{}\t{}",
+            "{spec}\t{}\t{bytes}\t{}\t{:.1}\t{}\t{}\t{}\t{}",
             model.param_count(),
             report.epochs.len(),
             report.total_seconds,
             f1(scores.f1_bbox),
             f1(scores.f1_near_surface),
+            f1(saved_scores.f1_bbox),
+            f1(saved_scores.f1_near_surface),
         );
         eprintln!(
             "{spec}: setup {setup:.1} s, final loss {:.3e}",

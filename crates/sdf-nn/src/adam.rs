@@ -45,6 +45,9 @@ struct AdamUniforms {
     _pad: u32,
 }
 
+/// Bytes of an Adam step's uniforms, as a stager stages them.
+pub(crate) const ADAM_UNIFORM_BYTES: u64 = std::mem::size_of::<AdamUniforms>() as u64;
+
 const WORKGROUP: u32 = 256;
 
 impl AdamConfig {

@@ -59,6 +59,9 @@ struct TrainUniforms {
     levels: [[u32; 4]; MAX_LEVELS],
 }
 
+/// Bytes of a training step's uniforms, as [`crate::gpu::UniformStager`] stages them.
+pub(crate) const TRAIN_UNIFORM_BYTES: u64 = std::mem::size_of::<TrainUniforms>() as u64;
+
 /// Buffers of the inference path, grown on demand and reused between calls.
 struct EvalScratch {
     capacity: usize,

@@ -35,8 +35,10 @@ mod gpu_points;
 /// Optimiser steps recorded into one submission at most (fewer where a loss read-back is due
 /// sooner): a submission costs tens of µs on a GPU, where a small step takes about as long.
 const STEPS_PER_SUBMISSION: usize = 32;
-/// Bytes of uniforms a step stages: the training kernels' and Adam's, each rounded up.
-const STAGED_BYTES_PER_STEP: u64 = 256;
+/// Bytes of uniforms a step stages: the training kernels' and Adam's (both multiples of the
+/// copy alignment, 4 bytes).
+const STAGED_BYTES_PER_STEP: u64 =
+    super::gpu::TRAIN_UNIFORM_BYTES + crate::adam::ADAM_UNIFORM_BYTES;
 
 pub use gpu_points::SampleSource;
 
