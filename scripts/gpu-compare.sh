@@ -43,13 +43,18 @@
 # time goes, launch by launch, from GPU timestamps (SIREN_BENCH_PROFILE; issue 12's ≤ 2 ms per
 # step); its log is DIR/results/siren-profile.txt. Environment:
 #   GPU_COMPARE_PRESETS=small,default   presets to run (both by default)
-#   GPU_COMPARE_STAGES=checks,bench,coop,blocks,split,phases,profile,torch,fit,scene,groundtruth,corpus
+#   GPU_COMPARE_STAGES=checks,bench,coop,blocks,split,phases,profile,torch,fit,scene,groundtruth,hashgrid,corpus
 #                                       what to run (default all; split a session's runs with it).
 #                                       `scene` runs benches/scene (issue 37's targets, with the
 #                                       fit stage's NGLOD model when it ran); `groundtruth` the
 #                                       ground_truth_bench example: GPU against CPU labels on
 #                                       spot and on armadillo split to 1.4 M triangles (needs
-#                                       GPU_COMPARE_MESHES at pack time; else spot twice)
+#                                       GPU_COMPARE_MESHES at pack time; else spot twice);
+#                                       `hashgrid` the grid_sweep example: hash-grid candidates
+#                                       for its default beside NGLOD, each for the same seconds
+#                                       (GPU_COMPARE_SWEEP_SECONDS=1,2; GPU_COMPARE_SWEEP= the
+#                                       specs, see crates/sdf-eval/examples/grid_sweep.rs), on
+#                                       spot and the packed CAD-like meshes
 #   GPU_COMPARE_BLOCKS=                 register blocks of the tiled GEMM the `blocks` stage
 #                                       forces (e.g. 4x4,8x8; none by default: session 13's
 #                                       H100 run set TiledBlock::Auto's rule)
@@ -111,6 +116,7 @@ pack() {
     echo "== building release binaries and bench executables"
     cargo build --release --bins
     cargo build --release -p sdf-nn --example ground_truth_bench --example nglod_sample_source
+    cargo build --release -p sdf-eval --example grid_sweep
     cargo bench --no-run
     # The test binaries that run kernels against their CPU and f64 references (the `checks`
     # stage): sdf-nn's GPU tests, the query API's and the serving example's.
@@ -128,7 +134,8 @@ pack() {
     [ -n "$benches" ] || { echo "no bench executables were built" >&2; exit 1; }
     rm -rf "$dir/bin" "$dir/benches" "$dir/tests" "$dir/scripts" "$dir/checks" "$dir/examples"
     mkdir -p "$dir/bin" "$dir/benches" "$dir/tests" "$dir/scripts" "$dir/checks" "$dir/examples"
-    cp target/release/examples/ground_truth_bench target/release/examples/nglod_sample_source "$dir/examples/"
+    cp target/release/examples/ground_truth_bench target/release/examples/nglod_sample_source \
+        target/release/examples/grid_sweep "$dir/examples/"
     local name path
     while read -r name path; do cp "$path" "$dir/checks/$name"; done <<<"$checks"
     local exe
@@ -238,7 +245,7 @@ run() {
     fi
     export CRITERION_HOME="$res/criterion"
     export SIREN_BENCH_PRESETS=${GPU_COMPARE_PRESETS:-small,default}
-    local stages=",${GPU_COMPARE_STAGES:-checks,bench,coop,blocks,split,phases,profile,torch,fit,scene,groundtruth,corpus},"
+    local stages=",${GPU_COMPARE_STAGES:-checks,bench,coop,blocks,split,phases,profile,torch,fit,scene,groundtruth,hashgrid,corpus},"
     if [[ $stages == *,checks,* ]]; then
         # Kernels designed on lavapipe meet a real GPU here: other subgroup sizes, real
         # parallelism within a workgroup, other limits. Figures from kernels that fail their
@@ -521,6 +528,26 @@ PY
         examples/nglod_sample_source tests/data/spot.obj --points 500000 \
             --epochs "${GT_EPOCHS:-20}" --preset default --batch 2048 2>&1 \
             | grep -v XDG_RUNTIME_DIR | tee "$res/sample-source.txt" || echo "(failed)"
+    fi
+    if [[ $stages == *,hashgrid,* ]] && [ -x examples/grid_sweep ]; then
+        # Issue 39: the hash grid's default chosen by F1 per second of training on a GPU.
+        # Candidates beside NGLOD, each with the same budget (planned from its first epoch),
+        # on spot and the CAD-like meshes when packed (thin parts, where the hash grid should
+        # beat NGLOD).
+        local sweep_meshes=tests/data/spot.obj m s
+        for m in idler-riser octagonal-pocket adis16480; do
+            [ -e "meshes/$m.obj" ] && sweep_meshes="$sweep_meshes meshes/$m.obj"
+        done
+        for s in $(echo "${GPU_COMPARE_SWEEP_SECONDS:-1,2}" | tr ',' ' '); do
+            for m in $sweep_meshes; do
+                echo "== hash grid sweep: $m, $s s of training each"
+                # shellcheck disable=SC2086 # the candidates are words
+                examples/grid_sweep "$m" "$s" ${GPU_COMPARE_SWEEP:-nglod hashgrid hashgrid-small \
+                    hash:16,16,512,2,17,64 hash:16,16,512,2,19,64 hash:16,16,1024,2,19,64 \
+                    hash:12,16,512,2,18,64 hash:16,16,512,2,18,32} 2>&1 \
+                    | grep -v XDG_RUNTIME_DIR | tee -a "$res/hashgrid-sweep.txt" || echo "(failed)"
+            done
+        done
     fi
     if [[ $stages == *,corpus,* ]] && [ -d meshes ]; then
         echo "== corpus over the packed meshes"

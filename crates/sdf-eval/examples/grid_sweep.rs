@@ -9,7 +9,8 @@
 //! ```
 //!
 //! `SECONDS` may be `eN` instead: N epochs each, whatever they take (figures free of the
-//! planner's estimate, for comparing settings on a busy machine).
+//! planner's estimate, for comparing settings on a busy machine). On a GPU the points are drawn
+//! and labelled there (`--ground-truth auto`'s choice: `SampleSource::Gpu`), as `train` does.
 //!
 //! A SPEC is `nglod` (the default preset and schedule), `nglod-small`, `hashgrid` /
 //! `hashgrid-small` (the presets with the hash grid's schedule), or
@@ -23,7 +24,8 @@ use std::time::Instant;
 
 use sdf_eval::metrics::{DEFAULT_EVAL_POINTS, EVAL_SEED, EvalSets};
 use sdf_geom::SignedDistance;
-use sdf_nn::nglod::TimeBudget;
+use sdf_nn::ground_truth::{GroundTruthDevice, GroundTruthPath};
+use sdf_nn::nglod::{SampleSource, TimeBudget};
 use sdf_nn::{GpuContext, Labeller, Nglod, NglodConfig, NglodTrainConfig, NglodTrainer};
 
 fn parse(spec: &str) -> Result<(NglodConfig, NglodTrainConfig), Box<dyn Error>> {
@@ -76,7 +78,12 @@ fn main() -> Result<(), Box<dyn Error>> {
     eprintln!("adapter: {}", gpu.describe());
     let (mesh, _) = sdf_geom::load_mesh(path)?;
     let (unit, _) = mesh.normalized();
-    let labels = Labeller::cpu(Arc::new(SignedDistance::new(&unit)?));
+    let labels = Labeller::choose(
+        gpu,
+        Arc::new(SignedDistance::new(&unit)?),
+        GroundTruthDevice::Auto,
+    )?;
+    let on_gpu = labels.path() == GroundTruthPath::Gpu;
     let sets = EvalSets::new(&unit, &labels, DEFAULT_EVAL_POINTS, EVAL_SEED)?;
     println!("spec\tparams\tbytes\tepochs\ttrain_s\tf1_box\tf1_near\tf16_box\tf16_near");
     for spec in specs {
@@ -90,6 +97,9 @@ fn main() -> Result<(), Box<dyn Error>> {
                 });
             }
             Err(epochs) => train.epochs = epochs,
+        }
+        if on_gpu {
+            train.sample_source = SampleSource::Gpu;
         }
         let start = Instant::now();
         let mut trainer = NglodTrainer::new(gpu, &Nglod::new(config)?, &unit, train)?;
