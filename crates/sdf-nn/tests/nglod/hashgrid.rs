@@ -1,11 +1,12 @@
 //! The hash grid's own tests: colliding vertices share their features on the CPU and the GPU,
-//! the presets' sizes, model files, serving, and fits of a sphere and of a shared mesh. The
+//! the presets' sizes, model files, serving, and fits of a sphere (points from the CPU pool) and
+//! of a shared mesh (points drawn and labelled on the GPU). The
 //! kernels' agreement with the f64 reference and the reference's with finite differences are
 //! in `main.rs`, beside NGLOD's (`tiny_hashed`, `small_hashed`).
 
 use glam::Vec3;
 use sdf_geom::SignedDistance;
-use sdf_nn::nglod::{Encoding, LevelStorage, ScatterMode, hash_vertex};
+use sdf_nn::nglod::{Encoding, LevelStorage, SampleSource, ScatterMode, hash_vertex};
 use sdf_nn::{
     NeuralSdf, NeuralSdfError, Nglod, NglodConfig, NglodError, NglodGpu, NglodTrainConfig,
     NglodTrainer,
@@ -329,6 +330,8 @@ fn trains_spot_with_correct_signs() {
         surface_points: 20_000,
         batch_size: 1024,
         seed: 5,
+        // Every epoch's points drawn and labelled on the GPU (the sphere above uses the pool).
+        sample_source: SampleSource::Gpu,
         ..NglodTrainConfig::hashgrid()
     };
     let mut trainer = NglodTrainer::new(gpu, &model, &unit, config).unwrap();
