@@ -4,7 +4,7 @@
 mod common;
 
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
+use std::process::Output;
 use std::sync::OnceLock;
 
 use common::{bin, data, stderr};
@@ -381,10 +381,9 @@ fn an_unknown_step_layout_names_the_allowed_ones() {
 
 #[test]
 fn ctrl_c_writes_a_checkpoint_that_resume_continues() {
-    use std::io::{BufRead, BufReader};
     let out = scratch("interrupted.nglod.safetensors");
     let report = scratch("interrupted.nglod.json");
-    let mut child = bin("train")
+    let child = bin("train")
         .arg(data("suzanne.obj"))
         // The default preset: a sparse level's band goes through the checkpoint too.
         .args(["--model", "nglod", "--preset", "default", "--epochs", "200"])
@@ -395,30 +394,7 @@ fn ctrl_c_writes_a_checkpoint_that_resume_continues() {
         .stderr(std::process::Stdio::piped())
         .spawn()
         .unwrap();
-    let mut lines = BufReader::new(child.stderr.take().unwrap()).lines();
-    let mut log = String::new();
-    // Wait for the first epoch, then press Ctrl-C.
-    for line in lines.by_ref() {
-        let line = line.unwrap();
-        log.push_str(&line);
-        log.push('\n');
-        if line.starts_with("epoch ") {
-            break;
-        }
-    }
-    let pid = child.id().to_string();
-    assert!(
-        Command::new("kill")
-            .args(["-INT", &pid])
-            .status()
-            .unwrap()
-            .success()
-    );
-    for line in lines {
-        log.push_str(&line.unwrap());
-        log.push('\n');
-    }
-    let status = child.wait().unwrap();
+    let (log, status) = common::interrupt_after_first_epoch(child);
     // As a shell reports SIGINT: `train … && eval …` must not go on.
     assert_eq!(status.code(), Some(130), "{log}");
     let checkpoint = out.with_extension("checkpoint.safetensors");

@@ -7,7 +7,7 @@
 mod common;
 
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
+use std::process::Output;
 use std::sync::OnceLock;
 
 use common::{bin, data, stderr};
@@ -195,8 +195,7 @@ fn eval_render_extract_and_query_read_a_hash_grid() {
 /// Runs `train` on suzanne with `args` until its first progress line, presses Ctrl-C, and
 /// returns its log once it has exited with 130.
 fn interrupt_train(args: &[&str], out: &Path) -> String {
-    use std::io::{BufRead, BufReader};
-    let mut child = bin("train")
+    let child = bin("train")
         .arg(data("suzanne.obj"))
         .args(args)
         .arg("--out")
@@ -204,30 +203,8 @@ fn interrupt_train(args: &[&str], out: &Path) -> String {
         .stderr(std::process::Stdio::piped())
         .spawn()
         .unwrap();
-    let mut lines = BufReader::new(child.stderr.take().unwrap()).lines();
-    let mut log = String::new();
-    for line in lines.by_ref() {
-        let line = line.unwrap();
-        log.push_str(&line);
-        log.push('\n');
-        if line.starts_with("epoch ") {
-            break;
-        }
-    }
-    let pid = child.id().to_string();
-    assert!(
-        Command::new("kill")
-            .args(["-INT", &pid])
-            .status()
-            .unwrap()
-            .success(),
-        "train ended before its first epoch: {log}"
-    );
-    for line in lines {
-        log.push_str(&line.unwrap());
-        log.push('\n');
-    }
-    assert_eq!(child.wait().unwrap().code(), Some(130), "{log}");
+    let (log, status) = common::interrupt_after_first_epoch(child);
+    assert_eq!(status.code(), Some(130), "{log}");
     log
 }
 

@@ -1,9 +1,10 @@
 //! Helpers the CLI test binaries share: the built binaries, the test meshes, a scratch folder per
-//! test process, and a process's stderr.
+//! test process, a process's stderr, and Ctrl-C after a run's first epoch.
 #![allow(dead_code)] // each test binary uses its own subset
 
+use std::io::{BufRead, BufReader};
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
+use std::process::{Child, Command, ExitStatus, Output};
 
 /// A command for one of the package's binaries, as `cargo test` built it.
 pub fn bin(name: &str) -> Command {
@@ -36,4 +37,33 @@ pub fn scratch_in(tag: &str, name: &str) -> PathBuf {
 /// The process's stderr as text.
 pub fn stderr(o: &Output) -> String {
     String::from_utf8_lossy(&o.stderr).into_owned()
+}
+
+/// Waits for `child`'s first `epoch ` progress line (its stderr piped), presses Ctrl-C (SIGINT),
+/// and returns all it wrote to stderr and how it exited.
+pub fn interrupt_after_first_epoch(mut child: Child) -> (String, ExitStatus) {
+    let mut lines = BufReader::new(child.stderr.take().expect("stderr piped")).lines();
+    let mut log = String::new();
+    for line in lines.by_ref() {
+        let line = line.unwrap();
+        log.push_str(&line);
+        log.push('\n');
+        if line.starts_with("epoch ") {
+            break;
+        }
+    }
+    let pid = child.id().to_string();
+    assert!(
+        Command::new("kill")
+            .args(["-INT", &pid])
+            .status()
+            .unwrap()
+            .success(),
+        "the run ended before its first epoch: {log}"
+    );
+    for line in lines {
+        log.push_str(&line.unwrap());
+        log.push('\n');
+    }
+    (log, child.wait().unwrap())
 }
