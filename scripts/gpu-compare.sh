@@ -52,7 +52,7 @@
 #                                       GPU_COMPARE_MESHES at pack time; else spot twice);
 #                                       `hashgrid` the grid_sweep example: hash-grid candidates
 #                                       for its default beside NGLOD, each for the same seconds
-#                                       (GPU_COMPARE_SWEEP_SECONDS=1,2; GPU_COMPARE_SWEEP= the
+#                                       (GPU_COMPARE_SWEEP_SECONDS=1; GPU_COMPARE_SWEEP= the
 #                                       specs, see crates/sdf-eval/examples/grid_sweep.rs), on
 #                                       spot and the packed CAD-like meshes
 #   GPU_COMPARE_BLOCKS=                 register blocks of the tiled GEMM the `blocks` stage
@@ -538,13 +538,14 @@ PY
         for m in idler-riser octagonal-pocket adis16480; do
             [ -e "meshes/$m.obj" ] && sweep_meshes="$sweep_meshes meshes/$m.obj"
         done
-        for s in $(echo "${GPU_COMPARE_SWEEP_SECONDS:-1,2}" | tr ',' ' '); do
+        for s in $(echo "${GPU_COMPARE_SWEEP_SECONDS:-1}" | tr ',' ' '); do
             for m in $sweep_meshes; do
                 echo "== hash grid sweep: $m, $s s of training each"
                 # shellcheck disable=SC2086 # the candidates are words
+                # Larger batches take fewer steps (fewer launches and Adam passes) per epoch.
                 examples/grid_sweep "$m" "$s" ${GPU_COMPARE_SWEEP:-nglod hashgrid hashgrid-small \
-                    hash:16,16,512,2,17,64 hash:16,16,512,2,19,64 hash:16,16,1024,2,19,64 \
-                    hash:12,16,512,2,18,64 hash:16,16,512,2,18,32} 2>&1 \
+                    hashgrid@0.005,8192 hashgrid@0.01,16384 hashgrid-small@0.005,8192 \
+                    hash:16,16,512,2,17,64 hash:12,16,512,2,18,64} 2>&1 \
                     | grep -v XDG_RUNTIME_DIR | tee -a "$res/hashgrid-sweep.txt" || echo "(failed)"
             done
         done
