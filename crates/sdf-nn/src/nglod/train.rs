@@ -585,14 +585,7 @@ impl<'g> NglodTrainer<'g> {
             batch,
             steps_per_epoch,
         };
-        let should_stop = || {
-            config
-                .max_seconds
-                .is_some_and(|m| start.elapsed().as_secs_f64() >= m)
-                || stop_flag
-                    .as_ref()
-                    .is_some_and(|f| f.load(Ordering::Relaxed))
-        };
+        let should_stop = || stop_requested(config, start, stop_flag.as_deref());
 
         std::thread::scope(|scope| -> Result<(), NglodError> {
             let spawn = |k: usize| scope.spawn(move || sample_block(mesh, labels, config, k));
@@ -653,39 +646,18 @@ impl<'g> NglodTrainer<'g> {
                     steps_done,
                     should_stop,
                 )?;
-                // A fresh run with a time budget plans its length after its first two epochs.
-                let fresh = first_epoch == 0 && e < 2;
-                if let Some(b) = config
-                    .time_budget
-                    .filter(|_| fresh && !run.stop && run.first >= n)
-                {
+                if let Some(b) = run.plans_length(config, first_epoch, e) {
                     let elapsed = start.elapsed().as_secs_f64();
                     end_epoch = b.epochs(epochs, e + 1, elapsed, elapsed - epoch_began);
                     if pending.is_none() && schedule.due(next_block) < end_epoch {
                         pending = Some(spawn(next_block));
                     }
                 }
-                let stats = EpochStats {
-                    epoch: e,
-                    steps: run.steps,
-                    loss: run.mean_loss,
-                    gpu_seconds: run.gpu_seconds,
-                    sampling_seconds: sampling,
-                    stall_seconds: stall,
-                    lr: run.lr,
-                    levels: lod,
-                    planned: end_epoch - first_epoch,
-                };
+                let stats = run.stats(e, lod, end_epoch - first_epoch, (sampling, stall));
                 stall = 0.0;
                 on_epoch(&stats);
                 report.add(stats, run.last_loss);
-                // An epoch stopped part-way stays unfinished, with its steps recorded, so a
-                // resume runs the rest of it instead of skipping it.
-                (*epochs_done, *epoch_steps_done) = if run.first >= n {
-                    (e + 1, 0)
-                } else {
-                    (e, run.step_in_epoch)
-                };
+                (*epochs_done, *epoch_steps_done) = run.done_after(e);
                 if run.stop {
                     report.stopped_early = true;
                     // Let the pending sampler finish (scope joins it); its work is discarded.
@@ -744,9 +716,66 @@ struct EpochSteps {
     stop: bool,
     /// Wall time of the upload, the steps and the final wait.
     gpu_seconds: f64,
+    /// Points per epoch (the epoch is done when `first` reaches it).
+    n: u32,
+}
+
+/// Whether a run started at `start` should stop: past `config.max_seconds`, or asked to by
+/// `flag` (Ctrl-C, SIGTERM, a caller's flag).
+fn stop_requested(config: &NglodTrainConfig, start: Instant, flag: Option<&AtomicBool>) -> bool {
+    config
+        .max_seconds
+        .is_some_and(|m| start.elapsed().as_secs_f64() >= m)
+        || flag.is_some_and(|f| f.load(Ordering::Relaxed))
 }
 
 impl EpochSteps {
+    /// The time budget by which a fresh run plans its length after this epoch, epoch `e` of a
+    /// run that began at `first_epoch`: after each of its first two epochs, if they ran whole.
+    fn plans_length(
+        &self,
+        config: &NglodTrainConfig,
+        first_epoch: usize,
+        e: usize,
+    ) -> Option<TimeBudget> {
+        config
+            .time_budget
+            .filter(|_| first_epoch == 0 && e < 2 && !self.stop && self.first >= self.n)
+    }
+
+    /// The record of this epoch, epoch `e` on `levels` levels of a run planned to `planned`
+    /// epochs, with its `(sampling, stall)` seconds.
+    fn stats(
+        &self,
+        e: usize,
+        levels: usize,
+        planned: usize,
+        (sampling_seconds, stall_seconds): (f64, f64),
+    ) -> EpochStats {
+        EpochStats {
+            epoch: e,
+            steps: self.steps,
+            loss: self.mean_loss,
+            gpu_seconds: self.gpu_seconds,
+            sampling_seconds,
+            stall_seconds,
+            lr: self.lr,
+            levels,
+            planned,
+        }
+    }
+
+    /// `(epochs done, steps done in the unfinished epoch)` after this epoch, epoch `e`: an
+    /// epoch stopped part-way stays unfinished, with its steps recorded, so that a resume runs
+    /// the rest of it instead of skipping it.
+    fn done_after(&self, e: usize) -> (usize, usize) {
+        if self.first >= self.n {
+            (e + 1, 0)
+        } else {
+            (e, self.step_in_epoch)
+        }
+    }
+
     /// Uploads epoch `e`'s points and targets (or records their draw) and runs the epoch on its first `lod` levels, in a
     /// run planned to `end_epoch`, from its step `skip` on, reading the loss
     /// back every `loss_every` steps and at the end, and stopping after a read-back once
@@ -848,6 +877,7 @@ impl EpochSteps {
             first,
             step_in_epoch,
             stop,
+            n,
         })
     }
 }

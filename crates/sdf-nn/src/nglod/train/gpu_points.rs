@@ -6,7 +6,10 @@ use std::time::Instant;
 
 use sdf_geom::{Mesh, SignedDistance};
 
-use super::{DistanceMode, EpochData, EpochStats, EpochSteps, NglodTrainer, Stepper, TrainReport};
+use super::{
+    DistanceMode, EpochData, EpochStats, EpochSteps, NglodTrainer, Stepper, TrainReport,
+    stop_requested,
+};
 use crate::gpu::GpuContext;
 use crate::ground_truth::{
     GpuGroundTruth, GpuSampler, LabelKind, LabelledDraw, SampleSpec, SampleTable,
@@ -116,15 +119,8 @@ impl NglodTrainer<'_> {
             batch,
             steps_per_epoch: n.div_ceil(batch) as usize,
         };
-        let stop_flag = &self.stop;
-        let should_stop = || {
-            config
-                .max_seconds
-                .is_some_and(|m| start.elapsed().as_secs_f64() >= m)
-                || stop_flag
-                    .as_ref()
-                    .is_some_and(|f| f.load(std::sync::atomic::Ordering::Relaxed))
-        };
+        let stop_flag = self.stop.as_deref();
+        let should_stop = || stop_requested(config, start, stop_flag);
         let mut e = first_epoch;
         let mut epoch_began = 0.0;
         while e < end_epoch {
@@ -143,31 +139,15 @@ impl NglodTrainer<'_> {
                 &mut self.steps_done,
                 should_stop,
             )?;
-            if let Some(b) = config
-                .time_budget
-                .filter(|_| first_epoch == 0 && e < 2 && !run.stop && run.first >= n)
-            {
+            if let Some(b) = run.plans_length(config, first_epoch, e) {
                 let elapsed = start.elapsed().as_secs_f64();
                 end_epoch = b.epochs(config.epochs, e + 1, elapsed, elapsed - epoch_began);
             }
-            let stats = EpochStats {
-                epoch: e,
-                steps: run.steps,
-                loss: run.mean_loss,
-                gpu_seconds: run.gpu_seconds,
-                sampling_seconds: 0.0,
-                stall_seconds: 0.0,
-                lr: run.lr,
-                levels: lod,
-                planned: end_epoch - first_epoch,
-            };
+            // Drawn in the epoch's first submission: no sampling or stall of its own.
+            let stats = run.stats(e, lod, end_epoch - first_epoch, (0.0, 0.0));
             on_epoch(&stats);
             report.add(stats, run.last_loss);
-            (self.epochs_done, self.epoch_steps_done) = if run.first >= n {
-                (e + 1, 0)
-            } else {
-                (e, run.step_in_epoch)
-            };
+            (self.epochs_done, self.epoch_steps_done) = run.done_after(e);
             if run.stop {
                 report.stopped_early = true;
                 break;
