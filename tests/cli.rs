@@ -32,19 +32,20 @@ fn trained() -> &'static (PathBuf, serde_json::Value) {
     static TRAINED: OnceLock<(PathBuf, serde_json::Value)> = OnceLock::new();
     TRAINED.get_or_init(|| {
         let out = scratch("suzanne.nglod.safetensors");
-        let report = scratch("suzanne.nglod.json");
-        let o = bin("train")
-            .arg(data("suzanne.obj"))
-            .args(["--model", "nglod", "--preset", "small", "--epochs", "2"])
-            .args(["--eval-points", "3000", "--out"])
-            .arg(&out)
-            .arg("--report")
-            .arg(&report)
-            .output()
-            .unwrap();
-        assert!(o.status.success(), "train failed: {}", stderr(&o));
-        let json: serde_json::Value =
-            serde_json::from_slice(&std::fs::read(&report).unwrap()).unwrap();
+        let (json, _) = common::train_with_report(
+            "suzanne.obj",
+            &[
+                "--model",
+                "nglod",
+                "--preset",
+                "small",
+                "--epochs",
+                "2",
+                "--eval-points",
+                "3000",
+            ],
+            &out,
+        );
         (out, json)
     })
 }

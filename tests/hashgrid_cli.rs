@@ -36,20 +36,21 @@ fn trained() -> &'static (PathBuf, serde_json::Value, String) {
     static TRAINED: OnceLock<(PathBuf, serde_json::Value, String)> = OnceLock::new();
     TRAINED.get_or_init(|| {
         let out = scratch("suzanne.hashgrid.safetensors");
-        let report = scratch("suzanne.hashgrid.json");
-        let o = bin("train")
-            .arg(data("suzanne.obj"))
-            .args(["--model", "hashgrid", "--preset", "small", "--epochs", "1"])
-            .args(["--eval-points", "2000", "--out"])
-            .arg(&out)
-            .arg("--report")
-            .arg(&report)
-            .output()
-            .unwrap();
-        assert!(o.status.success(), "train failed: {}", stderr(&o));
-        let json: serde_json::Value =
-            serde_json::from_slice(&std::fs::read(&report).unwrap()).unwrap();
-        (out, json, stderr(&o))
+        let (json, log) = common::train_with_report(
+            "suzanne.obj",
+            &[
+                "--model",
+                "hashgrid",
+                "--preset",
+                "small",
+                "--epochs",
+                "1",
+                "--eval-points",
+                "2000",
+            ],
+            &out,
+        );
+        (out, json, log)
     })
 }
 

@@ -1,5 +1,6 @@
 //! Helpers the CLI test binaries share: the built binaries, the test meshes, a scratch folder per
-//! test process, a process's stderr, and Ctrl-C after a run's first epoch.
+//! test process, a training run with its report, a process's stderr, and Ctrl-C after a run's
+//! first epoch.
 #![allow(dead_code)] // each test binary uses its own subset
 
 use std::io::{BufRead, BufReader};
@@ -32,6 +33,25 @@ pub fn scratch_in(tag: &str, name: &str) -> PathBuf {
     let dir = std::env::temp_dir().join(format!("hwsdf-{tag}-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
     dir.join(name)
+}
+
+/// Runs `train` on `mesh` (a file of `tests/data`) with `args`, writing the model to `out` and
+/// its report beside it (`.json`); fails the test with train's stderr unless it succeeds.
+/// Returns the report and the stderr.
+pub fn train_with_report(mesh: &str, args: &[&str], out: &Path) -> (serde_json::Value, String) {
+    let report = out.with_extension("json");
+    let o = bin("train")
+        .arg(data(mesh))
+        .args(args)
+        .arg("--out")
+        .arg(out)
+        .arg("--report")
+        .arg(&report)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "train failed: {}", stderr(&o));
+    let json = serde_json::from_slice(&std::fs::read(&report).unwrap()).unwrap();
+    (json, stderr(&o))
 }
 
 /// The process's stderr as text.
