@@ -2,6 +2,9 @@
 //! under unions and one smooth union, queried through `GpuScene`:
 //! - `scene/distance/3000`: 3000 distances (wall: upload, one submission, readback);
 //! - `scene/rays/3000`: 3000 sphere-traced rays of up to 128 steps;
+//! - both again with the other kernel where the device has subgroups
+//!   (`distance_per_invocation` on a GPU, `distance_per_subgroup` on lavapipe: see
+//!   `SceneKernel`);
 //! - `scene/render/1920x1080`: a full-HD image from `Renderer::for_scene`;
 //! - `scene/eight_models/3000`: the 8 single-model queries (`NeuralSdf::eval`) one scene query
 //!   replaces, for the lavapipe comparison.
@@ -17,7 +20,9 @@ use std::time::Duration;
 
 use criterion::{BenchmarkId, Criterion, Throughput};
 use glam::{Quat, Vec3};
-use sdf_nn::serve::scene::{GpuScene, Primitive, Ray, Scene, SceneNode, TraceOptions, Transform};
+use sdf_nn::serve::scene::{
+    GpuScene, Primitive, Ray, Scene, SceneKernel, SceneNode, TraceOptions, Transform,
+};
 use sdf_nn::{GpuContext, NeuralSdf, Nglod, NglodConfig, Normalization, RenderOptions, Renderer};
 
 /// Eight models: the file of `SCENE_BENCH_MODEL` loaded 8 times, or 8 untrained `default`
@@ -125,9 +130,10 @@ fn main() {
         .sample_size(10)
         .configure_from_args();
     let scene = scene();
-    let on_gpu = GpuScene::new(gpu, &scene).unwrap();
+    let mut on_gpu = GpuScene::new(gpu, &scene).unwrap();
+    let default_kernel = on_gpu.kernel();
     eprintln!(
-        "scene: {} leaves, {} models, Lipschitz bound {:.3}",
+        "scene: {} leaves, {} models, Lipschitz bound {:.3}, default kernel {default_kernel:?}",
         scene.leaves().len(),
         scene.models().len(),
         on_gpu.lipschitz()
@@ -153,12 +159,24 @@ fn main() {
     );
     let mut group = c.benchmark_group("scene");
     group.throughput(Throughput::Elements(n as u64));
-    group.bench_function(BenchmarkId::new("distance", n), |b| {
-        b.iter(|| on_gpu.distances(&pts, 0.0).unwrap())
-    });
-    group.bench_function(BenchmarkId::new("rays", n), |b| {
-        b.iter(|| on_gpu.trace_rays(&rays, &trace).unwrap())
-    });
+    // Both kernels where the device has subgroups, the default one under the plain names.
+    for kernel in [SceneKernel::PerSubgroup, SceneKernel::PerInvocation] {
+        if on_gpu.set_kernel(kernel).is_err() {
+            continue;
+        }
+        let suffix = match kernel {
+            _ if kernel == default_kernel => "",
+            SceneKernel::PerSubgroup => "_per_subgroup",
+            SceneKernel::PerInvocation => "_per_invocation",
+        };
+        group.bench_function(BenchmarkId::new(format!("distance{suffix}"), n), |b| {
+            b.iter(|| on_gpu.distances(&pts, 0.0).unwrap())
+        });
+        group.bench_function(BenchmarkId::new(format!("rays{suffix}"), n), |b| {
+            b.iter(|| on_gpu.trace_rays(&rays, &trace).unwrap())
+        });
+    }
+    on_gpu.set_kernel(default_kernel).unwrap();
     let models = scene.models().to_vec();
     let local: Vec<Vec3> = pts.iter().map(|p| *p * 0.3).collect();
     for m in &models {

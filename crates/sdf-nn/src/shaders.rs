@@ -127,6 +127,13 @@ pub const SPHERE_TRACE: Shader =
 pub const SCENE_QUERY: Shader =
     shader!("serve/scene/shaders/" "scene_query.wgsl", wgpu::Features::empty());
 
+/// The scene's queries with one element per subgroup. They call the element functions of
+/// [`SCENE_QUERY`] and a scene snippet of the subgroup form, so they compile only after both.
+pub const SCENE_QUERY_SUBGROUP: Shader = shader!(
+    "serve/scene/shaders/" "scene_query_subgroup.wgsl",
+    wgpu::Features::SUBGROUP
+);
+
 /// The analytic primitives and operators of a scene's snippet
 /// ([`crate::serve::scene::Scene::wgsl_with_prefix`], which renames them).
 pub const SCENE_PRIMITIVES: Shader =
@@ -155,7 +162,11 @@ pub const SHARED_PARTS: &[&str] = &[
 ];
 
 /// Shaders that are completed by a model's WGSL snippet (prepended at group 1).
-pub const NEEDS_MODEL: &[&str] = &[SPHERE_TRACE.name, SCENE_QUERY.name];
+pub const NEEDS_MODEL: &[&str] = &[
+    SPHERE_TRACE.name,
+    SCENE_QUERY.name,
+    SCENE_QUERY_SUBGROUP.name,
+];
 
 /// Every shader, for validation.
 pub const ALL: &[Shader] = &[
@@ -176,6 +187,7 @@ pub const ALL: &[Shader] = &[
     NGLOD_REDUCE,
     QUERY,
     SCENE_QUERY,
+    SCENE_QUERY_SUBGROUP,
     SCENE_PRIMITIVES,
     GROUND_TRUTH_CLOSEST,
     GROUND_TRUTH_WINDING,
@@ -256,6 +268,7 @@ pub(crate) fn check_mirror(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::serve::wgsl::Lanes;
 
     /// naga capabilities that correspond to a set of wgpu features. Validating with only these
     /// makes accidental use of any other capability fail.
@@ -283,7 +296,18 @@ mod tests {
             // A shader completed by a model's snippet is validated with the snippet of a small
             // model of each architecture; every other one on its own.
             let sources: Vec<String> = if shader.name == SCENE_QUERY.name {
-                vec![format!("{}\n{}", small_scene_wgsl(), shader.source)]
+                vec![format!(
+                    "{}\n{}",
+                    small_scene_wgsl(Lanes::One),
+                    shader.source
+                )]
+            } else if shader.name == SCENE_QUERY_SUBGROUP.name {
+                vec![format!(
+                    "{}\n{}\n{}",
+                    small_scene_wgsl(Lanes::Subgroup),
+                    SCENE_QUERY.source,
+                    shader.source
+                )]
             } else if NEEDS_MODEL.contains(&shader.name) {
                 small_models()
                     .iter()
@@ -298,9 +322,9 @@ mod tests {
         }
     }
 
-    /// The snippet (prefix `scene`, group 1) of a scene of both small models and every
-    /// primitive under every operator.
-    fn small_scene_wgsl() -> String {
+    /// The snippet (prefix `scene`, group 1, in the form for `lanes`) of a scene of the small
+    /// models and every primitive under every operator.
+    fn small_scene_wgsl(lanes: Lanes) -> String {
         use crate::serve::scene::{Primitive as P, Scene, SceneNode as N, Transform};
         use glam::{Quat, Vec3};
         use std::sync::Arc;
@@ -381,11 +405,11 @@ mod tests {
         ]);
         Scene::new(root)
             .expect("a valid scene")
-            .wgsl_with_prefix(1, "scene", &wgpu::Limits::default())
+            .wgsl_with_lanes(1, "scene", &wgpu::Limits::default(), lanes)
             .expect("fits the default limits")
     }
 
-    /// A tiny SIREN and a tiny NGLOD model.
+    /// A tiny SIREN, a tiny NGLOD model and a tiny hash grid.
     fn small_models() -> Vec<crate::NeuralSdf> {
         let n = crate::Normalization::identity();
         let siren = crate::Siren::new(
@@ -398,9 +422,13 @@ mod tests {
         )
         .expect("valid config");
         let nglod = crate::Nglod::new(crate::NglodConfig::small()).expect("valid config");
+        // Three levels, the finest (17³ vertices) hashed into 1024 entries.
+        let hashgrid = crate::Nglod::new(crate::NglodConfig::hashgrid(3, 4, 16, 2, 10, 8))
+            .expect("valid config");
         [
             siren.to_model_file(n, serde_json::Value::Null),
             nglod.to_model_file(n, serde_json::Value::Null),
+            hashgrid.to_model_file(n, serde_json::Value::Null),
         ]
         .into_iter()
         .map(|f| crate::NeuralSdf::from_model_file(f).expect("a model we just made"))

@@ -221,7 +221,13 @@ impl NeuralSdf {
     /// the [`wgsl`] module. The current level of detail
     /// ([`NeuralSdf::set_lod`]) is baked in.
     pub fn wgsl(&self, group: u32) -> String {
-        wgsl::generate(self.network(), self.normalization(), self.lod(), group)
+        wgsl::generate(
+            self.network(),
+            self.normalization(),
+            self.lod(),
+            group,
+            wgsl::Lanes::One,
+        )
     }
 
     /// [`NeuralSdf::wgsl`] with every name the snippet declares starting with `prefix` instead

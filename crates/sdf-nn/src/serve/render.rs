@@ -24,7 +24,7 @@ use crate::gpu::{GpuContext, GpuError};
 use crate::model_file::{Normalization, write_atomic};
 use crate::serve::neural::NeuralSdf;
 use crate::serve::scene::{Scene, SceneBindGroup, SceneGpuError};
-use crate::serve::wgsl::{EmbedError, SdfBindGroup};
+use crate::serve::wgsl::{EmbedError, Lanes, SdfBindGroup};
 use crate::shaders::SPHERE_TRACE;
 
 /// Largest image side we accept (keeps the pixel buffer and the dispatch within every device's
@@ -387,13 +387,14 @@ impl Renderer {
     /// rendered); rays step by the scene's Lipschitz bound ([`Scene::lipschitz`]).
     pub fn for_scene(gpu: &GpuContext, scene: &Scene) -> Result<Self, RenderError> {
         // The tracer binds its image besides the weights.
-        let (snippet, weights) = scene.compile(gpu.device(), SDF_GROUP, "scene", 1)?;
+        let (snippets, weights) =
+            scene.compile(gpu.device(), SDF_GROUP, "scene", 1, &[Lanes::One])?;
         let weights = Weights::Scene(weights);
         let source = format!(
-            "{snippet}\n\
+            "{}\n\
              fn hwsdf_distance(p: vec3<f32>) -> f32 {{ return scene_distance(p); }}\n\
              fn hwsdf_normal(p: vec3<f32>) -> vec3<f32> {{ return scene_normal(p); }}\n{}",
-            SPHERE_TRACE.source
+            snippets[0], SPHERE_TRACE.source
         );
         let params: u64 = scene
             .models()

@@ -8,9 +8,10 @@ use std::time::{Duration, Instant};
 use glam::{Quat, Vec3};
 use sdf_nn::GpuContext;
 use sdf_nn::serve::scene::{
-    GpuScene, Primitive, ProjectOptions, Ray, Scene, SceneGpuError, SceneNode, SceneQueryError,
-    SceneQueryKind, TraceOptions, Transform,
+    GpuScene, Primitive, ProjectOptions, Ray, Scene, SceneGpuError, SceneKernel, SceneNode,
+    SceneQueryError, SceneQueryKind, TraceOptions, Transform,
 };
+use sdf_nn::{NeuralSdf, Nglod, NglodConfig, Normalization};
 
 use crate::models::{hashed_sphere_model, sphere_model};
 use crate::random_points;
@@ -249,6 +250,25 @@ fn analytic_rays_and_closest_points_match_the_cpu() {
 /// difference: the GPU's distances, normals, rays and closest points agree with the CPU's.
 #[test]
 fn placed_models_match_the_cpu() {
+    placed_models_match_the_cpu_on(SceneKernel::PerInvocation);
+}
+
+/// The same with one subgroup per point or ray (lavapipe has subgroups of 8 lanes).
+#[test]
+fn placed_models_match_the_cpu_one_subgroup_per_element() {
+    placed_models_match_the_cpu_on(SceneKernel::PerSubgroup);
+}
+
+/// `scene` on the GPU, its queries run by `kernel`.
+fn scene_on(scene: &Scene, kernel: SceneKernel) -> GpuScene<'static> {
+    let mut on_gpu = GpuScene::new(gpu(), scene).unwrap();
+    on_gpu
+        .set_kernel(kernel)
+        .expect("lavapipe and the GPUs we test on have subgroups");
+    on_gpu
+}
+
+fn placed_models_match_the_cpu_on(kernel: SceneKernel) {
     let model = Arc::new(sphere_model(1.0));
     // A hash grid beside the NGLOD model: one scene, both encodings.
     let other = Arc::new(hashed_sphere_model(0.8));
@@ -279,7 +299,7 @@ fn placed_models_match_the_cpu() {
     ]))
     .unwrap();
     assert_eq!(scene.models().len(), 2);
-    let on_gpu = GpuScene::new(gpu(), &scene).unwrap();
+    let on_gpu = scene_on(&scene, kernel);
     let points = random_points(2000, 5.0, 7);
     let cpu = scene.distances_and_gradients(&points, 0.0);
     let gpu_s = on_gpu.samples(&points, 0.0).unwrap();
@@ -593,5 +613,77 @@ fn unions_of_many_models_match_the_cpu() {
             }
         }
         assert!(hit > 50, "{hit} of 300 rays hit");
+    }
+}
+
+/// Networks whose every width matters to the subgroup form, with random weights (not
+/// distances, so only values and gradients are compared): NGLOD with 6 features (a partial
+/// `vec4` of inputs), 40 hidden units (not a multiple of any subgroup's width) and a sparse
+/// finest level; a hash grid of 5 levels (more levels than 8-lane groups on a 32-wide
+/// subgroup), the finer ones hashed. Both kernels against the CPU, values and gradients.
+#[test]
+fn wide_networks_match_the_cpu_on_both_kernels() {
+    let sparse = {
+        let mut m = Nglod::new(NglodConfig {
+            resolutions: vec![2, 4, 8, 16],
+            feature_dim: 6,
+            hidden: 40,
+            seed: 3,
+            sparse_levels: 1,
+            ..NglodConfig::small()
+        })
+        .unwrap();
+        m.place_bands(|p| (p.length() - 0.5).abs()).unwrap();
+        m
+    };
+    let hashed = Nglod::new(NglodConfig::hashgrid(5, 4, 40, 2, 11, 24)).unwrap();
+    let n = Normalization::identity();
+    let models: Vec<Arc<NeuralSdf>> = [sparse, hashed]
+        .into_iter()
+        .map(|m| {
+            Arc::new(
+                NeuralSdf::from_model_file(m.to_model_file(n, serde_json::Value::Null)).unwrap(),
+            )
+        })
+        .collect();
+    let scene = Scene::new(SceneNode::Union(vec![
+        SceneNode::model(models[0].clone(), Transform::IDENTITY),
+        SceneNode::model(
+            models[1].clone(),
+            Transform::new(Vec3::new(0.7, 0.0, 0.2), Quat::from_rotation_z(0.4), 1.3),
+        ),
+    ]))
+    .unwrap();
+    let points = random_points(600, 1.6, 21);
+    let cpu = scene.distances_and_gradients(&points, 0.0);
+    for kernel in [SceneKernel::PerInvocation, SceneKernel::PerSubgroup] {
+        let on_gpu = scene_on(&scene, kernel);
+        let d = on_gpu.distances(&points, 0.0).unwrap();
+        let samples = on_gpu.samples(&points, 0.0).unwrap();
+        let mut compared = 0;
+        for (i, c) in cpu.iter().enumerate() {
+            let tol = 1e-4 * (1.0 + c.distance.abs());
+            assert!(
+                (d[i] - c.distance).abs() <= tol && (samples[i].distance - c.distance).abs() <= tol,
+                "{kernel:?}, point {}: {} and {} vs {}",
+                points[i],
+                d[i],
+                samples[i].distance,
+                c.distance
+            );
+            if samples[i].leaf == c.leaf {
+                compared += 1;
+                assert!(
+                    samples[i]
+                        .gradient
+                        .abs_diff_eq(c.gradient, 1e-3 * (1.0 + c.gradient.length())),
+                    "{kernel:?}, gradient at {}: {} vs {}",
+                    points[i],
+                    samples[i].gradient,
+                    c.gradient
+                );
+            }
+        }
+        assert!(compared > 500, "{kernel:?}: {compared} gradients compared");
     }
 }

@@ -42,7 +42,7 @@ use crate::gpu::GpuError;
 use crate::serve::scene::cpu::SceneQueryError;
 use crate::serve::scene::primitive::Primitive;
 use crate::serve::scene::tree::{Instruction, LeafKind, Scene};
-use crate::serve::wgsl::{self, EmbedError, MAX_PREFIX};
+use crate::serve::wgsl::{self, EmbedError, Lanes, MAX_PREFIX};
 
 /// The primitives, the sample type and the operators (names `hwsdf_…`, renamed per scene).
 const PRIMITIVES: &str = crate::shaders::SCENE_PRIMITIVES.source;
@@ -73,6 +73,16 @@ pub enum SceneGpuError {
     /// A query's input is refused (a bad ray, level or tolerance).
     #[error(transparent)]
     Query(#[from] SceneQueryError),
+    /// [`SceneKernel::PerSubgroup`](super::SceneKernel::PerSubgroup) was asked of a device
+    /// without subgroup operations (or with subgroups wider than a query workgroup).
+    #[error(
+        "{adapter} has no subgroup operations usable by the scene's subgroup kernels: use \
+         SceneKernel::PerInvocation"
+    )]
+    NoSubgroups {
+        /// The adapter.
+        adapter: String,
+    },
     /// The device failed.
     #[error(transparent)]
     Gpu(#[from] GpuError),
@@ -181,13 +191,28 @@ impl Scene {
         prefix: &str,
         limits: &wgpu::Limits,
     ) -> Result<String, EmbedError> {
-        wgsl::check_prefix(prefix, MAX_SCENE_PREFIX)?;
-        let packing = self.packing(limits)?;
-        Ok(self.generate(group, prefix, &packing))
+        self.wgsl_with_lanes(group, prefix, limits, Lanes::One)
     }
 
-    /// The snippet for `packing`, under `prefix` (already checked).
-    fn generate(&self, group: u32, prefix: &str, packing: &Packing) -> String {
+    /// [`Scene::wgsl_with_prefix`] in the form for `lanes` (see [`Scene::generate`]).
+    pub(crate) fn wgsl_with_lanes(
+        &self,
+        group: u32,
+        prefix: &str,
+        limits: &wgpu::Limits,
+        lanes: Lanes,
+    ) -> Result<String, EmbedError> {
+        wgsl::check_prefix(prefix, MAX_SCENE_PREFIX)?;
+        let packing = self.packing(limits)?;
+        Ok(self.generate(group, prefix, &packing, lanes))
+    }
+
+    /// The snippet for `packing`, under `prefix` (already checked). With
+    /// [`Lanes::Subgroup`] it also declares `var<private> {prefix}_lane` and `{prefix}_lanes`:
+    /// a kernel that sets them (its `subgroup_invocation_id` and `subgroup_size`) and calls the
+    /// scene's functions with one point per subgroup has every model evaluated by the whole
+    /// subgroup together.
+    fn generate(&self, group: u32, prefix: &str, packing: &Packing, lanes: Lanes) -> String {
         let mut s = String::new();
         let _ = writeln!(
             s,
@@ -209,9 +234,24 @@ impl Scene {
                 b = np + k
             );
         }
+        if lanes == Lanes::Subgroup {
+            let _ = writeln!(
+                s,
+                "// Set by the kernel: this invocation's lane and the subgroup's width (one point per subgroup).\n\
+                 var<private> {prefix}_lane: u32 = 0u;\n\
+                 var<private> {prefix}_lanes: u32 = 1u;"
+            );
+        }
         for (i, model) in self.models().iter().enumerate() {
             let name = format!("{prefix}_m{i}");
-            let snippet = wgsl::rename(&model.wgsl(group), &name);
+            let model_wgsl = wgsl::generate(
+                model.network(),
+                model.normalization(),
+                model.lod(),
+                group,
+                lanes,
+            );
+            let snippet = wgsl::rename(&model_wgsl, &name);
             let (buffer, offset) = packing.params[i];
             let mut snippet: String = snippet
                 .lines()
@@ -240,7 +280,7 @@ impl Scene {
         s.push_str(&wgsl::rename(PRIMITIVES, prefix));
         let up = prefix.to_ascii_uppercase();
         for (l, leaf) in self.leaves().iter().enumerate() {
-            self.leaf_functions(&mut s, prefix, &up, l, leaf);
+            self.leaf_functions(&mut s, prefix, &up, l, leaf, lanes);
         }
         self.program_functions(&mut s, prefix);
         let _ = writeln!(s, "// ---- end of HW SDF scene ----");
@@ -267,6 +307,7 @@ impl Scene {
         up: &str,
         l: usize,
         leaf: &crate::serve::scene::tree::Leaf,
+        lanes: Lanes,
     ) {
         let t = &leaf.transform;
         let rotation = t.rotation.as_dquat().normalize();
@@ -298,6 +339,10 @@ impl Scene {
         );
         let local = format!("{up}_L{l}_INV * (p - {up}_L{l}_T) / {up}_L{l}_S");
         let (value, distance) = match leaf.kind {
+            LeafKind::Model(m) if lanes == Lanes::Subgroup => (
+                format!("{prefix}_m{m}_distance_normal_sg(q, {prefix}_lane, {prefix}_lanes)"),
+                format!("{prefix}_m{m}_distance_sg(q, {prefix}_lane, {prefix}_lanes)"),
+            ),
             LeafKind::Model(m) => (
                 format!("{prefix}_m{m}_distance_normal(q)"),
                 format!("{prefix}_m{m}_distance(q)"),
@@ -658,18 +703,23 @@ impl Scene {
         Ok((packing, weights))
     }
 
-    /// The snippet (names `{prefix}_…`, weights at `@group(group)`) and its uploaded weights,
-    /// for a shader of ours that binds `reserved` storage buffers of its own besides them: what
-    /// the GPU queries and the scene renderer compile.
+    /// The snippet in each of `forms` (names `{prefix}_…`, weights at `@group(group)`) and
+    /// the weights they share, uploaded, for a shader of ours that binds `reserved` storage
+    /// buffers of its own besides them: what the GPU queries and the scene renderer compile.
     pub(crate) fn compile(
         &self,
         device: &wgpu::Device,
         group: u32,
         prefix: &str,
         reserved: u32,
-    ) -> Result<(String, SceneBindGroup), SceneGpuError> {
+        forms: &[Lanes],
+    ) -> Result<(Vec<String>, SceneBindGroup), SceneGpuError> {
         let (packing, weights) = self.packed_for(device, reserved)?;
-        Ok((self.generate(group, prefix, &packing), weights))
+        let snippets = forms
+            .iter()
+            .map(|&lanes| self.generate(group, prefix, &packing, lanes))
+            .collect();
+        Ok((snippets, weights))
     }
 
     /// The buffers and bind group of `packing`.

@@ -22,6 +22,12 @@
 //! rays step by the same bound (`|d − c| / L`, [`Scene::lipschitz`]) and stop by the same rules,
 //! projections take the same steps.
 //!
+//! # Kernels
+//! [`SceneKernel::PerSubgroup`] (the default on GPUs with subgroup operations) takes each point
+//! or ray with a whole subgroup, which shares every model's evaluation;
+//! [`SceneKernel::PerInvocation`] (the default on CPU adapters, where it is the faster) takes
+//! one per invocation. [`GpuScene::set_kernel`] switches; the answers agree to f32 rounding.
+//!
 //! # Serving
 //! The plain calls ([`GpuScene::distances`], [`GpuScene::samples`], [`GpuScene::trace_rays`],
 //! [`GpuScene::closest_points`]) upload, dispatch and read back. For results that stay on the
@@ -45,6 +51,7 @@ use crate::serve::scene::cpu::{
 };
 use crate::serve::scene::embed::{SceneBindGroup, SceneGpuError};
 use crate::serve::scene::tree::Scene;
+use crate::serve::wgsl::Lanes;
 
 /// The group of the scene's weights in the query kernels.
 const SCENE_GROUP: u32 = 1;
@@ -76,12 +83,13 @@ impl SceneQueryKind {
         SceneQueryKind::Project,
     ];
 
-    fn entry_point(self) -> &'static str {
+    /// A label for errors and debugging.
+    fn label(self) -> &'static str {
         match self {
-            SceneQueryKind::Distance => "query_distance",
-            SceneQueryKind::Sample => "query_sample",
-            SceneQueryKind::Trace => "query_trace",
-            SceneQueryKind::Project => "query_project",
+            SceneQueryKind::Distance => "scene distance query",
+            SceneQueryKind::Sample => "scene sample query",
+            SceneQueryKind::Trace => "scene ray query",
+            SceneQueryKind::Project => "scene projection query",
         }
     }
 
@@ -106,6 +114,22 @@ impl SceneQueryKind {
     fn index(self) -> usize {
         self as usize
     }
+}
+
+/// How the query kernels share out their work.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum SceneKernel {
+    /// One invocation per point or ray, which evaluates every model it needs alone. The
+    /// faster on CPU adapters (lavapipe runs a workgroup's invocations as SIMD lanes of one
+    /// thread), and the fallback where the device has no subgroup operations.
+    PerInvocation,
+    /// One subgroup per point or ray: its lanes take the element through the scene together
+    /// and share each model's evaluation (the trilinear gathers and the hidden units, then a
+    /// `subgroupAdd`), so an evaluation's latency shrinks by about the subgroup's width and the
+    /// lanes never diverge over which models to evaluate. Made for GPUs, where a few thousand
+    /// points or rays, one per invocation, leave most of the device idle while each invocation
+    /// runs its models one after the other. Needs `wgpu::Features::SUBGROUP`.
+    PerSubgroup,
 }
 
 /// The kernels' uniform (`SceneQuery` in `shaders/scene_query.wgsl`).
@@ -188,11 +212,16 @@ pub struct SceneQueryBuffers {
 #[derive(Debug)]
 pub struct GpuScene<'g> {
     gpu: &'g GpuContext,
-    module: wgpu::ShaderModule,
+    /// Per kernel (`SceneKernel as usize`) where the device runs it.
+    modules: Vec<wgpu::ShaderModule>,
     layout: wgpu::PipelineLayout,
     query_layout: wgpu::BindGroupLayout,
     weights: SceneBindGroup,
-    pipelines: [OnceLock<wgpu::ComputePipeline>; 4],
+    /// Per kernel, per kind (`kernel as usize * 4 + kind`).
+    pipelines: [OnceLock<wgpu::ComputePipeline>; 8],
+    kernel: SceneKernel,
+    /// The widest subgroup the adapter may run, where the module has the subgroup kernels.
+    subgroup_width: Option<u32>,
     lipschitz: f32,
     leaves: usize,
     /// Most elements of one part of a batch, per kind (buffer and dispatch limits).
@@ -223,14 +252,34 @@ pub const MORTON_ON_GPU: usize = 1024;
 
 impl<'g> GpuScene<'g> {
     /// Compiles `scene` for `gpu`'s device and uploads its weights. Measures the models'
-    /// Lipschitz estimates (for rays) if the scene has not yet.
+    /// Lipschitz estimates (for rays) if the scene has not yet. The queries run
+    /// [`SceneKernel::PerSubgroup`] on a GPU with subgroup operations and
+    /// [`SceneKernel::PerInvocation`] elsewhere (see [`GpuScene::set_kernel`]).
     pub fn new(gpu: &'g GpuContext, scene: &Scene) -> Result<GpuScene<'g>, SceneGpuError> {
         let device = gpu.device();
         let limits = gpu.limits();
-        let (snippet, weights) = scene.compile(device, SCENE_GROUP, "scene", QUERY_BUFFERS)?;
-        let source = format!("{snippet}\n{}", crate::shaders::SCENE_QUERY.source);
+        let subgroup_width = subgroup_width(gpu);
+        let forms: &[Lanes] = match subgroup_width {
+            Some(_) => &[Lanes::One, Lanes::Subgroup],
+            None => &[Lanes::One],
+        };
+        let (snippets, weights) =
+            scene.compile(device, SCENE_GROUP, "scene", QUERY_BUFFERS, forms)?;
         let scope = device.push_error_scope(wgpu::ErrorFilter::Validation);
-        let module = gpu.generated_module("scene_query.wgsl", Cow::Owned(source));
+        // One module per kernel: the subgroup form's models sum over the subgroup, which the
+        // per-invocation kernels (a point per lane) must not call.
+        let query = crate::shaders::SCENE_QUERY.source;
+        let mut modules = vec![gpu.generated_module(
+            "scene_query.wgsl",
+            Cow::Owned(format!("{}\n{query}", snippets[0])),
+        )];
+        if let Some(snippet) = snippets.get(1) {
+            let source = format!(
+                "{snippet}\n{query}\n{}",
+                crate::shaders::SCENE_QUERY_SUBGROUP.source
+            );
+            modules.push(gpu.generated_module("scene_query_subgroup.wgsl", Cow::Owned(source)));
+        }
         let storage = |binding, read_only| wgpu::BindGroupLayoutEntry {
             binding,
             visibility: wgpu::ShaderStages::COMPUTE,
@@ -277,17 +326,25 @@ impl<'g> GpuScene<'g> {
         let max_elements = SceneQueryKind::ALL.map(|kind| {
             let bytes_per_element = (16 * u64::from(kind.inputs_per_element()))
                 .max(4 * u64::from(kind.outputs_per_element()));
+            // The subgroup kernels cover the fewest elements per workgroup.
+            let per_group = WG / subgroup_width.unwrap_or(1);
             (binding / bytes_per_element)
-                .min(max_dispatch * max_dispatch * u64::from(WG))
+                .min(max_dispatch * max_dispatch * u64::from(per_group))
                 .min(u64::from(u32::MAX / 16)) as u32
         });
+        let kernel = match subgroup_width {
+            Some(_) if !gpu.is_cpu() => SceneKernel::PerSubgroup,
+            _ => SceneKernel::PerInvocation,
+        };
         Ok(GpuScene {
             gpu,
-            module,
+            modules,
             layout,
             query_layout,
             weights,
             pipelines: Default::default(),
+            kernel,
+            subgroup_width,
             lipschitz: scene.lipschitz(),
             leaves: scene.leaves().len(),
             max_elements,
@@ -320,25 +377,51 @@ impl<'g> GpuScene<'g> {
         self.max_part = elements.max(1);
     }
 
-    /// The pipeline of `kind`, compiled on first use.
+    /// The kernels the queries run.
+    pub fn kernel(&self) -> SceneKernel {
+        self.kernel
+    }
+
+    /// Chooses the kernels of the next queries (the answers agree to f32 rounding).
+    /// [`SceneKernel::PerSubgroup`] needs a device with subgroup operations whose subgroups are
+    /// at most 64 wide ([`SceneGpuError::NoSubgroups`] otherwise).
+    pub fn set_kernel(&mut self, kernel: SceneKernel) -> Result<(), SceneGpuError> {
+        if kernel == SceneKernel::PerSubgroup && self.subgroup_width.is_none() {
+            return Err(SceneGpuError::NoSubgroups {
+                adapter: self.gpu.describe(),
+            });
+        }
+        self.kernel = kernel;
+        Ok(())
+    }
+
+    /// The pipeline of `kind` for the current kernel, compiled on first use.
     fn pipeline(&self, kind: SceneQueryKind) -> Result<&wgpu::ComputePipeline, GpuError> {
-        let cell = &self.pipelines[kind.index()];
+        let cell = &self.pipelines[self.kernel as usize * 4 + kind.index()];
         if let Some(p) = cell.get() {
             return Ok(p);
         }
         let device = self.gpu.device();
         let scope = device.push_error_scope(wgpu::ErrorFilter::Validation);
+        let entry_point = match self.kernel {
+            SceneKernel::PerInvocation => "query_per_invocation",
+            SceneKernel::PerSubgroup => "query_per_subgroup",
+        };
         let pipeline = device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
-            label: Some(kind.entry_point()),
+            label: Some(kind.label()),
             layout: Some(&self.layout),
-            module: &self.module,
-            entry_point: Some(kind.entry_point()),
-            compilation_options: Default::default(),
+            module: &self.modules[self.kernel as usize],
+            entry_point: Some(entry_point),
+            // The query kind (`KIND` in scene_query.wgsl) picks one branch at compile time.
+            compilation_options: wgpu::PipelineCompilationOptions {
+                constants: &[("KIND", kind.index() as f64)],
+                ..Default::default()
+            },
             cache: None,
         });
         if let Some(err) = pollster::block_on(scope.pop()) {
             return Err(GpuError::Wgpu {
-                context: format!("compiling the scene's {}", kind.entry_point()),
+                context: format!("compiling the {} ({entry_point})", kind.label()),
                 message: err.to_string(),
             });
         }
@@ -435,9 +518,13 @@ impl<'g> GpuScene<'g> {
         count: u32,
     ) -> Result<(), GpuError> {
         let pipeline = self.pipeline(kind)?;
-        let (x, y) = self.gpu.dispatch_size(count.div_ceil(WG));
+        let per_group = match (self.kernel, self.subgroup_width) {
+            (SceneKernel::PerSubgroup, Some(width)) => WG / width,
+            _ => WG,
+        };
+        let (x, y) = self.gpu.dispatch_size(count.div_ceil(per_group));
         let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
-            label: Some(kind.entry_point()),
+            label: Some(kind.label()),
             timestamp_writes: None,
         });
         pass.set_pipeline(pipeline);
@@ -500,7 +587,9 @@ impl<'g> GpuScene<'g> {
         points: &[Vec3],
         params: &SceneQueryParams,
     ) -> Result<Vec<f32>, GpuError> {
-        let sort = points.len() >= MORTON_ON_GPU || (self.gpu.is_cpu() && points.len() >= 256);
+        // A subgroup per point never diverges over models: nothing to gain from the order.
+        let sort = self.kernel == SceneKernel::PerInvocation
+            && (points.len() >= MORTON_ON_GPU || (self.gpu.is_cpu() && points.len() >= 256));
         if !sort {
             let inputs: Vec<[f32; 4]> = points.iter().map(|p| p.extend(0.0).to_array()).collect();
             return self.run(kind, &inputs, params);
@@ -551,11 +640,11 @@ impl<'g> GpuScene<'g> {
             queue.submit([encoder.finish()]);
             if let Some(err) = pollster::block_on(scope.pop()) {
                 return Err(GpuError::Wgpu {
-                    context: format!("dispatching the scene's {}", kind.entry_point()),
+                    context: format!("dispatching the {}", kind.label()),
                     message: err.to_string(),
                 });
             }
-            let values: Vec<f32> = self.gpu.map_read(&pooled.readback, kind.entry_point())?;
+            let values: Vec<f32> = self.gpu.map_read(&pooled.readback, kind.label())?;
             out.extend_from_slice(&values[..count as usize * per_out]);
             self.give(kind, pooled);
         }
@@ -662,6 +751,19 @@ impl<'g> GpuScene<'g> {
     pub fn leaf_count(&self) -> usize {
         self.leaves
     }
+}
+
+/// The widest subgroup `gpu`'s adapter may run, where its device has subgroup operations and
+/// a workgroup of [`WG`] holds whole subgroups of every width it may run.
+fn subgroup_width(gpu: &GpuContext) -> Option<u32> {
+    let info = gpu.adapter_info();
+    let (min, max) = (info.subgroup_min_size, info.subgroup_max_size);
+    let usable = gpu.device().features().contains(wgpu::Features::SUBGROUP)
+        && min >= 1
+        && max <= WG
+        && WG.is_multiple_of(max)
+        && WG.is_multiple_of(min);
+    usable.then_some(max)
 }
 
 #[cfg(test)]

@@ -1,5 +1,7 @@
 // Batch queries of a scene, one invocation per point or ray: distances, distances with
-// gradients, sphere-traced rays and closest points. The host prepends the scene's snippet
+// gradients, sphere-traced rays and closest points. Each query's work on element e is a
+// function (`*_element`), which `scene_query_subgroup.wgsl` also calls with one element per
+// subgroup; `lead` says whether this invocation writes the element's outputs. The host prepends the scene's snippet
 // (`Scene::wgsl_with_prefix(1, "scene", ..)`), which defines `scene_distance`, `scene_sample`
 // and the `scene_Sample` type and binds the weights at @group(1). The meaning of every query is
 // the CPU reference's (`serve/scene/cpu.rs`), in f32.
@@ -41,51 +43,59 @@ fn query_non_finite(x: f32) -> bool {
     return (bitcast<u32>(x) & 0x7f800000u) == 0x7f800000u;
 }
 
-@compute @workgroup_size(64)
-fn query_distance(
-    @builtin(workgroup_id) wid: vec3<u32>,
-    @builtin(num_workgroups) nwg: vec3<u32>,
-    @builtin(local_invocation_index) lid: u32,
-) {
-    let i = query_index(wid, nwg, lid);
-    if i >= query.count {
-        return;
+// The query a pipeline runs (SceneQueryKind): 0 distance, 1 sample, 2 trace, 3 project.
+override KIND: u32 = 0u;
+
+// The query of this pipeline on element e; `lead`: this invocation writes the outputs.
+fn query_element(e: u32, lead: bool) {
+    switch KIND {
+        case 0u: {
+            distance_element(e, lead);
+        }
+        case 1u: {
+            sample_element(e, lead);
+        }
+        case 2u: {
+            trace_element(e, lead);
+        }
+        default: {
+            project_element(e, lead);
+        }
     }
-    let e = query.first + i;
-    query_out[e] = scene_distance(query_in[e].xyz) - query.level;
 }
 
 @compute @workgroup_size(64)
-fn query_sample(
+fn query_per_invocation(
     @builtin(workgroup_id) wid: vec3<u32>,
     @builtin(num_workgroups) nwg: vec3<u32>,
     @builtin(local_invocation_index) lid: u32,
 ) {
     let i = query_index(wid, nwg, lid);
-    if i >= query.count {
-        return;
+    if i < query.count {
+        query_element(query.first + i, true);
     }
-    let e = query.first + i;
+}
+
+fn distance_element(e: u32, lead: bool) {
+    let d = scene_distance(query_in[e].xyz) - query.level;
+    if lead {
+        query_out[e] = d;
+    }
+}
+
+fn sample_element(e: u32, lead: bool) {
     let s = scene_sample(query_in[e].xyz);
-    let o = 5u * e;
-    query_out[o] = s.d - query.level;
-    query_out[o + 1u] = s.g.x;
-    query_out[o + 2u] = s.g.y;
-    query_out[o + 3u] = s.g.z;
-    query_out[o + 4u] = bitcast<f32>(s.leaf);
+    if lead {
+        let o = 5u * e;
+        query_out[o] = s.d - query.level;
+        query_out[o + 1u] = s.g.x;
+        query_out[o + 2u] = s.g.y;
+        query_out[o + 3u] = s.g.z;
+        query_out[o + 4u] = bitcast<f32>(s.leaf);
+    }
 }
 
-@compute @workgroup_size(64)
-fn query_trace(
-    @builtin(workgroup_id) wid: vec3<u32>,
-    @builtin(num_workgroups) nwg: vec3<u32>,
-    @builtin(local_invocation_index) lid: u32,
-) {
-    let i = query_index(wid, nwg, lid);
-    if i >= query.count {
-        return;
-    }
-    let e = query.first + i;
+fn trace_element(e: u32, lead: bool) {
     let origin = query_in[2u * e].xyz;
     let max_distance = query_in[2u * e].w;
     let dir = normalize(query_in[2u * e + 1u].xyz);
@@ -105,10 +115,16 @@ fn query_trace(
             break;
         }
     }
+    var s = scene_Sample(0.0, vec3<f32>(0.0), 0u);
+    let p = origin + dir * t;
+    if hit {
+        s = scene_sample(p);
+    }
+    if !lead {
+        return;
+    }
     let o = 10u * e;
     if hit {
-        let p = origin + dir * t;
-        let s = scene_sample(p);
         let len = length(s.g);
         var n = -dir;
         if len > 0.0 {
@@ -131,17 +147,7 @@ fn query_trace(
     query_out[o + 9u] = bitcast<f32>(steps);
 }
 
-@compute @workgroup_size(64)
-fn query_project(
-    @builtin(workgroup_id) wid: vec3<u32>,
-    @builtin(num_workgroups) nwg: vec3<u32>,
-    @builtin(local_invocation_index) lid: u32,
-) {
-    let i = query_index(wid, nwg, lid);
-    if i >= query.count {
-        return;
-    }
-    let e = query.first + i;
+fn project_element(e: u32, lead: bool) {
     var x = query_in[e].xyz;
     var iteration = 0u;
     loop {
@@ -151,14 +157,16 @@ fn query_project(
         let converged = abs(gap) < query.tolerance;
         // A vanished gradient or a NaN cannot be stepped from.
         if converged || iteration == query.max_iterations || g2 < 1e-24 || query_non_finite(gap) {
-            let o = 7u * e;
-            query_out[o] = x.x;
-            query_out[o + 1u] = x.y;
-            query_out[o + 2u] = x.z;
-            query_out[o + 3u] = abs(gap);
-            query_out[o + 4u] = bitcast<f32>(iteration);
-            query_out[o + 5u] = select(0.0, 1.0, converged);
-            query_out[o + 6u] = bitcast<f32>(s.leaf);
+            if lead {
+                let o = 7u * e;
+                query_out[o] = x.x;
+                query_out[o + 1u] = x.y;
+                query_out[o + 2u] = x.z;
+                query_out[o + 3u] = abs(gap);
+                query_out[o + 4u] = bitcast<f32>(iteration);
+                query_out[o + 5u] = select(0.0, 1.0, converged);
+                query_out[o + 6u] = bitcast<f32>(s.leaf);
+            }
             return;
         }
         x -= s.g * (gap / g2);
