@@ -4,7 +4,7 @@
 //! - `scene/rays/3000`: 3000 sphere-traced rays of up to 128 steps;
 //! - both again with the other kernel where the device has subgroups
 //!   (`distance_per_invocation` on a GPU, `distance_per_subgroup` on lavapipe: see
-//!   `SceneKernel`);
+//!   `QueryKernel`);
 //! - `scene/render/1920x1080`: a full-HD image from `Renderer::for_scene`;
 //! - `scene/eight_models/3000`: the 8 single-model queries (`NeuralSdf::eval`) one scene query
 //!   replaces, for the lavapipe comparison.
@@ -20,9 +20,8 @@ use std::time::Duration;
 
 use criterion::{BenchmarkId, Criterion, Throughput};
 use glam::{Quat, Vec3};
-use sdf_nn::serve::scene::{
-    GpuScene, Primitive, Ray, Scene, SceneKernel, SceneNode, TraceOptions, Transform,
-};
+use sdf_nn::serve::query::QueryKernel;
+use sdf_nn::serve::scene::{GpuScene, Primitive, Ray, Scene, SceneNode, TraceOptions, Transform};
 use sdf_nn::{GpuContext, NeuralSdf, Nglod, NglodConfig, Normalization, RenderOptions, Renderer};
 
 /// Eight models: the file of `SCENE_BENCH_MODEL` loaded 8 times, or 8 untrained `default`
@@ -160,14 +159,14 @@ fn main() {
     let mut group = c.benchmark_group("scene");
     group.throughput(Throughput::Elements(n as u64));
     // Both kernels where the device has subgroups, the default one under the plain names.
-    for kernel in [SceneKernel::PerSubgroup, SceneKernel::PerInvocation] {
+    for kernel in [QueryKernel::PerSubgroup, QueryKernel::PerInvocation] {
         if on_gpu.set_kernel(kernel).is_err() {
             continue;
         }
         let suffix = match kernel {
             _ if kernel == default_kernel => "",
-            SceneKernel::PerSubgroup => "_per_subgroup",
-            SceneKernel::PerInvocation => "_per_invocation",
+            QueryKernel::PerSubgroup => "_per_subgroup",
+            QueryKernel::PerInvocation => "_per_invocation",
         };
         group.bench_function(BenchmarkId::new(format!("distance{suffix}"), n), |b| {
             b.iter(|| on_gpu.distances(&pts, 0.0).unwrap())

@@ -208,6 +208,7 @@ fn serving_api_reuses_buffers_and_refuses_misuse() {
             outputs: QueryOutputs::ValuesAndNormals,
             space: QuerySpace::Mesh,
             transfer,
+            kernel: None,
         };
         if transfer == QueryTransfer::Mapped && !mappable {
             assert!(matches!(

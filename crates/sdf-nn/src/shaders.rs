@@ -55,6 +55,12 @@ pub const NGLOD_FORWARD: Shader = shader!(
     "nglod/shaders/" "nglod_forward.wgsl" with ["nglod/shaders/" "nglod_grid.wgsl", "serve/shaders/" "query_map.wgsl"],
     wgpu::Features::empty()
 );
+/// NGLOD and hash-grid serving with one point per subgroup (completed by [`NGLOD_FORWARD`],
+/// whose uniforms, bindings and serving rule it shares).
+pub const NGLOD_QUERY_SUBGROUP: Shader = shader!(
+    "nglod/shaders/" "nglod_query_subgroup.wgsl" with ["nglod/shaders/" "nglod_grid.wgsl", "serve/shaders/" "query_map.wgsl", "nglod/shaders/" "nglod_forward.wgsl"],
+    wgpu::Features::SUBGROUP
+);
 /// NGLOD forward + backward per row, grid scatter with native float atomics.
 pub const NGLOD_TRAIN_ATOMIC: Shader = shader!(
     "nglod/shaders/" "nglod_train_atomic.wgsl" with ["nglod/shaders/" "nglod_grid.wgsl"],
@@ -182,6 +188,7 @@ pub const ALL: &[Shader] = &[
     SIREN_ROR,
     SIREN_TRAIN,
     NGLOD_FORWARD,
+    NGLOD_QUERY_SUBGROUP,
     NGLOD_TRAIN_ATOMIC,
     NGLOD_TRAIN_CAS,
     NGLOD_REDUCE,

@@ -35,7 +35,9 @@ use crate::shaders::Shader;
 pub use adapter::list_adapters;
 use adapter::{describe_info, shares_host_memory};
 pub use error::GpuError;
-pub use options::{ENV_VARIABLES, GpuOptions, StepLayout, skip_device_select_layer_when_headless};
+pub use options::{
+    ENV_VARIABLES, GpuOptions, QueryKernel, StepLayout, skip_device_select_layer_when_headless,
+};
 pub(crate) use staged::UniformStager;
 pub use timer::{GpuTimer, PassProfiler, PassTime};
 
@@ -175,6 +177,35 @@ impl GpuContext {
     pub fn fixed_subgroup_size(&self) -> Option<u32> {
         let info = &self.adapter_info;
         (info.subgroup_min_size == info.subgroup_max_size).then_some(info.subgroup_min_size)
+    }
+
+    /// The widest subgroup the adapter may run, where the device has subgroup operations and a
+    /// workgroup of `workgroup` invocations holds whole subgroups of every width the adapter
+    /// may run (what the one-element-per-subgroup kernels need to count their elements).
+    pub fn subgroups_within(&self, workgroup: u32) -> Option<u32> {
+        let info = &self.adapter_info;
+        let (min, max) = (info.subgroup_min_size, info.subgroup_max_size);
+        let usable = self.device.features().contains(wgpu::Features::SUBGROUP)
+            && min >= 1
+            && max <= workgroup
+            && workgroup.is_multiple_of(max)
+            && workgroup.is_multiple_of(min);
+        usable.then_some(max)
+    }
+
+    /// The kernel of NGLOD, hash-grid and scene queries where the caller names none:
+    /// `HWSDF_QUERY_KERNEL` ([`GpuOptions::query_kernel`]) if set, else
+    /// [`QueryKernel::PerSubgroup`] on a GPU (not a CPU adapter) whose subgroups fit a workgroup
+    /// of 64, else [`QueryKernel::PerInvocation`]. A forced `subgroup` on a device without
+    /// usable subgroups falls back to [`QueryKernel::PerInvocation`].
+    pub fn query_kernel(&self) -> QueryKernel {
+        let usable = self.subgroups_within(64).is_some();
+        match self.options.query_kernel {
+            Some(QueryKernel::PerSubgroup) if usable => QueryKernel::PerSubgroup,
+            Some(_) => QueryKernel::PerInvocation,
+            None if usable && !self.is_cpu() => QueryKernel::PerSubgroup,
+            None => QueryKernel::PerInvocation,
+        }
     }
 
     /// The limits the device was created with.

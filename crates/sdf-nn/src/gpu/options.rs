@@ -14,6 +14,23 @@ pub enum StepLayout {
     Cpu,
 }
 
+/// How a query kernel shares its points (or a scene's rays) among the GPU's invocations. The
+/// answers agree to f32 rounding; the tests hold both to the CPU reference.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum QueryKernel {
+    /// One invocation per point, which evaluates the network alone. The faster on CPU adapters
+    /// (lavapipe runs a workgroup's invocations as the SIMD lanes of one thread), and the
+    /// fallback without subgroup operations.
+    PerInvocation,
+    /// One subgroup per point: its lanes share the network's evaluation (the levels' corners
+    /// split among them, the hidden units strided, the sums by `subgroupAdd`), so a point's
+    /// latency shrinks by about the subgroup's width. Made for GPUs, where a few thousand
+    /// points, one per invocation, leave most of the device idle while each invocation runs
+    /// one long chain of dependent loads. Needs `wgpu::Features::SUBGROUP`, and applies to
+    /// NGLOD models, hash grids and scenes (a SIREN model keeps its own kernels).
+    PerSubgroup,
+}
+
 /// How to choose the adapter and which of its capabilities to use: every library knob that can
 /// come from the environment, read once by [`GpuOptions::from_env`](crate::GpuOptions::from_env).
 #[derive(Clone, Debug)]
@@ -35,6 +52,10 @@ pub struct GpuOptions {
     /// Force the layout of SIREN's training step (`HWSDF_STEP_LAYOUT=gpu|cpu`); `None`: by
     /// adapter.
     pub step_layout: Option<StepLayout>,
+    /// Force the kernel of NGLOD, hash-grid and scene queries
+    /// (`HWSDF_QUERY_KERNEL=invocation|subgroup`); `None`: by adapter
+    /// ([`GpuContext::query_kernel`](crate::GpuContext::query_kernel)).
+    pub query_kernel: Option<QueryKernel>,
 }
 
 impl Default for GpuOptions {
@@ -46,6 +67,7 @@ impl Default for GpuOptions {
             mappable_storage: true,
             cooperative_matrices: true,
             step_layout: None,
+            query_kernel: None,
         }
     }
 }
@@ -58,12 +80,14 @@ pub const ENV_VARIABLES: &[&str] = &[
     "HWSDF_MAPPABLE_STORAGE",
     "HWSDF_NO_COOP",
     "HWSDF_STEP_LAYOUT",
+    "HWSDF_QUERY_KERNEL",
 ];
 
 impl GpuOptions {
     /// Options from the process's environment: `HWSDF_ADAPTER` (index, bus id or name), else
     /// `WGPU_ADAPTER_NAME` (name); `WGPU_BACKEND`; `HWSDF_MAPPABLE_STORAGE=0|1`;
-    /// `HWSDF_NO_COOP=0|1`; `HWSDF_STEP_LAYOUT=gpu|cpu`. An empty variable counts as unset; any
+    /// `HWSDF_NO_COOP=0|1`; `HWSDF_STEP_LAYOUT=gpu|cpu`;
+    /// `HWSDF_QUERY_KERNEL=invocation|subgroup`. An empty variable counts as unset; any
     /// other value than those listed is an error naming the allowed ones.
     pub fn from_env() -> Result<Self, GpuError> {
         Self::from_vars(|name| std::env::var(name).ok())
@@ -120,6 +144,13 @@ impl GpuOptions {
                     StepLayout::Cpu
                 }
             }),
+            query_kernel: choice("HWSDF_QUERY_KERNEL", &["invocation", "subgroup"])?.map(|i| {
+                if i == 0 {
+                    QueryKernel::PerInvocation
+                } else {
+                    QueryKernel::PerSubgroup
+                }
+            }),
         })
     }
 
@@ -157,7 +188,7 @@ pub unsafe fn skip_device_select_layer_when_headless() {
 
 #[cfg(test)]
 mod tests {
-    use super::{GpuOptions, StepLayout};
+    use super::{GpuOptions, QueryKernel, StepLayout};
 
     fn options(vars: &[(&str, &str)]) -> Result<GpuOptions, String> {
         GpuOptions::from_vars(|name| {
@@ -174,6 +205,7 @@ mod tests {
         assert!(o.adapter.is_none() && o.backends.is_none());
         assert!(o.mappable_storage && o.cooperative_matrices);
         assert_eq!(o.step_layout, None);
+        assert_eq!(o.query_kernel, None);
         // An empty variable counts as unset.
         let o = options(&[("HWSDF_NO_COOP", " "), ("HWSDF_ADAPTER", "")]).unwrap();
         assert!(o.cooperative_matrices && o.adapter.is_none());
@@ -185,12 +217,14 @@ mod tests {
             ("HWSDF_MAPPABLE_STORAGE", "0"),
             ("HWSDF_NO_COOP", "1"),
             ("HWSDF_STEP_LAYOUT", "CPU"),
+            ("HWSDF_QUERY_KERNEL", "Subgroup"),
             ("WGPU_BACKEND", "vulkan"),
             ("WGPU_ADAPTER_NAME", "llvmpipe"),
         ])
         .unwrap();
         assert!(!o.mappable_storage && !o.cooperative_matrices);
         assert_eq!(o.step_layout, Some(StepLayout::Cpu));
+        assert_eq!(o.query_kernel, Some(QueryKernel::PerSubgroup));
         assert_eq!(o.backends, Some(wgpu::Backends::VULKAN));
         assert_eq!(o.adapter.as_deref(), Some("llvmpipe"));
         assert_eq!(o.adapter_from, "WGPU_ADAPTER_NAME");
@@ -209,6 +243,7 @@ mod tests {
     fn unknown_values_are_errors_that_name_the_allowed_ones() {
         for (name, value, allowed) in [
             ("HWSDF_STEP_LAYOUT", "sideways", "gpu, cpu"),
+            ("HWSDF_QUERY_KERNEL", "warp", "invocation, subgroup"),
             ("HWSDF_NO_COOP", "yes", "0, 1"),
             ("HWSDF_MAPPABLE_STORAGE", "off", "0, 1"),
             ("WGPU_BACKEND", "vulcan", "vulkan"),

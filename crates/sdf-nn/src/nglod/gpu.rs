@@ -78,6 +78,8 @@ pub(crate) struct NglodEvalBinding {
     bind_group: wgpu::BindGroup,
     /// Centre (xyz) and scale (w) of the map from mesh coordinates.
     transform: [f32; 4],
+    /// Points per workgroup: `WG`, or `WG / width` for the one-point-per-subgroup kernel.
+    per_group: u32,
     /// The point count and level the uniforms hold.
     written: Option<(u32, usize)>,
 }
@@ -362,7 +364,9 @@ impl NglodGpu {
     /// coordinates, mapped to the model's cube by `center` and `scale`) and `output` (the
     /// distance in mesh units per point, or with `gradients` a `vec4`: distance and unit
     /// normal), for [`NglodGpu::record_eval`]. The whole query is this one dispatch. Holds its
-    /// own small uniform buffer for the point count.
+    /// own small uniform buffer for the point count. With `subgroup_width` (the widest
+    /// subgroup the adapter may run, which divides `WG`) the kernel is
+    /// `shaders/nglod_query_subgroup.wgsl`'s, one point per subgroup.
     pub(crate) fn eval_binding(
         &self,
         gpu: &GpuContext,
@@ -370,9 +374,15 @@ impl NglodGpu {
         output: &wgpu::Buffer,
         gradients: bool,
         (center, scale): (Vec3, f32),
+        subgroup_width: Option<u32>,
     ) -> Result<NglodEvalBinding, NglodError> {
-        let entry_point = if gradients { "query_grad" } else { "query" };
-        let pipeline = gpu.pipeline(&shaders::NGLOD_FORWARD, entry_point, &self.constants)?;
+        let (shader, entry_point, per_group) = match (subgroup_width, gradients) {
+            (None, false) => (&shaders::NGLOD_FORWARD, "query", WG),
+            (None, true) => (&shaders::NGLOD_FORWARD, "query_grad", WG),
+            (Some(w), false) => (&shaders::NGLOD_QUERY_SUBGROUP, "query_sg", WG / w),
+            (Some(w), true) => (&shaders::NGLOD_QUERY_SUBGROUP, "query_grad_sg", WG / w),
+        };
+        let pipeline = gpu.pipeline(shader, entry_point, &self.constants)?;
         let uniforms = gpu.uniform("nglod query uniforms", &self.eval_uniforms(0, 0));
         let bind_group = gpu.device().create_bind_group(&wgpu::BindGroupDescriptor {
             label: Some("nglod query"),
@@ -391,6 +401,7 @@ impl NglodGpu {
             uniforms,
             bind_group,
             transform: center.extend(scale).to_array(),
+            per_group,
             written: None,
         })
     }
@@ -428,7 +439,7 @@ impl NglodGpu {
         });
         pass.set_pipeline(&binding.pipeline);
         pass.set_bind_group(0, &binding.bind_group, &[]);
-        let (x, y) = gpu.dispatch_size(n.div_ceil(WG));
+        let (x, y) = gpu.dispatch_size(n.div_ceil(binding.per_group));
         pass.dispatch_workgroups(x, y, 1);
         Ok(())
     }

@@ -69,6 +69,16 @@ pub enum QueryError {
     /// A submission is still in flight on these buffers (wait for it first).
     #[error("a query is already in flight on these buffers; wait for its ticket first")]
     Busy,
+    /// [`QueryKernel::PerSubgroup`](crate::serve::query::QueryKernel::PerSubgroup) was asked
+    /// of a device without usable subgroups.
+    #[error(
+        "{adapter} has no subgroup operations usable by the one-point-per-subgroup query \
+         kernel: use QueryKernel::PerInvocation"
+    )]
+    NoSubgroups {
+        /// The adapter.
+        adapter: String,
+    },
     /// The ticket is not the one in flight on these buffers.
     #[error("this ticket does not belong to the query in flight on these buffers")]
     StaleTicket,

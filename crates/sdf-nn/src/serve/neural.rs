@@ -445,6 +445,7 @@ impl NeuralSdf {
                         } else {
                             QueryTransfer::Staged
                         },
+                        kernel: None,
                     },
                 )?;
                 match found {

@@ -7,9 +7,10 @@ use std::time::{Duration, Instant};
 
 use glam::{Quat, Vec3};
 use sdf_nn::GpuContext;
+use sdf_nn::serve::query::QueryKernel;
 use sdf_nn::serve::scene::{
-    GpuScene, Primitive, ProjectOptions, Ray, Scene, SceneGpuError, SceneKernel, SceneNode,
-    SceneQueryError, SceneQueryKind, TraceOptions, Transform,
+    GpuScene, Primitive, ProjectOptions, Ray, Scene, SceneGpuError, SceneNode, SceneQueryError,
+    SceneQueryKind, TraceOptions, Transform,
 };
 use sdf_nn::{NeuralSdf, Nglod, NglodConfig, Normalization};
 
@@ -250,17 +251,17 @@ fn analytic_rays_and_closest_points_match_the_cpu() {
 /// difference: the GPU's distances, normals, rays and closest points agree with the CPU's.
 #[test]
 fn placed_models_match_the_cpu() {
-    placed_models_match_the_cpu_on(SceneKernel::PerInvocation);
+    placed_models_match_the_cpu_on(QueryKernel::PerInvocation);
 }
 
 /// The same with one subgroup per point or ray (lavapipe has subgroups of 8 lanes).
 #[test]
 fn placed_models_match_the_cpu_one_subgroup_per_element() {
-    placed_models_match_the_cpu_on(SceneKernel::PerSubgroup);
+    placed_models_match_the_cpu_on(QueryKernel::PerSubgroup);
 }
 
 /// `scene` on the GPU, its queries run by `kernel`.
-fn scene_on(scene: &Scene, kernel: SceneKernel) -> GpuScene<'static> {
+fn scene_on(scene: &Scene, kernel: QueryKernel) -> GpuScene<'static> {
     let mut on_gpu = GpuScene::new(gpu(), scene).unwrap();
     on_gpu
         .set_kernel(kernel)
@@ -268,7 +269,7 @@ fn scene_on(scene: &Scene, kernel: SceneKernel) -> GpuScene<'static> {
     on_gpu
 }
 
-fn placed_models_match_the_cpu_on(kernel: SceneKernel) {
+fn placed_models_match_the_cpu_on(kernel: QueryKernel) {
     let model = Arc::new(sphere_model(1.0));
     // A hash grid beside the NGLOD model: one scene, both encodings.
     let other = Arc::new(hashed_sphere_model(0.8));
@@ -656,7 +657,7 @@ fn wide_networks_match_the_cpu_on_both_kernels() {
     .unwrap();
     let points = random_points(600, 1.6, 21);
     let cpu = scene.distances_and_gradients(&points, 0.0);
-    for kernel in [SceneKernel::PerInvocation, SceneKernel::PerSubgroup] {
+    for kernel in [QueryKernel::PerInvocation, QueryKernel::PerSubgroup] {
         let on_gpu = scene_on(&scene, kernel);
         let d = on_gpu.distances(&points, 0.0).unwrap();
         let samples = on_gpu.samples(&points, 0.0).unwrap();

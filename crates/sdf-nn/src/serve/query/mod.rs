@@ -67,6 +67,7 @@ use std::time::Duration;
 
 use glam::Vec3;
 
+pub use crate::gpu::QueryKernel;
 use crate::gpu::{GpuContext, GpuError};
 use crate::nglod::gpu::NglodEvalBinding;
 use crate::serve::error::{NeuralSdfError, QueryError};
@@ -119,6 +120,10 @@ pub struct QueryBuffersDescriptor<'a> {
     pub space: QuerySpace,
     /// How [`NeuralSdf::submit_query`](crate::NeuralSdf::submit_query) moves points in and results out.
     pub transfer: QueryTransfer,
+    /// The kernel of an NGLOD model or hash grid; `None`: the device's
+    /// ([`GpuContext::query_kernel`]). [`QueryKernel::PerSubgroup`] on a device without usable subgroups is
+    /// [`QueryError::NoSubgroups`].
+    pub kernel: Option<QueryKernel>,
 }
 
 /// How [`NeuralSdf::submit_query`](crate::NeuralSdf::submit_query) and [`QueryBuffers::wait`] move points and results between

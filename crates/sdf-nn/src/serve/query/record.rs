@@ -6,7 +6,7 @@ use std::sync::Arc;
 use glam::Vec3;
 
 use super::{
-    Kernels, MapSlot, NEXT_GENERATION, Prepared, QueryBuffers, QueryBuffersDescriptor,
+    Kernels, MapSlot, NEXT_GENERATION, Prepared, QueryBuffers, QueryBuffersDescriptor, QueryKernel,
     QueryOutputs, QuerySpace, QueryTicket, QueryTransfer, QueryUniforms, Stages, WG,
 };
 use crate::gpu::{GpuContext, GpuError, GpuTimer, entry};
@@ -81,10 +81,22 @@ impl QueryBuffers {
             QuerySpace::Normalized => (Vec3::ZERO, 1.0),
         };
         let map = transform.0.extend(transform.1);
+        let kernel = desc.kernel.unwrap_or_else(|| gpu.query_kernel());
         let one_dispatch = match network {
-            GpuNetwork::Nglod(m) => Some(Kernels::Nglod(
-                m.eval_binding(gpu, &points, &results, normals, transform)?,
-            )),
+            GpuNetwork::Nglod(m) => {
+                // The subgroup kernel counts 64 / width points per workgroup.
+                let per_group = match kernel {
+                    QueryKernel::PerInvocation => None,
+                    QueryKernel::PerSubgroup => Some(gpu.subgroups_within(64).ok_or_else(
+                        || QueryError::NoSubgroups {
+                            adapter: gpu.describe(),
+                        },
+                    )?),
+                };
+                Some(Kernels::Nglod(m.eval_binding(
+                    gpu, &points, &results, normals, transform, per_group,
+                )?))
+            }
             GpuNetwork::Siren(s) => s
                 .query_launch(gpu, &points, &results, desc.capacity, normals, map)?
                 .map(Kernels::Siren),

@@ -399,3 +399,72 @@ fn query_uniforms_mirror_the_shader() {
         [n_points, streams, normals, scale, center]
     );
 }
+
+/// The one-point-per-subgroup kernel (`QueryKernel::PerSubgroup`) against the CPU, distances
+/// and distances with normals in mesh coordinates, on networks whose every width matters to
+/// it: NGLOD with 6 features (a partial `vec4` of inputs), 40 hidden units (not a multiple of
+/// any subgroup's width) and a sparse finest level; a hash grid of 5 levels (more than the
+/// 8-lane groups of a 32-wide subgroup), the finer ones hashed. 301 points: the last
+/// workgroup is part empty.
+#[test]
+fn subgroup_queries_match_the_cpu() {
+    use crate::serve::query::{QueryBuffersDescriptor, QueryKernel, QueryOutputs};
+    let gpu = gpu();
+    if gpu.subgroups_within(64).is_none() {
+        eprintln!("skipped: {} has no usable subgroups", gpu.describe());
+        return;
+    }
+    let mut sparse = Nglod::new(NglodConfig {
+        resolutions: vec![2, 4, 8, 16],
+        feature_dim: 6,
+        hidden: 40,
+        seed: 5,
+        sparse_levels: 1,
+        ..NglodConfig::small()
+    })
+    .unwrap();
+    sparse.place_bands(|p| (p.length() - 0.5).abs()).unwrap();
+    let hashed = Nglod::new(NglodConfig::hashgrid(5, 4, 40, 2, 11, 24)).unwrap();
+    let n = Normalization {
+        center: glam::DVec3::new(0.2, -0.1, 0.3),
+        scale: 0.8,
+    };
+    let pts = points();
+    for (name, model) in [("nglod", sparse), ("hashgrid", hashed)] {
+        let served = sdf(model.to_model_file(n, serde_json::Value::Null));
+        for outputs in [QueryOutputs::Values, QueryOutputs::ValuesAndNormals] {
+            let mut buffers = served
+                .create_query_buffers(
+                    gpu,
+                    &QueryBuffersDescriptor {
+                        capacity: pts.len() as u32,
+                        outputs,
+                        kernel: Some(QueryKernel::PerSubgroup),
+                        ..Default::default()
+                    },
+                )
+                .unwrap();
+            let ticket = served.submit_query(gpu, &mut buffers, &pts).unwrap();
+            let results = buffers.wait(gpu, ticket).unwrap();
+            if outputs == QueryOutputs::Values {
+                let mut got = Vec::new();
+                results.extend_values(&mut got);
+                assert_close(&got, &served.eval_cpu(&pts), name);
+                continue;
+            }
+            let mut got = Vec::new();
+            results.extend_values_and_normals(&mut got);
+            let want = served.eval_with_normals_cpu(&pts);
+            for (i, ((d, normal), (wd, wnormal))) in got.iter().zip(&want).enumerate() {
+                assert!(
+                    (d - wd).abs() <= 1e-4 * wd.abs().max(1.0),
+                    "{name} {i}: {d} vs {wd}"
+                );
+                assert!(
+                    normal.abs_diff_eq(*wnormal, 2e-3),
+                    "{name} {i}: normal {normal} vs {wnormal}"
+                );
+            }
+        }
+    }
+}

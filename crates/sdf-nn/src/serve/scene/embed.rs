@@ -73,11 +73,11 @@ pub enum SceneGpuError {
     /// A query's input is refused (a bad ray, level or tolerance).
     #[error(transparent)]
     Query(#[from] SceneQueryError),
-    /// [`SceneKernel::PerSubgroup`](super::SceneKernel::PerSubgroup) was asked of a device
+    /// [`QueryKernel::PerSubgroup`](crate::serve::query::QueryKernel::PerSubgroup) was asked of a device
     /// without subgroup operations (or with subgroups wider than a query workgroup).
     #[error(
         "{adapter} has no subgroup operations usable by the scene's subgroup kernels: use \
-         SceneKernel::PerInvocation"
+         QueryKernel::PerInvocation"
     )]
     NoSubgroups {
         /// The adapter.

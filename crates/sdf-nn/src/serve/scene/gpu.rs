@@ -23,10 +23,11 @@
 //! projections take the same steps.
 //!
 //! # Kernels
-//! [`SceneKernel::PerSubgroup`] (the default on GPUs with subgroup operations) takes each point
+//! [`QueryKernel::PerSubgroup`] (the default on GPUs with subgroup operations) takes each point
 //! or ray with a whole subgroup, which shares every model's evaluation;
-//! [`SceneKernel::PerInvocation`] (the default on CPU adapters, where it is the faster) takes
-//! one per invocation. [`GpuScene::set_kernel`] switches; the answers agree to f32 rounding.
+//! [`QueryKernel::PerInvocation`] (the default on CPU adapters, where it is the faster) takes
+//! one per invocation. [`GpuContext::query_kernel`] chooses (`HWSDF_QUERY_KERNEL` forces one),
+//! [`GpuScene::set_kernel`] switches; the answers agree to f32 rounding.
 //!
 //! # Serving
 //! The plain calls ([`GpuScene::distances`], [`GpuScene::samples`], [`GpuScene::trace_rays`],
@@ -44,6 +45,7 @@ use std::sync::{Mutex, OnceLock};
 
 use glam::Vec3;
 
+use crate::gpu::QueryKernel;
 use crate::gpu::{GpuContext, GpuError, entry};
 use crate::serve::scene::cpu::{
     ClosestPoint, ProjectOptions, Ray, RayHit, SceneQueryError, SceneSample, TraceOptions,
@@ -114,22 +116,6 @@ impl SceneQueryKind {
     fn index(self) -> usize {
         self as usize
     }
-}
-
-/// How the query kernels share out their work.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
-pub enum SceneKernel {
-    /// One invocation per point or ray, which evaluates every model it needs alone. The
-    /// faster on CPU adapters (lavapipe runs a workgroup's invocations as SIMD lanes of one
-    /// thread), and the fallback where the device has no subgroup operations.
-    PerInvocation,
-    /// One subgroup per point or ray: its lanes take the element through the scene together
-    /// and share each model's evaluation (the trilinear gathers and the hidden units, then a
-    /// `subgroupAdd`), so an evaluation's latency shrinks by about the subgroup's width and the
-    /// lanes never diverge over which models to evaluate. Made for GPUs, where a few thousand
-    /// points or rays, one per invocation, leave most of the device idle while each invocation
-    /// runs its models one after the other. Needs `wgpu::Features::SUBGROUP`.
-    PerSubgroup,
 }
 
 /// The kernels' uniform (`SceneQuery` in `shaders/scene_query.wgsl`).
@@ -212,14 +198,14 @@ pub struct SceneQueryBuffers {
 #[derive(Debug)]
 pub struct GpuScene<'g> {
     gpu: &'g GpuContext,
-    /// Per kernel (`SceneKernel as usize`) where the device runs it.
+    /// Per kernel (`QueryKernel as usize`) where the device runs it.
     modules: Vec<wgpu::ShaderModule>,
     layout: wgpu::PipelineLayout,
     query_layout: wgpu::BindGroupLayout,
     weights: SceneBindGroup,
     /// Per kernel, per kind (`kernel as usize * 4 + kind`).
     pipelines: [OnceLock<wgpu::ComputePipeline>; 8],
-    kernel: SceneKernel,
+    kernel: QueryKernel,
     /// The widest subgroup the adapter may run, where the module has the subgroup kernels.
     subgroup_width: Option<u32>,
     lipschitz: f32,
@@ -252,13 +238,12 @@ pub const MORTON_ON_GPU: usize = 1024;
 
 impl<'g> GpuScene<'g> {
     /// Compiles `scene` for `gpu`'s device and uploads its weights. Measures the models'
-    /// Lipschitz estimates (for rays) if the scene has not yet. The queries run
-    /// [`SceneKernel::PerSubgroup`] on a GPU with subgroup operations and
-    /// [`SceneKernel::PerInvocation`] elsewhere (see [`GpuScene::set_kernel`]).
+    /// Lipschitz estimates (for rays) if the scene has not yet. The queries run the device's
+    /// kernel ([`GpuContext::query_kernel`]; [`GpuScene::set_kernel`] changes it).
     pub fn new(gpu: &'g GpuContext, scene: &Scene) -> Result<GpuScene<'g>, SceneGpuError> {
         let device = gpu.device();
         let limits = gpu.limits();
-        let subgroup_width = subgroup_width(gpu);
+        let subgroup_width = gpu.subgroups_within(WG);
         let forms: &[Lanes] = match subgroup_width {
             Some(_) => &[Lanes::One, Lanes::Subgroup],
             None => &[Lanes::One],
@@ -332,9 +317,10 @@ impl<'g> GpuScene<'g> {
                 .min(max_dispatch * max_dispatch * u64::from(per_group))
                 .min(u64::from(u32::MAX / 16)) as u32
         });
-        let kernel = match subgroup_width {
-            Some(_) if !gpu.is_cpu() => SceneKernel::PerSubgroup,
-            _ => SceneKernel::PerInvocation,
+        // The device's choice, where this module has its kernel.
+        let kernel = match (gpu.query_kernel(), subgroup_width) {
+            (QueryKernel::PerSubgroup, Some(_)) => QueryKernel::PerSubgroup,
+            _ => QueryKernel::PerInvocation,
         };
         Ok(GpuScene {
             gpu,
@@ -378,15 +364,15 @@ impl<'g> GpuScene<'g> {
     }
 
     /// The kernels the queries run.
-    pub fn kernel(&self) -> SceneKernel {
+    pub fn kernel(&self) -> QueryKernel {
         self.kernel
     }
 
     /// Chooses the kernels of the next queries (the answers agree to f32 rounding).
-    /// [`SceneKernel::PerSubgroup`] needs a device with subgroup operations whose subgroups are
+    /// [`QueryKernel::PerSubgroup`] needs a device with subgroup operations whose subgroups are
     /// at most 64 wide ([`SceneGpuError::NoSubgroups`] otherwise).
-    pub fn set_kernel(&mut self, kernel: SceneKernel) -> Result<(), SceneGpuError> {
-        if kernel == SceneKernel::PerSubgroup && self.subgroup_width.is_none() {
+    pub fn set_kernel(&mut self, kernel: QueryKernel) -> Result<(), SceneGpuError> {
+        if kernel == QueryKernel::PerSubgroup && self.subgroup_width.is_none() {
             return Err(SceneGpuError::NoSubgroups {
                 adapter: self.gpu.describe(),
             });
@@ -404,8 +390,8 @@ impl<'g> GpuScene<'g> {
         let device = self.gpu.device();
         let scope = device.push_error_scope(wgpu::ErrorFilter::Validation);
         let entry_point = match self.kernel {
-            SceneKernel::PerInvocation => "query_per_invocation",
-            SceneKernel::PerSubgroup => "query_per_subgroup",
+            QueryKernel::PerInvocation => "query_per_invocation",
+            QueryKernel::PerSubgroup => "query_per_subgroup",
         };
         let pipeline = device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
             label: Some(kind.label()),
@@ -519,7 +505,7 @@ impl<'g> GpuScene<'g> {
     ) -> Result<(), GpuError> {
         let pipeline = self.pipeline(kind)?;
         let per_group = match (self.kernel, self.subgroup_width) {
-            (SceneKernel::PerSubgroup, Some(width)) => WG / width,
+            (QueryKernel::PerSubgroup, Some(width)) => WG / width,
             _ => WG,
         };
         let (x, y) = self.gpu.dispatch_size(count.div_ceil(per_group));
@@ -588,7 +574,7 @@ impl<'g> GpuScene<'g> {
         params: &SceneQueryParams,
     ) -> Result<Vec<f32>, GpuError> {
         // A subgroup per point never diverges over models: nothing to gain from the order.
-        let sort = self.kernel == SceneKernel::PerInvocation
+        let sort = self.kernel == QueryKernel::PerInvocation
             && (points.len() >= MORTON_ON_GPU || (self.gpu.is_cpu() && points.len() >= 256));
         if !sort {
             let inputs: Vec<[f32; 4]> = points.iter().map(|p| p.extend(0.0).to_array()).collect();
@@ -751,19 +737,6 @@ impl<'g> GpuScene<'g> {
     pub fn leaf_count(&self) -> usize {
         self.leaves
     }
-}
-
-/// The widest subgroup `gpu`'s adapter may run, where its device has subgroup operations and
-/// a workgroup of [`WG`] holds whole subgroups of every width it may run.
-fn subgroup_width(gpu: &GpuContext) -> Option<u32> {
-    let info = gpu.adapter_info();
-    let (min, max) = (info.subgroup_min_size, info.subgroup_max_size);
-    let usable = gpu.device().features().contains(wgpu::Features::SUBGROUP)
-        && min >= 1
-        && max <= WG
-        && WG.is_multiple_of(max)
-        && WG.is_multiple_of(min);
-    usable.then_some(max)
 }
 
 #[cfg(test)]

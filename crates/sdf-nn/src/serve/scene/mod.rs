@@ -43,7 +43,7 @@ pub use cpu::{
 };
 pub use embed::{MAX_SCENE_PREFIX, SceneBindGroup, SceneGpuError};
 pub use file::{SceneFileError, tree_from_toml};
-pub use gpu::{GpuScene, SceneKernel, SceneQueryBuffers, SceneQueryKind, SceneQueryParams};
+pub use gpu::{GpuScene, SceneQueryBuffers, SceneQueryKind, SceneQueryParams};
 pub use primitive::Primitive;
 pub use tree::{
     Instruction, Leaf, LeafKind, MAX_DEPTH, MAX_LEAVES, MAX_MODELS, Scene, SceneError, SceneNode,
