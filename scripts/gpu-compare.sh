@@ -43,10 +43,16 @@
 # time goes, launch by launch, from GPU timestamps (SIREN_BENCH_PROFILE; issue 12's ≤ 2 ms per
 # step); its log is DIR/results/siren-profile.txt. Environment:
 #   GPU_COMPARE_PRESETS=small,default   presets to run (both by default)
-#   GPU_COMPARE_STAGES=checks,bench,coop,blocks,split,phases,profile,torch,fit,scene,groundtruth,hashgrid,corpus
+#   GPU_COMPARE_STAGES=checks,bench,kernels,coop,blocks,split,phases,profile,torch,fit,scene,groundtruth,hashgrid,corpus
 #                                       what to run (default all; split a session's runs with it).
+#                                       `kernels` runs the query bench's NGLOD and hash-grid
+#                                       rows once per query kernel (HWSDF_QUERY_KERNEL=invocation
+#                                       and subgroup, 10, 3000 and 50 000 points;
+#                                       DIR/results/query-kernel-*.txt), which decides the
+#                                       GPU default (issue 39's ≤ 60 µs per 3000);
 #                                       `scene` runs benches/scene (issue 37's targets, with the
-#                                       fit stage's NGLOD model when it ran); `groundtruth` the
+#                                       fit stage's NGLOD model when it ran; both query kernels
+#                                       side by side); `groundtruth` the
 #                                       ground_truth_bench example: GPU against CPU labels on
 #                                       spot and on armadillo split to 1.4 M triangles (needs
 #                                       GPU_COMPARE_MESHES at pack time; else spot twice);
@@ -245,7 +251,7 @@ run() {
     fi
     export CRITERION_HOME="$res/criterion"
     export SIREN_BENCH_PRESETS=${GPU_COMPARE_PRESETS:-small,default}
-    local stages=",${GPU_COMPARE_STAGES:-checks,bench,coop,blocks,split,phases,profile,torch,fit,scene,groundtruth,hashgrid,corpus},"
+    local stages=",${GPU_COMPARE_STAGES:-checks,bench,kernels,coop,blocks,split,phases,profile,torch,fit,scene,groundtruth,hashgrid,corpus},"
     if [[ $stages == *,checks,* ]]; then
         # Kernels designed on lavapipe meet a real GPU here: other subgroup sizes, real
         # parallelism within a workgroup, other limits. Figures from kernels that fail their
@@ -277,6 +283,18 @@ run() {
         echo "== bench $name"
         "$b" --bench 2>&1 | tee "$res/bench-$name.txt"
     done
+    if [[ $stages == *,kernels,* ]] && [ -x benches/query ]; then
+        # One point per invocation against one per subgroup (the default on GPUs, chosen on
+        # paper: a 3000-point query leaves one long chain of loads per invocation).
+        local k
+        for k in invocation subgroup; do
+            echo "== NGLOD and hash-grid queries, HWSDF_QUERY_KERNEL=$k"
+            HWSDF_QUERY_KERNEL=$k QUERY_BENCH_PRESETS=default,hashgrid_small,hashgrid_default \
+                QUERY_BENCH_POINTS=10,3000,50000 CRITERION_HOME="$res/criterion-kernel-$k" \
+                benches/query --bench neural_sdf --measurement-time 2 --warm-up-time 1 2>&1 \
+                | grep -v XDG_RUNTIME_DIR | tee "$res/query-kernel-$k.txt" || echo "(failed)"
+        done
+    fi
     if [[ $stages == *,coop,* ]]; then
         if grep -q 'cooperative matrices (f32 accumulators): none' "$res/gpu-info.txt"; then
             echo "== no f16 cooperative matrices on this adapter: coop stage skipped" | tee "$res/coop-missing.txt"
