@@ -122,7 +122,7 @@ pub const SIREN_TRAIN: Shader =
 /// The serving path's ends: points to network input, network output to distances and normals.
 pub const QUERY: Shader = shader!("serve/shaders/" "query.wgsl" with ["serve/shaders/" "query_map.wgsl"], wgpu::Features::empty());
 
-/// The sphere tracer of [`mod@crate::serve::render`]. It calls `hwsdf_distance` / `hwsdf_normal`, so it
+/// The sphere tracer of [`mod@crate::serve::render`]. It calls `hwsdf_trace` / `hwsdf_normal`, so it
 /// compiles only after a model's [`crate::NeuralSdf::wgsl`] snippet (listed in [`NEEDS_MODEL`]).
 pub const SPHERE_TRACE: Shader =
     shader!("serve/shaders/" "sphere_trace.wgsl", wgpu::Features::empty());
@@ -223,11 +223,13 @@ pub(crate) use assert_mirrors;
 /// Stand-ins for what a model's or a scene's snippet defines, for [`check_mirror`] of the
 /// shaders in [`NEEDS_MODEL`] (only their own types matter there).
 #[cfg(test)]
-const MODEL_STAND_INS: &str = "fn hwsdf_distance(p: vec3<f32>) -> f32 { return 0.0; }
+const MODEL_STAND_INS: &str =
+    "fn hwsdf_trace(p: vec3<f32>, c: f32) -> vec2<f32> { return vec2<f32>(0.0); }
 fn hwsdf_normal(p: vec3<f32>) -> vec3<f32> { return p; }
 struct scene_Sample { d: f32, g: vec3<f32>, leaf: u32 }
 fn scene_distance(p: vec3<f32>) -> f32 { return 0.0; }
-fn scene_sample(p: vec3<f32>) -> scene_Sample { return scene_Sample(0.0, p, 0u); }";
+fn scene_sample(p: vec3<f32>) -> scene_Sample { return scene_Sample(0.0, p, 0u); }
+fn scene_trace(p: vec3<f32>, c: f32) -> vec2<f32> { return vec2<f32>(0.0); }";
 
 /// The check of [`assert_mirrors`]: `fields` are the Rust fields' names and byte offsets.
 #[cfg(test)]

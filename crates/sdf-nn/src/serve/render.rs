@@ -321,7 +321,7 @@ pub struct Renderer {
     macs_per_eval: u64,
     /// See [`Renderer::set_max_submission_macs`].
     max_submission_macs: u64,
-    /// The step factor's divisor: 1 for a model, the scene's Lipschitz constant for a scene.
+    /// The step factor's divisor: 1 for a model and for a scene (whose trace field is 1-Lipschitz).
     lipschitz: f32,
 }
 
@@ -384,7 +384,8 @@ impl Renderer {
 
     /// Compiles the sphere tracer for a whole scene ([`Scene::wgsl_with_prefix`]) and uploads
     /// its weights. The camera frames [`Scene::frame`] (at the options' level, when the image is
-    /// rendered); rays step by the scene's Lipschitz bound ([`Scene::lipschitz`]).
+    /// rendered); rays step by the scene's trace field (`{prefix}_trace`: at least `|d − c|`
+    /// over the scene's Lipschitz bound, see [`Scene::trace_rays`]).
     pub fn for_scene(gpu: &GpuContext, scene: &Scene) -> Result<Self, RenderError> {
         // The tracer binds its image besides the weights.
         let (snippets, weights) =
@@ -392,7 +393,7 @@ impl Renderer {
         let weights = Weights::Scene(weights);
         let source = format!(
             "{}\n\
-             fn hwsdf_distance(p: vec3<f32>) -> f32 {{ return scene_distance(p); }}\n\
+             fn hwsdf_trace(p: vec3<f32>, c: f32) -> vec2<f32> {{ return scene_trace(p, c); }}\n\
              fn hwsdf_normal(p: vec3<f32>) -> vec3<f32> {{ return scene_normal(p); }}\n{}",
             snippets[0], SPHERE_TRACE.source
         );
@@ -402,17 +403,12 @@ impl Renderer {
             .map(|m| m.param_count() as u64)
             .sum::<u64>()
             + scene.leaves().len() as u64 * 64;
-        Self::compile(
-            gpu,
-            source,
-            weights,
-            scene.frame(0.0),
-            params,
-            scene.lipschitz(),
-        )
+        // The scene's trace field is 1-Lipschitz already (its steps divide each operand by
+        // its own bound).
+        Self::compile(gpu, source, weights, scene.frame(0.0), params, 1.0)
     }
 
-    /// The pipeline of `source` (a snippet defining `hwsdf_distance` and `hwsdf_normal`, then
+    /// The pipeline of `source` (a snippet defining `hwsdf_trace` and `hwsdf_normal`, then
     /// the tracer) with `weights` at group 1.
     fn compile(
         gpu: &GpuContext,

@@ -7,6 +7,9 @@
 //!   gradient, or the direction away from the model's box outside it);
 //! - `fn hwsdf_distance_normal(p: vec3<f32>) -> vec4<f32>`: both from one evaluation (x: the
 //!   distance, yzw: the normal);
+//! - `fn hwsdf_trace(p: vec3<f32>, c: f32) -> vec2<f32>`: for sphere tracers, the distance
+//!   less a level `c` and the step to take (the same value for one model; a scene's
+//!   `{prefix}_trace` gives a larger safe step);
 //!
 //! and in the model's normalised cube `[-1, 1]³`: `hwsdf_distance_normalized` and
 //! `hwsdf_normal_normalized`. The normalisation (centre and scale) and the architecture (widths,
@@ -392,6 +395,13 @@ fn hwsdf_normal_normalized(x: vec3<f32>) -> vec3<f32> {
 // Signed distance at a point in the original mesh's coordinates, in mesh units.
 fn hwsdf_distance(p: vec3<f32>) -> f32 {
     return hwsdf_distance_normalized((p - HWSDF_CENTER) * HWSDF_SCALE) / HWSDF_SCALE;
+}
+
+// For sphere tracers, as a scene's `_trace`: x, the distance less the level c; y, the step
+// (here the same: the model is traced as a distance, its Lipschitz estimate left to the caller).
+fn hwsdf_trace(p: vec3<f32>, c: f32) -> vec2<f32> {
+    let d = hwsdf_distance(p) - c;
+    return vec2<f32>(d, d);
 }
 
 // Unit outward normal at a point in mesh coordinates (a uniform scale keeps directions).

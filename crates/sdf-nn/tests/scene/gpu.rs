@@ -16,6 +16,7 @@ use sdf_nn::{NeuralSdf, Nglod, NglodConfig, Normalization};
 
 use crate::models::{hashed_sphere_model, sphere_model};
 use crate::random_points;
+use crate::sphere_at;
 
 fn gpu() -> &'static GpuContext {
     GpuContext::shared().expect("a GPU adapter (lavapipe in CI)")
@@ -572,7 +573,8 @@ fn unions_of_many_models_match_the_cpu() {
         let wgsl = scene
             .wgsl_with_prefix(0, "s", &gpu().device().limits())
             .unwrap();
-        assert_eq!(wgsl.matches("nearest model bound first").count(), 1);
+        // Once in `s_distance`, once in `s_trace`.
+        assert_eq!(wgsl.matches("nearest model bound first").count(), 2);
         let on_gpu = GpuScene::new(gpu(), &scene).unwrap();
         let points = random_points(3000, 6.0, 11);
         let want = scene.distances(&points, 0.0);
@@ -687,4 +689,115 @@ fn wide_networks_match_the_cpu_on_both_kernels() {
         }
         assert!(compared > 500, "{kernel:?}: {compared} gradients compared");
     }
+}
+
+/// The tracer steps by each operand's own Lipschitz bound (`Scene::trace_rays`): far from a
+/// steep model (slope 3), a ray straight down onto a plane crosses the plane's whole distance
+/// in one step, where the scene-wide bound `|d| / L` would take about 25; the CPU and both GPU
+/// kernels alike. And no step crosses the surface: under a difference at a level (its
+/// subtracted operand traced against `−c`), beside the model, every hit is the first crossing
+/// a fine march finds.
+#[test]
+fn steps_follow_each_operands_own_bound() {
+    let steep = Arc::new(sphere_model(3.0));
+    let placed = |x: f32| SceneNode::model(steep.clone(), Transform::from_translation(Vec3::X * x));
+    let model = placed(-6.0);
+    let plane = SceneNode::primitive(
+        Primitive::Plane {
+            normal: Vec3::Y,
+            offset: 0.0,
+        },
+        Transform::IDENTITY,
+    );
+    let scene = Scene::new(SceneNode::Union(vec![placed(-30.0), plane])).unwrap();
+    assert!(scene.lipschitz() > 2.5, "{}", scene.lipschitz());
+    let down: Vec<Ray> = (0..8)
+        .map(|i| Ray {
+            origin: Vec3::new(6.0, 5.0, i as f32 - 4.0),
+            direction: -Vec3::Y,
+            max_distance: 20.0,
+        })
+        .collect();
+    let options = TraceOptions::default();
+    let cpu = scene.trace_rays(&down, &options).unwrap();
+    let mut answers = vec![cpu];
+    for kernel in [QueryKernel::PerInvocation, QueryKernel::PerSubgroup] {
+        answers.push(
+            scene_on(&scene, kernel)
+                .trace_rays(&down, &options)
+                .unwrap(),
+        );
+    }
+    for hits in &answers {
+        for (i, hit) in hits.iter().enumerate() {
+            let hit = hit.expect("every ray hits the plane");
+            assert!((hit.t - 5.0).abs() < 1e-3, "ray {i}: t {}", hit.t);
+            assert!(hit.steps <= 2, "ray {i}: {} steps", hit.steps);
+        }
+    }
+
+    let level = 0.05;
+    let cutter = SceneNode::primitive(
+        Primitive::Box {
+            half_extents: Vec3::new(1.0, 3.0, 1.0),
+        },
+        Transform::from_translation(Vec3::new(-5.5, 0.0, 0.0)),
+    );
+    let ball = sphere_at(Vec3::new(-3.5, 0.0, 0.0), 1.0);
+    let scene = Scene::new(SceneNode::Difference(vec![
+        SceneNode::Union(vec![model, ball]),
+        cutter,
+    ]))
+    .unwrap();
+    let rays: Vec<Ray> = random_points(150, 1.0, 31)
+        .into_iter()
+        .map(|t| {
+            let origin = Vec3::new(-4.5, 0.5, 8.0);
+            Ray {
+                origin,
+                direction: Vec3::new(-4.5, 0.0, 0.0) + t * 2.0 - origin,
+                max_distance: 20.0,
+            }
+        })
+        .collect();
+    let options = TraceOptions {
+        level,
+        ..TraceOptions::default()
+    };
+    let cpu = scene.trace_rays(&rays, &options).unwrap();
+    let gpu_hits = scene_on(&scene, gpu().query_kernel())
+        .trace_rays(&rays, &options)
+        .unwrap();
+    let mut hits = 0;
+    for (i, (ray, (c, g))) in rays.iter().zip(cpu.iter().zip(&gpu_hits)).enumerate() {
+        let dir = ray.direction.normalize();
+        // The first crossing of the level, marched in steps of 1e-3.
+        let first = (0..20_000)
+            .map(|k| k as f32 * 1e-3)
+            .find(|&t| scene.distance(ray.origin + dir * t, level) <= 0.0);
+        match (c, g, first) {
+            (Some(c), Some(g), Some(first)) => {
+                hits += 1;
+                assert!(
+                    c.t <= first + 2e-3,
+                    "ray {i}: hit at {} past the crossing at {first}",
+                    c.t
+                );
+                assert!(
+                    (c.t - first).abs() < 0.02,
+                    "ray {i}: hit at {}, crossing at {first}",
+                    c.t
+                );
+                assert!(
+                    (c.t - g.t).abs() < 1e-3 * (1.0 + c.t),
+                    "ray {i}: {} vs {}",
+                    g.t,
+                    c.t
+                );
+            }
+            (None, None, None) => {}
+            other => panic!("ray {i}: {other:?}"),
+        }
+    }
+    assert!(hits > 60, "{hits} of 150 rays hit");
 }

@@ -31,7 +31,7 @@
 use glam::{DQuat, DVec3, Vec3};
 use rayon::prelude::*;
 
-use crate::serve::scene::tree::{Instruction, LeafKind, MAX_DEPTH, Scene, Transform};
+use crate::serve::scene::tree::{Instruction, LeafKind, MAX_DEPTH, Scene, TraceStep, Transform};
 
 /// Errors of the ray and closest-point queries; `index` is the element of the batch.
 #[derive(Debug, thiserror::Error)]
@@ -259,11 +259,16 @@ impl Scene {
         Ok(self.trace_rays(std::slice::from_ref(ray), options)?[0])
     }
 
-    /// Sphere-traces each ray to the first point where `|d − c| ≤ tolerance`, stepping
-    /// `|d − c| / L` with `L` the scene's Lipschitz constant ([`Scene::lipschitz`]: 1 for
-    /// primitives, the largest model estimate otherwise), so that no step crosses the level set
-    /// when `L` bounds the scene's slope. An origin inside (`d < c`) finds where the ray leaves.
-    /// `None` for a ray that goes past its maximum distance or runs out of steps.
+    /// Sphere-traces each ray to the first point where `|d − c| ≤ tolerance`. Each step is
+    /// the magnitude of a 1-Lipschitz field with the sign of `d − c`: the sharp unions,
+    /// intersections and differences of the tree taken over their operands' values, each
+    /// divided by its operand's own Lipschitz bound (1 for a primitive, the model's estimate
+    /// for a model: [`Scene::trace_plan`]), and any other node divided by its own. No step
+    /// crosses the level set where the estimates bound the models' slopes, and every step is at
+    /// least `|d − c| / L` with `L` the scene's largest bound ([`Scene::lipschitz`]): near a
+    /// primitive and away from the models, a step of the primitive's whole distance. An origin
+    /// inside (`d < c`) finds where the ray leaves. `None` for a ray that goes past its maximum
+    /// distance or runs out of steps.
     pub fn trace_rays(
         &self,
         rays: &[Ray],
@@ -273,7 +278,7 @@ impl Scene {
         for (index, ray) in rays.iter().enumerate() {
             check_ray(index, ray)?;
         }
-        let lipschitz = self.lipschitz() as f64;
+        let plan = self.trace_plan();
         let (c, tol) = (options.level as f64, options.tolerance as f64);
         let origins: Vec<DVec3> = rays.iter().map(|r| r.origin.as_dvec3()).collect();
         let dirs: Vec<DVec3> = rays
@@ -292,18 +297,17 @@ impl Scene {
                 .iter()
                 .map(|&i| origins[i] + dirs[i] * t[i])
                 .collect();
-            let values = self.evaluate(&points, false);
+            let values = self.trace_values(&points, c, &plan);
             active = active
                 .into_iter()
                 .zip(values)
-                .filter_map(|(i, v)| {
-                    let gap = v.d - c;
+                .filter_map(|(i, (gap, bound))| {
                     steps[i] = step + 1;
                     if gap.abs() <= tol {
                         hit[i] = true;
                         return None;
                     }
-                    t[i] += gap.abs() / lipschitz;
+                    t[i] += bound.abs();
                     // NaN from a broken model ends the ray as a miss.
                     (t[i] <= rays[i].max_distance as f64 && gap.is_finite()).then_some(i)
                 })
@@ -463,6 +467,64 @@ impl Scene {
             .collect()
     }
 
+    /// At each point, `d − c` and the tracer's step bound: `d − c` with each sharp union,
+    /// intersection and difference taken over its operands' values less their levels, each
+    /// divided by its operand's Lipschitz bound ([`Scene::trace_plan`]), and any other node's
+    /// value less its level divided by its own bound. That field is 1-Lipschitz and has the
+    /// sign of `d − c` everywhere (dividing each operand of a min or max by a positive number
+    /// keeps the sign of the result), so `|field|` is a safe step; and it is at least
+    /// `|d − c| / L` with `L` the scene's largest bound, often much more (near a primitive, far
+    /// from the models).
+    fn trace_values(&self, points: &[DVec3], c: f64, plan: &[TraceStep]) -> Vec<(f64, f64)> {
+        let placed: Vec<Placed> = self
+            .leaves()
+            .iter()
+            .map(|l| Placed::new(&l.transform))
+            .collect();
+        let models = self.model_values(points, &placed, false);
+        let at = |i: usize, p: DVec3| Point {
+            p,
+            i,
+            placed: &placed,
+            models: &models,
+        };
+        points
+            .par_iter()
+            .enumerate()
+            .map_init(
+                || Vec::with_capacity(MAX_DEPTH + 2),
+                |stack: &mut Vec<(Value, f64)>, (i, &p)| {
+                    stack.clear();
+                    for (&instruction, step) in self.program().iter().zip(plan) {
+                        // The operands' bounds, last operand first.
+                        let mut bounds = [0.0f64; 2];
+                        let mut taken = 0;
+                        let v = self.instruction_value(instruction, &at(i, p), &mut || {
+                            let (v, bound) = stack.pop().expect("the program is balanced");
+                            bounds[taken] = bound;
+                            taken += 1;
+                            v
+                        });
+                        let [tb, ta] = bounds;
+                        let bound = match instruction {
+                            Instruction::Union => ta.min(tb),
+                            Instruction::Intersection => ta.max(tb),
+                            // The subtracted operand was traced against the opposite level.
+                            Instruction::Difference => ta.max(-tb),
+                            _ => {
+                                let level = if step.flipped { -c } else { c };
+                                (v.d - level) / step.lipschitz as f64
+                            }
+                        };
+                        stack.push((v, bound));
+                    }
+                    let (v, bound) = stack.pop().expect("the program is balanced");
+                    (v.d - c, bound)
+                },
+            )
+            .collect()
+    }
+
     /// Runs the program at point `p` (number `i` of the batch whose model values are `models`).
     fn run(
         &self,
@@ -473,47 +535,73 @@ impl Scene {
         models: &[LeafValues],
     ) -> Value {
         stack.clear();
-        for instruction in self.program() {
-            let value = match *instruction {
-                Instruction::Leaf(l) => {
-                    let leaf = l as usize;
-                    let (d, g) = match (&self.leaves()[leaf].kind, &models[leaf]) {
-                        (_, Some(values)) => values[i],
-                        (LeafKind::Primitive(prim), None) => {
-                            let at = &placed[leaf];
-                            let (d, g) = prim.distance_and_gradient(at.to_local(p));
-                            (d * at.scale, at.rotation * g)
-                        }
-                        (LeafKind::Model(_), None) => unreachable!("model leaves have values"),
-                    };
-                    Value { d, g, leaf: l }
-                }
-                Instruction::Offset(r) => {
-                    let a = pop(stack);
-                    Value {
-                        d: a.d - r as f64,
-                        ..a
-                    }
-                }
-                Instruction::Shell(t) => {
-                    let a = pop(stack);
-                    let sign = if a.d < 0.0 { -1.0 } else { 1.0 };
-                    Value {
-                        d: a.d.abs() - t as f64,
-                        g: a.g * sign,
-                        ..a
-                    }
-                }
-                binary => {
-                    let b = pop(stack);
-                    let a = pop(stack);
-                    combine(binary, a, b)
-                }
-            };
+        let at = Point {
+            p,
+            i,
+            placed,
+            models,
+        };
+        for &instruction in self.program() {
+            let value = self.instruction_value(instruction, &at, &mut || pop(stack));
             stack.push(value);
         }
         pop(stack)
     }
+
+    /// One instruction's value at `at`: a leaf's, or an operator's on the operands `operand`
+    /// takes off the stack (the last operand first).
+    fn instruction_value(
+        &self,
+        instruction: Instruction,
+        at: &Point<'_>,
+        operand: &mut impl FnMut() -> Value,
+    ) -> Value {
+        match instruction {
+            Instruction::Leaf(l) => {
+                let leaf = l as usize;
+                let (d, g) = match (&self.leaves()[leaf].kind, &at.models[leaf]) {
+                    (_, Some(values)) => values[at.i],
+                    (LeafKind::Primitive(prim), None) => {
+                        let placed = &at.placed[leaf];
+                        let (d, g) = prim.distance_and_gradient(placed.to_local(at.p));
+                        (d * placed.scale, placed.rotation * g)
+                    }
+                    (LeafKind::Model(_), None) => unreachable!("model leaves have values"),
+                };
+                Value { d, g, leaf: l }
+            }
+            Instruction::Offset(r) => {
+                let a = operand();
+                Value {
+                    d: a.d - r as f64,
+                    ..a
+                }
+            }
+            Instruction::Shell(t) => {
+                let a = operand();
+                let sign = if a.d < 0.0 { -1.0 } else { 1.0 };
+                Value {
+                    d: a.d.abs() - t as f64,
+                    g: a.g * sign,
+                    ..a
+                }
+            }
+            binary => {
+                let b = operand();
+                let a = operand();
+                combine(binary, a, b)
+            }
+        }
+    }
+}
+
+/// Where the program runs: point `p`, number `i` of the batch whose model leaves' values are
+/// `models`, the leaves placed by `placed`.
+struct Point<'a> {
+    p: DVec3,
+    i: usize,
+    placed: &'a [Placed],
+    models: &'a [LeafValues],
 }
 
 /// The top of the stack (the compiler balanced the program).

@@ -1,5 +1,6 @@
-//! A whole scene as WGSL: `fn {prefix}_distance(p)`, `fn {prefix}_normal(p)` and
-//! `fn {prefix}_sample(p)` (distance, gradient and deciding leaf) for the caller's own shader,
+//! A whole scene as WGSL: `fn {prefix}_distance(p)`, `fn {prefix}_normal(p)`,
+//! `fn {prefix}_trace(p, c)` (for sphere tracers) and `fn {prefix}_sample(p)` (distance,
+//! gradient and deciding leaf) for the caller's own shader,
 //! and the bind group that feeds it every model's weights in as few buffers as the device
 //! allows. The GPU queries of [`super::gpu`] and the scene renderer compile the same snippet.
 //!
@@ -41,7 +42,7 @@ use glam::DMat3;
 use crate::gpu::GpuError;
 use crate::serve::scene::cpu::SceneQueryError;
 use crate::serve::scene::primitive::Primitive;
-use crate::serve::scene::tree::{Instruction, LeafKind, Scene};
+use crate::serve::scene::tree::{Instruction, LeafKind, Scene, TraceStep};
 use crate::serve::wgsl::{self, EmbedError, Lanes, MAX_PREFIX};
 
 /// The primitives, the sample type and the operators (names `hwsdf_…`, renamed per scene).
@@ -181,7 +182,10 @@ impl Scene {
     /// - `fn {prefix}_normal(p: vec3<f32>) -> vec3<f32>`: the unit normal (the normalised
     ///   analytic gradient; zero where it vanishes);
     /// - `fn {prefix}_sample(p: vec3<f32>) -> {prefix}_Sample`: the distance, its gradient
-    ///   (not normalised) and the index of the deciding leaf ([`Scene::leaves`]).
+    ///   (not normalised) and the index of the deciding leaf ([`Scene::leaves`]);
+    /// - `fn {prefix}_trace(p: vec3<f32>, c: f32) -> vec2<f32>`: for sphere tracers, `d − c`
+    ///   (x) and the step to take from `p` (y, with the sign of x: the field of
+    ///   [`Scene::trace_rays`], whose magnitude never crosses the level set).
     ///
     /// The prefix is an ASCII letter followed by at most [`MAX_SCENE_PREFIX`] letters, digits
     /// or underscores; two snippets in one shader need prefixes that differ other than in case.
@@ -379,17 +383,18 @@ impl Scene {
         );
     }
 
-    /// The program as straight-line code: `{prefix}_distance`, `{prefix}_sample` and
+    /// The program as straight-line code: `{prefix}_distance`, `{prefix}_sample`, `{prefix}_trace` and
     /// `{prefix}_normal`.
     fn program_functions(&self, s: &mut String, prefix: &str) {
         let program = self.program();
-        for with_gradient in [false, true] {
+        let plan = self.trace_plan();
+        for kind in [Program::Distance, Program::Sample, Program::Trace] {
             let mut stack: Vec<usize> = Vec::new();
             let mut body = String::new();
             let mut v = 0;
             while v < program.len() {
-                if !with_gradient
-                    && let Some((code, end, popped)) = self.leaf_union(prefix, v, &stack)
+                if kind != Program::Sample
+                    && let Some((code, end, popped)) = self.leaf_union(prefix, v, &stack, kind)
                 {
                     if popped {
                         stack.pop();
@@ -399,35 +404,63 @@ impl Scene {
                     v = end + 1;
                     continue;
                 }
-                if let Some((code, skip)) = self.culled_union(prefix, v, &stack, with_gradient) {
+                if let Some((code, skip)) = self.culled_union(prefix, v, &stack, kind) {
                     stack.pop();
                     body.push_str(&code);
                     stack.push(v + skip);
                     v += skip + 1;
                     continue;
                 }
-                let expr = if with_gradient {
+                if kind == Program::Trace
+                    && let Some(bound) = sharp_bound(&program[v], &stack)
+                {
+                    let expr = distance_expression(prefix, &program[v], &mut stack);
+                    let _ = writeln!(body, "    let v{v} = {expr};\n    let t{v} = {bound};");
+                    stack.push(v);
+                    v += 1;
+                    continue;
+                }
+                let expr = if kind == Program::Sample {
                     sample_expression(prefix, &program[v], &mut stack)
                 } else {
                     distance_expression(prefix, &program[v], &mut stack)
                 };
                 let _ = writeln!(body, "    let v{v} = {expr};");
+                if kind == Program::Trace {
+                    let _ = writeln!(
+                        body,
+                        "    let t{v} = {};",
+                        own_bound(&format!("v{v}"), &plan[v])
+                    );
+                }
                 stack.push(v);
                 v += 1;
             }
             let last = stack.pop().expect("a balanced program leaves one value");
-            if with_gradient {
-                let _ = write!(
-                    s,
-                    "\n// The scene's value, gradient and deciding leaf at a point of its frame.\n\
-                     fn {prefix}_sample(p: vec3<f32>) -> {prefix}_Sample {{\n{body}    return v{last};\n}}\n"
-                );
-            } else {
-                let _ = write!(
-                    s,
-                    "\n// The scene's signed distance at a point of its frame.\n\
-                     fn {prefix}_distance(p: vec3<f32>) -> f32 {{\n{body}    return v{last};\n}}\n"
-                );
+            match kind {
+                Program::Sample => {
+                    let _ = write!(
+                        s,
+                        "\n// The scene's value, gradient and deciding leaf at a point of its frame.\n\
+                         fn {prefix}_sample(p: vec3<f32>) -> {prefix}_Sample {{\n{body}    return v{last};\n}}\n"
+                    );
+                }
+                Program::Distance => {
+                    let _ = write!(
+                        s,
+                        "\n// The scene's signed distance at a point of its frame.\n\
+                         fn {prefix}_distance(p: vec3<f32>) -> f32 {{\n{body}    return v{last};\n}}\n"
+                    );
+                }
+                Program::Trace => {
+                    let _ = write!(
+                        s,
+                        "\n// For sphere tracers, at a point of the scene's frame and a level c: x, the distance\n\
+                         // less c; y, a 1-Lipschitz field with the sign of x, whose magnitude is a safe step\n\
+                         // (Scene::trace_rays).\n\
+                         fn {prefix}_trace(p: vec3<f32>, c: f32) -> vec2<f32> {{\n{body}    return vec2<f32>(v{last} - c, t{last});\n}}\n"
+                    );
+                }
             }
         }
         let _ = write!(
@@ -451,19 +484,29 @@ impl Scene {
     /// point near one of many placed models evaluates that one. Exact (`min` does not depend on
     /// the order). The chain may also continue the value on top of `stack` (`Leaf, Union, Leaf,
     /// Union, …` after any sub-tree). `(code, end, popped)`: the code defines `v{end}`, `end`
-    /// the chain's last union; `popped`: it consumed the top of the stack.
-    fn leaf_union(&self, prefix: &str, v: usize, stack: &[usize]) -> Option<(String, usize, bool)> {
+    /// the chain's last union; `popped`: it consumed the top of the stack. For
+    /// [`Program::Trace`] the code also defines `t{end}`, the minimum of the leaves' values less
+    /// the level, each divided by its Lipschitz bound, and evaluates a model where it can lower
+    /// either minimum.
+    fn leaf_union(
+        &self,
+        prefix: &str,
+        v: usize,
+        stack: &[usize],
+        kind: Program,
+    ) -> Option<(String, usize, bool)> {
         let program = self.program();
         let Instruction::Leaf(first) = program[v] else {
             return None;
         };
         // Either the chain starts with two leaves, or it continues the value on the stack.
         let continues = matches!(program.get(v + 1), Some(Instruction::Union)) && !stack.is_empty();
-        let (mut leaves, mut end, init) = if continues {
+        let (mut leaves, mut end, init, init_bound) = if continues {
             let a = *stack.last().expect("checked");
-            (Vec::new(), v - 1, format!("v{a}"))
+            (Vec::new(), v - 1, format!("v{a}"), format!("t{a}"))
         } else {
-            (vec![first as usize], v, "3.4028235e38f".to_owned())
+            let max = "3.4028235e38f".to_owned();
+            (vec![first as usize], v, max.clone(), max)
         };
         while let (Some(Instruction::Leaf(l)), Some(Instruction::Union)) =
             (program.get(end + 1), program.get(end + 2))
@@ -476,12 +519,37 @@ impl Scene {
         if leaves.len() < 2 || models.is_empty() {
             return None;
         }
+        let trace = kind == Program::Trace;
+        let plan = self.trace_plan();
         let mut c = format!(
             "    // The union of leaves {leaves:?}: primitives, then the nearest model bound first.\n\
              \x20   var v{end} = {init};\n"
         );
+        if trace {
+            let _ = writeln!(c, "    var t{end} = {init_bound};");
+        }
+        // A leaf's term of t{end} for its value (or bound) `x`.
+        let term = |x: &str, l: usize| {
+            own_bound(
+                x,
+                &TraceStep {
+                    lipschitz: self.leaf_lipschitz(l),
+                    flipped: plan[end].flipped,
+                },
+            )
+        };
         for l in leaves.iter().filter(|l| !is_model(l)) {
-            let _ = writeln!(c, "    v{end} = min(v{end}, {prefix}_leaf_{l}_d(p));");
+            if trace {
+                let _ = writeln!(
+                    c,
+                    "    let d{end}_{l} = {prefix}_leaf_{l}_d(p);\n\
+                     \x20   v{end} = min(v{end}, d{end}_{l});\n\
+                     \x20   t{end} = min(t{end}, {});",
+                    term(&format!("d{end}_{l}"), *l)
+                );
+            } else {
+                let _ = writeln!(c, "    v{end} = min(v{end}, {prefix}_leaf_{l}_d(p));");
+            }
         }
         for (i, l) in models.iter().enumerate() {
             let _ = writeln!(c, "    let b{end}_{i} = {prefix}_leaf_{l}_lb(p);");
@@ -501,10 +569,23 @@ impl Scene {
             "    for (var round{end} = 0u; round{end} < 2u; round{end}++) {{"
         );
         for (i, l) in models.iter().enumerate() {
-            let _ = writeln!(
-                c,
-                "        if (first{end} == {i}u) == (round{end} == 0u) && b{end}_{i} < v{end} {{\n            v{end} = min(v{end}, {prefix}_leaf_{l}_d(p));\n        }}"
-            );
+            if trace {
+                let bound = term(&format!("b{end}_{i}"), *l);
+                let _ = writeln!(
+                    c,
+                    "        if (first{end} == {i}u) == (round{end} == 0u) && (b{end}_{i} < v{end} || {bound} < t{end}) {{\n\
+                     \x20           let d = {prefix}_leaf_{l}_d(p);\n\
+                     \x20           v{end} = min(v{end}, d);\n\
+                     \x20           t{end} = min(t{end}, {});\n\
+                     \x20       }}",
+                    term("d", *l)
+                );
+            } else {
+                let _ = writeln!(
+                    c,
+                    "        if (first{end} == {i}u) == (round{end} == 0u) && b{end}_{i} < v{end} {{\n            v{end} = min(v{end}, {prefix}_leaf_{l}_d(p));\n        }}"
+                );
+            }
         }
         let _ = writeln!(c, "    }}");
         Some((c, end, continues))
@@ -514,14 +595,17 @@ impl Scene {
     /// on top of `stack`, as code that evaluates the model only where its lower bound says it
     /// can change the result: `min(a, b) = a` where `b ≥ a`, and the polynomial smooth minimum
     /// is `a` where `b ≥ a + k`. Exact (the bound is a bound), and most points of a scene are
-    /// far from most of its models. `(code, 1)`: the code defines `v{v + 1}`.
+    /// far from most of its models. `(code, 1)`: the code defines `v{v + 1}` (and for
+    /// [`Program::Trace`] `t{v + 1}`, evaluating the model also where it can lower the union's
+    /// bound).
     fn culled_union(
         &self,
         prefix: &str,
         v: usize,
         stack: &[usize],
-        with_gradient: bool,
+        kind: Program,
     ) -> Option<(String, usize)> {
+        let with_gradient = kind == Program::Sample;
         let program = self.program();
         let Instruction::Leaf(l) = program[v] else {
             return None;
@@ -548,6 +632,37 @@ impl Scene {
             String::new()
         };
         let u = v + 1;
+        if kind == Program::Trace {
+            let plan = self.trace_plan();
+            // A sharp union's bound is the smaller of its operands'; a smooth one's its own.
+            return Some((
+                if k > 0.0 {
+                    format!(
+                        "    var v{u} = v{a};\n\
+                         \x20   if {prefix}_leaf_{l}_lb(p) < v{a} + {k_lit} {{\n\
+                         \x20       v{u} = {combine}(v{a}, {leaf}{extra});\n\
+                         \x20   }}\n\
+                         \x20   let t{u} = {own};\n",
+                        k_lit = lit(k),
+                        own = own_bound(&format!("v{u}"), &plan[u]),
+                    )
+                } else {
+                    format!(
+                        "    var v{u} = v{a};\n\
+                         \x20   var t{u} = t{a};\n\
+                         \x20   let lb{u} = {prefix}_leaf_{l}_lb(p);\n\
+                         \x20   if lb{u} < v{a} || {lb_term} < t{a} {{\n\
+                         \x20       let d = {leaf};\n\
+                         \x20       v{u} = min(v{a}, d);\n\
+                         \x20       t{u} = min(t{a}, {d_term});\n\
+                         \x20   }}\n",
+                        lb_term = own_bound(&format!("lb{u}"), &plan[v]),
+                        d_term = own_bound("d", &plan[v]),
+                    )
+                },
+                1,
+            ));
+        }
         Some((
             format!(
                 "    var v{u} = v{a};\n\
@@ -558,6 +673,40 @@ impl Scene {
             ),
             1,
         ))
+    }
+}
+
+/// Which of the scene's functions a program is generated for.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Program {
+    /// `{prefix}_distance(p)`.
+    Distance,
+    /// `{prefix}_sample(p)`: value, gradient, leaf.
+    Sample,
+    /// `{prefix}_trace(p, c)`: `d − c` and the tracer's step bound (`t{i}` beside `v{i}`).
+    Trace,
+}
+
+/// An instruction's own term of the tracer's bound: its value `x` less its level, divided by
+/// its Lipschitz bound (`c` is the trace function's level).
+fn own_bound(x: &str, step: &TraceStep) -> String {
+    let sign = if step.flipped { '+' } else { '-' };
+    format!("({x} {sign} c) * {}", lit(1.0 / step.lipschitz))
+}
+
+/// A sharp union's, intersection's or difference's bound from its operands' (the top two of
+/// `stack`, not popped); `None` for any other instruction.
+fn sharp_bound(instruction: &Instruction, stack: &[usize]) -> Option<String> {
+    let (a, b) = match stack {
+        [.., a, b] => (*a, *b),
+        _ => return None,
+    };
+    match instruction {
+        Instruction::Union => Some(format!("min(t{a}, t{b})")),
+        Instruction::Intersection => Some(format!("max(t{a}, t{b})")),
+        // The subtracted operand was traced against the opposite level.
+        Instruction::Difference => Some(format!("max(t{a}, -t{b})")),
+        _ => None,
     }
 }
 

@@ -19,7 +19,7 @@
 //!
 //! Every query means what the CPU reference ([`super::cpu`]) computes, in f32 instead of f64
 //! through the operators: distances agree to f32 rounding (the tests hold primitives to 1e-5),
-//! rays step by the same bound (`|d − c| / L`, [`Scene::lipschitz`]) and stop by the same rules,
+//! rays step by the same bound (`{prefix}_trace`, [`Scene::trace_rays`]) and stop by the same rules,
 //! projections take the same steps.
 //!
 //! # Kernels
@@ -128,8 +128,7 @@ struct SceneQueryUniform {
     first: u32,
     level: f32,
     tolerance: f32,
-    inv_lipschitz: f32,
-    _pad: f32,
+    _pad: [f32; 2],
 }
 
 /// The parameters of one recorded query.
@@ -339,7 +338,8 @@ impl<'g> GpuScene<'g> {
         })
     }
 
-    /// The Lipschitz constant the tracer divides by ([`Scene::lipschitz`]).
+    /// The scene's Lipschitz constant ([`Scene::lipschitz`]; the tracer's steps are at least
+    /// `|d − c|` divided by it).
     pub fn lipschitz(&self) -> f32 {
         self.lipschitz
     }
@@ -476,8 +476,7 @@ impl<'g> GpuScene<'g> {
             first: 0,
             level: params.level,
             tolerance: params.tolerance,
-            inv_lipschitz: 1.0 / self.lipschitz,
-            _pad: 0.0,
+            _pad: [0.0; 2],
         }
     }
 
@@ -748,15 +747,7 @@ mod tests {
             super::SceneQueryUniform,
             crate::shaders::SCENE_QUERY,
             "SceneQuery",
-            [
-                count,
-                max_steps,
-                max_iterations,
-                first,
-                level,
-                tolerance,
-                inv_lipschitz
-            ]
+            [count, max_steps, max_iterations, first, level, tolerance]
         );
     }
 }

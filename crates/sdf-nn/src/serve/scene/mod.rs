@@ -47,5 +47,5 @@ pub use gpu::{GpuScene, SceneQueryBuffers, SceneQueryKind, SceneQueryParams};
 pub use primitive::Primitive;
 pub use tree::{
     Instruction, Leaf, LeafKind, MAX_DEPTH, MAX_LEAVES, MAX_MODELS, Scene, SceneError, SceneNode,
-    Transform,
+    TraceStep, Transform,
 };

@@ -38,8 +38,9 @@
 //! | [`SceneNode::Transform`] | as its child | exact |
 //!
 //! "Bound" everywhere assumes 1-Lipschitz children; with a trained model in the tree, the whole
-//! scene is `L`-Lipschitz with `L` the largest model estimate, which is what the ray tracer
-//! divides by.
+//! scene is `L`-Lipschitz with `L` the largest model estimate. The ray tracer divides each
+//! operand of the sharp operators by its own bound instead ([`Scene::trace_plan`],
+//! [`super::cpu`]'s `trace_rays`), which keeps the surface and takes longer steps.
 //!
 //! The n-ary smooth operators and difference are left folds: `smooth_union(a, b, c)` is
 //! `smin(smin(a, b), c)` (the smooth minimum is not associative), `difference(a, b, c)` is
@@ -501,13 +502,85 @@ impl Scene {
         }
     }
 
-    /// The Lipschitz constant the ray tracer divides by: 1 for a scene of primitives, else the
+    /// The Lipschitz constant of the whole scene: 1 for a scene of primitives, else the
     /// largest model estimate (at least 1). Measures the models not measured yet.
     pub fn lipschitz(&self) -> f32 {
         (0..self.models.len())
             .filter_map(|m| self.model_lipschitz(m))
             .fold(1.0, f32::max)
     }
+
+    /// Leaf `leaf`'s Lipschitz bound: 1 for a primitive, its model's estimate (at least 1).
+    pub(crate) fn leaf_lipschitz(&self, leaf: usize) -> f32 {
+        match self.leaves[leaf].kind {
+            LeafKind::Model(m) => self.model_lipschitz(m).unwrap_or(1.0).max(1.0),
+            LeafKind::Primitive(_) => 1.0,
+        }
+    }
+
+    /// What the ray tracer's step needs of each instruction of [`Scene::program`] (see
+    /// [`Scene::trace_rays`]): the Lipschitz bound of its sub-tree (1 for a
+    /// primitive, the model's estimate for a model, the largest of its children's above), and
+    /// whether its value is traced against `−c` instead of `c` (an odd number of subtracted
+    /// operands of differences above it). Measures the models not measured yet.
+    pub fn trace_plan(&self) -> Vec<TraceStep> {
+        let program = &self.program;
+        // Forward: each sub-tree's first instruction and Lipschitz bound.
+        let mut start = vec![0usize; program.len()];
+        let mut lipschitz = vec![1.0f32; program.len()];
+        let mut stack: Vec<usize> = Vec::new();
+        for (i, instruction) in program.iter().enumerate() {
+            match *instruction {
+                Instruction::Leaf(l) => {
+                    start[i] = i;
+                    lipschitz[i] = self.leaf_lipschitz(l as usize);
+                }
+                Instruction::Offset(_) | Instruction::Shell(_) => {
+                    let a = stack.pop().expect("balanced");
+                    (start[i], lipschitz[i]) = (start[a], lipschitz[a]);
+                }
+                _ => {
+                    let (b, a) = (
+                        stack.pop().expect("balanced"),
+                        stack.pop().expect("balanced"),
+                    );
+                    (start[i], lipschitz[i]) = (start[a], lipschitz[a].max(lipschitz[b]));
+                }
+            }
+            stack.push(i);
+        }
+        // Backward: the level's sign, from the root down (children come before parents).
+        let mut flipped = vec![false; program.len()];
+        for i in (0..program.len()).rev() {
+            let binary = !matches!(
+                program[i],
+                Instruction::Leaf(_) | Instruction::Offset(_) | Instruction::Shell(_)
+            );
+            if matches!(program[i], Instruction::Leaf(_)) {
+                continue;
+            }
+            // The last operand ends right before its parent; the first before the last.
+            let last = i - 1;
+            flipped[last] = flipped[i] ^ matches!(program[i], Instruction::Difference);
+            if binary {
+                flipped[start[last] - 1] = flipped[i];
+            }
+        }
+        lipschitz
+            .into_iter()
+            .zip(flipped)
+            .map(|(lipschitz, flipped)| TraceStep { lipschitz, flipped })
+            .collect()
+    }
+}
+
+/// One instruction's part in the ray tracer's step (see [`Scene::trace_plan`]).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct TraceStep {
+    /// The Lipschitz bound of the instruction's sub-tree (at least 1).
+    pub lipschitz: f32,
+    /// Whether its value is traced against `−c` (under a difference's subtracted operand).
+    pub flipped: bool,
 }
 
 /// Walks the tree depth first, validating and emitting the program.

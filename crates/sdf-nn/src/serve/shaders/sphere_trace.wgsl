@@ -1,8 +1,9 @@
 // Sphere tracing of a neural SDF, one invocation per pixel, Lambert-shaded, into an RGBA8 buffer.
 //
 // This file is not complete on its own: the host prepends a model's snippet from
-// `NeuralSdf::wgsl(1)`, which defines `hwsdf_distance` and `hwsdf_normal` (mesh coordinates) and
-// binds the weights at @group(1). Everything here is in the mesh's coordinates and units.
+// `NeuralSdf::wgsl(1)`, which defines `hwsdf_trace` and `hwsdf_normal` (mesh coordinates) and
+// binds the weights at @group(1) (for a scene, wrappers of the scene's `scene_trace` and
+// `scene_normal`). Everything here is in the mesh's coordinates and units.
 
 struct TraceUniforms {
     // xyz: camera position; w: tan(vertical field of view / 2).
@@ -74,12 +75,13 @@ fn sphere_trace(@builtin(global_invocation_id) gid: vec3<u32>) {
         var t = span.x;
         var hit = false;
         for (var i = 0u; i < trace.size.z; i++) {
-            let d = hwsdf_distance(origin + t * dir) - trace.box_max.w;
-            if d < max(trace.right.w * t, trace.box_min.w) {
+            // x: the distance less the level; y: the step (with the sign of x).
+            let traced = hwsdf_trace(origin + t * dir, trace.box_max.w);
+            if traced.x < max(trace.right.w * t, trace.box_min.w) {
                 hit = true;
                 break;
             }
-            t += d * trace.up.w;
+            t += traced.y * trace.up.w;
             if t > span.y {
                 break;
             }

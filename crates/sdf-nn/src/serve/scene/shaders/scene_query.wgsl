@@ -19,9 +19,8 @@ struct SceneQuery {
     level: f32,
     // Hit or convergence tolerance on |d - c|.
     tolerance: f32,
-    // 1 / L, with L the scene's Lipschitz constant: the sphere tracer's step factor.
-    inv_lipschitz: f32,
-    _pad: f32,
+    _pad0: f32,
+    _pad1: f32,
 }
 
 @group(0) @binding(0) var<uniform> query: SceneQuery;
@@ -103,13 +102,15 @@ fn trace_element(e: u32, lead: bool) {
     var steps = 0u;
     var hit = false;
     for (var step = 0u; step < query.max_steps; step++) {
-        let gap = scene_distance(origin + dir * t) - query.level;
+        // x: d - c; y: the step bound (a 1-Lipschitz field with the sign of x).
+        let traced = scene_trace(origin + dir * t, query.level);
+        let gap = traced.x;
         steps = step + 1u;
         if abs(gap) <= query.tolerance {
             hit = true;
             break;
         }
-        t += abs(gap) * query.inv_lipschitz;
+        t += abs(traced.y);
         // NaN from a broken model ends the ray as a miss.
         if !(t <= max_distance) || query_non_finite(gap) {
             break;
