@@ -130,7 +130,7 @@ fn main() {
         .configure_from_args();
     let scene = scene();
     let mut on_gpu = GpuScene::new(gpu, &scene).unwrap();
-    let default_kernel = on_gpu.kernel();
+    let default_kernel = on_gpu.kernel(3000);
     eprintln!(
         "scene: {} leaves, {} models, Lipschitz bound {:.3}, default kernel {default_kernel:?}",
         scene.leaves().len(),
@@ -160,7 +160,7 @@ fn main() {
     group.throughput(Throughput::Elements(n as u64));
     // Both kernels where the device has subgroups, the default one under the plain names.
     for kernel in [QueryKernel::PerSubgroup, QueryKernel::PerInvocation] {
-        if on_gpu.set_kernel(kernel).is_err() {
+        if on_gpu.set_kernel(Some(kernel)).is_err() {
             continue;
         }
         let suffix = match kernel {
@@ -175,7 +175,7 @@ fn main() {
             b.iter(|| on_gpu.trace_rays(&rays, &trace).unwrap())
         });
     }
-    on_gpu.set_kernel(default_kernel).unwrap();
+    on_gpu.set_kernel(None).unwrap();
     let models = scene.models().to_vec();
     let local: Vec<Vec3> = pts.iter().map(|p| *p * 0.3).collect();
     for m in &models {

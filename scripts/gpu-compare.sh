@@ -47,7 +47,7 @@
 #                                       what to run (default all; split a session's runs with it).
 #                                       `kernels` runs the query bench's NGLOD and hash-grid
 #                                       rows once per query kernel (HWSDF_QUERY_KERNEL=invocation
-#                                       and subgroup, 10, 3000 and 50 000 points;
+#                                       and subgroup, 10, 3000, 50 000 and 10^6 points;
 #                                       DIR/results/query-kernel-*.txt), which decides the
 #                                       GPU default (issue 39's ≤ 60 µs per 3000);
 #                                       `scene` runs benches/scene (issue 37's targets, with the
@@ -290,7 +290,7 @@ run() {
         for k in invocation subgroup; do
             echo "== NGLOD and hash-grid queries, HWSDF_QUERY_KERNEL=$k"
             HWSDF_QUERY_KERNEL=$k QUERY_BENCH_PRESETS=default,hashgrid_small,hashgrid_default \
-                QUERY_BENCH_POINTS=10,3000,50000 CRITERION_HOME="$res/criterion-kernel-$k" \
+                QUERY_BENCH_POINTS=10,3000,50000,1000000 CRITERION_HOME="$res/criterion-kernel-$k" \
                 benches/query --bench neural_sdf --measurement-time 2 --warm-up-time 1 2>&1 \
                 | grep -v XDG_RUNTIME_DIR | tee "$res/query-kernel-$k.txt" || echo "(failed)"
         done

@@ -84,6 +84,33 @@ impl fmt::Debug for GpuContext {
     }
 }
 
+/// [`GpuContext::query_kernel`]'s rule: the forced kernel where the device runs it, else one
+/// point per subgroup on a GPU with usable subgroups for batches below
+/// [`SUBGROUP_KERNEL_MAX_ELEMENTS`].
+fn choose_query_kernel(
+    forced: Option<QueryKernel>,
+    subgroups: bool,
+    cpu: bool,
+    elements: u64,
+) -> QueryKernel {
+    match forced {
+        Some(QueryKernel::PerSubgroup) if subgroups => QueryKernel::PerSubgroup,
+        Some(_) => QueryKernel::PerInvocation,
+        None if subgroups && !cpu && elements < SUBGROUP_KERNEL_MAX_ELEMENTS => {
+            QueryKernel::PerSubgroup
+        }
+        None => QueryKernel::PerInvocation,
+    }
+}
+
+/// From this many points or rays on, a query without a named kernel runs one per invocation
+/// even on a GPU ([`GpuContext::query_kernel`]): a batch this large fills the GPU one per
+/// invocation, where the subgroup kernel issues several times the instructions per point (each
+/// lane repeats the point's index arithmetic, and the reductions are extra). A round number
+/// between the sizes the two kernels are made for, not a measurement: gpu-compare's `kernels`
+/// stage times both at 10 to 10⁶ points.
+pub const SUBGROUP_KERNEL_MAX_ELEMENTS: u64 = 1 << 16;
+
 impl GpuContext {
     /// The wgpu device.
     pub fn device(&self) -> &wgpu::Device {
@@ -193,19 +220,25 @@ impl GpuContext {
         usable.then_some(max)
     }
 
-    /// The kernel of NGLOD, hash-grid and scene queries where the caller names none:
-    /// `HWSDF_QUERY_KERNEL` ([`GpuOptions::query_kernel`]) if set, else
-    /// [`QueryKernel::PerSubgroup`] on a GPU (not a CPU adapter) whose subgroups fit a workgroup
-    /// of 64, else [`QueryKernel::PerInvocation`]. A forced `subgroup` on a device without
-    /// usable subgroups falls back to [`QueryKernel::PerInvocation`].
-    pub fn query_kernel(&self) -> QueryKernel {
-        let usable = self.subgroups_within(64).is_some();
-        match self.options.query_kernel {
-            Some(QueryKernel::PerSubgroup) if usable => QueryKernel::PerSubgroup,
-            Some(_) => QueryKernel::PerInvocation,
-            None if usable && !self.is_cpu() => QueryKernel::PerSubgroup,
-            None => QueryKernel::PerInvocation,
-        }
+    /// The kernel of an NGLOD, hash-grid or scene query of `elements` points or rays where the
+    /// caller names none: `HWSDF_QUERY_KERNEL` ([`GpuOptions::query_kernel`]) if set, else
+    /// [`QueryKernel::PerSubgroup`] on a GPU (not a CPU adapter) whose subgroups fit a
+    /// workgroup of 64, for batches below [`SUBGROUP_KERNEL_MAX_ELEMENTS`], else
+    /// [`QueryKernel::PerInvocation`]. A forced `subgroup` on a device without usable subgroups
+    /// falls back to [`QueryKernel::PerInvocation`].
+    pub fn query_kernel(&self, elements: u64) -> QueryKernel {
+        choose_query_kernel(
+            self.options.query_kernel,
+            self.subgroups_within(64).is_some(),
+            self.is_cpu(),
+            elements,
+        )
+    }
+
+    /// Whether [`GpuContext::query_kernel`] may choose [`QueryKernel::PerSubgroup`] for some
+    /// batch size on this device.
+    pub fn may_use_subgroup_queries(&self) -> bool {
+        self.query_kernel(0) == QueryKernel::PerSubgroup
     }
 
     /// The limits the device was created with.
@@ -554,6 +587,48 @@ fn storage_usage() -> wgpu::BufferUsages {
 #[cfg(test)]
 mod tests {
     use super::split_dispatch;
+
+    /// Small batches on a GPU take a subgroup per point, large ones and CPU adapters an
+    /// invocation; a forced kernel wins where the device runs it.
+    #[test]
+    fn query_kernels_follow_the_rule() {
+        use super::{QueryKernel as K, SUBGROUP_KERNEL_MAX_ELEMENTS as MAX, choose_query_kernel};
+        let small = 3000;
+        assert_eq!(
+            choose_query_kernel(None, true, false, small),
+            K::PerSubgroup
+        );
+        assert_eq!(
+            choose_query_kernel(None, true, false, MAX - 1),
+            K::PerSubgroup
+        );
+        assert_eq!(
+            choose_query_kernel(None, true, false, MAX),
+            K::PerInvocation
+        );
+        assert_eq!(
+            choose_query_kernel(None, true, true, small),
+            K::PerInvocation
+        );
+        assert_eq!(
+            choose_query_kernel(None, false, false, small),
+            K::PerInvocation
+        );
+        let sub = Some(K::PerSubgroup);
+        assert_eq!(
+            choose_query_kernel(sub, true, true, 1 << 30),
+            K::PerSubgroup
+        );
+        assert_eq!(
+            choose_query_kernel(sub, false, false, small),
+            K::PerInvocation
+        );
+        let inv = Some(K::PerInvocation);
+        assert_eq!(
+            choose_query_kernel(inv, true, false, small),
+            K::PerInvocation
+        );
+    }
 
     #[test]
     fn dispatch_folds_into_second_dimension() {

@@ -265,7 +265,7 @@ fn placed_models_match_the_cpu_one_subgroup_per_element() {
 fn scene_on(scene: &Scene, kernel: QueryKernel) -> GpuScene<'static> {
     let mut on_gpu = GpuScene::new(gpu(), scene).unwrap();
     on_gpu
-        .set_kernel(kernel)
+        .set_kernel(Some(kernel))
         .expect("lavapipe and the GPUs we test on have subgroups");
     on_gpu
 }
@@ -765,7 +765,7 @@ fn steps_follow_each_operands_own_bound() {
         ..TraceOptions::default()
     };
     let cpu = scene.trace_rays(&rays, &options).unwrap();
-    let gpu_hits = scene_on(&scene, gpu().query_kernel())
+    let gpu_hits = scene_on(&scene, gpu().query_kernel(rays.len() as u64))
         .trace_rays(&rays, &options)
         .unwrap();
     let mut hits = 0;

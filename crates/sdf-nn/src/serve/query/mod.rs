@@ -120,8 +120,8 @@ pub struct QueryBuffersDescriptor<'a> {
     pub space: QuerySpace,
     /// How [`NeuralSdf::submit_query`](crate::NeuralSdf::submit_query) moves points in and results out.
     pub transfer: QueryTransfer,
-    /// The kernel of an NGLOD model or hash grid; `None`: the device's
-    /// ([`GpuContext::query_kernel`]). [`QueryKernel::PerSubgroup`] on a device without usable subgroups is
+    /// The kernel of an NGLOD model or hash grid; `None`: the device's for each query's
+    /// count ([`GpuContext::query_kernel`]). [`QueryKernel::PerSubgroup`] on a device without usable subgroups is
     /// [`QueryError::NoSubgroups`].
     pub kernel: Option<QueryKernel>,
 }
@@ -207,13 +207,37 @@ impl std::fmt::Debug for QueryBuffers {
 /// How a query runs on the GPU.
 enum Kernels {
     /// NGLOD: one dispatch of its serving kernel, straight from `points` to `results`.
-    Nglod(NglodEvalBinding),
+    Nglod(NglodBindings),
     /// SIREN on a kernel family that runs an inference in one dispatch (tiled fused,
     /// cooperative matrices): the same, straight from `points` to `results`.
     Siren(QueryLaunch),
     /// SIREN: `prepare` (points to the network's input rows), the network's launches bound to
     /// `net_in` and `net_out`, `finish` (its values and gradients to distances and normals).
     Staged(Box<Stages>),
+}
+
+/// An NGLOD model's serving kernels bound to one set of buffers.
+struct NglodBindings {
+    /// One point per invocation (every device).
+    per_invocation: NglodEvalBinding,
+    /// One point per subgroup, where these buffers' queries may run it.
+    per_subgroup: Option<NglodEvalBinding>,
+    /// The caller's choice ([`QueryBuffersDescriptor::kernel`]); `None`: by each query's count
+    /// ([`GpuContext::query_kernel`]).
+    forced: Option<QueryKernel>,
+}
+
+impl NglodBindings {
+    /// The binding a query of `n` points runs.
+    fn for_count(&mut self, gpu: &GpuContext, n: u32) -> &mut NglodEvalBinding {
+        let kernel = self
+            .forced
+            .unwrap_or_else(|| gpu.query_kernel(u64::from(n)));
+        match (kernel, &mut self.per_subgroup) {
+            (QueryKernel::PerSubgroup, Some(binding)) => binding,
+            _ => &mut self.per_invocation,
+        }
+    }
 }
 
 /// The two ends of `shaders/query.wgsl` around a network's own kernels.

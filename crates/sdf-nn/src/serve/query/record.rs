@@ -6,8 +6,9 @@ use std::sync::Arc;
 use glam::Vec3;
 
 use super::{
-    Kernels, MapSlot, NEXT_GENERATION, Prepared, QueryBuffers, QueryBuffersDescriptor, QueryKernel,
-    QueryOutputs, QuerySpace, QueryTicket, QueryTransfer, QueryUniforms, Stages, WG,
+    Kernels, MapSlot, NEXT_GENERATION, NglodBindings, Prepared, QueryBuffers,
+    QueryBuffersDescriptor, QueryKernel, QueryOutputs, QuerySpace, QueryTicket, QueryTransfer,
+    QueryUniforms, Stages, WG,
 };
 use crate::gpu::{GpuContext, GpuError, GpuTimer, entry};
 use crate::model_file::Normalization;
@@ -81,21 +82,27 @@ impl QueryBuffers {
             QuerySpace::Normalized => (Vec3::ZERO, 1.0),
         };
         let map = transform.0.extend(transform.1);
-        let kernel = desc.kernel.unwrap_or_else(|| gpu.query_kernel());
         let one_dispatch = match network {
             GpuNetwork::Nglod(m) => {
                 // The subgroup kernel counts 64 / width points per workgroup.
-                let per_group = match kernel {
-                    QueryKernel::PerInvocation => None,
-                    QueryKernel::PerSubgroup => Some(gpu.subgroups_within(64).ok_or_else(
-                        || QueryError::NoSubgroups {
+                let width = gpu.subgroups_within(64);
+                let subgroups = match desc.kernel {
+                    Some(QueryKernel::PerInvocation) => None,
+                    Some(QueryKernel::PerSubgroup) => {
+                        Some(width.ok_or_else(|| QueryError::NoSubgroups {
                             adapter: gpu.describe(),
-                        },
-                    )?),
+                        })?)
+                    }
+                    None => width.filter(|_| gpu.may_use_subgroup_queries()),
                 };
-                Some(Kernels::Nglod(m.eval_binding(
-                    gpu, &points, &results, normals, transform, per_group,
-                )?))
+                let bind = |subgroups| {
+                    m.eval_binding(gpu, &points, &results, normals, transform, subgroups)
+                };
+                Some(Kernels::Nglod(NglodBindings {
+                    per_invocation: bind(None)?,
+                    per_subgroup: subgroups.map(|w| bind(Some(w))).transpose()?,
+                    forced: desc.kernel,
+                }))
             }
             GpuNetwork::Siren(s) => s
                 .query_launch(gpu, &points, &results, desc.capacity, normals, map)?
@@ -288,8 +295,8 @@ impl QueryBuffers {
         let normals = self.outputs == QueryOutputs::ValuesAndNormals;
         {
             match (network, &mut self.kernels) {
-                (GpuNetwork::Nglod(m), Kernels::Nglod(binding)) => {
-                    m.record_eval(gpu, enc, binding, n, lod, timer)?
+                (GpuNetwork::Nglod(m), Kernels::Nglod(bindings)) => {
+                    m.record_eval(gpu, enc, bindings.for_count(gpu, n), n, lod, timer)?
                 }
                 (GpuNetwork::Siren(s), Kernels::Siren(launch)) => {
                     s.refresh_pack(enc);

@@ -23,11 +23,12 @@
 //! projections take the same steps.
 //!
 //! # Kernels
-//! [`QueryKernel::PerSubgroup`] (the default on GPUs with subgroup operations) takes each point
-//! or ray with a whole subgroup, which shares every model's evaluation;
-//! [`QueryKernel::PerInvocation`] (the default on CPU adapters, where it is the faster) takes
-//! one per invocation. [`GpuContext::query_kernel`] chooses (`HWSDF_QUERY_KERNEL` forces one),
-//! [`GpuScene::set_kernel`] switches; the answers agree to f32 rounding.
+//! [`QueryKernel::PerSubgroup`] (the default on GPUs with subgroup operations, for batches
+//! below [`crate::gpu::SUBGROUP_KERNEL_MAX_ELEMENTS`]) takes each point or ray with a whole
+//! subgroup, which shares every model's evaluation; [`QueryKernel::PerInvocation`] (the default
+//! for larger batches and on CPU adapters, where it is the faster) takes one per invocation.
+//! [`GpuContext::query_kernel`] chooses per batch (`HWSDF_QUERY_KERNEL` forces one),
+//! [`GpuScene::set_kernel`] forces one; the answers agree to f32 rounding.
 //!
 //! # Serving
 //! The plain calls ([`GpuScene::distances`], [`GpuScene::samples`], [`GpuScene::trace_rays`],
@@ -204,7 +205,8 @@ pub struct GpuScene<'g> {
     weights: SceneBindGroup,
     /// Per kernel, per kind (`kernel as usize * 4 + kind`).
     pipelines: [OnceLock<wgpu::ComputePipeline>; 8],
-    kernel: QueryKernel,
+    /// The caller's choice ([`GpuScene::set_kernel`]); `None`: by each batch's size.
+    kernel: Option<QueryKernel>,
     /// The widest subgroup the adapter may run, where the module has the subgroup kernels.
     subgroup_width: Option<u32>,
     lipschitz: f32,
@@ -238,7 +240,8 @@ pub const MORTON_ON_GPU: usize = 1024;
 impl<'g> GpuScene<'g> {
     /// Compiles `scene` for `gpu`'s device and uploads its weights. Measures the models'
     /// Lipschitz estimates (for rays) if the scene has not yet. The queries run the device's
-    /// kernel ([`GpuContext::query_kernel`]; [`GpuScene::set_kernel`] changes it).
+    /// kernel for each batch's size ([`GpuContext::query_kernel`]; [`GpuScene::set_kernel`]
+    /// forces one).
     pub fn new(gpu: &'g GpuContext, scene: &Scene) -> Result<GpuScene<'g>, SceneGpuError> {
         let device = gpu.device();
         let limits = gpu.limits();
@@ -316,11 +319,6 @@ impl<'g> GpuScene<'g> {
                 .min(max_dispatch * max_dispatch * u64::from(per_group))
                 .min(u64::from(u32::MAX / 16)) as u32
         });
-        // The device's choice, where this module has its kernel.
-        let kernel = match (gpu.query_kernel(), subgroup_width) {
-            (QueryKernel::PerSubgroup, Some(_)) => QueryKernel::PerSubgroup,
-            _ => QueryKernel::PerInvocation,
-        };
         Ok(GpuScene {
             gpu,
             modules,
@@ -328,7 +326,7 @@ impl<'g> GpuScene<'g> {
             query_layout,
             weights,
             pipelines: Default::default(),
-            kernel,
+            kernel: None,
             subgroup_width,
             lipschitz: scene.lipschitz(),
             leaves: scene.leaves().len(),
@@ -363,16 +361,23 @@ impl<'g> GpuScene<'g> {
         self.max_part = elements.max(1);
     }
 
-    /// The kernels the queries run.
-    pub fn kernel(&self) -> QueryKernel {
-        self.kernel
+    /// The kernel a query of `elements` points or rays runs: the one
+    /// [`GpuScene::set_kernel`] chose, else the device's for that size
+    /// ([`GpuContext::query_kernel`]).
+    pub fn kernel(&self, elements: u32) -> QueryKernel {
+        match (self.kernel, self.subgroup_width) {
+            (Some(kernel), _) => kernel,
+            (None, Some(_)) => self.gpu.query_kernel(u64::from(elements)),
+            (None, None) => QueryKernel::PerInvocation,
+        }
     }
 
-    /// Chooses the kernels of the next queries (the answers agree to f32 rounding).
-    /// [`QueryKernel::PerSubgroup`] needs a device with subgroup operations whose subgroups are
-    /// at most 64 wide ([`SceneGpuError::NoSubgroups`] otherwise).
-    pub fn set_kernel(&mut self, kernel: QueryKernel) -> Result<(), SceneGpuError> {
-        if kernel == QueryKernel::PerSubgroup && self.subgroup_width.is_none() {
+    /// Runs the next queries on `kernel` whatever their size (`None`: the device's choice
+    /// per batch size). The answers agree to f32 rounding. [`QueryKernel::PerSubgroup`] needs a
+    /// device with subgroup operations whose subgroups are at most 64 wide
+    /// ([`SceneGpuError::NoSubgroups`] otherwise).
+    pub fn set_kernel(&mut self, kernel: Option<QueryKernel>) -> Result<(), SceneGpuError> {
+        if kernel == Some(QueryKernel::PerSubgroup) && self.subgroup_width.is_none() {
             return Err(SceneGpuError::NoSubgroups {
                 adapter: self.gpu.describe(),
             });
@@ -381,22 +386,26 @@ impl<'g> GpuScene<'g> {
         Ok(())
     }
 
-    /// The pipeline of `kind` for the current kernel, compiled on first use.
-    fn pipeline(&self, kind: SceneQueryKind) -> Result<&wgpu::ComputePipeline, GpuError> {
-        let cell = &self.pipelines[self.kernel as usize * 4 + kind.index()];
+    /// The pipeline of `kind` on `kernel`, compiled on first use.
+    fn pipeline(
+        &self,
+        kind: SceneQueryKind,
+        kernel: QueryKernel,
+    ) -> Result<&wgpu::ComputePipeline, GpuError> {
+        let cell = &self.pipelines[kernel as usize * 4 + kind.index()];
         if let Some(p) = cell.get() {
             return Ok(p);
         }
         let device = self.gpu.device();
         let scope = device.push_error_scope(wgpu::ErrorFilter::Validation);
-        let entry_point = match self.kernel {
+        let entry_point = match kernel {
             QueryKernel::PerInvocation => "query_per_invocation",
             QueryKernel::PerSubgroup => "query_per_subgroup",
         };
         let pipeline = device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
             label: Some(kind.label()),
             layout: Some(&self.layout),
-            module: &self.modules[self.kernel as usize],
+            module: &self.modules[kernel as usize],
             entry_point: Some(entry_point),
             // The query kind (`KIND` in scene_query.wgsl) picks one branch at compile time.
             compilation_options: wgpu::PipelineCompilationOptions {
@@ -502,8 +511,9 @@ impl<'g> GpuScene<'g> {
         group: &wgpu::BindGroup,
         count: u32,
     ) -> Result<(), GpuError> {
-        let pipeline = self.pipeline(kind)?;
-        let per_group = match (self.kernel, self.subgroup_width) {
+        let kernel = self.kernel(count);
+        let pipeline = self.pipeline(kind, kernel)?;
+        let per_group = match (kernel, self.subgroup_width) {
             (QueryKernel::PerSubgroup, Some(width)) => WG / width,
             _ => WG,
         };
@@ -573,7 +583,7 @@ impl<'g> GpuScene<'g> {
         params: &SceneQueryParams,
     ) -> Result<Vec<f32>, GpuError> {
         // A subgroup per point never diverges over models: nothing to gain from the order.
-        let sort = self.kernel == QueryKernel::PerInvocation
+        let sort = self.kernel(points.len() as u32) == QueryKernel::PerInvocation
             && (points.len() >= MORTON_ON_GPU || (self.gpu.is_cpu() && points.len() >= 256));
         if !sort {
             let inputs: Vec<[f32; 4]> = points.iter().map(|p| p.extend(0.0).to_array()).collect();
