@@ -382,7 +382,11 @@ impl NglodGpu {
             (Some(w), false) => (&shaders::NGLOD_QUERY_SUBGROUP, "query_sg", WG / w),
             (Some(w), true) => (&shaders::NGLOD_QUERY_SUBGROUP, "query_grad_sg", WG / w),
         };
-        let pipeline = gpu.pipeline(shader, entry_point, &self.constants)?;
+        let mut constants = self.constants.to_vec();
+        if subgroup_width.is_some() {
+            constants.push(("PER_GROUP", f64::from(per_group)));
+        }
+        let pipeline = gpu.pipeline(shader, entry_point, &constants)?;
         let uniforms = gpu.uniform("nglod query uniforms", &self.eval_uniforms(0, 0));
         let bind_group = gpu.device().create_bind_group(&wgpu::BindGroupDescriptor {
             label: Some("nglod query"),

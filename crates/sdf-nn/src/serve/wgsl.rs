@@ -8,8 +8,10 @@
 //! - `fn hwsdf_distance_normal(p: vec3<f32>) -> vec4<f32>`: both from one evaluation (x: the
 //!   distance, yzw: the normal);
 //! - `fn hwsdf_trace(p: vec3<f32>, c: f32) -> vec2<f32>`: for sphere tracers, the distance
-//!   less a level `c` and the step to take (the same value for one model; a scene's
-//!   `{prefix}_trace` gives a larger safe step);
+//!   less a level `c`, twice (x and y). For one model the step is the distance itself: scale
+//!   it by a step factor or the model's Lipschitz estimate as the built-in renderer does. A
+//!   scene's `{prefix}_trace` has the same shape but its y is already a safe step (divided by
+//!   the operands' Lipschitz bounds), so one tracer serves both;
 //!
 //! and in the model's normalised cube `[-1, 1]³`: `hwsdf_distance_normalized` and
 //! `hwsdf_normal_normalized`. The normalisation (centre and scale) and the architecture (widths,
@@ -397,8 +399,9 @@ fn hwsdf_distance(p: vec3<f32>) -> f32 {
     return hwsdf_distance_normalized((p - HWSDF_CENTER) * HWSDF_SCALE) / HWSDF_SCALE;
 }
 
-// For sphere tracers, as a scene's `_trace`: x, the distance less the level c; y, the step
-// (here the same: the model is traced as a distance, its Lipschitz estimate left to the caller).
+// For sphere tracers, in the shape of a scene's `_trace`: x, the distance less the level c; y,
+// the step before the caller's step factor (here the same value: one model is traced as a
+// distance, its Lipschitz estimate left to the caller, where a scene's y is already safe).
 fn hwsdf_trace(p: vec3<f32>, c: f32) -> vec2<f32> {
     let d = hwsdf_distance(p) - c;
     return vec2<f32>(d, d);

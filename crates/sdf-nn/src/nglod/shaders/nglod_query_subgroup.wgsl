@@ -105,6 +105,11 @@ fn value_grad_sg(p: vec3<f32>, lane: u32, lanes: u32, grad: bool) -> vec4<f32> {
     return vec4<f32>(o + mlp_at(w1 + H - w0), g);
 }
 
+// Points per workgroup: WG over the widest subgroup the adapter may run, as the host counts
+// them. The workgroup's subgroups share out its slice whatever width the hardware runs (fewer
+// subgroups take several points each, more leave some idle).
+override PER_GROUP: u32 = 1u;
+
 fn query_point(idx: u32) -> vec3<f32> {
     return query_normalized(vec3<f32>(points[4u * idx], points[4u * idx + 1u], points[4u * idx + 2u]), u.query);
 }
@@ -119,14 +124,14 @@ fn query_sg(
     @builtin(subgroup_invocation_id) lane: u32,
     @builtin(subgroup_size) lanes: u32,
 ) {
-    let idx = (wid.y * nwg.x + wid.x) * subgroups + sid;
-    if idx >= u.n_points {
-        return;
-    }
-    let x = query_point(idx);
-    let v = value_grad_sg(query_clamped(x), lane, lanes, false);
-    if lane == 0u {
-        out[idx] = query_distance(v.x, x, u.query);
+    let first = (wid.y * nwg.x + wid.x) * PER_GROUP;
+    for (var k = sid; k < PER_GROUP && first + k < u.n_points; k += subgroups) {
+        let idx = first + k;
+        let x = query_point(idx);
+        let v = value_grad_sg(query_clamped(x), lane, lanes, false);
+        if lane == 0u {
+            out[idx] = query_distance(v.x, x, u.query);
+        }
     }
 }
 
@@ -140,17 +145,17 @@ fn query_grad_sg(
     @builtin(subgroup_invocation_id) lane: u32,
     @builtin(subgroup_size) lanes: u32,
 ) {
-    let idx = (wid.y * nwg.x + wid.x) * subgroups + sid;
-    if idx >= u.n_points {
-        return;
-    }
-    let x = query_point(idx);
-    let vg = value_grad_sg(query_clamped(x), lane, lanes, true);
-    if lane == 0u {
-        let n = query_normal(vg.yzw, x);
-        out[4u * idx] = query_distance(vg.x, x, u.query);
-        out[4u * idx + 1u] = n.x;
-        out[4u * idx + 2u] = n.y;
-        out[4u * idx + 3u] = n.z;
+    let first = (wid.y * nwg.x + wid.x) * PER_GROUP;
+    for (var k = sid; k < PER_GROUP && first + k < u.n_points; k += subgroups) {
+        let idx = first + k;
+        let x = query_point(idx);
+        let vg = value_grad_sg(query_clamped(x), lane, lanes, true);
+        if lane == 0u {
+            let n = query_normal(vg.yzw, x);
+            out[4u * idx] = query_distance(vg.x, x, u.query);
+            out[4u * idx + 1u] = n.x;
+            out[4u * idx + 2u] = n.y;
+            out[4u * idx + 3u] = n.z;
+        }
     }
 }

@@ -228,6 +228,36 @@ struct NglodBindings {
 }
 
 impl NglodBindings {
+    /// `model`'s kernels bound to `buffers` (points, results): one point per invocation, and
+    /// one per subgroup where `kernel` asks for it or (`None`) the device may choose it.
+    fn new(
+        gpu: &GpuContext,
+        model: &crate::nglod::NglodGpu,
+        (points, results): (&wgpu::Buffer, &wgpu::Buffer),
+        normals: bool,
+        transform: (Vec3, f32),
+        kernel: Option<QueryKernel>,
+    ) -> Result<Self, NeuralSdfError> {
+        // The subgroup kernel counts 64 / width points per workgroup.
+        let width = gpu.subgroups_within(64);
+        let subgroups = match kernel {
+            Some(QueryKernel::PerInvocation) => None,
+            Some(QueryKernel::PerSubgroup) => {
+                Some(width.ok_or_else(|| QueryError::NoSubgroups {
+                    adapter: gpu.describe(),
+                })?)
+            }
+            None => width.filter(|_| gpu.may_use_subgroup_queries()),
+        };
+        let bind =
+            |subgroups| model.eval_binding(gpu, points, results, normals, transform, subgroups);
+        Ok(NglodBindings {
+            per_invocation: bind(None)?,
+            per_subgroup: subgroups.map(|w| bind(Some(w))).transpose()?,
+            forced: kernel,
+        })
+    }
+
     /// The binding a query of `n` points runs.
     fn for_count(&mut self, gpu: &GpuContext, n: u32) -> &mut NglodEvalBinding {
         let kernel = self

@@ -7,8 +7,8 @@ use glam::Vec3;
 
 use super::{
     Kernels, MapSlot, NEXT_GENERATION, NglodBindings, Prepared, QueryBuffers,
-    QueryBuffersDescriptor, QueryKernel, QueryOutputs, QuerySpace, QueryTicket, QueryTransfer,
-    QueryUniforms, Stages, WG,
+    QueryBuffersDescriptor, QueryOutputs, QuerySpace, QueryTicket, QueryTransfer, QueryUniforms,
+    Stages, WG,
 };
 use crate::gpu::{GpuContext, GpuError, GpuTimer, entry};
 use crate::model_file::Normalization;
@@ -83,27 +83,14 @@ impl QueryBuffers {
         };
         let map = transform.0.extend(transform.1);
         let one_dispatch = match network {
-            GpuNetwork::Nglod(m) => {
-                // The subgroup kernel counts 64 / width points per workgroup.
-                let width = gpu.subgroups_within(64);
-                let subgroups = match desc.kernel {
-                    Some(QueryKernel::PerInvocation) => None,
-                    Some(QueryKernel::PerSubgroup) => {
-                        Some(width.ok_or_else(|| QueryError::NoSubgroups {
-                            adapter: gpu.describe(),
-                        })?)
-                    }
-                    None => width.filter(|_| gpu.may_use_subgroup_queries()),
-                };
-                let bind = |subgroups| {
-                    m.eval_binding(gpu, &points, &results, normals, transform, subgroups)
-                };
-                Some(Kernels::Nglod(NglodBindings {
-                    per_invocation: bind(None)?,
-                    per_subgroup: subgroups.map(|w| bind(Some(w))).transpose()?,
-                    forced: desc.kernel,
-                }))
-            }
+            GpuNetwork::Nglod(m) => Some(Kernels::Nglod(NglodBindings::new(
+                gpu,
+                m,
+                (&points, &results),
+                normals,
+                transform,
+                desc.kernel,
+            )?)),
             GpuNetwork::Siren(s) => s
                 .query_launch(gpu, &points, &results, desc.capacity, normals, map)?
                 .map(Kernels::Siren),

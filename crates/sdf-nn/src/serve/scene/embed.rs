@@ -394,7 +394,8 @@ impl Scene {
             let mut v = 0;
             while v < program.len() {
                 if kind != Program::Sample
-                    && let Some((code, end, popped)) = self.leaf_union(prefix, v, &stack, kind)
+                    && let Some((code, end, popped)) =
+                        self.leaf_union(prefix, v, &stack, kind, &plan)
                 {
                     if popped {
                         stack.pop();
@@ -404,7 +405,7 @@ impl Scene {
                     v = end + 1;
                     continue;
                 }
-                if let Some((code, skip)) = self.culled_union(prefix, v, &stack, kind) {
+                if let Some((code, skip)) = self.culled_union(prefix, v, &stack, kind, &plan) {
                     stack.pop();
                     body.push_str(&code);
                     stack.push(v + skip);
@@ -494,6 +495,7 @@ impl Scene {
         v: usize,
         stack: &[usize],
         kind: Program,
+        plan: &[TraceStep],
     ) -> Option<(String, usize, bool)> {
         let program = self.program();
         let Instruction::Leaf(first) = program[v] else {
@@ -520,7 +522,6 @@ impl Scene {
             return None;
         }
         let trace = kind == Program::Trace;
-        let plan = self.trace_plan();
         let mut c = format!(
             "    // The union of leaves {leaves:?}: primitives, then the nearest model bound first.\n\
              \x20   var v{end} = {init};\n"
@@ -604,6 +605,7 @@ impl Scene {
         v: usize,
         stack: &[usize],
         kind: Program,
+        plan: &[TraceStep],
     ) -> Option<(String, usize)> {
         let with_gradient = kind == Program::Sample;
         let program = self.program();
@@ -633,7 +635,6 @@ impl Scene {
         };
         let u = v + 1;
         if kind == Program::Trace {
-            let plan = self.trace_plan();
             // A sharp union's bound is the smaller of its operands'; a smooth one's its own.
             return Some((
                 if k > 0.0 {

@@ -207,6 +207,8 @@ pub struct GpuScene<'g> {
     pipelines: [OnceLock<wgpu::ComputePipeline>; 8],
     /// The caller's choice ([`GpuScene::set_kernel`]); `None`: by each batch's size.
     kernel: Option<QueryKernel>,
+    /// Why the driver refused the subgroup kernels, where it did.
+    refusal: Option<String>,
     /// The widest subgroup the adapter may run, where the module has the subgroup kernels.
     subgroup_width: Option<u32>,
     lipschitz: f32,
@@ -260,12 +262,24 @@ impl<'g> GpuScene<'g> {
             "scene_query.wgsl",
             Cow::Owned(format!("{}\n{query}", snippets[0])),
         )];
+        // (Its per-invocation entry point, which SCENE_QUERY brings along, is never used.)
+        let mut subgroup_width = subgroup_width;
+        let mut refusal = None;
         if let Some(snippet) = snippets.get(1) {
             let source = format!(
                 "{snippet}\n{query}\n{}",
                 crate::shaders::SCENE_QUERY_SUBGROUP.source
             );
-            modules.push(gpu.generated_module("scene_query_subgroup.wgsl", Cow::Owned(source)));
+            // A driver that refuses the subgroup kernels leaves the scene its other kernel.
+            let own = device.push_error_scope(wgpu::ErrorFilter::Validation);
+            let module = gpu.generated_module("scene_query_subgroup.wgsl", Cow::Owned(source));
+            match pollster::block_on(own.pop()) {
+                None => modules.push(module),
+                Some(err) => {
+                    refusal = Some(err.to_string());
+                    subgroup_width = None;
+                }
+            }
         }
         let storage = |binding, read_only| wgpu::BindGroupLayoutEntry {
             binding,
@@ -328,6 +342,7 @@ impl<'g> GpuScene<'g> {
             pipelines: Default::default(),
             kernel: None,
             subgroup_width,
+            refusal,
             lipschitz: scene.lipschitz(),
             leaves: scene.leaves().len(),
             max_elements,
@@ -378,9 +393,11 @@ impl<'g> GpuScene<'g> {
     /// ([`SceneGpuError::NoSubgroups`] otherwise).
     pub fn set_kernel(&mut self, kernel: Option<QueryKernel>) -> Result<(), SceneGpuError> {
         if kernel == Some(QueryKernel::PerSubgroup) && self.subgroup_width.is_none() {
-            return Err(SceneGpuError::NoSubgroups {
-                adapter: self.gpu.describe(),
-            });
+            let adapter = match &self.refusal {
+                Some(why) => format!("{} (its driver refused them: {why})", self.gpu.describe()),
+                None => self.gpu.describe(),
+            };
+            return Err(SceneGpuError::NoSubgroups { adapter });
         }
         self.kernel = kernel;
         Ok(())
@@ -398,6 +415,10 @@ impl<'g> GpuScene<'g> {
         }
         let device = self.gpu.device();
         let scope = device.push_error_scope(wgpu::ErrorFilter::Validation);
+        let mut constants = vec![("KIND", kind.index() as f64)];
+        if let (QueryKernel::PerSubgroup, Some(width)) = (kernel, self.subgroup_width) {
+            constants.push(("PER_GROUP", f64::from(WG / width)));
+        }
         let entry_point = match kernel {
             QueryKernel::PerInvocation => "query_per_invocation",
             QueryKernel::PerSubgroup => "query_per_subgroup",
@@ -409,7 +430,7 @@ impl<'g> GpuScene<'g> {
             entry_point: Some(entry_point),
             // The query kind (`KIND` in scene_query.wgsl) picks one branch at compile time.
             compilation_options: wgpu::PipelineCompilationOptions {
-                constants: &[("KIND", kind.index() as f64)],
+                constants: &constants,
                 ..Default::default()
             },
             cache: None,

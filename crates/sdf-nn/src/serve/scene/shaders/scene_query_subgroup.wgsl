@@ -5,8 +5,10 @@
 // then keep a GPU busy with short evaluations instead of one long one per invocation. Lane 0
 // writes the outputs.
 //
-// Element of an invocation: its workgroup's first element plus its subgroup's index. The host
-// dispatches enough workgroups for the widest subgroup the adapter may use.
+// Elements per workgroup: 64 over the widest subgroup the adapter may run, as the host counts
+// them. The workgroup's subgroups share out its slice whatever width the hardware runs (fewer
+// subgroups take several elements each, more leave some idle).
+override PER_GROUP: u32 = 1u;
 
 @compute @workgroup_size(64)
 fn query_per_subgroup(
@@ -17,10 +19,10 @@ fn query_per_subgroup(
     @builtin(subgroup_invocation_id) lane: u32,
     @builtin(subgroup_size) lanes: u32,
 ) {
-    let i = (wid.y * nwg.x + wid.x) * subgroups + sid;
-    if i < query.count {
-        scene_lane = lane;
-        scene_lanes = lanes;
-        query_element(query.first + i, lane == 0u);
+    let first = (wid.y * nwg.x + wid.x) * PER_GROUP;
+    scene_lane = lane;
+    scene_lanes = lanes;
+    for (var k = sid; k < PER_GROUP && first + k < query.count; k += subgroups) {
+        query_element(query.first + first + k, lane == 0u);
     }
 }
