@@ -379,12 +379,12 @@ impl NglodGpu {
         let (shader, entry_point, per_group) = match (subgroup_width, gradients) {
             (None, false) => (&shaders::NGLOD_FORWARD, "query", WG),
             (None, true) => (&shaders::NGLOD_FORWARD, "query_grad", WG),
-            (Some(w), false) => (&shaders::NGLOD_QUERY_SUBGROUP, "query_sg", WG / w),
-            (Some(w), true) => (&shaders::NGLOD_QUERY_SUBGROUP, "query_grad_sg", WG / w),
+            (Some(w), _) => (&shaders::NGLOD_QUERY_SUBGROUP, "query_sg", WG / w),
         };
         let mut constants = self.constants.to_vec();
         if subgroup_width.is_some() {
             constants.push(("PER_GROUP", f64::from(per_group)));
+            constants.push(("NORMALS", f64::from(u8::from(gradients))));
         }
         let pipeline = gpu.pipeline(shader, entry_point, &constants)?;
         let uniforms = gpu.uniform("nglod query uniforms", &self.eval_uniforms(0, 0));

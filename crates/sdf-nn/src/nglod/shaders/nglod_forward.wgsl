@@ -68,17 +68,10 @@ fn value_at(p: vec3<f32>) -> f32 {
     }
     for (var l = 0u; l < u.lod; l++) {
         let lv = u.levels[l];
-        let res = lv.x;
-        let r = f32(res);
-        let uvw = clamp((p + 1.0) * 0.5 * r, vec3<f32>(0.0), vec3<f32>(r));
-        // min() keeps the index in range even for NaN input (the shader runs without bounds checks).
-        let i0 = min(vec3<u32>(floor(uvw)), vec3<u32>(res - 1u));
-        let t = uvw - vec3<f32>(i0);
+        let cell = grid_cell(p, lv.x);
         for (var c = 0u; c < 8u; c++) {
-            let d = vec3<u32>((c >> 2u) & 1u, (c >> 1u) & 1u, c & 1u);
-            let wv = select(1.0 - t, t, d == vec3<u32>(1u));
-            let w = wv.x * wv.y * wv.z;
-            let base = vertex_base(lv, i0 + d);
+            let w = corner_weight(cell, c).x;
+            let base = vertex_base(lv, cell.i0 + corner_offset(c));
             if base == NO_SLOT {
                 continue;
             }
@@ -114,21 +107,12 @@ fn value_grad_at(p: vec3<f32>) -> vec4<f32> {
     }
     for (var l = 0u; l < u.lod; l++) {
         let lv = u.levels[l];
-        let res = lv.x;
-        let r = f32(res);
-        let uu = (p + 1.0) * 0.5 * r;
-        let uvw = clamp(uu, vec3<f32>(0.0), vec3<f32>(r));
-        let du = select(vec3<f32>(0.0), vec3<f32>(0.5 * r), (uu > vec3<f32>(0.0)) & (uu < vec3<f32>(r)));
-        let i0 = min(vec3<u32>(floor(uvw)), vec3<u32>(res - 1u));
-        let t = uvw - vec3<f32>(i0);
+        let cell = grid_cell(p, lv.x);
         for (var c = 0u; c < 8u; c++) {
-            let d = vec3<u32>((c >> 2u) & 1u, (c >> 1u) & 1u, c & 1u);
-            let hi = d == vec3<u32>(1u);
-            let wv = select(1.0 - t, t, hi);
-            let w = wv.x * wv.y * wv.z;
-            let dw = select(vec3<f32>(-1.0), vec3<f32>(1.0), hi)
-                * vec3<f32>(wv.y * wv.z, wv.x * wv.z, wv.x * wv.y) * du;
-            let base = vertex_base(lv, i0 + d);
+            let wd = corner_weight(cell, c);
+            let w = wd.x;
+            let dw = wd.yzw;
+            let base = vertex_base(lv, cell.i0 + corner_offset(c));
             if base == NO_SLOT {
                 continue;
             }

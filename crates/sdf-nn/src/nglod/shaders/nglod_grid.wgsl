@@ -35,3 +35,36 @@ fn vertex_base(lv: vec4<u32>, v: vec3<u32>) -> u32 {
     }
     return lv.y + slot * FL;
 }
+
+// Where p (normalised) falls in a level of `res` cells per axis: the cell's first vertex, the
+// position within the cell (0..1 per axis), and that position's derivative in p (r/2 inside
+// the box, 0 along an axis where p is clamped to it).
+struct GridCell {
+    i0: vec3<u32>,
+    t: vec3<f32>,
+    du: vec3<f32>,
+}
+
+fn grid_cell(p: vec3<f32>, res: u32) -> GridCell {
+    let r = f32(res);
+    let u = (p + 1.0) * 0.5 * r;
+    let uvw = clamp(u, vec3<f32>(0.0), vec3<f32>(r));
+    let du = select(vec3<f32>(0.0), vec3<f32>(0.5 * r), (u > vec3<f32>(0.0)) & (u < vec3<f32>(r)));
+    // min() keeps the index in range even for NaN input (the shaders run without bounds checks).
+    let i0 = min(vec3<u32>(floor(uvw)), vec3<u32>(res - 1u));
+    return GridCell(i0, uvw - vec3<f32>(i0), du);
+}
+
+// Corner c (0..8) of a cell, as an offset from its first vertex.
+fn corner_offset(c: u32) -> vec3<u32> {
+    return vec3<u32>((c >> 2u) & 1u, (c >> 1u) & 1u, c & 1u);
+}
+
+// Corner c's trilinear weight (x) and the weight's gradient in p (yzw).
+fn corner_weight(cell: GridCell, c: u32) -> vec4<f32> {
+    let hi = corner_offset(c) == vec3<u32>(1u);
+    let wv = select(1.0 - cell.t, cell.t, hi);
+    let dw = select(vec3<f32>(-1.0), vec3<f32>(1.0), hi)
+        * vec3<f32>(wv.y * wv.z, wv.x * wv.z, wv.x * wv.y) * cell.du;
+    return vec4<f32>(wv.x * wv.y * wv.z, dw);
+}

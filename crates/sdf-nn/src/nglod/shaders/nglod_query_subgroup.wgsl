@@ -33,22 +33,12 @@ fn value_grad_sg(p: vec3<f32>, lane: u32, lanes: u32, grad: bool) -> vec4<f32> {
             continue;
         }
         let lv = u.levels[l];
-        let res = lv.x;
-        let r = f32(res);
-        let uu = (p + 1.0) * 0.5 * r;
-        let uvw = clamp(uu, vec3<f32>(0.0), vec3<f32>(r));
-        let du = select(vec3<f32>(0.0), vec3<f32>(0.5 * r), (uu > vec3<f32>(0.0)) & (uu < vec3<f32>(r)));
-        // min() keeps the index in range even for NaN input (the shader runs without bounds checks).
-        let i0 = min(vec3<u32>(floor(uvw)), vec3<u32>(res - 1u));
-        let t = uvw - vec3<f32>(i0);
+        let cell = grid_cell(p, lv.x);
         for (var c = lane % 8u; c < 8u; c += corner_step) {
-            let d = vec3<u32>((c >> 2u) & 1u, (c >> 1u) & 1u, c & 1u);
-            let hi = d == vec3<u32>(1u);
-            let wv = select(1.0 - t, t, hi);
-            let w = wv.x * wv.y * wv.z;
-            let dw = select(vec3<f32>(-1.0), vec3<f32>(1.0), hi)
-                * vec3<f32>(wv.y * wv.z, wv.x * wv.z, wv.x * wv.y) * du;
-            let base = vertex_base(lv, i0 + d);
+            let wd = corner_weight(cell, c);
+            let w = wd.x;
+            let dw = wd.yzw;
+            let base = vertex_base(lv, cell.i0 + corner_offset(c));
             if base == NO_SLOT {
                 continue;
             }
@@ -114,7 +104,10 @@ fn query_point(idx: u32) -> vec3<f32> {
     return query_normalized(vec3<f32>(points[4u * idx], points[4u * idx + 1u], points[4u * idx + 2u]), u.query);
 }
 
-// `query` with one point per subgroup.
+// With normals (`query_grad`'s output: distance and unit normal per point) or without (`query`'s).
+override NORMALS: bool = false;
+
+// `query`, or with NORMALS `query_grad`, with one point per subgroup.
 @compute @workgroup_size(WG)
 fn query_sg(
     @builtin(workgroup_id) wid: vec3<u32>,
@@ -128,34 +121,18 @@ fn query_sg(
     for (var k = sid; k < PER_GROUP && first + k < u.n_points; k += subgroups) {
         let idx = first + k;
         let x = query_point(idx);
-        let v = value_grad_sg(query_clamped(x), lane, lanes, false);
-        if lane == 0u {
-            out[idx] = query_distance(v.x, x, u.query);
+        let vg = value_grad_sg(query_clamped(x), lane, lanes, NORMALS);
+        if lane != 0u {
+            continue;
         }
-    }
-}
-
-// `query_grad` with one point per subgroup.
-@compute @workgroup_size(WG)
-fn query_grad_sg(
-    @builtin(workgroup_id) wid: vec3<u32>,
-    @builtin(num_workgroups) nwg: vec3<u32>,
-    @builtin(subgroup_id) sid: u32,
-    @builtin(num_subgroups) subgroups: u32,
-    @builtin(subgroup_invocation_id) lane: u32,
-    @builtin(subgroup_size) lanes: u32,
-) {
-    let first = (wid.y * nwg.x + wid.x) * PER_GROUP;
-    for (var k = sid; k < PER_GROUP && first + k < u.n_points; k += subgroups) {
-        let idx = first + k;
-        let x = query_point(idx);
-        let vg = value_grad_sg(query_clamped(x), lane, lanes, true);
-        if lane == 0u {
+        if NORMALS {
             let n = query_normal(vg.yzw, x);
             out[4u * idx] = query_distance(vg.x, x, u.query);
             out[4u * idx + 1u] = n.x;
             out[4u * idx + 2u] = n.y;
             out[4u * idx + 3u] = n.z;
+        } else {
+            out[idx] = query_distance(vg.x, x, u.query);
         }
     }
 }

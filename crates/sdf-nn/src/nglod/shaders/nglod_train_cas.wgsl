@@ -93,16 +93,10 @@ fn train_rows(
     }
     for (var l = 0u; l < lod; l++) {
         let lv = u.levels[l];
-        let res = lv.x;
-        let r = f32(res);
-        let uvw = clamp((p + 1.0) * 0.5 * r, vec3<f32>(0.0), vec3<f32>(r));
-        let i0 = min(vec3<u32>(floor(uvw)), vec3<u32>(res - 1u));
-        let t = uvw - vec3<f32>(i0);
+        let cell = grid_cell(p, lv.x);
         for (var c = 0u; c < 8u; c++) {
-            let d = vec3<u32>((c >> 2u) & 1u, (c >> 1u) & 1u, c & 1u);
-            let wv = select(1.0 - t, t, d == vec3<u32>(1u));
-            let w = wv.x * wv.y * wv.z;
-            let base = vertex_base(lv, i0 + d);
+            let w = corner_weight(cell, c).x;
+            let base = vertex_base(lv, cell.i0 + corner_offset(c));
             if base == NO_SLOT {
                 continue;
             }
@@ -152,16 +146,10 @@ fn train_rows(
 
     for (var l = 0u; l < lod; l++) {
         let lv = u.levels[l];
-        let res = lv.x;
-        let r = f32(res);
-        let uvw = clamp((p + 1.0) * 0.5 * r, vec3<f32>(0.0), vec3<f32>(r));
-        let i0 = min(vec3<u32>(floor(uvw)), vec3<u32>(res - 1u));
-        let t = uvw - vec3<f32>(i0);
+        let cell = grid_cell(p, lv.x);
         for (var c = 0u; c < 8u; c++) {
-            let d = vec3<u32>((c >> 2u) & 1u, (c >> 1u) & 1u, c & 1u);
-            let wv = select(1.0 - t, t, d == vec3<u32>(1u));
-            let w = wv.x * wv.y * wv.z;
-            let base = vertex_base(lv, i0 + d);
+            let w = corner_weight(cell, c).x;
+            let base = vertex_base(lv, cell.i0 + corner_offset(c));
             if base == NO_SLOT {
                 continue;
             }
