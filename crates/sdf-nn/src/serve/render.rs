@@ -321,8 +321,6 @@ pub struct Renderer {
     macs_per_eval: u64,
     /// See [`Renderer::set_max_submission_macs`].
     max_submission_macs: u64,
-    /// The step factor's divisor: 1 for a model and for a scene (whose trace field is 1-Lipschitz).
-    lipschitz: f32,
 }
 
 /// What the tracer's group 1 binds: a model's weights or a scene's.
@@ -378,7 +376,6 @@ impl Renderer {
             weights,
             sdf.normalization(),
             sdf.param_count() as u64,
-            1.0,
         )
     }
 
@@ -403,9 +400,7 @@ impl Renderer {
             .map(|m| m.param_count() as u64)
             .sum::<u64>()
             + scene.leaves().len() as u64 * 64;
-        // The scene's trace field is 1-Lipschitz already (its steps divide each operand by
-        // its own bound).
-        Self::compile(gpu, source, weights, scene.frame(0.0), params, 1.0)
+        Self::compile(gpu, source, weights, scene.frame(0.0), params)
     }
 
     /// The pipeline of `source` (a snippet defining `hwsdf_trace` and `hwsdf_normal`, then
@@ -416,7 +411,6 @@ impl Renderer {
         weights: Weights,
         normalization: Normalization,
         macs_per_eval: u64,
-        lipschitz: f32,
     ) -> Result<Self, RenderError> {
         let device = gpu.device();
         let frame_layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
@@ -475,7 +469,6 @@ impl Renderer {
             normalization,
             macs_per_eval,
             max_submission_macs: MAX_SUBMISSION_MACS,
-            lipschitz: lipschitz.max(1.0),
         })
     }
 
@@ -505,10 +498,9 @@ impl Renderer {
                 .right
                 .extend(options.hit_tolerance_px * pixel_angle)
                 .to_array(),
-            up: cam
-                .up
-                .extend(options.step_scale / self.lipschitz)
-                .to_array(),
+            // The step factor on `hwsdf_trace`'s step: a model's distance, or a scene's field,
+            // which is 1-Lipschitz already (each operand divided by its own bound).
+            up: cam.up.extend(options.step_scale).to_array(),
             light: light.extend(options.ambient.clamp(0.0, 1.0)).to_array(),
             albedo: options.albedo.extend(1.0).to_array(),
             background: options.background.to_array(),
