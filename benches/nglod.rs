@@ -12,12 +12,21 @@
 //!
 //! Run: `cargo bench --bench nglod`. `NGLOD_BENCH_EPOCHS=0` skips the training epochs;
 //! `NGLOD_BENCH_MODELS=nglod` or `hashgrid` trains only one of the two.
+//!
+//! `NGLOD_BENCH_PROFILE=N` runs no criterion bench: for NGLOD `default` and the hash grid's
+//! `default` (or those of `NGLOD_BENCH_MODELS`), with the points from the CPU pool and from
+//! the GPU, and with one row per invocation and per subgroup (where the adapter has
+//! subgroups), it trains two epochs, then times every launch of N steps on their own
+//! (`NglodTrainer::profile_step`) and prints the medians, an epoch's worth of them, and the
+//! second epoch's measured GPU loop beside it.
 
 use std::time::Duration;
 
 use criterion::{BenchmarkId, Criterion, Throughput};
-use sdf_nn::nglod::ScatterMode;
-use sdf_nn::{GpuContext, Nglod, NglodConfig, NglodGpu, NglodTrainConfig, NglodTrainer};
+use sdf_nn::nglod::{SampleSource, ScatterMode};
+use sdf_nn::{
+    GpuContext, Nglod, NglodConfig, NglodGpu, NglodTrainConfig, NglodTrainer, QueryKernel,
+};
 
 fn inference(c: &mut Criterion, gpu: &GpuContext) {
     for (name, cfg) in [
@@ -85,6 +94,103 @@ fn epoch_split(gpu: &GpuContext) {
     }
 }
 
+/// The training kernels this adapter runs.
+fn train_kernels(gpu: &GpuContext) -> Vec<QueryKernel> {
+    let mut kernels = vec![QueryKernel::PerInvocation];
+    if gpu.subgroups_within(64).is_some() {
+        kernels.push(QueryKernel::PerSubgroup);
+    }
+    kernels
+}
+
+/// `NGLOD_BENCH_PROFILE=steps`: the per-launch profile of a training step.
+fn profile(gpu: &GpuContext, steps: usize) {
+    let Some(mut profiler) = sdf_nn::gpu::PassProfiler::new(gpu, 64) else {
+        println!(
+            "{} has no timestamp queries: nothing to profile",
+            gpu.describe()
+        );
+        return;
+    };
+    let (mesh, _) = sdf_geom::load_mesh("tests/data/spot.obj").expect("tests/data/spot.obj");
+    let (unit, _) = mesh.normalized();
+    let which = std::env::var("NGLOD_BENCH_MODELS").unwrap_or_default();
+    let median = |v: &mut Vec<f64>| {
+        v.sort_by(f64::total_cmp);
+        v[v.len() / 2]
+    };
+    for (name, model, schedule) in [
+        (
+            "nglod_default",
+            NglodConfig::default_preset(),
+            NglodTrainConfig::default(),
+        ),
+        (
+            "hashgrid_default",
+            NglodConfig::hashgrid_default(),
+            NglodTrainConfig::hashgrid(),
+        ),
+    ] {
+        let family = name.split('_').next().unwrap_or(name);
+        if !(which.is_empty() || which.split(',').any(|w| w == family)) {
+            continue;
+        }
+        for source in [SampleSource::CpuPool, SampleSource::Gpu] {
+            for kernel in train_kernels(gpu) {
+                let config = NglodTrainConfig {
+                    epochs: 2,
+                    sample_source: source,
+                    kernel: Some(kernel),
+                    ..schedule.clone()
+                };
+                let model = Nglod::new(model.clone()).unwrap();
+                let mut trainer = NglodTrainer::new(gpu, &model, &unit, config).unwrap();
+                let report = trainer.train().unwrap();
+                let epoch = report.epochs.last().expect("two epochs");
+                let mut rows: Vec<(String, Vec<f64>)> = Vec::new();
+                for _ in 0..steps.max(1) {
+                    let times = trainer
+                        .profile_step(&mut profiler, source == SampleSource::Gpu)
+                        .unwrap();
+                    if rows.is_empty() {
+                        rows = times
+                            .iter()
+                            .map(|t| (t.label.clone(), Vec::new()))
+                            .collect();
+                    }
+                    for ((_, v), t) in rows.iter_mut().zip(&times) {
+                        v.push(t.ns as f64 / 1e3);
+                    }
+                }
+                let per_epoch = epoch.steps as f64;
+                println!(
+                    "{name}, points from {}, one row per {}: {} steps per epoch, medians of {steps} profiled steps",
+                    source.name(),
+                    kernel.name(),
+                    epoch.steps
+                );
+                println!("| launch | GPU µs | per epoch, ms |\n| --- | --- | --- |");
+                let mut epoch_ms = 0.0;
+                for (label, mut v) in rows {
+                    let m = median(&mut v);
+                    // The draw runs once an epoch, the rest once a step.
+                    let times = if ["draw", "signed_distance", "gather"].contains(&label.as_str()) {
+                        1.0
+                    } else {
+                        per_epoch
+                    };
+                    epoch_ms += m * times / 1e3;
+                    println!("| {label} | {m:.1} | {:.2} |", m * times / 1e3);
+                }
+                println!(
+                    "| sum, each launch in its own pass | | {epoch_ms:.2} |\n| the second epoch's GPU loop, measured | | {:.2} |",
+                    epoch.gpu_seconds * 1e3
+                );
+            }
+        }
+    }
+}
+
 /// Trains `model` on `unit` and prints each epoch's split.
 fn split_one(
     gpu: &GpuContext,
@@ -117,6 +223,15 @@ fn split_one(
 fn main() {
     let gpu = GpuContext::shared().expect("a GPU adapter");
     eprintln!("adapter: {}", gpu.describe());
+    if let Ok(steps) = std::env::var("NGLOD_BENCH_PROFILE") {
+        profile(
+            gpu,
+            steps
+                .parse()
+                .expect("NGLOD_BENCH_PROFILE: a number of steps"),
+        );
+        return;
+    }
     let mut c = Criterion::default().configure_from_args();
     inference(&mut c, gpu);
     epoch_split(gpu);

@@ -41,7 +41,10 @@
 # encoded during the previous wait; the GPU span on mapped and device-local buffers), NGLOD and
 # SIREN `default` at 10, 3000 and 50 000 points; DIR/results/query-phases.txt. The `profile` stage prints where a SIREN `default` training step's
 # time goes, launch by launch, from GPU timestamps (SIREN_BENCH_PROFILE; issue 12's ≤ 2 ms per
-# step); its log is DIR/results/siren-profile.txt. Environment:
+# step); its log is DIR/results/siren-profile.txt. It then does the same for NGLOD and the
+# hash grid's `default` (NGLOD_BENCH_PROFILE: each launch of a step, and of the GPU draw, with
+# one row per invocation and per subgroup, beside the measured epoch; issue 38's ≤ 15 ms per
+# epoch), DIR/results/nglod-profile.txt. Environment:
 #   GPU_COMPARE_PRESETS=small,default   presets to run (both by default)
 #   GPU_COMPARE_STAGES=checks,bench,kernels,coop,blocks,split,phases,profile,torch,fit,scene,groundtruth,hashgrid,corpus
 #                                       what to run (default all; split a session's runs with it).
@@ -332,6 +335,9 @@ run() {
         echo "== a SIREN default training step, launch by launch (SIREN_BENCH_PROFILE=20)"
         SIREN_BENCH_PROFILE=20 SIREN_BENCH_PRESETS=default benches/siren 2>&1 \
             | tee "$res/siren-profile.txt" || echo "(failed)"
+        echo "== NGLOD and hash-grid default training steps, launch by launch, per kernel and point source (NGLOD_BENCH_PROFILE=20)"
+        NGLOD_BENCH_PROFILE=20 benches/nglod 2>&1 \
+            | tee "$res/nglod-profile.txt" || echo "(failed)"
     fi
     if [[ $stages == *,blocks,* ]]; then
         local blk

@@ -33,6 +33,18 @@ macro_rules! shader {
             required_features: $features,
         }
     };
+    // One file completed in two ways: the name gets `+variant`, so that the variants keep
+    // their own pipeline cache keys.
+    ($dir:literal $name:literal + $variant:literal with [$($pdir:literal $part:literal),+], $features:expr) => {
+        Shader {
+            name: concat!($name, "+", $variant),
+            source: concat!(
+                $(include_str!(concat!($pdir, $part)), "\n",)+
+                include_str!(concat!($dir, $name))
+            ),
+            required_features: $features,
+        }
+    };
     // A shader file (named) followed by shared WGSL files: for a file of `enable` directives
     // and definitions that must come before the code they configure.
     ($dir:literal $name:literal then [$($pdir:literal $part:literal),+], $features:expr) => {
@@ -70,6 +82,18 @@ pub const NGLOD_TRAIN_ATOMIC: Shader = shader!(
 pub const NGLOD_TRAIN_CAS: Shader = shader!(
     "nglod/shaders/" "nglod_train_cas.wgsl" with ["nglod/shaders/" "nglod_grid.wgsl"],
     wgpu::Features::empty()
+);
+/// NGLOD forward + backward with one row per subgroup, grid scatter with native float atomics
+/// (completed by [`NGLOD_TRAIN_ATOMIC`], whose bindings, row layout and scatter it shares).
+pub const NGLOD_TRAIN_SUBGROUP_ATOMIC: Shader = shader!(
+    "nglod/shaders/" "nglod_train_subgroup.wgsl" + "atomic" with ["nglod/shaders/" "nglod_grid.wgsl", "nglod/shaders/" "nglod_train_atomic.wgsl"],
+    wgpu::Features::SUBGROUP.union(wgpu::Features::SHADER_FLOAT32_ATOMIC)
+);
+/// NGLOD forward + backward with one row per subgroup, grid scatter by compare-exchange
+/// (completed by [`NGLOD_TRAIN_CAS`]).
+pub const NGLOD_TRAIN_SUBGROUP_CAS: Shader = shader!(
+    "nglod/shaders/" "nglod_train_subgroup.wgsl" + "cas" with ["nglod/shaders/" "nglod_grid.wgsl", "nglod/shaders/" "nglod_train_cas.wgsl"],
+    wgpu::Features::SUBGROUP
 );
 /// NGLOD MLP-gradient and loss reduction.
 pub const NGLOD_REDUCE: Shader =
@@ -191,6 +215,8 @@ pub const ALL: &[Shader] = &[
     NGLOD_QUERY_SUBGROUP,
     NGLOD_TRAIN_ATOMIC,
     NGLOD_TRAIN_CAS,
+    NGLOD_TRAIN_SUBGROUP_ATOMIC,
+    NGLOD_TRAIN_SUBGROUP_CAS,
     NGLOD_REDUCE,
     QUERY,
     SCENE_QUERY,
@@ -486,7 +512,11 @@ mod tests {
         let mut unique = on_disk.clone();
         unique.dedup();
         assert_eq!(on_disk, unique, "two shader files share a name");
-        let mut registered: Vec<String> = ALL.iter().map(|s| s.name.to_owned()).collect();
+        // A file completed in several ways is registered once per variant (`file+variant`).
+        let mut registered: Vec<String> = ALL
+            .iter()
+            .map(|s| s.name.split('+').next().unwrap_or(s.name).to_owned())
+            .collect();
         for part in SHARED_PARTS {
             let (_, text) = files
                 .iter()

@@ -16,7 +16,9 @@
 
 mod adapter;
 mod error;
+mod launch;
 mod options;
+mod pending;
 mod staged;
 mod timer;
 
@@ -35,9 +37,11 @@ use crate::shaders::Shader;
 pub use adapter::list_adapters;
 use adapter::{describe_info, shares_host_memory};
 pub use error::GpuError;
+pub(crate) use launch::{Launch, record_launches};
 pub use options::{
     ENV_VARIABLES, GpuOptions, QueryKernel, StepLayout, skip_device_select_layer_when_headless,
 };
+pub(crate) use pending::PendingRead;
 pub(crate) use staged::UniformStager;
 pub use timer::{GpuTimer, PassProfiler, PassTime};
 
@@ -232,6 +236,22 @@ impl GpuContext {
             self.subgroups_within(64).is_some(),
             self.is_cpu(),
             elements,
+        )
+    }
+
+    /// The kernel of an NGLOD or hash-grid training step of `rows` rows (points × level
+    /// prefixes) where the caller names none: `HWSDF_TRAIN_KERNEL`
+    /// ([`GpuOptions::train_kernel`]) if set, else the rule of [`GpuContext::query_kernel`]
+    /// (one row per subgroup on a GPU with usable subgroups below
+    /// [`SUBGROUP_KERNEL_MAX_ELEMENTS`] rows). A step of the default batch (2048 points) is
+    /// 2048 rows, a few per SM of a large GPU when each invocation takes one: the same
+    /// latency-bound shape as a query of 3000 points.
+    pub fn train_kernel(&self, rows: u64) -> QueryKernel {
+        choose_query_kernel(
+            self.options.train_kernel,
+            self.subgroups_within(64).is_some(),
+            self.is_cpu(),
+            rows,
         )
     }
 

@@ -14,8 +14,10 @@ pub enum StepLayout {
     Cpu,
 }
 
-/// How a query kernel shares its points (or a scene's rays) among the GPU's invocations. The
-/// answers agree to f32 rounding; the tests hold both to the CPU reference.
+/// How a kernel shares its elements (a query's points, a scene's rays, a training step's rows)
+/// among the GPU's invocations. The answers agree to f32 rounding; the tests hold both to the
+/// CPU reference. Queries choose with [`GpuContext::query_kernel`](crate::GpuContext::query_kernel), NGLOD and hash-grid
+/// training steps with [`GpuContext::train_kernel`](crate::GpuContext::train_kernel).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
 pub enum QueryKernel {
     /// One invocation per point, which evaluates the network alone. The faster on CPU adapters
@@ -29,6 +31,16 @@ pub enum QueryKernel {
     /// one long chain of dependent loads. Needs `wgpu::Features::SUBGROUP`, and applies to
     /// NGLOD models, hash grids and scenes (a SIREN model keeps its own kernels).
     PerSubgroup,
+}
+
+impl QueryKernel {
+    /// The kernel's name, as `HWSDF_QUERY_KERNEL` and `HWSDF_TRAIN_KERNEL` spell it.
+    pub const fn name(self) -> &'static str {
+        match self {
+            QueryKernel::PerInvocation => "invocation",
+            QueryKernel::PerSubgroup => "subgroup",
+        }
+    }
 }
 
 /// How to choose the adapter and which of its capabilities to use: every library knob that can
@@ -56,6 +68,10 @@ pub struct GpuOptions {
     /// (`HWSDF_QUERY_KERNEL=invocation|subgroup`); `None`: by adapter
     /// ([`GpuContext::query_kernel`](crate::GpuContext::query_kernel)).
     pub query_kernel: Option<QueryKernel>,
+    /// Force the kernel of NGLOD and hash-grid training steps
+    /// (`HWSDF_TRAIN_KERNEL=invocation|subgroup`); `None`: by adapter
+    /// ([`GpuContext::train_kernel`](crate::GpuContext::train_kernel)).
+    pub train_kernel: Option<QueryKernel>,
 }
 
 impl Default for GpuOptions {
@@ -68,6 +84,7 @@ impl Default for GpuOptions {
             cooperative_matrices: true,
             step_layout: None,
             query_kernel: None,
+            train_kernel: None,
         }
     }
 }
@@ -81,13 +98,14 @@ pub const ENV_VARIABLES: &[&str] = &[
     "HWSDF_NO_COOP",
     "HWSDF_STEP_LAYOUT",
     "HWSDF_QUERY_KERNEL",
+    "HWSDF_TRAIN_KERNEL",
 ];
 
 impl GpuOptions {
     /// Options from the process's environment: `HWSDF_ADAPTER` (index, bus id or name), else
     /// `WGPU_ADAPTER_NAME` (name); `WGPU_BACKEND`; `HWSDF_MAPPABLE_STORAGE=0|1`;
     /// `HWSDF_NO_COOP=0|1`; `HWSDF_STEP_LAYOUT=gpu|cpu`;
-    /// `HWSDF_QUERY_KERNEL=invocation|subgroup`. An empty variable counts as unset; any
+    /// `HWSDF_QUERY_KERNEL=invocation|subgroup`; `HWSDF_TRAIN_KERNEL=invocation|subgroup`. An empty variable counts as unset; any
     /// other value than those listed is an error naming the allowed ones.
     pub fn from_env() -> Result<Self, GpuError> {
         Self::from_vars(|name| std::env::var(name).ok())
@@ -117,6 +135,10 @@ impl GpuOptions {
                 })
                 .transpose()
         };
+        const KERNELS: [QueryKernel; 2] = [QueryKernel::PerInvocation, QueryKernel::PerSubgroup];
+        const KERNEL_NAMES: [&str; 2] = [KERNELS[0].name(), KERNELS[1].name()];
+        let kernel =
+            |name: &'static str| choice(name, &KERNEL_NAMES).map(|i| i.map(|i| KERNELS[i]));
         let backends = match var("WGPU_BACKEND") {
             None => None,
             Some(value) => {
@@ -144,13 +166,8 @@ impl GpuOptions {
                     StepLayout::Cpu
                 }
             }),
-            query_kernel: choice("HWSDF_QUERY_KERNEL", &["invocation", "subgroup"])?.map(|i| {
-                if i == 0 {
-                    QueryKernel::PerInvocation
-                } else {
-                    QueryKernel::PerSubgroup
-                }
-            }),
+            query_kernel: kernel("HWSDF_QUERY_KERNEL")?,
+            train_kernel: kernel("HWSDF_TRAIN_KERNEL")?,
         })
     }
 
@@ -206,6 +223,7 @@ mod tests {
         assert!(o.mappable_storage && o.cooperative_matrices);
         assert_eq!(o.step_layout, None);
         assert_eq!(o.query_kernel, None);
+        assert_eq!(o.train_kernel, None);
         // An empty variable counts as unset.
         let o = options(&[("HWSDF_NO_COOP", " "), ("HWSDF_ADAPTER", "")]).unwrap();
         assert!(o.cooperative_matrices && o.adapter.is_none());
@@ -218,6 +236,7 @@ mod tests {
             ("HWSDF_NO_COOP", "1"),
             ("HWSDF_STEP_LAYOUT", "CPU"),
             ("HWSDF_QUERY_KERNEL", "Subgroup"),
+            ("HWSDF_TRAIN_KERNEL", "invocation"),
             ("WGPU_BACKEND", "vulkan"),
             ("WGPU_ADAPTER_NAME", "llvmpipe"),
         ])
@@ -225,6 +244,7 @@ mod tests {
         assert!(!o.mappable_storage && !o.cooperative_matrices);
         assert_eq!(o.step_layout, Some(StepLayout::Cpu));
         assert_eq!(o.query_kernel, Some(QueryKernel::PerSubgroup));
+        assert_eq!(o.train_kernel, Some(QueryKernel::PerInvocation));
         assert_eq!(o.backends, Some(wgpu::Backends::VULKAN));
         assert_eq!(o.adapter.as_deref(), Some("llvmpipe"));
         assert_eq!(o.adapter_from, "WGPU_ADAPTER_NAME");
@@ -244,6 +264,7 @@ mod tests {
         for (name, value, allowed) in [
             ("HWSDF_STEP_LAYOUT", "sideways", "gpu, cpu"),
             ("HWSDF_QUERY_KERNEL", "warp", "invocation, subgroup"),
+            ("HWSDF_TRAIN_KERNEL", "lane", "invocation, subgroup"),
             ("HWSDF_NO_COOP", "yes", "0, 1"),
             ("HWSDF_MAPPABLE_STORAGE", "off", "0, 1"),
             ("WGPU_BACKEND", "vulcan", "vulkan"),

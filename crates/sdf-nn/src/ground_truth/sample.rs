@@ -44,7 +44,7 @@ use sdf_geom::Mesh;
 
 use super::counter_rng::{Kind, SampleSpec, Shuffle};
 use super::{GpuGroundTruth, Params};
-use crate::gpu::{GpuContext, GpuError, entry};
+use crate::gpu::{GpuContext, GpuError, Launch, PassProfiler, entry, record_launches};
 use crate::shaders;
 
 /// Invocations per workgroup (`WG` in `sample.wgsl`).
@@ -383,10 +383,10 @@ pub struct LabelledDraw {
     draw_uniform: wgpu::Buffer,
     gather_uniform: wgpu::Buffer,
     label_uniform: wgpu::Buffer,
-    draw: (wgpu::ComputePipeline, wgpu::BindGroup),
-    label: (wgpu::ComputePipeline, wgpu::BindGroup),
-    gather: (wgpu::ComputePipeline, wgpu::BindGroup),
-    absolute: Option<(wgpu::ComputePipeline, wgpu::BindGroup)>,
+    draw: Launch,
+    label: Launch,
+    gather: Launch,
+    absolute: Option<Launch>,
     triangles: u32,
     label_params: Params,
     /// Points the buffers hold.
@@ -417,7 +417,6 @@ impl LabelledDraw {
         targets: &wgpu::Buffer,
         labels: LabelKind,
     ) -> Result<Self, SampleError> {
-        let dev = gpu.device();
         let capacity =
             u32::try_from((points.size() / 12).min(targets.size() / 4)).unwrap_or(u32::MAX);
         let drawn = gpu.storage_zeroed("labelled draw: points", u64::from(capacity) * 12)?;
@@ -427,27 +426,25 @@ impl LabelledDraw {
         let draw_uniform = gpu.uniform("labelled draw: draw params", &zero);
         let gather_uniform = gpu.uniform("labelled draw: gather params", &zero);
         let label_uniform = gpu.uniform("labelled draw: label params", &gt.params);
-        let bind = |p: &wgpu::ComputePipeline, entries: &[wgpu::BindGroupEntry<'_>]| {
-            dev.create_bind_group(&wgpu::BindGroupDescriptor {
-                label: Some("labelled draw"),
-                layout: &p.get_bind_group_layout(0),
-                entries,
-            })
+        // The workgroup grids depend on each draw's counts: set when recorded.
+        let launch = |shader, name: &str, entries: &[wgpu::BindGroupEntry<'_>]| {
+            let pipeline = gpu.pipeline(shader, name, &[])?;
+            Ok::<_, GpuError>(Launch::new(gpu, &pipeline, name, entries, (0, 0, 0)))
         };
-        let pipeline = |name| gpu.pipeline(&shaders::GROUND_TRUTH_SAMPLE, name, &[]);
-        let draw = pipeline("draw")?;
-        let draw_bg = bind(
-            &draw,
+        let sample = &shaders::GROUND_TRUTH_SAMPLE;
+        let draw = launch(
+            sample,
+            "draw",
             &[
                 entry(0, &draw_uniform),
                 entry(1, &sampler.corners),
                 entry(2, &sampler.bounds),
                 entry(3, &drawn),
             ],
-        );
-        let label = gpu.pipeline(&shaders::GROUND_TRUTH_WINDING, "signed_distance", &[])?;
-        let label_bg = bind(
-            &label,
+        )?;
+        let label = launch(
+            &shaders::GROUND_TRUTH_WINDING,
+            "signed_distance",
             &[
                 entry(0, &label_uniform),
                 entry(1, &gt.nodes),
@@ -456,10 +453,10 @@ impl LabelledDraw {
                 entry(4, &drawn),
                 entry(5, &drawn_labels),
             ],
-        );
-        let gather = pipeline("gather")?;
-        let gather_bg = bind(
-            &gather,
+        )?;
+        let gather = launch(
+            sample,
+            "gather",
             &[
                 entry(0, &gather_uniform),
                 entry(3, points),
@@ -467,22 +464,22 @@ impl LabelledDraw {
                 entry(6, &drawn),
                 entry(7, &drawn_labels),
             ],
-        );
+        )?;
         let absolute = match labels {
             LabelKind::Signed => None,
-            LabelKind::Unsigned => {
-                let p = pipeline("absolute")?;
-                let bg = bind(&p, &[entry(0, &gather_uniform), entry(5, targets)]);
-                Some((p, bg))
-            }
+            LabelKind::Unsigned => Some(launch(
+                sample,
+                "absolute",
+                &[entry(0, &gather_uniform), entry(5, targets)],
+            )?),
         };
         Ok(LabelledDraw {
             draw_uniform,
             gather_uniform,
             label_uniform,
-            draw: (draw, draw_bg),
-            label: (label, label_bg),
-            gather: (gather, gather_bg),
+            draw,
+            label,
+            gather,
             absolute,
             triangles: sampler.triangles,
             label_params: gt.params,
@@ -501,6 +498,17 @@ impl LabelledDraw {
         gpu: &GpuContext,
         enc: &mut wgpu::CommandEncoder,
         spec: &SampleSpec,
+    ) -> Result<(), SampleError> {
+        self.record_with(gpu, enc, spec, None)
+    }
+
+    /// [`LabelledDraw::record`], each launch in a timed pass of its own given a profiler.
+    pub(crate) fn record_with(
+        &self,
+        gpu: &GpuContext,
+        enc: &mut wgpu::CommandEncoder,
+        spec: &SampleSpec,
+        profiler: Option<&mut PassProfiler>,
     ) -> Result<(), SampleError> {
         let n = check_spec(spec)?;
         if n > self.capacity {
@@ -529,28 +537,17 @@ impl LabelledDraw {
                 ..self.label_params
             }],
         )?;
-        let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
-            label: Some("draw and label"),
-            timestamp_writes: None,
-        });
         let (x, y) = gpu.dispatch_size(n.div_ceil(WG));
-        pass.set_pipeline(&self.draw.0);
-        pass.set_bind_group(0, &self.draw.1, &[]);
-        pass.dispatch_workgroups(x, y, 1);
+        let mut launches = vec![(&self.draw, (x, y, 1))];
         if labelled > 0 {
             let (lx, ly) = gpu.dispatch_size(labelled.div_ceil(super::WG));
-            pass.set_pipeline(&self.label.0);
-            pass.set_bind_group(0, &self.label.1, &[]);
-            pass.dispatch_workgroups(lx, ly, 1);
+            launches.push((&self.label, (lx, ly, 1)));
         }
-        pass.set_pipeline(&self.gather.0);
-        pass.set_bind_group(0, &self.gather.1, &[]);
-        pass.dispatch_workgroups(x, y, 1);
-        if let Some((p, bg)) = &self.absolute {
-            pass.set_pipeline(p);
-            pass.set_bind_group(0, bg, &[]);
-            pass.dispatch_workgroups(x, y, 1);
+        launches.push((&self.gather, (x, y, 1)));
+        if let Some(absolute) = &self.absolute {
+            launches.push((absolute, (x, y, 1)));
         }
+        record_launches(enc, "draw and label", &launches, profiler);
         Ok(())
     }
 }

@@ -1,5 +1,6 @@
 //! Host side of the NGLOD kernels: `shaders/nglod_forward.wgsl` (inference),
-//! `shaders/nglod_train_{atomic,cas}.wgsl` (forward + backward per row, grid scatter) and
+//! `shaders/nglod_train_{atomic,cas}.wgsl` (forward + backward per row, grid scatter; one row per
+//! invocation, or per subgroup with `shaders/nglod_train_subgroup.wgsl`) and
 //! `shaders/nglod_reduce.wgsl` (MLP gradients and loss).
 
 use std::sync::Mutex;
@@ -10,7 +11,10 @@ use super::{
     Band, LevelStorage, MAX_LEVELS, MAX_MLP_FLOATS, Nglod, NglodConfig, NglodError, Objective,
     ParamLayout,
 };
-use crate::gpu::{GpuContext, GpuError, GpuTimer, UniformStager, entry};
+use crate::gpu::{
+    GpuContext, GpuError, GpuTimer, Launch, PassProfiler, QueryKernel, UniformStager, entry,
+    record_launches,
+};
 use crate::shaders;
 
 /// Invocations per workgroup of every NGLOD kernel (the `WG` constant of the shaders).
@@ -107,6 +111,8 @@ pub struct NglodGpu {
     constants: [(&'static str, f64); 4],
     eval: Mutex<Option<EvalScratch>>,
     eval_chunk: usize,
+    /// The training rows' kernel if forced ([`NglodGpu::set_train_kernel`]).
+    train_kernel: Option<QueryKernel>,
 }
 
 impl std::fmt::Debug for NglodGpu {
@@ -187,6 +193,7 @@ impl NglodGpu {
             constants,
             eval: Mutex::new(None),
             eval_chunk: EVAL_CHUNK,
+            train_kernel: None,
         })
     }
 
@@ -214,6 +221,32 @@ impl NglodGpu {
     /// Whether the backward kernel uses native float atomics (else compare-exchange).
     pub fn uses_float_atomics(&self) -> bool {
         self.float_atomics
+    }
+
+    /// Forces the kernel of the training steps recorded from now on (`None`: by adapter and
+    /// batch, [`GpuContext::train_kernel`]). [`QueryKernel::PerSubgroup`] needs subgroups that
+    /// fit a workgroup of 64 ([`GpuContext::subgroups_within`]); elsewhere it is an error.
+    pub fn set_train_kernel(
+        &mut self,
+        gpu: &GpuContext,
+        kernel: Option<QueryKernel>,
+    ) -> Result<(), NglodError> {
+        if kernel == Some(QueryKernel::PerSubgroup) && gpu.subgroups_within(WG).is_none() {
+            return Err(GpuError::MissingFeatures {
+                shader: shaders::NGLOD_TRAIN_SUBGROUP_CAS.name,
+                missing: wgpu::Features::SUBGROUP,
+                adapter: gpu.adapter_info().name.clone(),
+            }
+            .into());
+        }
+        self.train_kernel = kernel;
+        Ok(())
+    }
+
+    /// The kernel a training step of `rows` rows (points × level prefixes) runs: the forced
+    /// one ([`NglodGpu::set_train_kernel`]), else [`GpuContext::train_kernel`]'s choice.
+    pub fn train_kernel(&self, gpu: &GpuContext, rows: u64) -> QueryKernel {
+        self.train_kernel.unwrap_or_else(|| gpu.train_kernel(rows))
     }
 
     /// The flat parameter buffer.
@@ -529,12 +562,14 @@ pub(crate) struct TrainKernels {
     pub(crate) stats: wgpu::Buffer,
     _rows: wgpu::Buffer,
     _partials: wgpu::Buffer,
-    train: wgpu::ComputePipeline,
-    partial: wgpu::ComputePipeline,
-    reduce: wgpu::ComputePipeline,
-    bg_train: wgpu::BindGroup,
-    bg_partial: wgpu::BindGroup,
-    bg_reduce: wgpu::BindGroup,
+    /// The rows' forward and backward (`train_rows` or `train_rows_sg`), the MLP gradients'
+    /// partial sums and their reduction; their workgroup grids change with each step's rows.
+    train: Launch,
+    partial: Launch,
+    reduce: Launch,
+    /// Which kernel `train` is, and the rows each of its workgroups takes.
+    kernel: QueryKernel,
+    rows_per_group: u32,
     base: TrainUniforms,
     max_points: u32,
     max_prefixes: u32,
@@ -579,21 +614,44 @@ impl TrainKernels {
             levels: level_table(c, &model.layout),
         };
         let uniforms = gpu.uniform("nglod train uniforms", &base);
-        let train_shader = if model.float_atomics {
-            &shaders::NGLOD_TRAIN_ATOMIC
-        } else {
-            &shaders::NGLOD_TRAIN_CAS
+        let kernel = model.train_kernel(gpu, max_rows);
+        let (train, kernel, rows_per_group) = match (kernel, gpu.subgroups_within(WG)) {
+            (QueryKernel::PerSubgroup, Some(width)) => {
+                let shader = if model.float_atomics {
+                    &shaders::NGLOD_TRAIN_SUBGROUP_ATOMIC
+                } else {
+                    &shaders::NGLOD_TRAIN_SUBGROUP_CAS
+                };
+                // The rows of a workgroup: one per subgroup of the widest size it may run.
+                let per_group = WG / width;
+                let mut constants = model.constants.to_vec();
+                constants.push(("PER_GROUP", f64::from(per_group)));
+                let train = gpu.pipeline(shader, "train_rows_sg", &constants)?;
+                (train, QueryKernel::PerSubgroup, per_group)
+            }
+            _ => {
+                let shader = if model.float_atomics {
+                    &shaders::NGLOD_TRAIN_ATOMIC
+                } else {
+                    &shaders::NGLOD_TRAIN_CAS
+                };
+                let train = gpu.pipeline(shader, "train_rows", &model.constants)?;
+                (train, QueryKernel::PerInvocation, WG)
+            }
         };
-        let train = gpu.pipeline(train_shader, "train_rows", &model.constants)?;
         // The reduction sees the MLP only: F and H.
         let mlp_constants = &model.constants[..2];
         let partial = gpu.pipeline(&shaders::NGLOD_REDUCE, "mlp_partial", mlp_constants)?;
         let reduce = gpu.pipeline(&shaders::NGLOD_REDUCE, "mlp_reduce", mlp_constants)?;
-        let dev = gpu.device();
-        let bg_train = dev.create_bind_group(&wgpu::BindGroupDescriptor {
-            label: Some("nglod train"),
-            layout: &train.get_bind_group_layout(0),
-            entries: &[
+        let no_groups = (0, 0, 0);
+        let train = Launch::new(
+            gpu,
+            &train,
+            match kernel {
+                QueryKernel::PerInvocation => "train_rows",
+                QueryKernel::PerSubgroup => "train_rows_sg",
+            },
+            &[
                 entry(0, &uniforms),
                 entry(1, &model.params),
                 entry(2, points),
@@ -603,27 +661,32 @@ impl TrainKernels {
                 entry(6, &model.mlp),
                 entry(7, &model.table),
             ],
-        });
-        let bg_partial = dev.create_bind_group(&wgpu::BindGroupDescriptor {
-            label: Some("nglod mlp partial"),
-            layout: &partial.get_bind_group_layout(0),
-            entries: &[
+            no_groups,
+        );
+        let partial = Launch::new(
+            gpu,
+            &partial,
+            "mlp_partial",
+            &[
                 entry(0, &uniforms),
                 entry(1, &model.params),
                 entry(2, &rows),
                 entry(3, &partials),
             ],
-        });
-        let bg_reduce = dev.create_bind_group(&wgpu::BindGroupDescriptor {
-            label: Some("nglod mlp reduce"),
-            layout: &reduce.get_bind_group_layout(0),
-            entries: &[
+            no_groups,
+        );
+        let reduce = Launch::new(
+            gpu,
+            &reduce,
+            "mlp_reduce",
+            &[
                 entry(0, &uniforms),
                 entry(4, &model.grads),
                 entry(5, &stats),
                 entry(6, &partials),
             ],
-        });
+            no_groups,
+        );
         Ok(TrainKernels {
             params: model.params.clone(),
             mlp: model.mlp.clone(),
@@ -638,9 +701,8 @@ impl TrainKernels {
             train,
             partial,
             reduce,
-            bg_train,
-            bg_partial,
-            bg_reduce,
+            kernel,
+            rows_per_group,
             base,
             max_points,
             max_prefixes: n_prefix as u32,
@@ -670,7 +732,7 @@ impl TrainKernels {
     ) -> Result<(), NglodError> {
         let u = self.uniforms_for(first, n)?;
         gpu.write(&self.uniforms, &[u])?;
-        self.record_passes(gpu, enc, &u);
+        self.record_passes(gpu, enc, &u, None);
         Ok(())
     }
 
@@ -686,7 +748,7 @@ impl TrainKernels {
     ) -> Result<(), NglodError> {
         let u = self.uniforms_for(first, n)?;
         stager.stage(enc, &self.uniforms, &u)?;
-        self.record_passes(gpu, enc, &u);
+        self.record_passes(gpu, enc, &u, None);
         Ok(())
     }
 
@@ -708,25 +770,57 @@ impl TrainKernels {
         })
     }
 
-    /// The MLP copy and the passes of a step whose uniforms `u` are in place.
-    fn record_passes(&self, gpu: &GpuContext, enc: &mut wgpu::CommandEncoder, u: &TrainUniforms) {
+    /// Which kernel runs the rows of a step.
+    pub(crate) fn kernel(&self) -> QueryKernel {
+        self.kernel
+    }
+
+    /// The launches of a step whose uniforms are `u`, in order, with their workgroup grids.
+    fn launches(&self, gpu: &GpuContext, u: &TrainUniforms) -> [(&Launch, (u32, u32, u32)); 3] {
+        let (x, y) = gpu.dispatch_size(u.n_rows.div_ceil(self.rows_per_group));
+        [
+            (&self.train, (x, y, 1)),
+            // One invocation per hidden unit plus one for b1 and the loss.
+            (
+                &self.partial,
+                ((self.hidden + 1).div_ceil(WG), u.n_chunks, 1),
+            ),
+            (&self.reduce, (self.n_out.div_ceil(WG), 1, 1)),
+        ]
+    }
+
+    /// The MLP copy and the passes of a step whose uniforms `u` are in place, each launch in a
+    /// timed pass of its own given a profiler.
+    fn record_passes(
+        &self,
+        gpu: &GpuContext,
+        enc: &mut wgpu::CommandEncoder,
+        u: &TrainUniforms,
+        profiler: Option<&mut PassProfiler>,
+    ) {
+        self.record_mlp_copy(enc);
+        record_launches(enc, "nglod train step", &self.launches(gpu, u), profiler);
+    }
+
+    /// [`TrainKernels::record`] with each launch in its own pass, timed by `profiler`.
+    pub(crate) fn record_profiled(
+        &self,
+        gpu: &GpuContext,
+        enc: &mut wgpu::CommandEncoder,
+        profiler: &mut PassProfiler,
+        first: u32,
+        n: u32,
+    ) -> Result<(), NglodError> {
+        let u = self.uniforms_for(first, n)?;
+        gpu.write(&self.uniforms, &[u])?;
+        self.record_passes(gpu, enc, &u, Some(profiler));
+        Ok(())
+    }
+
+    /// Copies the MLP block of the parameters into its uniform copy.
+    fn record_mlp_copy(&self, enc: &mut wgpu::CommandEncoder) {
         let (start, bytes) = self.mlp_range;
         enc.copy_buffer_to_buffer(&self.params, start, &self.mlp, 0, bytes);
-        let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
-            label: Some("nglod train step"),
-            timestamp_writes: None,
-        });
-        pass.set_pipeline(&self.train);
-        pass.set_bind_group(0, &self.bg_train, &[]);
-        let (x, y) = gpu.dispatch_size(u.n_rows.div_ceil(WG));
-        pass.dispatch_workgroups(x, y, 1);
-        pass.set_pipeline(&self.partial);
-        pass.set_bind_group(0, &self.bg_partial, &[]);
-        // One invocation per hidden unit plus one for b1 and the loss.
-        pass.dispatch_workgroups((self.hidden + 1).div_ceil(WG), u.n_chunks, 1);
-        pass.set_pipeline(&self.reduce);
-        pass.set_bind_group(0, &self.bg_reduce, &[]);
-        pass.dispatch_workgroups(self.n_out.div_ceil(WG), 1, 1);
     }
 }
 

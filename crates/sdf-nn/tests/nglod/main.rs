@@ -13,6 +13,7 @@ use sdf_geom::Mesh;
 use sdf_nn::nglod::{Encoding, LevelStorage, Objective, ScatterMode, cpu};
 use sdf_nn::{
     GpuContext, Nglod, NglodConfig, NglodError, NglodGpu, NglodTrainConfig, NglodTrainer,
+    QueryKernel,
 };
 
 fn gpu() -> &'static GpuContext {
@@ -290,14 +291,30 @@ fn gpu_forward_matches_cpu(config: NglodConfig) {
 }
 
 #[test]
-fn gpu_gradients_match_cpu_on_both_scatter_paths() {
+fn gpu_gradients_match_cpu_on_both_scatter_paths_and_both_kernels() {
+    // tiny(): 3 summed features (a partial vec4 in the subgroup sums) and 6 hidden units (fewer
+    // than a subgroup's lanes); tiny_hashed(): 4 levels of 2, a colliding hashed level.
     for config in [
         NglodConfig::small(),
         sparse(NglodConfig::small()),
         small_hashed(),
+        tiny(),
+        tiny_hashed(),
     ] {
         gpu_gradients_match_cpu(config);
     }
+}
+
+/// The training kernels this adapter runs: one row per invocation, and one per subgroup where
+/// the adapter has subgroups.
+fn train_kernels(gpu: &GpuContext) -> Vec<QueryKernel> {
+    let mut kernels = vec![QueryKernel::PerInvocation];
+    if gpu.subgroups_within(64).is_some() {
+        kernels.push(QueryKernel::PerSubgroup);
+    } else {
+        eprintln!("adapter has no usable subgroups: only one row per invocation is tested");
+    }
+    kernels
 }
 
 fn gpu_gradients_match_cpu(config: NglodConfig) {
@@ -313,16 +330,21 @@ fn gpu_gradients_match_cpu(config: NglodConfig) {
     } else {
         eprintln!("adapter has no float atomics: only the compare-exchange path is tested");
     }
-    for mode in modes {
-        let g = NglodGpu::new(gpu, &model, mode).unwrap();
+    for (mode, kernel) in modes
+        .into_iter()
+        .flat_map(|m| train_kernels(gpu).into_iter().map(move |k| (m, k)))
+    {
+        let mut g = NglodGpu::new(gpu, &model, mode).unwrap();
         assert_eq!(g.uses_float_atomics(), mode == ScatterMode::FloatAtomics);
+        g.set_train_kernel(gpu, Some(kernel)).unwrap();
+        assert_eq!(g.train_kernel(gpu, 301), kernel);
         for objective in [Objective::Full, Objective::AllPrefixes] {
             let (loss, grad) = g.loss_and_gradient(gpu, &pts, &y, objective).unwrap();
             let (want_loss, want) =
                 cpu::loss_and_gradient(&model, &params, &pts, &y, objective).unwrap();
             assert!(
                 (loss - want_loss).abs() < 1e-5 * want_loss,
-                "{mode:?} {objective:?}: loss {loss} vs {want_loss}"
+                "{mode:?} {kernel:?} {objective:?}: loss {loss} vs {want_loss}"
             );
             let scale = want.iter().fold(0.0f64, |m, g| m.max(g.abs()));
             let worst = grad
@@ -332,8 +354,8 @@ fn gpu_gradients_match_cpu(config: NglodConfig) {
                 .fold(0.0, f64::max);
             assert!(
                 worst < 1e-5,
-                "{} sparse, {mode:?} {objective:?}: worst gradient error {worst:e} of max |g| \
-                 {scale:e}",
+                "{} sparse, {mode:?} {kernel:?} {objective:?}: worst gradient error {worst:e} \
+                 of max |g| {scale:e}",
                 config.sparse_levels
             );
         }

@@ -44,7 +44,7 @@ impl SampleSource {
 
 /// The mesh's sampler and ground truth on the GPU, bound to the trainer's epoch buffers.
 pub(super) struct GpuPoints {
-    draw: LabelledDraw,
+    pub(super) draw: LabelledDraw,
     /// Kept alive for the draw's bind groups (wgpu handles are shared, this is for clarity).
     _sampler: GpuSampler,
     _ground_truth: GpuGroundTruth,
@@ -75,7 +75,7 @@ impl GpuPoints {
     }
 
     /// The draw of epoch `epoch`.
-    fn spec(config: &NglodTrainConfig, epoch: usize) -> SampleSpec {
+    pub(super) fn spec(config: &NglodTrainConfig, epoch: usize) -> SampleSpec {
         // `check` bounds the points per epoch by u32::MAX.
         SampleSpec {
             uniform: config.uniform_points as u32,

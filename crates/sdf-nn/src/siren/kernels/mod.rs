@@ -177,36 +177,9 @@ impl std::str::FromStr for TiledBlock {
 /// kernels.
 pub(crate) const WG: u32 = 256;
 
-/// One recorded kernel launch: its pipeline, bind group and workgroup grid.
-#[derive(Debug)]
-pub(crate) struct Launch {
-    label: String,
-    pipeline: wgpu::ComputePipeline,
-    bind_group: wgpu::BindGroup,
-    groups: (u32, u32, u32),
-}
+pub(crate) use crate::gpu::Launch;
 
 impl Launch {
-    pub(crate) fn new(
-        gpu: &GpuContext,
-        pipeline: &wgpu::ComputePipeline,
-        label: &str,
-        entries: &[wgpu::BindGroupEntry<'_>],
-        groups: (u32, u32, u32),
-    ) -> Self {
-        let bind_group = gpu.device().create_bind_group(&wgpu::BindGroupDescriptor {
-            label: Some(label),
-            layout: &pipeline.get_bind_group_layout(0),
-            entries,
-        });
-        Launch {
-            label: label.to_owned(),
-            pipeline: pipeline.clone(),
-            bind_group,
-            groups,
-        }
-    }
-
     /// A 1D launch of `threads` invocations in 256-wide groups, folded into 2D if needed.
     pub(crate) fn flat(
         gpu: &GpuContext,
@@ -217,22 +190,6 @@ impl Launch {
     ) -> Self {
         let (x, y) = gpu.dispatch_size(threads.div_ceil(WG));
         Self::new(gpu, pipeline, label, entries, (x, y, 1))
-    }
-
-    /// The label it was made with (a profile's row).
-    pub(crate) fn label(&self) -> &str {
-        &self.label
-    }
-
-    pub(crate) fn record(&self, pass: &mut wgpu::ComputePass<'_>) {
-        self.record_groups(pass, self.groups);
-    }
-
-    /// Records it with another workgroup grid.
-    pub(crate) fn record_groups(&self, pass: &mut wgpu::ComputePass<'_>, groups: (u32, u32, u32)) {
-        pass.set_pipeline(&self.pipeline);
-        pass.set_bind_group(0, &self.bind_group, &[]);
-        pass.dispatch_workgroups(groups.0, groups.1, groups.2);
     }
 }
 
