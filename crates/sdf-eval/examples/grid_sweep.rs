@@ -16,7 +16,8 @@
 //! `hashgrid-small` (the presets with the hash grid's schedule), or
 //! `hash:L,NMIN,NMAX,F,LOG2T,H` for a hash grid of L levels from NMIN to NMAX cells, F features,
 //! tables of 2^LOG2T entries and H hidden units; any of them may end in `@LR,BATCH` to change
-//! the learning rate and the batch size.
+//! the learning rate and the batch size, and in `@LR,BATCH,lazy` to make Adam lazy on the grid
+//! (`NglodTrainConfig::lazy_adam`).
 
 use std::error::Error;
 use std::sync::Arc;
@@ -59,6 +60,13 @@ fn parse(spec: &str) -> Result<(NglodConfig, NglodTrainConfig), Box<dyn Error>> 
         train.adam.lr = parts[0].parse()?;
         if let Some(b) = parts.get(1) {
             train.batch_size = b.parse()?;
+        }
+        match parts.get(2) {
+            None => {}
+            Some(&"lazy") => train.lazy_adam = true,
+            Some(other) => {
+                return Err(format!("`{other}`: the third part is `lazy` or none").into());
+            }
         }
     }
     config.validate()?;

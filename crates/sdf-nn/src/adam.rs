@@ -42,7 +42,7 @@ struct AdamUniforms {
     inv_sqrt_bc2: f32,
     grad_scale: f32,
     len: u32,
-    _pad: u32,
+    lazy_len: u32,
 }
 
 /// Bytes of an Adam step's uniforms, as a stager stages them.
@@ -105,6 +105,8 @@ pub struct Adam {
     /// Hyperparameters; the learning rate may be changed between steps (e.g. on plateaus).
     pub config: AdamConfig,
     len: u32,
+    /// Parameters below this index skip a zero gradient ([`Adam::set_lazy_prefix`]).
+    lazy_len: u32,
     step: u32,
     m: wgpu::Buffer,
     v: wgpu::Buffer,
@@ -152,6 +154,7 @@ impl Adam {
         Ok(Adam {
             config,
             len,
+            lazy_len: 0,
             step: 0,
             m,
             v,
@@ -197,6 +200,15 @@ impl Adam {
         gpu.write(&self.v, &state.v)?;
         self.step = state.step;
         Ok(())
+    }
+
+    /// Makes the first `n` parameters lazy (none by default): a step leaves one whose gradient
+    /// is exactly zero unchanged, moments included, rather than decaying its moments and moving
+    /// it by their remainder. Made for a model's grid or hash-table entries, of which a batch
+    /// touches a few (instant-ngp's optimiser treats its tables so); the bias correction stays
+    /// the global step's (TensorFlow's lazy Adam). [`AdamCpu::lazy_len`] is its reference.
+    pub fn set_lazy_prefix(&mut self, n: u32) {
+        self.lazy_len = n.min(self.len);
     }
 
     /// First- and second-moment buffers, for checkpoints.
@@ -284,7 +296,7 @@ impl Adam {
             inv_sqrt_bc2: (1.0 / bc2.sqrt()) as f32,
             grad_scale,
             len: self.len,
-            _pad: 0,
+            lazy_len: self.lazy_len,
         }
     }
 }
@@ -309,6 +321,8 @@ pub struct AdamCpu {
     pub v: Vec<f64>,
     /// Steps taken.
     pub step: u32,
+    /// Parameters below this index skip a zero gradient ([`Adam::set_lazy_prefix`]; 0).
+    pub lazy_len: usize,
 }
 
 impl AdamCpu {
@@ -319,6 +333,7 @@ impl AdamCpu {
             m: vec![0.0; len],
             v: vec![0.0; len],
             step: 0,
+            lazy_len: 0,
         }
     }
 
@@ -330,12 +345,16 @@ impl AdamCpu {
         let t = f64::from(self.step);
         let step_size = f64::from(c.lr) / (1.0 - b1.powf(t));
         let inv_sqrt_bc2 = 1.0 / (1.0 - b2.powf(t)).sqrt();
-        for (((p, &g), m), v) in params
+        for (i, (((p, &g), m), v)) in params
             .iter_mut()
             .zip(grads)
             .zip(&mut self.m)
             .zip(&mut self.v)
+            .enumerate()
         {
+            if i < self.lazy_len && g == 0.0 {
+                continue;
+            }
             let g = g * grad_scale;
             *m = b1 * *m + (1.0 - b1) * g;
             *v = b2 * *v + (1.0 - b2) * g * g;
@@ -353,7 +372,16 @@ mod tests {
             super::AdamUniforms,
             crate::shaders::ADAM,
             "AdamUniforms",
-            [step_size, beta1, beta2, eps, inv_sqrt_bc2, grad_scale, len]
+            [
+                step_size,
+                beta1,
+                beta2,
+                eps,
+                inv_sqrt_bc2,
+                grad_scale,
+                len,
+                lazy_len
+            ]
         );
     }
 }

@@ -7,6 +7,11 @@
 //
 // step_size = lr / (1 - b1^t) and inv_sqrt_bc2 = 1 / sqrt(1 - b2^t) are computed on the host in
 // f64 from the step counter t, so the kernel needs no pow.
+//
+// The first `lazy_len` parameters (a model's grid or hash-table entries) are lazy: one whose
+// gradient is exactly zero (no point of the batch touched it) is left alone, moments included,
+// as instant-ngp's optimiser leaves its hash tables; a step then reads one word for each of
+// them instead of reading four and writing four.
 
 struct AdamUniforms {
     step_size: f32,
@@ -17,7 +22,7 @@ struct AdamUniforms {
     // Scale applied to the incoming gradient (e.g. 1/batch when kernels accumulate sums).
     grad_scale: f32,
     len: u32,
-    _pad: u32,
+    lazy_len: u32,
 }
 
 const WG: u32 = 256u;
@@ -39,7 +44,11 @@ fn adam_step(
     if i >= u.len {
         return;
     }
-    let g = grads[i] * u.grad_scale;
+    let raw = grads[i];
+    if i < u.lazy_len && raw == 0.0 {
+        return;
+    }
+    let g = raw * u.grad_scale;
     grads[i] = 0.0;
     let mi = u.beta1 * m[i] + (1.0 - u.beta1) * g;
     let vi = u.beta2 * v[i] + (1.0 - u.beta2) * g * g;

@@ -25,17 +25,40 @@ fn max_rel_err(gpu: &[f32], cpu: &[f64], scale: f64) -> f64 {
 /// Runs `steps` Adam steps on GPU and CPU with the same random gradients and compares
 /// parameters and both moments.
 fn compare(len: usize, steps: usize, config: AdamConfig, grad_scale: f32, seed: u64) {
+    compare_lazy(len, 0, steps, config, grad_scale, seed);
+}
+
+/// [`compare`] with the first `lazy` parameters lazy, and then a third of the gradients zero
+/// (a grid's untouched entries), so that both kinds of parameter meet zero gradients.
+fn compare_lazy(
+    len: usize,
+    lazy: usize,
+    steps: usize,
+    config: AdamConfig,
+    grad_scale: f32,
+    seed: u64,
+) {
     let gpu = gpu();
     let mut rng = Pcg64::seed_from_u64(seed);
     let init: Vec<f32> = (0..len).map(|_| rng.random_range(-1.0..1.0)).collect();
     let params = gpu.storage_from_slice("params", &init).unwrap();
     let grads = gpu.storage_zeroed("grads", len as u64 * 4).unwrap();
     let mut adam = Adam::new(gpu, &params, &grads, len as u32, config).unwrap();
+    adam.set_lazy_prefix(lazy as u32);
 
     let mut cpu_params: Vec<f64> = init.iter().map(|&p| f64::from(p)).collect();
     let mut cpu = AdamCpu::new(len, config);
+    cpu.lazy_len = lazy;
     for _ in 0..steps {
-        let g: Vec<f32> = (0..len).map(|_| rng.random_range(-2.0..2.0)).collect();
+        let g: Vec<f32> = (0..len)
+            .map(|_| {
+                if lazy > 0 && rng.random_range(0..3) == 0 {
+                    0.0
+                } else {
+                    rng.random_range(-2.0..2.0)
+                }
+            })
+            .collect();
         gpu.write(&grads, &g).unwrap();
         adam.step(gpu, grad_scale);
         let g64: Vec<f64> = g.iter().map(|&x| f64::from(x)).collect();
@@ -96,6 +119,47 @@ fn adam_matches_cpu_reference_with_other_hyperparameters() {
         1.0 / 4096.0,
         6,
     );
+}
+
+/// Lazy parameters skip zero gradients on the GPU as in the reference, and only they do: a
+/// lazy entry never touched keeps its value and zero moments, an eager one moves.
+#[test]
+fn lazy_parameters_skip_zero_gradients_like_the_reference() {
+    compare_lazy(
+        1037,
+        700,
+        6,
+        sdf_nn::NglodTrainConfig::hashgrid().adam,
+        0.5,
+        7,
+    );
+    let gpu = gpu();
+    let init = [0.5f32; 4];
+    let params = gpu.storage_from_slice("params", &init).unwrap();
+    let grads = gpu.storage_zeroed("grads", 16).unwrap();
+    let mut adam = Adam::new(gpu, &params, &grads, 4, AdamConfig::default()).unwrap();
+    adam.set_lazy_prefix(2);
+    for _ in 0..3 {
+        // Entry 0 (lazy) and 2 (eager) get gradient on the first step only.
+        gpu.write(&grads, &[1.0f32, 0.0, 1.0, 0.0]).unwrap();
+        adam.step(gpu, 1.0);
+        gpu.write(&grads, &[0.0f32; 4]).unwrap();
+        adam.step(gpu, 1.0);
+    }
+    let p: Vec<f32> = gpu.read_back(&params).unwrap();
+    let (m, _) = adam.moments();
+    let m: Vec<f32> = gpu.read_back(m).unwrap();
+    assert_eq!(
+        (p[1], m[1]),
+        (0.5, 0.0),
+        "an untouched lazy entry stays as it was"
+    );
+    assert_eq!(
+        p[3], 0.5,
+        "an eager entry with no gradient ever does not move either"
+    );
+    // Lazy entry 0 moved on its three steps with gradient only; eager entry 2 on all six.
+    assert!(p[0] < 0.5 && p[2] < p[0], "{p:?}");
 }
 
 #[test]

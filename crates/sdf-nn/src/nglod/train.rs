@@ -109,6 +109,9 @@ pub struct NglodTrainConfig {
     pub scatter: ScatterMode,
     /// One row per invocation or per subgroup (`None`: [`GpuContext::train_kernel`]'s choice).
     pub kernel: Option<QueryKernel>,
+    /// Adam leaves a grid or table entry that no point of the step touched alone, moments
+    /// included ([`Adam::set_lazy_prefix`]); the MLP's weights are always updated.
+    pub lazy_adam: bool,
     /// Stop after the first loss read-back past this many seconds of training.
     pub max_seconds: Option<f64>,
     /// Blocks of one epoch's worth of labelled points in the sample pool (4). 1 with
@@ -176,6 +179,7 @@ impl Default for NglodTrainConfig {
             loss_every: 16,
             scatter: ScatterMode::Auto,
             kernel: None,
+            lazy_adam: false,
             max_seconds: None,
             pool_blocks: 4,
             refresh_every: 4,
@@ -399,13 +403,16 @@ impl<'g> NglodTrainer<'g> {
         };
         let mut gm = NglodGpu::new(gpu, model, config.scatter)?;
         gm.set_train_kernel(gpu, config.kernel)?;
-        let adam = Adam::new(
+        let mut adam = Adam::new(
             gpu,
             gm.params_buffer(),
             gm.grads_buffer(),
             gm.param_count() as u32,
             config.adam,
         )?;
+        if config.lazy_adam {
+            adam.set_lazy_prefix(model.layout().w0 as u32);
+        }
         let points = gpu.storage_zeroed("nglod epoch points", n as u64 * 12)?;
         let targets = gpu.storage_zeroed("nglod epoch targets", n as u64 * 4)?;
         let batch = config.batch_size.min(n32);
@@ -521,6 +528,7 @@ impl<'g> NglodTrainer<'g> {
             "distance": c.distance,
             "sample_source": c.sample_source.name(),
             "train_kernel": self.kernels.kernel().name(),
+            "lazy_adam": c.lazy_adam,
         });
         if let Some(r) = report {
             v["final_loss"] = serde_json::json!(r.final_loss);
