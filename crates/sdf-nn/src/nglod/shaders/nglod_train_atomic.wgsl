@@ -103,6 +103,12 @@ fn train_rows(
     let b0 = H * F;
     let w1 = b0 + H;
     var o = mlp_at(w1 + H);
+    // dL/dz = g Σ_j W1[j] [h_j > 0] W0[j, :] is linear in g = dL/dout: its sum v is taken in
+    // the forward pass, before g is known, instead of a second pass over the hidden units.
+    var v: array<f32, MAX_F>;
+    for (var f = 0u; f < F; f++) {
+        v[f] = 0.0;
+    }
     for (var j = 0u; j < H; j++) {
         var h = mlp_at(b0 + j);
         for (var f = 0u; f < F; f++) {
@@ -110,7 +116,13 @@ fn train_rows(
         }
         let a = max(h, 0.0);
         rows[row + 2u + F + j] = a;
-        o += mlp_at(w1 + j) * a;
+        let c = mlp_at(w1 + j);
+        o += c * a;
+        if h > 0.0 {
+            for (var f = 0u; f < F; f++) {
+                v[f] += c * mlp_at(j * F + f);
+            }
+        }
     }
     let res = o - targets[pi];
     let g = 2.0 * res;
@@ -118,21 +130,6 @@ fn train_rows(
     rows[row + 1u] = res * res;
     for (var f = 0u; f < F; f++) {
         rows[row + 2u + f] = z[f];
-    }
-
-    // dL/dz = Σ_j g W1[j] [h_j > 0] W0[j, :]; a_j is re-read from this invocation's own row
-    // rather than kept in a 128-wide private array.
-    var dz: array<f32, MAX_F>;
-    for (var f = 0u; f < F; f++) {
-        dz[f] = 0.0;
-    }
-    for (var j = 0u; j < H; j++) {
-        if rows[row + 2u + F + j] > 0.0 {
-            let c = g * mlp_at(w1 + j);
-            for (var f = 0u; f < F; f++) {
-                dz[f] += c * mlp_at(j * F + f);
-            }
-        }
     }
 
     for (var l = 0u; l < lod; l++) {
@@ -146,7 +143,7 @@ fn train_rows(
             }
             let zo = l * ZS;
             for (var f = 0u; f < FL; f++) {
-                grad_add(base + f, w * dz[zo + f]);
+                grad_add(base + f, w * g * v[zo + f]);
             }
         }
     }

@@ -11,9 +11,9 @@
 // - the features are summed over the subgroup (subgroupAdd, four inputs at a time);
 // - each lane runs every width-th hidden unit, reading its row of W0 from `params` (lanes read
 //   different rows, which the uniform copy would serialise) and writing its a_j to the row;
-// - dL/dz = g Σ_j W1[j] [h_j > 0] W0[j, :] is linear in g = dL/dout, so each lane sums its
-//   units' W1[j] [h_j > 0] W0[j, :] in the same pass as the forward, before g is known, and one
-//   subgroupAdd of that sum replaces the second pass over the hidden units.
+// - dL/dz = g Σ_j W1[j] [h_j > 0] W0[j, :] is linear in g = dL/dout: as in `train_rows`, each
+//   lane sums its units' W1[j] [h_j > 0] W0[j, :] in the forward pass, before g is known, and
+//   one subgroupAdd of that sum finishes it.
 // Every lane takes the same row, so control flow is uniform in the subgroup.
 
 // Per lane: the row's MLP input (after the sums, on every lane), and Σ W1[j] [h_j > 0] W0[j, :]
