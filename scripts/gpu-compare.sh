@@ -70,9 +70,10 @@
 #   GPU_COMPARE_ROW_BLOCKS=2,3          the fused kernel's row blocks it forces too
 #   GPU_COMPARE_SPLIT_ROUNDS=500        rounds of the `split` and `phases` stages' query benches
 #   GPU_COMPARE_CHECK_TIMEOUT=300       seconds each kernel test binary may take (`checks`)
-#   GPU_COMPARE_FITS=nglod,hashgrid,hashgrid-small,siren,siren-design-loss,siren-constant-lr
-#                                       which fits the `fit` stage times (default all six:
-#                                       NGLOD about 10 s on an H100, the hash grid's presets
+#   GPU_COMPARE_FITS=nglod,nglod-invocation,hashgrid,hashgrid-small,siren,siren-design-loss,siren-constant-lr
+#                                       which fits the `fit` stage times (default all seven:
+#                                       NGLOD about 10 s on an H100 (nglod-invocation with
+#                                       HWSDF_TRAIN_KERNEL=invocation), the hash grid's presets
 #                                       (issue 39: ≤ 1 s of training), SIREN about 30 s each;
 #                                       siren-design-loss is SIREN with --sign-weight 0, the
 #                                       design document's four loss terms alone,
@@ -488,23 +489,26 @@ for est in sorted(glob.glob(os.path.join(res, "criterion*", "**", "new", "estima
 PY
     if [[ $stages == *,fit,* ]]; then
         local m
-        for m in $(echo "${GPU_COMPARE_FITS:-nglod,hashgrid,hashgrid-small,siren,siren-design-loss,siren-constant-lr}" | tr ',' ' '); do
-            local fit_args
+        for m in $(echo "${GPU_COMPARE_FITS:-nglod,nglod-invocation,hashgrid,hashgrid-small,siren,siren-design-loss,siren-constant-lr}" | tr ',' ' '); do
+            local fit_args kernel=""
             case "$m" in
                 nglod | siren | hashgrid) fit_args=(--model "$m") ;;
+                # The training rows one per invocation, beside the GPUs' default of one per
+                # subgroup (session 26): the whole fit's answer to which is faster.
+                nglod-invocation) fit_args=(--model nglod); kernel=invocation ;;
                 hashgrid-small) fit_args=(--model hashgrid --preset small) ;;
                 # The SIREN reference code's schedule beside ours (the design document's divide
                 # by 10 on plateaus): the H100's default fit had reached the floor by step 5125.
                 siren-constant-lr) fit_args=(--model siren --plateau-patience 0) ;;
                 # Without the sign term: the design document's loss beside ours.
                 siren-design-loss) fit_args=(--model siren --sign-weight 0) ;;
-                *) echo "unknown fit $m (nglod, hashgrid, hashgrid-small, siren, siren-design-loss or siren-constant-lr)" >&2; continue ;;
+                *) echo "unknown fit $m (nglod, nglod-invocation, hashgrid, hashgrid-small, siren, siren-design-loss or siren-constant-lr)" >&2; continue ;;
             esac
             echo "== fit: $m on tests/data/spot.obj (the GPU default run; ${fit_args[*]})"
             local t0 t1
             t0=$(date +%s.%N)
             # SIGTERM at the limit: train writes its checkpoint and stops cleanly.
-            timeout "${GPU_COMPARE_TIMEOUT:-240}" \
+            HWSDF_TRAIN_KERNEL="$kernel" timeout "${GPU_COMPARE_TIMEOUT:-240}" \
                 bin/train tests/data/spot.obj "${fit_args[@]}" --out "$res/fit-$m.safetensors" \
                 --report "$res/fit-$m.json" 2>&1 | tee "$res/fit-$m.txt" || echo "(failed)"
             t1=$(date +%s.%N)
