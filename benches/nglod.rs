@@ -105,6 +105,7 @@ fn train_kernels(gpu: &GpuContext) -> Vec<QueryKernel> {
 
 /// `NGLOD_BENCH_PROFILE=steps`: the per-launch profile of a training step.
 fn profile(gpu: &GpuContext, steps: usize) {
+    let steps = steps.max(1);
     let Some(mut profiler) = sdf_nn::gpu::PassProfiler::new(gpu, 64) else {
         println!(
             "{} has no timestamp queries: nothing to profile",
@@ -148,7 +149,7 @@ fn profile(gpu: &GpuContext, steps: usize) {
                 let report = trainer.train().unwrap();
                 let epoch = report.epochs.last().expect("two epochs");
                 let mut rows: Vec<(String, Vec<f64>)> = Vec::new();
-                for _ in 0..steps.max(1) {
+                for _ in 0..steps {
                     let times = trainer
                         .profile_step(&mut profiler, source == SampleSource::Gpu)
                         .unwrap();
@@ -183,7 +184,7 @@ fn profile(gpu: &GpuContext, steps: usize) {
                     println!("| {label} | {m:.1} | {:.2} |", m * times / 1e3);
                 }
                 println!(
-                    "| sum, each launch in its own pass | | {epoch_ms:.2} |\n| the second epoch's GPU loop, measured | | {:.2} |",
+                    "| sum, each launch in its own pass | | {epoch_ms:.2} |\n| the second epoch's step loop, measured (wall) | | {:.2} |",
                     epoch.gpu_seconds * 1e3
                 );
             }

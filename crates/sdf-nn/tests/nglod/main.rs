@@ -10,7 +10,7 @@ use glam::Vec3;
 use rand::{Rng, SeedableRng};
 use rand_pcg::Pcg64;
 use sdf_geom::Mesh;
-use sdf_nn::nglod::{Encoding, LevelStorage, Objective, ScatterMode, cpu};
+use sdf_nn::nglod::{Encoding, LevelStorage, Objective, SampleSource, ScatterMode, cpu};
 use sdf_nn::{
     GpuContext, Nglod, NglodConfig, NglodError, NglodGpu, NglodTrainConfig, NglodTrainer,
     QueryKernel,
@@ -668,6 +668,49 @@ fn trains_with_the_compare_exchange_fallback() {
         report.epochs[1].loss < 0.5 * report.epochs[0].loss,
         "{report:#?}"
     );
+}
+
+/// A profiled step times the step's four launches (and, with the points drawn on the GPU, the
+/// draw's three first) and counts as a step (that it leaves no loss behind for the next epoch's
+/// read is a unit test of `train/profile.rs`).
+#[test]
+fn a_profiled_step_times_each_launch() {
+    let gpu = gpu();
+    let Some(mut profiler) = sdf_nn::gpu::PassProfiler::new(gpu, 16) else {
+        eprintln!("no timestamp queries on this adapter: nothing to profile");
+        return;
+    };
+    let mesh = icosphere(0.5, 2);
+    let model = Nglod::new(NglodConfig::small()).unwrap();
+    for source in [SampleSource::CpuPool, SampleSource::Gpu] {
+        let config = NglodTrainConfig {
+            epochs: 1,
+            uniform_points: 1_000,
+            near_points: 1_000,
+            surface_points: 1_000,
+            batch_size: 1_000,
+            sample_source: source,
+            ..Default::default()
+        };
+        let mut trainer = NglodTrainer::new(gpu, &model, &mesh, config).unwrap();
+        let first = trainer.train().unwrap();
+        let times = trainer.profile_step(&mut profiler, true).unwrap();
+        let labels: Vec<&str> = times.iter().map(|t| t.label.as_str()).collect();
+        let rows = match trainer.training_json(None)["train_kernel"].as_str() {
+            Some("subgroup") => "train_rows_sg",
+            _ => "train_rows",
+        };
+        let mut want = vec![rows, "mlp_partial", "mlp_reduce", "adam"];
+        if source == SampleSource::Gpu {
+            want.splice(0..0, ["draw", "signed_distance", "gather"]);
+        }
+        assert_eq!(labels, want);
+        assert_eq!(
+            trainer.optimizer_state().unwrap().step as usize,
+            first.steps + 1
+        );
+        assert_eq!(trainer.training_json(None)["steps_done"], first.steps + 1);
+    }
 }
 
 /// A run stopped part-way through an epoch records the steps it did; a resume finishes that
