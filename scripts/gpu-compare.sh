@@ -5,8 +5,9 @@
 #   scripts/gpu-compare.sh run  [DIR]   # on the GPU host, with python3 (+ torch for the peer)
 #
 # DIR defaults to out/gpu-pack (ignored by git). `pack` builds the criterion bench executables
-# (`cargo bench --no-run`) and the release binaries, strips them, and copies them with
-# tests/data (the benches open tests/data/spot.obj by a relative path), the PyTorch scripts and
+# (`cargo bench --no-run`) and the release binaries, strips them, and copies those the stages
+# of GPU_COMPARE_STAGES use (all by default: set it at pack time to stay under a lent machine's
+# 64 MiB) with tests/data (the benches open tests/data/spot.obj by a relative path), the PyTorch scripts and
 # this script, and archives the folder as DIR.tar.gz. With GPU_COMPARE_DEBS=1 it also downloads
 # Debian's amd64 Vulkan loader and glvnd packages into DIR/debs, for a host without them (`run`
 # unpacks them as root). Copy DIR (or
@@ -105,6 +106,8 @@ set -euo pipefail
 
 # The `checks` stage's test binaries (target names).
 GPU_CHECKS="siren_gpu|nglod|adam|embed|render|gpu_timer|neural_sdf|serve_queries|scene|ground_truth"
+# Every stage, in the order `run` runs them: the default of GPU_COMPARE_STAGES.
+ALL_STAGES=checks,bench,kernels,coop,blocks,split,phases,profile,torch,fit,scene,groundtruth,hashgrid,corpus
 
 usage() {
     awk 'NR > 1 && !/^#/ { exit } NR > 1 { sub(/^# ?/, ""); print }' "$0"
@@ -144,18 +147,38 @@ pack() {
     [ -n "$benches" ] || { echo "no bench executables were built" >&2; exit 1; }
     rm -rf "$dir/bin" "$dir/benches" "$dir/tests" "$dir/scripts" "$dir/checks" "$dir/examples"
     mkdir -p "$dir/bin" "$dir/benches" "$dir/tests" "$dir/scripts" "$dir/checks" "$dir/examples"
-    cp target/release/examples/ground_truth_bench target/release/examples/nglod_sample_source \
-        target/release/examples/grid_sweep "$dir/examples/"
+    # Only what the stages to run (GPU_COMPARE_STAGES, as `run` reads it) use: a lent machine
+    # carries at most 64 MiB, and everything packed is about 74 MiB compressed.
+    local stages=",${GPU_COMPARE_STAGES:-$ALL_STAGES},"
+    want() {
+        local s
+        for s in "$@"; do [[ $stages == *,$s,* ]] && return 0; done
+        return 1
+    }
+    if want groundtruth; then
+        cp target/release/examples/ground_truth_bench target/release/examples/nglod_sample_source \
+            "$dir/examples/"
+    fi
+    if want hashgrid; then cp target/release/examples/grid_sweep "$dir/examples/"; fi
     local name path
-    while read -r name path; do cp "$path" "$dir/checks/$name"; done <<<"$checks"
-    local exe
-    for exe in train eval corpus extract render sdf query gpu-info; do
+    if want checks; then
+        while read -r name path; do cp "$path" "$dir/checks/$name"; done <<<"$checks"
+    fi
+    local exe exes=(gpu-info)
+    if want fit; then exes+=(train eval); fi
+    if want corpus; then exes+=(corpus); fi
+    for exe in "${exes[@]}"; do
         cp "target/release/$exe" "$dir/bin/"
     done
     while read -r name path; do
+        local keep=0
         case "$name" in
-            siren | nglod | query* | scene) cp "$path" "$dir/benches/$name" ;;
+            siren) if want bench coop blocks profile; then keep=1; fi ;;
+            nglod) if want bench profile; then keep=1; fi ;;
+            query*) if want bench kernels coop split phases; then keep=1; fi ;;
+            scene) if want scene; then keep=1; fi ;;
         esac
+        if [ "$keep" = 1 ]; then cp "$path" "$dir/benches/$name"; fi
     done <<<"$benches"
     strip "$dir"/bin/* "$dir"/benches/* "$dir"/checks/* "$dir"/examples/* 2>/dev/null || true
     cp -r tests/data "$dir/tests/"
@@ -183,6 +206,7 @@ pack() {
     # One compressed file to carry (the folder is ~70 MB, the archive about a third of that).
     tar -C "$(dirname "$dir")" -czf "$dir.tar.gz" "$(basename "$dir")"
     echo "== packed $(du -sh "$dir" | cut -f1) into $dir, $(du -sh "$dir.tar.gz" | cut -f1) as $dir.tar.gz (commit $(cat "$dir/COMMIT"))"
+    echo "   stages: ${GPU_COMPARE_STAGES:-$ALL_STAGES}; bin: $(ls "$dir/bin" | tr '\n' ' ')"
     echo "   benches: $(ls "$dir/benches" | tr '\n' ' '); checks: $(ls "$dir/checks" | tr '\n' ' ')"
     # A lent GPU machine takes at most 64 MiB of carried files in all.
     if [ "$(stat -c %s "$dir.tar.gz")" -gt $((60 * 1024 * 1024)) ]; then
@@ -255,7 +279,7 @@ run() {
     fi
     export CRITERION_HOME="$res/criterion"
     export SIREN_BENCH_PRESETS=${GPU_COMPARE_PRESETS:-small,default}
-    local stages=",${GPU_COMPARE_STAGES:-checks,bench,kernels,coop,blocks,split,phases,profile,torch,fit,scene,groundtruth,hashgrid,corpus},"
+    local stages=",${GPU_COMPARE_STAGES:-$ALL_STAGES},"
     if [[ $stages == *,checks,* ]]; then
         # Kernels designed on lavapipe meet a real GPU here: other subgroup sizes, real
         # parallelism within a workgroup, other limits. Figures from kernels that fail their
