@@ -115,6 +115,26 @@ fn choose_query_kernel(
 /// stage times both at 10 to 10⁶ points.
 pub const SUBGROUP_KERNEL_MAX_ELEMENTS: u64 = 1 << 16;
 
+/// Copies the whole of a mapped `buffer` out as `T`s and unmaps it. `label` names the data in
+/// errors.
+pub(crate) fn copy_out_mapped<T: Pod>(
+    buffer: &wgpu::Buffer,
+    label: &str,
+) -> Result<Vec<T>, GpuError> {
+    let view = buffer
+        .slice(..)
+        .get_mapped_range()
+        .map_err(|e| GpuError::Readback {
+            label: label.to_owned(),
+            reason: e.to_string(),
+        })?;
+    // The mapped bytes need not be aligned for T; copy through pod_collect.
+    let out: Vec<T> = bytemuck::pod_collect_to_vec(&view);
+    drop(view);
+    buffer.unmap();
+    Ok(out)
+}
+
 impl GpuContext {
     /// The wgpu device.
     pub fn device(&self) -> &wgpu::Device {
@@ -420,12 +440,7 @@ impl GpuContext {
         rx.recv()
             .map_err(|e| error(e.to_string()))?
             .map_err(|e| error(e.to_string()))?;
-        let view = slice.get_mapped_range().map_err(|e| error(e.to_string()))?;
-        // The mapped bytes need not be aligned for T; copy through pod_collect.
-        let out: Vec<T> = bytemuck::pod_collect_to_vec(&view);
-        drop(view);
-        buffer.unmap();
-        Ok(out)
+        copy_out_mapped(buffer, label)
     }
 
     /// How long a wait polls without blocking before it blocks (default [`SPIN_WAIT`]; CPU

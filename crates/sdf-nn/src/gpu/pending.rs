@@ -6,7 +6,7 @@ use std::sync::mpsc;
 
 use bytemuck::Pod;
 
-use super::{GpuContext, GpuError};
+use super::{GpuContext, GpuError, copy_out_mapped};
 
 /// A copy of a few bytes of a buffer, recorded into an encoder ([`GpuContext::record_read`])
 /// and not yet submitted.
@@ -98,13 +98,7 @@ impl PendingRead {
         if let Some(Err(e)) = result {
             return Err(error(e.to_string()));
         }
-        let slice = self.staging.slice(..);
-        let view = slice.get_mapped_range().map_err(|e| error(e.to_string()))?;
-        // The mapped bytes need not be aligned for T; copy through pod_collect.
-        let out: Vec<T> = bytemuck::pod_collect_to_vec(&view);
-        drop(view);
-        self.staging.unmap();
-        Ok(out)
+        copy_out_mapped(&self.staging, &self.label)
     }
 }
 
