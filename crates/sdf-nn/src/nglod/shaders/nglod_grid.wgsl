@@ -1,5 +1,5 @@
-// NGLOD's and the hash grid's addressing, shared by nglod_forward.wgsl and
-// nglod_train_{atomic,cas}.wgsl. Each of them declares the sparse levels' vertex table `table`
+// NGLOD's and the hash grid's addressing, shared by nglod_forward.wgsl,
+// nglod_train_{atomic,cas}.wgsl and the one-per-subgroup kernels. Each of them declares the sparse levels' vertex table `table`
 // (a u32 storage array).
 //
 // A level is (resolution r, offset of its features in params, z, kind):
@@ -67,4 +67,13 @@ fn corner_weight(cell: GridCell, c: u32) -> vec4<f32> {
     let dw = select(vec3<f32>(-1.0), vec3<f32>(1.0), hi)
         * vec3<f32>(wv.y * wv.z, wv.x * wv.z, wv.x * wv.y) * cell.du;
     return vec4<f32>(wv.x * wv.y * wv.z, dw);
+}
+
+// How a subgroup of `lanes` lanes shares one point's corners (the one-point- and one-row-per-
+// subgroup kernels): lanes 8g..8g+7 take the levels l with l % (lanes / 8) == g, one corner
+// each, and a subgroup narrower than 8 loops over the corners. Level l's corners for `lane`
+// run from x (8: none) in steps of y. Every (level, corner) falls to exactly one lane.
+fn lane_corners(lane: u32, lanes: u32, l: u32) -> vec2<u32> {
+    let first = select(8u, lane % 8u, lane / 8u == l % max(lanes / 8u, 1u));
+    return vec2<u32>(first, min(lanes, 8u));
 }

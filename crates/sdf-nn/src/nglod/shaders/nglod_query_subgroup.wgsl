@@ -5,7 +5,7 @@
 // a GPU that is one long chain of dependent loads per point, and the kernel takes as long as
 // that chain. Here the subgroup's lanes split the work of one point:
 // - lanes 8g..8g+7 gather the eight corners of the levels l with l % (width / 8) == g (a
-//   subgroup narrower than 8 loops over the corners);
+//   subgroup narrower than 8 loops over the corners: nglod_grid.wgsl's lane_corners);
 // - the features are summed over the subgroup (subgroupAdd, four inputs at a time);
 // - each lane runs every width-th hidden unit, reading its row of W0 from `params` (lanes read
 //   different rows, which a uniform buffer would serialise);
@@ -25,16 +25,14 @@ fn value_grad_sg(p: vec3<f32>, lane: u32, lanes: u32, grad: bool) -> vec4<f32> {
         sg_z[f] = 0.0;
         sg_dz[f] = vec3<f32>(0.0);
     }
-    let corner_step = min(lanes, 8u);
-    let level_groups = max(lanes / 8u, 1u);
-    let my_group = lane / 8u;
     for (var l = 0u; l < u.lod; l++) {
-        if my_group != l % level_groups {
+        let corners = lane_corners(lane, lanes, l);
+        if corners.x == 8u {
             continue;
         }
         let lv = u.levels[l];
         let cell = grid_cell(p, lv.x);
-        for (var c = lane % 8u; c < 8u; c += corner_step) {
+        for (var c = corners.x; c < 8u; c += corners.y) {
             let wd = corner_weight(cell, c);
             let w = wd.x;
             let dw = wd.yzw;

@@ -6,8 +6,8 @@
 // invocation (`train_rows`) leaves a few rows per SM of a large GPU, each invocation running
 // its gathers, the whole MLP forward and backward and its scatter alone: the step lasts one
 // invocation's chain of dependent loads. Here a subgroup's lanes share a row:
-// - lanes 8g..8g+7 gather (and later scatter) the eight corners of the levels l with
-//   l % (width / 8) == g (a subgroup narrower than 8 loops over the corners);
+// - the lanes share the levels' corners for the gather and, the same way, the scatter
+//   (nglod_grid.wgsl's lane_corners);
 // - the features are summed over the subgroup (subgroupAdd, four inputs at a time);
 // - each lane runs every width-th hidden unit, reading its row of W0 from `params` (lanes read
 //   different rows, which the uniform copy would serialise) and writing its a_j to the row;
@@ -41,16 +41,14 @@ fn sgt_sum(a: ptr<private, array<f32, MAX_F>>) {
 // sgt_z, or with `scatter` adds g · sgt_v times the trilinear weights to the grid gradients.
 // Gather and scatter visit the same corners on the same lane.
 fn sgt_grid(p: vec3<f32>, lod: u32, lane: u32, lanes: u32, scatter: bool, g: f32) {
-    let corner_step = min(lanes, 8u);
-    let level_groups = max(lanes / 8u, 1u);
-    let my_group = lane / 8u;
     for (var l = 0u; l < lod; l++) {
-        if my_group != l % level_groups {
+        let corners = lane_corners(lane, lanes, l);
+        if corners.x == 8u {
             continue;
         }
         let lv = u.levels[l];
         let cell = grid_cell(p, lv.x);
-        for (var c = lane % 8u; c < 8u; c += corner_step) {
+        for (var c = corners.x; c < 8u; c += corners.y) {
             let w = corner_weight(cell, c).x;
             let base = vertex_base(lv, cell.i0 + corner_offset(c));
             if base == NO_SLOT {
