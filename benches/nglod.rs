@@ -73,8 +73,17 @@ fn epoch_split(gpu: &GpuContext) {
     };
     let (mesh, _) = sdf_geom::load_mesh(path).expect("bench mesh");
     let (unit, _) = mesh.normalized();
+    for (name, model, schedule) in trained_models() {
+        let config = NglodTrainConfig { epochs, ..schedule };
+        split_one(gpu, name, path, &unit, Nglod::new(model).unwrap(), config);
+    }
+}
+
+/// The models the training benches train, each with its schedule: NGLOD and the hash grid's
+/// `default`, or those of the families `NGLOD_BENCH_MODELS` names (`nglod`, `hashgrid`).
+fn trained_models() -> Vec<(&'static str, NglodConfig, NglodTrainConfig)> {
     let which = std::env::var("NGLOD_BENCH_MODELS").unwrap_or_default();
-    for (name, model, schedule) in [
+    [
         (
             "nglod_default",
             NglodConfig::default_preset(),
@@ -85,13 +94,13 @@ fn epoch_split(gpu: &GpuContext) {
             NglodConfig::hashgrid_default(),
             NglodTrainConfig::hashgrid(),
         ),
-    ] {
+    ]
+    .into_iter()
+    .filter(|(name, _, _)| {
         let family = name.split('_').next().unwrap_or(name);
-        if which.is_empty() || which.split(',').any(|w| w == family) {
-            let config = NglodTrainConfig { epochs, ..schedule };
-            split_one(gpu, name, path, &unit, Nglod::new(model).unwrap(), config);
-        }
-    }
+        which.is_empty() || which.split(',').any(|w| w == family)
+    })
+    .collect()
 }
 
 /// The training kernels this adapter runs.
@@ -115,27 +124,11 @@ fn profile(gpu: &GpuContext, steps: usize) {
     };
     let (mesh, _) = sdf_geom::load_mesh("tests/data/spot.obj").expect("tests/data/spot.obj");
     let (unit, _) = mesh.normalized();
-    let which = std::env::var("NGLOD_BENCH_MODELS").unwrap_or_default();
     let median = |v: &mut Vec<f64>| {
         v.sort_by(f64::total_cmp);
         v[v.len() / 2]
     };
-    for (name, model, schedule) in [
-        (
-            "nglod_default",
-            NglodConfig::default_preset(),
-            NglodTrainConfig::default(),
-        ),
-        (
-            "hashgrid_default",
-            NglodConfig::hashgrid_default(),
-            NglodTrainConfig::hashgrid(),
-        ),
-    ] {
-        let family = name.split('_').next().unwrap_or(name);
-        if !(which.is_empty() || which.split(',').any(|w| w == family)) {
-            continue;
-        }
+    for (name, model, schedule) in trained_models() {
         for source in [SampleSource::CpuPool, SampleSource::Gpu] {
             for kernel in train_kernels(gpu) {
                 let config = NglodTrainConfig {
