@@ -490,9 +490,14 @@ impl NglodGpu {
 
     /// Copies the MLP block of the parameters into the uniform buffer the kernels read it from.
     fn record_mlp_copy(&self, enc: &mut wgpu::CommandEncoder) {
-        let start = self.layout.w0 as u64 * 4;
-        let bytes = (self.layout.len - self.layout.w0) as u64 * 4;
+        let (start, bytes) = self.mlp_range();
         enc.copy_buffer_to_buffer(&self.params, start, &self.mlp, 0, bytes);
+    }
+
+    /// Where the MLP block lies in the parameter buffer: byte offset and length.
+    fn mlp_range(&self) -> (u64, u64) {
+        let start = self.layout.w0 as u64 * 4;
+        (start, self.layout.len as u64 * 4 - start)
     }
 
     fn eval_uniforms(&self, n: u32, lod: usize) -> EvalUniforms {
@@ -690,10 +695,7 @@ impl TrainKernels {
         Ok(TrainKernels {
             params: model.params.clone(),
             mlp: model.mlp.clone(),
-            mlp_range: (
-                model.layout.w0 as u64 * 4,
-                (model.layout.len - model.layout.w0) as u64 * 4,
-            ),
+            mlp_range: model.mlp_range(),
             uniforms,
             stats,
             _rows: rows,
