@@ -543,7 +543,7 @@ impl NglodGpu {
         gpu.zero(&self.grads);
         gpu.zero(&kernels.stats);
         let mut enc = gpu.device().create_command_encoder(&Default::default());
-        kernels.record(gpu, &mut enc, 0, n)?;
+        kernels.record(gpu, &mut enc, (0, n), None)?;
         gpu.queue().submit([enc.finish()]);
         let mut grads: Vec<f32> = gpu.read_back_range(&self.grads, 0, self.layout.len as u64)?;
         let stats: Vec<f32> = gpu.read_back_range(&kernels.stats, 0, 1)?;
@@ -723,18 +723,19 @@ impl TrainKernels {
     }
 
     /// Records forward, backward and the MLP reduction for points `first..first + n` into
-    /// `enc`, accumulating gradient sums into the model's gradient buffer. The uniforms go through
-    /// the queue: submit before recording the next step.
+    /// `enc`, accumulating gradient sums into the model's gradient buffer; given a profiler,
+    /// each launch in a pass of its own that it times. The uniforms go through the queue:
+    /// submit before recording the next step.
     pub(crate) fn record(
         &self,
         gpu: &GpuContext,
         enc: &mut wgpu::CommandEncoder,
-        first: u32,
-        n: u32,
+        (first, n): (u32, u32),
+        profiler: Option<&mut PassProfiler>,
     ) -> Result<(), NglodError> {
         let u = self.uniforms_for(first, n)?;
         gpu.write(&self.uniforms, &[u])?;
-        self.record_passes(gpu, enc, &u, None);
+        self.record_passes(gpu, enc, &u, profiler);
         Ok(())
     }
 
@@ -802,21 +803,6 @@ impl TrainKernels {
     ) {
         self.record_mlp_copy(enc);
         record_launches(enc, "nglod train step", &self.launches(gpu, u), profiler);
-    }
-
-    /// [`TrainKernels::record`] with each launch in its own pass, timed by `profiler`.
-    pub(crate) fn record_profiled(
-        &self,
-        gpu: &GpuContext,
-        enc: &mut wgpu::CommandEncoder,
-        profiler: &mut PassProfiler,
-        first: u32,
-        n: u32,
-    ) -> Result<(), NglodError> {
-        let u = self.uniforms_for(first, n)?;
-        gpu.write(&self.uniforms, &[u])?;
-        self.record_passes(gpu, enc, &u, Some(profiler));
-        Ok(())
     }
 
     /// Copies the MLP block of the parameters into its uniform copy.

@@ -32,7 +32,7 @@ impl NglodTrainer<'_> {
         let n = self.config.points_per_epoch() as u32;
         let batch = self.config.batch_size.min(n);
         self.kernels
-            .record_profiled(gpu, &mut enc, profiler, 0, batch)?;
+            .record(gpu, &mut enc, (0, batch), Some(&mut *profiler))?;
         self.adam.record_step_in(
             gpu,
             &mut profiler.begin_pass(&mut enc, "adam"),
