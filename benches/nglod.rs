@@ -28,6 +28,16 @@ use sdf_nn::{
     GpuContext, Nglod, NglodConfig, NglodGpu, NglodTrainConfig, NglodTrainer, QueryKernel,
 };
 
+/// The profile's launches of the GPU draw, which run once an epoch (the rest once a step).
+const DRAW_LAUNCHES: [&str; 6] = [
+    "draw",
+    "bin_count",
+    "bin_scan",
+    "bin_scatter",
+    "signed_distance",
+    "gather",
+];
+
 fn inference(c: &mut Criterion, gpu: &GpuContext) {
     for (name, cfg) in [
         ("default", NglodConfig::default_preset()),
@@ -168,7 +178,7 @@ fn profile(gpu: &GpuContext, steps: usize) {
                 for (label, mut v) in rows {
                     let m = median(&mut v);
                     // The draw runs once an epoch, the rest once a step.
-                    let times = if ["draw", "signed_distance", "gather"].contains(&label.as_str()) {
+                    let times = if DRAW_LAUNCHES.contains(&label.as_str()) {
                         1.0
                     } else {
                         per_epoch

@@ -95,7 +95,7 @@ fn main() -> Result<(), Box<dyn Error>> {
     );
 
     // The labelling's share: the same uniform and near-surface points labelled by
-    // GpuGroundTruth::signed_distance, which dispatches them in Morton order.
+    // GpuGroundTruth::signed_distance, which groups them by cell first.
     let unshuffled = sampler.draw(
         &gpu,
         &SampleSpec {
@@ -108,7 +108,7 @@ fn main() -> Result<(), Box<dyn Error>> {
     let t = Instant::now();
     gt.signed_distance(&gpu, to_label)?;
     println!(
-        "labels alone, GPU, in Morton order (GpuGroundTruth::signed_distance, uploaded and read \
+        "labels alone, GPU, grouped by cell (GpuGroundTruth::signed_distance, uploaded and read \
          back): {:.3} s for {} points",
         t.elapsed().as_secs_f64(),
         to_label.len()

@@ -178,6 +178,10 @@ pub const GROUND_TRUTH_WINDING: Shader = shader!(
     "ground_truth/shaders/" "winding.wgsl" with ["ground_truth/shaders/" "closest.wgsl"],
     wgpu::Features::empty()
 );
+/// Ground truth on the GPU: a batch's points grouped by cell (a counting sort by Morton code),
+/// the order the other ground-truth kernels take them in.
+pub const GROUND_TRUTH_BIN: Shader =
+    shader!("ground_truth/shaders/" "bin.wgsl", wgpu::Features::empty());
 /// Training points on the GPU: uniform, on and near the surface, from Philox4x32-10.
 pub const GROUND_TRUTH_SAMPLE: Shader =
     shader!("ground_truth/shaders/" "sample.wgsl", wgpu::Features::empty());
@@ -224,6 +228,7 @@ pub const ALL: &[Shader] = &[
     SCENE_PRIMITIVES,
     GROUND_TRUTH_CLOSEST,
     GROUND_TRUTH_WINDING,
+    GROUND_TRUTH_BIN,
     GROUND_TRUTH_SAMPLE,
 ];
 

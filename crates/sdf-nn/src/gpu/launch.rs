@@ -50,12 +50,15 @@ impl Launch {
     }
 }
 
+/// A launch to record and its workgroup grid (x, y, z), as [`record_launches`] takes them.
+pub(crate) type GridLaunch<'a> = (&'a Launch, (u32, u32, u32));
+
 /// Records `launches`, each with its workgroup grid, into one compute pass named `label`, or,
 /// given a profiler, each into a timed pass of its own (named by the launch's label).
 pub(crate) fn record_launches(
     enc: &mut wgpu::CommandEncoder,
     label: &str,
-    launches: &[(&Launch, (u32, u32, u32))],
+    launches: &[GridLaunch<'_>],
     profiler: Option<&mut PassProfiler>,
 ) {
     match profiler {

@@ -37,7 +37,7 @@ use crate::shaders::Shader;
 pub use adapter::list_adapters;
 use adapter::{describe_info, shares_host_memory};
 pub use error::GpuError;
-pub(crate) use launch::{Launch, record_launches};
+pub(crate) use launch::{GridLaunch, Launch, record_launches};
 pub use options::{
     ENV_VARIABLES, GpuOptions, QueryKernel, StepLayout, skip_device_select_layer_when_headless,
 };

@@ -33,7 +33,7 @@ use glam::Vec3;
 use sdf_geom::SignedDistance;
 use serde::{Deserialize, Serialize};
 
-use super::{GpuGroundTruth, GroundTruthError};
+use super::{GpuGroundTruth, GroundTruthError, Kernel};
 use crate::gpu::GpuContext;
 
 /// The winding number from which a point is inside (`sdf_geom`'s sign rule).
@@ -181,7 +181,8 @@ impl LabelProgress {
 /// labelling thread (NGLOD's samplers label on their own threads).
 pub type ProgressSink = Arc<dyn Fn(&LabelProgress) + Send + Sync>;
 
-/// A call with a progress sink is labelled in about this many parts...
+/// On the CPU, a call with a progress sink is labelled in about this many parts (on the GPU,
+/// in the kernels' own, [`GpuGroundTruth`]'s)...
 const PROGRESS_PARTS: usize = 64;
 /// ...of at least this many points (smaller calls in one part, with no progress call).
 const MIN_PART: usize = 1024;
@@ -323,7 +324,12 @@ impl<'g> Labeller<'g> {
     /// # Errors
     /// The GPU's ([`GroundTruthError::Gpu`]); the CPU path does not fail.
     pub fn signed_distance_batch(&self, points: &[Vec3]) -> Result<Vec<f32>, GroundTruthError> {
-        self.in_parts(points, |p| self.signed(p))
+        self.label(
+            points,
+            Kernel::Signed,
+            |p| self.cpu.signed_distance_batch(p),
+            |v| v[0],
+        )
     }
 
     /// [`Labeller::signed_distance_batch`] in one batch.
@@ -339,21 +345,15 @@ impl<'g> Labeller<'g> {
     /// # Errors
     /// As [`Labeller::signed_distance_batch`].
     pub fn unsigned_distance_batch(&self, points: &[Vec3]) -> Result<Vec<f32>, GroundTruthError> {
-        self.in_parts(points, |points| {
-            Ok(match &self.gpu {
-                Some((gpu, g)) => g
-                    .closest_points(gpu, points)?
-                    .into_iter()
-                    .map(|(_, d)| d)
-                    .collect(),
-                None => self
-                    .cpu
-                    .closest_point_batch(points)
-                    .iter()
-                    .map(|c| c.distance)
-                    .collect(),
-            })
-        })
+        self.label(
+            points,
+            Kernel::Closest,
+            |p| {
+                let closest = self.cpu.closest_point_batch(p);
+                closest.iter().map(|c| c.distance).collect()
+            },
+            |v| v[3],
+        )
     }
 
     /// Generalised winding numbers, as [`SignedDistance::winding_number_batch`].
@@ -361,10 +361,12 @@ impl<'g> Labeller<'g> {
     /// # Errors
     /// As [`Labeller::signed_distance_batch`].
     pub fn winding_number_batch(&self, points: &[Vec3]) -> Result<Vec<f32>, GroundTruthError> {
-        self.in_parts(points, |points| match &self.gpu {
-            Some((gpu, g)) => g.winding_numbers(gpu, points),
-            None => Ok(self.cpu.winding_number_batch(points)),
-        })
+        self.label(
+            points,
+            Kernel::Winding,
+            |p| self.cpu.winding_number_batch(p),
+            |v| v[0],
+        )
     }
 
     /// Whether each point is inside (a winding number of at least 1/2), as
@@ -373,38 +375,49 @@ impl<'g> Labeller<'g> {
     /// # Errors
     /// As [`Labeller::signed_distance_batch`].
     pub fn is_inside_batch(&self, points: &[Vec3]) -> Result<Vec<bool>, GroundTruthError> {
-        self.in_parts(points, |points| {
-            Ok(match &self.gpu {
-                Some((gpu, g)) => g
-                    .winding_numbers(gpu, points)?
-                    .into_iter()
-                    .map(|w| w >= INSIDE_WINDING)
-                    .collect(),
-                None => self.cpu.is_inside_batch(points),
-            })
-        })
+        self.label(
+            points,
+            Kernel::Winding,
+            |p| self.cpu.is_inside_batch(p),
+            |v| v[0] >= INSIDE_WINDING,
+        )
     }
 
-    /// `label` over `points`: in one batch, or with a progress sink and many points in parts,
-    /// reporting after each.
-    fn in_parts<T>(
+    /// Labels of `points`: on the GPU, `kernel`'s values through `from_gpu` (one call over
+    /// the points, in the kernels' own parts, each reported to the progress sink as it
+    /// completes: the GPU never waits for the host between parts); on the CPU, `cpu` in one
+    /// batch, or with a progress sink and many points in parts, reporting after each.
+    fn label<T>(
         &self,
         points: &[Vec3],
-        label: impl Fn(&[Vec3]) -> Result<Vec<T>, GroundTruthError>,
+        kernel: Kernel,
+        cpu: impl Fn(&[Vec3]) -> Vec<T>,
+        from_gpu: impl Fn(&[f32]) -> T,
     ) -> Result<Vec<T>, GroundTruthError> {
-        let part = (points.len() / PROGRESS_PARTS).max(MIN_PART);
-        let Some(sink) = self.progress.as_ref().filter(|_| points.len() > part) else {
-            return label(points);
-        };
         let start = Instant::now();
-        let mut out = Vec::with_capacity(points.len());
+        let total = points.len();
+        let part = (total / PROGRESS_PARTS).max(MIN_PART);
+        let sink = self.progress.as_ref().filter(|_| total > part);
+        let report = |done| {
+            if let Some(sink) = sink {
+                sink(&LabelProgress {
+                    done,
+                    total,
+                    elapsed: start.elapsed(),
+                });
+            }
+        };
+        if let Some((gpu, g)) = &self.gpu {
+            let flat = g.run_reporting(gpu, points, kernel, &mut |done| report(done))?;
+            return Ok(flat.chunks_exact(kernel.width()).map(from_gpu).collect());
+        }
+        if sink.is_none() {
+            return Ok(cpu(points));
+        }
+        let mut out = Vec::with_capacity(total);
         for p in points.chunks(part) {
-            out.extend(label(p)?);
-            sink(&LabelProgress {
-                done: out.len(),
-                total: points.len(),
-                elapsed: start.elapsed(),
-            });
+            out.extend(cpu(p));
+            report(out.len());
         }
         Ok(out)
     }
@@ -493,6 +506,28 @@ mod tests {
         labels.is_inside_batch(&points[..100]).unwrap();
         let (rate, n) = labels.time_per_label(&points).unwrap();
         assert!(rate > 0.0 && n > 0 && n <= 20_000 - 64, "{rate} {n}");
+    }
+
+    /// On the GPU a long call is reported part by part as the kernels' parts complete (262 144
+    /// points each on a CPU adapter), and gives the labels of one call without a sink.
+    #[test]
+    fn gpu_labels_report_their_progress() {
+        use std::sync::Mutex;
+        let gpu = GpuContext::shared().expect("a GPU adapter (lavapipe in CI)");
+        let sdf = Arc::new(SignedDistance::new(&sdf_geom::Mesh::icosphere(0.5, 1)).unwrap());
+        let seen: Arc<Mutex<Vec<usize>>> = Arc::default();
+        let sink = seen.clone();
+        let plain = Labeller::on_gpu(gpu, sdf.clone()).unwrap();
+        let labels = plain
+            .clone()
+            .with_progress(Arc::new(move |p| sink.lock().unwrap().push(p.done)));
+        let points = sdf_geom::sample::uniform_box(270_000, 6);
+        let inside = labels.is_inside_batch(&points).unwrap();
+        assert_eq!(*seen.lock().unwrap(), [262_144, 270_000]);
+        assert_eq!(inside, plain.is_inside_batch(&points).unwrap());
+        let cpu = sdf.is_inside_batch(&points);
+        let differ = inside.iter().zip(&cpu).filter(|(a, b)| a != b).count();
+        assert!(differ <= 2, "{differ} sides differ from the CPU's");
     }
 
     #[test]

@@ -39,8 +39,12 @@
 //! as on the CPU. Non-finite queries give NaN.
 //!
 //! # Speed
-//! Queries of 4096 points or more are dispatched in Morton order (neighbouring invocations then
-//! walk the same nodes; on lavapipe that made them 1.6× faster). On lavapipe (2 cores, November
+//! Every batch is grouped by cell on the GPU before a kernel runs (`bin.rs`: a counting sort by
+//! Morton code in a 32³ grid), so that neighbouring invocations query neighbouring points and
+//! walk mostly the same nodes (a host sort in Morton order made lavapipe 1.6× faster; the GPU's
+//! grouping costs the host nothing and applies to points that never leave the GPU, the training
+//! draws'). Large batches go in parts through two sets of buffers, so that uploads and
+//! read-backs overlap the kernels. On lavapipe (2 cores, November
 //! 2026, `examples/ground_truth_bench.rs`) the kernels label 5–17 % as fast as the CPU path
 //! (spot, 100 000 points: about 0.11 M signed distances per second against 1.2 M), so there the
 //! CPU path is the one to use; the kernels are for real GPUs.
@@ -51,16 +55,18 @@
 //! returns [`GroundTruthError`] naming the limit. Queries are split into dispatches that fit the
 //! device's buffer and dispatch limits.
 
+mod bin;
 mod labeller;
 
 use glam::Vec3;
-use sdf_geom::{GpuTrees, SignedDistance, morton_order};
+use sdf_geom::{GpuTrees, SignedDistance};
 
+use bin::CellOrder;
 pub use labeller::{
     GroundTruthDevice, GroundTruthPath, LabelProgress, Labeller, ProgressSink, UnknownDevice,
 };
 
-use crate::gpu::{GpuContext, GpuError, entry};
+use crate::gpu::{GpuContext, GpuError, Launch, PendingRead, entry, record_launches};
 use crate::shaders::{self, Shader};
 
 pub mod counter_rng;
@@ -74,8 +80,10 @@ const WG: u32 = 64;
 /// Entries of the kernels' traversal stacks (`STACK` in `closest.wgsl`): trees whose
 /// [`sdf_geom::GpuTrees::max_stack`] is larger are refused.
 pub const MAX_STACK: u32 = 96;
-/// Points per dispatch at most: bounds the per-call buffers and each dispatch's length.
-const MAX_CHUNK: usize = 1 << 18;
+/// Points per dispatch at most: bounds the per-call buffers (two sets of them, about 60 MB
+/// for closest points) and each dispatch's length. A million: an H100 holds 270 000
+/// invocations at once, and a part should fill it several times over.
+const MAX_CHUNK: usize = 1 << 20;
 
 /// The kernels' uniform (`Params` in `closest.wgsl`).
 #[repr(C)]
@@ -310,28 +318,73 @@ impl GpuGroundTruth {
     }
 
     /// Runs `kernel` over `points`: `kernel.width()` floats per point, in input order, NaN for
-    /// non-finite points (the kernels leave them 0: WGSL cannot write a NaN portably). Large
-    /// batches are dispatched in Morton order ([`morton_order`]).
+    /// non-finite points (the kernels leave them 0: WGSL cannot write a NaN portably).
+    ///
+    /// The batch goes in parts of at most [`MAX_CHUNK`] points (fewer where the device's storage
+    /// binding is small), each grouped by cell on the GPU ([`bin`]) before the kernel runs, and
+    /// through two sets of buffers: the host uploads a part and reads the previous one back
+    /// while the GPU works on the part between.
     fn run(
         &self,
         gpu: &GpuContext,
         points: &[Vec3],
         kernel: Kernel,
     ) -> Result<Vec<f32>, GroundTruthError> {
+        self.run_reporting(gpu, points, kernel, &mut |_| {})
+    }
+
+    /// [`GpuGroundTruth::run`], calling `done` with the number of points labelled so far as
+    /// each part completes (a [`Labeller`]'s progress).
+    fn run_reporting(
+        &self,
+        gpu: &GpuContext,
+        points: &[Vec3],
+        kernel: Kernel,
+        done: &mut dyn FnMut(usize),
+    ) -> Result<Vec<f32>, GroundTruthError> {
+        // Parts that fill a large GPU several times over; on a CPU adapter, parts of a few
+        // seconds, for the progress (smaller ones cost lavapipe locality: each part is grouped
+        // on its own).
+        let most = if gpu.is_cpu() { 1 << 18 } else { MAX_CHUNK };
+        let binding = gpu.limits().max_storage_buffer_binding_size;
+        let chunk = usize::try_from(binding / (4 * kernel.width().max(3)) as u64)
+            .unwrap_or(most)
+            .clamp(1, most);
+        self.run_in_parts(gpu, points, kernel, chunk, done)
+    }
+
+    /// [`GpuGroundTruth::run_reporting`] in parts of at most `chunk` points.
+    fn run_in_parts(
+        &self,
+        gpu: &GpuContext,
+        points: &[Vec3],
+        kernel: Kernel,
+        chunk: usize,
+        done: &mut dyn FnMut(usize),
+    ) -> Result<Vec<f32>, GroundTruthError> {
         let width = kernel.width();
-        let mut result = if points.len() < MORTON_MIN {
-            self.dispatch(gpu, points, kernel)?
-        } else {
-            let order = morton_order(points);
-            let sorted: Vec<Vec3> = order.iter().map(|&i| points[i as usize]).collect();
-            let values = self.dispatch(gpu, &sorted, kernel)?;
-            let mut result = vec![0.0; values.len()];
-            for (&i, v) in order.iter().zip(values.chunks_exact(width)) {
-                let i = i as usize * width;
-                result[i..i + width].copy_from_slice(v);
+        let mut result = Vec::with_capacity(points.len() * width);
+        if points.is_empty() {
+            return Ok(result);
+        }
+        let chunk = chunk.clamp(1, points.len());
+        let grid = bin::finite_box(points);
+        let parts = points.len().div_ceil(chunk);
+        let slots = (0..parts.min(2))
+            .map(|_| QuerySlot::new(gpu, self, kernel, chunk as u32))
+            .collect::<Result<Vec<_>, _>>()?;
+        let mut pending: Option<PendingRead> = None;
+        for (k, part) in points.chunks(chunk).enumerate() {
+            let read = slots[k % slots.len()].submit(gpu, self, part, grid)?;
+            if let Some(previous) = pending.replace(read) {
+                result.extend(previous.wait::<f32>(gpu)?);
+                done(result.len() / width);
             }
-            result
-        };
+        }
+        if let Some(last) = pending {
+            result.extend(last.wait::<f32>(gpu)?);
+            done(result.len() / width);
+        }
         for (i, p) in points.iter().enumerate() {
             if !p.is_finite() {
                 result[i * width..(i + 1) * width].fill(f32::NAN);
@@ -339,78 +392,90 @@ impl GpuGroundTruth {
         }
         Ok(result)
     }
-
-    /// Runs `kernel` over `points` in their order, in dispatches of at most [`MAX_CHUNK`] points
-    /// (fewer where the device's storage binding is small).
-    fn dispatch(
-        &self,
-        gpu: &GpuContext,
-        points: &[Vec3],
-        kernel: Kernel,
-    ) -> Result<Vec<f32>, GroundTruthError> {
-        let width = kernel.width();
-        let mut result = Vec::with_capacity(points.len() * width);
-        if points.is_empty() {
-            return Ok(result);
-        }
-        let pipeline = gpu.pipeline(kernel.shader(), kernel.entry_point(), &[])?;
-        let layout = pipeline.get_bind_group_layout(0);
-        let binding = gpu.limits().max_storage_buffer_binding_size;
-        let chunk = usize::try_from(binding / (4 * width.max(3)) as u64)
-            .unwrap_or(MAX_CHUNK)
-            .clamp(1, MAX_CHUNK);
-        for part in points.chunks(chunk) {
-            let n = part.len() as u32;
-            let pts = gpu.storage_from_slice(
-                "ground truth points",
-                bytemuck::cast_slice::<Vec3, f32>(part),
-            )?;
-            let out =
-                gpu.storage_zeroed("ground truth results", u64::from(n) * width as u64 * 4)?;
-            let uniforms = gpu.uniform(
-                "ground truth params",
-                &Params {
-                    n_points: n,
-                    ..self.params
-                },
-            );
-            let mut entries = vec![entry(0, &uniforms)];
-            for (k, (used, buffer)) in kernel
-                .trees()
-                .into_iter()
-                .zip([&self.nodes, &self.packets, &self.winding])
-                .enumerate()
-            {
-                if used {
-                    entries.push(entry(1 + k as u32, buffer));
-                }
-            }
-            entries.extend([entry(4, &pts), entry(5, &out)]);
-            let bind_group = gpu.device().create_bind_group(&wgpu::BindGroupDescriptor {
-                label: Some("ground truth"),
-                layout: &layout,
-                entries: &entries,
-            });
-            let mut enc = gpu.device().create_command_encoder(&Default::default());
-            {
-                let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
-                    label: Some("ground truth"),
-                    timestamp_writes: None,
-                });
-                pass.set_pipeline(&pipeline);
-                pass.set_bind_group(0, &bind_group, &[]);
-                let (x, y) = gpu.dispatch_size(n.div_ceil(WG));
-                pass.dispatch_workgroups(x, y, 1);
-            }
-            gpu.queue().submit([enc.finish()]);
-            result.extend(gpu.read_back_range::<f32>(&out, 0, u64::from(n) * width as u64)?);
-        }
-        Ok(result)
-    }
 }
 
-/// Batches from this size on are dispatched in Morton order.
-const MORTON_MIN: usize = 4096;
+/// One set of a query's buffers: a part's points, their grouping, the kernel's uniform and
+/// results, bound to the kernel.
+struct QuerySlot {
+    points: wgpu::Buffer,
+    out: wgpu::Buffer,
+    uniform: wgpu::Buffer,
+    bins: CellOrder,
+    launch: Launch,
+    width: usize,
+}
+
+impl QuerySlot {
+    /// Buffers for parts of at most `capacity` points.
+    fn new(
+        gpu: &GpuContext,
+        gt: &GpuGroundTruth,
+        kernel: Kernel,
+        capacity: u32,
+    ) -> Result<Self, GroundTruthError> {
+        let width = kernel.width();
+        let points = gpu.storage_zeroed("ground truth points", u64::from(capacity) * 12)?;
+        let out = gpu.storage_zeroed(
+            "ground truth results",
+            u64::from(capacity) * width as u64 * 4,
+        )?;
+        let uniform = gpu.uniform("ground truth params", &gt.params);
+        let bins = CellOrder::new(gpu, &points, capacity)?;
+        let pipeline = gpu.pipeline(kernel.shader(), kernel.entry_point(), &[])?;
+        let mut entries = vec![entry(0, &uniform)];
+        for (k, (used, buffer)) in kernel
+            .trees()
+            .into_iter()
+            .zip([&gt.nodes, &gt.packets, &gt.winding])
+            .enumerate()
+        {
+            if used {
+                entries.push(entry(1 + k as u32, buffer));
+            }
+        }
+        entries.extend([entry(4, &points), entry(5, &out), entry(6, bins.order())]);
+        let launch = Launch::new(gpu, &pipeline, kernel.entry_point(), &entries, (0, 0, 0));
+        Ok(QuerySlot {
+            points,
+            out,
+            uniform,
+            bins,
+            launch,
+            width,
+        })
+    }
+
+    /// Uploads `part`, records its grouping over `grid`, the kernel and the copy of its
+    /// results, and submits them.
+    fn submit(
+        &self,
+        gpu: &GpuContext,
+        gt: &GpuGroundTruth,
+        part: &[Vec3],
+        grid: (Vec3, Vec3),
+    ) -> Result<PendingRead, GroundTruthError> {
+        let n = part.len() as u32;
+        gpu.write(&self.points, bytemuck::cast_slice::<Vec3, f32>(part))?;
+        gpu.write(
+            &self.uniform,
+            &[Params {
+                n_points: n,
+                ..gt.params
+            }],
+        )?;
+        let mut enc = gpu.device().create_command_encoder(&Default::default());
+        let [count, scan, scatter] = self.bins.prepare(gpu, &mut enc, n, grid)?;
+        let (x, y) = gpu.dispatch_size(n.div_ceil(WG));
+        record_launches(
+            &mut enc,
+            "ground truth",
+            &[count, scan, scatter, (&self.launch, (x, y, 1))],
+            None,
+        );
+        let read = gpu.record_read(&mut enc, &self.out, 0, u64::from(n) * self.width as u64 * 4);
+        Ok(gpu.submit_with_read(enc, read))
+    }
+}
 
 #[cfg(test)]
 mod tests {
@@ -461,5 +526,58 @@ mod tests {
         assert_eq!(span("WNode4"), size_of::<sdf_geom::GpuWindingNode>());
         assert!(src.contains(&format!("const STACK: u32 = {}u;", super::MAX_STACK)));
         assert!(src.contains(&format!("const WG: u32 = {}u;", super::WG)));
+    }
+
+    /// A batch in many parts (through the two alternating sets of buffers, each part grouped by
+    /// cell) gives each point the value it gets in one part, and the CPU's: on the open teapot,
+    /// every kernel, with points far away, on the mesh and non-finite ones spread over the
+    /// parts.
+    #[test]
+    fn parts_through_alternating_buffers_agree_with_one_part() {
+        use super::{GpuGroundTruth, Kernel};
+        use glam::Vec3;
+        let gpu = crate::GpuContext::shared().expect("a GPU adapter (lavapipe in CI)");
+        let (mesh, _) = sdf_geom::load_mesh(concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/../../tests/data/teapot.obj"
+        ))
+        .unwrap();
+        let mesh = mesh.normalized().0;
+        let cpu = sdf_geom::SignedDistance::new(&mesh).unwrap();
+        let gt = GpuGroundTruth::new(gpu, &cpu).unwrap();
+        let mut points = sdf_geom::sample::near_surface(&mesh, 1500, 0.05, 3);
+        points.extend(sdf_geom::sample::uniform_box(1500, 4));
+        for (k, p) in [Vec3::NAN, Vec3::splat(1e30), mesh.vertices[0]]
+            .into_iter()
+            .enumerate()
+        {
+            points.insert(1000 * k + 17, p);
+        }
+        let signed = cpu.signed_distance_batch(&points);
+        for kernel in [Kernel::Signed, Kernel::Closest, Kernel::Winding] {
+            let whole = gt
+                .run_in_parts(gpu, &points, kernel, points.len(), &mut |_| {})
+                .unwrap();
+            let mut reported = Vec::new();
+            let parts = gt
+                .run_in_parts(gpu, &points, kernel, 700, &mut |done| reported.push(done))
+                .unwrap();
+            assert_eq!(reported, [700, 1400, 2100, 2800, 3003]);
+            assert_eq!(whole.len(), points.len() * kernel.width());
+            for (i, (a, b)) in whole.iter().zip(&parts).enumerate() {
+                assert!(
+                    a.to_bits() == b.to_bits(),
+                    "value {i}: {a} in one part, {b} in parts"
+                );
+            }
+            if let Kernel::Signed = kernel {
+                for (i, (g, c)) in whole.iter().zip(&signed).enumerate() {
+                    assert!(
+                        (g - c).abs() <= 1e-5 * c.abs().max(1.0) || (g.is_nan() && c.is_nan()),
+                        "point {i}: GPU {g}, CPU {c}"
+                    );
+                }
+            }
+        }
     }
 }

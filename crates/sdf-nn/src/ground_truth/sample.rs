@@ -42,6 +42,7 @@
 use glam::Vec3;
 use sdf_geom::Mesh;
 
+use super::bin::CellOrder;
 use super::counter_rng::{Kind, SampleSpec, Shuffle};
 use super::{GpuGroundTruth, Params};
 use crate::gpu::{GpuContext, GpuError, Launch, PassProfiler, entry, record_launches};
@@ -375,8 +376,9 @@ impl GpuSampler {
 ///
 /// The draw is made without its shuffle into scratch buffers, so that the points to label
 /// (uniform and near-surface) lie together and the surface points (distance 0, as the CPU
-/// pool labels them) cost nothing; the labelling runs over those, and a gather writes the
-/// shuffled draw and its labels into the caller's buffers. The points are those of
+/// pool labels them) cost nothing; the labelling runs over those, grouped by cell (the
+/// box's 32³ grid, `bin.rs`), and a gather writes the shuffled draw and its labels into the
+/// caller's buffers. The points are those of
 /// [`GpuSampler::draw`] for the same [`SampleSpec`].
 pub struct LabelledDraw {
     /// The draw without its shuffle, and the gather with it.
@@ -384,6 +386,8 @@ pub struct LabelledDraw {
     gather_uniform: wgpu::Buffer,
     label_uniform: wgpu::Buffer,
     draw: Launch,
+    /// The labelled points grouped by cell, the order `label` takes them in.
+    bins: CellOrder,
     label: Launch,
     gather: Launch,
     absolute: Option<Launch>,
@@ -442,6 +446,7 @@ impl LabelledDraw {
                 entry(3, &drawn),
             ],
         )?;
+        let bins = CellOrder::new(gpu, &drawn, capacity)?;
         let label = launch(
             &shaders::GROUND_TRUTH_WINDING,
             "signed_distance",
@@ -452,6 +457,7 @@ impl LabelledDraw {
                 entry(3, &gt.winding),
                 entry(4, &drawn),
                 entry(5, &drawn_labels),
+                entry(6, bins.order()),
             ],
         )?;
         let gather = launch(
@@ -478,6 +484,7 @@ impl LabelledDraw {
             gather_uniform,
             label_uniform,
             draw,
+            bins,
             label,
             gather,
             absolute,
@@ -540,6 +547,10 @@ impl LabelledDraw {
         let (x, y) = gpu.dispatch_size(n.div_ceil(WG));
         let mut launches = vec![(&self.draw, (x, y, 1))];
         if labelled > 0 {
+            // Every drawn point lies in the box [-1, 1]³ but for near-surface offsets, which
+            // the grouping clamps to the nearest cell.
+            let grid = (Vec3::splat(-1.0), Vec3::splat(1.0));
+            launches.extend(self.bins.prepare(gpu, enc, labelled, grid)?);
             let (lx, ly) = gpu.dispatch_size(labelled.div_ceil(super::WG));
             launches.push((&self.label, (lx, ly, 1)));
         }

@@ -12,8 +12,8 @@ use super::{
     ParamLayout,
 };
 use crate::gpu::{
-    GpuContext, GpuError, GpuTimer, Launch, PassProfiler, QueryKernel, UniformStager, entry,
-    record_launches,
+    GpuContext, GpuError, GpuTimer, GridLaunch, Launch, PassProfiler, QueryKernel, UniformStager,
+    entry, record_launches,
 };
 use crate::shaders;
 
@@ -779,7 +779,7 @@ impl TrainKernels {
     }
 
     /// The launches of a step whose uniforms are `u`, in order, with their workgroup grids.
-    fn launches(&self, gpu: &GpuContext, u: &TrainUniforms) -> [(&Launch, (u32, u32, u32)); 3] {
+    fn launches(&self, gpu: &GpuContext, u: &TrainUniforms) -> [GridLaunch<'_>; 3] {
         let (x, y) = gpu.dispatch_size(u.n_rows.div_ceil(self.rows_per_group));
         [
             (&self.train, (x, y, 1)),

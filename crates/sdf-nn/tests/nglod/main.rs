@@ -702,7 +702,17 @@ fn a_profiled_step_times_each_launch() {
         };
         let mut want = vec![rows, "mlp_partial", "mlp_reduce", "adam"];
         if source == SampleSource::Gpu {
-            want.splice(0..0, ["draw", "signed_distance", "gather"]);
+            want.splice(
+                0..0,
+                [
+                    "draw",
+                    "bin_count",
+                    "bin_scan",
+                    "bin_scatter",
+                    "signed_distance",
+                    "gather",
+                ],
+            );
         }
         assert_eq!(labels, want);
         assert_eq!(

@@ -1,5 +1,7 @@
 // Exact closest point on a triangle mesh: the GPU twin of sdf-geom's `distance/closest.rs`.
-// The trees are sdf-geom's `GpuTrees`, uploaded once per mesh; one invocation per query point.
+// The trees are sdf-geom's `GpuTrees`, uploaded once per mesh; one invocation per query point,
+// invocations taking the points in the order of `bin.wgsl` (grouped by cell), results written at
+// each point's own index.
 // `winding.wgsl` is compiled after this file (it needs the search for the signed distance).
 //
 // Coordinates: the trees are in internal units (the mesh's times 2^exponent); points come in mesh
@@ -61,9 +63,18 @@ struct Packet {
 // Binding 3 (the winding tree) is declared in winding.wgsl.
 @group(0) @binding(4) var<storage, read> points: array<f32>;
 @group(0) @binding(5) var<storage, read_write> out: array<f32>;
+// The points' indices grouped by cell (`bin.wgsl`): invocation k queries point order[k].
+@group(0) @binding(6) var<storage, read> order: array<u32>;
+
+// The point invocation (wid, lid) queries, or NO_POINT past the batch's end.
+const NO_POINT: u32 = 0xffffffffu;
 
 fn point_index(wid: vec3<u32>, nwg: vec3<u32>, lid: vec3<u32>) -> u32 {
-    return (wid.y * nwg.x + wid.x) * WG + lid.x;
+    let k = (wid.y * nwg.x + wid.x) * WG + lid.x;
+    if k >= params.n_points {
+        return NO_POINT;
+    }
+    return order[k];
 }
 
 fn load_point(i: u32) -> vec3<f32> {
@@ -449,7 +460,7 @@ fn closest(
     @builtin(local_invocation_id) lid: vec3<u32>,
 ) {
     let i = point_index(wid, nwg, lid);
-    if i >= params.n_points {
+    if i == NO_POINT {
         return;
     }
     let q = load_point(i);

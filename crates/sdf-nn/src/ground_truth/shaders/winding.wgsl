@@ -127,7 +127,7 @@ fn winding(
     @builtin(local_invocation_id) lid: vec3<u32>,
 ) {
     let i = point_index(wid, nwg, lid);
-    if i >= params.n_points {
+    if i == NO_POINT {
         return;
     }
     let q = load_point(i);
@@ -150,7 +150,7 @@ fn signed_distance(
     @builtin(local_invocation_id) lid: vec3<u32>,
 ) {
     let i = point_index(wid, nwg, lid);
-    if i >= params.n_points {
+    if i == NO_POINT {
         return;
     }
     let q = load_point(i);
