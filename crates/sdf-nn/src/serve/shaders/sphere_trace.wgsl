@@ -1,5 +1,10 @@
 // Sphere tracing of a neural SDF, one invocation per pixel, Lambert-shaded, into an RGBA8 buffer.
 //
+// Two passes per band of rows. `cone_trace` marches one cone per tile of TILE × TILE pixels, the
+// cone around the tile's centre ray that holds all its pixels' rays, as far as the field leaves
+// room for the whole cone, and records that depth; `sphere_trace` then starts each pixel's ray
+// there, so the steps through empty space are taken once a tile rather than once a pixel.
+//
 // This file is not complete on its own: the host prepends a model's snippet from
 // `NeuralSdf::wgsl(1)`, which defines `hwsdf_trace` and `hwsdf_normal` (mesh coordinates) and
 // binds the weights at @group(1) (for a scene, wrappers of the scene's `scene_trace` and
@@ -33,6 +38,27 @@ struct TraceUniforms {
 @group(0) @binding(0) var<uniform> trace: TraceUniforms;
 // One packed RGBA8 pixel (R in the low byte) per u32, rows top to bottom.
 @group(0) @binding(1) var<storage, read_write> trace_image: array<u32>;
+// Per tile (rows of tiles, top to bottom): a depth along every ray of the tile before which no
+// ray of it meets the surface (0 where no cone pass ran).
+@group(0) @binding(2) var<storage, read_write> tile_start: array<f32>;
+
+// Pixels per side of a tile: the workgroup of `sphere_trace` and the cone of `cone_trace`.
+const TILE: u32 = 8u;
+
+// The unit direction of the ray through image point (x, y), in pixels from the top left corner
+// (a pixel's centre is at +0.5).
+fn ray_direction(x: f32, y: f32) -> vec3<f32> {
+    let ndc = vec2<f32>(
+        x / f32(trace.size.x) * 2.0 - 1.0,
+        1.0 - y / f32(trace.size.y) * 2.0,
+    );
+    let tan_half = trace.eye.w;
+    return normalize(
+        trace.forward.xyz
+            + ndc.x * tan_half * trace.forward.w * trace.right.xyz
+            + ndc.y * tan_half * trace.up.xyz,
+    );
+}
 
 // Entry and exit distances of the ray o + t·d through the box (exit < entry: a miss).
 fn trace_box(o: vec3<f32>, d: vec3<f32>) -> vec2<f32> {
@@ -54,25 +80,17 @@ fn sphere_trace(@builtin(global_invocation_id) gid: vec3<u32>) {
     if gid.x >= width || y >= height {
         return;
     }
-    // Pixel centre on the image plane at distance 1 in front of the camera.
-    let ndc = vec2<f32>(
-        (f32(gid.x) + 0.5) / f32(width) * 2.0 - 1.0,
-        1.0 - (f32(y) + 0.5) / f32(height) * 2.0,
-    );
-    let tan_half = trace.eye.w;
-    let dir = normalize(
-        trace.forward.xyz
-            + ndc.x * tan_half * trace.forward.w * trace.right.xyz
-            + ndc.y * tan_half * trace.up.xyz,
-    );
+    let dir = ray_direction(f32(gid.x) + 0.5, f32(y) + 0.5);
     let origin = trace.eye.xyz;
 
     var color = trace.background;
     let span = trace_box(origin, dir);
     if span.x <= span.y {
         // Outside the box the SDF is at least the distance to the box, so starting at the box
-        // skips nothing; the first step is then a real network evaluation.
-        var t = span.x;
+        // skips nothing; the first step is then a real network evaluation. Nor does starting
+        // where the tile's cone stopped.
+        let tiles_x = (width + TILE - 1u) / TILE;
+        var t = max(span.x, tile_start[(y / TILE) * tiles_x + gid.x / TILE]);
         var hit = false;
         for (var i = 0u; i < trace.size.z; i++) {
             // x: the distance less the level; y: the step (with the sign of x).
@@ -96,4 +114,50 @@ fn sphere_trace(@builtin(global_invocation_id) gid: vec3<u32>) {
         }
     }
     trace_image[y * width + gid.x] = pack4x8unorm(color);
+}
+
+// One cone per tile (invocation (i, j): the tile i of the band's tile row j). The cone's axis
+// is the ray through the tile's centre; every ray of the tile leaves from the eye at an angle
+// of at most α to it, so at depth t it lies within t·tan α of the axis point. Where the
+// field's step s (the room around the axis point, scaled as the pixels' steps are) exceeds
+// that radius, every ray of the tile can advance s − t·tan α. The march stops while the room
+// is still a few radii (the pixels then separate), inside the surface, or past the box.
+@compute @workgroup_size(8, 8)
+fn cone_trace(@builtin(global_invocation_id) gid: vec3<u32>) {
+    let width = trace.size.x;
+    let height = trace.size.y;
+    let tiles_x = (width + TILE - 1u) / TILE;
+    let row = gid.y + trace.size.w / TILE;
+    if gid.x >= tiles_x || row * TILE >= height {
+        return;
+    }
+    let lo = vec2<f32>(f32(gid.x * TILE), f32(row * TILE));
+    let hi = vec2<f32>(f32(min(gid.x * TILE + TILE, width)), f32(min(row * TILE + TILE, height)));
+    let axis = ray_direction(0.5 * (lo.x + hi.x), 0.5 * (lo.y + hi.y));
+    // tan α from the corners (the widest rays), through the cross product: 1 − cos α is below
+    // f32's resolution for a tile a few pixels wide.
+    var spread = 0.0;
+    for (var k = 0u; k < 4u; k++) {
+        let corner = ray_direction(select(lo.x, hi.x, (k & 1u) != 0u), select(lo.y, hi.y, (k & 2u) != 0u));
+        spread = max(spread, length(cross(axis, corner)) / dot(axis, corner));
+    }
+    // Rounding margin on the radius.
+    spread = spread * 1.01 + 1e-6;
+    let origin = trace.eye.xyz;
+    // Past the box's farthest corner no ray of the tile is in the box.
+    let far = length(max(abs(trace.box_min.xyz - origin), abs(trace.box_max.xyz - origin)));
+    var t = 0.0;
+    for (var i = 0u; i < trace.size.z; i++) {
+        let traced = hwsdf_trace(origin + t * axis, trace.box_max.w);
+        let room = traced.y * trace.up.w;
+        let radius = t * spread;
+        if traced.x <= 0.0 || room < 3.0 * radius + trace.box_min.w {
+            break;
+        }
+        t += room - radius;
+        if t > far {
+            break;
+        }
+    }
+    tile_start[row * tiles_x + gid.x] = t;
 }
