@@ -5,7 +5,9 @@
 //! - both again with the other kernel where the device has subgroups
 //!   (`distance_per_invocation` on a GPU, `distance_per_subgroup` on lavapipe: see
 //!   `QueryKernel`);
-//! - `scene/render/1920x1080`: a full-HD image from `Renderer::for_scene`;
+//! - `scene/render/1920x1080`: a full-HD image from `Renderer::for_scene`, and
+//!   `scene/render_without_cones/1920x1080` the same without its cone pass
+//!   (`Renderer::set_cone_pass`);
 //! - `scene/eight_models/3000`: the 8 single-model queries (`NeuralSdf::eval`) one scene query
 //!   replaces, for the lavapipe comparison.
 //!
@@ -188,7 +190,7 @@ fn main() {
             }
         })
     });
-    let renderer = Renderer::for_scene(gpu, &scene).unwrap();
+    let mut renderer = Renderer::for_scene(gpu, &scene).unwrap();
     let options = RenderOptions {
         width: 1920,
         height: 1080,
@@ -197,6 +199,10 @@ fn main() {
     };
     group.throughput(Throughput::Elements(1920 * 1080));
     group.bench_function(BenchmarkId::new("render", "1920x1080"), |b| {
+        b.iter(|| renderer.render(gpu, &options).unwrap())
+    });
+    renderer.set_cone_pass(false);
+    group.bench_function(BenchmarkId::new("render_without_cones", "1920x1080"), |b| {
         b.iter(|| renderer.render(gpu, &options).unwrap())
     });
     group.finish();
