@@ -42,8 +42,10 @@ struct TraceUniforms {
 // ray of it meets the surface (0 where no cone pass ran).
 @group(0) @binding(2) var<storage, read_write> tile_start: array<f32>;
 
-// Pixels per side of a tile: the workgroup of `sphere_trace` and the cone of `cone_trace`.
+// Pixels per side of a workgroup of `sphere_trace` (bands of rows are made of them), and of
+// the tile whose rays one cone of `cone_trace` holds.
 const TILE: u32 = 8u;
+const CONE_TILE: u32 = 8u;
 
 // The unit direction of the ray through image point (x, y), in pixels from the top left corner
 // (a pixel's centre is at +0.5).
@@ -89,8 +91,8 @@ fn sphere_trace(@builtin(global_invocation_id) gid: vec3<u32>) {
         // Outside the box the SDF is at least the distance to the box, so starting at the box
         // skips nothing; the first step is then a real network evaluation. Nor does starting
         // where the tile's cone stopped.
-        let tiles_x = (width + TILE - 1u) / TILE;
-        var t = max(span.x, tile_start[(y / TILE) * tiles_x + gid.x / TILE]);
+        let tiles_x = (width + CONE_TILE - 1u) / CONE_TILE;
+        var t = max(span.x, tile_start[(y / CONE_TILE) * tiles_x + gid.x / CONE_TILE]);
         var hit = false;
         for (var i = 0u; i < trace.size.z; i++) {
             // x: the distance less the level; y: the step (with the sign of x).
@@ -126,13 +128,16 @@ fn sphere_trace(@builtin(global_invocation_id) gid: vec3<u32>) {
 fn cone_trace(@builtin(global_invocation_id) gid: vec3<u32>) {
     let width = trace.size.x;
     let height = trace.size.y;
-    let tiles_x = (width + TILE - 1u) / TILE;
-    let row = gid.y + trace.size.w / TILE;
-    if gid.x >= tiles_x || row * TILE >= height {
+    let tiles_x = (width + CONE_TILE - 1u) / CONE_TILE;
+    let row = gid.y + trace.size.w / CONE_TILE;
+    if gid.x >= tiles_x || row * CONE_TILE >= height {
         return;
     }
-    let lo = vec2<f32>(f32(gid.x * TILE), f32(row * TILE));
-    let hi = vec2<f32>(f32(min(gid.x * TILE + TILE, width)), f32(min(row * TILE + TILE, height)));
+    let lo = vec2<f32>(f32(gid.x * CONE_TILE), f32(row * CONE_TILE));
+    let hi = vec2<f32>(
+        f32(min(gid.x * CONE_TILE + CONE_TILE, width)),
+        f32(min(row * CONE_TILE + CONE_TILE, height)),
+    );
     let axis = ray_direction(0.5 * (lo.x + hi.x), 0.5 * (lo.y + hi.y));
     // tan α from the corners (the widest rays), through the cross product: 1 − cos α is below
     // f32's resolution for a tile a few pixels wide.
