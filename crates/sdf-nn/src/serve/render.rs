@@ -36,7 +36,7 @@ const SDF_GROUP: u32 = 1;
 /// Workgroup side of `sphere_trace` (8×8 invocations).
 const TILE: u32 = 8;
 /// Pixels per side of the tile one cone of the cone pass holds (`CONE_TILE` in the shader). 4
-/// makes the pixels' part shorter (a CPU model of the bench scene's rays: 5.5 evaluations a
+/// makes the pixels' part shorter (a CPU model of the example scene's rays: 5.5 evaluations a
 /// pixel against 6.2) and the cones' longer; on lavapipe it rendered 2–5 % slower than 8.
 const CONE_TILE: u32 = 8;
 
