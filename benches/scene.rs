@@ -6,8 +6,8 @@
 //!   (`distance_per_invocation` on a GPU, `distance_per_subgroup` on lavapipe: see
 //!   `QueryKernel`);
 //! - `scene/render/1920x1080`: a full-HD image from `Renderer::for_scene`, and
-//!   `scene/render_without_cones/1920x1080` the same without its cone pass
-//!   (`Renderer::set_cone_pass`);
+//!   `scene/render_plain/1920x1080` the same without its cone pass and over-relaxed steps
+//!   (`Renderer::set_accelerated`);
 //! - `scene/eight_models/3000`: the 8 single-model queries (`NeuralSdf::eval`) one scene query
 //!   replaces, for the lavapipe comparison.
 //!
@@ -201,8 +201,8 @@ fn main() {
     group.bench_function(BenchmarkId::new("render", "1920x1080"), |b| {
         b.iter(|| renderer.render(gpu, &options).unwrap())
     });
-    renderer.set_cone_pass(false);
-    group.bench_function(BenchmarkId::new("render_without_cones", "1920x1080"), |b| {
+    renderer.set_accelerated(false);
+    group.bench_function(BenchmarkId::new("render_plain", "1920x1080"), |b| {
         b.iter(|| renderer.render(gpu, &options).unwrap())
     });
     group.finish();

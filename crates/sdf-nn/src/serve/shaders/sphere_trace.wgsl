@@ -33,6 +33,8 @@ struct TraceUniforms {
     // x: width, y: height, z: maximum steps per ray, w: the first row of this dispatch (the
     // host splits large images into bands of rows, one submission each).
     size: vec4<u32>,
+    // x: the pixels' over-relaxation factor (1: plain steps); yzw unused.
+    march: vec4<f32>,
 }
 
 @group(0) @binding(0) var<uniform> trace: TraceUniforms;
@@ -94,16 +96,40 @@ fn sphere_trace(@builtin(global_invocation_id) gid: vec3<u32>) {
         let tiles_x = (width + CONE_TILE - 1u) / CONE_TILE;
         var t = max(span.x, tile_start[(y / CONE_TILE) * tiles_x + gid.x / CONE_TILE]);
         var hit = false;
+        // Over-relaxed steps (Keinert et al. 2014): march.x times the room while the free
+        // spheres of consecutive points overlap, so that the segment between them is free. Where
+        // they do not, or where a long step left the box, the surface may lie in the gap: back
+        // to the previous point, and plain steps from there on.
+        var omega = trace.march.x;
+        var prev_room = 0.0;
+        var prev_step = 0.0;
         for (var i = 0u; i < trace.size.z; i++) {
             // x: the distance less the level; y: the step (with the sign of x).
             let traced = hwsdf_trace(origin + t * dir, trace.box_max.w);
+            let room = traced.y * trace.up.w;
+            if omega > 1.0 && room + prev_room < prev_step {
+                t += prev_room - prev_step;
+                prev_step = prev_room;
+                omega = 1.0;
+                continue;
+            }
             if traced.x < max(trace.right.w * t, trace.box_min.w) {
                 hit = true;
                 break;
             }
-            t += traced.y * trace.up.w;
+            prev_room = room;
+            prev_step = omega * room;
+            t += prev_step;
             if t > span.y {
-                break;
+                if omega == 1.0 {
+                    break;
+                }
+                t += prev_room - prev_step;
+                prev_step = prev_room;
+                omega = 1.0;
+                if t > span.y {
+                    break;
+                }
             }
         }
         if hit {
