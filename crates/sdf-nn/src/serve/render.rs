@@ -784,6 +784,54 @@ mod tests {
         }
     }
 
+    /// Over-relaxed steps do not jump over a sheet of zero thickness (the unsigned distance to
+    /// a square in z = 0, met head-on, where the free spheres of the points before and after it
+    /// only touch): the hits and misses of the plain trace, but for a few on its rim.
+    #[test]
+    fn over_relaxed_steps_keep_unsigned_sheets() {
+        let gpu = GpuContext::shared().expect("a GPU adapter (lavapipe in CI)");
+        let model = Nglod::from_sdf(32, |p| {
+            (p.truncate().abs() - 0.5)
+                .max(glam::Vec2::ZERO)
+                .extend(p.z)
+                .length()
+        })
+        .unwrap();
+        let sdf = NeuralSdf::from_model_file(
+            model.to_model_file(Normalization::identity(), serde_json::Value::Null),
+        )
+        .unwrap();
+        let mut renderer = Renderer::new(gpu, &sdf).unwrap();
+        let options = RenderOptions {
+            width: 64,
+            height: 64,
+            yaw_degrees: 0.0,
+            pitch_degrees: 0.0,
+            // Whole steps: a step below 1 would leave the spheres overlapping.
+            step_scale: 1.0,
+            ..RenderOptions::default()
+        };
+        let fast = renderer.render(gpu, &options).unwrap();
+        renderer.set_accelerated(false);
+        let plain = renderer.render(gpu, &options).unwrap();
+        let background = options
+            .background
+            .to_array()
+            .map(|c| (c * 255.0).round() as u8);
+        let hits = |image: &super::RgbaImage| {
+            image
+                .pixels
+                .chunks(4)
+                .map(|p| p != background)
+                .collect::<Vec<bool>>()
+        };
+        let (fast, plain) = (hits(&fast), hits(&plain));
+        let on = plain.iter().filter(|&&h| h).count();
+        assert!(on > 500, "{on} pixels on the sheet");
+        let sides = fast.iter().zip(&plain).filter(|(a, b)| a != b).count();
+        assert!(sides * 50 <= on, "{sides} pixels hit on one side only");
+    }
+
     /// Over-relaxed steps do not jump over thin walls: plates 0.01 thick facing the camera
     /// (where a step of 1.4 times the room crosses a plate from 0.07 away), on a slab, give the
     /// hits and misses of the plain trace.

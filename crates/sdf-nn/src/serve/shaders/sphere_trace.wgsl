@@ -100,14 +100,28 @@ fn sphere_trace(@builtin(global_invocation_id) gid: vec3<u32>) {
         // spheres of consecutive points overlap, so that the segment between them is free. Where
         // they do not, or where a long step left the box, the surface may lie in the gap: back
         // to the previous point, and plain steps from there on.
+        // Spheres that only touch do not count: an unsigned field's sheet (room 0 on it) met
+        // head-on lies exactly where they touch.
         var omega = trace.march.x;
         var prev_room = 0.0;
         var prev_step = 0.0;
         for (var i = 0u; i < trace.size.z; i++) {
+            if t > span.y {
+                if omega == 1.0 {
+                    break;
+                }
+                // A long step left the box (or the cone's start lies past it): the plain one.
+                t += prev_room - prev_step;
+                prev_step = prev_room;
+                omega = 1.0;
+                if t > span.y {
+                    break;
+                }
+            }
             // x: the distance less the level; y: the step (with the sign of x).
             let traced = hwsdf_trace(origin + t * dir, trace.box_max.w);
             let room = traced.y * trace.up.w;
-            if omega > 1.0 && room + prev_room < prev_step {
+            if omega > 1.0 && room + prev_room < prev_step * 1.001 {
                 t += prev_room - prev_step;
                 prev_step = prev_room;
                 omega = 1.0;
@@ -120,17 +134,6 @@ fn sphere_trace(@builtin(global_invocation_id) gid: vec3<u32>) {
             prev_room = room;
             prev_step = omega * room;
             t += prev_step;
-            if t > span.y {
-                if omega == 1.0 {
-                    break;
-                }
-                t += prev_room - prev_step;
-                prev_step = prev_room;
-                omega = 1.0;
-                if t > span.y {
-                    break;
-                }
-            }
         }
         if hit {
             let n = hwsdf_normal(origin + t * dir);
