@@ -45,7 +45,8 @@ impl BinParams {
         let scale = DVec3::splat(f64::from(1u32 << bits)) / extent;
         let scale = scale.to_array().map(|s| {
             if s.is_finite() && s > 0.0 {
-                s.min(f64::from(f32::MAX)) as f32
+                // Normal: a GPU that flushes subnormals would make inf · 0 = NaN of it.
+                s.clamp(f64::from(f32::MIN_POSITIVE), f64::from(f32::MAX)) as f32
             } else {
                 1.0
             }

@@ -40,7 +40,7 @@
 //!
 //! # Speed
 //! Every batch is grouped by cell on the GPU before a kernel runs (`bin.rs`: a counting sort by
-//! Morton code in a 32³ grid), so that neighbouring invocations query neighbouring points and
+//! Morton code in a grid of about a cell per point, at most 64³), so that neighbouring invocations query neighbouring points and
 //! walk mostly the same nodes (a host sort in Morton order made lavapipe 1.6× faster; the GPU's
 //! grouping costs the host nothing and applies to points that never leave the GPU, the training
 //! draws'). Large batches go in parts through two sets of buffers, so that uploads and
@@ -58,7 +58,7 @@
 mod bin;
 mod labeller;
 
-use glam::Vec3;
+use glam::{DVec3, Vec3};
 use sdf_geom::{GpuTrees, SignedDistance};
 
 use bin::CellOrder;
@@ -80,6 +80,17 @@ const WG: u32 = 64;
 /// Entries of the kernels' traversal stacks (`STACK` in `closest.wgsl`): trees whose
 /// [`sdf_geom::GpuTrees::max_stack`] is larger are refused.
 pub const MAX_STACK: u32 = 96;
+/// Points per part of a host query: parts that fill a large GPU several times over; on a CPU
+/// adapter, parts of a few seconds, for the progress (smaller ones cost lavapipe locality: each
+/// part is grouped on its own); fewer where the device's storage binding is small.
+fn part_size(gpu: &GpuContext, kernel: Kernel) -> usize {
+    let most = if gpu.is_cpu() { 1 << 18 } else { MAX_CHUNK };
+    let binding = gpu.limits().max_storage_buffer_binding_size;
+    usize::try_from(binding / (4 * kernel.width().max(3)) as u64)
+        .unwrap_or(most)
+        .clamp(1, most)
+}
+
 /// Points per dispatch at most: bounds the per-call buffers (two sets of them, about 60 MB
 /// for closest points) and each dispatch's length. A million: an H100 holds 270 000
 /// invocations at once, and a part should fill it several times over.
@@ -142,6 +153,10 @@ pub enum GroundTruthError {
 #[derive(Debug)]
 pub struct GpuGroundTruth {
     params: Params,
+    /// The mesh's bounding sphere's cube doubled (mesh units): the grid points are grouped on
+    /// (within their own bounds), so that a few far queries do not crowd the rest into a few
+    /// cells.
+    grid: (Vec3, Vec3),
     nodes: wgpu::Buffer,
     packets: wgpu::Buffer,
     winding: wgpu::Buffer,
@@ -219,8 +234,13 @@ impl GpuGroundTruth {
             surface_eps: trees.surface_eps,
             inside: trees.inside,
         };
+        let reach = DVec3::splat(2.0 * trees.far / sdf_geom::FAR_QUERY_RADII);
+        let limit = DVec3::splat(f64::from(f32::MAX));
+        let grid = [trees.center - reach, trees.center + reach]
+            .map(|v| (v * to_mesh).clamp(-limit, limit).as_vec3());
         Ok(GpuGroundTruth {
             params,
+            grid: (grid[0], grid[1]),
             nodes: gpu.storage_from_slice("ground truth BVH nodes", trees.nodes)?,
             packets: gpu.storage_from_slice("ground truth triangle packets", trees.packets)?,
             winding: gpu.storage_from_slice("ground truth winding nodes", trees.winding)?,
@@ -342,15 +362,7 @@ impl GpuGroundTruth {
         kernel: Kernel,
         done: &mut dyn FnMut(usize),
     ) -> Result<Vec<f32>, GroundTruthError> {
-        // Parts that fill a large GPU several times over; on a CPU adapter, parts of a few
-        // seconds, for the progress (smaller ones cost lavapipe locality: each part is grouped
-        // on its own).
-        let most = if gpu.is_cpu() { 1 << 18 } else { MAX_CHUNK };
-        let binding = gpu.limits().max_storage_buffer_binding_size;
-        let chunk = usize::try_from(binding / (4 * kernel.width().max(3)) as u64)
-            .unwrap_or(most)
-            .clamp(1, most);
-        self.run_in_parts(gpu, points, kernel, chunk, done)
+        self.run_in_parts(gpu, points, kernel, part_size(gpu, kernel), done)
     }
 
     /// [`GpuGroundTruth::run_reporting`] in parts of at most `chunk` points.
@@ -368,7 +380,13 @@ impl GpuGroundTruth {
             return Ok(result);
         }
         let chunk = chunk.clamp(1, points.len());
-        let grid = bin::finite_box(points);
+        let (lo, hi) = bin::finite_box(points);
+        let (lo, hi) = (lo.max(self.grid.0), hi.min(self.grid.1));
+        let grid = if lo.cmple(hi).all() {
+            (lo, hi)
+        } else {
+            self.grid
+        };
         let parts = points.len().div_ceil(chunk);
         let slots = (0..parts.min(2))
             .map(|_| QuerySlot::new(gpu, self, kernel, chunk as u32))

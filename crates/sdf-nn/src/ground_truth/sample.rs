@@ -376,8 +376,8 @@ impl GpuSampler {
 ///
 /// The draw is made without its shuffle into scratch buffers, so that the points to label
 /// (uniform and near-surface) lie together and the surface points (distance 0, as the CPU
-/// pool labels them) cost nothing; the labelling runs over those, grouped by cell (the
-/// box's 32³ grid, `bin.rs`), and a gather writes the shuffled draw and its labels into the
+/// pool labels them) cost nothing; the labelling runs over those, grouped by cell (a grid
+/// over the box of about a cell per point, `bin.rs`), and a gather writes the shuffled draw and its labels into the
 /// caller's buffers. The points are those of
 /// [`GpuSampler::draw`] for the same [`SampleSpec`].
 pub struct LabelledDraw {

@@ -372,7 +372,8 @@ fn hwsdf_distance_normal_sg(p: vec3<f32>, lane: u32, lanes: u32) -> vec4<f32> {
 const COMMON: &str = r#"
 // Signed distance in the normalised cube's units at a normalised point. Outside [-1, 1]^3 the
 // network (trained only inside) is evaluated at the nearest box point and the distance to the
-// box added, so sphere tracers step safely up to the box.
+// box added: at least the distance to the box, so a step of it is safe up to the box; beyond,
+// the value is up to √2 times the distance to the surface (`hwsdf_trace` steps less).
 fn hwsdf_distance_normalized(x: vec3<f32>) -> f32 {
     let c = clamp(x, vec3<f32>(-1.0), vec3<f32>(1.0));
     return hwsdf_phi(c) + length(x - c);
@@ -400,11 +401,22 @@ fn hwsdf_distance(p: vec3<f32>) -> f32 {
 }
 
 // For sphere tracers, in the shape of a scene's `_trace`: x, the distance less the level c; y,
-// the step before the caller's step factor (here the same value: one model is traced as a
-// distance, its Lipschitz estimate left to the caller, where a scene's y is already safe).
+// the step before the caller's step factor: inside the box the same value (one model is traced
+// as a distance, its Lipschitz estimate left to the caller, where a scene's y is already safe).
+// Outside the box, at a from it, the box rule's value D = Φ(b) + a − c overstates the distance
+// to where it equals c: with the network 1-Lipschitz and b the clamp, a point y of that set
+// differs from x by |b − b_y|² + (a − a_y)² ≤ |x − y|², with Φ changing by at most |b − b_y| and
+// a_y ≥ 0. The least |x − y| with those is D/√2 where a ≥ D/2, else √((D − a)² + a²): the step,
+// D itself on the box, D/√2 far from it.
 fn hwsdf_trace(p: vec3<f32>, c: f32) -> vec2<f32> {
     let d = hwsdf_distance(p) - c;
-    return vec2<f32>(d, d);
+    let x = (p - HWSDF_CENTER) * HWSDF_SCALE;
+    let a = length(x - clamp(x, vec3<f32>(-1.0), vec3<f32>(1.0))) / HWSDF_SCALE;
+    var room = d;
+    if a > 0.0 && d > 0.0 {
+        room = select(length(vec2<f32>(d - a, a)), d * 0.70710677, 2.0 * a >= d);
+    }
+    return vec2<f32>(d, room);
 }
 
 // Unit outward normal at a point in mesh coordinates (a uniform scale keeps directions).

@@ -62,7 +62,8 @@ fn cell_key(i: u32) -> u32 {
     // p - lo may overflow to ±inf, never NaN (scale is finite and positive): clamp takes it.
     let top = f32((1u << bp.bits) - 1u);
     let c = vec3<u32>(clamp((p - bp.lo) * bp.scale, vec3<f32>(0.0), vec3<f32>(top)));
-    return (spread10(c.x) << 2u) | (spread10(c.y) << 1u) | spread10(c.z);
+    // The min keeps any key in the cleared counts should a conversion go wrong.
+    return min((spread10(c.x) << 2u) | (spread10(c.y) << 1u) | spread10(c.z), bp.n_cells - 1u);
 }
 
 @compute @workgroup_size(WG)

@@ -33,7 +33,8 @@ struct TraceUniforms {
     // x: width, y: height, z: maximum steps per ray, w: the first row of this dispatch (the
     // host splits large images into bands of rows, one submission each).
     size: vec4<u32>,
-    // x: the pixels' over-relaxation factor (1: plain steps); yzw unused.
+    // x: the pixels' over-relaxation factor (1: plain steps); y: the row after this dispatch's
+    // band (its cones stop there); zw unused.
     march: vec4<f32>,
 }
 
@@ -121,7 +122,7 @@ fn sphere_trace(@builtin(global_invocation_id) gid: vec3<u32>) {
             // x: the distance less the level; y: the step (with the sign of x).
             let traced = hwsdf_trace(origin + t * dir, trace.box_max.w);
             let room = traced.y * trace.up.w;
-            if omega > 1.0 && room + prev_room < prev_step * 1.001 {
+            if omega > 1.0 && prev_step > 0.0 && room + prev_room < prev_step * 1.001 {
                 t += prev_room - prev_step;
                 prev_step = prev_room;
                 omega = 1.0;
@@ -159,7 +160,7 @@ fn cone_trace(@builtin(global_invocation_id) gid: vec3<u32>) {
     let height = trace.size.y;
     let tiles_x = (width + CONE_TILE - 1u) / CONE_TILE;
     let row = gid.y + trace.size.w / CONE_TILE;
-    if gid.x >= tiles_x || row * CONE_TILE >= height {
+    if gid.x >= tiles_x || row * CONE_TILE >= min(height, u32(trace.march.y)) {
         return;
     }
     let lo = vec2<f32>(f32(gid.x * CONE_TILE), f32(row * CONE_TILE));
@@ -185,11 +186,12 @@ fn cone_trace(@builtin(global_invocation_id) gid: vec3<u32>) {
         let traced = hwsdf_trace(origin + t * axis, trace.box_max.w);
         let room = traced.y * trace.up.w;
         let radius = t * spread;
-        if traced.x <= 0.0 || room < 3.0 * radius + trace.box_min.w {
+        // Negated comparisons: a NaN (a broken model) stops the cone where it is.
+        if !(traced.x > 0.0) || !(room >= 3.0 * radius + trace.box_min.w) {
             break;
         }
         t += room - radius;
-        if t > far {
+        if !(t <= far) {
             break;
         }
     }
