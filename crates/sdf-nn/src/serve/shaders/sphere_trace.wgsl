@@ -152,8 +152,9 @@ fn sphere_trace(@builtin(global_invocation_id) gid: vec3<u32>) {
 // is the ray through the tile's centre; every ray of the tile leaves from the eye at an angle
 // of at most α to it, so at depth t it lies within t·tan α of the axis point. Where the
 // field's step s (the room around the axis point, scaled as the pixels' steps are) exceeds
-// that radius, every ray of the tile can advance s − t·tan α. The march stops while the room
-// is still a few radii (the pixels then separate), inside the surface, or past the box.
+// that radius, every ray of the tile can advance s − t·tan α. The march stops once the room
+// falls below 1.5 radii (the pixels then separate; stopping at 3 radii left a CPU model of the
+// example scene's rays 18 % more evaluations), inside the surface, or past the box.
 @compute @workgroup_size(8, 8)
 fn cone_trace(@builtin(global_invocation_id) gid: vec3<u32>) {
     let width = trace.size.x;
@@ -187,7 +188,7 @@ fn cone_trace(@builtin(global_invocation_id) gid: vec3<u32>) {
         let room = traced.y * trace.up.w;
         let radius = t * spread;
         // Negated comparisons: a NaN (a broken model) stops the cone where it is.
-        if !(traced.x > 0.0) || !(room >= 3.0 * radius + trace.box_min.w) {
+        if !(traced.x > 0.0) || !(room >= 1.5 * radius + trace.box_min.w) {
             break;
         }
         t += room - radius;
