@@ -1,7 +1,6 @@
 //! A batch's points grouped by cell on the GPU (`shaders/bin.wgsl`): a counting sort by the
 //! Morton code of each point's cell in a grid over a box (about one cell per point, at most
-//! 64³), recorded before a ground-truth
-//! kernel, which then takes its points in that order. Neighbouring invocations query
+//! 64³), recorded before a ground-truth kernel, which then takes its points in that order. Neighbouring invocations query
 //! neighbouring points, so a SIMD group walks mostly the same nodes: on a GPU, random points
 //! make each group of 32 pay for 32 different walks. The points never leave the GPU (the
 //! training draw's), and a large batch costs no host sort (the `sdf` command's).
@@ -170,8 +169,8 @@ impl CellOrder {
 
     /// Prepares the grouping of the first `n` points (at most the capacity) over the box
     /// `lo..hi`: writes the uniform (through the queue: it applies to the next submission),
-    /// records the clear of the counts into `enc` (the first 8^bits), and returns the launches to record after it,
-    /// with their grids.
+    /// records the clear of the counts into `enc` (the first 8^bits), and returns the launches
+    /// to record after it, with their grids.
     pub(crate) fn prepare(
         &self,
         gpu: &GpuContext,

@@ -40,14 +40,14 @@
 //!
 //! # Speed
 //! Every batch is grouped by cell on the GPU before a kernel runs (`bin.rs`: a counting sort by
-//! Morton code in a grid of about a cell per point, at most 64³), so that neighbouring invocations query neighbouring points and
-//! walk mostly the same nodes (a host sort in Morton order made lavapipe 1.6× faster; the GPU's
-//! grouping costs the host nothing and applies to points that never leave the GPU, the training
-//! draws'). Large batches go in parts through two sets of buffers, so that uploads and
-//! read-backs overlap the kernels. On lavapipe (2 cores, November
-//! 2026, `examples/ground_truth_bench.rs`) the kernels label 5–17 % as fast as the CPU path
-//! (spot, 100 000 points: about 0.11 M signed distances per second against 1.2 M), so there the
-//! CPU path is the one to use; the kernels are for real GPUs.
+//! Morton code in a grid of about a cell per point, at most 64³), so that neighbouring
+//! invocations query neighbouring points and walk mostly the same nodes (a host sort in Morton
+//! order made lavapipe 1.6× faster; the GPU's grouping costs the host nothing and applies to
+//! points that never leave the GPU, the training draws'). Large batches go in parts through two
+//! sets of buffers, so that uploads and read-backs overlap the kernels. On lavapipe (2 cores,
+//! November 2026, `examples/ground_truth_bench.rs`) the kernels label 5–17 % as fast as the CPU
+//! path (spot, 100 000 points: about 0.11 M signed distances per second against 1.2 M), so there
+//! the CPU path is the one to use; the kernels are for real GPUs.
 //!
 //! # Limits
 //! Each tree must fit one storage binding, and the tree's [`sdf_geom::GpuTrees::max_stack`] the
@@ -337,6 +337,40 @@ impl GpuGroundTruth {
         self.run(gpu, points, Kernel::Winding)
     }
 
+    /// `kernel` bound to its uniform (a [`Params`]), the points it reads (3 f32 each), the
+    /// buffer it writes (`kernel.width()` f32 per point, at each point's own index) and the
+    /// grouping whose order it takes the points in, with the trees it reads.
+    fn launch(
+        &self,
+        gpu: &GpuContext,
+        kernel: Kernel,
+        uniform: &wgpu::Buffer,
+        points: &wgpu::Buffer,
+        out: &wgpu::Buffer,
+        bins: &CellOrder,
+    ) -> Result<Launch, GpuError> {
+        let pipeline = gpu.pipeline(kernel.shader(), kernel.entry_point(), &[])?;
+        let mut entries = vec![entry(0, uniform)];
+        for (k, (used, buffer)) in kernel
+            .trees()
+            .into_iter()
+            .zip([&self.nodes, &self.packets, &self.winding])
+            .enumerate()
+        {
+            if used {
+                entries.push(entry(1 + k as u32, buffer));
+            }
+        }
+        entries.extend([entry(4, points), entry(5, out), entry(6, bins.order())]);
+        Ok(Launch::new(
+            gpu,
+            &pipeline,
+            kernel.entry_point(),
+            &entries,
+            (0, 0, 0),
+        ))
+    }
+
     /// Runs `kernel` over `points`: `kernel.width()` floats per point, in input order, NaN for
     /// non-finite points (the kernels leave them 0: WGSL cannot write a NaN portably).
     ///
@@ -420,7 +454,7 @@ struct QuerySlot {
     uniform: wgpu::Buffer,
     bins: CellOrder,
     launch: Launch,
-    width: usize,
+    kernel: Kernel,
 }
 
 impl QuerySlot {
@@ -439,27 +473,14 @@ impl QuerySlot {
         )?;
         let uniform = gpu.uniform("ground truth params", &gt.params);
         let bins = CellOrder::new(gpu, &points, capacity)?;
-        let pipeline = gpu.pipeline(kernel.shader(), kernel.entry_point(), &[])?;
-        let mut entries = vec![entry(0, &uniform)];
-        for (k, (used, buffer)) in kernel
-            .trees()
-            .into_iter()
-            .zip([&gt.nodes, &gt.packets, &gt.winding])
-            .enumerate()
-        {
-            if used {
-                entries.push(entry(1 + k as u32, buffer));
-            }
-        }
-        entries.extend([entry(4, &points), entry(5, &out), entry(6, bins.order())]);
-        let launch = Launch::new(gpu, &pipeline, kernel.entry_point(), &entries, (0, 0, 0));
+        let launch = gt.launch(gpu, kernel, &uniform, &points, &out, &bins)?;
         Ok(QuerySlot {
             points,
             out,
             uniform,
             bins,
             launch,
-            width,
+            kernel,
         })
     }
 
@@ -490,7 +511,8 @@ impl QuerySlot {
             &[count, scan, scatter, (&self.launch, (x, y, 1))],
             None,
         );
-        let read = gpu.record_read(&mut enc, &self.out, 0, u64::from(n) * self.width as u64 * 4);
+        let bytes = u64::from(n) * self.kernel.width() as u64 * 4;
+        let read = gpu.record_read(&mut enc, &self.out, 0, bytes);
         Ok(gpu.submit_with_read(enc, read))
     }
 }

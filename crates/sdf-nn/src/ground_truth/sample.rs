@@ -44,7 +44,7 @@ use sdf_geom::Mesh;
 
 use super::bin::CellOrder;
 use super::counter_rng::{Kind, SampleSpec, Shuffle};
-use super::{GpuGroundTruth, Params};
+use super::{GpuGroundTruth, Kernel, Params};
 use crate::gpu::{GpuContext, GpuError, Launch, PassProfiler, entry, record_launches};
 use crate::shaders;
 
@@ -377,9 +377,9 @@ impl GpuSampler {
 /// The draw is made without its shuffle into scratch buffers, so that the points to label
 /// (uniform and near-surface) lie together and the surface points (distance 0, as the CPU
 /// pool labels them) cost nothing; the labelling runs over those, grouped by cell (a grid
-/// over the box of about a cell per point, `bin.rs`), and a gather writes the shuffled draw and its labels into the
-/// caller's buffers. The points are those of
-/// [`GpuSampler::draw`] for the same [`SampleSpec`].
+/// over the box of about a cell per point, `bin.rs`), and a gather writes the shuffled draw and
+/// its labels into the caller's buffers. The points are those of [`GpuSampler::draw`] for the
+/// same [`SampleSpec`].
 pub struct LabelledDraw {
     /// The draw without its shuffle, and the gather with it.
     draw_uniform: wgpu::Buffer,
@@ -447,18 +447,13 @@ impl LabelledDraw {
             ],
         )?;
         let bins = CellOrder::new(gpu, &drawn, capacity)?;
-        let label = launch(
-            &shaders::GROUND_TRUTH_WINDING,
-            "signed_distance",
-            &[
-                entry(0, &label_uniform),
-                entry(1, &gt.nodes),
-                entry(2, &gt.packets),
-                entry(3, &gt.winding),
-                entry(4, &drawn),
-                entry(5, &drawn_labels),
-                entry(6, bins.order()),
-            ],
+        let label = gt.launch(
+            gpu,
+            Kernel::Signed,
+            &label_uniform,
+            &drawn,
+            &drawn_labels,
+            &bins,
         )?;
         let gather = launch(
             sample,

@@ -689,8 +689,8 @@ mod tests {
     /// The cone pass on a sphere of radius 0.6 (baked, no training), seen from two sides and
     /// in bands of one tile row: every tile's start lies before the first hit of each of its
     /// rays on the exact sphere (less the model's error), and the tiles on the sphere start past
-    /// half the way from the box to it; the image is the one traced plainly (no cones, no over-relaxation) but for a few
-    /// silhouette pixels.
+    /// half the way from the box to it; the image is the one traced plainly (no cones, no
+    /// over-relaxation) but for a few silhouette pixels.
     #[test]
     fn cones_start_rays_before_the_surface() {
         let gpu = GpuContext::shared().expect("a GPU adapter (lavapipe in CI)");
