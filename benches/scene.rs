@@ -5,9 +5,12 @@
 //! - both again with the other kernel where the device has subgroups
 //!   (`distance_per_invocation` on a GPU, `distance_per_subgroup` on lavapipe: see
 //!   `QueryKernel`);
+//! - `scene/rays_plain/3000`: the same rays traced as before local Lipschitz bounds and
+//!   over-relaxation (plain steps by each model's whole-box estimate, kept by
+//!   `Scene::set_model_lipschitz`);
 //! - `scene/render/1920x1080`: a full-HD image from `Renderer::for_scene`, and
 //!   `scene/render_plain/1920x1080` the same without its cone pass and over-relaxed steps
-//!   (`Renderer::set_accelerated`);
+//!   (`Renderer::set_accelerated`), on the scene with whole-box estimates;
 //! - `scene/eight_models/3000`: the 8 single-model queries (`NeuralSdf::eval`) one scene query
 //!   replaces, for the lavapipe comparison.
 //!
@@ -178,6 +181,21 @@ fn main() {
         });
     }
     on_gpu.set_kernel(None).unwrap();
+    // The tracer before local bounds and over-relaxation: plain steps by each model's
+    // whole-box estimate.
+    let mut plain_scene = self::scene();
+    for m in 0..plain_scene.models().len() {
+        let estimate = plain_scene.model_lipschitz(m).unwrap();
+        plain_scene.set_model_lipschitz(m, estimate).unwrap();
+    }
+    let plain_on_gpu = GpuScene::new(gpu, &plain_scene).unwrap();
+    let plain_trace = TraceOptions {
+        over_relaxation: 1.0,
+        ..trace
+    };
+    group.bench_function(BenchmarkId::new("rays_plain", n), |b| {
+        b.iter(|| plain_on_gpu.trace_rays(&rays, &plain_trace).unwrap())
+    });
     let models = scene.models().to_vec();
     let local: Vec<Vec3> = pts.iter().map(|p| *p * 0.3).collect();
     for m in &models {
@@ -190,7 +208,7 @@ fn main() {
             }
         })
     });
-    let mut renderer = Renderer::for_scene(gpu, &scene).unwrap();
+    let renderer = Renderer::for_scene(gpu, &scene).unwrap();
     let options = RenderOptions {
         width: 1920,
         height: 1080,
@@ -201,6 +219,7 @@ fn main() {
     group.bench_function(BenchmarkId::new("render", "1920x1080"), |b| {
         b.iter(|| renderer.render(gpu, &options).unwrap())
     });
+    let mut renderer = Renderer::for_scene(gpu, &plain_scene).unwrap();
     renderer.set_accelerated(false);
     group.bench_function(BenchmarkId::new("render_plain", "1920x1080"), |b| {
         b.iter(|| renderer.render(gpu, &options).unwrap())

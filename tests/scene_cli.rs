@@ -342,6 +342,20 @@ fn bad_scene_input_is_refused() {
             .arg(&out),
         "ray 1: direction",
     );
+    // An over-relaxation outside [1, 2).
+    let good = scratch("good_ray.npy");
+    npy::write_table(&good, &[0.0, 0.0, 3.0, 0.0, 0.0, -1.0], 6).unwrap();
+    assert_clean_failure(
+        bin("query")
+            .arg("--scene")
+            .arg(example())
+            .arg("--rays")
+            .arg(&good)
+            .args(["--over-relaxation", "2"])
+            .arg("--out")
+            .arg(&out),
+        "over-relaxation 2 must lie in [1, 2)",
+    );
     // Rays need six columns.
     assert_clean_failure(
         bin("query")

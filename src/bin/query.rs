@@ -26,7 +26,7 @@ use clap::Parser;
 use glam::Vec3;
 use hwsdf::cli::{GpuFlags, Source, SourceFlags, check_level};
 use hwsdf::geom::npy;
-use hwsdf::nn::serve::scene::{GpuScene, ProjectOptions, Ray, TraceOptions};
+use hwsdf::nn::serve::scene::{GpuScene, ProjectOptions, Ray, TRACE_OVER_RELAXATION, TraceOptions};
 
 /// Distances, normals, ray hits and closest points of a neural SDF model or a scene, on the GPU.
 #[derive(Parser, Debug)]
@@ -62,6 +62,10 @@ struct Args {
     /// closest points).
     #[arg(long)]
     tolerance: Option<f32>,
+    /// Rays: over-relaxed steps, this factor times the safe step while consecutive free
+    /// spheres overlap (1 traces plainly; at least 1, below 2).
+    #[arg(long, default_value_t = TRACE_OVER_RELAXATION)]
+    over_relaxation: f32,
     #[command(flatten)]
     gpu: GpuFlags,
 }
@@ -122,6 +126,7 @@ fn run(args: &Args) -> Result<(), String> {
             level: args.level,
             tolerance: args.tolerance.unwrap_or(defaults.tolerance),
             max_steps: args.max_steps.unwrap_or(defaults.max_steps),
+            over_relaxation: args.over_relaxation,
         };
         let hits = on_gpu
             .trace_rays(&rays, &options)

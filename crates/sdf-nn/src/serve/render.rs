@@ -528,8 +528,8 @@ impl Renderer {
                 .right
                 .extend(options.hit_tolerance_px * pixel_angle)
                 .to_array(),
-            // The step factor on `hwsdf_trace`'s step: a model's distance, or a scene's field,
-            // which is 1-Lipschitz already (each operand divided by its own bound).
+            // The step factor on `hwsdf_trace`'s step: a model's distance, or a scene's ball
+            // radius, safe already (each operand divided by its own bound).
             up: cam.up.extend(options.step_scale).to_array(),
             light: light.extend(options.ambient.clamp(0.0, 1.0)).to_array(),
             albedo: options.albedo.extend(1.0).to_array(),

@@ -10,7 +10,7 @@ use sdf_nn::GpuContext;
 use sdf_nn::serve::query::QueryKernel;
 use sdf_nn::serve::scene::{
     GpuScene, Primitive, ProjectOptions, Ray, Scene, SceneGpuError, SceneNode, SceneQueryError,
-    SceneQueryKind, TraceOptions, Transform,
+    SceneQueryKind, TRACE_OVER_RELAXATION, TraceOptions, Transform,
 };
 use sdf_nn::{NeuralSdf, Nglod, NglodConfig, Normalization};
 
@@ -444,6 +444,14 @@ fn bad_queries_are_refused() {
         on_gpu.closest_points(&[Vec3::ZERO], &bad_tolerance),
         Err(SceneGpuError::Query(SceneQueryError::Tolerance(_)))
     ));
+    let bad_relaxation = TraceOptions {
+        over_relaxation: 2.0,
+        ..TraceOptions::default()
+    };
+    assert!(matches!(
+        on_gpu.trace_rays(&[good], &bad_relaxation),
+        Err(SceneGpuError::Query(SceneQueryError::OverRelaxation(_)))
+    ));
 }
 
 /// Eight threads query one scene at once for a bounded time (distances and rays, each thread
@@ -718,21 +726,28 @@ fn steps_follow_each_operands_own_bound() {
             max_distance: 20.0,
         })
         .collect();
-    let options = TraceOptions::default();
-    let cpu = scene.trace_rays(&down, &options).unwrap();
-    let mut answers = vec![cpu];
-    for kernel in [QueryKernel::PerInvocation, QueryKernel::PerSubgroup] {
-        answers.push(
-            scene_on(&scene, kernel)
-                .trace_rays(&down, &options)
-                .unwrap(),
-        );
-    }
-    for hits in &answers {
-        for (i, hit) in hits.iter().enumerate() {
-            let hit = hit.expect("every ray hits the plane");
-            assert!((hit.t - 5.0).abs() < 1e-3, "ray {i}: t {}", hit.t);
-            assert!(hit.steps <= 2, "ray {i}: {} steps", hit.steps);
+    // Plain steps: one step and the hit. Over-relaxed: the first step overshoots the plane
+    // (1.4 times its distance), the check sends the ray back to the plain step, then the hit.
+    for (over_relaxation, most) in [(1.0, 2), (TRACE_OVER_RELAXATION, 3)] {
+        let options = TraceOptions {
+            over_relaxation,
+            ..TraceOptions::default()
+        };
+        let cpu = scene.trace_rays(&down, &options).unwrap();
+        let mut answers = vec![cpu];
+        for kernel in [QueryKernel::PerInvocation, QueryKernel::PerSubgroup] {
+            answers.push(
+                scene_on(&scene, kernel)
+                    .trace_rays(&down, &options)
+                    .unwrap(),
+            );
+        }
+        for hits in &answers {
+            for (i, hit) in hits.iter().enumerate() {
+                let hit = hit.expect("every ray hits the plane");
+                assert!((hit.t - 5.0).abs() < 1e-3, "ray {i}: t {}", hit.t);
+                assert!(hit.steps <= most, "ray {i}: {} steps", hit.steps);
+            }
         }
     }
 

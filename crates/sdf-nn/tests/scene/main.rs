@@ -17,6 +17,7 @@ use sdf_nn::serve::scene::{
 mod files;
 mod gpu;
 mod models;
+mod steps;
 
 pub(crate) fn sphere_at(center: Vec3, radius: f32) -> SceneNode {
     SceneNode::primitive(
@@ -494,6 +495,18 @@ fn bad_rays_and_options_are_errors() {
         ),
         Err(SceneQueryError::Tolerance(_))
     ));
+    for over_relaxation in [f32::NAN, 0.5, 2.0, f32::INFINITY] {
+        assert!(matches!(
+            scene.trace_ray(
+                &good,
+                &TraceOptions {
+                    over_relaxation,
+                    ..o
+                }
+            ),
+            Err(SceneQueryError::OverRelaxation(_))
+        ));
+    }
     let p = ProjectOptions::default();
     assert!(matches!(
         scene.closest_points(&[Vec3::ONE, Vec3::new(0.0, f32::INFINITY, 0.0)], &p),

@@ -41,9 +41,13 @@ use glam::DMat3;
 
 use crate::gpu::GpuError;
 use crate::serve::scene::cpu::SceneQueryError;
+use crate::serve::scene::lipschitz::LOCAL_CELLS;
 use crate::serve::scene::primitive::Primitive;
 use crate::serve::scene::tree::{Instruction, LeafKind, Scene, TraceStep};
 use crate::serve::wgsl::{self, EmbedError, Lanes, MAX_PREFIX};
+
+/// Floats of a model's local Lipschitz tables (cells and blocks) after its weights.
+const LIPSCHITZ_TABLES: usize = 2 * LOCAL_CELLS * LOCAL_CELLS * LOCAL_CELLS;
 
 /// The primitives, the sample type and the operators (names `hwsdf_…`, renamed per scene).
 const PRIMITIVES: &str = crate::shaders::SCENE_PRIMITIVES.source;
@@ -155,8 +159,11 @@ impl Scene {
             .iter()
             .map(|m| wgsl::weights(m.network()))
             .collect();
-        let param_lengths: Vec<Option<u64>> =
-            weights.iter().map(|(p, _)| Some(p.len() as u64)).collect();
+        // Each model's weights, then its local Lipschitz tables (`{prefix}_m{i}_lip`).
+        let param_lengths: Vec<Option<u64>> = weights
+            .iter()
+            .map(|(p, _)| Some((p.len() + LIPSCHITZ_TABLES) as u64))
+            .collect();
         let table_lengths: Vec<Option<u64>> = weights
             .iter()
             .map(|(_, t)| (!t.is_empty()).then_some(t.len() as u64))
@@ -184,8 +191,8 @@ impl Scene {
     /// - `fn {prefix}_sample(p: vec3<f32>) -> {prefix}_Sample`: the distance, its gradient
     ///   (not normalised) and the index of the deciding leaf ([`Scene::leaves`]);
     /// - `fn {prefix}_trace(p: vec3<f32>, c: f32) -> vec2<f32>`: for sphere tracers, `d − c`
-    ///   (x) and the step to take from `p` (y, with the sign of x: the field of
-    ///   [`Scene::trace_rays`], whose magnitude never crosses the level set).
+    ///   (x) and the step to take from `p` (y, with the sign of x: the radius of
+    ///   [`Scene::trace_rays`], of a ball about `p` that holds no crossing of the level set).
     ///
     /// The prefix is an ASCII letter followed by at most [`MAX_SCENE_PREFIX`] letters, digits
     /// or underscores; two snippets in one shader need prefixes that differ other than in case.
@@ -280,8 +287,16 @@ impl Scene {
                 UP = prefix.to_ascii_uppercase(),
                 lo = lit(self.phi_floor(i)),
             );
+            let plen = wgsl::weights(model.network()).0.len() as u64;
+            self.lipschitz_function(&mut s, prefix, i, (buffer, offset + plen));
         }
         s.push_str(&wgsl::rename(PRIMITIVES, prefix));
+        let _ = writeln!(
+            s,
+            "// A floor of a model's term of the tracer's bound, g / L for a local bound L in
+             // [1, its estimate] (inv: 1 / the estimate), from a floor g of its value less the level.
+             fn {prefix}_term_floor(g: f32, inv: f32) -> f32 {{\n    return min(g * inv, g);\n}}"
+        );
         let up = prefix.to_ascii_uppercase();
         for (l, leaf) in self.leaves().iter().enumerate() {
             self.leaf_functions(&mut s, prefix, &up, l, leaf, lanes);
@@ -366,6 +381,14 @@ impl Scene {
                  \x20   let x = ({local} - {mp}_CENTER) * {mp}_SCALE;\n\
                  \x20   let c = clamp(x, vec3<f32>(-1.0), vec3<f32>(1.0));\n\
                  \x20   return {up}_L{l}_S * (length(x - c) + {mp}_PHI_LO) / {mp}_SCALE;\n\
+                 }}\n\
+                 // The model's local Lipschitz bound at p for a gap g (scene units), and g over it.\n\
+                 fn {prefix}_leaf_{l}_lip(p: vec3<f32>, g: f32) -> f32 {{\n\
+                 \x20   let x = ({local} - {mp}_CENTER) * {mp}_SCALE;\n\
+                 \x20   return {prefix}_m{m}_lip(x, g * {mp}_SCALE / {up}_L{l}_S);\n\
+                 }}\n\
+                 fn {prefix}_leaf_{l}_t(p: vec3<f32>, g: f32) -> f32 {{\n\
+                 \x20   return g / {prefix}_leaf_{l}_lip(p, g);\n\
                  }}\n"
             );
         }
@@ -388,6 +411,7 @@ impl Scene {
     fn program_functions(&self, s: &mut String, prefix: &str) {
         let program = self.program();
         let plan = self.trace_plan();
+        self.node_term_functions(s, prefix, &plan);
         for kind in [Program::Distance, Program::Sample, Program::Trace] {
             let mut stack: Vec<usize> = Vec::new();
             let mut body = String::new();
@@ -431,7 +455,7 @@ impl Scene {
                     let _ = writeln!(
                         body,
                         "    let t{v} = {};",
-                        own_bound(&format!("v{v}"), &plan[v])
+                        self.trace_term(prefix, &format!("v{v}"), v, &plan)
                     );
                 }
                 stack.push(v);
@@ -457,7 +481,7 @@ impl Scene {
                     let _ = write!(
                         s,
                         "\n// For sphere tracers, at a point of the scene's frame and a level c: x, the distance\n\
-                         // less c; y, a 1-Lipschitz field with the sign of x, whose magnitude is a safe step\n\
+                         // less c; y, with the sign of x, the radius of a ball about p free of the level set\n\
                          // (Scene::trace_rays).\n\
                          fn {prefix}_trace(p: vec3<f32>, c: f32) -> vec2<f32> {{\n{body}    return vec2<f32>(v{last} - c, t{last});\n}}\n"
                     );
@@ -529,16 +553,10 @@ impl Scene {
         if trace {
             let _ = writeln!(c, "    var t{end} = {init_bound};");
         }
-        // A leaf's term of t{end} for its value (or bound) `x`.
-        let term = |x: &str, l: usize| {
-            own_bound(
-                x,
-                &TraceStep {
-                    lipschitz: self.leaf_lipschitz(l),
-                    flipped: plan[end].flipped,
-                },
-            )
-        };
+        // A leaf's term of t{end} for its value `x`, and a floor of it for a lower bound `x`.
+        let flipped = plan[end].flipped;
+        let term = |x: &str, l: usize| self.leaf_term(prefix, &gap(x, flipped), l);
+        let floor = |x: &str, l: usize| self.leaf_term_floor(prefix, &gap(x, flipped), l);
         for l in leaves.iter().filter(|l| !is_model(l)) {
             if trace {
                 let _ = writeln!(
@@ -571,7 +589,7 @@ impl Scene {
         );
         for (i, l) in models.iter().enumerate() {
             if trace {
-                let bound = term(&format!("b{end}_{i}"), *l);
+                let bound = floor(&format!("b{end}_{i}"), *l);
                 let _ = writeln!(
                     c,
                     "        if (first{end} == {i}u) == (round{end} == 0u) && (b{end}_{i} < v{end} || {bound} < t{end}) {{\n\
@@ -645,7 +663,7 @@ impl Scene {
                          \x20   }}\n\
                          \x20   let t{u} = {own};\n",
                         k_lit = lit(k),
-                        own = own_bound(&format!("v{u}"), &plan[u]),
+                        own = self.trace_term(prefix, &format!("v{u}"), u, plan),
                     )
                 } else {
                     format!(
@@ -657,8 +675,12 @@ impl Scene {
                          \x20       v{u} = min(v{a}, d);\n\
                          \x20       t{u} = min(t{a}, {d_term});\n\
                          \x20   }}\n",
-                        lb_term = own_bound(&format!("lb{u}"), &plan[v]),
-                        d_term = own_bound("d", &plan[v]),
+                        lb_term = self.leaf_term_floor(
+                            prefix,
+                            &gap(&format!("lb{u}"), plan[v].flipped),
+                            l as usize
+                        ),
+                        d_term = self.trace_term(prefix, "d", v, plan),
                     )
                 },
                 1,
@@ -675,6 +697,127 @@ impl Scene {
             1,
         ))
     }
+
+    /// Instruction `v`'s term of the tracer's bound for its value `x` (WGSL): the value less
+    /// its level over the largest local Lipschitz bound of the models under it (the CPU's
+    /// `trace_values`); over 1 without models.
+    fn trace_term(&self, prefix: &str, x: &str, v: usize, plan: &[TraceStep]) -> String {
+        let g = gap(x, plan[v].flipped);
+        match self.program()[v] {
+            Instruction::Leaf(l) => self.leaf_term(prefix, &g, l as usize),
+            _ if self.subtree_models(v, &plan[v]).is_empty() => g,
+            _ => format!("{prefix}_node_{v}_t(p, {g})"),
+        }
+    }
+
+    /// Leaf `l`'s term for a gap `g` (WGSL): `g` for a primitive, `g` over the model's local
+    /// bound for a model.
+    fn leaf_term(&self, prefix: &str, g: &str, l: usize) -> String {
+        match self.leaves()[l].kind {
+            LeafKind::Model(_) => format!("{prefix}_leaf_{l}_t(p, {g})"),
+            LeafKind::Primitive(_) => g.to_owned(),
+        }
+    }
+
+    /// A floor of leaf `l`'s term from a floor `g` of its gap (WGSL), for culling: a model's
+    /// local bound lies between 1 and its estimate, so its term is at least the smaller of
+    /// `g` over either.
+    fn leaf_term_floor(&self, prefix: &str, g: &str, l: usize) -> String {
+        match self.leaves()[l].kind {
+            LeafKind::Model(_) => format!(
+                "{prefix}_term_floor({g}, {})",
+                lit(1.0 / self.leaf_lipschitz(l))
+            ),
+            LeafKind::Primitive(_) => g.to_owned(),
+        }
+    }
+
+    /// `{prefix}_node_{v}_t(p, g)` for each instruction `v` other than a leaf or a sharp
+    /// operator whose sub-tree holds models: `g` over the largest of their local bounds.
+    fn node_term_functions(&self, s: &mut String, prefix: &str, plan: &[TraceStep]) {
+        for (v, instruction) in self.program().iter().enumerate() {
+            if matches!(
+                instruction,
+                Instruction::Leaf(_)
+                    | Instruction::Union
+                    | Instruction::Intersection
+                    | Instruction::Difference
+            ) {
+                continue;
+            }
+            let models = self.subtree_models(v, &plan[v]);
+            if models.is_empty() {
+                continue;
+            }
+            let bound = models.iter().fold("1.0".to_owned(), |acc, l| {
+                format!("max({acc}, {prefix}_leaf_{l}_lip(p, g))")
+            });
+            let _ = write!(
+                s,
+                "\n// Instruction {v}'s term of the tracer's bound: g over its models' largest local bound.\n\
+                 fn {prefix}_node_{v}_t(p: vec3<f32>, g: f32) -> f32 {{\n    return g / {bound};\n}}\n"
+            );
+        }
+    }
+
+    /// Model `m`'s local Lipschitz tables as uploaded: the cells' bounds, then the blocks'
+    /// (at least 1, as [`Scene::leaf_lipschitz`] clamps the estimate).
+    fn lipschitz_tables(&self, m: usize) -> (Vec<f32>, Vec<f32>) {
+        let local = self.model_local_lipschitz(m).expect("a model of the scene");
+        let (cells, blocks) = local.tables();
+        let clamp = |t: &[f32]| t.iter().map(|b| b.max(1.0)).collect();
+        (clamp(cells), clamp(blocks))
+    }
+
+    /// `{prefix}_m{m}_lip(x, g)`: [`LocalLipschitz::bound`] of model `m` at the normalised
+    /// point `x` for a gap `g` in normalised units, its tables at `at` (buffer, element).
+    fn lipschitz_function(&self, s: &mut String, prefix: &str, m: usize, at: (usize, u64)) {
+        let (buffer, offset) = at;
+        let n = LOCAL_CELLS;
+        let global = self
+            .model_local_lipschitz(m)
+            .expect("a model of the scene")
+            .global()
+            .max(1.0);
+        let cells = format!("{prefix}_params_{buffer}[{offset}u + i]");
+        let blocks = format!(
+            "{prefix}_params_{buffer}[{}u + i]",
+            offset + (n * n * n) as u64
+        );
+        let _ = write!(
+            s,
+            "// Model {m}'s local Lipschitz bound (LocalLipschitz::bound): its cell's where the ball\n\
+             // of radius |g| / bound fits the cell, its 3x3x3 block's where that ball fits the block,\n\
+             // else the estimate (and outside the cube).\n\
+             fn {prefix}_m{m}_lip(x: vec3<f32>, g: f32) -> f32 {{\n\
+             \x20   let a = abs(x);\n\
+             \x20   if !(max(a.x, max(a.y, a.z)) < 1.0) {{\n\
+             \x20       return {global};\n\
+             \x20   }}\n\
+             \x20   let u = (x + vec3<f32>(1.0)) * {half};\n\
+             \x20   let c = clamp(floor(u), vec3<f32>(0.0), vec3<f32>({last}));\n\
+             \x20   let f = u - c;\n\
+             \x20   // In range whatever a NaN made of c.\n\
+             \x20   let i = min((u32(c.x) * {n}u + u32(c.y)) * {n}u + u32(c.z), {last_cell}u);\n\
+             \x20   let in_cell = min(f, vec3<f32>(1.0) - f);\n\
+             \x20   let cell = {cells};\n\
+             \x20   if abs(g) <= cell * min(in_cell.x, min(in_cell.y, in_cell.z)) * {side} {{\n\
+             \x20       return cell;\n\
+             \x20   }}\n\
+             \x20   let in_block = min(f + min(c, vec3<f32>(1.0)), vec3<f32>(1.0) - f + min(vec3<f32>({last}) - c, vec3<f32>(1.0)));\n\
+             \x20   let block = {blocks};\n\
+             \x20   if abs(g) <= block * min(in_block.x, min(in_block.y, in_block.z)) * {side} {{\n\
+             \x20       return block;\n\
+             \x20   }}\n\
+             \x20   return {global};\n\
+             }}\n",
+            global = lit(global),
+            half = lit(n as f32 / 2.0),
+            last = lit(n as f32 - 1.0),
+            last_cell = n * n * n - 1,
+            side = lit(2.0 / n as f32),
+        );
+    }
 }
 
 /// Which of the scene's functions a program is generated for.
@@ -688,11 +831,11 @@ enum Program {
     Trace,
 }
 
-/// An instruction's own term of the tracer's bound: its value `x` less its level, divided by
-/// its Lipschitz bound (`c` is the trace function's level).
-fn own_bound(x: &str, step: &TraceStep) -> String {
-    let sign = if step.flipped { '+' } else { '-' };
-    format!("({x} {sign} c) * {}", lit(1.0 / step.lipschitz))
+/// A value `x` less its level as WGSL (`c` is the trace function's level; `−c` under a
+/// difference's subtracted operand).
+fn gap(x: &str, flipped: bool) -> String {
+    let sign = if flipped { '+' } else { '-' };
+    format!("({x} {sign} c)")
 }
 
 /// A sharp union's, intersection's or difference's bound from its operands' (the top two of
@@ -890,6 +1033,8 @@ impl Scene {
             let (k, offset) = packing.params[i];
             debug_assert_eq!(params[k].len() as u64, offset);
             params[k].extend_from_slice(p);
+            let (cells, blocks) = self.lipschitz_tables(i);
+            params[k].extend(cells.into_iter().chain(blocks));
             if let Some((k, offset)) = packing.tables[i] {
                 debug_assert_eq!(tables[k].len() as u64, offset);
                 tables[k].extend_from_slice(&t);
@@ -975,7 +1120,8 @@ mod tests {
             )
         };
         let models: Vec<_> = (0..3).map(|i| model(0.3 + 0.1 * i as f32)).collect();
-        let bytes = 4 * models[0].param_count() as u64;
+        // A model's weights and its local Lipschitz tables.
+        let bytes = 4 * (models[0].param_count() + LIPSCHITZ_TABLES) as u64;
         let scene = Scene::new(SceneNode::Union(
             models
                 .iter()

@@ -50,7 +50,7 @@ use crate::gpu::QueryKernel;
 use crate::gpu::{GpuContext, GpuError, entry};
 use crate::serve::scene::cpu::{
     ClosestPoint, ProjectOptions, Ray, RayHit, SceneQueryError, SceneSample, TraceOptions,
-    check_level_and_tolerance, check_ray,
+    check_level_and_tolerance, check_ray, check_trace_options,
 };
 use crate::serve::scene::embed::{SceneBindGroup, SceneGpuError};
 use crate::serve::scene::tree::Scene;
@@ -129,7 +129,8 @@ struct SceneQueryUniform {
     first: u32,
     level: f32,
     tolerance: f32,
-    _pad: [f32; 2],
+    over_relaxation: f32,
+    _pad: f32,
 }
 
 /// The parameters of one recorded query.
@@ -143,6 +144,8 @@ pub struct SceneQueryParams {
     pub max_steps: u32,
     /// Projection steps per point at most.
     pub max_iterations: u32,
+    /// Rays' over-relaxation factor ([`TraceOptions::over_relaxation`]; 1 traces plainly).
+    pub over_relaxation: f32,
 }
 
 impl SceneQueryParams {
@@ -153,6 +156,7 @@ impl SceneQueryParams {
             tolerance: 1.0,
             max_steps: 0,
             max_iterations: 0,
+            over_relaxation: 1.0,
         }
     }
 }
@@ -164,6 +168,7 @@ impl From<&TraceOptions> for SceneQueryParams {
             tolerance: o.tolerance,
             max_steps: o.max_steps,
             max_iterations: 0,
+            over_relaxation: o.over_relaxation,
         }
     }
 }
@@ -175,6 +180,7 @@ impl From<&ProjectOptions> for SceneQueryParams {
             tolerance: o.tolerance,
             max_steps: 0,
             max_iterations: o.max_iterations,
+            over_relaxation: 1.0,
         }
     }
 }
@@ -506,7 +512,8 @@ impl<'g> GpuScene<'g> {
             first: 0,
             level: params.level,
             tolerance: params.tolerance,
-            _pad: [0.0; 2],
+            over_relaxation: params.over_relaxation,
+            _pad: 0.0,
         }
     }
 
@@ -706,7 +713,7 @@ impl<'g> GpuScene<'g> {
         rays: &[Ray],
         options: &TraceOptions,
     ) -> Result<Vec<Option<RayHit>>, SceneGpuError> {
-        check_level_and_tolerance(options.level, options.tolerance)?;
+        check_trace_options(options)?;
         for (index, ray) in rays.iter().enumerate() {
             check_ray(index, ray)?;
         }
@@ -778,7 +785,15 @@ mod tests {
             super::SceneQueryUniform,
             crate::shaders::SCENE_QUERY,
             "SceneQuery",
-            [count, max_steps, max_iterations, first, level, tolerance]
+            [
+                count,
+                max_steps,
+                max_iterations,
+                first,
+                level,
+                tolerance,
+                over_relaxation
+            ]
         );
     }
 }

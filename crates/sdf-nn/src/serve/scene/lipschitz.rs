@@ -33,6 +33,10 @@
 //! sphere tracer stepping by `(f − c)/L` never steps over a crossing of the level `c`. A model
 //! whose features are finer than that can be given a known bound instead
 //! ([`crate::serve::scene::Scene::set_model_lipschitz`]).
+//!
+//! **Near a point.** The same samples give each cell of a [`LOCAL_CELLS`]³ grid over the box
+//! its own bound ([`LocalLipschitz`]), under the same assumption cell by cell; the ray tracer
+//! divides by the bound of the cell (or block of cells) that holds its step's ball.
 
 use glam::Vec3;
 use rayon::prelude::*;
@@ -48,16 +52,14 @@ pub const SAFETY: f32 = 1.25;
 
 /// The Lipschitz estimate of `model` (see the module docs): at least [`SAFETY`].
 pub fn estimate(model: &NeuralSdf) -> f32 {
-    let points = sample_points();
-    let gradients: Vec<Vec3> = match model.network() {
-        Network::Siren(s) => s.gradient_cpu(&points),
-        Network::Nglod(m) => m
-            .gradient_cpu(&points, model.lod())
-            .expect("the level of detail was validated by NeuralSdf::set_lod"),
-    };
+    LocalLipschitz::measure(model).global()
+}
+
+/// The estimate from the samples' gradients (see the module docs).
+fn global_estimate(points: &[Vec3], gradients: &[Vec3]) -> f32 {
     let (inside, tangential) = points
         .par_iter()
-        .zip(&gradients)
+        .zip(gradients)
         .map(|(p, g)| {
             // Axes on which the point sits on a face are the clamped ones outside it.
             let on_face = p.abs().cmpge(Vec3::ONE);
@@ -109,4 +111,153 @@ fn sample_points() -> Vec<Vec3> {
         }
     }
     points
+}
+
+/// The network's raw gradients at `points` (normalised coordinates).
+fn gradients(model: &NeuralSdf, points: &[Vec3]) -> Vec<Vec3> {
+    match model.network() {
+        Network::Siren(s) => s.gradient_cpu(points),
+        Network::Nglod(m) => m
+            .gradient_cpu(points, model.lod())
+            .expect("the level of detail was validated by NeuralSdf::set_lod"),
+    }
+}
+
+/// Cells per axis of a [`LocalLipschitz`] grid.
+pub const LOCAL_CELLS: usize = 8;
+
+/// Lipschitz bounds of a model per cell of a [`LOCAL_CELLS`]³ grid over its normalised box,
+/// for sphere tracers: the model's slope is mostly near 1, and the estimate over the whole box
+/// (2.96 for the example's spot model) is set by a few cells (the median cell's is 1.52), so a
+/// tracer that steps by the bound where it is gets steps about twice as long near the model.
+///
+/// **How.** The samples of [`estimate`] (the 32³ grid's vertices and centres, each cell of this
+/// grid holding 4³ of them, its faces' included) give each cell `SAFETY · max |∇Φ|` (at least
+/// 1, at most the model's estimate), and each cell the largest of the 3³ cells around it
+/// (clipped to the box). **What it guarantees**: the estimate's own assumption, cell by cell
+/// (the gradient does not peak more than 25 % above every sample of the cell). A ball of radius
+/// `|Φ − c| / L` around a point holds no crossing of the level `c` if it lies inside the cell
+/// (or the block of 3³ cells) whose bound `L` is: [`LocalLipschitz::bound`] takes the cell's
+/// where its ball fits, else the block's where its ball fits, else the model's estimate. A ball
+/// free of the crossing is what the tracer's steps, cones and over-relaxation rely on.
+#[derive(Clone, Debug, PartialEq)]
+pub struct LocalLipschitz {
+    /// Per cell (x major, then y, then z).
+    cell: Vec<f32>,
+    /// Per cell, the largest bound of the 3³ cells around it.
+    block: Vec<f32>,
+    /// The model's estimate over the whole box (and outside it).
+    global: f32,
+}
+
+impl LocalLipschitz {
+    /// Measures `model`'s estimate ([`estimate`]) and its grid from the same samples.
+    pub fn measure(model: &NeuralSdf) -> Self {
+        let points = sample_points();
+        let gradients = gradients(model, &points);
+        let global = global_estimate(&points, &gradients);
+        let n = LOCAL_CELLS;
+        let per = (GRID / n) as f32;
+        let mut cell = vec![1.0f32; n * n * n];
+        for (p, g) in points.iter().zip(&gradients) {
+            // A sample on a cell face or edge belongs to every cell it touches.
+            let span = |x: f32| {
+                let u = (x + 1.0) * (GRID as f32 / 2.0) / per;
+                let last = n as i64 - 1;
+                let hi = (u.floor() as i64).clamp(0, last);
+                let lo = if u.fract() == 0.0 {
+                    (hi - 1).max(0)
+                } else {
+                    hi
+                };
+                lo as usize..=hi as usize
+            };
+            let bound = SAFETY * g.length();
+            for x in span(p.x) {
+                for y in span(p.y) {
+                    for z in span(p.z) {
+                        let c = &mut cell[(x * n + y) * n + z];
+                        *c = c.max(bound);
+                    }
+                }
+            }
+        }
+        for c in &mut cell {
+            *c = c.min(global);
+        }
+        let mut block = vec![0.0f32; n * n * n];
+        for x in 0..n {
+            for y in 0..n {
+                for z in 0..n {
+                    let near = |i: usize| i.saturating_sub(1)..=(i + 1).min(n - 1);
+                    let mut m = 0.0f32;
+                    for a in near(x) {
+                        for b in near(y) {
+                            for c in near(z) {
+                                m = m.max(cell[(a * n + b) * n + c]);
+                            }
+                        }
+                    }
+                    block[(x * n + y) * n + z] = m;
+                }
+            }
+        }
+        LocalLipschitz {
+            cell,
+            block,
+            global,
+        }
+    }
+
+    /// The same bound everywhere: a bound the caller knows
+    /// ([`crate::serve::scene::Scene::set_model_lipschitz`]).
+    pub fn uniform(bound: f32) -> Self {
+        let cells = LOCAL_CELLS * LOCAL_CELLS * LOCAL_CELLS;
+        LocalLipschitz {
+            cell: vec![bound; cells],
+            block: vec![bound; cells],
+            global: bound,
+        }
+    }
+
+    /// The bound to divide `gap` (the value less the level, normalised units) by at the
+    /// normalised point `q`: the cell's if the ball of radius `|gap| / bound` lies in the cell,
+    /// else the block's if its ball lies in the block, else the model's estimate (also outside
+    /// the box, and for a NaN).
+    pub fn bound(&self, q: Vec3, gap: f32) -> f32 {
+        if !q.is_finite() || q.abs().max_element() >= 1.0 {
+            return self.global;
+        }
+        let n = LOCAL_CELLS;
+        let u = (q + Vec3::ONE) * (n as f32 / 2.0);
+        let c = u.floor().clamp(Vec3::ZERO, Vec3::splat(n as f32 - 1.0));
+        let f = u - c;
+        let side = 2.0 / n as f32;
+        let index = ((c.x as usize * n) + c.y as usize) * n + c.z as usize;
+        let room_cell = f.min(Vec3::ONE - f).min_element() * side;
+        let bound = self.cell[index];
+        if gap.abs() <= bound * room_cell {
+            return bound;
+        }
+        // The block reaches a cell further on each side, but not past the box.
+        let below = f + c.min(Vec3::ONE);
+        let above = (Vec3::ONE - f) + (Vec3::splat(n as f32 - 1.0) - c).min(Vec3::ONE);
+        let room_block = below.min(above).min_element() * side;
+        let bound = self.block[index];
+        if gap.abs() <= bound * room_block {
+            return bound;
+        }
+        self.global
+    }
+
+    /// The cells' bounds (x major, then y, then z) and the blocks', in the model's buffers'
+    /// order.
+    pub fn tables(&self) -> (&[f32], &[f32]) {
+        (&self.cell, &self.block)
+    }
+
+    /// The model's estimate.
+    pub fn global(&self) -> f32 {
+        self.global
+    }
 }

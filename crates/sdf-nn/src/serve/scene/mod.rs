@@ -39,7 +39,8 @@ pub mod primitive;
 pub mod tree;
 
 pub use cpu::{
-    ClosestPoint, ProjectOptions, Ray, RayHit, SceneQueryError, SceneSample, TraceOptions,
+    ClosestPoint, ProjectOptions, Ray, RayHit, SceneQueryError, SceneSample, TRACE_OVER_RELAXATION,
+    TraceOptions,
 };
 pub use embed::{MAX_SCENE_PREFIX, SceneBindGroup, SceneGpuError};
 pub use file::{SceneFileError, tree_from_toml};

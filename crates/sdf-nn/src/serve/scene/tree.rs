@@ -39,8 +39,9 @@
 //!
 //! "Bound" everywhere assumes 1-Lipschitz children; with a trained model in the tree, the whole
 //! scene is `L`-Lipschitz with `L` the largest model estimate. The ray tracer divides each
-//! operand of the sharp operators by its own bound instead ([`Scene::trace_plan`],
-//! [`super::cpu`]'s `trace_rays`), which keeps the surface and takes longer steps.
+//! operand of the sharp operators by its own bound instead, a model's measured near the point
+//! ([`Scene::trace_plan`], [`super::cpu`]'s `trace_rays`, [`super::lipschitz::LocalLipschitz`]),
+//! which keeps the surface and takes longer steps.
 //!
 //! The n-ary smooth operators and difference are left folds: `smooth_union(a, b, c)` is
 //! `smin(smin(a, b), c)` (the smooth minimum is not associative), `difference(a, b, c)` is
@@ -59,7 +60,7 @@ use std::sync::{Arc, OnceLock};
 use glam::{Quat, Vec3};
 
 use crate::NeuralSdf;
-use crate::serve::scene::lipschitz;
+use crate::serve::scene::lipschitz::{self, LocalLipschitz};
 use crate::serve::scene::primitive::Primitive;
 
 /// The deepest tree [`Scene::new`] accepts (the root is depth 1).
@@ -416,8 +417,8 @@ pub struct Scene {
     program: Vec<Instruction>,
     leaves: Vec<Leaf>,
     models: Vec<Arc<NeuralSdf>>,
-    /// Each model's Lipschitz estimate, measured on first use.
-    lipschitz: Vec<OnceLock<f32>>,
+    /// Each model's Lipschitz estimate and local bounds, measured on first use.
+    lipschitz: Vec<OnceLock<LocalLipschitz>>,
     /// Each model's value floor ([`lipschitz::value_floor`]), measured on first use.
     floors: Vec<OnceLock<f32>>,
     /// Each leaf's place in the tree.
@@ -471,8 +472,15 @@ impl Scene {
     /// The Lipschitz estimate of model `model` (see [`super::lipschitz`]), measured on first
     /// call; `None` for an index past [`Scene::models`].
     pub fn model_lipschitz(&self, model: usize) -> Option<f32> {
+        Some(self.model_local_lipschitz(model)?.global())
+    }
+
+    /// Model `model`'s bounds per cell of its box ([`LocalLipschitz`]), measured with its
+    /// estimate on first call (the same bound everywhere after
+    /// [`Scene::set_model_lipschitz`]); `None` for an index past [`Scene::models`].
+    pub fn model_local_lipschitz(&self, model: usize) -> Option<&LocalLipschitz> {
         let cell = self.lipschitz.get(model)?;
-        Some(*cell.get_or_init(|| lipschitz::estimate(&self.models[model])))
+        Some(cell.get_or_init(|| LocalLipschitz::measure(&self.models[model])))
     }
 
     /// A floor of model `model`'s network value over its normalised cube
@@ -484,12 +492,14 @@ impl Scene {
         Some(*cell.get_or_init(|| lipschitz::value_floor(&self.models[model], lipschitz)))
     }
 
-    /// Replaces model `model`'s measured estimate by a bound the caller knows (finite, `> 0`).
+    /// Replaces model `model`'s measured estimate by a bound the caller knows (finite, `> 0`),
+    /// everywhere in its box: its local bounds ([`Scene::model_local_lipschitz`]) become that
+    /// bound too.
     pub fn set_model_lipschitz(&mut self, model: usize, value: f32) -> Result<(), SceneError> {
         let models = self.models.len();
         match self.lipschitz.get_mut(model) {
             Some(cell) if value.is_finite() && value > 0.0 => {
-                *cell = OnceLock::from(value);
+                *cell = OnceLock::from(LocalLipschitz::uniform(value));
                 // The floor depends on the slope bound.
                 self.floors[model] = OnceLock::new();
                 Ok(())
@@ -569,7 +579,12 @@ impl Scene {
         lipschitz
             .into_iter()
             .zip(flipped)
-            .map(|(lipschitz, flipped)| TraceStep { lipschitz, flipped })
+            .zip(start)
+            .map(|((lipschitz, flipped), first)| TraceStep {
+                lipschitz,
+                flipped,
+                first,
+            })
             .collect()
     }
 }
@@ -577,10 +592,32 @@ impl Scene {
 /// One instruction's part in the ray tracer's step (see [`Scene::trace_plan`]).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct TraceStep {
-    /// The Lipschitz bound of the instruction's sub-tree (at least 1).
+    /// The Lipschitz bound of the instruction's sub-tree over the models' whole boxes (at
+    /// least 1); near a point the tracer divides by the models' local bounds instead.
     pub lipschitz: f32,
     /// Whether its value is traced against `−c` (under a difference's subtracted operand).
     pub flipped: bool,
+    /// The sub-tree's first instruction: it is `program[first..=i]`, its leaves those pushed
+    /// there.
+    pub first: usize,
+}
+
+impl Scene {
+    /// The model leaves of instruction `i`'s sub-tree (`step` its [`TraceStep`]): the leaves
+    /// whose local Lipschitz bounds bound its slope near a point.
+    pub(crate) fn subtree_models(&self, i: usize, step: &TraceStep) -> Vec<usize> {
+        self.program[step.first..=i]
+            .iter()
+            .filter_map(|instruction| match *instruction {
+                Instruction::Leaf(l)
+                    if matches!(self.leaves[l as usize].kind, LeafKind::Model(_)) =>
+                {
+                    Some(l as usize)
+                }
+                _ => None,
+            })
+            .collect()
+    }
 }
 
 /// Walks the tree depth first, validating and emitting the program.
