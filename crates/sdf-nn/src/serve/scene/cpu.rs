@@ -170,10 +170,9 @@ impl March {
 
     /// Takes the field's `gap` (`d − c`) and safe step `room` at `t`.
     fn advance(&mut self, gap: f64, room: f64, tolerance: f64, max_distance: f64) -> Stride {
-        if self.omega > 1.0
-            && self.prev_step > 0.0
-            && room + self.prev_room < self.prev_step * (1.0 + OVERLAP_SLACK)
-        {
+        // A NaN room (a broken model) proves no overlap either.
+        let overlap = room + self.prev_room >= self.prev_step * (1.0 + OVERLAP_SLACK);
+        if self.omega > 1.0 && self.prev_step > 0.0 && !overlap {
             // The segment from the previous point may hold the surface: back to its plain step.
             self.plain_step();
             return Stride::On;

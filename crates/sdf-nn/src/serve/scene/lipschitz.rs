@@ -35,8 +35,13 @@
 //! ([`crate::serve::scene::Scene::set_model_lipschitz`]).
 //!
 //! **Near a point.** The same samples give each cell of a [`LOCAL_CELLS`]³ grid over the box
-//! its own bound ([`LocalLipschitz`]), under the same assumption cell by cell; the ray tracer
-//! divides by the bound of the cell (or block of cells) that holds its step's ball.
+//! its own bound ([`LocalLipschitz`]); the ray tracer divides by the bound of the cell (or
+//! block of cells) that holds its step's ball. That assumes more: the gradient does not peak
+//! 25 % above the samples *of that cell*, where the estimate had the margin of the whole box's
+//! largest sample over any gentler cell. A network with features finer than the samples (an
+//! NGLOD level finer than [`GRID`] cells, such as `default`'s sparse 48) is checked less
+//! closely in its gentle cells; [`crate::serve::scene::Scene::set_model_lipschitz`] turns the
+//! local bounds off with a bound the caller knows.
 
 use glam::Vec3;
 use rayon::prelude::*;
@@ -134,8 +139,9 @@ pub const LOCAL_CELLS: usize = 8;
 /// **How.** The samples of [`estimate`] (the 32³ grid's vertices and centres, each cell of this
 /// grid holding 4³ of them, its faces' included) give each cell `SAFETY · max |∇Φ|` (at least
 /// 1, at most the model's estimate), and each cell the largest of the 3³ cells around it
-/// (clipped to the box). **What it guarantees**: the estimate's own assumption, cell by cell
-/// (the gradient does not peak more than 25 % above every sample of the cell). A ball of radius
+/// (clipped to the box). **What it guarantees**: the estimate's assumption, cell by cell (the
+/// gradient does not peak more than 25 % above every sample of the cell; the module docs say
+/// what that adds). A ball of radius
 /// `|Φ − c| / L` around a point holds no crossing of the level `c` if it lies inside the cell
 /// (or the block of 3³ cells) whose bound `L` is: [`LocalLipschitz::bound`] takes the cell's
 /// where its ball fits, else the block's where its ball fits, else the model's estimate. A ball
@@ -164,13 +170,10 @@ impl LocalLipschitz {
             let span = |x: f32| {
                 let u = (x + 1.0) * (GRID as f32 / 2.0) / per;
                 let last = n as i64 - 1;
-                let hi = (u.floor() as i64).clamp(0, last);
-                let lo = if u.fract() == 0.0 {
-                    (hi - 1).max(0)
-                } else {
-                    hi
-                };
-                lo as usize..=hi as usize
+                let cell = u.floor() as i64;
+                // On a face between cells: the cell below too (the box's faces have one).
+                let below = if u == u.floor() { cell - 1 } else { cell };
+                below.clamp(0, last) as usize..=cell.clamp(0, last) as usize
             };
             let bound = SAFETY * g.length();
             for x in span(p.x) {

@@ -115,7 +115,8 @@ fn trace_element(e: u32, lead: bool) {
         let gap = traced.x;
         let room = abs(traced.y);
         steps = step + 1u;
-        if omega > 1.0 && prev_step > 0.0 && room + prev_room < prev_step * 1.001 {
+        // A NaN room (a broken model) proves no overlap either.
+        if omega > 1.0 && prev_step > 0.0 && !(room + prev_room >= prev_step * 1.001) {
             t += prev_room - prev_step;
             prev_step = prev_room;
             omega = 1.0;
