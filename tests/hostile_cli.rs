@@ -1211,6 +1211,18 @@ fn cases() -> Vec<Case> {
             Error("--lr-final must be finite"),
         ),
         case(
+            "train --batch 0",
+            "train",
+            &["cube.obj", "--batch", "0"],
+            Error("--batch must lie in 1..=65536, not 0"),
+        ),
+        case(
+            "train siren --batch",
+            "train",
+            &["cube.obj", "--model", "siren", "--batch", "4096"],
+            Error("--batch applies to NGLOD"),
+        ),
+        case(
             "corpus --lr with both models",
             "corpus",
             &[".", "--lr", "1e-3"],

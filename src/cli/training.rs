@@ -56,6 +56,9 @@ pub struct TrainingFlags {
     /// over the run (default 0.1; 1 keeps it constant).
     #[arg(long, allow_negative_numbers = true)]
     pub lr_final: Option<f32>,
+    /// NGLOD and the hash grid: points per optimiser step (default 2048).
+    #[arg(long)]
+    pub batch: Option<u32>,
     /// SIREN: steps without a 0.1 % improvement of the loss before the learning rate is
     /// divided by 10 (default 500; 0 keeps it constant, as the SIREN reference code trains).
     #[arg(long)]
@@ -212,6 +215,7 @@ impl TrainingFlags {
             siren_weights: self.siren_weights().filter(|_| keep(SIREN)),
             plateau_patience: self.plateau_patience.filter(|_| keep(SIREN)),
             lr_final: self.lr_final.filter(|_| keep(GRIDS)),
+            batch: self.batch.filter(|_| keep(GRIDS)),
             grow_every: self.grow_every.filter(|_| keep(NGLOD)),
             distance: match self.distance {
                 DistanceArg::Signed => DistanceMode::Signed,

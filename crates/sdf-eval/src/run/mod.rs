@@ -36,7 +36,7 @@ pub use ground_truth::{
     load_normalized_with, no_inside_check, planned_labels,
 };
 pub use options::{
-    CPU_TIME_BUDGET, HASHGRID_CPU_TIME_BUDGET, Length, MAX_EPOCHS, MAX_STEPS, ModelKind,
+    CPU_TIME_BUDGET, HASHGRID_CPU_TIME_BUDGET, Length, MAX_BATCH, MAX_EPOCHS, MAX_STEPS, ModelKind,
     NglodArchitecture, Preset, RunSettings, TrainOptions, cpu_time_budget, default_length,
 };
 pub use report::Report;

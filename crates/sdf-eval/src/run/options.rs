@@ -19,6 +19,10 @@ pub const MAX_STEPS: usize = 10_000_000;
 /// (about 2 hours on an H100).
 pub const MAX_EPOCHS: usize = 100_000;
 
+/// The largest `--batch`: 32 times NGLOD's default, whose rows of a step then take tens of
+/// megabytes of GPU memory.
+pub const MAX_BATCH: u32 = 1 << 16;
+
 /// Which architecture to train.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
@@ -151,6 +155,9 @@ pub struct TrainOptions {
     /// NGLOD and the hash grid: final learning rate as a fraction of the first, reached by
     /// cosine decay (`None`: the trainer's default; 1 keeps it constant).
     pub lr_final: Option<f32>,
+    /// NGLOD and the hash grid: points per optimiser step (`None`: the trainer's default,
+    /// `NglodTrainConfig::batch_size`). An error for SIREN.
+    pub batch: Option<u32>,
     /// NGLOD: add a level of detail every this many epochs (`None`: the trainer's default; 0
     /// trains all levels from the start). An error for the hash grid, which has no levels of
     /// detail.
@@ -178,6 +185,7 @@ impl TrainOptions {
             siren_weights: None,
             plateau_patience: None,
             lr_final: None,
+            batch: None,
             grow_every: None,
             distance: DistanceMode::Signed,
             pool: None,
@@ -216,6 +224,12 @@ impl TrainOptions {
                         "--lr-final, --grow-every and --pool apply to NGLOD (and the first and \
                          last to the hash grid); SIREN samples its batch every step and divides \
                          its learning rate by 10 when its loss plateaus (--plateau-patience)",
+                    );
+                }
+                if self.batch.is_some() {
+                    return refuse(
+                        "--batch applies to NGLOD and the hash grid; SIREN's batch is its \
+                         preset's (surface and box points every step)",
                     );
                 }
                 if let Some(w) = self.siren_weights {
@@ -259,6 +273,13 @@ impl TrainOptions {
                 }
                 if matches!(self.pool, Some((0, _) | (_, 0))) {
                     return refuse("--pool takes two positive integers, BLOCKS,EVERY");
+                }
+                if let Some(b) = self.batch
+                    && !(1..=MAX_BATCH).contains(&b)
+                {
+                    return Err(RunError::Options(format!(
+                        "--batch must lie in 1..={MAX_BATCH}, not {b}"
+                    )));
                 }
             }
         }
@@ -336,6 +357,7 @@ impl TrainOptions {
                 put("lr", self.lr.unwrap_or(d.adam.lr).to_string());
                 let lr_final = self.lr_final.or(d.lr_final).unwrap_or(1.0);
                 put("lr final", lr_final.to_string());
+                put("batch", self.batch.unwrap_or(d.batch_size).to_string());
                 let (blocks, every) = self.pool.unwrap_or((d.pool_blocks, d.refresh_every));
                 put("pool", format!("{blocks},{every}"));
                 put("distance", self.distance.name().to_owned());
@@ -728,6 +750,22 @@ mod tests {
             },
             "--pool",
         );
+        for batch in [0, MAX_BATCH + 1] {
+            refused(
+                TrainOptions {
+                    batch: Some(batch),
+                    ..nglod.clone()
+                },
+                "--batch must lie in",
+            );
+        }
+        refused(
+            TrainOptions {
+                batch: Some(4096),
+                ..siren.clone()
+            },
+            "--batch applies to NGLOD",
+        );
         refused(
             TrainOptions {
                 nglod_architecture: NglodArchitecture {
@@ -747,6 +785,7 @@ mod tests {
             epochs: Some(100),
             lr: Some(1e-3),
             lr_final: Some(0.1),
+            batch: Some(2048),
             grow_every: Some(0),
             pool: Some((4, 4)),
             nglod_architecture: NglodArchitecture {
@@ -762,8 +801,8 @@ mod tests {
             gpu.to_string(),
             "architecture resolutions 6,12,24,48, sparse levels 1, band cells 0, features 8, \
              hidden 128; \
-             distance signed; epochs 100; grow every 0; lr 0.001; lr final 0.1; pool 4,4; \
-             preset default; seed 0"
+             batch 2048; distance signed; epochs 100; grow every 0; lr 0.001; lr final 0.1; \
+             pool 4,4; preset default; seed 0"
         );
         // The length a default stands for depends on the adapter.
         let cpu = nglod.settings(true).unwrap();
@@ -969,11 +1008,12 @@ mod tests {
             settings.to_string(),
             format!(
                 "architecture resolutions {}, table 2^{log2_table_size}, features {}, hidden {}; \
-                 distance signed; epochs {HASHGRID_EPOCHS}; lr {}; lr final {}; pool {},{}; \
-                 preset default; seed 0",
+                 batch {}; distance signed; epochs {HASHGRID_EPOCHS}; lr {}; lr final {}; \
+                 pool {},{}; preset default; seed 0",
                 comma_list(&c.resolutions),
                 c.feature_dim,
                 c.hidden,
+                d.batch_size,
                 d.adam.lr,
                 d.lr_final.unwrap_or(1.0),
                 d.pool_blocks,

@@ -130,6 +130,9 @@ fn config(plan: &Plan<'_>, epochs: usize) -> NglodTrainConfig {
     if let Some(f) = options.lr_final {
         c.lr_final = (f != 1.0).then_some(f);
     }
+    if let Some(b) = options.batch {
+        c.batch_size = b;
+    }
     if let Some(g) = options.grow_every {
         c.grow_every = (g > 0).then_some(g);
     }
