@@ -2,7 +2,8 @@
 //! both architectures and several shapes (levels of detail included), declares only `hwsdf_`
 //! names, and, run on the device through `NeuralSdf::bind_group`, matches the CPU's distances
 //! and normals at points inside and outside the box; two models under their own prefixes share
-//! one shader. One test binary, one shared device.
+//! one shader; a scene snippet's local Lipschitz lookups match the CPU's. One test binary, one
+//! shared device.
 
 use glam::Vec3;
 use rand::{Rng, SeedableRng};
@@ -259,8 +260,21 @@ fn run_user_shader(
     groups: &[(&wgpu::BindGroupLayout, &wgpu::BindGroup)],
     pts: &[Vec3],
 ) -> Vec<[f32; 4]> {
+    let inputs: Vec<[f32; 4]> = pts.iter().map(|p| p.extend(0.0).to_array()).collect();
+    run_user_shader_vec4(device, queue, source, groups, &inputs)
+}
+
+/// [`run_user_shader`] for inputs that use all four lanes of `points[i]`.
+fn run_user_shader_vec4(
+    device: &wgpu::Device,
+    queue: &wgpu::Queue,
+    source: &str,
+    groups: &[(&wgpu::BindGroupLayout, &wgpu::BindGroup)],
+    inputs: &[[f32; 4]],
+) -> Vec<[f32; 4]> {
     use wgpu::util::DeviceExt;
-    let input: Vec<f32> = pts.iter().flat_map(|p| p.extend(0.0).to_array()).collect();
+    let pts = inputs;
+    let input: Vec<f32> = inputs.iter().flatten().copied().collect();
     let points = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
         label: Some("points"),
         contents: bytemuck::cast_slice(&input),
@@ -706,4 +720,95 @@ fn eval_points(@builtin(global_invocation_id) gid: vec3<u32>) {
             o[3]
         );
     }
+}
+
+/// A scene snippet's local Lipschitz lookups against `LocalLipschitz::bound`: the model's
+/// (`{prefix}_m0_lip`, normalised point and gap) and a leaf's (`{prefix}_leaf_1_lip`, a point
+/// and a gap in scene units, the leaf turned, moved and at half scale), at points inside and
+/// outside the box, with gaps from tiny (the cell's bound) to large (the block's, then the
+/// estimate).
+#[test]
+fn scene_snippets_look_up_the_cpus_local_bounds() {
+    use glam::Quat;
+    use sdf_nn::serve::scene::{Scene, SceneNode, Transform};
+    use std::sync::Arc;
+    let spot = Arc::new(
+        NeuralSdf::load(concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/../../examples/scene/spot.nglod.safetensors"
+        ))
+        .unwrap(),
+    );
+    let placed = Transform::new(Vec3::new(0.4, -0.3, 0.2), Quat::from_rotation_y(0.9), 0.5);
+    let scene = Scene::new(SceneNode::Union(vec![
+        SceneNode::model(spot.clone(), Transform::IDENTITY),
+        SceneNode::model(spot.clone(), placed),
+    ]))
+    .unwrap();
+    let user = r#"
+@group(0) @binding(0) var<storage, read> points: array<vec4<f32>>;
+@group(0) @binding(1) var<storage, read_write> results: array<vec4<f32>>;
+
+@compute @workgroup_size(64)
+fn eval_points(@builtin(global_invocation_id) gid: vec3<u32>) {
+    let i = gid.x;
+    if i >= arrayLength(&points) {
+        return;
+    }
+    let q = points[i];
+    results[i] = vec4<f32>(s_m0_lip(q.xyz, q.w), s_leaf_1_lip(q.xyz, q.w), 0.0, 0.0);
+}
+"#;
+    let gpu = gpu();
+    let limits = gpu.device().limits();
+    let source = format!(
+        "{}\n{user}",
+        scene.wgsl_with_prefix(1, "s", &limits).unwrap()
+    );
+    validate(&source);
+    let group = scene.bind_group(gpu.device()).unwrap();
+    let mut rng = Pcg64::seed_from_u64(29);
+    let inputs: Vec<[f32; 4]> = (0..4000)
+        .map(|_| {
+            [
+                rng.random_range(-1.3..1.3),
+                rng.random_range(-1.3..1.3),
+                rng.random_range(-1.3..1.3),
+                10f32.powf(rng.random_range(-4.0..0.0))
+                    * if rng.random_bool(0.5) { 1.0 } else { -1.0 },
+            ]
+        })
+        .collect();
+    // Each input is a point (xyz) and a gap (w).
+    let groups = [(&group.layout, &group.bind_group)];
+    let out = run_user_shader_vec4(gpu.device(), gpu.queue(), &source, &groups, &inputs);
+    let local = scene.model_local_lipschitz(0).unwrap();
+    let n = spot.normalization();
+    let (mut model_differ, mut leaf_differ, mut below_estimate) = (0, 0, 0);
+    for (input, o) in inputs.iter().zip(&out) {
+        let (x, g) = (Vec3::new(input[0], input[1], input[2]), input[3]);
+        let want = local.bound(x, g).max(1.0);
+        model_differ += usize::from(o[0] != want);
+        below_estimate += usize::from(want < local.global());
+        // The leaf: scene → its mesh frame (inverse placement) → normalised; the gap over the
+        // leaf's scale, times the normalisation's.
+        let mesh = placed.rotation.inverse() * (x - placed.translation) / placed.scale;
+        let q = n.to_normalized(mesh);
+        let want = local.bound(q, g / placed.scale * n.scale).max(1.0);
+        leaf_differ += usize::from((o[1] - want).abs() > 1e-6 * want);
+    }
+    // None differ on lavapipe; rounding could put a ball just inside a cell on one side and
+    // just outside on the other.
+    assert!(
+        model_differ <= 4,
+        "{model_differ} of 4000 model lookups differ"
+    );
+    assert!(
+        leaf_differ <= 4,
+        "{leaf_differ} of 4000 leaf lookups differ"
+    );
+    assert!(
+        below_estimate > 1000,
+        "only {below_estimate} lookups below the estimate"
+    );
 }

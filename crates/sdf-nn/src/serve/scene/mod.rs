@@ -36,6 +36,7 @@ pub mod file;
 pub mod gpu;
 pub mod lipschitz;
 pub mod primitive;
+mod trace_wgsl;
 pub mod tree;
 
 pub use cpu::{
