@@ -161,7 +161,7 @@ fn sigterm_checkpoints_the_mesh_in_training_and_the_rerun_resumes_it() {
     assert!(table.contains("1 of 1 done, 0 failed"), "{table}");
     // The table states what produced it.
     assert!(
-        table.contains("Settings: architecture resolutions 4,8,16, sparse levels 0, band cells 0, features 4, hidden 32; distance signed; epochs 8;"),
+        table.contains("Settings: architecture resolutions 4,8,16, sparse levels 0, band cells 0, features 4, hidden 32; batch 2048; distance signed; epochs 8;"),
         "{table}"
     );
     // The merge needs no GPU and writes the same table.

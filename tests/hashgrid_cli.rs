@@ -286,7 +286,7 @@ fn corpus_tabulates_the_hash_grid() {
     };
     let settings = format!(
         "Settings: architecture resolutions {}, table 2^{log2_table_size}, features {}, hidden \
-         {}; distance signed; epochs 1; lr {}; ",
+         {}; batch {}; distance signed; epochs 1; lr {}; ",
         small
             .resolutions
             .iter()
@@ -295,6 +295,7 @@ fn corpus_tabulates_the_hash_grid() {
             .join(","),
         small.feature_dim,
         small.hidden,
+        NglodTrainConfig::hashgrid().batch_size,
         NglodTrainConfig::hashgrid().adam.lr
     );
     assert!(table.contains(&settings), "{settings} not in {table}");
