@@ -164,6 +164,10 @@ pack() {
     local name path
     if want checks; then
         while read -r name path; do cp "$path" "$dir/checks/$name"; done <<<"$checks"
+        # The example's trained models, which the scene and embed checks load (beside
+        # tests/data, as HWSDF_TEST_DATA/../../examples/scene).
+        mkdir -p "$dir/examples/scene"
+        cp examples/scene/*.safetensors "$dir/examples/scene/"
     fi
     local exe exes=(gpu-info)
     if want fit; then exes+=(train eval); fi

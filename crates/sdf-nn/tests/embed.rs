@@ -732,13 +732,12 @@ fn scene_snippets_look_up_the_cpus_local_bounds() {
     use glam::Quat;
     use sdf_nn::serve::scene::{Scene, SceneNode, Transform};
     use std::sync::Arc;
-    let spot = Arc::new(
-        NeuralSdf::load(concat!(
-            env!("CARGO_MANIFEST_DIR"),
-            "/../../examples/scene/spot.nglod.safetensors"
-        ))
-        .unwrap(),
-    );
+    // Beside HWSDF_TEST_DATA (tests/data) where it is set, as in gpu-compare's pack.
+    let path = std::env::var_os("HWSDF_TEST_DATA")
+        .map(|data| std::path::PathBuf::from(data).join("../../examples/scene"))
+        .unwrap_or_else(|| concat!(env!("CARGO_MANIFEST_DIR"), "/../../examples/scene").into())
+        .join("spot.nglod.safetensors");
+    let spot = Arc::new(NeuralSdf::load(path).unwrap());
     let placed = Transform::new(Vec3::new(0.4, -0.3, 0.2), Quat::from_rotation_y(0.9), 0.5);
     let scene = Scene::new(SceneNode::Union(vec![
         SceneNode::model(spot.clone(), Transform::IDENTITY),
