@@ -1,9 +1,10 @@
 //! A batch's points grouped by cell on the GPU (`shaders/bin.wgsl`): a counting sort by the
 //! Morton code of each point's cell in a grid over a box (about one cell per point, at most
-//! 64³), recorded before a ground-truth kernel, which then takes its points in that order. Neighbouring invocations query
-//! neighbouring points, so a SIMD group walks mostly the same nodes: on a GPU, random points
-//! make each group of 32 pay for 32 different walks. The points never leave the GPU (the
-//! training draw's), and a large batch costs no host sort (the `sdf` command's).
+//! 64³), recorded before a ground-truth kernel, which then takes its points in that order.
+//! Neighbouring invocations query neighbouring points, so a SIMD group walks mostly the same
+//! nodes: on a GPU, random points make each group of 32 pay for 32 different walks. The
+//! points never leave the GPU (the training draw's), and a large batch costs no host sort (the
+//! `sdf` command's).
 
 use glam::{DVec3, Vec3};
 use rayon::prelude::*;

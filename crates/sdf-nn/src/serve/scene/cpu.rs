@@ -419,16 +419,18 @@ impl Scene {
                 })
                 .collect();
         }
-        let t: Vec<f64> = march.iter().map(|m| m.t).collect();
         let hits: Vec<usize> = (0..rays.len()).filter(|&i| hit[i]).collect();
-        let points: Vec<DVec3> = hits.iter().map(|&i| origins[i] + dirs[i] * t[i]).collect();
+        let points: Vec<DVec3> = hits
+            .iter()
+            .map(|&i| origins[i] + dirs[i] * march[i].t)
+            .collect();
         let mut out = vec![None; rays.len()];
         for (&i, (v, p)) in hits
             .iter()
             .zip(self.evaluate(&points, true).into_iter().zip(points))
         {
             out[i] = Some(RayHit {
-                t: t[i] as f32,
+                t: march[i].t as f32,
                 point: p.as_vec3(),
                 normal: v.g.normalize_or(-dirs[i]).as_vec3(),
                 leaf: v.leaf as usize,
@@ -653,9 +655,7 @@ impl Scene {
         let LeafKind::Model(m) = self.leaves()[leaf].kind else {
             return 1.0;
         };
-        let Some(local) = self.model_local_lipschitz(m) else {
-            return 1.0;
-        };
+        let local = self.model_local_lipschitz(m).expect("a model of the scene");
         let normalization = self.models()[m].normalization();
         let q = normalization.to_normalized_f64(placed.to_local(p));
         // Scene units → the model's mesh units → its normalised units.

@@ -96,6 +96,9 @@ pub enum SceneGpuError {
 pub(crate) struct Packing {
     /// Per model: (parameter buffer, first element).
     params: Vec<(usize, u64)>,
+    /// Per model: the first element of its local Lipschitz tables, after its weights in the
+    /// same buffer.
+    lipschitz: Vec<u64>,
     /// Per model: (table buffer, first element), for NGLOD models with sparse levels.
     tables: Vec<Option<(usize, u64)>>,
     /// Elements of each parameter buffer.
@@ -168,11 +171,18 @@ impl Scene {
             .collect();
         let (params, param_buffers) = pack(&param_lengths, limit)?;
         let (tables, table_buffers) = pack(&table_lengths, limit)?;
+        let params: Vec<(usize, u64)> = params
+            .into_iter()
+            .map(|p| p.expect("every model"))
+            .collect();
+        let lipschitz = params
+            .iter()
+            .zip(&weights)
+            .map(|(&(_, offset), (p, _))| offset + p.len() as u64)
+            .collect();
         Ok(Packing {
-            params: params
-                .into_iter()
-                .map(|p| p.expect("every model"))
-                .collect(),
+            params,
+            lipschitz,
             tables,
             param_lengths: param_buffers,
             table_lengths: table_buffers,
@@ -285,14 +295,13 @@ impl Scene {
                 UP = prefix.to_ascii_uppercase(),
                 lo = lit(self.phi_floor(i)),
             );
-            let plen = wgsl::weights(model.network()).0.len() as u64;
-            self.lipschitz_function(&mut s, prefix, i, (buffer, offset + plen));
+            self.lipschitz_function(&mut s, prefix, i, (buffer, packing.lipschitz[i]));
         }
         s.push_str(&wgsl::rename(PRIMITIVES, prefix));
         let _ = writeln!(
             s,
-            "// A floor of a model's term of the tracer's bound, g / L for a local bound L in
-             // [1, its estimate] (inv: 1 / the estimate), from a floor g of its value less the level.
+            "// A floor of a model's term of the tracer's bound, g / L for a local bound L in\n\
+             // [1, its estimate] (inv: 1 / the estimate), from a floor g of its value less the level.\n\
              fn {prefix}_term_floor(g: f32, inv: f32) -> f32 {{\n    return min(g * inv, g);\n}}"
         );
         let up = prefix.to_ascii_uppercase();
@@ -903,6 +912,7 @@ impl Scene {
             let (k, offset) = packing.params[i];
             debug_assert_eq!(params[k].len() as u64, offset);
             params[k].extend_from_slice(p);
+            debug_assert_eq!(params[k].len() as u64, packing.lipschitz[i]);
             let (cells, blocks) = self.lipschitz_tables(i);
             params[k].extend(cells.into_iter().chain(blocks));
             if let Some((k, offset)) = packing.tables[i] {

@@ -529,34 +529,25 @@ impl Scene {
     }
 
     /// What the ray tracer's step needs of each instruction of [`Scene::program`] (see
-    /// [`Scene::trace_rays`]): the Lipschitz bound of its sub-tree (1 for a
-    /// primitive, the model's estimate for a model, the largest of its children's above), and
-    /// whether its value is traced against `−c` instead of `c` (an odd number of subtracted
-    /// operands of differences above it). Measures the models not measured yet.
+    /// [`Scene::trace_rays`]): where its sub-tree starts (its models' local Lipschitz bounds
+    /// bound its slope near a point), and whether its value is traced against `−c` instead of
+    /// `c` (an odd number of subtracted operands of differences above it).
     pub fn trace_plan(&self) -> Vec<TraceStep> {
         let program = &self.program;
-        // Forward: each sub-tree's first instruction and Lipschitz bound.
+        // Forward: each sub-tree's first instruction.
         let mut start = vec![0usize; program.len()];
-        let mut lipschitz = vec![1.0f32; program.len()];
         let mut stack: Vec<usize> = Vec::new();
         for (i, instruction) in program.iter().enumerate() {
-            match *instruction {
-                Instruction::Leaf(l) => {
-                    start[i] = i;
-                    lipschitz[i] = self.leaf_lipschitz(l as usize);
-                }
+            start[i] = match *instruction {
+                Instruction::Leaf(_) => i,
                 Instruction::Offset(_) | Instruction::Shell(_) => {
-                    let a = stack.pop().expect("balanced");
-                    (start[i], lipschitz[i]) = (start[a], lipschitz[a]);
+                    start[stack.pop().expect("balanced")]
                 }
                 _ => {
-                    let (b, a) = (
-                        stack.pop().expect("balanced"),
-                        stack.pop().expect("balanced"),
-                    );
-                    (start[i], lipschitz[i]) = (start[a], lipschitz[a].max(lipschitz[b]));
+                    stack.pop().expect("balanced");
+                    start[stack.pop().expect("balanced")]
                 }
-            }
+            };
             stack.push(i);
         }
         // Backward: the level's sign, from the root down (children come before parents).
@@ -576,15 +567,10 @@ impl Scene {
                 flipped[start[last] - 1] = flipped[i];
             }
         }
-        lipschitz
+        flipped
             .into_iter()
-            .zip(flipped)
             .zip(start)
-            .map(|((lipschitz, flipped), first)| TraceStep {
-                lipschitz,
-                flipped,
-                first,
-            })
+            .map(|(flipped, first)| TraceStep { flipped, first })
             .collect()
     }
 }
@@ -592,9 +578,6 @@ impl Scene {
 /// One instruction's part in the ray tracer's step (see [`Scene::trace_plan`]).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct TraceStep {
-    /// The Lipschitz bound of the instruction's sub-tree over the models' whole boxes (at
-    /// least 1); near a point the tracer divides by the models' local bounds instead.
-    pub lipschitz: f32,
     /// Whether its value is traced against `−c` (under a difference's subtracted operand).
     pub flipped: bool,
     /// The sub-tree's first instruction: it is `program[first..=i]`, its leaves those pushed
