@@ -251,6 +251,26 @@ fn eval_on_device(
     )
 }
 
+/// A caller's compute entry point `eval_points` over its points and results at group 0, running
+/// `body` for each point `i` (WGSL statements; `points[i]` its input, `results[i]` its output).
+fn point_kernel(body: &str) -> String {
+    format!(
+        r#"
+@group(0) @binding(0) var<storage, read> points: array<vec4<f32>>;
+@group(0) @binding(1) var<storage, read_write> results: array<vec4<f32>>;
+
+@compute @workgroup_size(64)
+fn eval_points(@builtin(global_invocation_id) gid: vec3<u32>) {{
+    let i = gid.x;
+    if i >= arrayLength(&points) {{
+        return;
+    }}
+{body}
+}}
+"#
+    )
+}
+
 /// Runs the compute entry point `eval_points` of `source` over `pts`: the caller's points and
 /// results at group 0 (`vec4` each), the models' bind groups at groups 1, 2, ….
 fn run_user_shader(
@@ -378,23 +398,13 @@ fn two_prefixed_models_share_one_shader() {
         5,
     );
     let right = nglod(sparse_small(), 6, None);
-    let user = r#"
-@group(0) @binding(0) var<storage, read> points: array<vec4<f32>>;
-@group(0) @binding(1) var<storage, read_write> results: array<vec4<f32>>;
-
-@compute @workgroup_size(64)
-fn eval_points(@builtin(global_invocation_id) gid: vec3<u32>) {
-    let i = gid.x;
-    if i >= arrayLength(&points) {
-        return;
-    }
-    let p = points[i].xyz;
-    let a = left_distance(p);
-    let b = right_2_distance(p);
-    let n = left_normal(p) + right_2_normal(p);
-    results[i] = vec4<f32>(a, b, min(a, b), n.x * 0.0 + a - b);
-}
-"#;
+    let user = point_kernel(
+        "let p = points[i].xyz;\n\
+         let a = left_distance(p);\n\
+         let b = right_2_distance(p);\n\
+         let n = left_normal(p) + right_2_normal(p);\n\
+         results[i] = vec4<f32>(a, b, min(a, b), n.x * 0.0 + a - b);",
+    );
     let source = format!(
         "{}\n{}\n{user}",
         left.wgsl_with_prefix(1, "left").unwrap(),
@@ -656,21 +666,11 @@ fn two_prefixed_scenes_and_a_model_share_one_shader() {
         ),
     ]))
     .unwrap();
-    let user = r#"
-@group(0) @binding(0) var<storage, read> points: array<vec4<f32>>;
-@group(0) @binding(1) var<storage, read_write> results: array<vec4<f32>>;
-
-@compute @workgroup_size(64)
-fn eval_points(@builtin(global_invocation_id) gid: vec3<u32>) {
-    let i = gid.x;
-    if i >= arrayLength(&points) {
-        return;
-    }
-    let p = points[i].xyz;
-    let n = city_normal(p);
-    results[i] = vec4<f32>(city_distance(p), robot_distance(p), single_distance(p), dot(n, n));
-}
-"#;
+    let user = point_kernel(
+        "let p = points[i].xyz;\n\
+         let n = city_normal(p);\n\
+         results[i] = vec4<f32>(city_distance(p), robot_distance(p), single_distance(p), dot(n, n));",
+    );
     let gpu = gpu();
     let limits = gpu.device().limits();
     let source = format!(
@@ -744,20 +744,10 @@ fn scene_snippets_look_up_the_cpus_local_bounds() {
         SceneNode::model(spot.clone(), placed),
     ]))
     .unwrap();
-    let user = r#"
-@group(0) @binding(0) var<storage, read> points: array<vec4<f32>>;
-@group(0) @binding(1) var<storage, read_write> results: array<vec4<f32>>;
-
-@compute @workgroup_size(64)
-fn eval_points(@builtin(global_invocation_id) gid: vec3<u32>) {
-    let i = gid.x;
-    if i >= arrayLength(&points) {
-        return;
-    }
-    let q = points[i];
-    results[i] = vec4<f32>(s_m0_lip(q.xyz, q.w), s_leaf_1_lip(q.xyz, q.w), 0.0, 0.0);
-}
-"#;
+    let user = point_kernel(
+        "let q = points[i];\n\
+         results[i] = vec4<f32>(s_m0_lip(q.xyz, q.w), s_leaf_1_lip(q.xyz, q.w), 0.0, 0.0);",
+    );
     let gpu = gpu();
     let limits = gpu.device().limits();
     let source = format!(

@@ -853,6 +853,32 @@ mod tests {
         }
     }
 
+    /// Renders `options` accelerated, then plainly: the plain image's pixels off the background,
+    /// and the pixels off it in one image only.
+    fn hits_with_and_without_acceleration(
+        gpu: &GpuContext,
+        renderer: &mut Renderer,
+        options: &RenderOptions,
+    ) -> (usize, usize) {
+        renderer.set_accelerated(true);
+        let fast = renderer.render(gpu, options).unwrap();
+        renderer.set_accelerated(false);
+        let plain = renderer.render(gpu, options).unwrap();
+        let background = options
+            .background
+            .to_array()
+            .map(|c| (c * 255.0).round() as u8);
+        let hit = |p: &[u8]| p != background;
+        let plain_hits = plain.pixels.chunks(4).filter(|p| hit(p)).count();
+        let sides = fast
+            .pixels
+            .chunks(4)
+            .zip(plain.pixels.chunks(4))
+            .filter(|(a, b)| hit(a) != hit(b))
+            .count();
+        (plain_hits, sides)
+    }
+
     /// Over-relaxed steps do not jump over a sheet of zero thickness (the unsigned distance to
     /// a square in z = 0, met head-on, where the free spheres of the points before and after it
     /// only touch): the hits and misses of the plain trace, but for a few on its rim.
@@ -880,24 +906,8 @@ mod tests {
             step_scale: 1.0,
             ..RenderOptions::default()
         };
-        let fast = renderer.render(gpu, &options).unwrap();
-        renderer.set_accelerated(false);
-        let plain = renderer.render(gpu, &options).unwrap();
-        let background = options
-            .background
-            .to_array()
-            .map(|c| (c * 255.0).round() as u8);
-        let hits = |image: &super::RgbaImage| {
-            image
-                .pixels
-                .chunks(4)
-                .map(|p| p != background)
-                .collect::<Vec<bool>>()
-        };
-        let (fast, plain) = (hits(&fast), hits(&plain));
-        let on = plain.iter().filter(|&&h| h).count();
+        let (on, sides) = hits_with_and_without_acceleration(gpu, &mut renderer, &options);
         assert!(on > 500, "{on} pixels on the sheet");
-        let sides = fast.iter().zip(&plain).filter(|(a, b)| a != b).count();
         assert!(sides * 50 <= on, "{sides} pixels hit on one side only");
     }
 
@@ -935,22 +945,7 @@ mod tests {
             pitch_degrees: 5.0,
             ..RenderOptions::default()
         };
-        let fast = renderer.render(gpu, &options).unwrap();
-        renderer.set_accelerated(false);
-        let plain = renderer.render(gpu, &options).unwrap();
-        let hit = |p: &[u8]| {
-            p != options
-                .background
-                .to_array()
-                .map(|c| (c * 255.0).round() as u8)
-        };
-        let plain_hits = plain.pixels.chunks(4).filter(|p| hit(p)).count();
-        let sides = fast
-            .pixels
-            .chunks(4)
-            .zip(plain.pixels.chunks(4))
-            .filter(|(a, b)| hit(a) != hit(b))
-            .count();
+        let (plain_hits, sides) = hits_with_and_without_acceleration(gpu, &mut renderer, &options);
         assert!(
             plain_hits > 1500,
             "{plain_hits} pixels on the plates and the slab"

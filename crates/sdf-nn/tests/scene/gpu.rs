@@ -15,8 +15,8 @@ use sdf_nn::serve::scene::{
 use sdf_nn::{NeuralSdf, Nglod, NglodConfig, Normalization};
 
 use crate::models::{hashed_sphere_model, sphere_model};
-use crate::random_points;
 use crate::sphere_at;
+use crate::{random_points, shared_hits};
 
 fn gpu() -> &'static GpuContext {
     GpuContext::shared().expect("a GPU adapter (lavapipe in CI)")
@@ -180,43 +180,36 @@ fn analytic_rays_and_closest_points_match_the_cpu() {
     };
     let cpu = scene.trace_rays(&rays, &options).unwrap();
     let gpu_hits = on_gpu.trace_rays(&rays, &options).unwrap();
-    let mut hits = 0;
-    for (i, (c, g)) in cpu.iter().zip(&gpu_hits).enumerate() {
-        match (c, g) {
-            (Some(c), Some(g)) => {
-                hits += 1;
-                assert!(
-                    (c.t - g.t).abs() < 2e-3 * (1.0 + c.t),
-                    "ray {i}: t {} vs {}",
-                    g.t,
-                    c.t
-                );
-                assert!(
-                    c.point.abs_diff_eq(g.point, 1e-2),
-                    "ray {i}: point {} vs {}",
-                    g.point,
-                    c.point
-                );
-                // The hit point's distance on the CPU is the level within the tolerance.
-                let d = scene.distance(g.point, options.level);
-                assert!(
-                    d.abs() < 2e-3,
-                    "ray {i}: GPU hit at distance {d} from the level set"
-                );
-                if c.leaf == g.leaf && (c.t - g.t).abs() < 1e-4 {
-                    assert!(
-                        c.normal.abs_diff_eq(g.normal, 2e-2),
-                        "ray {i}: normal {} vs {}",
-                        g.normal,
-                        c.normal
-                    );
-                }
-            }
-            (None, None) => {}
-            (c, g) => panic!("ray {i}: CPU {c:?}, GPU {g:?}"),
+    let hits = shared_hits(&cpu, &gpu_hits, "CPU against GPU");
+    for &(i, c, g) in &hits {
+        assert!(
+            (c.t - g.t).abs() < 2e-3 * (1.0 + c.t),
+            "ray {i}: t {} vs {}",
+            g.t,
+            c.t
+        );
+        assert!(
+            c.point.abs_diff_eq(g.point, 1e-2),
+            "ray {i}: point {} vs {}",
+            g.point,
+            c.point
+        );
+        // The hit point's distance on the CPU is the level within the tolerance.
+        let d = scene.distance(g.point, options.level);
+        assert!(
+            d.abs() < 2e-3,
+            "ray {i}: GPU hit at distance {d} from the level set"
+        );
+        if c.leaf == g.leaf && (c.t - g.t).abs() < 1e-4 {
+            assert!(
+                c.normal.abs_diff_eq(g.normal, 2e-2),
+                "ray {i}: normal {} vs {}",
+                g.normal,
+                c.normal
+            );
         }
     }
-    assert!(hits > 100, "only {hits} of 500 rays hit");
+    assert!(hits.len() > 100, "only {} of 500 rays hit", hits.len());
 
     let project = ProjectOptions {
         level: 0.05,
@@ -339,24 +332,17 @@ fn placed_models_match_the_cpu_on(kernel: QueryKernel) {
         scene.trace_rays(&rays, &options).unwrap(),
         on_gpu.trace_rays(&rays, &options).unwrap(),
     );
-    let mut hits = 0;
-    for (i, (c, g)) in cpu.iter().zip(&gpu_hits).enumerate() {
-        match (c, g) {
-            (Some(c), Some(g)) => {
-                hits += 1;
-                assert!(
-                    (c.t - g.t).abs() < 1e-3 * (1.0 + c.t),
-                    "ray {i}: t {} vs {}",
-                    g.t,
-                    c.t
-                );
-                assert_eq!(c.leaf, g.leaf, "ray {i}");
-            }
-            (None, None) => {}
-            (c, g) => panic!("ray {i}: CPU {c:?}, GPU {g:?}"),
-        }
+    let hits = shared_hits(&cpu, &gpu_hits, "CPU against GPU");
+    for &(i, c, g) in &hits {
+        assert!(
+            (c.t - g.t).abs() < 1e-3 * (1.0 + c.t),
+            "ray {i}: t {} vs {}",
+            g.t,
+            c.t
+        );
+        assert_eq!(c.leaf, g.leaf, "ray {i}");
     }
-    assert!(hits > 40, "only {hits} of 200 rays hit");
+    assert!(hits.len() > 40, "only {} of 200 rays hit", hits.len());
     let points = random_points(300, 4.0, 9);
     let options = ProjectOptions::default();
     for (i, g) in on_gpu
@@ -514,19 +500,14 @@ fn eight_threads_query_one_scene() {
                             .collect();
                         let want = scene.trace_rays(&rays, &TraceOptions::default()).unwrap();
                         let got = on_gpu.trace_rays(&rays, &TraceOptions::default()).unwrap();
-                        for (i, (g, w)) in got.iter().zip(&want).enumerate() {
-                            match (g, w) {
-                                (Some(g), Some(w)) => assert!(
-                                    (g.t - w.t).abs() < 1e-3 * (1.0 + w.t),
-                                    "thread {t} ray {i}: {} vs {}",
-                                    g.t,
-                                    w.t
-                                ),
-                                (None, None) => {}
-                                _ => panic!(
-                                    "thread {t} round {round} ray {i}: GPU {g:?} vs CPU {w:?}"
-                                ),
-                            }
+                        let what = format!("thread {t} round {round}, CPU against GPU");
+                        for (i, w, g) in shared_hits(&want, &got, &what) {
+                            assert!(
+                                (g.t - w.t).abs() < 1e-3 * (1.0 + w.t),
+                                "thread {t} ray {i}: {} vs {}",
+                                g.t,
+                                w.t
+                            );
                         }
                         checked += got.len() + points.len();
                         round += 1;
@@ -607,23 +588,16 @@ fn unions_of_many_models_match_the_cpu() {
             scene.trace_rays(&rays, &options).unwrap(),
             on_gpu.trace_rays(&rays, &options).unwrap(),
         );
-        let mut hit = 0;
-        for (i, (c, g)) in cpu.iter().zip(&hits).enumerate() {
-            match (c, g) {
-                (Some(c), Some(g)) => {
-                    hit += 1;
-                    assert!(
-                        (c.t - g.t).abs() < 1e-3 * (1.0 + c.t),
-                        "ray {i}: {} vs {}",
-                        g.t,
-                        c.t
-                    );
-                }
-                (None, None) => {}
-                _ => panic!("ray {i}: CPU {c:?}, GPU {g:?}"),
-            }
+        let shared = shared_hits(&cpu, &hits, "CPU against GPU");
+        for &(i, c, g) in &shared {
+            assert!(
+                (c.t - g.t).abs() < 1e-3 * (1.0 + c.t),
+                "ray {i}: {} vs {}",
+                g.t,
+                c.t
+            );
         }
-        assert!(hit > 50, "{hit} of 300 rays hit");
+        assert!(shared.len() > 50, "{} of 300 rays hit", shared.len());
     }
 }
 

@@ -11,7 +11,8 @@ use glam::{Quat, Vec3};
 use rand::{Rng, SeedableRng};
 use rand_pcg::Pcg64;
 use sdf_nn::serve::scene::{
-    Primitive, ProjectOptions, Ray, Scene, SceneNode, SceneQueryError, TraceOptions, Transform,
+    Primitive, ProjectOptions, Ray, RayHit, Scene, SceneNode, SceneQueryError, TraceOptions,
+    Transform,
 };
 
 mod files;
@@ -24,6 +25,25 @@ pub(crate) fn sphere_at(center: Vec3, radius: f32) -> SceneNode {
         Primitive::Sphere { radius },
         Transform::from_translation(center),
     )
+}
+
+/// The hits that two traces of the same rays share, as (ray, `want`'s hit, `got`'s hit);
+/// panics, naming `what` and the ray, where one of them hits and the other does not.
+pub(crate) fn shared_hits<'a>(
+    want: &'a [Option<RayHit>],
+    got: &'a [Option<RayHit>],
+    what: &str,
+) -> Vec<(usize, &'a RayHit, &'a RayHit)> {
+    assert_eq!(want.len(), got.len(), "{what}: rays traced");
+    want.iter()
+        .zip(got)
+        .enumerate()
+        .filter_map(|(i, pair)| match pair {
+            (Some(w), Some(g)) => Some((i, w, g)),
+            (None, None) => None,
+            (w, g) => panic!("{what}, ray {i}: {w:?} against {g:?}"),
+        })
+        .collect()
 }
 
 pub(crate) fn random_points(n: usize, half: f32, seed: u64) -> Vec<Vec3> {

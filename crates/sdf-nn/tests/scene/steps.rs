@@ -16,7 +16,7 @@ use sdf_nn::serve::scene::{
 };
 use sdf_nn::{NeuralSdf, Nglod, Normalization};
 
-use crate::random_points;
+use crate::{random_points, shared_hits};
 
 /// The example's trained spot model (NGLOD `small`, 48 kB): a real network, whose slope is
 /// near 1 in most cells and near 2.4 in a few.
@@ -199,23 +199,16 @@ fn longer_steps_keep_every_hit() {
     let local_only = fast.trace_rays(&rays, &plain_options).unwrap();
     let hits = fast.trace_rays(&rays, &options).unwrap();
     for (name, got) in [("local bounds", &local_only), ("and over-relaxed", &hits)] {
-        let mut both = 0;
-        for (i, (want, got)) in reference.iter().zip(got).enumerate() {
-            match (want, got) {
-                (Some(want), Some(got)) => {
-                    both += 1;
-                    assert!(
-                        (want.t - got.t).abs() < 1e-3 * (1.0 + want.t),
-                        "{name}, ray {i}: t {} against {}",
-                        got.t,
-                        want.t
-                    );
-                }
-                (None, None) => {}
-                other => panic!("{name}, ray {i}: {other:?}"),
-            }
+        let both = shared_hits(&reference, got, name);
+        for &(i, want, got) in &both {
+            assert!(
+                (want.t - got.t).abs() < 1e-3 * (1.0 + want.t),
+                "{name}, ray {i}: t {} against {}",
+                got.t,
+                want.t
+            );
         }
-        assert!(both > 200, "{name}: {both} hits");
+        assert!(both.len() > 200, "{name}: {} hits", both.len());
     }
     let (before, local, after) = (
         mean_steps(&reference),
@@ -234,20 +227,14 @@ fn longer_steps_keep_every_hit() {
         }
         let gpu_hits = on_gpu.trace_rays(&rays, &options).unwrap();
         let mut same_steps = 0;
-        for (i, (c, g)) in hits.iter().zip(&gpu_hits).enumerate() {
-            match (c, g) {
-                (Some(c), Some(g)) => {
-                    assert!(
-                        (c.t - g.t).abs() < 1e-3 * (1.0 + c.t),
-                        "{kernel:?}, ray {i}: t {} against the CPU's {}",
-                        g.t,
-                        c.t
-                    );
-                    same_steps += usize::from(c.steps == g.steps);
-                }
-                (None, None) => {}
-                other => panic!("{kernel:?}, ray {i}: {other:?}"),
-            }
+        for (i, c, g) in shared_hits(&hits, &gpu_hits, &format!("{kernel:?}")) {
+            assert!(
+                (c.t - g.t).abs() < 1e-3 * (1.0 + c.t),
+                "{kernel:?}, ray {i}: t {} against the CPU's {}",
+                g.t,
+                c.t
+            );
+            same_steps += usize::from(c.steps == g.steps);
         }
         let hit_count = hits.iter().flatten().count();
         // All 370 measured on lavapipe; f32 and f64 may decide a rare ball check apart.
@@ -342,16 +329,12 @@ fn over_relaxed_steps_keep_thin_plates_and_ends() {
             .unwrap()
             .trace_rays(&rays, &options)
             .unwrap();
-        for (i, ((w, g), h)) in want.iter().zip(&got).zip(&on_gpu).enumerate() {
-            for (who, got) in [("CPU", g), ("GPU", h)] {
-                match (w, got) {
-                    (Some(w), Some(g)) => assert!(
-                        (w.t - g.t).abs() < 1e-3 && w.leaf == g.leaf,
-                        "{who}, ω {omega}, ray {i}: {g:?} against {w:?}"
-                    ),
-                    (None, None) => {}
-                    other => panic!("{who}, ω {omega}, ray {i}: {other:?}"),
-                }
+        for (who, got) in [("CPU", &got), ("GPU", &on_gpu)] {
+            for (i, w, g) in shared_hits(&want, got, &format!("{who}, ω {omega}")) {
+                assert!(
+                    (w.t - g.t).abs() < 1e-3 && w.leaf == g.leaf,
+                    "{who}, ω {omega}, ray {i}: {g:?} against {w:?}"
+                );
             }
         }
     }
