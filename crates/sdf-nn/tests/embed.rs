@@ -726,9 +726,11 @@ fn two_prefixed_scenes_and_a_model_share_one_shader() {
 /// (`{prefix}_m0_lip`, normalised point and gap) and a leaf's (`{prefix}_leaf_1_lip`, a point
 /// and a gap in scene units, the leaf turned, moved and at half scale), at points inside and
 /// outside the box, with gaps from tiny (the cell's bound) to large (the block's, then the
-/// estimate).
+/// estimate). In the same shader, the culling's floors: the model's cell floor
+/// (`{prefix}_m0_floor`, against `CellFloors::at`) and the placed leaf's lower bound
+/// (`{prefix}_leaf_1_lb`), which lies below the leaf's value everywhere.
 #[test]
-fn scene_snippets_look_up_the_cpus_local_bounds() {
+fn scene_snippets_look_up_the_cpus_local_bounds_and_floors() {
     use glam::Quat;
     use sdf_nn::serve::scene::{Scene, SceneNode, Transform};
     use std::sync::Arc;
@@ -746,7 +748,8 @@ fn scene_snippets_look_up_the_cpus_local_bounds() {
     .unwrap();
     let user = point_kernel(
         "let q = points[i];\n\
-         results[i] = vec4<f32>(s_m0_lip(q.xyz, q.w), s_leaf_1_lip(q.xyz, q.w), 0.0, 0.0);",
+         results[i] = vec4<f32>(s_m0_lip(q.xyz, q.w), s_leaf_1_lip(q.xyz, q.w), \
+         s_m0_floor(clamp(q.xyz, vec3<f32>(-1.0), vec3<f32>(1.0))), s_leaf_1_lb(q.xyz));",
     );
     let gpu = gpu();
     let limits = gpu.device().limits();
@@ -799,5 +802,34 @@ fn scene_snippets_look_up_the_cpus_local_bounds() {
     assert!(
         below_estimate > 1000,
         "only {below_estimate} lookups below the estimate"
+    );
+    // The floors: the leaf's bound is (|x − c| + the floor at c) in normalised units, c the
+    // clamp of its normalised point x, in scene units.
+    let floors = scene.model_cell_floors(0).unwrap();
+    let points: Vec<Vec3> = inputs.iter().map(|i| Vec3::new(i[0], i[1], i[2])).collect();
+    let mesh: Vec<Vec3> = points
+        .iter()
+        .map(|&x| placed.rotation.inverse() * (x - placed.translation) / placed.scale)
+        .collect();
+    let values = spot.eval_cpu(&mesh);
+    let (mut floor_differ, mut lb_differ, mut above, mut tight) = (0, 0, 0, 0);
+    for (((x, mesh), value), o) in points.iter().zip(&mesh).zip(&values).zip(&out) {
+        let c = x.clamp(Vec3::NEG_ONE, Vec3::ONE);
+        floor_differ += usize::from(o[2] != floors.at(c));
+        let q = n.to_normalized(*mesh);
+        let qc = q.clamp(Vec3::NEG_ONE, Vec3::ONE);
+        let want = placed.scale * (q.distance(qc) + floors.at(qc)) / n.scale;
+        lb_differ += usize::from((o[3] - want).abs() > 1e-5 * (1.0 + want.abs()));
+        let value = placed.scale * value;
+        above += usize::from(o[3] > value + 1e-6);
+        // Two cells' sides (normalised), against the box's one floor's 0.4 plus the value.
+        tight += usize::from(value - o[3] < 0.2 * placed.scale / n.scale);
+    }
+    assert!(floor_differ <= 4, "{floor_differ} of 4000 floors differ");
+    assert!(lb_differ <= 4, "{lb_differ} of 4000 leaf floors differ");
+    assert_eq!(above, 0, "{above} leaf floors above the leaf's value");
+    assert!(
+        tight > 3600,
+        "only {tight} of 4000 leaf floors within 0.2 of the value"
     );
 }

@@ -281,12 +281,78 @@ fn lipschitz_estimates_bound_observed_slopes() {
     }
 }
 
+/// The per-cell floors the GPU's culling reads lie below the network at 2·10⁵ random points
+/// of its cube and on its cells' faces, for an exact sphere and the example's trained spot, and
+/// are tight: far from the surface they are within a few cells' slope of the value, where the
+/// box's one floor is not; and a point is never farther from a cell's nine samples than
+/// `COVER` (which half a cell's side was not).
+#[test]
+fn cell_floors_bound_the_network_tightly() {
+    use sdf_nn::serve::scene::lipschitz::{COVER, GRID};
+    let spot =
+        Arc::new(NeuralSdf::load(crate::steps::example_model("spot.nglod.safetensors")).unwrap());
+    for (name, model) in [("sphere", Arc::new(sphere_model(1.0))), ("spot", spot)] {
+        let scene = Scene::new(SceneNode::model(model.clone(), Transform::IDENTITY)).unwrap();
+        let floors = scene.model_cell_floors(0).unwrap();
+        let mut rng = Pcg64::seed_from_u64(41);
+        let h = 2.0 / GRID as f32;
+        let mut points: Vec<Vec3> = (0..200_000)
+            .map(|_| Vec3::from(std::array::from_fn(|_| rng.random_range(-1.0f32..1.0))))
+            .collect();
+        // Points on the cells' faces and edges, where two cells meet.
+        points.extend((0..20_000).map(|_| {
+            let on = |x: f32| ((x + 1.0) / h).round() * h - 1.0;
+            let p = Vec3::from(std::array::from_fn(|_| rng.random_range(-1.0f32..1.0)));
+            Vec3::new(on(p.x), p.y, on(p.z))
+        }));
+        let values = model.eval_cpu_normalized(&points);
+        let (mut below, mut far, mut far_gap) = (0, 0, 0.0f64);
+        for (p, v) in points.iter().zip(&values) {
+            let floor = floors.at(*p);
+            below += usize::from(*v < floor);
+            if *v > 0.3 {
+                far += 1;
+                far_gap += f64::from(v - floor);
+            }
+        }
+        assert_eq!(below, 0, "{name}: {below} values below their cell's floor");
+        let mean = far_gap / far as f64;
+        // Two cells of slope at the estimate's worst, against the box's floor (≤ 0).
+        assert!(
+            mean < 0.15,
+            "{name}: floors {mean} below the value far from the surface"
+        );
+        assert!(floors.min() <= values.iter().copied().fold(f32::INFINITY, f32::min));
+    }
+    // The covering radius: random points of a cell against its vertices and centre.
+    let mut rng = Pcg64::seed_from_u64(42);
+    let h = 2.0 / GRID as f32;
+    let farthest = (0..100_000)
+        .map(|_| {
+            let p = Vec3::from(std::array::from_fn(|_| rng.random_range(0.0..h)));
+            let centre = p.distance(Vec3::splat(h / 2.0));
+            (0..8)
+                .map(|c| {
+                    let v = Vec3::new((c >> 2) as f32, (c >> 1 & 1) as f32, (c & 1) as f32);
+                    p.distance(v * h)
+                })
+                .fold(centre, f32::min)
+        })
+        .fold(0.0f32, f32::max);
+    assert!(farthest <= COVER, "{farthest} > {COVER}");
+    assert!(
+        farthest > h / 2.0 * 1.05,
+        "{farthest}: half a side would do"
+    );
+}
+
 /// [`sdf_nn::serve::scene::lipschitz::SAFETY`], as f64.
 const SAFETY_FOR_TESTS: f64 = sdf_nn::serve::scene::lipschitz::SAFETY as f64;
 
 /// The value floor the GPU's culling uses lies below every value of the network on a grid
 /// finer than its own, and is tight (within a cell's worth of slope of the minimum); setting a
-/// Lipschitz bound measures it again.
+/// Lipschitz bound measures the cells' floors again (the smallest stays at the weights'
+/// interval bound, which for a baked sphere is its smallest stored value).
 #[test]
 fn value_floors_bound_the_network_tightly() {
     let model = Arc::new(sphere_model(1.0));
@@ -309,7 +375,13 @@ fn value_floors_bound_the_network_tightly() {
         "floor {floor} far below the minimum {min}"
     );
     assert!(scene.model_value_floor(1).is_none());
+    assert!(scene.model_cell_floors(1).is_none());
+    let before = scene.model_cell_floors(0).unwrap().clone();
     scene.set_model_lipschitz(0, 10.0).unwrap();
-    let lower = scene.model_value_floor(0).unwrap();
-    assert!(lower < floor - 0.2, "{lower} vs {floor}");
+    let after = scene.model_cell_floors(0).unwrap();
+    // A far cell: its nine samples less 10 instead of about 1.25 times the cover.
+    let corner = Vec3::splat(0.98);
+    let (was, is) = (before.at(corner), after.at(corner));
+    assert!(is < was - 0.25, "{is} vs {was}");
+    assert!(scene.model_value_floor(0).unwrap() >= floor - 1e-6);
 }

@@ -43,7 +43,7 @@ use glam::DMat3;
 use crate::gpu::GpuError;
 use crate::serve::scene::cpu::SceneQueryError;
 use crate::serve::scene::primitive::Primitive;
-use crate::serve::scene::trace_wgsl::{LIPSCHITZ_TABLES, gap};
+use crate::serve::scene::trace_wgsl::{LIPSCHITZ_TABLES, MODEL_TABLES, gap};
 use crate::serve::scene::tree::{Instruction, LeafKind, Scene, TraceStep};
 use crate::serve::wgsl::{self, EmbedError, Lanes, MAX_PREFIX};
 
@@ -96,8 +96,8 @@ pub enum SceneGpuError {
 pub(crate) struct Packing {
     /// Per model: (parameter buffer, first element).
     params: Vec<(usize, u64)>,
-    /// Per model: the first element of its local Lipschitz tables, after its weights in the
-    /// same buffer.
+    /// Per model: the first element of its local Lipschitz tables and value floors, after its
+    /// weights in the same buffer.
     lipschitz: Vec<u64>,
     /// Per model: (table buffer, first element), for NGLOD models with sparse levels.
     tables: Vec<Option<(usize, u64)>>,
@@ -160,10 +160,11 @@ impl Scene {
             .iter()
             .map(|m| wgsl::weights(m.network()))
             .collect();
-        // Each model's weights, then its local Lipschitz tables (`{prefix}_m{i}_lip`).
+        // Each model's weights, then its local Lipschitz tables (`{prefix}_m{i}_lip`) and
+        // value floors (`{prefix}_m{i}_floor`).
         let param_lengths: Vec<Option<u64>> = weights
             .iter()
-            .map(|(p, _)| Some((p.len() + LIPSCHITZ_TABLES) as u64))
+            .map(|(p, _)| Some((p.len() + MODEL_TABLES) as u64))
             .collect();
         let table_lengths: Vec<Option<u64>> = weights
             .iter()
@@ -288,14 +289,14 @@ impl Scene {
                 );
             }
             s.push_str(&snippet);
-            let _ = writeln!(
-                s,
-                "// A lower bound of the network's value over its cube (scene culling).\n\
-                 const {UP}_M{i}_PHI_LO: f32 = {lo};",
-                UP = prefix.to_ascii_uppercase(),
-                lo = lit(self.phi_floor(i)),
+            let tables = packing.lipschitz[i];
+            self.floor_function(
+                &mut s,
+                prefix,
+                i,
+                (buffer, tables + LIPSCHITZ_TABLES as u64),
             );
-            self.lipschitz_function(&mut s, prefix, i, (buffer, packing.lipschitz[i]));
+            self.lipschitz_function(&mut s, prefix, i, (buffer, tables));
         }
         s.push_str(&wgsl::rename(PRIMITIVES, prefix));
         let _ = writeln!(
@@ -311,17 +312,6 @@ impl Scene {
         self.program_functions(&mut s, prefix);
         let _ = writeln!(s, "// ---- end of HW SDF scene ----");
         s
-    }
-
-    /// The floor of model `m`'s network value that the culling uses: the tighter of the
-    /// weights' interval bound (rigorous, but loose for a trained NGLOD: −3.03 against a
-    /// smallest value of −0.40 for spot) and the sampled floor of
-    /// [`Scene::model_value_floor`] (a bound where the Lipschitz estimate is one).
-    fn phi_floor(&self, m: usize) -> f32 {
-        let model = &self.models()[m];
-        let interval = wgsl::phi_lower_bound(model.network(), model.lod());
-        self.model_value_floor(m)
-            .map_or(interval, |floor| interval.max(floor))
     }
 
     /// `{prefix}_leaf_{l}` (value, gradient and leaf in the scene's frame) and
@@ -380,14 +370,14 @@ impl Scene {
         };
         if let LeafKind::Model(m) = leaf.kind {
             // The model's value is (phi(c) + |x − c|) / scale at the normalised point x, c its
-            // clamp to the cube: at least (PHI_LO + |x − c|) / scale.
+            // clamp to the cube: at least (the floor of c's cell + |x − c|) / scale.
             let mp = format!("{up}_M{m}");
             let _ = write!(
                 s,
                 "fn {prefix}_leaf_{l}_lb(p: vec3<f32>) -> f32 {{\n\
                  \x20   let x = ({local} - {mp}_CENTER) * {mp}_SCALE;\n\
                  \x20   let c = clamp(x, vec3<f32>(-1.0), vec3<f32>(1.0));\n\
-                 \x20   return {up}_L{l}_S * (length(x - c) + {mp}_PHI_LO) / {mp}_SCALE;\n\
+                 \x20   return {up}_L{l}_S * (length(x - c) + {prefix}_m{m}_floor(c)) / {mp}_SCALE;\n\
                  }}\n\
                  // The model's local Lipschitz bound at p for a gap g (scene units), and g over it.\n\
                  fn {prefix}_leaf_{l}_lip(p: vec3<f32>, g: f32) -> f32 {{\n\
@@ -915,6 +905,8 @@ impl Scene {
             debug_assert_eq!(params[k].len() as u64, packing.lipschitz[i]);
             let (cells, blocks) = self.lipschitz_tables(i);
             params[k].extend(cells.into_iter().chain(blocks));
+            let floors = self.model_cell_floors(i).expect("a model of the scene");
+            params[k].extend_from_slice(floors.table());
             if let Some((k, offset)) = packing.tables[i] {
                 debug_assert_eq!(tables[k].len() as u64, offset);
                 tables[k].extend_from_slice(&t);
@@ -1000,8 +992,8 @@ mod tests {
             )
         };
         let models: Vec<_> = (0..3).map(|i| model(0.3 + 0.1 * i as f32)).collect();
-        // A model's weights and its local Lipschitz tables.
-        let bytes = 4 * (models[0].param_count() + LIPSCHITZ_TABLES) as u64;
+        // A model's weights and its tables.
+        let bytes = 4 * (models[0].param_count() + MODEL_TABLES) as u64;
         let scene = Scene::new(SceneNode::Union(
             models
                 .iter()

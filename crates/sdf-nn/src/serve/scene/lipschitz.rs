@@ -42,6 +42,9 @@
 //! NGLOD level finer than [`GRID`] cells, such as `default`'s sparse 48) is checked less
 //! closely in its gentle cells; [`crate::serve::scene::Scene::set_model_lipschitz`] turns the
 //! local bounds off with a bound the caller knows.
+//!
+//! **Floors.** The same samples' values give each cell of the [`GRID`]³ grid a floor of the
+//! network's value ([`CellFloors`]), which scenes cull models by.
 
 use glam::Vec3;
 use rayon::prelude::*;
@@ -81,18 +84,83 @@ fn global_estimate(points: &[Vec3], gradients: &[Vec3]) -> f32 {
     SAFETY * inside.max(outside).max(1.0)
 }
 
-/// A floor of `model`'s network value Φ over its normalised cube: the smallest value on the
-/// estimate's grid less `lipschitz` times the farthest any point of the cube is from the grid
-/// (half a cell's side, `1/GRID`: the grid holds the cells' vertices and centres). A bound
-/// wherever `lipschitz` bounds Φ's slope, which is what the ray tracer assumes of it; scenes
-/// take the tighter of it and the weights' interval bound to skip models far from a point.
-pub fn value_floor(model: &NeuralSdf, lipschitz: f32) -> f32 {
-    let values = model.eval_cpu_normalized(&sample_points());
-    let min = values
-        .par_iter()
-        .copied()
-        .reduce(|| f32::INFINITY, f32::min);
-    min - lipschitz / GRID as f32
+/// The farthest any point of a [`GRID`]³ cell is from the cell's vertices and centre, in
+/// normalised units: the covering radius of the body-centred cubic lattice, √5/4 of the cell's
+/// side (half the side was assumed before: a point such as a quarter of the way along a face's
+/// midline is farther from all nine).
+pub const COVER: f32 = 2.236_068 / 4.0 * (2.0 / GRID as f32);
+
+/// Floors of a model's network value Φ per cell of the [`GRID`]³ sample grid over its
+/// normalised box, for culling: a scene skips a model where the floor at a point says it
+/// cannot change a union, so where most of a scene's points are far from most of its models,
+/// most model evaluations are skipped (the box's one floor, −0.40 for the example's spot, skips
+/// none inside the box).
+///
+/// **How.** Each cell's floor is the smallest value at its nine samples of [`estimate`] (its
+/// vertices and its centre) less [`COVER`] times the local Lipschitz bound of the
+/// [`LOCAL_CELLS`]³ cell that holds it ([`LocalLipschitz`]): every point of the cell is within
+/// [`COVER`] of one of the nine, along a segment inside that cell. **What it guarantees**: a
+/// bound wherever the local bound bounds Φ's slope, which is what the ray tracer assumes of it.
+#[derive(Clone, Debug, PartialEq)]
+pub struct CellFloors {
+    /// Per cell (x major, then y, then z).
+    cells: Vec<f32>,
+}
+
+impl CellFloors {
+    /// Measures `model`'s floors with the slope bounds of `local` (its own, measured by
+    /// [`LocalLipschitz::measure`], or a bound the caller knows).
+    pub fn measure(model: &NeuralSdf, local: &LocalLipschitz) -> Self {
+        let values = model.eval_cpu_normalized(&sample_points());
+        let (g, s) = (GRID, GRID + 1);
+        let vertex = |x: usize, y: usize, z: usize| values[(x * s + y) * s + z];
+        let centres = &values[s * s * s..];
+        let per = GRID / LOCAL_CELLS;
+        let cells = (0..g * g * g)
+            .into_par_iter()
+            .map(|i| {
+                let (x, y, z) = (i / (g * g), i / g % g, i % g);
+                let mut min = centres[i];
+                for corner in 0..8 {
+                    let (dx, dy, dz) = (corner >> 2, corner >> 1 & 1, corner & 1);
+                    min = min.min(vertex(x + dx, y + dy, z + dz));
+                }
+                let n = LOCAL_CELLS;
+                let slope = local.cell[((x / per) * n + y / per) * n + z / per];
+                min - slope * COVER
+            })
+            .collect();
+        CellFloors { cells }
+    }
+
+    /// The floor at the normalised point `q` (its cell's; a point outside the box is
+    /// clamped to it, as a model's value outside its box is taken at the clamped point).
+    pub fn at(&self, q: Vec3) -> f32 {
+        let g = GRID as f32;
+        let c = ((q + Vec3::ONE) * (g / 2.0))
+            .floor()
+            .clamp(Vec3::ZERO, Vec3::splat(g - 1.0));
+        let n = GRID;
+        let index = (c.x as usize * n + c.y as usize) * n + c.z as usize;
+        self.cells[index.min(self.cells.len() - 1)]
+    }
+
+    /// The smallest floor: one floor for the whole box.
+    pub fn min(&self) -> f32 {
+        self.cells.iter().copied().fold(f32::INFINITY, f32::min)
+    }
+
+    /// Raises every floor to at least `floor` (another bound known to hold everywhere).
+    pub fn raise_to(&mut self, floor: f32) {
+        for c in &mut self.cells {
+            *c = c.max(floor);
+        }
+    }
+
+    /// The cells' floors (x major, then y, then z), in the model's buffers' order.
+    pub fn table(&self) -> &[f32] {
+        &self.cells
+    }
 }
 
 /// The grid's vertices and cell centres in `[-1, 1]³`.

@@ -1,16 +1,21 @@
 //! The tracer's terms in a scene's WGSL (`{prefix}_trace`): each instruction's free-ball radius
 //! from its models' local Lipschitz bounds ([`super::lipschitz::LocalLipschitz`]), the lookup
-//! functions of those bounds, and the tables they read after each model's weights. The CPU
-//! reference's twin is `trace_values` in [`super::cpu`].
+//! functions of those bounds and of the models' value floors that the culling reads
+//! ([`super::lipschitz::CellFloors`]), and the tables both read after each model's weights. The
+//! CPU reference's twin of the terms is `trace_values` in [`super::cpu`].
 
 use std::fmt::Write;
 
-use crate::serve::scene::lipschitz::LOCAL_CELLS;
+use crate::serve::scene::lipschitz::{GRID, LOCAL_CELLS};
 use crate::serve::scene::tree::{Instruction, LeafKind, Scene, TraceStep};
 use crate::serve::wgsl::lit;
 
 /// Floats of a model's local Lipschitz tables (cells and blocks) after its weights.
 pub(super) const LIPSCHITZ_TABLES: usize = 2 * LOCAL_CELLS * LOCAL_CELLS * LOCAL_CELLS;
+
+/// Floats of all a model's tables after its weights: the Lipschitz tables, then the value
+/// floors of its [`GRID`]³ cells.
+pub(super) const MODEL_TABLES: usize = LIPSCHITZ_TABLES + GRID * GRID * GRID;
 
 impl Scene {
     /// Instruction `v`'s term of the tracer's bound for its value `x` (WGSL): the value less
@@ -82,6 +87,27 @@ impl Scene {
         let (cells, blocks) = local.tables();
         let clamp = |t: &[f32]| t.iter().map(|b| b.max(1.0)).collect();
         (clamp(cells), clamp(blocks))
+    }
+
+    /// `{prefix}_m{m}_floor(x)`: [`CellFloors::at`] of model `m` at the normalised point `x`
+    /// in its cube, its table at `at` (buffer, element).
+    ///
+    /// [`CellFloors::at`]: super::lipschitz::CellFloors::at
+    pub(super) fn floor_function(&self, s: &mut String, prefix: &str, m: usize, at: (usize, u64)) {
+        let (buffer, offset) = at;
+        let _ = write!(
+            s,
+            "// Model {m}'s floor of its value over the cell of its {GRID}^3 grid that holds x (culling).\n\
+             fn {prefix}_m{m}_floor(x: vec3<f32>) -> f32 {{\n\
+             \x20   let c = clamp(floor((x + vec3<f32>(1.0)) * {half}), vec3<f32>(0.0), vec3<f32>({last}));\n\
+             \x20   // In range whatever a NaN made of c.\n\
+             \x20   let i = min((u32(c.x) * {GRID}u + u32(c.y)) * {GRID}u + u32(c.z), {last_cell}u);\n\
+             \x20   return {prefix}_params_{buffer}[{offset}u + i];\n\
+             }}\n",
+            half = lit(GRID as f32 / 2.0),
+            last = lit(GRID as f32 - 1.0),
+            last_cell = GRID * GRID * GRID - 1,
+        );
     }
 
     /// `{prefix}_m{m}_lip(x, g)`: [`LocalLipschitz::bound`] of model `m` at the normalised

@@ -60,7 +60,7 @@ use std::sync::{Arc, OnceLock};
 use glam::{Quat, Vec3};
 
 use crate::NeuralSdf;
-use crate::serve::scene::lipschitz::{self, LocalLipschitz};
+use crate::serve::scene::lipschitz::{CellFloors, LocalLipschitz};
 use crate::serve::scene::primitive::Primitive;
 
 /// The deepest tree [`Scene::new`] accepts (the root is depth 1).
@@ -419,8 +419,8 @@ pub struct Scene {
     models: Vec<Arc<NeuralSdf>>,
     /// Each model's Lipschitz estimate and local bounds, measured on first use.
     lipschitz: Vec<OnceLock<LocalLipschitz>>,
-    /// Each model's value floor ([`lipschitz::value_floor`]), measured on first use.
-    floors: Vec<OnceLock<f32>>,
+    /// Each model's value floors per cell ([`CellFloors`]), measured on first use.
+    floors: Vec<OnceLock<CellFloors>>,
     /// Each leaf's place in the tree.
     leaf_paths: Vec<String>,
     depth: usize,
@@ -483,13 +483,29 @@ impl Scene {
         Some(cell.get_or_init(|| LocalLipschitz::measure(&self.models[model])))
     }
 
-    /// A floor of model `model`'s network value over its normalised cube
-    /// ([`lipschitz::value_floor`] with [`Scene::model_lipschitz`]), measured on first call;
-    /// `None` for an index past [`Scene::models`].
+    /// A floor of model `model`'s network value over its normalised cube: the smallest of
+    /// [`Scene::model_cell_floors`]; `None` for an index past [`Scene::models`].
     pub fn model_value_floor(&self, model: usize) -> Option<f32> {
+        Some(self.model_cell_floors(model)?.min())
+    }
+
+    /// Floors of model `model`'s network value per cell of its normalised cube, which the
+    /// GPU's culling reads ([`CellFloors`], with [`Scene::model_local_lipschitz`]'s bounds;
+    /// raised to the weights' interval bound, rigorous but loose: −3.03 against a smallest
+    /// value of −0.40 for a trained spot), measured on first call; `None` for an index past
+    /// [`Scene::models`].
+    pub fn model_cell_floors(&self, model: usize) -> Option<&CellFloors> {
         let cell = self.floors.get(model)?;
-        let lipschitz = self.model_lipschitz(model)?;
-        Some(*cell.get_or_init(|| lipschitz::value_floor(&self.models[model], lipschitz)))
+        let local = self.model_local_lipschitz(model)?;
+        Some(cell.get_or_init(|| {
+            let network = &self.models[model];
+            let mut floors = CellFloors::measure(network, local);
+            floors.raise_to(crate::serve::wgsl::phi_lower_bound(
+                network.network(),
+                network.lod(),
+            ));
+            floors
+        }))
     }
 
     /// Replaces model `model`'s measured estimate by a bound the caller knows (finite, `> 0`),
