@@ -798,3 +798,142 @@ fn steps_follow_each_operands_own_bound() {
     }
     assert!(hits > 60, "{hits} of 150 rays hit");
 }
+
+/// Groups of models among leaves (a smooth-unioned pair, a model carved by a box, an offset
+/// union with a primitive, a shell), the groups first in the tree: the compiled program takes
+/// the union's leaves first and keeps the tree's leaf numbers, and the GPU code skips each
+/// group by its floor where it cannot change the union. Distances, gradients and deciding
+/// leaves, and rays at two levels agree with the CPU's, which evaluates everything.
+#[test]
+fn groups_of_models_skipped_by_their_floors_match_the_cpu() {
+    let model = Arc::new(sphere_model(1.0));
+    let spot =
+        Arc::new(NeuralSdf::load(crate::steps::example_model("spot.nglod.safetensors")).unwrap());
+    let at = |m: &Arc<NeuralSdf>, x: f32, z: f32, turn: f32| {
+        SceneNode::model(
+            m.clone(),
+            Transform::new(Vec3::new(x, 0.0, z), Quat::from_rotation_y(turn), 0.5),
+        )
+    };
+    let prim = |p, at: Vec3| SceneNode::primitive(p, Transform::from_translation(at));
+    let scene = Scene::new(SceneNode::Union(vec![
+        SceneNode::SmoothUnion {
+            k: 0.2,
+            children: vec![at(&spot, -3.0, -1.0, 0.3), at(&model, -2.4, -1.0, 0.0)],
+        },
+        SceneNode::Difference(vec![
+            at(&spot, 0.0, -1.2, 1.1),
+            prim(
+                Primitive::Box {
+                    half_extents: Vec3::splat(0.25),
+                },
+                Vec3::new(0.2, 0.3, -1.2),
+            ),
+        ]),
+        SceneNode::Offset {
+            r: 0.05,
+            child: Box::new(SceneNode::Union(vec![
+                at(&model, 2.5, -1.0, 0.0),
+                prim(Primitive::Sphere { radius: 0.3 }, Vec3::new(3.2, 0.0, -1.0)),
+            ])),
+        },
+        SceneNode::Shell {
+            t: 0.04,
+            child: Box::new(at(&spot, -1.5, 1.3, 2.0)),
+        },
+        at(&spot, 1.5, 1.3, -0.7),
+        prim(
+            Primitive::Box {
+                half_extents: Vec3::new(4.5, 0.05, 3.0),
+            },
+            Vec3::new(0.0, -0.6, 0.0),
+        ),
+    ]))
+    .unwrap();
+    // Leaves first: the last model, then the slab, then the groups; numbers in tree order.
+    use sdf_nn::serve::scene::Instruction;
+    assert_eq!(
+        &scene.program()[..3],
+        &[
+            Instruction::Leaf(7),
+            Instruction::Leaf(8),
+            Instruction::Union
+        ]
+    );
+    assert_eq!(scene.leaf_path(0), Some("root.children[0].children[0]"));
+    let wgsl = scene
+        .wgsl_with_prefix(0, "s", &gpu().device().limits())
+        .unwrap();
+    // Four groups in each of `s_distance`, `s_sample` and `s_trace`.
+    assert_eq!(wgsl.matches("where their floor says").count(), 12);
+    let on_gpu = GpuScene::new(gpu(), &scene).unwrap();
+    let points = random_points(3000, 4.0, 21);
+    for level in [0.0, 0.05] {
+        let cpu = scene.distances_and_gradients(&points, level);
+        let gpu_d = on_gpu.distances(&points, level).unwrap();
+        let gpu_s = on_gpu.samples(&points, level).unwrap();
+        let mut same_leaf = 0;
+        for (i, c) in cpu.iter().enumerate() {
+            let tol = 2e-5 * (1.0 + c.distance.abs());
+            assert!(
+                (gpu_d[i] - c.distance).abs() <= tol
+                    && (gpu_s[i].distance - c.distance).abs() <= tol,
+                "point {} at level {level}: {} and {} vs {}",
+                points[i],
+                gpu_d[i],
+                gpu_s[i].distance,
+                c.distance
+            );
+            if gpu_s[i].leaf == c.leaf {
+                same_leaf += 1;
+                assert!(
+                    gpu_s[i].gradient.abs_diff_eq(c.gradient, 1e-3),
+                    "gradient at {}: {} vs {}",
+                    points[i],
+                    gpu_s[i].gradient,
+                    c.gradient
+                );
+            }
+        }
+        assert!(
+            same_leaf > 2990,
+            "{same_leaf} of 3000 deciding leaves agree"
+        );
+        let rays: Vec<Ray> = random_points(300, 3.0, 22)
+            .into_iter()
+            .map(|t| Ray {
+                origin: Vec3::new(0.0, 6.0, 8.0),
+                direction: Vec3::new(t.x, -0.5, t.z * 0.5) - Vec3::new(0.0, 6.0, 8.0),
+                max_distance: 30.0,
+            })
+            .collect();
+        let options = TraceOptions {
+            level,
+            ..TraceOptions::default()
+        };
+        let cpu = scene.trace_rays(&rays, &options).unwrap();
+        let hits = on_gpu.trace_rays(&rays, &options).unwrap();
+        let shared = shared_hits(&cpu, &hits, "CPU against GPU");
+        let mut same_steps = 0;
+        for &(i, c, g) in &shared {
+            assert!(
+                (c.t - g.t).abs() < 1e-3 * (1.0 + c.t),
+                "ray {i}: {} vs {}",
+                g.t,
+                c.t
+            );
+            same_steps += usize::from(c.steps == g.steps);
+        }
+        // f32 and f64 may decide a rare ball check apart.
+        eprintln!(
+            "level {level}: {same_steps} of {} hits in the CPU's steps",
+            shared.len()
+        );
+        assert!(
+            same_steps * 50 >= shared.len() * 49,
+            "{same_steps} of {} hits in the CPU's steps",
+            shared.len()
+        );
+        assert!(shared.len() > 150, "{} of 300 rays hit", shared.len());
+    }
+}

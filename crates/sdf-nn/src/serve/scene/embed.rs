@@ -42,6 +42,7 @@ use glam::DMat3;
 
 use crate::gpu::GpuError;
 use crate::serve::scene::cpu::SceneQueryError;
+use crate::serve::scene::cull_wgsl::Program;
 use crate::serve::scene::primitive::Primitive;
 use crate::serve::scene::trace_wgsl::{LIPSCHITZ_TABLES, MODEL_TABLES, gap};
 use crate::serve::scene::tree::{Instruction, LeafKind, Scene, TraceStep};
@@ -409,55 +410,17 @@ impl Scene {
         let program = self.program();
         let plan = self.trace_plan();
         self.node_term_functions(s, prefix, &plan);
+        let subtrees = self.culled_subtrees(&plan);
         for kind in [Program::Distance, Program::Sample, Program::Trace] {
             let mut stack: Vec<usize> = Vec::new();
             let mut body = String::new();
-            let mut v = 0;
-            while v < program.len() {
-                if kind != Program::Sample
-                    && let Some((code, end, popped)) =
-                        self.leaf_union(prefix, v, &stack, kind, &plan)
-                {
-                    if popped {
-                        stack.pop();
-                    }
-                    body.push_str(&code);
-                    stack.push(end);
-                    v = end + 1;
-                    continue;
-                }
-                if let Some((code, skip)) = self.culled_union(prefix, v, &stack, kind, &plan) {
-                    stack.pop();
-                    body.push_str(&code);
-                    stack.push(v + skip);
-                    v += skip + 1;
-                    continue;
-                }
-                if kind == Program::Trace
-                    && let Some(bound) = sharp_bound(&program[v], &stack)
-                {
-                    let expr = distance_expression(prefix, &program[v], &mut stack);
-                    let _ = writeln!(body, "    let v{v} = {expr};\n    let t{v} = {bound};");
-                    stack.push(v);
-                    v += 1;
-                    continue;
-                }
-                let expr = if kind == Program::Sample {
-                    sample_expression(prefix, &program[v], &mut stack)
-                } else {
-                    distance_expression(prefix, &program[v], &mut stack)
-                };
-                let _ = writeln!(body, "    let v{v} = {expr};");
-                if kind == Program::Trace {
-                    let _ = writeln!(
-                        body,
-                        "    let t{v} = {};",
-                        self.trace_term(prefix, &format!("v{v}"), v, &plan)
-                    );
-                }
-                stack.push(v);
-                v += 1;
-            }
+            let code = Code {
+                prefix,
+                kind,
+                plan: &plan,
+                subtrees: &subtrees,
+            };
+            self.emit(&code, 0..program.len(), &mut stack, &mut body);
             let last = stack.pop().expect("a balanced program leaves one value");
             match kind {
                 Program::Sample => {
@@ -497,6 +460,79 @@ impl Scene {
              \x20   return vec3<f32>(0.0);\n\
              }}\n"
         );
+    }
+
+    /// Instructions `range` of the program as code appended to `body`, their operands taken
+    /// from and their results pushed on `stack` (variable numbers).
+    fn emit(
+        &self,
+        code: &Code<'_>,
+        range: std::ops::Range<usize>,
+        stack: &mut Vec<usize>,
+        body: &mut String,
+    ) {
+        let Code {
+            prefix,
+            kind,
+            plan,
+            subtrees,
+        } = *code;
+        let program = self.program();
+        let mut v = range.start;
+        while v < range.end {
+            if let Some(cull) = self.culled_subtree(prefix, v, stack, kind, plan, subtrees) {
+                stack.pop();
+                body.push_str(&cull.open);
+                self.emit(code, v..cull.end + 1, &mut Vec::new(), body);
+                body.push_str(&cull.close);
+                stack.push(cull.parent);
+                v = cull.parent + 1;
+                continue;
+            }
+
+            if kind != Program::Sample
+                && let Some((code, end, popped)) = self.leaf_union(prefix, v, stack, kind, plan)
+            {
+                if popped {
+                    stack.pop();
+                }
+                body.push_str(&code);
+                stack.push(end);
+                v = end + 1;
+                continue;
+            }
+            if let Some((code, skip)) = self.culled_union(prefix, v, stack, kind, plan) {
+                stack.pop();
+                body.push_str(&code);
+                stack.push(v + skip);
+                v += skip + 1;
+                continue;
+            }
+            if kind == Program::Trace
+                && let Some(bound) = sharp_bound(&program[v], stack)
+            {
+                let expr = distance_expression(prefix, &program[v], stack);
+                let _ = writeln!(body, "    let v{v} = {expr};\n    let t{v} = {bound};");
+                stack.push(v);
+                v += 1;
+                continue;
+            }
+            let expr = if kind == Program::Sample {
+                sample_expression(prefix, &program[v], stack)
+            } else {
+                distance_expression(prefix, &program[v], stack)
+            };
+            let _ = writeln!(body, "    let v{v} = {expr};");
+            if kind == Program::Trace {
+                let _ = writeln!(
+                    body,
+                    "    let t{v} = {};",
+                    self.trace_term(prefix, &format!("v{v}"), v, plan)
+                );
+            }
+            stack.push(v);
+            v += 1;
+        }
     }
 
     /// A union of leaves starting at `v` (`Leaf, Leaf, Union, Leaf, Union, …`, as the
@@ -696,15 +732,14 @@ impl Scene {
     }
 }
 
-/// Which of the scene's functions a program is generated for.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-enum Program {
-    /// `{prefix}_distance(p)`.
-    Distance,
-    /// `{prefix}_sample(p)`: value, gradient, leaf.
-    Sample,
-    /// `{prefix}_trace(p, c)`: `d − c` and the tracer's step bound (`t{i}` beside `v{i}`).
-    Trace,
+/// What the generator of one of the scene's functions carries down its sub-trees.
+#[derive(Clone, Copy)]
+struct Code<'a> {
+    prefix: &'a str,
+    kind: Program,
+    plan: &'a [TraceStep],
+    /// [`Scene::culled_subtrees`].
+    subtrees: &'a [Option<(usize, usize)>],
 }
 
 /// A sharp union's, intersection's or difference's bound from its operands' (the top two of

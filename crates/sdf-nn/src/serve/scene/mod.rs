@@ -31,6 +31,7 @@
 
 pub mod bounds;
 pub mod cpu;
+mod cull_wgsl;
 pub mod embed;
 pub mod file;
 pub mod gpu;

@@ -434,7 +434,7 @@ impl Scene {
         let lipschitz = c.models.iter().map(|_| OnceLock::new()).collect();
         let floors = c.models.iter().map(|_| OnceLock::new()).collect();
         Ok(Scene {
-            program: c.program,
+            program: leaves_first(&c.program),
             leaves: c.leaves,
             models: c.models,
             lipschitz,
@@ -550,22 +550,7 @@ impl Scene {
     /// `c` (an odd number of subtracted operands of differences above it).
     pub fn trace_plan(&self) -> Vec<TraceStep> {
         let program = &self.program;
-        // Forward: each sub-tree's first instruction.
-        let mut start = vec![0usize; program.len()];
-        let mut stack: Vec<usize> = Vec::new();
-        for (i, instruction) in program.iter().enumerate() {
-            start[i] = match *instruction {
-                Instruction::Leaf(_) => i,
-                Instruction::Offset(_) | Instruction::Shell(_) => {
-                    start[stack.pop().expect("balanced")]
-                }
-                _ => {
-                    stack.pop().expect("balanced");
-                    start[stack.pop().expect("balanced")]
-                }
-            };
-            stack.push(i);
-        }
+        let start = subtree_starts(program);
         // Backward: the level's sign, from the root down (children come before parents).
         let mut flipped = vec![false; program.len()];
         for i in (0..program.len()).rev() {
@@ -588,6 +573,80 @@ impl Scene {
             .zip(start)
             .map(|(flipped, first)| TraceStep { flipped, first })
             .collect()
+    }
+}
+
+/// Each instruction's sub-tree's first instruction: its sub-tree is `program[start..=i]`.
+fn subtree_starts(program: &[Instruction]) -> Vec<usize> {
+    let mut start = vec![0usize; program.len()];
+    let mut stack: Vec<usize> = Vec::new();
+    for (i, instruction) in program.iter().enumerate() {
+        start[i] = match *instruction {
+            Instruction::Leaf(_) => i,
+            Instruction::Offset(_) | Instruction::Shell(_) => start[stack.pop().expect("balanced")],
+            _ => {
+                stack.pop().expect("balanced");
+                start[stack.pop().expect("balanced")]
+            }
+        };
+        stack.push(i);
+    }
+    start
+}
+
+/// `program` with each chain of sharp unions taking its leaves first (in their order), then
+/// its other operands: `min` does not depend on the order, and the GPU code can skip a
+/// union's later operands where their floors say they cannot change it (a sub-tree first would
+/// always be evaluated). Leaf numbers stay those of the tree.
+fn leaves_first(program: &[Instruction]) -> Vec<Instruction> {
+    let start = subtree_starts(program);
+    let mut out = Vec::with_capacity(program.len());
+    if let Some(root) = program.len().checked_sub(1) {
+        emit_leaves_first(program, &start, root, &mut out);
+    }
+    out
+}
+
+/// Appends the sub-tree ending at `end`, its unions' leaves first.
+fn emit_leaves_first(
+    program: &[Instruction],
+    start: &[usize],
+    end: usize,
+    out: &mut Vec<Instruction>,
+) {
+    match program[end] {
+        Instruction::Leaf(_) => out.push(program[end]),
+        Instruction::Offset(_) | Instruction::Shell(_) => {
+            emit_leaves_first(program, start, end - 1, out);
+            out.push(program[end]);
+        }
+        Instruction::Union => {
+            // The chain's operands (each ends right before its union, the first before the
+            // deepest union), collected without recursing down the chain.
+            let mut operands = Vec::new();
+            let mut node = end;
+            while program[node] == Instruction::Union {
+                operands.push(node - 1);
+                node = start[node - 1] - 1;
+            }
+            operands.push(node);
+            operands.reverse();
+            let (leaves, others): (Vec<usize>, Vec<usize>) = operands
+                .into_iter()
+                .partition(|&o| matches!(program[o], Instruction::Leaf(_)));
+            for (k, operand) in leaves.into_iter().chain(others).enumerate() {
+                emit_leaves_first(program, start, operand, out);
+                if k > 0 {
+                    out.push(Instruction::Union);
+                }
+            }
+        }
+        binary => {
+            let last = end - 1;
+            emit_leaves_first(program, start, start[last] - 1, out);
+            emit_leaves_first(program, start, last, out);
+            out.push(binary);
+        }
     }
 }
 
@@ -875,6 +934,45 @@ mod tests {
         }
         assert_eq!(height, 1, "one value is left");
         most
+    }
+
+    /// A union's leaves come first, its sub-trees after them in their order, its nested
+    /// unions reordered the same way; other operators keep their operands' order, and leaves
+    /// their tree numbers.
+    #[test]
+    fn unions_take_their_leaves_first() {
+        use Instruction::*;
+        let scene = Scene::new(SceneNode::Union(vec![
+            SceneNode::Offset {
+                r: 0.1,
+                child: Box::new(ball(0.0)),
+            },
+            SceneNode::Union(vec![
+                SceneNode::Difference(vec![ball(1.0), ball(2.0)]),
+                ball(3.0),
+            ]),
+            ball(4.0),
+        ]))
+        .unwrap();
+        assert_eq!(
+            scene.program(),
+            &[
+                Leaf(4),
+                Leaf(0),
+                Offset(0.1),
+                Union,
+                Leaf(3),
+                Leaf(1),
+                Leaf(2),
+                Difference,
+                Union,
+                Union,
+            ]
+        );
+        assert_eq!(scene.leaf_path(3), Some("root.children[1].children[1]"));
+        // Without sub-trees, or with them last already, nothing moves.
+        let plain = Scene::new(SceneNode::Union(vec![ball(0.0), ball(1.0), ball(2.0)])).unwrap();
+        assert_eq!(plain.program(), &[Leaf(0), Leaf(1), Union, Leaf(2), Union]);
     }
 
     /// A shader can size its stack by the depth: wide n-ary nodes fold as they go, so the
