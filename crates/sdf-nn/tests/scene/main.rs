@@ -46,6 +46,33 @@ pub(crate) fn shared_hits<'a>(
         .collect()
 }
 
+/// The GPU's hits against the CPU's ([`shared_hits`]): each at the CPU's `t` within
+/// `10⁻³ (1 + t)`, and at least 49 in 50 after as many steps (f32 and f64 may decide a rare
+/// ball check apart). How many hits they share.
+pub(crate) fn hits_in_the_cpus_steps(
+    cpu: &[Option<RayHit>],
+    gpu: &[Option<RayHit>],
+    what: &str,
+) -> usize {
+    let shared = shared_hits(cpu, gpu, what);
+    let mut same_steps = 0;
+    for &(i, c, g) in &shared {
+        assert!(
+            (c.t - g.t).abs() < 1e-3 * (1.0 + c.t),
+            "{what}, ray {i}: t {} against the CPU's {}",
+            g.t,
+            c.t
+        );
+        same_steps += usize::from(c.steps == g.steps);
+    }
+    assert!(
+        same_steps * 50 >= shared.len() * 49,
+        "{what}: {same_steps} of {} hits in the CPU's steps",
+        shared.len()
+    );
+    shared.len()
+}
+
 pub(crate) fn random_points(n: usize, half: f32, seed: u64) -> Vec<Vec3> {
     let mut rng = Pcg64::seed_from_u64(seed);
     (0..n)

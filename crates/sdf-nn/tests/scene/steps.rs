@@ -16,7 +16,7 @@ use sdf_nn::serve::scene::{
 };
 use sdf_nn::{NeuralSdf, Nglod, Normalization};
 
-use crate::{random_points, shared_hits};
+use crate::{hits_in_the_cpus_steps, random_points, shared_hits};
 
 /// The example's trained spot model (NGLOD `small`, 48 kB): a real network, whose slope is
 /// near 1 in most cells and near 2.4 in a few.
@@ -226,22 +226,8 @@ fn longer_steps_keep_every_hit() {
             continue;
         }
         let gpu_hits = on_gpu.trace_rays(&rays, &options).unwrap();
-        let mut same_steps = 0;
-        for (i, c, g) in shared_hits(&hits, &gpu_hits, &format!("{kernel:?}")) {
-            assert!(
-                (c.t - g.t).abs() < 1e-3 * (1.0 + c.t),
-                "{kernel:?}, ray {i}: t {} against the CPU's {}",
-                g.t,
-                c.t
-            );
-            same_steps += usize::from(c.steps == g.steps);
-        }
-        let hit_count = hits.iter().flatten().count();
-        // All 370 measured on lavapipe; f32 and f64 may decide a rare ball check apart.
-        assert!(
-            same_steps * 50 >= hit_count * 49,
-            "{kernel:?}: {same_steps} of {hit_count} hits in the CPU's steps"
-        );
+        // All 370 in the CPU's steps on lavapipe.
+        hits_in_the_cpus_steps(&hits, &gpu_hits, &format!("{kernel:?}"));
     }
 }
 
