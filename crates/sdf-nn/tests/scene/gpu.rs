@@ -766,49 +766,59 @@ fn steps_follow_each_operands_own_bound() {
     assert!(hits > 60, "{hits} of 150 rays hit");
 }
 
-/// Groups of models among leaves (a smooth-unioned pair, a model carved by a box, an offset
-/// union with a primitive, a shell), the groups first in the tree: the compiled program takes
-/// the union's leaves first and keeps the tree's leaf numbers, and the GPU code skips each
-/// group by its floor where it cannot change the union. Distances, gradients and deciding
-/// leaves, and rays at two levels agree with the CPU's, which evaluates everything.
+/// Groups of models among leaves (a smooth-unioned pair, a model carved by a model and a box,
+/// an offset union with a primitive, a shell, a model carved by a blended group), the groups
+/// first in the tree: the compiled program takes the union's leaves first and keeps the tree's
+/// leaf numbers, and the GPU code skips each group, and each model that is a union's or a
+/// difference's right operand, by its floor where it cannot change its parent. Distances,
+/// gradients and deciding leaves, and rays at two levels agree with the CPU's, which evaluates
+/// everything.
 #[test]
 fn groups_of_models_skipped_by_their_floors_match_the_cpu() {
     let model = Arc::new(sphere_model(1.0));
     let spot =
         Arc::new(NeuralSdf::load(crate::steps::example_model("spot.nglod.safetensors")).unwrap());
-    let at = |m: &Arc<NeuralSdf>, x: f32, z: f32, turn: f32| {
+    let at = |m: &Arc<NeuralSdf>, x: f32, z: f32, scale: f32| {
         SceneNode::model(
             m.clone(),
-            Transform::new(Vec3::new(x, 0.0, z), Quat::from_rotation_y(turn), 0.5),
+            Transform::new(Vec3::new(x, 0.0, z), Quat::from_rotation_y(x + z), scale),
         )
     };
     let prim = |p, at: Vec3| SceneNode::primitive(p, Transform::from_translation(at));
+    let ball = |at: Vec3| prim(Primitive::Sphere { radius: 0.3 }, at);
     let scene = Scene::new(SceneNode::Union(vec![
         SceneNode::SmoothUnion {
             k: 0.2,
-            children: vec![at(&spot, -3.0, -1.0, 0.3), at(&model, -2.4, -1.0, 0.0)],
+            children: vec![at(&spot, -3.0, -1.0, 0.5), at(&model, -2.4, -1.0, 0.3)],
         },
         SceneNode::Difference(vec![
-            at(&spot, 0.0, -1.2, 1.1),
+            at(&spot, 0.0, -1.2, 0.5),
+            at(&model, 0.3, -1.0, 0.15),
             prim(
                 Primitive::Box {
                     half_extents: Vec3::splat(0.25),
                 },
-                Vec3::new(0.2, 0.3, -1.2),
+                Vec3::new(-0.3, 0.3, -1.2),
             ),
         ]),
         SceneNode::Offset {
             r: 0.05,
             child: Box::new(SceneNode::Union(vec![
-                at(&model, 2.5, -1.0, 0.0),
-                prim(Primitive::Sphere { radius: 0.3 }, Vec3::new(3.2, 0.0, -1.0)),
+                at(&model, 2.5, -1.0, 0.3),
+                ball(Vec3::new(3.2, 0.0, -1.0)),
             ])),
         },
         SceneNode::Shell {
             t: 0.04,
-            child: Box::new(at(&spot, -1.5, 1.3, 2.0)),
+            child: Box::new(at(&spot, -1.5, 1.3, 0.5)),
         },
-        at(&spot, 1.5, 1.3, -0.7),
+        SceneNode::Difference(vec![
+            at(&spot, 1.5, 1.3, 0.5),
+            SceneNode::SmoothUnion {
+                k: 0.1,
+                children: vec![at(&model, 1.8, 1.5, 0.15), ball(Vec3::new(1.2, 0.3, 1.3))],
+            },
+        ]),
         prim(
             Primitive::Box {
                 half_extents: Vec3::new(4.5, 0.05, 3.0),
@@ -817,31 +827,37 @@ fn groups_of_models_skipped_by_their_floors_match_the_cpu() {
         ),
     ]))
     .unwrap();
-    // Leaves first: the last model, then the slab, then the groups; numbers in tree order.
+    // The slab first, then the groups; leaf numbers in tree order.
     use sdf_nn::serve::scene::Instruction;
     assert_eq!(
-        &scene.program()[..3],
+        &scene.program()[..4],
         &[
-            Instruction::Leaf(7),
-            Instruction::Leaf(8),
-            Instruction::Union
+            Instruction::Leaf(11),
+            Instruction::Leaf(0),
+            Instruction::Leaf(1),
+            Instruction::SmoothUnion(0.2),
         ]
     );
     assert_eq!(scene.leaf_path(0), Some("root.children[0].children[0]"));
     let wgsl = scene
         .wgsl_with_prefix(0, "s", &gpu().device().limits())
         .unwrap();
-    // Four groups in each of `s_distance`, `s_sample` and `s_trace`.
-    assert_eq!(wgsl.matches("where their floor says").count(), 12);
+    // In each of `s_distance`, `s_sample` and `s_trace`: the five groups, the blended group
+    // carved from the last spot, and the two models right of a smooth union and a difference.
+    assert_eq!(wgsl.matches("where their floor says").count(), 24);
     let on_gpu = GpuScene::new(gpu(), &scene).unwrap();
-    let points = random_points(3000, 4.0, 21);
+    // The scene's box, and inside and around the two carved spots.
+    let mut points = random_points(3000, 4.0, 21);
+    for (seed, centre) in [(23, Vec3::new(0.0, 0.0, -1.2)), (24, Vec3::new(1.5, 0.0, 1.3))] {
+        points.extend(random_points(1000, 0.5, seed).into_iter().map(|p| p + centre));
+    }
     for level in [0.0, 0.05] {
         // Gradients within 1e-3 where they are unit vectors.
         let same_leaf =
             samples_match_the_cpu(&scene, &on_gpu, &points, level, (2e-5, 5e-4), "groups");
         assert!(
-            same_leaf > 2990,
-            "{same_leaf} of 3000 deciding leaves agree"
+            same_leaf > 4980,
+            "{same_leaf} of 5000 deciding leaves agree"
         );
         let rays: Vec<Ray> = random_points(300, 3.0, 22)
             .into_iter()

@@ -42,8 +42,10 @@ use glam::DMat3;
 
 use crate::gpu::GpuError;
 use crate::serve::scene::cpu::SceneQueryError;
-use crate::serve::scene::cull_wgsl::Program;
 use crate::serve::scene::primitive::Primitive;
+use crate::serve::scene::program_wgsl::{
+    CulledSubtree, Program, distance_expression, sample_expression,
+};
 use crate::serve::scene::trace_wgsl::{LIPSCHITZ_TABLES, MODEL_TABLES, gap};
 use crate::serve::scene::tree::{Instruction, LeafKind, Scene, TraceStep};
 use crate::serve::wgsl::{self, EmbedError, Lanes, MAX_PREFIX};
@@ -480,16 +482,14 @@ impl Scene {
         let program = self.program();
         let mut v = range.start;
         while v < range.end {
-            if let Some(cull) = self.culled_subtree(prefix, v, stack, kind, plan, subtrees) {
-                stack.pop();
-                body.push_str(&cull.open);
-                self.emit(code, v..cull.end + 1, &mut Vec::new(), body);
-                body.push_str(&cull.close);
-                stack.push(cull.parent);
-                v = cull.parent + 1;
+            // A group (a sub-tree of several instructions) before a chain of leaves that may
+            // start at its first leaf; a single model leaf after.
+            let group = subtrees[v].is_some_and(|(end, _)| end > v);
+            if group && let Some(cull) = self.culled_subtree(prefix, v, stack, kind, plan, subtrees)
+            {
+                v = self.emit_culled(code, v, cull, stack, body);
                 continue;
             }
-
             if kind != Program::Sample
                 && let Some((code, end, popped)) = self.leaf_union(prefix, v, stack, kind, plan)
             {
@@ -501,11 +501,10 @@ impl Scene {
                 v = end + 1;
                 continue;
             }
-            if let Some((code, skip)) = self.culled_union(prefix, v, stack, kind, plan) {
-                stack.pop();
-                body.push_str(&code);
-                stack.push(v + skip);
-                v += skip + 1;
+            if !group
+                && let Some(cull) = self.culled_subtree(prefix, v, stack, kind, plan, subtrees)
+            {
+                v = self.emit_culled(code, v, cull, stack, body);
                 continue;
             }
             if kind == Program::Trace
@@ -533,6 +532,24 @@ impl Scene {
             stack.push(v);
             v += 1;
         }
+    }
+
+    /// The operand starting at `v` inside its floor's test ([`Scene::culled_subtree`]): its
+    /// parent's left operand is taken off `stack`, the parent pushed. The next instruction.
+    fn emit_culled(
+        &self,
+        code: &Code<'_>,
+        v: usize,
+        cull: CulledSubtree,
+        stack: &mut Vec<usize>,
+        body: &mut String,
+    ) -> usize {
+        stack.pop();
+        body.push_str(&cull.open);
+        self.emit(code, v..cull.end + 1, &mut Vec::new(), body);
+        body.push_str(&cull.close);
+        stack.push(cull.parent);
+        cull.parent + 1
     }
 
     /// A union of leaves starting at `v` (`Leaf, Leaf, Union, Leaf, Union, …`, as the
@@ -642,94 +659,6 @@ impl Scene {
         let _ = writeln!(c, "    }}");
         Some((c, end, continues))
     }
-
-    /// A model leaf at `v` that a union or smooth union at `v + 1` combines with the value
-    /// on top of `stack`, as code that evaluates the model only where its lower bound says it
-    /// can change the result: `min(a, b) = a` where `b ≥ a`, and the polynomial smooth minimum
-    /// is `a` where `b ≥ a + k`. Exact (the bound is a bound), and most points of a scene are
-    /// far from most of its models. `(code, 1)`: the code defines `v{v + 1}` (and for
-    /// [`Program::Trace`] `t{v + 1}`, evaluating the model also where it can lower the union's
-    /// bound).
-    fn culled_union(
-        &self,
-        prefix: &str,
-        v: usize,
-        stack: &[usize],
-        kind: Program,
-        plan: &[TraceStep],
-    ) -> Option<(String, usize)> {
-        let with_gradient = kind == Program::Sample;
-        let program = self.program();
-        let Instruction::Leaf(l) = program[v] else {
-            return None;
-        };
-        if !matches!(self.leaves()[l as usize].kind, LeafKind::Model(_)) {
-            return None;
-        }
-        let a = *stack.last()?;
-        let (combine, k) = match program.get(v + 1)? {
-            Instruction::Union if with_gradient => (format!("{prefix}_pick_min"), 0.0),
-            Instruction::Union => ("min".to_owned(), 0.0),
-            Instruction::SmoothUnion(k) if with_gradient => (format!("{prefix}_smin"), *k),
-            Instruction::SmoothUnion(k) => (format!("{prefix}_smin_d"), *k),
-            _ => return None,
-        };
-        let (value, leaf) = if with_gradient {
-            (format!("v{a}.d"), format!("{prefix}_leaf_{l}(p)"))
-        } else {
-            (format!("v{a}"), format!("{prefix}_leaf_{l}_d(p)"))
-        };
-        let extra = if k > 0.0 {
-            format!(", {}", lit(k))
-        } else {
-            String::new()
-        };
-        let u = v + 1;
-        if kind == Program::Trace {
-            // A sharp union's bound is the smaller of its operands'; a smooth one's its own.
-            return Some((
-                if k > 0.0 {
-                    format!(
-                        "    var v{u} = v{a};\n\
-                         \x20   if {prefix}_leaf_{l}_lb(p) < v{a} + {k_lit} {{\n\
-                         \x20       v{u} = {combine}(v{a}, {leaf}{extra});\n\
-                         \x20   }}\n\
-                         \x20   let t{u} = {own};\n",
-                        k_lit = lit(k),
-                        own = self.trace_term(prefix, &format!("v{u}"), u, plan),
-                    )
-                } else {
-                    format!(
-                        "    var v{u} = v{a};\n\
-                         \x20   var t{u} = t{a};\n\
-                         \x20   let lb{u} = {prefix}_leaf_{l}_lb(p);\n\
-                         \x20   if lb{u} < v{a} || {lb_term} < t{a} {{\n\
-                         \x20       let d = {leaf};\n\
-                         \x20       v{u} = min(v{a}, d);\n\
-                         \x20       t{u} = min(t{a}, {d_term});\n\
-                         \x20   }}\n",
-                        lb_term = self.leaf_term_floor(
-                            prefix,
-                            &gap(&format!("lb{u}"), plan[v].flipped),
-                            l as usize
-                        ),
-                        d_term = self.trace_term(prefix, "d", v, plan),
-                    )
-                },
-                1,
-            ));
-        }
-        Some((
-            format!(
-                "    var v{u} = v{a};\n\
-                 \x20   if {prefix}_leaf_{l}_lb(p) < {value} + {k_lit} {{\n\
-                 \x20       v{u} = {combine}(v{a}, {leaf}{extra});\n\
-                 \x20   }}\n",
-                k_lit = lit(k),
-            ),
-            1,
-        ))
-    }
 }
 
 /// What the generator of one of the scene's functions carries down its sub-trees.
@@ -755,65 +684,6 @@ fn sharp_bound(instruction: &Instruction, stack: &[usize]) -> Option<String> {
         // The subtracted operand was traced against the opposite level.
         Instruction::Difference => Some(format!("max(t{a}, -t{b})")),
         _ => None,
-    }
-}
-
-/// One instruction on distances alone; pops its operands' variable numbers from `stack`.
-fn distance_expression(prefix: &str, instruction: &Instruction, stack: &mut Vec<usize>) -> String {
-    let mut pop = || format!("v{}", stack.pop().expect("balanced program"));
-    match *instruction {
-        Instruction::Leaf(l) => format!("{prefix}_leaf_{l}_d(p)"),
-        Instruction::Offset(r) => format!("{} - {}", pop(), lit(r)),
-        Instruction::Shell(t) => format!("abs({}) - {}", pop(), lit(t)),
-        binary => {
-            let (b, a) = (pop(), pop());
-            match binary {
-                Instruction::Union => format!("min({a}, {b})"),
-                Instruction::Intersection => format!("max({a}, {b})"),
-                Instruction::Difference => format!("max({a}, -{b})"),
-                Instruction::SmoothUnion(k) => format!("{prefix}_smin_d({a}, {b}, {})", lit(k)),
-                Instruction::SmoothIntersection(k) => {
-                    format!("-{prefix}_smin_d(-{a}, -{b}, {})", lit(k))
-                }
-                Instruction::SmoothDifference(k) => {
-                    format!("-{prefix}_smin_d(-{a}, {b}, {})", lit(k))
-                }
-                _ => unreachable!("unary instructions are matched above"),
-            }
-        }
-    }
-}
-
-/// One instruction on samples (value, gradient, leaf), as the CPU's `combine`.
-fn sample_expression(prefix: &str, instruction: &Instruction, stack: &mut Vec<usize>) -> String {
-    let mut pop = || format!("v{}", stack.pop().expect("balanced program"));
-    let neg = |x: &str| format!("{prefix}_negate({x})");
-    match *instruction {
-        Instruction::Leaf(l) => format!("{prefix}_leaf_{l}(p)"),
-        Instruction::Offset(r) => {
-            let a = pop();
-            format!("{prefix}_Sample({a}.d - {}, {a}.g, {a}.leaf)", lit(r))
-        }
-        Instruction::Shell(t) => format!("{prefix}_shell({}, {})", pop(), lit(t)),
-        binary => {
-            let (b, a) = (pop(), pop());
-            match binary {
-                Instruction::Union => format!("{prefix}_pick_min({a}, {b})"),
-                Instruction::Intersection => format!("{prefix}_pick_max({a}, {b})"),
-                Instruction::Difference => format!("{prefix}_pick_max({a}, {})", neg(&b)),
-                Instruction::SmoothUnion(k) => format!("{prefix}_smin({a}, {b}, {})", lit(k)),
-                Instruction::SmoothIntersection(k) => neg(&format!(
-                    "{prefix}_smin({}, {}, {})",
-                    neg(&a),
-                    neg(&b),
-                    lit(k)
-                )),
-                Instruction::SmoothDifference(k) => {
-                    neg(&format!("{prefix}_smin({}, {b}, {})", neg(&a), lit(k)))
-                }
-                _ => unreachable!("unary instructions are matched above"),
-            }
-        }
     }
 }
 

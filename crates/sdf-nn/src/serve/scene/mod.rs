@@ -31,12 +31,12 @@
 
 pub mod bounds;
 pub mod cpu;
-mod cull_wgsl;
 pub mod embed;
 pub mod file;
 pub mod gpu;
 pub mod lipschitz;
 pub mod primitive;
+mod program_wgsl;
 mod trace_wgsl;
 pub mod tree;
 

@@ -1,0 +1,261 @@
+//! The scene's program as WGSL expressions ([`distance_expression`], [`sample_expression`]),
+//! and the culling that skips an operand where it cannot change its parent: a floor of the
+//! operand's value, cheap to evaluate from its models' cell floors
+//! ([`super::lipschitz::CellFloors`], `{prefix}_leaf_{l}_lb`) and its primitives' exact values,
+//! decides whether its code runs. A model, or a group of models blended or carved together,
+//! placed among others is then evaluated only near it. Exact: `min(a, b) = a` where `b ≥ a`,
+//! `max(a, −b) = a` where `b ≥ −a`, and the smooth forms where `b` is a further `k` away.
+//! (Chains of leaves under one union take the nearest first: `Scene::leaf_union` in
+//! [`super::embed`].)
+
+use std::fmt::Write;
+
+use crate::serve::scene::trace_wgsl::gap;
+use crate::serve::scene::tree::{Instruction, LeafKind, Scene, TraceStep};
+use crate::serve::wgsl::lit;
+
+/// An operand's code wrapped in the test of its floor: `open`, then the operand's own code
+/// (which defines `v{end}`, and `t{end}` for the tracer), then `close`, which define
+/// `v{parent}` (and `t{parent}`).
+pub(super) struct CulledSubtree {
+    /// The operand's last instruction.
+    pub end: usize,
+    /// The union, difference or their smooth form whose right operand it is.
+    pub parent: usize,
+    /// Code before the sub-tree's.
+    pub open: String,
+    /// Code after it.
+    pub close: String,
+}
+
+/// Which of the scene's functions a program is generated for.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(super) enum Program {
+    /// `{prefix}_distance(p)`.
+    Distance,
+    /// `{prefix}_sample(p)`: value, gradient, leaf.
+    Sample,
+    /// `{prefix}_trace(p, c)`: `d − c` and the tracer's step bound (`t{i}` beside `v{i}`).
+    Trace,
+}
+
+impl Scene {
+    /// Per instruction `s`: `Some((end, parent))` where `program[s..=end]` is a sub-tree with a
+    /// model (a model leaf, or a group) that is the right operand of the union, difference or
+    /// their smooth form `parent` (`end + 1`): the operands [`Scene::culled_subtree`] can skip.
+    pub(super) fn culled_subtrees(&self, plan: &[TraceStep]) -> Vec<Option<(usize, usize)>> {
+        let program = self.program();
+        let mut starts = vec![None; program.len()];
+        for (parent, instruction) in program.iter().enumerate() {
+            if !matches!(
+                instruction,
+                Instruction::Union
+                    | Instruction::SmoothUnion(_)
+                    | Instruction::Difference
+                    | Instruction::SmoothDifference(_)
+            ) {
+                continue;
+            }
+            let end = parent - 1;
+            if !self.subtree_models(end, &plan[end]).is_empty() {
+                starts[plan[end].first] = Some((end, parent));
+            }
+        }
+        starts
+    }
+
+    /// A floor of the value of `program[start..=end]` (WGSL): its models' cell floors, its
+    /// primitives' values, through each operator's lower bound (a union's the smaller, a smooth
+    /// union's less `k/4`, an intersection's the larger, a difference's its first operand's, an
+    /// offset's less `r`, a shell's `max(·, 0) − t`).
+    pub(super) fn subtree_floor(&self, prefix: &str, start: usize, end: usize) -> String {
+        let mut stack: Vec<String> = Vec::new();
+        for instruction in &self.program()[start..=end] {
+            let floor = match *instruction {
+                Instruction::Leaf(l) => match self.leaves()[l as usize].kind {
+                    LeafKind::Model(_) => format!("{prefix}_leaf_{l}_lb(p)"),
+                    LeafKind::Primitive(_) => format!("{prefix}_leaf_{l}_d(p)"),
+                },
+                Instruction::Offset(r) => format!("({} - {})", pop(&mut stack), lit(r)),
+                Instruction::Shell(t) => {
+                    format!("(max({}, 0.0) - {})", pop(&mut stack), lit(t))
+                }
+                binary => {
+                    let (b, a) = (pop(&mut stack), pop(&mut stack));
+                    match binary {
+                        Instruction::Union => format!("min({a}, {b})"),
+                        Instruction::SmoothUnion(k) => {
+                            format!("(min({a}, {b}) - {})", lit(k / 4.0))
+                        }
+                        Instruction::Intersection | Instruction::SmoothIntersection(_) => {
+                            format!("max({a}, {b})")
+                        }
+                        // max(a, −b) ≥ a, and the smooth form adds to it.
+                        _ => a,
+                    }
+                }
+            };
+            stack.push(floor);
+        }
+        pop(&mut stack)
+    }
+
+    /// The operand starting at `v`, if [`Scene::culled_subtrees`] lists it and its parent's
+    /// left operand `a` is on top of `stack`: the code around its own that runs it only where
+    /// its floor `f` can change the parent (a union: `f < a`, a difference: `f < −a`; `k` more
+    /// for the smooth forms), or for the tracer where a floor of its radius can change a sharp
+    /// parent's radius (the smaller of the two for a union, the larger of `a`'s and the
+    /// negated operand's for a difference). A radius is at least its value's gap over the
+    /// largest estimate of its models, or the gap itself where negative, through every
+    /// operator.
+    pub(super) fn culled_subtree(
+        &self,
+        prefix: &str,
+        v: usize,
+        stack: &[usize],
+        values: Program,
+        plan: &[TraceStep],
+        subtrees: &[Option<(usize, usize)>],
+    ) -> Option<CulledSubtree> {
+        let (end, parent) = subtrees[v]?;
+        let a = *stack.last()?;
+        let instruction = self.program()[parent];
+        let (k, carved) = match instruction {
+            Instruction::SmoothUnion(k) => (k, false),
+            Instruction::SmoothDifference(k) => (k, true),
+            Instruction::Difference => (0.0, true),
+            _ => (0.0, false),
+        };
+        let floor = self.subtree_floor(prefix, v, end);
+        let mut open = format!(
+            "    // Instructions {v}..={end}, where their floor says they can change instruction {parent}.\n\
+             \x20   var v{parent} = v{a};\n\
+             \x20   let f{parent} = {floor};\n"
+        );
+        let value = if values == Program::Sample {
+            format!("v{a}.d")
+        } else {
+            format!("v{a}")
+        };
+        let mut operands = vec![a, end];
+        let combine = if values == Program::Sample {
+            sample_expression(prefix, &instruction, &mut operands)
+        } else {
+            distance_expression(prefix, &instruction, &mut operands)
+        };
+        let mut close = format!("        v{parent} = {combine};\n");
+        let threshold = match (carved, k > 0.0) {
+            (false, false) => value,
+            (false, true) => format!("{value} + {}", lit(k)),
+            (true, false) => format!("-{value}"),
+            (true, true) => format!("{} - {value}", lit(k)),
+        };
+        let mut test = format!("f{parent} < {threshold}");
+        if values == Program::Trace && k == 0.0 {
+            // A sharp parent's radius is the smaller of its operands' (a union), or the larger
+            // of its first's and the negated second's (a difference).
+            let largest = self
+                .subtree_models(end, &plan[end])
+                .iter()
+                .map(|&l| self.leaf_lipschitz(l))
+                .fold(1.0f32, f32::max);
+            let g = gap(&format!("f{parent}"), plan[end].flipped);
+            let (sign, pick) = if carved { ("-", "max") } else { ("", "min") };
+            let _ = writeln!(open, "    var t{parent} = t{a};");
+            let _ = write!(
+                test,
+                " || {prefix}_term_floor({g}, {}) < {sign}t{a}",
+                lit(1.0 / largest)
+            );
+            let _ = writeln!(close, "        t{parent} = {pick}(t{a}, {sign}t{end});");
+        }
+        let _ = writeln!(open, "    if {test} {{");
+        close.push_str("    }\n");
+        if values == Program::Trace && k > 0.0 {
+            // A smooth operator's radius is its own, from its value.
+            let _ = writeln!(
+                close,
+                "    let t{parent} = {};",
+                self.trace_term(prefix, &format!("v{parent}"), parent, plan)
+            );
+        }
+        Some(CulledSubtree {
+            end,
+            parent,
+            open,
+            close,
+        })
+    }
+}
+
+/// One instruction on distances alone; pops its operands' variable numbers from `stack`.
+pub(super) fn distance_expression(
+    prefix: &str,
+    instruction: &Instruction,
+    stack: &mut Vec<usize>,
+) -> String {
+    let mut pop = || format!("v{}", stack.pop().expect("balanced program"));
+    match *instruction {
+        Instruction::Leaf(l) => format!("{prefix}_leaf_{l}_d(p)"),
+        Instruction::Offset(r) => format!("{} - {}", pop(), lit(r)),
+        Instruction::Shell(t) => format!("abs({}) - {}", pop(), lit(t)),
+        binary => {
+            let (b, a) = (pop(), pop());
+            match binary {
+                Instruction::Union => format!("min({a}, {b})"),
+                Instruction::Intersection => format!("max({a}, {b})"),
+                Instruction::Difference => format!("max({a}, -{b})"),
+                Instruction::SmoothUnion(k) => format!("{prefix}_smin_d({a}, {b}, {})", lit(k)),
+                Instruction::SmoothIntersection(k) => {
+                    format!("-{prefix}_smin_d(-{a}, -{b}, {})", lit(k))
+                }
+                Instruction::SmoothDifference(k) => {
+                    format!("-{prefix}_smin_d(-{a}, {b}, {})", lit(k))
+                }
+                _ => unreachable!("unary instructions are matched above"),
+            }
+        }
+    }
+}
+
+/// One instruction on samples (value, gradient, leaf), as the CPU's `combine`.
+pub(super) fn sample_expression(
+    prefix: &str,
+    instruction: &Instruction,
+    stack: &mut Vec<usize>,
+) -> String {
+    let mut pop = || format!("v{}", stack.pop().expect("balanced program"));
+    let neg = |x: &str| format!("{prefix}_negate({x})");
+    match *instruction {
+        Instruction::Leaf(l) => format!("{prefix}_leaf_{l}(p)"),
+        Instruction::Offset(r) => {
+            let a = pop();
+            format!("{prefix}_Sample({a}.d - {}, {a}.g, {a}.leaf)", lit(r))
+        }
+        Instruction::Shell(t) => format!("{prefix}_shell({}, {})", pop(), lit(t)),
+        binary => {
+            let (b, a) = (pop(), pop());
+            match binary {
+                Instruction::Union => format!("{prefix}_pick_min({a}, {b})"),
+                Instruction::Intersection => format!("{prefix}_pick_max({a}, {b})"),
+                Instruction::Difference => format!("{prefix}_pick_max({a}, {})", neg(&b)),
+                Instruction::SmoothUnion(k) => format!("{prefix}_smin({a}, {b}, {})", lit(k)),
+                Instruction::SmoothIntersection(k) => neg(&format!(
+                    "{prefix}_smin({}, {}, {})",
+                    neg(&a),
+                    neg(&b),
+                    lit(k)
+                )),
+                Instruction::SmoothDifference(k) => {
+                    neg(&format!("{prefix}_smin({}, {b}, {})", neg(&a), lit(k)))
+                }
+                _ => unreachable!("unary instructions are matched above"),
+            }
+        }
+    }
+}
+
+/// The top of a floor expression stack.
+fn pop(stack: &mut Vec<String>) -> String {
+    stack.pop().expect("a balanced program")
+}
