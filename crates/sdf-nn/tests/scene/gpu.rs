@@ -848,8 +848,15 @@ fn groups_of_models_skipped_by_their_floors_match_the_cpu() {
     let on_gpu = GpuScene::new(gpu(), &scene).unwrap();
     // The scene's box, and inside and around the two carved spots.
     let mut points = random_points(3000, 4.0, 21);
-    for (seed, centre) in [(23, Vec3::new(0.0, 0.0, -1.2)), (24, Vec3::new(1.5, 0.0, 1.3))] {
-        points.extend(random_points(1000, 0.5, seed).into_iter().map(|p| p + centre));
+    for (seed, centre) in [
+        (23, Vec3::new(0.0, 0.0, -1.2)),
+        (24, Vec3::new(1.5, 0.0, 1.3)),
+    ] {
+        points.extend(
+            random_points(1000, 0.5, seed)
+                .into_iter()
+                .map(|p| p + centre),
+        );
     }
     for level in [0.0, 0.05] {
         // Gradients within 1e-3 where they are unit vectors.

@@ -14,6 +14,10 @@ use crate::serve::scene::trace_wgsl::gap;
 use crate::serve::scene::tree::{Instruction, LeafKind, Scene, TraceStep};
 use crate::serve::wgsl::lit;
 
+/// The most instructions of a group that is culled by its floor (a larger group's parts still
+/// are).
+const MAX_GROUP_INSTRUCTIONS: usize = 512;
+
 /// An operand's code wrapped in the test of its floor: `open`, then the operand's own code
 /// (which defines `v{end}`, and `t{end}` for the tracer), then `close`, which define
 /// `v{parent}` (and `t{parent}`).
@@ -57,8 +61,13 @@ impl Scene {
                 continue;
             }
             let end = parent - 1;
-            if !self.subtree_models(end, &plan[end]).is_empty() {
-                starts[plan[end].first] = Some((end, parent));
+            let start = plan[end].first;
+            // Each culled group's floor reads all its leaves, and groups nest: a bound on the
+            // floors' code (64 nested groups of 4096 leaves would be 2^18 lookups).
+            if end - start < MAX_GROUP_INSTRUCTIONS
+                && !self.subtree_models(end, &plan[end]).is_empty()
+            {
+                starts[start] = Some((end, parent));
             }
         }
         starts
@@ -258,4 +267,59 @@ pub(super) fn sample_expression(
 /// The top of a floor expression stack.
 fn pop(stack: &mut Vec<String>) -> String {
     stack.pop().expect("a balanced program")
+}
+
+#[cfg(test)]
+mod tests {
+    use std::sync::Arc;
+
+    use glam::Vec3;
+
+    use crate::serve::scene::{Primitive, SceneNode, Transform};
+    use crate::{NeuralSdf, Nglod, Normalization};
+
+    use super::*;
+
+    /// A group of more than [`MAX_GROUP_INSTRUCTIONS`] is not culled by one floor (its code
+    /// would read every leaf's), but its models still are, each by its own; a smaller group is.
+    #[test]
+    fn large_groups_are_culled_by_their_parts() {
+        let sphere = Nglod::from_sdf(4, |p| p.length() - 0.5).unwrap();
+        let model = Arc::new(
+            NeuralSdf::from_model_file(
+                sphere.to_model_file(Normalization::identity(), serde_json::Value::Null),
+            )
+            .unwrap(),
+        );
+        let group = |n: usize| SceneNode::SmoothUnion {
+            k: 0.1,
+            children: (0..n)
+                .map(|i| {
+                    let at = Vec3::new(i as f32 * 0.3, 0.0, 0.0);
+                    SceneNode::model(model.clone(), Transform::from_translation(at))
+                })
+                .collect(),
+        };
+        let ball = || SceneNode::primitive(Primitive::Sphere { radius: 1.0 }, Transform::IDENTITY);
+        for (n, groups) in [(10, 1), (300, 0)] {
+            let scene = Scene::new(SceneNode::Union(vec![ball(), group(n)])).unwrap();
+            let plan = scene.trace_plan();
+            let culled = scene.culled_subtrees(&plan);
+            let (mut singles, mut whole) = (0, 0);
+            for (start, (end, _)) in culled
+                .iter()
+                .enumerate()
+                .filter_map(|(s, c)| Some((s, (*c)?)))
+            {
+                if end == start {
+                    singles += 1;
+                } else {
+                    whole += 1;
+                }
+            }
+            assert_eq!(whole, groups, "{n} models");
+            // Every model right of a smooth union.
+            assert_eq!(singles, n - 1, "{n} models");
+        }
+    }
 }
