@@ -73,40 +73,69 @@ impl Scene {
         starts
     }
 
-    /// A floor of the value of `program[start..=end]` (WGSL): its models' cell floors, its
-    /// primitives' values, through each operator's lower bound (a union's the smaller, a smooth
-    /// union's less `k/4`, an intersection's the larger, a difference's its first operand's, an
-    /// offset's less `r`, a shell's `max(·, 0) − t`).
-    pub(super) fn subtree_floor(&self, prefix: &str, start: usize, end: usize) -> String {
-        let mut stack: Vec<String> = Vec::new();
-        for instruction in &self.program()[start..=end] {
-            let floor = match *instruction {
+    /// A floor of the value of the sub-tree ending at `end` (WGSL statements appended to
+    /// `code`, one `let fl{parent}_{i}` per instruction `i` it needs, so that no expression
+    /// nests deeper than one operator: a fold of many operands would pass the WGSL parsers'
+    /// nesting limits): its models' cell floors, its primitives' values, through each
+    /// operator's lower bound (a union's the smaller, a smooth union's less `k/4`, an
+    /// intersection's the larger, a difference's its first operand's, an offset's less `r`, a
+    /// shell's `max(·, 0) − t`). The name of the floor's variable.
+    pub(super) fn subtree_floor(
+        &self,
+        prefix: &str,
+        end: usize,
+        parent: usize,
+        starts: &[TraceStep],
+        code: &mut String,
+    ) -> String {
+        // Not `f{parent}`: `f16` and `f32` are WGSL's type names.
+        let name = |i: usize| format!("fl{parent}_{i}");
+        // Post-order over the instructions the floor needs (a difference's second operand is
+        // not), without recursion: (instruction, operands done).
+        let mut work = vec![(end, false)];
+        while let Some((i, done)) = work.pop() {
+            let instruction = self.program()[i];
+            let unary = matches!(instruction, Instruction::Offset(_) | Instruction::Shell(_));
+            // A binary instruction's operands end right before it (the second) and right
+            // before the second's sub-tree (the first); a unary one's right before it.
+            let (first, second) = match instruction {
+                Instruction::Leaf(_) => (i, i),
+                _ => (starts[i - 1].first.saturating_sub(1), i - 1),
+            };
+            let floor = match instruction {
                 Instruction::Leaf(l) => match self.leaves()[l as usize].kind {
                     LeafKind::Model(_) => format!("{prefix}_leaf_{l}_lb(p)"),
                     LeafKind::Primitive(_) => format!("{prefix}_leaf_{l}_d(p)"),
                 },
-                Instruction::Offset(r) => format!("({} - {})", pop(&mut stack), lit(r)),
-                Instruction::Shell(t) => {
-                    format!("(max({}, 0.0) - {})", pop(&mut stack), lit(t))
-                }
-                binary => {
-                    let (b, a) = (pop(&mut stack), pop(&mut stack));
-                    match binary {
-                        Instruction::Union => format!("min({a}, {b})"),
-                        Instruction::SmoothUnion(k) => {
-                            format!("(min({a}, {b}) - {})", lit(k / 4.0))
+                _ if !done => {
+                    work.push((i, true));
+                    match instruction {
+                        Instruction::Difference | Instruction::SmoothDifference(_) => {
+                            work.push((first, false))
                         }
-                        Instruction::Intersection | Instruction::SmoothIntersection(_) => {
-                            format!("max({a}, {b})")
+                        _ if unary => work.push((second, false)),
+                        _ => {
+                            work.push((second, false));
+                            work.push((first, false));
                         }
-                        // max(a, −b) ≥ a, and the smooth form adds to it.
-                        _ => a,
                     }
+                    continue;
                 }
+                Instruction::Offset(r) => format!("{} - {}", name(second), lit(r)),
+                Instruction::Shell(t) => format!("max({}, 0.0) - {}", name(second), lit(t)),
+                Instruction::Union => format!("min({}, {})", name(first), name(second)),
+                Instruction::SmoothUnion(k) => {
+                    format!("min({}, {}) - {}", name(first), name(second), lit(k / 4.0))
+                }
+                Instruction::Intersection | Instruction::SmoothIntersection(_) => {
+                    format!("max({}, {})", name(first), name(second))
+                }
+                // max(a, −b) ≥ a, and the smooth form adds to it.
+                _ => name(first),
             };
-            stack.push(floor);
+            let _ = writeln!(code, "    let {} = {floor};", name(i));
         }
-        pop(&mut stack)
+        name(end)
     }
 
     /// The operand starting at `v`, if [`Scene::culled_subtrees`] lists it and its parent's
@@ -135,12 +164,12 @@ impl Scene {
             Instruction::Difference => (0.0, true),
             _ => (0.0, false),
         };
-        let floor = self.subtree_floor(prefix, v, end);
         let mut open = format!(
             "    // Instructions {v}..={end}, where their floor says they can change instruction {parent}.\n\
-             \x20   var v{parent} = v{a};\n\
-             \x20   let f{parent} = {floor};\n"
+             \x20   var v{parent} = v{a};\n"
         );
+        let floor = self.subtree_floor(prefix, end, parent, plan, &mut open);
+        let _ = writeln!(open, "    let fl{parent} = {floor};");
         let value = if values == Program::Sample {
             format!("v{a}.d")
         } else {
@@ -159,7 +188,7 @@ impl Scene {
             (true, false) => format!("-{value}"),
             (true, true) => format!("{} - {value}", lit(k)),
         };
-        let mut test = format!("f{parent} < {threshold}");
+        let mut test = format!("fl{parent} < {threshold}");
         if values == Program::Trace && k == 0.0 {
             // A sharp parent's radius is the smaller of its operands' (a union), or the larger
             // of its first's and the negated second's (a difference).
@@ -168,7 +197,7 @@ impl Scene {
                 .iter()
                 .map(|&l| self.leaf_lipschitz(l))
                 .fold(1.0f32, f32::max);
-            let g = gap(&format!("f{parent}"), plan[end].flipped);
+            let g = gap(&format!("fl{parent}"), plan[end].flipped);
             let (sign, pick) = if carved { ("-", "max") } else { ("", "min") };
             let _ = writeln!(open, "    var t{parent} = t{a};");
             let _ = write!(
@@ -264,11 +293,6 @@ pub(super) fn sample_expression(
     }
 }
 
-/// The top of a floor expression stack.
-fn pop(stack: &mut Vec<String>) -> String {
-    stack.pop().expect("a balanced program")
-}
-
 #[cfg(test)]
 mod tests {
     use std::sync::Arc;
@@ -280,10 +304,8 @@ mod tests {
 
     use super::*;
 
-    /// A group of more than [`MAX_GROUP_INSTRUCTIONS`] is not culled by one floor (its code
-    /// would read every leaf's), but its models still are, each by its own; a smaller group is.
-    #[test]
-    fn large_groups_are_culled_by_their_parts() {
+    /// `n` placed copies of a small baked sphere.
+    fn copies(n: usize) -> Vec<SceneNode> {
         let sphere = Nglod::from_sdf(4, |p| p.length() - 0.5).unwrap();
         let model = Arc::new(
             NeuralSdf::from_model_file(
@@ -291,14 +313,21 @@ mod tests {
             )
             .unwrap(),
         );
+        (0..n)
+            .map(|i| {
+                let at = Vec3::new(i as f32 * 0.3, 0.0, 0.0);
+                SceneNode::model(model.clone(), Transform::from_translation(at))
+            })
+            .collect()
+    }
+
+    /// A group of more than [`MAX_GROUP_INSTRUCTIONS`] is not culled by one floor (its code
+    /// would read every leaf's), but its models still are, each by its own; a smaller group is.
+    #[test]
+    fn large_groups_are_culled_by_their_parts() {
         let group = |n: usize| SceneNode::SmoothUnion {
             k: 0.1,
-            children: (0..n)
-                .map(|i| {
-                    let at = Vec3::new(i as f32 * 0.3, 0.0, 0.0);
-                    SceneNode::model(model.clone(), Transform::from_translation(at))
-                })
-                .collect(),
+            children: copies(n),
         };
         let ball = || SceneNode::primitive(Primitive::Sphere { radius: 1.0 }, Transform::IDENTITY);
         for (n, groups) in [(10, 1), (300, 0)] {
@@ -320,6 +349,47 @@ mod tests {
             assert_eq!(whole, groups, "{n} models");
             // Every model right of a smooth union.
             assert_eq!(singles, n - 1, "{n} models");
+        }
+    }
+
+    /// Wide groups compile: their floors (a group of 250 leaves under a smooth union, 250
+    /// carved by a difference) and the tracer's bound of a node over 250 models are flat
+    /// statements, within the WGSL parsers' nesting limits (naga's is 200 levels), and no
+    /// name the generator makes is a type's (instruction 32's floor was `f32`).
+    #[test]
+    fn wide_groups_compile() {
+        const WIDE: usize = 250;
+        let ball = || SceneNode::primitive(Primitive::Sphere { radius: 1.0 }, Transform::IDENTITY);
+        let trees = [
+            SceneNode::Union(vec![
+                ball(),
+                SceneNode::SmoothUnion {
+                    k: 0.1,
+                    children: copies(WIDE),
+                },
+            ]),
+            SceneNode::Difference(vec![ball(), SceneNode::Union(copies(WIDE))]),
+            SceneNode::Offset {
+                r: 0.1,
+                child: Box::new(SceneNode::SmoothUnion {
+                    k: 0.1,
+                    children: copies(WIDE),
+                }),
+            },
+        ];
+        for tree in trees {
+            let scene = Scene::new(tree).unwrap();
+            let source = scene
+                .wgsl_with_prefix(0, "s", &wgpu::Limits::default())
+                .unwrap();
+            let module = naga::front::wgsl::parse_str(&source)
+                .unwrap_or_else(|e| panic!("parse: {}", e.emit_to_string(&source)));
+            naga::valid::Validator::new(
+                naga::valid::ValidationFlags::all(),
+                naga::valid::Capabilities::empty(),
+            )
+            .validate(&module)
+            .unwrap_or_else(|e| panic!("validate: {}", e.emit_to_string(&source)));
         }
     }
 }

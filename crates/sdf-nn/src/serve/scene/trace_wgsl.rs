@@ -69,13 +69,16 @@ impl Scene {
             if models.is_empty() {
                 continue;
             }
-            let bound = models.iter().fold("1.0".to_owned(), |acc, l| {
-                format!("max({acc}, {prefix}_leaf_{l}_lip(p, g))")
-            });
+            // One statement per model: a nested fold of many would pass the WGSL parsers'
+            // nesting limits.
+            let bound: String = models
+                .iter()
+                .map(|l| format!("    bound = max(bound, {prefix}_leaf_{l}_lip(p, g));\n"))
+                .collect();
             let _ = write!(
                 s,
                 "\n// Instruction {v}'s term of the tracer's bound: g over its models' largest local bound.\n\
-                 fn {prefix}_node_{v}_t(p: vec3<f32>, g: f32) -> f32 {{\n    return g / {bound};\n}}\n"
+                 fn {prefix}_node_{v}_t(p: vec3<f32>, g: f32) -> f32 {{\n    var bound = 1.0;\n{bound}    return g / bound;\n}}\n"
             );
         }
     }

@@ -449,7 +449,9 @@ impl Scene {
         &self.program
     }
 
-    /// The leaves, in the order the program pushes them.
+    /// The leaves, in the tree's order (depth first, children in order): the numbers that
+    /// [`Instruction::Leaf`] and query results name. The program may push them in another
+    /// order (a union's leaves before its sub-trees).
     pub fn leaves(&self) -> &[Leaf] {
         &self.leaves
     }
