@@ -293,14 +293,13 @@ fn run_user_shader_vec4(
     inputs: &[[f32; 4]],
 ) -> Vec<[f32; 4]> {
     use wgpu::util::DeviceExt;
-    let pts = inputs;
     let input: Vec<f32> = inputs.iter().flatten().copied().collect();
     let points = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
         label: Some("points"),
         contents: bytemuck::cast_slice(&input),
         usage: wgpu::BufferUsages::STORAGE,
     });
-    let bytes = (pts.len() * 16) as u64;
+    let bytes = (inputs.len() * 16) as u64;
     let results = device.create_buffer(&wgpu::BufferDescriptor {
         label: Some("results"),
         size: bytes,
@@ -369,7 +368,7 @@ fn run_user_shader_vec4(
         for (i, g) in groups.iter().enumerate() {
             pass.set_bind_group(i as u32 + 1, g.1, &[]);
         }
-        pass.dispatch_workgroups((pts.len() as u32).div_ceil(64), 1, 1);
+        pass.dispatch_workgroups((inputs.len() as u32).div_ceil(64), 1, 1);
     }
     enc.copy_buffer_to_buffer(&results, 0, &readback, 0, bytes);
     queue.submit([enc.finish()]);
@@ -776,16 +775,18 @@ fn scene_snippets_look_up_the_cpus_local_bounds_and_floors() {
     let out = run_user_shader_vec4(gpu.device(), gpu.queue(), &source, &groups, &inputs);
     let local = scene.model_local_lipschitz(0).unwrap();
     let n = spot.normalization();
+    let points: Vec<Vec3> = inputs.iter().map(|i| Vec3::new(i[0], i[1], i[2])).collect();
+    // The leaf's mesh frame (its placement undone).
+    let mesh: Vec<Vec3> = points.iter().map(|&x| placed.apply_inverse(x)).collect();
     let (mut model_differ, mut leaf_differ, mut below_estimate) = (0, 0, 0);
-    for (input, o) in inputs.iter().zip(&out) {
-        let (x, g) = (Vec3::new(input[0], input[1], input[2]), input[3]);
-        let want = local.bound(x, g).max(1.0);
+    for (((input, x), mesh), o) in inputs.iter().zip(&points).zip(&mesh).zip(&out) {
+        let g = input[3];
+        let want = local.bound(*x, g).max(1.0);
         model_differ += usize::from(o[0] != want);
         below_estimate += usize::from(want < local.global());
-        // The leaf: scene → its mesh frame (inverse placement) → normalised; the gap over the
-        // leaf's scale, times the normalisation's.
-        let mesh = placed.rotation.inverse() * (x - placed.translation) / placed.scale;
-        let q = n.to_normalized(mesh);
+        // The leaf: its mesh frame → normalised; the gap over the leaf's scale, times the
+        // normalisation's.
+        let q = n.to_normalized(*mesh);
         let want = local.bound(q, g / placed.scale * n.scale).max(1.0);
         leaf_differ += usize::from((o[1] - want).abs() > 1e-6 * want);
     }
@@ -806,11 +807,6 @@ fn scene_snippets_look_up_the_cpus_local_bounds_and_floors() {
     // The floors: the leaf's bound is (|x − c| + the floor at c) in normalised units, c the
     // clamp of its normalised point x, in scene units.
     let floors = scene.model_cell_floors(0).unwrap();
-    let points: Vec<Vec3> = inputs.iter().map(|i| Vec3::new(i[0], i[1], i[2])).collect();
-    let mesh: Vec<Vec3> = points
-        .iter()
-        .map(|&x| placed.rotation.inverse() * (x - placed.translation) / placed.scale)
-        .collect();
     let values = spot.eval_cpu(&mesh);
     let (mut floor_differ, mut lb_differ, mut above, mut tight) = (0, 0, 0, 0);
     for (((x, mesh), value), o) in points.iter().zip(&mesh).zip(&values).zip(&out) {

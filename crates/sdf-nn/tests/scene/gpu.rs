@@ -16,7 +16,7 @@ use sdf_nn::{NeuralSdf, Nglod, NglodConfig, Normalization};
 
 use crate::models::{hashed_sphere_model, sphere_model};
 use crate::sphere_at;
-use crate::{hits_in_the_cpus_steps, random_points, shared_hits};
+use crate::{hits_at_the_same_t, hits_in_the_cpus_steps, random_points, shared_hits};
 
 fn gpu() -> &'static GpuContext {
     GpuContext::shared().expect("a GPU adapter (lavapipe in CI)")
@@ -324,14 +324,8 @@ fn placed_models_match_the_cpu_on(kernel: QueryKernel) {
         scene.trace_rays(&rays, &options).unwrap(),
         on_gpu.trace_rays(&rays, &options).unwrap(),
     );
-    let hits = shared_hits(&cpu, &gpu_hits, "CPU against GPU");
+    let hits = hits_at_the_same_t(&cpu, &gpu_hits, "CPU against GPU");
     for &(i, c, g) in &hits {
-        assert!(
-            (c.t - g.t).abs() < 1e-3 * (1.0 + c.t),
-            "ray {i}: t {} vs {}",
-            g.t,
-            c.t
-        );
         assert_eq!(c.leaf, g.leaf, "ray {i}");
     }
     assert!(hits.len() > 40, "only {} of 200 rays hit", hits.len());
@@ -493,14 +487,7 @@ fn eight_threads_query_one_scene() {
                         let want = scene.trace_rays(&rays, &TraceOptions::default()).unwrap();
                         let got = on_gpu.trace_rays(&rays, &TraceOptions::default()).unwrap();
                         let what = format!("thread {t} round {round}, CPU against GPU");
-                        for (i, w, g) in shared_hits(&want, &got, &what) {
-                            assert!(
-                                (g.t - w.t).abs() < 1e-3 * (1.0 + w.t),
-                                "thread {t} ray {i}: {} vs {}",
-                                g.t,
-                                w.t
-                            );
-                        }
+                        hits_at_the_same_t(&want, &got, &what);
                         checked += got.len() + points.len();
                         round += 1;
                     }
@@ -580,15 +567,7 @@ fn unions_of_many_models_match_the_cpu() {
             scene.trace_rays(&rays, &options).unwrap(),
             on_gpu.trace_rays(&rays, &options).unwrap(),
         );
-        let shared = shared_hits(&cpu, &hits, "CPU against GPU");
-        for &(i, c, g) in &shared {
-            assert!(
-                (c.t - g.t).abs() < 1e-3 * (1.0 + c.t),
-                "ray {i}: {} vs {}",
-                g.t,
-                c.t
-            );
-        }
+        let shared = hits_at_the_same_t(&cpu, &hits, "CPU against GPU");
         assert!(shared.len() > 50, "{} of 300 rays hit", shared.len());
     }
 }

@@ -46,25 +46,34 @@ pub(crate) fn shared_hits<'a>(
         .collect()
 }
 
-/// The GPU's hits against the CPU's ([`shared_hits`]): each at the CPU's `t` within
-/// `10⁻³ (1 + t)`, and at least 49 in 50 after as many steps (f32 and f64 may decide a rare
-/// ball check apart). How many hits they share.
+/// The hits that two traces share ([`shared_hits`]), each at `want`'s `t` within
+/// `10⁻³ (1 + t)`.
+pub(crate) fn hits_at_the_same_t<'a>(
+    want: &'a [Option<RayHit>],
+    got: &'a [Option<RayHit>],
+    what: &str,
+) -> Vec<(usize, &'a RayHit, &'a RayHit)> {
+    let shared = shared_hits(want, got, what);
+    for &(i, w, g) in &shared {
+        assert!(
+            (w.t - g.t).abs() < 1e-3 * (1.0 + w.t),
+            "{what}, ray {i}: t {} against {}",
+            g.t,
+            w.t
+        );
+    }
+    shared
+}
+
+/// The GPU's hits against the CPU's ([`hits_at_the_same_t`]), at least 49 in 50 after as many
+/// steps (f32 and f64 may decide a rare ball check apart). How many hits they share.
 pub(crate) fn hits_in_the_cpus_steps(
     cpu: &[Option<RayHit>],
     gpu: &[Option<RayHit>],
     what: &str,
 ) -> usize {
-    let shared = shared_hits(cpu, gpu, what);
-    let mut same_steps = 0;
-    for &(i, c, g) in &shared {
-        assert!(
-            (c.t - g.t).abs() < 1e-3 * (1.0 + c.t),
-            "{what}, ray {i}: t {} against the CPU's {}",
-            g.t,
-            c.t
-        );
-        same_steps += usize::from(c.steps == g.steps);
-    }
+    let shared = hits_at_the_same_t(cpu, gpu, what);
+    let same_steps = shared.iter().filter(|(_, c, g)| c.steps == g.steps).count();
     assert!(
         same_steps * 50 >= shared.len() * 49,
         "{what}: {same_steps} of {} hits in the CPU's steps",

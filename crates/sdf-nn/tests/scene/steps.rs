@@ -16,7 +16,7 @@ use sdf_nn::serve::scene::{
 };
 use sdf_nn::{NeuralSdf, Nglod, Normalization};
 
-use crate::{hits_in_the_cpus_steps, random_points, shared_hits};
+use crate::{hits_at_the_same_t, hits_in_the_cpus_steps, random_points, shared_hits};
 
 /// The example's trained spot model (NGLOD `small`, 48 kB): a real network, whose slope is
 /// near 1 in most cells and near 2.4 in a few.
@@ -199,15 +199,7 @@ fn longer_steps_keep_every_hit() {
     let local_only = fast.trace_rays(&rays, &plain_options).unwrap();
     let hits = fast.trace_rays(&rays, &options).unwrap();
     for (name, got) in [("local bounds", &local_only), ("and over-relaxed", &hits)] {
-        let both = shared_hits(&reference, got, name);
-        for &(i, want, got) in &both {
-            assert!(
-                (want.t - got.t).abs() < 1e-3 * (1.0 + want.t),
-                "{name}, ray {i}: t {} against {}",
-                got.t,
-                want.t
-            );
-        }
+        let both = hits_at_the_same_t(&reference, got, name);
         assert!(both.len() > 200, "{name}: {} hits", both.len());
     }
     let (before, local, after) = (

@@ -30,7 +30,8 @@
 //! # Bindings
 //! `@group(G) @binding(k)`, `k = 0, 1, …`: read-only `array<f32>` buffers holding the models'
 //! parameters, each followed by its local Lipschitz tables (`{prefix}_params_k`; 2 × 8³ floats,
-//! [`super::lipschitz::LocalLipschitz`]), then read-only `array<u32>` buffers holding NGLOD
+//! [`super::lipschitz::LocalLipschitz`]) and its value floors (32³ floats,
+//! [`super::lipschitz::CellFloors`]), then read-only `array<u32>` buffers holding NGLOD
 //! models' sparse vertex tables (`{prefix}_tables_k`). A buffer holds as many models as fit the
 //! device's `max_storage_buffer_binding_size`; usually there is one of each (none for a scene of
 //! primitives). [`Scene::bind_group`] creates them with the layout the snippet expects, for the

@@ -85,7 +85,7 @@ impl Scene {
         prefix: &str,
         end: usize,
         parent: usize,
-        starts: &[TraceStep],
+        plan: &[TraceStep],
         code: &mut String,
     ) -> String {
         // Not `f{parent}`: `f16` and `f32` are WGSL's type names.
@@ -100,7 +100,7 @@ impl Scene {
             // before the second's sub-tree (the first); a unary one's right before it.
             let (first, second) = match instruction {
                 Instruction::Leaf(_) => (i, i),
-                _ => (starts[i - 1].first.saturating_sub(1), i - 1),
+                _ => (plan[i - 1].first.saturating_sub(1), i - 1),
             };
             let floor = match instruction {
                 Instruction::Leaf(l) => match self.leaves()[l as usize].kind {
@@ -192,18 +192,14 @@ impl Scene {
         if values == Program::Trace && k == 0.0 {
             // A sharp parent's radius is the smaller of its operands' (a union), or the larger
             // of its first's and the negated second's (a difference).
-            let largest = self
-                .subtree_models(end, &plan[end])
-                .iter()
-                .map(|&l| self.leaf_lipschitz(l))
-                .fold(1.0f32, f32::max);
+            let models = self.subtree_models(end, &plan[end]);
             let g = gap(&format!("fl{parent}"), plan[end].flipped);
             let (sign, pick) = if carved { ("-", "max") } else { ("", "min") };
             let _ = writeln!(open, "    var t{parent} = t{a};");
             let _ = write!(
                 test,
-                " || {prefix}_term_floor({g}, {}) < {sign}t{a}",
-                lit(1.0 / largest)
+                " || {} < {sign}t{a}",
+                self.term_floor(prefix, &g, &models)
             );
             let _ = writeln!(close, "        t{parent} = {pick}(t{a}, {sign}t{end});");
         }

@@ -39,17 +39,25 @@ impl Scene {
         }
     }
 
-    /// A floor of leaf `l`'s term from a floor `g` of its gap (WGSL), for culling: a model's
-    /// local bound lies between 1 and its estimate, so its term is at least the smaller of
-    /// `g` over either.
+    /// A floor of leaf `l`'s term from a floor `g` of its gap (WGSL), for culling
+    /// ([`Scene::term_floor`] of the leaf's model, if it is one).
     pub(super) fn leaf_term_floor(&self, prefix: &str, g: &str, l: usize) -> String {
         match self.leaves()[l].kind {
-            LeafKind::Model(_) => format!(
-                "{prefix}_term_floor({g}, {})",
-                lit(1.0 / self.leaf_lipschitz(l))
-            ),
+            LeafKind::Model(_) => self.term_floor(prefix, g, &[l]),
             LeafKind::Primitive(_) => g.to_owned(),
         }
+    }
+
+    /// A floor of the term of a sub-tree whose model leaves are `models` (at least one) from
+    /// a floor `g` of its gap (WGSL), for culling: each local bound lies between 1 and its
+    /// model's estimate, so the term is at least the smaller of `g` over 1 and over the
+    /// largest estimate (through every operator: `Scene::culled_subtree`).
+    pub(super) fn term_floor(&self, prefix: &str, g: &str, models: &[usize]) -> String {
+        let largest = models
+            .iter()
+            .map(|&l| self.leaf_lipschitz(l))
+            .fold(1.0f32, f32::max);
+        format!("{prefix}_term_floor({g}, {})", lit(1.0 / largest))
     }
 
     /// `{prefix}_node_{v}_t(p, g)` for each instruction `v` other than a leaf or a sharp
