@@ -261,7 +261,8 @@ fn placed_models_match_the_cpu() {
     placed_models_match_the_cpu_on(QueryKernel::PerInvocation);
 }
 
-/// The same with one subgroup per point or ray (lavapipe has subgroups of 8 lanes).
+/// The same with one subgroup per point or ray (lavapipe has subgroups of 8 lanes;
+/// `scripts/subgroup-widths.sh` runs it at 4 and 16).
 #[test]
 fn placed_models_match_the_cpu_one_subgroup_per_element() {
     placed_models_match_the_cpu_on(QueryKernel::PerSubgroup);
@@ -626,7 +627,7 @@ fn wide_networks_match_the_cpu_on_both_kernels() {
 /// subtracted operand traced against `−c`), beside the model, every hit is the first crossing
 /// a fine march finds.
 #[test]
-fn steps_follow_each_operands_own_bound() {
+fn steps_follow_each_operands_own_bound_on_both_kernels() {
     let steep = Arc::new(sphere_model(3.0));
     let placed = |x: f32| SceneNode::model(steep.clone(), Transform::from_translation(Vec3::X * x));
     let model = placed(-6.0);

@@ -180,7 +180,7 @@ fn local_bounds_hold_in_their_balls() {
 /// distance, in fewer steps (measured: 45.7 plain, 39.7 with local bounds, 30.7 over-relaxed
 /// too); and on the GPU (both kernels) the CPU's hits.
 #[test]
-fn longer_steps_keep_every_hit() {
+fn longer_steps_keep_every_hit_on_both_kernels() {
     let fast = spot_scene();
     let mut plain = spot_scene();
     let l = plain.model_lipschitz(0).unwrap();
