@@ -20,14 +20,17 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bin="${CARGO_TARGET_DIR:-$PWD/target}/debug"
+# lavapipe even where a GPU is the default adapter: only lavapipe reads the variable.
+export HWSDF_ADAPTER=${HWSDF_ADAPTER:-llvmpipe}
 # The tests that pin the subgroup kernels, as counted on 2026-11-28: one in sdf-nn's library,
 # four in `scene`, one in `nglod`. Fewer means a filter or a name drifted.
 expected=6
 for bits in 128 512; do
     lanes=$((bits / 32))
     echo "== subgroups of $lanes lanes (LP_NATIVE_VECTOR_WIDTH=$bits)"
-    # Only lavapipe reads the variable: on any other adapter this check would test nothing new.
-    info=$(LP_NATIVE_VECTOR_WIDTH=$bits "$bin/gpu-info" 2>&1)
+    # A driver that ignores the variable would test nothing new.
+    info=$(LP_NATIVE_VECTOR_WIDTH=$bits "$bin/gpu-info" 2>&1) \
+        || { echo "gpu-info failed (HWSDF_ADAPTER=$HWSDF_ADAPTER): $info" >&2; exit 1; }
     if ! grep -q "subgroup size: $lanes\.\.$lanes," <<<"$info"; then
         echo "the adapter does not run subgroups of $lanes lanes with LP_NATIVE_VECTOR_WIDTH=$bits:" >&2
         grep -i "adapter\|subgroup" <<<"$info" >&2 || echo "$info" >&2
