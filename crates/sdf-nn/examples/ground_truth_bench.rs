@@ -11,6 +11,9 @@
 //! scan (armadillo) becomes the 1.4 M-triangle scan of issue 38's target with `--subdivide 2`.
 //!
 //! Each figure is the best of `--reps` runs, after one untimed GPU run (shader compilation).
+//! Then `GpuGroundTruth::profile`: the GPU time of each launch (the grouping by cell, then the
+//! closest-point, winding-number and signed-distance kernels) on the first part of the points,
+//! which tells the kernels' time from the wall's and a search from a winding number.
 
 use std::error::Error;
 use std::time::{Duration, Instant};
@@ -128,6 +131,29 @@ fn main() -> Result<(), Box<dyn Error>> {
             t_cpu.as_secs_f64() / t_gpu.as_secs_f64(),
             worst / diag
         );
+        // Where the GPU's time goes: each launch's own time on one part, against the wall.
+        if let Some(profile) = gt.profile(&gpu, &points)? {
+            let m = profile.points as f64;
+            let mut per_kernel = 0u64;
+            for t in &profile.launches {
+                per_kernel += t.ns;
+                let kernel_done = t.label.ends_with(": closest")
+                    || t.label.ends_with(": winding")
+                    || t.label.ends_with(": signed_distance");
+                print!("  {:<30} {:>9.3} ms", t.label, t.ns as f64 * 1e-6);
+                if kernel_done {
+                    print!(
+                        "   (with its grouping {:.0} labels/s of GPU time)",
+                        m / (per_kernel as f64 * 1e-9)
+                    );
+                    per_kernel = 0;
+                }
+                println!();
+            }
+            println!("  (GPU times of one part of {} points)", profile.points);
+        } else {
+            println!("  (no timestamp queries: no GPU profile)");
+        }
         let (t_cpu, _) = best(reps, || cpu.closest_point_batch(&points));
         let (t_gpu, got) = best(reps, || gt.closest_points(&gpu, &points));
         got?;

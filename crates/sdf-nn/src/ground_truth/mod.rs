@@ -66,7 +66,9 @@ pub use labeller::{
     GroundTruthDevice, GroundTruthPath, LabelProgress, Labeller, ProgressSink, UnknownDevice,
 };
 
-use crate::gpu::{GpuContext, GpuError, Launch, PendingRead, entry, record_launches};
+use crate::gpu::{
+    GpuContext, GpuError, Launch, PassProfiler, PassTime, PendingRead, entry, record_launches,
+};
 use crate::shaders::{self, Shader};
 
 pub mod counter_rng;
@@ -162,6 +164,15 @@ pub struct GpuGroundTruth {
     winding: wgpu::Buffer,
     triangles: usize,
     max_stack: u32,
+}
+
+/// Where a query's GPU time goes ([`GpuGroundTruth::profile`]).
+#[derive(Clone, Debug, PartialEq)]
+pub struct GroundTruthProfile {
+    /// The points each kernel ran on (the batch's first part).
+    pub points: usize,
+    /// Each launch's label (`"kernel: launch"`) and GPU time, in the order they ran.
+    pub launches: Vec<PassTime>,
 }
 
 /// Which kernel a query runs, and what it binds and returns.
@@ -337,6 +348,63 @@ impl GpuGroundTruth {
         self.run(gpu, points, Kernel::Winding)
     }
 
+    /// The GPU time of each launch of a query of `points`, kernel by kernel: for the
+    /// closest-point, winding-number and signed-distance kernels in turn, the three launches
+    /// that group the points by cell and the kernel itself, labelled `"kernel: launch"` (e.g.
+    /// `"signed_distance: bin_scatter"`), from timestamps written around each launch. Only the
+    /// first part of the batch runs (as many points as one dispatch of the host queries takes:
+    /// [`GroundTruthProfile::points`]). `None` where the device has no timestamp queries.
+    ///
+    /// What it is for: telling the kernels' own time from a query's wall time (uploads,
+    /// readbacks, the host's work), and the traversals from one another (a signed distance is
+    /// about a closest-point search and a winding number); `examples/ground_truth_bench` prints
+    /// it. Timing each launch adds a little to each.
+    ///
+    /// # Errors
+    /// The GPU's errors.
+    pub fn profile(
+        &self,
+        gpu: &GpuContext,
+        points: &[Vec3],
+    ) -> Result<Option<GroundTruthProfile>, GroundTruthError> {
+        const KERNELS: [Kernel; 3] = [Kernel::Closest, Kernel::Winding, Kernel::Signed];
+        const LAUNCHES: usize = 4;
+        let Some(mut profiler) = PassProfiler::new(gpu, (KERNELS.len() * LAUNCHES) as u32) else {
+            return Ok(None);
+        };
+        let n = KERNELS
+            .iter()
+            .map(|&k| part_size(gpu, k))
+            .fold(points.len(), usize::min);
+        if n == 0 {
+            return Ok(Some(GroundTruthProfile {
+                points: 0,
+                launches: Vec::new(),
+            }));
+        }
+        let part = &points[..n];
+        let grid = self.grid_for(part);
+        // Each kernel's buffers, all written before the one submission.
+        let slots = KERNELS
+            .iter()
+            .map(|&k| QuerySlot::new(gpu, self, k, n as u32))
+            .collect::<Result<Vec<_>, _>>()?;
+        let mut enc = gpu.device().create_command_encoder(&Default::default());
+        for slot in &slots {
+            slot.record(gpu, self, part, grid, &mut enc, Some(&mut profiler))?;
+        }
+        profiler.resolve(&mut enc);
+        gpu.queue().submit([enc.finish()]);
+        let mut times = profiler.read(gpu)?;
+        for (i, t) in times.iter_mut().enumerate() {
+            t.label = format!("{}: {}", KERNELS[i / LAUNCHES].entry_point(), t.label);
+        }
+        Ok(Some(GroundTruthProfile {
+            points: n,
+            launches: times,
+        }))
+    }
+
     /// `kernel` bound to its uniform (a [`Params`]), the points it reads (3 f32 each), the
     /// buffer it writes (`kernel.width()` f32 per point, at each point's own index) and the
     /// grouping whose order it takes the points in, with the trees it reads.
@@ -399,6 +467,17 @@ impl GpuGroundTruth {
         self.run_in_parts(gpu, points, kernel, part_size(gpu, kernel), done)
     }
 
+    /// The box a batch's points are grouped by cell in: theirs, within the mesh's grid.
+    fn grid_for(&self, points: &[Vec3]) -> (Vec3, Vec3) {
+        let (lo, hi) = bin::finite_box(points);
+        let (lo, hi) = (lo.max(self.grid.0), hi.min(self.grid.1));
+        if lo.cmple(hi).all() {
+            (lo, hi)
+        } else {
+            self.grid
+        }
+    }
+
     /// [`GpuGroundTruth::run_reporting`] in parts of at most `chunk` points.
     fn run_in_parts(
         &self,
@@ -414,13 +493,7 @@ impl GpuGroundTruth {
             return Ok(result);
         }
         let chunk = chunk.clamp(1, points.len());
-        let (lo, hi) = bin::finite_box(points);
-        let (lo, hi) = (lo.max(self.grid.0), hi.min(self.grid.1));
-        let grid = if lo.cmple(hi).all() {
-            (lo, hi)
-        } else {
-            self.grid
-        };
+        let grid = self.grid_for(points);
         let parts = points.len().div_ceil(chunk);
         let slots = (0..parts.min(2))
             .map(|_| QuerySlot::new(gpu, self, kernel, chunk as u32))
@@ -493,6 +566,24 @@ impl QuerySlot {
         part: &[Vec3],
         grid: (Vec3, Vec3),
     ) -> Result<PendingRead, GroundTruthError> {
+        let mut enc = gpu.device().create_command_encoder(&Default::default());
+        self.record(gpu, gt, part, grid, &mut enc, None)?;
+        let bytes = part.len() as u64 * self.kernel.width() as u64 * 4;
+        let read = gpu.record_read(&mut enc, &self.out, 0, bytes);
+        Ok(gpu.submit_with_read(enc, read))
+    }
+
+    /// Uploads `part` and records its grouping over `grid` and the kernel into `enc`, each
+    /// launch in a pass of its own timed by `profiler` if given.
+    fn record(
+        &self,
+        gpu: &GpuContext,
+        gt: &GpuGroundTruth,
+        part: &[Vec3],
+        grid: (Vec3, Vec3),
+        enc: &mut wgpu::CommandEncoder,
+        profiler: Option<&mut PassProfiler>,
+    ) -> Result<(), GroundTruthError> {
         let n = part.len() as u32;
         gpu.write(&self.points, bytemuck::cast_slice::<Vec3, f32>(part))?;
         gpu.write(
@@ -502,18 +593,15 @@ impl QuerySlot {
                 ..gt.params
             }],
         )?;
-        let mut enc = gpu.device().create_command_encoder(&Default::default());
-        let [count, scan, scatter] = self.bins.prepare(gpu, &mut enc, n, grid)?;
+        let [count, scan, scatter] = self.bins.prepare(gpu, enc, n, grid)?;
         let (x, y) = gpu.dispatch_size(n.div_ceil(WG));
         record_launches(
-            &mut enc,
+            enc,
             "ground truth",
             &[count, scan, scatter, (&self.launch, (x, y, 1))],
-            None,
+            profiler,
         );
-        let bytes = u64::from(n) * self.kernel.width() as u64 * 4;
-        let read = gpu.record_read(&mut enc, &self.out, 0, bytes);
-        Ok(gpu.submit_with_read(enc, read))
+        Ok(())
     }
 }
 
@@ -566,6 +654,40 @@ mod tests {
         assert_eq!(span("WNode4"), size_of::<sdf_geom::GpuWindingNode>());
         assert!(src.contains(&format!("const STACK: u32 = {}u;", super::MAX_STACK)));
         assert!(src.contains(&format!("const WG: u32 = {}u;", super::WG)));
+    }
+
+    /// The profile times the grouping's three launches and the kernel, for each of the three
+    /// kernels, in that order, each by its own timestamps.
+    #[test]
+    fn the_profile_times_every_launch_of_each_kernel() {
+        use super::GpuGroundTruth;
+        let gpu = crate::GpuContext::shared().expect("a GPU adapter (lavapipe in CI)");
+        let mesh = sdf_geom::Mesh::icosphere(0.8, 2);
+        let cpu = sdf_geom::SignedDistance::new(&mesh).unwrap();
+        let gt = GpuGroundTruth::new(gpu, &cpu).unwrap();
+        let Some(profile) = gt
+            .profile(gpu, &sdf_geom::sample::uniform_box(3000, 5))
+            .unwrap()
+        else {
+            eprintln!("adapter has no timestamp queries: nothing to profile");
+            return;
+        };
+        assert_eq!(profile.points, 3000);
+        let times = &profile.launches;
+        let labels: Vec<&str> = times.iter().map(|t| t.label.as_str()).collect();
+        let mut want = Vec::new();
+        for kernel in ["closest", "winding", "signed_distance"] {
+            for launch in ["bin_count", "bin_scan", "bin_scatter", kernel] {
+                want.push(format!("{kernel}: {launch}"));
+            }
+        }
+        assert_eq!(labels, want);
+        // Each kernel searches the trees for 3000 points: longer than no time at all.
+        for t in times.iter().skip(3).step_by(4) {
+            assert!(t.ns > 0, "{t:?}");
+        }
+        let empty = gt.profile(gpu, &[]).unwrap().expect("timestamps, as above");
+        assert_eq!((empty.points, empty.launches.len()), (0, 0));
     }
 
     /// A batch in many parts (through the two alternating sets of buffers, each part grouped by
