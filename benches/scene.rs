@@ -34,9 +34,12 @@ use sdf_nn::{GpuContext, NeuralSdf, Nglod, NglodConfig, Normalization, RenderOpt
 fn models() -> Vec<Arc<NeuralSdf>> {
     (0..8u64)
         .map(|i| {
+            // Empty counts as unset, as for the other benches' variables.
             let model = match std::env::var("SCENE_BENCH_MODEL") {
-                Ok(path) => NeuralSdf::load(&path).expect("SCENE_BENCH_MODEL loads"),
-                Err(_) => {
+                Ok(path) if !path.is_empty() => {
+                    NeuralSdf::load(&path).expect("SCENE_BENCH_MODEL loads")
+                }
+                _ => {
                     let mut m = Nglod::new(NglodConfig {
                         seed: i,
                         ..NglodConfig::default_preset()

@@ -106,7 +106,7 @@
 set -euo pipefail
 
 # The `checks` stage's test binaries (target names).
-GPU_CHECKS="siren_gpu|nglod|adam|embed|render|gpu_timer|neural_sdf|serve_queries|scene|ground_truth"
+GPU_CHECKS="siren_gpu|nglod|adam|embed|render|gpu_timer|neural_sdf|serve_queries|scene|ground_truth|ground_truth_sample|nglod_gpu_points"
 # Every stage, in the order `run` runs them: the default of GPU_COMPARE_STAGES.
 ALL_STAGES=checks,bench,kernels,coop,blocks,split,phases,profile,torch,fit,scene,groundtruth,hashgrid,corpus
 
@@ -187,7 +187,8 @@ pack() {
     done <<<"$benches"
     strip "$dir"/bin/* "$dir"/benches/* "$dir"/checks/* "$dir"/examples/* 2>/dev/null || true
     cp -r tests/data "$dir/tests/"
-    cp scripts/siren_torch_bench.py scripts/nglod_torch_bench.py "$dir/scripts/"
+    # load_model.py for the neural_sdf check (beside tests/data, as HWSDF_TEST_DATA/../../scripts).
+    cp scripts/siren_torch_bench.py scripts/nglod_torch_bench.py scripts/load_model.py "$dir/scripts/"
     cp scripts/gpu-compare.sh "$dir/"
     git rev-parse --short HEAD >"$dir/COMMIT" 2>/dev/null || echo unknown >"$dir/COMMIT"
     rm -rf "$dir/meshes"
@@ -251,6 +252,8 @@ find_icd() {
     for icd in /usr/local/nvidia/share/vulkan/icd.d/nvidia_icd.json /usr/local/nvidia/icd.d/nvidia_icd.json; do
         if [ -e "$icd" ]; then
             export VK_DRIVER_FILES=${VK_DRIVER_FILES:-$icd}
+            # Loaders before 1.3.207 read only the older name.
+            export VK_ICD_FILENAMES=${VK_ICD_FILENAMES:-$VK_DRIVER_FILES}
             echo "== using the Vulkan driver manifest $VK_DRIVER_FILES"
             return 0
         fi
@@ -430,6 +433,9 @@ def epoch_gpu_seconds():
         text = open(os.path.join(res, "bench-nglod.txt")).read()
     except OSError:
         return None, None
+    # The bench prints an epoch split per model ("<name> epoch split on ..."): NGLOD's alone.
+    m = re.search(r"^nglod_default epoch split.*?(?=^\S|\Z)", text, re.M | re.S)
+    text = m.group(0) if m else ""
     totals = re.findall(r"total ([\d.]+) s: GPU ([\d.]+) s", text)
     epochs = re.findall(r"epoch \d+: (\d+) steps, GPU loop ([\d.]+) s", text)
     if not epochs:
@@ -565,9 +571,10 @@ PY
         # Issue 37's targets: 8 NGLOD `default` models and 4 primitives; the fit stage's NGLOD
         # model when there is one (trained weights give real sphere-tracing step counts).
         echo "== bench scene (8 models, 4 primitives: distances, rays, 1920x1080 render)"
-        local model=""
-        [ -e "$res/fit-nglod.safetensors" ] && model="$res/fit-nglod.safetensors"
-        SCENE_BENCH_MODEL="$model" SCENE_BENCH_SECONDS="${SCENE_BENCH_SECONDS:-2}" \
+        # Without a fit (the stage alone, or the fit cut off), the bench's own untrained models.
+        local model=()
+        [ -e "$res/fit-nglod.safetensors" ] && model=(SCENE_BENCH_MODEL="$res/fit-nglod.safetensors")
+        env ${model[@]+"${model[@]}"} SCENE_BENCH_SECONDS="${SCENE_BENCH_SECONDS:-2}" \
             CRITERION_HOME="$res/criterion-scene" benches/scene --bench 2>&1 \
             | grep -v XDG_RUNTIME_DIR | tee "$res/bench-scene.txt" || echo "(failed)"
     fi

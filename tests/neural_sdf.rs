@@ -370,7 +370,11 @@ fn python_with_numpy() -> Result<(), String> {
 
 /// The distances `scripts/load_model.py` prints for `model` at `points`.
 fn load_model_py(model: &std::path::Path, points: &[Vec3]) -> Vec<f32> {
-    let script = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/load_model.py");
+    // Beside HWSDF_TEST_DATA (tests/data) where it is set, as in gpu-compare's pack.
+    let script = std::env::var_os("HWSDF_TEST_DATA")
+        .map(|data| std::path::PathBuf::from(data).join("../../scripts"))
+        .unwrap_or_else(|| std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts"))
+        .join("load_model.py");
     let coords: Vec<String> = points
         .iter()
         .flat_map(|p| p.to_array())

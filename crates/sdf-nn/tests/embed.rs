@@ -5,6 +5,9 @@
 //! one shader; a scene snippet's local Lipschitz lookups match the CPU's. One test binary, one
 //! shared device.
 
+#[path = "support/mod.rs"]
+mod support;
+
 use glam::Vec3;
 use rand::{Rng, SeedableRng};
 use rand_pcg::Pcg64;
@@ -733,12 +736,7 @@ fn scene_snippets_look_up_the_cpus_local_bounds_and_floors() {
     use glam::Quat;
     use sdf_nn::serve::scene::{Scene, SceneNode, Transform};
     use std::sync::Arc;
-    // Beside HWSDF_TEST_DATA (tests/data) where it is set, as in gpu-compare's pack.
-    let path = std::env::var_os("HWSDF_TEST_DATA")
-        .map(|data| std::path::PathBuf::from(data).join("../../examples/scene"))
-        .unwrap_or_else(|| concat!(env!("CARGO_MANIFEST_DIR"), "/../../examples/scene").into())
-        .join("spot.nglod.safetensors");
-    let spot = Arc::new(NeuralSdf::load(path).unwrap());
+    let spot = Arc::new(NeuralSdf::load(support::example_model("spot.nglod.safetensors")).unwrap());
     let placed = Transform::new(Vec3::new(0.4, -0.3, 0.2), Quat::from_rotation_y(0.9), 0.5);
     let scene = Scene::new(SceneNode::Union(vec![
         SceneNode::model(spot.clone(), Transform::IDENTITY),

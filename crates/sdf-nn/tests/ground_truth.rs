@@ -3,23 +3,19 @@
 //! numbers; far queries and huge coordinates; meshes that do not fit. One test binary so every
 //! test shares one device and its compiled pipelines (lavapipe JIT costs seconds per pipeline).
 
+#[path = "support/mod.rs"]
+mod support;
+
 use glam::Vec3;
 use sdf_geom::{Mesh, SignedDistance, load_mesh, sample};
 use sdf_nn::GpuContext;
 use sdf_nn::ground_truth::{GpuGroundTruth, GroundTruthError, MAX_STACK};
+use support::test_data;
 
 fn gpu() -> &'static GpuContext {
     let gpu = GpuContext::shared().expect("a GPU adapter (lavapipe in CI)");
     eprintln!("adapter: {}", gpu.describe());
     gpu
-}
-
-/// A file of `tests/data`: from `HWSDF_TEST_DATA` where set, else from the source tree.
-fn test_data(name: &str) -> std::path::PathBuf {
-    std::env::var_os("HWSDF_TEST_DATA")
-        .map(std::path::PathBuf::from)
-        .unwrap_or_else(|| concat!(env!("CARGO_MANIFEST_DIR"), "/../../tests/data").into())
-        .join(name)
 }
 
 fn unit(name: &str) -> Mesh {

@@ -2,6 +2,9 @@
 //! same run on the CPU pool: a small sphere fit must reach the same quality. One test binary
 //! so that both runs share one device and its compiled pipelines.
 
+#[path = "support/mod.rs"]
+mod support;
+
 use glam::Vec3;
 use sdf_geom::Mesh;
 use sdf_nn::nglod::{Objective, SampleSource};
@@ -96,8 +99,11 @@ fn gpu_points_fit_a_sphere_as_well_as_the_cpu_pool() {
 #[test]
 fn gpu_points_fit_spot_as_well_as_the_cpu_pool() {
     let gpu = gpu();
-    let path = concat!(env!("CARGO_MANIFEST_DIR"), "/../../tests/data/spot.obj");
-    let mesh = sdf_geom::load_mesh(path).unwrap().0.normalized().0;
+    let mesh = sdf_geom::load_mesh(support::test_data("spot.obj"))
+        .unwrap()
+        .0
+        .normalized()
+        .0;
     let cpu = sdf_geom::SignedDistance::new(&mesh).unwrap();
     let test = sdf_geom::sample::near_surface(&mesh, 10_000, 0.01, 98);
     let truth = cpu.signed_distance_batch(&test);

@@ -6,6 +6,9 @@
 #[path = "../examples/siren_fit/fit.rs"]
 mod fit;
 
+#[path = "support/mod.rs"]
+mod support;
+
 use glam::Vec3;
 use sdf_nn::siren::{
     LayerKernels, LossWeights, SirenGpuError, SirenGpuOptions, TiledBlock, TrainStep, cpu,
@@ -14,6 +17,7 @@ use sdf_nn::{
     GpuContext, ModelFile, NeuralSdf, Normalization, Siren, SirenConfig, SirenGpu,
     SirenTrainConfig, SirenTrainer, StepLayout,
 };
+use support::test_data;
 
 fn gpu() -> &'static GpuContext {
     let gpu = GpuContext::shared().expect("a GPU adapter (lavapipe in CI)");
@@ -197,15 +201,6 @@ fn coop_tile_or_skip(gpu: &GpuContext) -> Option<u32> {
         );
     }
     tile
-}
-
-/// A file of `tests/data`: from `HWSDF_TEST_DATA` where set (a test binary carried to another
-/// machine, see scripts/gpu-compare.sh), else from the source tree.
-fn test_data(name: &str) -> std::path::PathBuf {
-    std::env::var_os("HWSDF_TEST_DATA")
-        .map(std::path::PathBuf::from)
-        .unwrap_or_else(|| concat!(env!("CARGO_MANIFEST_DIR"), "/../../tests/data").into())
-        .join(name)
 }
 
 /// `LayerKernels::CoopF16` against the f64 reference where the adapter has f16 cooperative

@@ -319,8 +319,7 @@ fn trains_a_sphere_with_correct_signs() {
 #[test]
 fn trains_spot_with_correct_signs() {
     let gpu = gpu();
-    let path = concat!(env!("CARGO_MANIFEST_DIR"), "/../../tests/data/spot.obj");
-    let (mesh, _) = sdf_geom::load_mesh(path).unwrap();
+    let (mesh, _) = sdf_geom::load_mesh(crate::support::test_data("spot.obj")).unwrap();
     let (unit, _) = mesh.normalized();
     let model = Nglod::new(test_grid()).unwrap();
     let config = NglodTrainConfig {

@@ -5,6 +5,8 @@
 //! its compiled pipelines (lavapipe JIT costs seconds per pipeline).
 
 mod hashgrid;
+#[path = "../support/mod.rs"]
+mod support;
 
 use glam::Vec3;
 use rand::{Rng, SeedableRng};

@@ -757,7 +757,7 @@ fn steps_follow_each_operands_own_bound_on_both_kernels() {
 fn groups_of_models_skipped_by_their_floors_match_the_cpu() {
     let model = Arc::new(sphere_model(1.0));
     let spot =
-        Arc::new(NeuralSdf::load(crate::steps::example_model("spot.nglod.safetensors")).unwrap());
+        Arc::new(NeuralSdf::load(crate::support::example_model("spot.nglod.safetensors")).unwrap());
     let at = |m: &Arc<NeuralSdf>, x: f32, z: f32, scale: f32| {
         SceneNode::model(
             m.clone(),

@@ -19,6 +19,8 @@ mod files;
 mod gpu;
 mod models;
 mod steps;
+#[path = "../support/mod.rs"]
+mod support;
 
 pub(crate) fn sphere_at(center: Vec3, radius: f32) -> SceneNode {
     SceneNode::primitive(

@@ -290,7 +290,7 @@ fn lipschitz_estimates_bound_observed_slopes() {
 fn cell_floors_bound_the_network_tightly() {
     use sdf_nn::serve::scene::lipschitz::{COVER, GRID};
     let spot =
-        Arc::new(NeuralSdf::load(crate::steps::example_model("spot.nglod.safetensors")).unwrap());
+        Arc::new(NeuralSdf::load(crate::support::example_model("spot.nglod.safetensors")).unwrap());
     for (name, model) in [("sphere", Arc::new(sphere_model(1.0))), ("spot", spot)] {
         let scene = Scene::new(SceneNode::model(model.clone(), Transform::IDENTITY)).unwrap();
         let floors = scene.model_cell_floors(0).unwrap();

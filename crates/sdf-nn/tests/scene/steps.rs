@@ -21,16 +21,7 @@ use crate::{hits_at_the_same_t, hits_in_the_cpus_steps, random_points, shared_hi
 /// The example's trained spot model (NGLOD `small`, 48 kB): a real network, whose slope is
 /// near 1 in most cells and near 2.4 in a few.
 fn spot() -> Arc<NeuralSdf> {
-    Arc::new(NeuralSdf::load(example_model("spot.nglod.safetensors")).unwrap())
-}
-
-/// A model file of `examples/scene`: beside `HWSDF_TEST_DATA` (`tests/data`) where it is set,
-/// as in gpu-compare's pack, else in the source tree.
-pub(crate) fn example_model(name: &str) -> std::path::PathBuf {
-    std::env::var_os("HWSDF_TEST_DATA")
-        .map(|data| std::path::PathBuf::from(data).join("../../examples/scene"))
-        .unwrap_or_else(|| concat!(env!("CARGO_MANIFEST_DIR"), "/../../examples/scene").into())
-        .join(name)
+    Arc::new(NeuralSdf::load(crate::support::example_model("spot.nglod.safetensors")).unwrap())
 }
 
 /// Two spots smooth-unioned (one turned, one at half scale, so the bounds are asked through
