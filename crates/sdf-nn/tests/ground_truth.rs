@@ -143,8 +143,13 @@ fn teapot_open() {
 }
 
 /// GPU and CPU signed distances agree to `rel` of the distance plus `abs`, with the same
-/// infinities; every GPU value for a finite point is finite unless the CPU's is infinite.
+/// infinities; every GPU value for a finite point is finite unless the CPU's is infinite. A
+/// distance below f32's smallest normal may come back as 0 (WGSL lets a driver flush
+/// subnormals; Mesa 26's lavapipe does).
 fn agree(name: &str, cpu: &SignedDistance, gt: &GpuGroundTruth, pts: &[Vec3], rel: f32, abs: f32) {
+    let close = |g: f32, w: f32| {
+        (g - w).abs() <= rel * w.abs() + abs || (w.abs() < f32::MIN_POSITIVE && g == 0.0)
+    };
     let gpu = gpu();
     let want = cpu.signed_distance_batch(pts);
     let got = gt.signed_distance(gpu, pts).unwrap();
@@ -157,17 +162,14 @@ fn agree(name: &str, cpu: &SignedDistance, gt: &GpuGroundTruth, pts: &[Vec3], re
             continue;
         }
         assert!(g.is_finite(), "{name} {p}: {g} (CPU {w})");
-        assert!(
-            (g - w).abs() <= rel * w.abs() + abs,
-            "{name} {p}: {g} vs {w}"
-        );
+        assert!(close(g, w), "{name} {p}: {g} vs {w}");
         let (point, d) = closest[i];
         assert!(
             point.is_finite() && d.is_finite(),
             "{name} {p}: {point} {d}"
         );
         let wd = want_c[i].distance;
-        assert!((d - wd).abs() <= rel * wd + abs, "{name} {p}: {d} vs {wd}");
+        assert!(close(d, wd), "{name} {p}: {d} vs {wd}");
     }
 }
 
@@ -191,7 +193,13 @@ fn far_queries_and_huge_coordinates_stay_finite() {
                 .into_iter()
                 .map(|q| c + q * 1.5 * s),
         );
-        p
+        // Components below f32's smallest normal read as 0: WGSL lets a driver flush
+        // subnormals (Mesa 26's lavapipe does, 22's does not), and the case at 1e-37 is about
+        // the mesh's scaling, not about subnormal queries.
+        let flush = |x: f32| if x.abs() < f32::MIN_POSITIVE { 0.0 } else { x };
+        p.into_iter()
+            .map(|q| Vec3::new(flush(q.x), flush(q.y), flush(q.z)))
+            .collect()
     };
     let cpu = SignedDistance::new(&mesh).unwrap();
     let gt = GpuGroundTruth::new(gpu, &cpu).unwrap();
