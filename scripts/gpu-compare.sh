@@ -98,11 +98,11 @@
 #   GPU_COMPARE_SKIP_TORCH=1            only our side (same as leaving `torch` out of the stages)
 #   any variable the benches read (SIREN_BENCH_*, NGLOD_BENCH_EPOCHS, WGPU_ADAPTER_NAME, ...)
 #
-# A lent machine has minutes, not hours: pick the stages (they run in the order checks, bench,
-# coop, split, profile, blocks, torch, fit, corpus), send the results straight to the folder
-# that comes back, and stop the run before the call's limit:
-#   GPU_COMPARE_RESULTS=$OUT/results GPU_COMPARE_STAGES=checks,bench,profile,split,blocks,coop,torch,fit \
-#       timeout 540 bash gpu-compare.sh run .
+# A lent machine has minutes, not hours: pick the stages (they run in the order of ALL_STAGES
+# below), stop the run before the call's limit, and pack the results into one file of the
+# folder that comes back (at most 8 files come back; the models stay):
+#   GPU_COMPARE_RESULTS=/tmp/res GPU_COMPARE_STAGES=checks,groundtruth,scene,profile,fit \
+#       timeout 540 bash gpu-compare.sh run .; tar czf $OUT/results.tgz --exclude='*.safetensors' -C /tmp res
 # and leave `corpus` (about 3 minutes on an H100) for a call of its own. On a GPU the SIREN
 # bench samples 3 s per figure (20 s on lavapipe).
 set -euo pipefail
