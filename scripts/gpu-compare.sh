@@ -19,7 +19,8 @@
 # starts with `query`) with criterion's results under DIR/results/criterion, runs the PyTorch
 # scripts for both presets, and prints one Markdown table of ours against PyTorch eager (and
 # torch.compile where it works) with the ratios. The table is also written to
-# DIR/results/table.md, next to every raw log. It then times whole fits with `train` on
+# DIR/results/table.md, next to every raw log (and, at its end, issue 37's and 38's targets
+# beside the scene bench, the ground truth and the step profiles). It then times whole fits with `train` on
 # tests/data/spot.obj (issue 14's "100 epochs of NGLOD `default`", issue 12's "a default SIREN
 # fit", whose model `eval` then scores and times on the f32 kernels and on cooperative matrices)
 # and, when the pack holds meshes, runs `corpus` over them (issue 14's F1 averages), and
@@ -653,7 +654,7 @@ PY
         [ -e "$cdir/corpus.md" ] && cp "$cdir/corpus.md" "$res/corpus.md"
     fi
     python3 - "$res" <<'PY' | tee -a "$res/table.md"
-import glob, json, os, sys
+import glob, json, os, re, sys
 
 res = sys.argv[1]
 
@@ -705,6 +706,87 @@ corpus = os.path.join(res, "corpus.md")
 if os.path.exists(corpus):
     print("\nCorpus over the packed meshes (results/corpus.md):\n")
     print(open(corpus).read())
+
+
+def median_s(path):
+    try:
+        return json.load(open(path))["median"]["point_estimate"] * 1e-9
+    except (OSError, KeyError, ValueError):
+        return None
+
+
+def fmt_s(t):
+    if t is None:
+        return "—"
+    return f"{t * 1e6:.0f} µs" if t < 1e-2 else f"{t * 1e3:.2f} ms" if t < 10 else f"{t:.1f} s"
+
+
+# Issue 37's targets from the scene bench (criterion's medians), each kernel the bench ran.
+scene = os.path.join(res, "criterion-scene", "scene")
+targets = {"distance": ("3000 distances", "≤ 150 µs"), "rays": ("3000 rays", "≤ 1 ms"),
+           "render": ("1920×1080 render", "≤ 30 ms"), "eight_models": ("the 8 single-model queries", "—"),
+           "rays_plain": ("3000 rays, plain steps", "—")}
+rows = []
+for est in sorted(glob.glob(os.path.join(scene, "*", "*", "new", "estimates.json"))):
+    name = os.path.basename(os.path.dirname(os.path.dirname(os.path.dirname(est))))
+    base, _, kernel = name.partition("_per_")
+    label, target = targets.get(base, targets.get(name, (name, "—")))
+    if name in targets:
+        base, kernel = name, ""
+    rows.append((label + (f", one per {kernel}" if kernel else ""), fmt_s(median_s(est)), target))
+if rows:
+    print("\n| scene bench (issue 37) | ours | target |\n| --- | --- | --- |")
+    for r in rows:
+        print("| " + " | ".join(r) + " |")
+
+# Issue 38: labels per second, GPU against the CPU's cores, and each kernel's GPU time.
+try:
+    text = open(os.path.join(res, "ground-truth.txt")).read()
+except OSError:
+    text = ""
+mesh = None
+gt_rows = []
+for line in text.splitlines():
+    m = re.match(r"(\S+): (\d+) triangles", line)
+    if m:
+        mesh = f"{os.path.basename(m.group(1))} ({int(m.group(2)):,} triangles)"
+    m = re.match(r"\s+(signed|closest)\s+GPU\s+(\d+) labels/s .*GPU/CPU ([\d.]+)", line)
+    if m and mesh:
+        gt_rows.append((mesh, m.group(1), f"{int(m.group(2)):,}/s", f"{m.group(3)}×"))
+    m = re.match(r"\s+(\w+): (closest|winding|signed_distance)\s+([\d.]+) ms", line)
+    if m and mesh and m.group(1) == m.group(2):
+        gt_rows.append((mesh, f"{m.group(1)} kernel, GPU time of one part", f"{m.group(3)} ms", ""))
+if gt_rows:
+    print("\n| ground truth (issue 38: sdf ≥ 20× the CPU's cores on the 1.4 M-triangle scan) | query | GPU | GPU / CPU |")
+    print("| --- | --- | --- | --- |")
+    for r in gt_rows:
+        print("| " + " | ".join(r) + " |")
+try:
+    for line in open(os.path.join(res, "sample-source.txt")):
+        if "mean wall time per epoch" in line:
+            print(f"- NGLOD `default` epoch, {line.strip()}")
+except OSError:
+    pass
+
+# Issue 38's "GPU part of an epoch ≤ 15 ms" (and 39's), from the step profiles.
+try:
+    text = open(os.path.join(res, "nglod-profile.txt")).read()
+except OSError:
+    text = ""
+heading = None
+prof = []
+for line in text.splitlines():
+    m = re.match(r"(\w+), points from (\S+), one row per (\w+):", line)
+    if m:
+        heading = m.groups()
+    m = re.match(r"\| (sum, each launch in its own pass|the second epoch's step loop, measured \(wall\)) \| \| ([\d.]+) \|", line)
+    if m and heading:
+        prof.append((*heading, m.group(1), m.group(2) + " ms"))
+if prof:
+    print("\n| epoch's GPU part (issue 38: ≤ 15 ms for NGLOD `default`) | points from | one row per | how | ms |")
+    print("| --- | --- | --- | --- | --- |")
+    for r in prof:
+        print("| " + " | ".join(r) + " |")
 PY
     echo "== table written to $res/table.md"
 }
