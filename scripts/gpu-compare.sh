@@ -708,6 +708,14 @@ if os.path.exists(corpus):
     print(open(corpus).read())
 
 
+def table(head, rows):
+    """A Markdown table of `head` (column names) and `rows` (tuples of strings), if any rows."""
+    if rows:
+        print("\n| " + " | ".join(head) + " |\n|" + " --- |" * len(head))
+        for r in rows:
+            print("| " + " | ".join(r) + " |")
+
+
 def median_s(path):
     try:
         return json.load(open(path))["median"]["point_estimate"] * 1e-9
@@ -734,10 +742,7 @@ for est in sorted(glob.glob(os.path.join(scene, "*", "*", "new", "estimates.json
     if name in targets:
         base, kernel = name, ""
     rows.append((label + (f", one per {kernel}" if kernel else ""), fmt_s(median_s(est)), target))
-if rows:
-    print("\n| scene bench (issue 37) | ours | target |\n| --- | --- | --- |")
-    for r in rows:
-        print("| " + " | ".join(r) + " |")
+table(("scene bench (issue 37)", "ours", "target"), rows)
 
 # Issue 38: labels per second, GPU against the CPU's cores, and each kernel's GPU time.
 try:
@@ -756,11 +761,8 @@ for line in text.splitlines():
     m = re.match(r"\s+(\w+): (closest|winding|signed_distance)\s+([\d.]+) ms", line)
     if m and mesh and m.group(1) == m.group(2):
         gt_rows.append((mesh, f"{m.group(1)} kernel, GPU time of one part", f"{m.group(3)} ms", ""))
-if gt_rows:
-    print("\n| ground truth (issue 38: sdf ≥ 20× the CPU's cores on the 1.4 M-triangle scan) | query | GPU | GPU / CPU |")
-    print("| --- | --- | --- | --- |")
-    for r in gt_rows:
-        print("| " + " | ".join(r) + " |")
+table(("ground truth (issue 38: sdf ≥ 20× the CPU's cores on the 1.4 M-triangle scan)", "query", "GPU",
+       "GPU / CPU"), gt_rows)
 try:
     for line in open(os.path.join(res, "sample-source.txt")):
         if "mean wall time per epoch" in line:
@@ -782,11 +784,8 @@ for line in text.splitlines():
     m = re.match(r"\| (sum, each launch in its own pass|the second epoch's step loop, measured \(wall\)) \| \| ([\d.]+) \|", line)
     if m and heading:
         prof.append((*heading, m.group(1), m.group(2) + " ms"))
-if prof:
-    print("\n| epoch's GPU part (issue 38: ≤ 15 ms for NGLOD `default`) | points from | one row per | how | ms |")
-    print("| --- | --- | --- | --- | --- |")
-    for r in prof:
-        print("| " + " | ".join(r) + " |")
+table(("epoch's GPU part (issue 38: ≤ 15 ms for NGLOD `default`)", "points from", "one row per", "how", "ms"),
+      prof)
 PY
     echo "== table written to $res/table.md"
 }
