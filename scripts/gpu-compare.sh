@@ -716,6 +716,14 @@ def table(head, rows):
             print("| " + " | ".join(r) + " |")
 
 
+def read(name):
+    """The text of results/`name`, or "" where the stage did not run."""
+    try:
+        return open(os.path.join(res, name)).read()
+    except OSError:
+        return ""
+
+
 def median_s(path):
     try:
         return json.load(open(path))["median"]["point_estimate"] * 1e-9
@@ -745,10 +753,7 @@ for est in sorted(glob.glob(os.path.join(scene, "*", "*", "new", "estimates.json
 table(("scene bench (issue 37)", "ours", "target"), rows)
 
 # Issue 38: labels per second, GPU against the CPU's cores, and each kernel's GPU time.
-try:
-    text = open(os.path.join(res, "ground-truth.txt")).read()
-except OSError:
-    text = ""
+text = read("ground-truth.txt")
 mesh = None
 gt_rows = []
 for line in text.splitlines():
@@ -763,18 +768,12 @@ for line in text.splitlines():
         gt_rows.append((mesh, f"{m.group(1)} kernel, GPU time of one part", f"{m.group(3)} ms", ""))
 table(("ground truth (issue 38: sdf ≥ 20× the CPU's cores on the 1.4 M-triangle scan)", "query", "GPU",
        "GPU / CPU"), gt_rows)
-try:
-    for line in open(os.path.join(res, "sample-source.txt")):
-        if "mean wall time per epoch" in line:
-            print(f"- NGLOD `default` epoch, {line.strip()}")
-except OSError:
-    pass
+for line in read("sample-source.txt").splitlines():
+    if "mean wall time per epoch" in line:
+        print(f"- NGLOD `default` epoch, {line.strip()}")
 
 # Issue 38's "GPU part of an epoch ≤ 15 ms" (and 39's), from the step profiles.
-try:
-    text = open(os.path.join(res, "nglod-profile.txt")).read()
-except OSError:
-    text = ""
+text = read("nglod-profile.txt")
 heading = None
 prof = []
 for line in text.splitlines():
