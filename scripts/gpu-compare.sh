@@ -745,10 +745,9 @@ targets = {"distance": ("3000 distances", "≤ 150 µs"), "rays": ("3000 rays", 
 rows = []
 for est in sorted(glob.glob(os.path.join(scene, "*", "*", "new", "estimates.json"))):
     name = os.path.basename(os.path.dirname(os.path.dirname(os.path.dirname(est))))
+    # `distance_per_subgroup`: the `distance` figure with one point per subgroup.
     base, _, kernel = name.partition("_per_")
-    label, target = targets.get(base, targets.get(name, (name, "—")))
-    if name in targets:
-        base, kernel = name, ""
+    label, target = targets.get(base, (name, "—"))
     rows.append((label + (f", one per {kernel}" if kernel else ""), fmt_s(median_s(est)), target))
 table(("scene bench (issue 37)", "ours", "target"), rows)
 

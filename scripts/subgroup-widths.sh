@@ -25,6 +25,8 @@ export HWSDF_ADAPTER=${HWSDF_ADAPTER:-llvmpipe}
 # The tests that pin the subgroup kernels, as counted on 2026-11-28: one in sdf-nn's library,
 # four in `scene`, one in `nglod`. Fewer means a filter or a name drifted.
 expected=6
+log=$(mktemp)
+trap 'rm -f "$log"' EXIT
 for bits in 128 512; do
     lanes=$((bits / 32))
     echo "== subgroups of $lanes lanes (LP_NATIVE_VECTOR_WIDTH=$bits)"
@@ -36,11 +38,9 @@ for bits in 128 512; do
         grep -i "adapter\|subgroup" <<<"$info" >&2 || echo "$info" >&2
         exit 1
     fi
-    log=$(mktemp)
     LP_NATIVE_VECTOR_WIDTH=$bits cargo test -q --workspace --lib --test scene --test nglod \
         -- subgroup both_kernels 2>&1 | tee "$log"
     ran=$(grep -E '^test result: ok\.' "$log" | awk '{ n += $4 } END { print n + 0 }')
-    rm -f "$log"
     if [ "$ran" -lt "$expected" ]; then
         echo "only $ran subgroup-kernel tests ran at $lanes lanes (expected $expected)" >&2
         exit 1

@@ -137,9 +137,8 @@ fn main() -> Result<(), Box<dyn Error>> {
             let mut per_kernel = 0u64;
             for t in &profile.launches {
                 per_kernel += t.ns;
-                let kernel_done = t.label.ends_with(": closest")
-                    || t.label.ends_with(": winding")
-                    || t.label.ends_with(": signed_distance");
+                // "kernel: launch": the kernel's own launch ends its group.
+                let kernel_done = t.label.split_once(": ").is_some_and(|(k, l)| k == l);
                 print!("  {:<30} {:>9.3} ms", t.label, t.ns as f64 * 1e-6);
                 if kernel_done {
                     print!(
