@@ -11,7 +11,8 @@
 //! its `default` trains the same epochs with its own schedule.
 //!
 //! Run: `cargo bench --bench nglod`. `NGLOD_BENCH_EPOCHS=0` skips the training epochs;
-//! `NGLOD_BENCH_MODELS=nglod` or `hashgrid` trains only one of the two.
+//! `NGLOD_BENCH_MODELS=nglod` or `hashgrid` trains only one of the two, and `hashgrid_small`
+//! (alone or in a list) the hash grid's `small`, the CPU adapters' default model.
 //!
 //! `NGLOD_BENCH_PROFILE=N` runs no criterion bench: for NGLOD `default` and the hash grid's
 //! `default` (or those of `NGLOD_BENCH_MODELS`), with the points from the CPU pool and from
@@ -90,7 +91,8 @@ fn epoch_split(gpu: &GpuContext) {
 }
 
 /// The models the training benches train, each with its schedule: NGLOD and the hash grid's
-/// `default`, or those of the families `NGLOD_BENCH_MODELS` names (`nglod`, `hashgrid`).
+/// `default`, or those `NGLOD_BENCH_MODELS` names, by family (`nglod`, `hashgrid`: their
+/// `default`) or by name (`hashgrid_small` too, the CPU adapters' default model).
 fn trained_models() -> Vec<(&'static str, NglodConfig, NglodTrainConfig)> {
     let which = std::env::var("NGLOD_BENCH_MODELS").unwrap_or_default();
     [
@@ -104,11 +106,18 @@ fn trained_models() -> Vec<(&'static str, NglodConfig, NglodTrainConfig)> {
             NglodConfig::hashgrid_default(),
             NglodTrainConfig::hashgrid(),
         ),
+        (
+            "hashgrid_small",
+            NglodConfig::hashgrid_small(),
+            NglodTrainConfig::hashgrid(),
+        ),
     ]
     .into_iter()
     .filter(|(name, _, _)| {
         let family = name.split('_').next().unwrap_or(name);
-        which.is_empty() || which.split(',').any(|w| w == family)
+        let by_family = name.ends_with("_default") && which.split(',').any(|w| w == family);
+        let by_name = which.split(',').any(|w| w == *name);
+        (which.is_empty() && name.ends_with("_default")) || by_family || by_name
     })
     .collect()
 }

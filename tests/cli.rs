@@ -229,6 +229,25 @@ fn bad_input_gives_clear_errors() {
         .output()
         .unwrap();
     assert_clean_failure(&wrong_length, "--epochs");
+    // Without --model: the adapter's default model (the hash grid on a CPU), or NGLOD where a
+    // flag describes its architecture; the refusal names the one chosen.
+    let default = if common::cpu_adapter() {
+        "the hash grid"
+    } else {
+        "NGLOD"
+    };
+    for (flags, model) in [
+        (&["--steps", "10"][..], default),
+        (&["--hidden", "64", "--steps", "10"][..], "NGLOD"),
+        (&["--sparse-levels", "0", "--steps", "10"][..], "NGLOD"),
+    ] {
+        let o = bin("train")
+            .arg(data("suzanne.obj"))
+            .args(flags)
+            .output()
+            .unwrap();
+        assert_clean_failure(&o, &format!("--steps applies to SIREN; {model} trains for"));
+    }
 
     let corrupt = scratch("corrupt.safetensors");
     std::fs::write(&corrupt, b"\x10\0\0\0\0\0\0\0{not json}").unwrap();
@@ -416,10 +435,11 @@ fn ctrl_c_writes_a_checkpoint_that_resume_continues() {
     // It remembers the length its run planned, which a resume without --epochs goes on to.
     let saved = hwsdf::eval::run::Checkpoint::load(&checkpoint).unwrap();
     assert_eq!(saved.planned(), Some(200));
-    // `--resume` continues to the requested total.
+    // `--resume` continues to the requested total; without `--model`, with the checkpoint's
+    // model (an NGLOD one, where a CPU adapter's default is the hash grid).
     let o = bin("train")
         .arg(data("suzanne.obj"))
-        .args(["--model", "nglod", "--preset", "default", "--epochs", "3"])
+        .args(["--preset", "default", "--epochs", "3"])
         .args(["--eval-points", "2000", "--out"])
         .arg(&out)
         .arg("--report")

@@ -31,25 +31,17 @@ fn assert_clean_failure(o: &Output, needle: &str) {
 }
 
 /// One epoch of the small hash grid on suzanne (about 5 s of training on lavapipe), trained by
-/// the `train` binary and shared by the tests that read a model: its file and its report.
+/// the `train` binary and shared by the tests that read a model: its file and its report. On a
+/// CPU adapter without `--model` and `--preset`, the defaults there.
 fn trained() -> &'static (PathBuf, serde_json::Value, String) {
     static TRAINED: OnceLock<(PathBuf, serde_json::Value, String)> = OnceLock::new();
     TRAINED.get_or_init(|| {
         let out = scratch("suzanne.hashgrid.safetensors");
-        let (json, log) = common::train_with_report(
-            "suzanne.obj",
-            &[
-                "--model",
-                "hashgrid",
-                "--preset",
-                "small",
-                "--epochs",
-                "1",
-                "--eval-points",
-                "2000",
-            ],
-            &out,
-        );
+        let mut args = vec!["--epochs", "1", "--eval-points", "2000"];
+        if !common::cpu_adapter() {
+            args.extend(["--model", "hashgrid", "--preset", "small"]);
+        }
+        let (json, log) = common::train_with_report("suzanne.obj", &args, &out);
         (out, json, log)
     })
 }
@@ -58,6 +50,15 @@ fn trained() -> &'static (PathBuf, serde_json::Value, String) {
 fn train_writes_a_hash_grid_model_and_its_report() {
     let (model, report, log) = trained();
     assert!(log.contains("training hashgrid (small)"), "{log}");
+    if common::cpu_adapter() {
+        // The CPU adapter's default model, named with how to choose another.
+        assert!(
+            log.contains(
+                "note: CPU adapter; using the hash grid (--model to choose), the `small` preset"
+            ),
+            "{log}"
+        );
+    }
     let file = ModelFile::load(model).unwrap();
     assert_eq!(file.metadata.architecture, "hashgrid");
     let config = &file.metadata.config;
@@ -250,11 +251,10 @@ fn a_hash_grids_checkpoint_resumes_into_a_hash_grid() {
     assert_clean_failure(&o, "the checkpoint is of a hashgrid model, not nglod");
     let o = resume(&["--model", "hashgrid", "--preset", "default"]);
     assert_clean_failure(&o, "the checkpoint uses the small preset, not default");
-    // One more epoch than it has done.
+    // One more epoch than it has done; without --model, the checkpoint's model (not the
+    // adapter's default).
     let total = (done + 1).to_string();
-    let o = resume(&[
-        "--model", "hashgrid", "--preset", "small", "--epochs", &total,
-    ]);
+    let o = resume(&["--preset", "small", "--epochs", &total]);
     assert!(o.status.success(), "{}", stderr(&o));
     let json: serde_json::Value = serde_json::from_slice(&std::fs::read(&report).unwrap()).unwrap();
     assert_eq!(json["trained"], done + 1, "{json}");

@@ -42,9 +42,11 @@ struct Args {
     /// glTF: also follow buffer URIs outside the mesh's folder (absolute paths, `..`, symbolic links).
     #[arg(long)]
     allow_external_uris: bool,
-    /// Architecture.
-    #[arg(long, value_enum, default_value = "nglod")]
-    model: Model,
+    /// Architecture (default: NGLOD on a GPU; the hash grid on a CPU adapter, where it fits
+    /// better in the same minute; NGLOD wherever an NGLOD-only or architecture flag is given;
+    /// with --resume, the checkpoint's).
+    #[arg(long, value_enum)]
+    model: Option<Model>,
     /// Output model file (default: MESH's name with `.<model>.safetensors`).
     #[arg(long)]
     out: Option<PathBuf>,
@@ -90,30 +92,50 @@ enum Outcome {
 }
 
 fn train(args: &Args) -> Result<Outcome, Box<dyn std::error::Error>> {
-    let model = match args.model {
-        Model::Siren => ModelKind::Siren,
-        Model::Nglod => ModelKind::Nglod,
-        Model::Hashgrid => ModelKind::Hashgrid,
-    };
     let flags = &args.training;
-    // One model, one set of options.
-    let options = flags.options(&[model])?.remove(0);
-    let paths = Paths::new(args, model)?;
-    // Load the mesh and the checkpoint before the GPU: bad input is reported at once.
-    let uris = hwsdf::geom::LoadOptions::with_external_uris(args.allow_external_uris);
-    let (mesh, normalization) = run::load_normalized_with(&args.mesh, &uris)?;
     let resume = match &args.resume {
         Some(path) => Some(run::Checkpoint::load(path)?),
         None => None,
     };
+    // The model: the one asked for, else the checkpoint's, else NGLOD where a flag describes
+    // its architecture (such command lines meant NGLOD before the default depended on the
+    // adapter), else the adapter's. Only the last needs the GPU before the mesh is read.
+    let asked = match (args.model, &resume) {
+        (Some(Model::Siren), _) => Some(ModelKind::Siren),
+        (Some(Model::Nglod), _) => Some(ModelKind::Nglod),
+        (Some(Model::Hashgrid), _) => Some(ModelKind::Hashgrid),
+        (None, Some(c)) => Some(c.model()?),
+        (None, None) => flags.describes_nglod().then_some(ModelKind::Nglod),
+    };
+    let mut gpu = None;
+    let model = match asked {
+        Some(model) => model,
+        None => ModelKind::for_adapter(gpu.insert(args.gpu.open()?).is_cpu()),
+    };
+    // One model, one set of options.
+    let options = flags.options(&[model])?.remove(0);
+    let paths = Paths::new(args, model)?;
+    // Load the mesh before the GPU where the model allows: bad input is reported at once.
+    let uris = hwsdf::geom::LoadOptions::with_external_uris(args.allow_external_uris);
+    let (mesh, normalization) = run::load_normalized_with(&args.mesh, &uris)?;
     // The model kind needs no adapter: refuse a checkpoint of the other one before opening it.
     // (Its preset may: `run::train` checks that.)
     if let Some(c) = &resume {
         c.check_model(model)?;
     }
-    let gpu = args.gpu.open()?;
+    let gpu = match gpu {
+        Some(gpu) => gpu,
+        None => args.gpu.open()?,
+    };
     let options = options.with_preset(flags.preset_for(model, gpu.is_cpu()))?;
-    if flags.preset.is_none() && gpu.is_cpu() {
+    if (asked.is_none() || flags.preset.is_none()) && gpu.is_cpu() {
+        // A model the adapter chose says why: the hash grid fits better than NGLOD in the
+        // same minute on a CPU adapter (ModelKind::for_adapter).
+        let chosen = if asked.is_none() {
+            format!("the {} (--model to choose), ", model.label())
+        } else {
+            String::new()
+        };
         let length = options.length(true);
         let length = if length.asked.is_some() {
             ""
@@ -123,7 +145,7 @@ fn train(args: &Args) -> Result<Outcome, Box<dyn std::error::Error>> {
             " and a shorter default run"
         };
         eprintln!(
-            "note: CPU adapter; using the `{}` preset{length} (pass --preset/--epochs/--steps to override)",
+            "note: CPU adapter; using {chosen}the `{}` preset{length} (pass --preset/--epochs/--steps to override)",
             options.preset.name()
         );
     }

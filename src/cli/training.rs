@@ -134,6 +134,19 @@ impl TrainingFlags {
         })
     }
 
+    /// Whether a flag describes NGLOD's architecture or schedule (`--grow-every`,
+    /// `--sparse-levels`, `--band-cells`, which only NGLOD has, or `--resolutions`, `--features`
+    /// and `--hidden`, which mean other things for the hash grid): `train` without `--model`
+    /// then fits NGLOD, as such command lines did before its default depended on the adapter.
+    pub fn describes_nglod(&self) -> bool {
+        self.grow_every.is_some()
+            || self.sparse_levels.is_some()
+            || self.band_cells.is_some()
+            || self.resolutions.is_some()
+            || self.features.is_some()
+            || self.hidden.is_some()
+    }
+
     /// The preset of `model`'s runs: the one asked for, else the adapter's.
     pub fn preset_for(&self, model: ModelKind, cpu_adapter: bool) -> Preset {
         self.preset()

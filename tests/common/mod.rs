@@ -21,6 +21,20 @@ pub fn bin(name: &str) -> Command {
     })
 }
 
+/// Whether the adapter the binaries open (`HWSDF_ADAPTER` or the best one) is a CPU, as
+/// `gpu-info` describes it: the defaults that depend on the adapter (model, preset, length,
+/// ground truth) are checked against it.
+pub fn cpu_adapter() -> bool {
+    let o = bin("gpu-info").output().unwrap();
+    assert!(o.status.success(), "gpu-info failed: {}", stderr(&o));
+    let adapter = String::from_utf8_lossy(&o.stdout)
+        .lines()
+        .next()
+        .unwrap_or("")
+        .to_owned();
+    adapter.contains("(Cpu,")
+}
+
 /// A file of `tests/data`.
 pub fn data(name: &str) -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR"))

@@ -117,6 +117,19 @@ impl Checkpoint {
         (!v.is_null()).then(|| v.as_f64().map_or(f32::NAN, |x| x as f32))
     }
 
+    /// The model it is of: what a resume fits when no model is asked for.
+    pub fn model(&self) -> Result<ModelKind, RunError> {
+        let has = self.options().0;
+        has.as_deref()
+            .and_then(ModelKind::from_name)
+            .ok_or_else(|| {
+                self.refusal(format!(
+                    "the checkpoint names no model this build trains ({})",
+                    has.as_deref().unwrap_or("none")
+                ))
+            })
+    }
+
     /// Errors unless this checkpoint is of a `model` model: the check a resume can make before
     /// the adapter (which may choose the preset) is open.
     pub fn check_model(&self, model: ModelKind) -> Result<(), RunError> {

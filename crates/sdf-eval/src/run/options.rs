@@ -41,6 +41,24 @@ impl ModelKind {
     /// Every model, in the order tables list them.
     pub const ALL: [ModelKind; 3] = [ModelKind::Siren, ModelKind::Nglod, ModelKind::Hashgrid];
 
+    /// The model `train` fits when none is asked for: NGLOD on a GPU, where its fits are the
+    /// ones measured (100 epochs of spot in 3.7–4.5 s on an H200, F1 0.997 / 0.982 over the
+    /// first 20 shared meshes), and the hash grid on a CPU adapter, which in the same minute of
+    /// training fits better near the surface on every shared mesh tried but one open mesh
+    /// (docs/benchmarks/2026-11-28-session-31-cpu-default-model.md).
+    pub fn for_adapter(cpu_adapter: bool) -> Self {
+        if cpu_adapter {
+            ModelKind::Hashgrid
+        } else {
+            ModelKind::Nglod
+        }
+    }
+
+    /// The model named `name` (as [`Self::name`] writes it), if any.
+    pub fn from_name(name: &str) -> Option<Self> {
+        Self::ALL.into_iter().find(|m| m.name() == name)
+    }
+
     /// `"siren"`, `"nglod"` or `"hashgrid"`: the `--model` value, the model file's
     /// architecture and the name reports and corpus tables record.
     pub fn name(self) -> &'static str {
