@@ -332,6 +332,30 @@ mod tests {
         serde_json::from_value(r).unwrap()
     }
 
+    /// A run that read no loss (SIREN shorter than one loss window) is recorded and read back,
+    /// not taken for an unreadable result and trained again by every rerun.
+    #[test]
+    fn a_result_without_a_loss_reads_back() {
+        let root = std::env::temp_dir().join(format!("hwsdf-noloss-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&root);
+        let state = StateDir::for_table(&root.join("results.md"));
+        state.create().unwrap();
+        let mut r = report("a.obj", None);
+        r.final_loss = None;
+        state
+            .write("a.obj", ModelKind::Siren, &Entry::Done(Box::new(r)))
+            .unwrap();
+        let all = vec![CorpusMesh::new(&root, "a.obj")];
+        let m = merge(&state, &all, &[ModelKind::Siren]);
+        assert_eq!(
+            (m.done(), m.missing, m.corrupt.len()),
+            (1, 0, 0),
+            "{:?}",
+            m.corrupt
+        );
+        std::fs::remove_dir_all(&root).unwrap();
+    }
+
     #[test]
     fn wrong_regions_name_the_meshes_with_far_sign_errors() {
         let near_only = report("near.obj", Some(([5, 2, 0, 0], [3, 0, 0, 0])));

@@ -86,8 +86,10 @@ pub struct Report {
     pub train_seconds: f64,
     /// Steps (SIREN) or epochs (NGLOD, the hash grid) run.
     pub trained: usize,
-    /// Final training loss.
-    pub final_loss: f32,
+    /// Final training loss: null where the run read none (a SIREN run shorter than one loss
+    /// window), which a report written as NaN could not be read back from.
+    #[serde(default)]
+    pub final_loss: Option<f32>,
     /// Learning rate at the end of training (null in reports written before it existed).
     #[serde(default)]
     pub final_lr: Option<f32>,
@@ -152,7 +154,7 @@ impl Report {
             gpu_batch3000_us: eval.latency.gpu_batch3000_us,
             train_seconds: trained.train_seconds,
             trained: trained.done,
-            final_loss: trained.final_loss,
+            final_loss: Some(trained.final_loss).filter(|l| l.is_finite()),
             final_lr: Some(trained.lr),
             eval_points: eval.eval_points,
             adapter,
