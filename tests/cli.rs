@@ -186,6 +186,46 @@ fn corpus_records_failures_and_skips_finished_meshes() {
     assert!(stderr(&second).contains("suzanne.obj nglod: done earlier, skipped"));
 }
 
+/// A corpus of several models gives each its preset as `train` would: on a CPU adapter SIREN's
+/// `small` beside NGLOD's `default` (not one `small` for the whole table), `default` for both
+/// on a GPU; the table's sections record them.
+#[test]
+fn corpus_gives_each_model_its_own_preset() {
+    let dir = scratch("corpus-presets");
+    std::fs::create_dir_all(&dir).unwrap();
+    std::fs::copy(data("suzanne.obj"), dir.join("suzanne.obj")).unwrap();
+    let out = scratch("corpus-presets.md");
+    let o = bin("corpus")
+        .arg(&dir)
+        .args(["--model", "both", "--steps", "1", "--epochs", "1"])
+        .args(["--eval-points", "2000", "--out"])
+        .arg(&out)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", stderr(&o));
+    let siren = if common::cpu_adapter() {
+        "small"
+    } else {
+        "default"
+    };
+    let line = format!("1 meshes × 2 models (SIREN {siren}, NGLOD default)");
+    assert!(stderr(&o).contains(&line), "{line} not in {}", stderr(&o));
+    let table = std::fs::read_to_string(&out).unwrap();
+    let settings = |heading: &str| {
+        let section = &table[table.find(heading).unwrap_or_else(|| panic!("{table}"))..];
+        section
+            .lines()
+            .find(|l| l.starts_with("Settings:"))
+            .unwrap()
+            .to_owned()
+    };
+    assert!(
+        settings("### SIREN").contains(&format!("preset {siren};")),
+        "{table}"
+    );
+    assert!(settings("### NGLOD").contains("preset default;"), "{table}");
+}
+
 /// A corpus in which every run fails still writes its table, and exits non-zero.
 #[test]
 fn corpus_where_every_run_fails_exits_non_zero() {

@@ -29,7 +29,7 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use clap::{Parser, ValueEnum};
 use hwsdf::cli::{GpuFlags, GroundTruthFlags, TrainingFlags};
 use hwsdf::eval::corpus::{self, CorpusMesh, CorpusSettings, Entry, Record, Shard, StateDir};
-use hwsdf::eval::run::{self, Checkpoint, ModelKind, Preset, RunOutcome, TrainOptions};
+use hwsdf::eval::run::{self, Checkpoint, ModelKind, RunOutcome, TrainOptions};
 use hwsdf::geom::io::write_atomic;
 use hwsdf::nn::GpuContext;
 
@@ -140,10 +140,16 @@ fn corpus(args: &Args) -> Result<ExitCode, BoxError> {
     }
     state.create()?;
     let gpu = args.gpu.open()?;
-    // One preset for the whole table: `small` where any model's CPU preset is (SIREN's, the
-    // hash grid's).
-    let preset = flags.preset_for_all(&models, gpu.is_cpu());
-    let options = claim(&state, flags.eval_points, options, preset, gpu.is_cpu())?;
+    // Each model's preset as `train` picks it: the one asked for, else the adapter's (SIREN's
+    // and the hash grid's `small` on a CPU adapter, NGLOD's `default` everywhere).
+    let options = options
+        .into_iter()
+        .map(|o| {
+            let preset = flags.preset_for(o.model, gpu.is_cpu());
+            o.with_preset(preset)
+        })
+        .collect::<Result<Vec<_>, _>>()?;
+    let options = claim(&state, flags.eval_points, options, gpu.is_cpu())?;
     let stop = Arc::new(AtomicBool::new(false));
     {
         let stop = stop.clone();
@@ -155,10 +161,14 @@ fn corpus(args: &Args) -> Result<ExitCode, BoxError> {
         })?;
     }
     eprintln!(
-        "{} meshes × {} models, {} preset, on {}",
+        "{} meshes × {} models ({}), on {}",
         mine.len(),
         models.len(),
-        preset.name(),
+        options
+            .iter()
+            .map(|o| format!("{} {}", o.model.label(), o.preset.name()))
+            .collect::<Vec<_>>()
+            .join(", "),
         gpu.describe()
     );
 
@@ -189,30 +199,26 @@ fn corpus(args: &Args) -> Result<ExitCode, BoxError> {
     }
 }
 
-/// Every model's options over the run's `preset`, with their settings checked against those
+/// Every model's options (their presets resolved), with their settings checked against those
 /// the results folder was made with (and recorded there by its first run), before any mesh is
 /// trained.
 fn claim(
     state: &StateDir,
     eval_points: usize,
     options: Vec<TrainOptions>,
-    preset: Preset,
     cpu_adapter: bool,
 ) -> Result<Vec<TrainOptions>, BoxError> {
     let mut settings = CorpusSettings {
         eval_points,
         ..Default::default()
     };
-    let mut resolved = Vec::new();
-    for o in options {
-        let o = o.with_preset(preset)?;
+    for o in &options {
         settings
             .models
             .insert(o.model.name().to_owned(), o.settings(cpu_adapter)?);
-        resolved.push(o);
     }
     state.claim(&settings)?;
-    Ok(resolved)
+    Ok(options)
 }
 
 /// How one mesh's run ended, as far as the corpus goes on.

@@ -153,20 +153,6 @@ impl TrainingFlags {
             .unwrap_or_else(|| Preset::for_adapter(cpu_adapter, model))
     }
 
-    /// The one preset of a run of `models` (a corpus table has one): the one asked for, else
-    /// `small` where the adapter's preset of any of them is (SIREN and the hash grid on a CPU
-    /// adapter), else `default`.
-    pub fn preset_for_all(&self, models: &[ModelKind], cpu_adapter: bool) -> Preset {
-        let small = models
-            .iter()
-            .any(|&m| self.preset_for(m, cpu_adapter) == Preset::Small);
-        if small {
-            Preset::Small
-        } else {
-            Preset::Default
-        }
-    }
-
     /// Every model's options for a run of `models`, each flag checked once, before the GPU is
     /// opened or a mesh is read: the evaluation's size, then [`TrainOptions::validate`] of each
     /// model's options. Their preset is the one asked for, else `default` until the adapter is
@@ -353,18 +339,47 @@ mod tests {
         );
     }
 
-    /// A corpus table has one preset: `small` on a CPU adapter when SIREN or the hash grid runs.
+    /// Each model's preset is the one asked for, else its adapter's (`train` and `corpus`
+    /// alike): `small` for SIREN and the hash grid on a CPU adapter, `default` otherwise.
     #[test]
-    fn one_preset_for_a_run_of_several_models() {
+    fn each_model_gets_its_adapters_preset_unless_one_is_asked() {
         let none = flags(&[]);
-        let grids = [ModelKind::Nglod, ModelKind::Hashgrid];
-        assert_eq!(none.preset_for_all(&grids, true), Preset::Small);
-        assert_eq!(
-            none.preset_for_all(&[ModelKind::Nglod], true),
-            Preset::Default
-        );
-        assert_eq!(none.preset_for_all(&ModelKind::ALL, false), Preset::Default);
-        let asked = flags(&["--preset", "default"]);
-        assert_eq!(asked.preset_for_all(&grids, true), Preset::Default);
+        for (model, cpu, preset) in [
+            (ModelKind::Siren, true, Preset::Small),
+            (ModelKind::Hashgrid, true, Preset::Small),
+            (ModelKind::Nglod, true, Preset::Default),
+            (ModelKind::Siren, false, Preset::Default),
+            (ModelKind::Hashgrid, false, Preset::Default),
+        ] {
+            assert_eq!(none.preset_for(model, cpu), preset, "{model:?}, cpu {cpu}");
+        }
+        let asked = flags(&["--preset", "small"]);
+        assert_eq!(asked.preset_for(ModelKind::Nglod, false), Preset::Small);
+    }
+
+    /// The flags that describe NGLOD's architecture or schedule, and only they, keep NGLOD as
+    /// `train`'s model without `--model`.
+    #[test]
+    fn architecture_flags_describe_nglod() {
+        for flag in [
+            &["--resolutions", "4,8"][..],
+            &["--features", "4"],
+            &["--hidden", "16"],
+            &["--sparse-levels", "0"],
+            &["--band-cells", "1"],
+            &["--grow-every", "2"],
+        ] {
+            assert!(flags(flag).describes_nglod(), "{flag:?}");
+        }
+        for flag in [
+            &[][..],
+            &["--epochs", "3"],
+            &["--lr", "1e-3"],
+            &["--batch", "1024"],
+            &["--preset", "default"],
+            &["--pool", "2,2"],
+        ] {
+            assert!(!flags(flag).describes_nglod(), "{flag:?}");
+        }
     }
 }
