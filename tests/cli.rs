@@ -211,6 +211,11 @@ fn corpus_gives_each_model_its_own_preset() {
     let line = format!("1 meshes × 2 models (SIREN {siren}, NGLOD default)");
     assert!(stderr(&o).contains(&line), "{line} not in {}", stderr(&o));
     let table = std::fs::read_to_string(&out).unwrap();
+    let header = match siren {
+        "small" => "Presets SIREN `small`, NGLOD `default`, adapter",
+        _ => "Preset `default`, adapter",
+    };
+    assert!(table.starts_with(header), "{header} does not open {table}");
     let settings = |heading: &str| {
         let section = &table[table.find(heading).unwrap_or_else(|| panic!("{table}"))..];
         section

@@ -53,9 +53,8 @@ fn train_writes_a_hash_grid_model_and_its_report() {
     if common::cpu_adapter() {
         // The CPU adapter's default model, named with how to choose another.
         assert!(
-            log.contains(
-                "note: CPU adapter; using the hash grid (--model to choose), the `small` preset"
-            ),
+            log.contains("note: CPU adapter; using the hash grid (--model to choose;")
+                && log.contains("the `small` preset (--preset and --epochs to override)"),
             "{log}"
         );
     }

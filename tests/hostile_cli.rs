@@ -891,6 +891,24 @@ fn cases() -> Vec<Case> {
             Error("done5.checkpoint.safetensors: the checkpoint has done 5 epochs already"),
         )
         .gpu(),
+        // Without --model and --preset a resume takes both from the checkpoint (NGLOD `small`
+        // here, where a CPU adapter's default model is the hash grid and a GPU's preset for
+        // NGLOD is `default`), so the check that refuses it is the length's.
+        case(
+            "resume with the checkpoint's model and preset",
+            "train",
+            &[
+                "cube.obj",
+                "--epochs",
+                "2",
+                "--resume",
+                "done5.checkpoint.safetensors",
+                "--out",
+                "m.safetensors",
+            ],
+            Error("done5.checkpoint.safetensors: the checkpoint has done 5 epochs already"),
+        )
+        .gpu(),
         // Checkpoint hyperparameters.
         case(
             "resume negative lr",

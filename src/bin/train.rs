@@ -42,9 +42,9 @@ struct Args {
     /// glTF: also follow buffer URIs outside the mesh's folder (absolute paths, `..`, symbolic links).
     #[arg(long)]
     allow_external_uris: bool,
-    /// Architecture (default: NGLOD on a GPU; the hash grid on a CPU adapter, where it fits
-    /// better in the same minute; NGLOD wherever an NGLOD-only or architecture flag is given;
-    /// with --resume, the checkpoint's).
+    /// Architecture (default: with --resume, the checkpoint's; NGLOD where an NGLOD-only or
+    /// architecture flag is given; else NGLOD on a GPU and the hash grid on a CPU adapter,
+    /// where it fits better in the same minute).
     #[arg(long, value_enum)]
     model: Option<Model>,
     /// Output model file (default: MESH's name with `.<model>.safetensors`).
@@ -93,61 +93,41 @@ enum Outcome {
 
 fn train(args: &Args) -> Result<Outcome, Box<dyn std::error::Error>> {
     let flags = &args.training;
+    let known = known_model(args);
+    // Every check that needs no GPU, before it opens: for each model the adapter may still
+    // choose (their flags and default output names), then the mesh and the checkpoint.
+    let candidates = match known {
+        Some(model) => vec![model],
+        None => vec![ModelKind::for_adapter(false), ModelKind::for_adapter(true)],
+    };
+    check_flags_and_paths(args, &candidates)?;
+    let uris = hwsdf::geom::LoadOptions::with_external_uris(args.allow_external_uris);
+    let (mesh, normalization) = run::load_normalized_with(&args.mesh, &uris)?;
     let resume = match &args.resume {
         Some(path) => Some(run::Checkpoint::load(path)?),
         None => None,
     };
-    // The model: the one asked for, else the checkpoint's, else NGLOD where a flag describes
-    // its architecture (such command lines meant NGLOD before the default depended on the
-    // adapter), else the adapter's. Only the last needs the GPU before the mesh is read.
-    let asked = match (args.model, &resume) {
-        (Some(Model::Siren), _) => Some(ModelKind::Siren),
-        (Some(Model::Nglod), _) => Some(ModelKind::Nglod),
-        (Some(Model::Hashgrid), _) => Some(ModelKind::Hashgrid),
-        (None, Some(c)) => Some(c.model()?),
-        (None, None) => flags.describes_nglod().then_some(ModelKind::Nglod),
-    };
-    let mut gpu = None;
-    let model = match asked {
-        Some(model) => model,
-        None => ModelKind::for_adapter(gpu.insert(args.gpu.open()?).is_cpu()),
-    };
-    // One model, one set of options.
-    let options = flags.options(&[model])?.remove(0);
-    let paths = Paths::new(args, model)?;
-    // Load the mesh before the GPU where the model allows: bad input is reported at once.
-    let uris = hwsdf::geom::LoadOptions::with_external_uris(args.allow_external_uris);
-    let (mesh, normalization) = run::load_normalized_with(&args.mesh, &uris)?;
     // The model kind needs no adapter: refuse a checkpoint of the other one before opening it.
-    // (Its preset may: `run::train` checks that.)
+    if let (Some(c), Some(model)) = (&resume, known) {
+        c.check_model(model)?;
+    }
+    let gpu = args.gpu.open()?;
+    let model = known.unwrap_or_else(|| ModelKind::for_adapter(gpu.is_cpu()));
     if let Some(c) = &resume {
         c.check_model(model)?;
     }
-    let gpu = match gpu {
-        Some(gpu) => gpu,
-        None => args.gpu.open()?,
+    // One model, one set of options; a resume keeps its checkpoint's preset unless one is
+    // asked for (`run::train` refuses another), on whatever adapter it continues.
+    let paths = Paths::new(args, model)?;
+    let preset = match (flags.preset(), &resume) {
+        (None, Some(c)) => c.preset()?,
+        _ => flags.preset_for(model, gpu.is_cpu()),
     };
-    let options = options.with_preset(flags.preset_for(model, gpu.is_cpu()))?;
-    if (asked.is_none() || flags.preset.is_none()) && gpu.is_cpu() {
-        // A model the adapter chose says why: the hash grid fits better than NGLOD in the
-        // same minute on a CPU adapter (ModelKind::for_adapter).
-        let chosen = if asked.is_none() {
-            format!("the {} (--model to choose), ", model.label())
-        } else {
-            String::new()
-        };
-        let length = options.length(true);
-        let length = if length.asked.is_some() {
-            ""
-        } else if length.time_budget.is_some() {
-            " and as many epochs as about a minute of training buys here"
-        } else {
-            " and a shorter default run"
-        };
-        eprintln!(
-            "note: CPU adapter; using {chosen}the `{}` preset{length} (pass --preset/--epochs/--steps to override)",
-            options.preset.name()
-        );
+    let options = flags.options(&[model])?.remove(0).with_preset(preset)?;
+    if gpu.is_cpu()
+        && let Some(note) = cpu_note(known.is_none(), flags, &options, resume.is_some())
+    {
+        eprintln!("{note}");
     }
     // The exact SDF once, for the check below, the trainer's samples and the evaluation; after
     // every cheap check, since on a scan of millions of triangles it takes seconds.
@@ -251,6 +231,82 @@ fn train(args: &Args) -> Result<Outcome, Box<dyn std::error::Error>> {
     print_summary(&args.mesh, model, &report);
     eprintln!("report written to {}", paths.report.display());
     Ok(Outcome::Finished)
+}
+
+/// The model, where the command line tells it without the adapter: the one asked for, else
+/// the checkpoint's (read here only for its name; `Checkpoint::load` checks the rest), else
+/// NGLOD where a flag describes its architecture (such command lines meant NGLOD before the
+/// default depended on the adapter). `None`: the adapter's (`ModelKind::for_adapter`).
+fn known_model(args: &Args) -> Option<ModelKind> {
+    match (args.model, &args.resume) {
+        (Some(Model::Siren), _) => Some(ModelKind::Siren),
+        (Some(Model::Nglod), _) => Some(ModelKind::Nglod),
+        (Some(Model::Hashgrid), _) => Some(ModelKind::Hashgrid),
+        (None, Some(path)) => run::Checkpoint::model_of(path),
+        (None, None) => args.training.describes_nglod().then_some(ModelKind::Nglod),
+    }
+}
+
+/// The flags and output paths of each model in `candidates`, checked before the GPU opens. A
+/// refused flag is named for the model the adapter would choose, where the GPU opens: the
+/// candidates (NGLOD and the hash grid, no flag of NGLOD's alone among the flags) take the same
+/// flags, only the refusal's words differ.
+fn check_flags_and_paths(
+    args: &Args,
+    candidates: &[ModelKind],
+) -> Result<(), Box<dyn std::error::Error>> {
+    for &model in candidates {
+        if let Err(e) = args.training.options(&[model]) {
+            let chosen = match candidates {
+                [_, _, ..] => args
+                    .gpu
+                    .open()
+                    .ok()
+                    .map(|g| ModelKind::for_adapter(g.is_cpu())),
+                _ => None,
+            };
+            let e = chosen
+                .and_then(|m| args.training.options(&[m]).err())
+                .unwrap_or(e);
+            return Err(e.into());
+        }
+        Paths::new(args, model)?;
+    }
+    Ok(())
+}
+
+/// What a run on a CPU adapter tells the user it chose for them: the model, where the adapter
+/// chose it, and the preset and length where none was asked for (a resume has its
+/// checkpoint's).
+fn cpu_note(
+    adapter_chose_model: bool,
+    flags: &TrainingFlags,
+    options: &run::TrainOptions,
+    resuming: bool,
+) -> Option<String> {
+    let mut chosen = Vec::new();
+    if adapter_chose_model {
+        chosen.push(format!(
+            "the {} (--model to choose; it fits better than NGLOD in the same minute here)",
+            options.model.label()
+        ));
+    }
+    if flags.preset.is_none() && !resuming {
+        let length = options.length(true);
+        let length = if length.asked.is_some() {
+            ""
+        } else if length.time_budget.is_some() {
+            " and as many epochs as about a minute of training buys here"
+        } else {
+            " and a shorter default run"
+        };
+        chosen.push(format!(
+            "the `{}` preset{length} (--preset and --{}s to override)",
+            options.preset.name(),
+            options.model.unit()
+        ));
+    }
+    (!chosen.is_empty()).then(|| format!("note: CPU adapter; using {}", chosen.join(", ")))
 }
 
 /// Where a run writes: the model, its report, and the checkpoint an interruption leaves.

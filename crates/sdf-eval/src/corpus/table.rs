@@ -120,7 +120,7 @@ impl Merge {
                 Entry::Failed { .. } => None,
             })
             .collect();
-        let presets: BTreeSet<&str> = reports.iter().map(|r| r.preset.as_str()).collect();
+        let all_presets: BTreeSet<&str> = reports.iter().map(|r| r.preset.as_str()).collect();
         let adapters: BTreeSet<&str> = reports.iter().map(|r| r.adapter.as_str()).collect();
         // Reports from before the path was recorded labelled on the CPU.
         let paths: BTreeSet<&str> = reports
@@ -134,10 +134,25 @@ impl Merge {
                 set.iter().copied().collect::<Vec<_>>().join("; ")
             }
         };
+        // One preset for the table, or each model's where they differ (SIREN's `small` beside
+        // NGLOD's `default` on a CPU adapter).
+        let presets = if all_presets.len() <= 1 {
+            format!("Preset `{}`", list(&all_presets))
+        } else {
+            let of = |kind: ModelKind| {
+                let set: BTreeSet<&str> = reports
+                    .iter()
+                    .filter(|r| r.model == kind.name())
+                    .map(|r| r.preset.as_str())
+                    .collect();
+                (!set.is_empty()).then(|| format!("{} `{}`", kind.label(), list(&set)))
+            };
+            let each: Vec<String> = ModelKind::ALL.into_iter().filter_map(of).collect();
+            format!("Presets {}", each.join(", "))
+        };
         let _ = writeln!(
             s,
-            "Preset `{}`, adapter {}, ground truth on {}. {}.\n",
-            list(&presets),
+            "{presets}, adapter {}, ground truth on {}. {}.\n",
             list(&adapters),
             list(&paths),
             self.status()

@@ -6,7 +6,7 @@ use std::path::Path;
 use sdf_nn::nglod::Encoding;
 use sdf_nn::{AdamState, ModelFile, NeuralSdf, Nglod};
 
-use super::{ModelKind, NglodArchitecture, RunError, TrainOptions, Trained};
+use super::{ModelKind, NglodArchitecture, Preset, RunError, TrainOptions, Trained};
 
 /// What an interrupted run saves: the model so far, the optimiser's moments and the progress
 /// counters, in one model file (extra tensors `optimizer.m` and `optimizer.v`; metadata
@@ -117,17 +117,25 @@ impl Checkpoint {
         (!v.is_null()).then(|| v.as_f64().map_or(f32::NAN, |x| x as f32))
     }
 
-    /// The model it is of: what a resume fits when no model is asked for.
-    pub fn model(&self) -> Result<ModelKind, RunError> {
-        let has = self.options().0;
-        has.as_deref()
+    /// The model the checkpoint at `path` is of, read without the checks of [`Self::load`]
+    /// (`None` where the file or its model name does not read): what a resume fits when no
+    /// model is asked for, known before the other checks of the command line run.
+    pub fn model_of(path: &Path) -> Option<ModelKind> {
+        let file = ModelFile::load(path).ok()?;
+        file.metadata.training["model"]
+            .as_str()
             .and_then(ModelKind::from_name)
-            .ok_or_else(|| {
-                self.refusal(format!(
-                    "the checkpoint names no model this build trains ({})",
-                    has.as_deref().unwrap_or("none")
-                ))
-            })
+    }
+
+    /// The preset it was trained with: what a resume keeps when no preset is asked for.
+    pub fn preset(&self) -> Result<Preset, RunError> {
+        let has = self.options().1;
+        has.as_deref().and_then(Preset::from_name).ok_or_else(|| {
+            self.refusal(format!(
+                "the checkpoint names no preset this build has ({})",
+                has.as_deref().unwrap_or("none")
+            ))
+        })
     }
 
     /// Errors unless this checkpoint is of a `model` model: the check a resume can make before

@@ -140,6 +140,13 @@ impl Preset {
         }
     }
 
+    /// The preset named `name` (as [`Self::name`] writes it), if any.
+    pub fn from_name(name: &str) -> Option<Self> {
+        [Preset::Default, Preset::Small]
+            .into_iter()
+            .find(|p| p.name() == name)
+    }
+
     /// `"default"` or `"small"`.
     pub fn name(self) -> &'static str {
         match self {
