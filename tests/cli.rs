@@ -203,6 +203,12 @@ fn corpus_gives_each_model_its_own_preset() {
         .output()
         .unwrap();
     assert!(o.status.success(), "{}", stderr(&o));
+    // Both ran and were recorded (a record that did not read back would be "not yet run").
+    assert!(
+        stderr(&o).contains("2 of 2 done, 0 failed"),
+        "{}",
+        stderr(&o)
+    );
     let siren = if common::cpu_adapter() {
         "small"
     } else {

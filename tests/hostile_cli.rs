@@ -401,6 +401,10 @@ impl Fixtures {
             ModelFile::from_bytes(&checkpoint(1e-3, 0.0), Path::new("done5")).unwrap();
         done5.metadata.training["done"] = 5.into();
         add("done5.checkpoint.safetensors", done5.to_bytes().unwrap());
+        let mut resnet: ModelFile =
+            ModelFile::from_bytes(&checkpoint(1e-3, 0.0), Path::new("resnet")).unwrap();
+        resnet.metadata.training["model"] = "resnet".into();
+        add("resnet.checkpoint.safetensors", resnet.to_bytes().unwrap());
 
         hashgrid_fixtures(&mut add, &plane);
 
@@ -892,8 +896,8 @@ fn cases() -> Vec<Case> {
         )
         .gpu(),
         // Without --model and --preset a resume takes both from the checkpoint (NGLOD `small`
-        // here, where a CPU adapter's default model is the hash grid and a GPU's preset for
-        // NGLOD is `default`), so the check that refuses it is the length's.
+        // here, where a CPU adapter's default model is the hash grid and NGLOD's preset on any
+        // adapter is `default`), so the check that refuses it is the length's.
         case(
             "resume with the checkpoint's model and preset",
             "train",
@@ -909,6 +913,22 @@ fn cases() -> Vec<Case> {
             Error("done5.checkpoint.safetensors: the checkpoint has done 5 epochs already"),
         )
         .gpu(),
+        // A checkpoint of a model this build does not know, resumed without --model: named as
+        // such before anything else runs.
+        case(
+            "resume a checkpoint of an unknown model",
+            "train",
+            &[
+                "cube.obj",
+                "--resume",
+                "resnet.checkpoint.safetensors",
+                "--out",
+                "m.safetensors",
+            ],
+            Error(
+                "resnet.checkpoint.safetensors: the checkpoint names no model this build trains (resnet)",
+            ),
+        ),
         // Checkpoint hyperparameters.
         case(
             "resume negative lr",

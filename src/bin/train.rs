@@ -93,7 +93,7 @@ enum Outcome {
 
 fn train(args: &Args) -> Result<Outcome, Box<dyn std::error::Error>> {
     let flags = &args.training;
-    let known = known_model(args);
+    let known = known_model(args)?;
     // Every check that needs no GPU, before it opens: for each model the adapter may still
     // choose (their flags and default output names), then the mesh and the checkpoint.
     let candidates = match known {
@@ -107,22 +107,20 @@ fn train(args: &Args) -> Result<Outcome, Box<dyn std::error::Error>> {
         Some(path) => Some(run::Checkpoint::load(path)?),
         None => None,
     };
-    // The model kind needs no adapter: refuse a checkpoint of the other one before opening it.
-    if let (Some(c), Some(model)) = (&resume, known) {
-        c.check_model(model)?;
-    }
+    // A resume's model is known (asked for or its checkpoint's) and so is its preset (asked
+    // for or its checkpoint's, on whatever adapter it continues): both checked before the GPU.
+    let resume_preset = match (&resume, known) {
+        (Some(c), Some(model)) => {
+            let preset = flags.preset().map_or_else(|| c.preset(), Ok)?;
+            c.check_resumes(&flags.options(&[model])?.remove(0).with_preset(preset)?)?;
+            Some(preset)
+        }
+        _ => None,
+    };
     let gpu = args.gpu.open()?;
     let model = known.unwrap_or_else(|| ModelKind::for_adapter(gpu.is_cpu()));
-    if let Some(c) = &resume {
-        c.check_model(model)?;
-    }
-    // One model, one set of options; a resume keeps its checkpoint's preset unless one is
-    // asked for (`run::train` refuses another), on whatever adapter it continues.
     let paths = Paths::new(args, model)?;
-    let preset = match (flags.preset(), &resume) {
-        (None, Some(c)) => c.preset()?,
-        _ => flags.preset_for(model, gpu.is_cpu()),
-    };
+    let preset = resume_preset.unwrap_or_else(|| flags.preset_for(model, gpu.is_cpu()));
     let options = flags.options(&[model])?.remove(0).with_preset(preset)?;
     if gpu.is_cpu()
         && let Some(note) = cpu_note(known.is_none(), flags, &options, resume.is_some())
@@ -237,14 +235,18 @@ fn train(args: &Args) -> Result<Outcome, Box<dyn std::error::Error>> {
 /// the checkpoint's (read here only for its name; `Checkpoint::load` checks the rest), else
 /// NGLOD where a flag describes its architecture (such command lines meant NGLOD before the
 /// default depended on the adapter). `None`: the adapter's (`ModelKind::for_adapter`).
-fn known_model(args: &Args) -> Option<ModelKind> {
-    match (args.model, &args.resume) {
+fn known_model(args: &Args) -> Result<Option<ModelKind>, run::RunError> {
+    Ok(match (args.model, &args.resume) {
         (Some(Model::Siren), _) => Some(ModelKind::Siren),
         (Some(Model::Nglod), _) => Some(ModelKind::Nglod),
         (Some(Model::Hashgrid), _) => Some(ModelKind::Hashgrid),
-        (None, Some(path)) => run::Checkpoint::model_of(path),
+        (None, Some(path)) => match run::Checkpoint::model_of(path) {
+            Some(model) => Some(model),
+            // Unreadable, or naming no model: the whole load says why.
+            None => Some(run::Checkpoint::load(path)?.model()?),
+        },
         (None, None) => args.training.describes_nglod().then_some(ModelKind::Nglod),
-    }
+    })
 }
 
 /// The flags and output paths of each model in `candidates`, checked before the GPU opens. A
@@ -255,21 +257,28 @@ fn check_flags_and_paths(
     args: &Args,
     candidates: &[ModelKind],
 ) -> Result<(), Box<dyn std::error::Error>> {
-    for &model in candidates {
-        if let Err(e) = args.training.options(&[model]) {
-            let chosen = match candidates {
-                [_, _, ..] => args
-                    .gpu
-                    .open()
-                    .ok()
-                    .map(|g| ModelKind::for_adapter(g.is_cpu())),
-                _ => None,
-            };
-            let e = chosen
-                .and_then(|m| args.training.options(&[m]).err())
-                .unwrap_or(e);
-            return Err(e.into());
+    let refusals: Vec<(ModelKind, String)> = candidates
+        .iter()
+        .filter_map(|&m| Some((m, args.training.options(&[m]).err()?.to_string())))
+        .collect();
+    if let Some((_, first)) = refusals.first() {
+        // Refusals in the same words need no adapter; else the adapter's model's, where the
+        // GPU opens (and none where that model takes the flags).
+        let same = refusals.len() == candidates.len() && refusals.iter().all(|(_, r)| r == first);
+        let chosen = (!same)
+            .then(|| args.gpu.open().ok())
+            .flatten()
+            .map(|g| ModelKind::for_adapter(g.is_cpu()));
+        match chosen {
+            Some(m) => {
+                if let Some((_, r)) = refusals.iter().find(|(k, _)| *k == m) {
+                    return Err(r.clone().into());
+                }
+            }
+            None => return Err(first.clone().into()),
         }
+    }
+    for &model in candidates {
         Paths::new(args, model)?;
     }
     Ok(())

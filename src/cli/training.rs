@@ -30,7 +30,7 @@ pub enum DistanceArg {
 #[derive(clap::Args, Debug)]
 pub struct TrainingFlags {
     /// Size preset (default: `default`; SIREN's and the hash grid's are `small` on a CPU
-    /// adapter).
+    /// adapter; a resume keeps its checkpoint's).
     #[arg(long, value_enum)]
     pub preset: Option<PresetArg>,
     /// SIREN training steps (default: 10000 on a GPU, a few hundred on a CPU adapter).

@@ -127,6 +127,19 @@ impl Checkpoint {
             .and_then(ModelKind::from_name)
     }
 
+    /// The model it is of: what a resume fits when no model is asked for.
+    pub fn model(&self) -> Result<ModelKind, RunError> {
+        let has = self.options().0;
+        has.as_deref()
+            .and_then(ModelKind::from_name)
+            .ok_or_else(|| {
+                self.refusal(format!(
+                    "the checkpoint names no model this build trains ({})",
+                    has.as_deref().unwrap_or("none")
+                ))
+            })
+    }
+
     /// The preset it was trained with: what a resume keeps when no preset is asked for.
     pub fn preset(&self) -> Result<Preset, RunError> {
         let has = self.options().1;
