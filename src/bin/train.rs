@@ -19,7 +19,7 @@ use clap::{Parser, ValueEnum};
 use hwsdf::cli::{GpuFlags, GroundTruthFlags, LabelFlags, TrainingFlags, format_loss};
 use hwsdf::eval::run::{self, ModelKind, NglodArchitecture, Progress};
 use hwsdf::geom::io;
-use hwsdf::nn::{DistanceMode, NeuralSdf};
+use hwsdf::nn::{DistanceMode, ModelFile, NeuralSdf};
 use indicatif::{ProgressBar, ProgressStyle};
 
 #[derive(Clone, Copy, Debug, ValueEnum)]
@@ -93,19 +93,25 @@ enum Outcome {
 
 fn train(args: &Args) -> Result<Outcome, Box<dyn std::error::Error>> {
     let flags = &args.training;
-    let known = known_model(args)?;
+    // Without --model a resume's checkpoint is read first (once): its model decides the checks.
+    let early = match (args.model, &args.resume) {
+        (None, Some(path)) => Some(run::Checkpoint::read(path)?),
+        _ => None,
+    };
+    let known = known_model(args, early.as_ref())?;
     // Every check that needs no GPU, before it opens: for each model the adapter may still
     // choose (their flags and default output names), then the mesh and the checkpoint.
     let candidates = match known {
         Some(model) => vec![model],
         None => vec![ModelKind::for_adapter(false), ModelKind::for_adapter(true)],
     };
-    check_flags_and_paths(args, &candidates)?;
+    let mut paths = check_flags_and_paths(args, &candidates)?;
     let uris = hwsdf::geom::LoadOptions::with_external_uris(args.allow_external_uris);
     let (mesh, normalization) = run::load_normalized_with(&args.mesh, &uris)?;
-    let resume = match &args.resume {
-        Some(path) => Some(run::Checkpoint::load(path)?),
-        None => None,
+    let resume = match (early, &args.resume) {
+        (Some(file), Some(path)) => Some(run::Checkpoint::from_file(file, path)?),
+        (_, Some(path)) => Some(run::Checkpoint::load(path)?),
+        (_, None) => None,
     };
     // A resume's model is known (asked for or its checkpoint's) and so is its preset (asked
     // for or its checkpoint's, on whatever adapter it continues): both checked before the GPU.
@@ -119,7 +125,9 @@ fn train(args: &Args) -> Result<Outcome, Box<dyn std::error::Error>> {
     };
     let gpu = args.gpu.open()?;
     let model = known.unwrap_or_else(|| ModelKind::for_adapter(gpu.is_cpu()));
-    let paths = Paths::new(args, model)?;
+    // The paths checked above for this model: the adapter's is one of the candidates.
+    let chosen = candidates.iter().position(|&m| m == model);
+    let paths = paths.swap_remove(chosen.expect("the model is a candidate"));
     let preset = resume_preset.unwrap_or_else(|| flags.preset_for(model, gpu.is_cpu()));
     let options = flags.options(&[model])?.remove(0).with_preset(preset)?;
     if gpu.is_cpu()
@@ -232,31 +240,35 @@ fn train(args: &Args) -> Result<Outcome, Box<dyn std::error::Error>> {
 }
 
 /// The model, where the command line tells it without the adapter: the one asked for, else
-/// the checkpoint's (read here only for its name; `Checkpoint::load` checks the rest), else
-/// NGLOD where a flag describes its architecture (such command lines meant NGLOD before the
-/// default depended on the adapter). `None`: the adapter's (`ModelKind::for_adapter`).
-fn known_model(args: &Args) -> Result<Option<ModelKind>, run::RunError> {
-    Ok(match (args.model, &args.resume) {
-        (Some(Model::Siren), _) => Some(ModelKind::Siren),
-        (Some(Model::Nglod), _) => Some(ModelKind::Nglod),
-        (Some(Model::Hashgrid), _) => Some(ModelKind::Hashgrid),
-        (None, Some(path)) => match run::Checkpoint::model_of(path) {
+/// the checkpoint's (`checkpoint`: its file, read when no model is asked for; only its name is
+/// read here, `Checkpoint::from_file` checks the rest), else NGLOD where a flag describes its
+/// architecture (such command lines meant NGLOD before the default depended on the adapter).
+/// `None`: the adapter's (`ModelKind::for_adapter`).
+fn known_model(
+    args: &Args,
+    checkpoint: Option<&ModelFile>,
+) -> Result<Option<ModelKind>, run::RunError> {
+    Ok(match (args.model, checkpoint, &args.resume) {
+        (Some(Model::Siren), ..) => Some(ModelKind::Siren),
+        (Some(Model::Nglod), ..) => Some(ModelKind::Nglod),
+        (Some(Model::Hashgrid), ..) => Some(ModelKind::Hashgrid),
+        (None, Some(file), Some(path)) => match run::Checkpoint::model_of(file) {
             Some(model) => Some(model),
-            // Unreadable, or naming no model: the whole load says why.
-            None => Some(run::Checkpoint::load(path)?.model()?),
+            // Naming no model: the checkpoint's checks, then its refusal, say why.
+            None => Some(run::Checkpoint::from_file(file.clone(), path)?.model()?),
         },
-        (None, None) => args.training.describes_nglod().then_some(ModelKind::Nglod),
+        _ => args.training.describes_nglod().then_some(ModelKind::Nglod),
     })
 }
 
-/// The flags and output paths of each model in `candidates`, checked before the GPU opens. A
-/// refused flag is named for the model the adapter would choose, where the GPU opens: the
-/// candidates (NGLOD and the hash grid, no flag of NGLOD's alone among the flags) take the same
-/// flags, only the refusal's words differ.
+/// The flags and output paths of each model in `candidates`, checked before the GPU opens; its
+/// paths, in the candidates' order. A refused flag is named for the model the adapter would
+/// choose, where the GPU opens: the candidates (NGLOD and the hash grid, no flag of NGLOD's
+/// alone among the flags) take the same flags, only the refusal's words differ.
 fn check_flags_and_paths(
     args: &Args,
     candidates: &[ModelKind],
-) -> Result<(), Box<dyn std::error::Error>> {
+) -> Result<Vec<Paths>, Box<dyn std::error::Error>> {
     let refusals: Vec<(ModelKind, String)> = candidates
         .iter()
         .filter_map(|&m| Some((m, args.training.options(&[m]).err()?.to_string())))
@@ -278,10 +290,10 @@ fn check_flags_and_paths(
             None => return Err(first.clone().into()),
         }
     }
-    for &model in candidates {
-        Paths::new(args, model)?;
-    }
-    Ok(())
+    candidates
+        .iter()
+        .map(|&model| Paths::new(args, model))
+        .collect()
 }
 
 /// What a run on a CPU adapter tells the user it chose for them: the model, where the adapter

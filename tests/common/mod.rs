@@ -25,14 +25,17 @@ pub fn bin(name: &str) -> Command {
 /// `gpu-info` describes it: the defaults that depend on the adapter (model, preset, length,
 /// ground truth) are checked against it.
 pub fn cpu_adapter() -> bool {
-    let o = bin("gpu-info").output().unwrap();
-    assert!(o.status.success(), "gpu-info failed: {}", stderr(&o));
-    let adapter = String::from_utf8_lossy(&o.stdout)
-        .lines()
-        .next()
-        .unwrap_or("")
-        .to_owned();
-    adapter.contains("(Cpu,")
+    static CPU: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
+    *CPU.get_or_init(|| {
+        let o = bin("gpu-info").output().unwrap();
+        assert!(o.status.success(), "gpu-info failed: {}", stderr(&o));
+        let adapter = String::from_utf8_lossy(&o.stdout)
+            .lines()
+            .next()
+            .unwrap_or("")
+            .to_owned();
+        adapter.contains("(Cpu,")
+    })
 }
 
 /// A file of `tests/data`.

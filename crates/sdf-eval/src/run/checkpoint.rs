@@ -21,7 +21,17 @@ pub struct Checkpoint {
 impl Checkpoint {
     /// Reads a checkpoint, rejecting plain model files.
     pub fn load(path: &Path) -> Result<Self, RunError> {
-        let file = ModelFile::load(path)?;
+        Self::from_file(Self::read(path)?, path)
+    }
+
+    /// The file at `path`, read but not yet checked: [`Self::model_of`] names its model before
+    /// [`Self::from_file`] makes it a checkpoint, without a second read.
+    pub fn read(path: &Path) -> Result<ModelFile, RunError> {
+        Ok(ModelFile::load(path)?)
+    }
+
+    /// [`Self::load`] of a file already read from `path`.
+    pub fn from_file(file: ModelFile, path: &Path) -> Result<Self, RunError> {
         if file.metadata.training.get("checkpoint") != Some(&serde_json::Value::Bool(true)) {
             return Err(RunError::Options(format!(
                 "{} is a model file, not a checkpoint of an interrupted run",
@@ -117,11 +127,10 @@ impl Checkpoint {
         (!v.is_null()).then(|| v.as_f64().map_or(f32::NAN, |x| x as f32))
     }
 
-    /// The model the checkpoint at `path` is of, read without the checks of [`Self::load`]
-    /// (`None` where the file or its model name does not read): what a resume fits when no
-    /// model is asked for, known before the other checks of the command line run.
-    pub fn model_of(path: &Path) -> Option<ModelKind> {
-        let file = ModelFile::load(path).ok()?;
+    /// The model a checkpoint's `file` names, without the checks of [`Self::from_file`]
+    /// (`None` where it names none this build trains): what a resume fits when no model is
+    /// asked for, known before the other checks of the command line run.
+    pub fn model_of(file: &ModelFile) -> Option<ModelKind> {
         file.metadata.training["model"]
             .as_str()
             .and_then(ModelKind::from_name)
@@ -129,15 +138,12 @@ impl Checkpoint {
 
     /// The model it is of: what a resume fits when no model is asked for.
     pub fn model(&self) -> Result<ModelKind, RunError> {
-        let has = self.options().0;
-        has.as_deref()
-            .and_then(ModelKind::from_name)
-            .ok_or_else(|| {
-                self.refusal(format!(
-                    "the checkpoint names no model this build trains ({})",
-                    has.as_deref().unwrap_or("none")
-                ))
-            })
+        Self::model_of(&self.file).ok_or_else(|| {
+            self.refusal(format!(
+                "the checkpoint names no model this build trains ({})",
+                self.options().0.as_deref().unwrap_or("none")
+            ))
+        })
     }
 
     /// The preset it was trained with: what a resume keeps when no preset is asked for.
