@@ -29,14 +29,14 @@ use sdf_nn::{
     GpuContext, Nglod, NglodConfig, NglodGpu, NglodTrainConfig, NglodTrainer, QueryKernel,
 };
 
-/// The profile's launches of the GPU draw, which run once an epoch (the rest once a step).
-const DRAW_LAUNCHES: [&str; 6] = [
+/// The profile's launches of a block's draw and labelling on the GPU, which run once every
+/// `refresh_every` epochs once the pool is full.
+const BLOCK_LAUNCHES: [&str; 5] = [
     "draw",
     "bin_count",
     "bin_scan",
     "bin_scatter",
     "signed_distance",
-    "gather",
 ];
 
 fn inference(c: &mut Criterion, gpu: &GpuContext) {
@@ -186,8 +186,11 @@ fn profile(gpu: &GpuContext, steps: usize) {
                 let mut epoch_ms = 0.0;
                 for (label, mut v) in rows {
                     let m = median(&mut v);
-                    // The draw runs once an epoch, the rest once a step.
-                    let times = if DRAW_LAUNCHES.contains(&label.as_str()) {
+                    // A block is drawn once every `refresh_every` epochs, the gather runs
+                    // once an epoch, the rest once a step.
+                    let times = if BLOCK_LAUNCHES.contains(&label.as_str()) {
+                        1.0 / trainer.config().refresh_every as f64
+                    } else if label == "gather" {
                         1.0
                     } else {
                         per_epoch

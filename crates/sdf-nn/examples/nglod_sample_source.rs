@@ -3,7 +3,11 @@
 //! model, mixture and seed; and the time of one epoch's draw and labels alone on each side.
 //!
 //! `cargo run -p sdf-nn --example nglod_sample_source -- tests/data/spot.obj --points 50000
-//! --epochs 4 --preset small --batch 512`
+//! --epochs 4 --preset small --batch 512 [--pool BLOCKS,EVERY] [--sources cpu-pool,gpu]`
+//!
+//! `--pool` sets both sources' pool (`NglodTrainConfig::pool_blocks`, `refresh_every`; the
+//! trainer's default 4,4; 1,1 draws fresh points every epoch); `--sources` trains only those
+//! named.
 //!
 //! Points per epoch are split 1 : 2 : 2 (uniform, near the surface with σ = 0.01, on it), as the
 //! trainer's default. The first epoch includes the first pool block's wait (CPU pool) and each
@@ -22,6 +26,9 @@ fn main() -> Result<(), Box<dyn Error>> {
         concat!(env!("CARGO_MANIFEST_DIR"), "/../../tests/data/spot.obj").to_owned();
     let (mut points, mut epochs, mut batch) = (50_000usize, 4usize, 512u32);
     let mut preset = "small".to_owned();
+    let defaults = NglodTrainConfig::default();
+    let mut pool = (defaults.pool_blocks, defaults.refresh_every);
+    let mut sources = vec![SampleSource::CpuPool, SampleSource::Gpu];
     let mut args = std::env::args().skip(1);
     while let Some(a) = args.next() {
         let mut value = || args.next().ok_or(format!("{a} needs a value"));
@@ -30,6 +37,21 @@ fn main() -> Result<(), Box<dyn Error>> {
             "--epochs" => epochs = value()?.parse()?,
             "--batch" => batch = value()?.parse()?,
             "--preset" => preset = value()?,
+            "--pool" => {
+                let v = value()?;
+                let (b, e) = v.split_once(',').ok_or("--pool takes BLOCKS,EVERY")?;
+                pool = (b.parse()?, e.parse()?);
+            }
+            "--sources" => {
+                sources = value()?
+                    .split(',')
+                    .map(|s| match s {
+                        "cpu-pool" => Ok(SampleSource::CpuPool),
+                        "gpu" => Ok(SampleSource::Gpu),
+                        other => Err(format!("unknown source {other}: cpu-pool or gpu")),
+                    })
+                    .collect::<Result<_, _>>()?;
+            }
             _ => mesh_path = a.clone(),
         }
     }
@@ -49,8 +71,10 @@ fn main() -> Result<(), Box<dyn Error>> {
     let surface = points - uniform - near;
     println!(
         "{mesh_path}: {} triangles; {preset} preset, {points} points per epoch \
-         ({uniform} uniform, {near} near, {surface} on the surface), batch {batch}",
-        mesh.triangles.len()
+         ({uniform} uniform, {near} near, {surface} on the surface), batch {batch}, pool {},{}",
+        mesh.triangles.len(),
+        pool.0,
+        pool.1
     );
 
     // One epoch's draw and labels alone.
@@ -114,7 +138,7 @@ fn main() -> Result<(), Box<dyn Error>> {
         to_label.len()
     );
 
-    for source in [SampleSource::CpuPool, SampleSource::Gpu] {
+    for source in sources {
         let config = NglodTrainConfig {
             epochs,
             uniform_points: uniform,
@@ -123,6 +147,8 @@ fn main() -> Result<(), Box<dyn Error>> {
             batch_size: batch,
             seed: 3,
             sample_source: source,
+            pool_blocks: pool.0,
+            refresh_every: pool.1,
             ..Default::default()
         };
         let model = Nglod::new(model_config.clone())?;

@@ -396,3 +396,80 @@ fn bad_input_is_an_error() {
     ));
     draw.record(gpu, &mut enc, &spec(5, 5, 0, 0)).unwrap();
 }
+
+/// A pool of three labelled draws kept on the GPU (`LabelledDraw::with_pool`): an epoch's
+/// gather takes distinct points of all three blocks, each with its block's label, in the order
+/// of the epoch's shuffle over the whole pool; a plain `record` through the pool is the plain
+/// draw; a block or a gather beyond the pool is an error.
+#[test]
+fn a_pool_of_labelled_draws_gathers_distinct_points_of_every_block() {
+    let gpu = gpu();
+    let mesh = spot();
+    let cpu = SignedDistance::new(&mesh).unwrap();
+    let gt = GpuGroundTruth::new(gpu, &cpu).unwrap();
+    let sampler = GpuSampler::new(gpu, &SampleTable::new(&mesh).unwrap()).unwrap();
+    let n = 1500u32;
+    let points = gpu.storage_zeroed("points", u64::from(n) * 12).unwrap();
+    let targets = gpu.storage_zeroed("targets", u64::from(n) * 4).unwrap();
+    let draw = LabelledDraw::with_pool(gpu, &sampler, &gt, &points, &targets, LabelKind::Signed, 3)
+        .unwrap();
+    assert_eq!(draw.pool_blocks(), 3);
+    let submit = |record: &dyn Fn(&mut wgpu::CommandEncoder) -> Result<(), SampleError>| {
+        let mut enc = gpu.device().create_command_encoder(&Default::default());
+        record(&mut enc).unwrap();
+        gpu.queue().submit([enc.finish()]);
+    };
+    let block = |k: u32| SampleSpec {
+        stream: k,
+        shuffle: false,
+        ..spec(500, 700, 300, 23)
+    };
+    // The blocks in slots 2, 0, 1: a block's place is its slot, not its turn.
+    let mut pool = vec![Vec3::ZERO; 3 * n as usize];
+    for (k, slot) in [(7u32, 2u32), (8, 0), (9, 1)] {
+        submit(&|enc| draw.record_block(gpu, enc, &block(k), slot));
+        let at = (slot * n) as usize;
+        pool[at..at + n as usize].copy_from_slice(&sampler.draw(gpu, &block(k)).unwrap());
+    }
+    let epoch = SampleSpec {
+        stream: 4,
+        ..spec(500, 700, 300, 23)
+    };
+    submit(&|enc| draw.record_gather(gpu, enc, &epoch, 3));
+    let read_points = || -> Vec<Vec3> {
+        let flat: Vec<f32> = gpu.read_back(&points).unwrap();
+        flat.chunks(3).map(Vec3::from_slice).collect()
+    };
+    let got = read_points();
+    let labels: Vec<f32> = gpu.read_back(&targets).unwrap();
+    let shuffle = epoch.shuffle_over(3 * n);
+    let tol = 1e-6 * mesh.bounds().diagonal();
+    let mut per_block = [0u32; 3];
+    let mut seen = std::collections::HashSet::new();
+    for (i, (p, d)) in got.iter().zip(&labels).enumerate() {
+        let j = shuffle.apply(i as u32);
+        assert!(seen.insert(j), "pool point {j} twice");
+        assert_eq!(*p, pool[j as usize], "point {i} (pool point {j})");
+        per_block[(j / n) as usize] += 1;
+        // The last 300 of each block are its surface points, labelled 0 without a query.
+        let want = if j % n >= 1200 {
+            0.0
+        } else {
+            cpu.signed_distance(*p)
+        };
+        assert!((d - want).abs() <= tol, "{p}: {d} vs {want}");
+    }
+    assert!(per_block.iter().all(|&c| c > n / 5), "{per_block:?}");
+    // One block and its gather, as `LabelledDraw::new` records them: the shuffled draw.
+    submit(&|enc| draw.record(gpu, enc, &epoch));
+    assert_eq!(read_points(), sampler.draw(gpu, &epoch).unwrap());
+    let mut enc = gpu.device().create_command_encoder(&Default::default());
+    assert!(matches!(
+        draw.record_block(gpu, &mut enc, &block(1), 3),
+        Err(SampleError::TooManyPoints { .. })
+    ));
+    assert!(matches!(
+        draw.record_gather(gpu, &mut enc, &epoch, 4),
+        Err(SampleError::TooManyPoints { .. })
+    ));
+}

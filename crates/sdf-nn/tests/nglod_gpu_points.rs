@@ -166,8 +166,9 @@ fn steps_sharing_a_submission_train_as_steps_submitted_alone() {
 }
 
 /// With points from the GPU, a run stopped part-way through an epoch and resumed ends where an
-/// uninterrupted run ends: the resumed epoch redraws the same points (a function of the seed
-/// and the epoch) and finishes its steps.
+/// uninterrupted run ends: the resumed epoch redraws the same pool (its blocks, functions of
+/// the seed and the block, one of them drawn after the first was dropped) and the same order,
+/// and finishes its steps.
 #[test]
 fn an_interrupted_gpu_epoch_resumes_on_the_same_points() {
     use std::sync::Arc;
@@ -176,7 +177,7 @@ fn an_interrupted_gpu_epoch_resumes_on_the_same_points() {
     let mesh = Mesh::icosphere(0.5, 2);
     let model = Nglod::new(NglodConfig::small()).unwrap();
     let config = NglodTrainConfig {
-        epochs: 2,
+        epochs: 3,
         uniform_points: 2_000,
         near_points: 2_000,
         surface_points: 2_000,
@@ -185,20 +186,23 @@ fn an_interrupted_gpu_epoch_resumes_on_the_same_points() {
         loss_every: 4,
         seed: 11,
         sample_source: SampleSource::Gpu,
+        // Epoch 2 draws from blocks 1 and 2: block 0 has been dropped.
+        pool_blocks: 2,
+        refresh_every: 1,
         ..Default::default()
     };
     let mut straight = NglodTrainer::new(gpu, &model, &mesh, config.clone()).unwrap();
-    assert_eq!(straight.train().unwrap().steps, 24);
+    assert_eq!(straight.train().unwrap().steps, 36);
     let want = straight.model().unwrap();
 
     let mut first = NglodTrainer::new(gpu, &model, &mesh, config.clone()).unwrap();
     let stop = Arc::new(AtomicBool::new(false));
     first.set_stop_flag(stop.clone());
     let part = first
-        .train_with(|_| stop.store(true, Ordering::Relaxed))
+        .train_with(|e| stop.store(e.epoch == 1, Ordering::Relaxed))
         .unwrap();
     assert!(part.stopped_early);
-    assert_eq!((first.epochs_done(), first.epoch_steps_done()), (1, 4));
+    assert_eq!((first.epochs_done(), first.epoch_steps_done()), (2, 4));
     let state = first.optimizer_state().unwrap();
     let halfway = first.model().unwrap();
     let rest = NglodTrainConfig {
@@ -206,7 +210,7 @@ fn an_interrupted_gpu_epoch_resumes_on_the_same_points() {
         ..config
     };
     let mut resumed = NglodTrainer::new(gpu, &halfway, &mesh, rest).unwrap();
-    resumed.resume(&state, 1, 4).unwrap();
+    resumed.resume(&state, 2, 4).unwrap();
     assert_eq!(resumed.train().unwrap().epochs[0].steps, 8);
     let diff = |a: &Nglod, b: &Nglod| {
         a.params()

@@ -126,7 +126,14 @@ impl SampleSpec {
 
     /// The shuffle of this draw (the identity without `shuffle`).
     pub fn shuffle(&self) -> Shuffle {
-        Shuffle::new(self.len().unwrap_or(u32::MAX), self, self.shuffle)
+        self.shuffle_over(self.len().unwrap_or(u32::MAX))
+    }
+
+    /// This draw's shuffle keys on a domain of `n` points (the identity without `shuffle`):
+    /// the first [`SampleSpec::len`] of its images pick distinct points of a pool of `n`
+    /// ([`super::LabelledDraw::record_gather`]).
+    pub fn shuffle_over(&self, n: u32) -> Shuffle {
+        Shuffle::new(n, self, self.shuffle)
     }
 
     /// Where point `i` of the draw comes from: its kind and its rank among the points of that
@@ -165,7 +172,7 @@ impl SampleSpec {
 /// that holds `n`, walked until it lands below `n`), or the identity.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct Shuffle {
-    /// Points in the draw.
+    /// Points in the domain: the draw's, or a pool's.
     pub n: u32,
     /// Bits of each Feistel half (0: the identity).
     pub half: u32,

@@ -64,7 +64,7 @@ struct SampleParams {
     shuffle_half: u32,
     shuffle_keys: [u32; 4],
     sigma: f32,
-    _pad0: u32,
+    shuffle_n: u32,
     _pad1: u32,
     _pad2: u32,
 }
@@ -257,7 +257,7 @@ impl GpuSampler {
 
     /// The uniform of `spec` (checked by [`check_spec`]).
     fn params(&self, spec: &SampleSpec, n: u32) -> SampleParams {
-        params(spec, n, self.triangles)
+        params(spec, n, self.triangles, spec.shuffle())
     }
 
     /// The points of `spec`, read back (for tests and diagnostics: training keeps them on the
@@ -380,6 +380,10 @@ impl GpuSampler {
 /// over the box of about a cell per point, `bin.rs`), and a gather writes the shuffled draw and
 /// its labels into the caller's buffers. The points are those of [`GpuSampler::draw`] for the
 /// same [`SampleSpec`].
+///
+/// With a pool ([`LabelledDraw::with_pool`]) the labelled draws are kept, a block each, and an
+/// epoch gathers its points from all the blocks kept ([`LabelledDraw::record_gather`]): the
+/// CPU pool's scheme on the GPU, so that a block labelled once serves several epochs.
 pub struct LabelledDraw {
     /// The draw without its shuffle, and the gather with it.
     draw_uniform: wgpu::Buffer,
@@ -395,14 +399,17 @@ pub struct LabelledDraw {
     label_params: Params,
     /// Points the buffers hold.
     capacity: u32,
-    /// The scratch buffers (bound above; kept for clarity).
-    _scratch: (wgpu::Buffer, wgpu::Buffer),
+    /// The scratch buffers the draw is labelled in: points, labels.
+    scratch: (wgpu::Buffer, wgpu::Buffer),
+    /// The pool's points and labels, and its blocks, where there is one.
+    pool: Option<(wgpu::Buffer, wgpu::Buffer, u32)>,
 }
 
 impl std::fmt::Debug for LabelledDraw {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         f.debug_struct("LabelledDraw")
             .field("capacity", &self.capacity)
+            .field("pool_blocks", &self.pool_blocks())
             .finish_non_exhaustive()
     }
 }
@@ -421,11 +428,57 @@ impl LabelledDraw {
         targets: &wgpu::Buffer,
         labels: LabelKind,
     ) -> Result<Self, SampleError> {
+        Self::build(gpu, sampler, gt, (points, targets), labels, None)
+    }
+
+    /// [`LabelledDraw::new`] with a pool of `blocks` labelled draws, each as large as the
+    /// caller's buffers ([`LabelledDraw::record_block`], [`LabelledDraw::record_gather`]).
+    ///
+    /// # Errors
+    /// As [`LabelledDraw::new`]; [`SampleError::TooManyPoints`] for a pool of no block or of
+    /// more than `u32::MAX` points; the pool's buffers beyond the device's limits (named).
+    pub fn with_pool(
+        gpu: &GpuContext,
+        sampler: &GpuSampler,
+        gt: &GpuGroundTruth,
+        points: &wgpu::Buffer,
+        targets: &wgpu::Buffer,
+        labels: LabelKind,
+        blocks: u32,
+    ) -> Result<Self, SampleError> {
+        Self::build(gpu, sampler, gt, (points, targets), labels, Some(blocks))
+    }
+
+    fn build(
+        gpu: &GpuContext,
+        sampler: &GpuSampler,
+        gt: &GpuGroundTruth,
+        (points, targets): (&wgpu::Buffer, &wgpu::Buffer),
+        labels: LabelKind,
+        pool_blocks: Option<u32>,
+    ) -> Result<Self, SampleError> {
         let capacity =
             u32::try_from((points.size() / 12).min(targets.size() / 4)).unwrap_or(u32::MAX);
         let drawn = gpu.storage_zeroed("labelled draw: points", u64::from(capacity) * 12)?;
         // Never written beyond the labelled points: the surface points' labels stay 0.
         let drawn_labels = gpu.storage_zeroed("labelled draw: labels", u64::from(capacity) * 4)?;
+        let pool = match pool_blocks {
+            None => None,
+            Some(blocks) => {
+                let pool_points = u64::from(capacity) * u64::from(blocks);
+                if blocks == 0 || pool_points > u64::from(u32::MAX) {
+                    return Err(SampleError::TooManyPoints {
+                        requested: pool_points,
+                        limit: u64::from(u32::MAX),
+                    });
+                }
+                Some((
+                    gpu.storage_zeroed("labelled draw: pool points", pool_points * 12)?,
+                    gpu.storage_zeroed("labelled draw: pool labels", pool_points * 4)?,
+                    blocks,
+                ))
+            }
+        };
         let zero = sampler.params(&EMPTY, 0);
         let draw_uniform = gpu.uniform("labelled draw: draw params", &zero);
         let gather_uniform = gpu.uniform("labelled draw: gather params", &zero);
@@ -455,6 +508,11 @@ impl LabelledDraw {
             &drawn_labels,
             &bins,
         )?;
+        // The gather reads the pool where there is one (the draw is copied into a block).
+        let (from_points, from_labels) = match &pool {
+            Some((p, l, _)) => (p, l),
+            None => (&drawn, &drawn_labels),
+        };
         let gather = launch(
             sample,
             "gather",
@@ -462,8 +520,8 @@ impl LabelledDraw {
                 entry(0, &gather_uniform),
                 entry(3, points),
                 entry(5, targets),
-                entry(6, &drawn),
-                entry(7, &drawn_labels),
+                entry(6, from_points),
+                entry(7, from_labels),
             ],
         )?;
         let absolute = match labels {
@@ -486,12 +544,19 @@ impl LabelledDraw {
             triangles: sampler.triangles,
             label_params: gt.params,
             capacity,
-            _scratch: (drawn, drawn_labels),
+            scratch: (drawn, drawn_labels),
+            pool,
         })
     }
 
+    /// The pool's blocks (1 without a pool: the last draw).
+    pub fn pool_blocks(&self) -> u32 {
+        self.pool.as_ref().map_or(1, |p| p.2)
+    }
+
     /// Records the draw of `spec` into the first points of the buffers and their labelling
-    /// into `enc`. The uniforms go through the queue: submit before recording another draw.
+    /// into `enc` (with a pool, through its block 0). The uniforms go through the queue:
+    /// submit before recording another draw.
     ///
     /// # Errors
     /// [`SampleError::TooManyPoints`] above the buffers' capacity, [`SampleError::BadSigma`].
@@ -512,6 +577,84 @@ impl LabelledDraw {
         spec: &SampleSpec,
         profiler: Option<&mut PassProfiler>,
     ) -> Result<(), SampleError> {
+        self.record_parts(gpu, enc, Some((spec, 0)), Some((spec, 1)), profiler)
+    }
+
+    /// Records the draw of `spec` (without its shuffle) and its labelling into block `block`
+    /// of the pool, `block · len` points in (`len` = `spec`'s points: every block of a pool
+    /// holds as many). Without a pool, block 0 is the draw the next gather reads. The
+    /// uniforms go through the queue: one block per submission.
+    ///
+    /// # Errors
+    /// As [`LabelledDraw::record`]; [`SampleError::TooManyPoints`] for a block beyond the
+    /// pool.
+    pub fn record_block(
+        &self,
+        gpu: &GpuContext,
+        enc: &mut wgpu::CommandEncoder,
+        spec: &SampleSpec,
+        block: u32,
+    ) -> Result<(), SampleError> {
+        self.record_parts(gpu, enc, Some((spec, block)), None, None)
+    }
+
+    /// Records the gather of `spec`'s points (`len` of them) from the first `blocks` blocks of
+    /// the pool (`blocks · len` points) into the caller's buffers, in the order of `spec`'s
+    /// shuffle over them ([`SampleSpec::shuffle_over`]): `len` distinct points of the pool, or
+    /// the first `len` in their order without `shuffle`.
+    ///
+    /// # Errors
+    /// [`SampleError::TooManyPoints`] for more blocks than the pool has or a draw above the
+    /// buffers' capacity.
+    pub fn record_gather(
+        &self,
+        gpu: &GpuContext,
+        enc: &mut wgpu::CommandEncoder,
+        spec: &SampleSpec,
+        blocks: u32,
+    ) -> Result<(), SampleError> {
+        self.record_parts(gpu, enc, None, Some((spec, blocks)), None)
+    }
+
+    /// The launches of a block's draw and labelling (copied into its place in the pool), then
+    /// of a gather from the pool's first blocks.
+    fn record_parts(
+        &self,
+        gpu: &GpuContext,
+        enc: &mut wgpu::CommandEncoder,
+        block: Option<(&SampleSpec, u32)>,
+        gather: Option<(&SampleSpec, u32)>,
+        mut profiler: Option<&mut PassProfiler>,
+    ) -> Result<(), SampleError> {
+        if let Some((spec, b)) = block {
+            let n = self.check_blocks(spec, b + 1)?;
+            if n > 0 {
+                self.record_draw(gpu, enc, spec, n, profiler.as_deref_mut())?;
+                if let Some((pool_points, pool_labels, _)) = &self.pool {
+                    let (at, n) = (u64::from(b) * u64::from(n), u64::from(n));
+                    enc.copy_buffer_to_buffer(&self.scratch.0, 0, pool_points, at * 12, n * 12);
+                    enc.copy_buffer_to_buffer(&self.scratch.1, 0, pool_labels, at * 4, n * 4);
+                }
+            }
+        }
+        if let Some((spec, blocks)) = gather {
+            let n = self.check_blocks(spec, blocks)?;
+            if n > 0 {
+                let params = params(spec, n, self.triangles, spec.shuffle_over(n * blocks));
+                gpu.write(&self.gather_uniform, &[params])?;
+                let (x, y) = gpu.dispatch_size(n.div_ceil(WG));
+                let mut launches = vec![(&self.gather, (x, y, 1))];
+                if let Some(absolute) = &self.absolute {
+                    launches.push((absolute, (x, y, 1)));
+                }
+                record_launches(enc, "gather", &launches, profiler);
+            }
+        }
+        Ok(())
+    }
+
+    /// `spec`'s points, checked against the buffers and a pool of at least `blocks` blocks.
+    fn check_blocks(&self, spec: &SampleSpec, blocks: u32) -> Result<u32, SampleError> {
         let n = check_spec(spec)?;
         if n > self.capacity {
             return Err(SampleError::TooManyPoints {
@@ -519,19 +662,33 @@ impl LabelledDraw {
                 limit: u64::from(self.capacity),
             });
         }
-        if n == 0 {
-            return Ok(());
+        let have = self.pool_blocks();
+        if blocks == 0 || blocks > have {
+            return Err(SampleError::TooManyPoints {
+                requested: u64::from(n) * u64::from(blocks),
+                limit: u64::from(self.capacity) * u64::from(have),
+            });
         }
+        Ok(n)
+    }
+
+    /// The draw of `spec`'s `n` points without its shuffle into the scratch buffers, and the
+    /// labelling of its uniform and near-surface points.
+    fn record_draw(
+        &self,
+        gpu: &GpuContext,
+        enc: &mut wgpu::CommandEncoder,
+        spec: &SampleSpec,
+        n: u32,
+        profiler: Option<&mut PassProfiler>,
+    ) -> Result<(), SampleError> {
         let unshuffled = SampleSpec {
             shuffle: false,
             ..*spec
         };
         let labelled = spec.uniform + spec.near;
-        gpu.write(
-            &self.draw_uniform,
-            &[params(&unshuffled, n, self.triangles)],
-        )?;
-        gpu.write(&self.gather_uniform, &[params(spec, n, self.triangles)])?;
+        let draw = params(&unshuffled, n, self.triangles, unshuffled.shuffle());
+        gpu.write(&self.draw_uniform, &[draw])?;
         gpu.write(
             &self.label_uniform,
             &[Params {
@@ -548,10 +705,6 @@ impl LabelledDraw {
             launches.extend(self.bins.prepare(gpu, enc, labelled, grid)?);
             let (lx, ly) = gpu.dispatch_size(labelled.div_ceil(super::WG));
             launches.push((&self.label, (lx, ly, 1)));
-        }
-        launches.push((&self.gather, (x, y, 1)));
-        if let Some(absolute) = &self.absolute {
-            launches.push((absolute, (x, y, 1)));
         }
         record_launches(enc, "draw and label", &launches, profiler);
         Ok(())
@@ -570,9 +723,8 @@ const EMPTY: SampleSpec = SampleSpec {
 };
 
 /// The sampler's uniform for `n` points of `spec` (checked by [`check_spec`]) on a table of
-/// `triangles` triangles.
-fn params(spec: &SampleSpec, n: u32, triangles: u32) -> SampleParams {
-    let s = spec.shuffle();
+/// `triangles` triangles, in the order of the shuffle `s` (`spec`'s over a draw or a pool).
+fn params(spec: &SampleSpec, n: u32, triangles: u32, s: Shuffle) -> SampleParams {
     SampleParams {
         n_points: n,
         n_uniform: spec.uniform,
@@ -583,7 +735,7 @@ fn params(spec: &SampleSpec, n: u32, triangles: u32) -> SampleParams {
         shuffle_half: s.half,
         shuffle_keys: s.keys,
         sigma: spec.sigma,
-        _pad0: 0,
+        shuffle_n: s.n,
         _pad1: 0,
         _pad2: 0,
     }
@@ -609,7 +761,8 @@ mod tests {
                 stream,
                 shuffle_half,
                 shuffle_keys,
-                sigma
+                sigma,
+                shuffle_n
             ]
         );
         assert!(

@@ -9,8 +9,9 @@
 //! block replaces the oldest every `refresh_every` epochs, so sampling costs `1/refresh_every` of
 //! what it did per epoch.
 //!
-//! With [`SampleSource::Gpu`] the pool is not used: each epoch's points are drawn and labelled
-//! on the GPU in the epoch's first submission (`train/gpu_points.rs`). Either way the steps up
+//! With [`SampleSource::Gpu`] the pool is kept on the GPU: its new block is drawn and labelled
+//! there, and the epoch's points gathered from it, in the epoch's first submission
+//! (`train/gpu_points.rs`). Either way the steps up
 //! to the next loss read-back (at most [`STEPS_PER_SUBMISSION`]) share one submission, each
 //! with its own staged uniforms, and a read-back is waited for only once the next submission is
 //! on its way: the GPU trains while the host records the next steps (about 12 ms an epoch of
@@ -30,7 +31,7 @@ use super::pool::{Block, Pool, PoolSchedule, sample_block};
 use super::{Nglod, NglodError, NglodGpu, Objective, ScatterMode};
 use crate::adam::{Adam, AdamConfig};
 use crate::gpu::{GpuContext, PendingRead, QueryKernel, UniformStager};
-use crate::ground_truth::{LabelledDraw, Labeller, SampleSpec};
+use crate::ground_truth::{LabelledDraw, Labeller};
 
 mod checkpoint;
 mod gpu_points;
@@ -129,7 +130,7 @@ pub struct NglodTrainConfig {
     pub distance: DistanceMode,
     /// Plan the run's length from its first epoch instead of `epochs` alone (`None`: `epochs`).
     pub time_budget: Option<TimeBudget>,
-    /// Where the points come from: the CPU pool (default) or fresh every epoch from the GPU.
+    /// Where the pool is drawn and labelled and kept: on CPU threads (default) or on the GPU.
     pub sample_source: SampleSource,
 }
 
@@ -711,7 +712,7 @@ struct Stepper<'a> {
 /// on the GPU in the epoch's first submission.
 enum EpochData<'a> {
     Host(Vec<Vec3>, Vec<f32>),
-    Gpu(&'a LabelledDraw, SampleSpec),
+    Gpu(&'a LabelledDraw, gpu_points::GpuEpoch),
 }
 
 /// What one epoch's optimiser steps did.
@@ -824,7 +825,7 @@ impl EpochSteps {
                 gpu.write(targets_buffer, &targets)?;
                 None
             }
-            EpochData::Gpu(draw, spec) => Some((draw, spec)),
+            EpochData::Gpu(draw, epoch) => Some((draw, epoch)),
         };
         kernels.set_lod(config.objective, lod);
         let mut steps = 0;
@@ -856,8 +857,8 @@ impl EpochSteps {
             // The steps up to the next loss read-back (at most STEPS_PER_SUBMISSION) share a
             // submission, the epoch's draw (if on the GPU) leading the first.
             let mut enc = gpu.device().create_command_encoder(&Default::default());
-            if let Some((draw, spec)) = draw.take() {
-                draw.record(gpu, &mut enc, &spec)?;
+            if let Some((draw, epoch)) = draw.take() {
+                epoch.record(gpu, draw, &mut enc)?;
             }
             let mut read_due = false;
             for _ in 0..STEPS_PER_SUBMISSION {

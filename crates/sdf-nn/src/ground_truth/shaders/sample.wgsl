@@ -17,7 +17,8 @@ struct SampleParams {
     shuffle_half: u32,
     shuffle_keys: vec4<u32>,
     sigma: f32,
-    _pad0: u32,
+    // The size of the shuffle's domain: n_points, or a pool's points for `gather`.
+    shuffle_n: u32,
     _pad1: u32,
     _pad2: u32,
 }
@@ -90,7 +91,7 @@ fn lowbias32(v: u32) -> u32 {
     return x;
 }
 
-// The Feistel bijection of 0..n_points (Shuffle::apply).
+// The Feistel bijection of 0..shuffle_n (Shuffle::apply).
 fn shuffle(i: u32) -> u32 {
     let h = sp.shuffle_half;
     if h == 0u {
@@ -107,7 +108,7 @@ fn shuffle(i: u32) -> u32 {
             r = t;
         }
         x = (l << h) | r;
-        if x < sp.n_points {
+        if x < sp.shuffle_n {
             break;
         }
     }
@@ -227,7 +228,8 @@ fn absolute(
 
 // Point i of the shuffled draw and its label from the unshuffled draw `drawn`: the labels are
 // computed over the uniform and near-surface points only (the first n_uniform + n_near of the
-// unshuffled draw), which lie together there.
+// unshuffled draw), which lie together there. From a pool of several draws, the first n_points
+// of a shuffle of all of them (shuffle_n points): n_points distinct pool points.
 @compute @workgroup_size(WG)
 fn gather(
     @builtin(workgroup_id) wid: vec3<u32>,

@@ -1,6 +1,7 @@
-//! The trainer's other source of points: every epoch drawn and labelled on the GPU
-//! ([`crate::ground_truth::LabelledDraw`]) straight into the buffers the training step reads,
-//! recorded in the epoch's first submission, so that no point crosses to the host.
+//! The trainer's other source of points: drawn and labelled on the GPU
+//! ([`crate::ground_truth::LabelledDraw`]) into a pool of blocks kept there, on the CPU pool's
+//! schedule ([`super::PoolSchedule`]), and gathered into the buffers the training step reads,
+//! all recorded in the epoch's first submission, so that no point crosses to the host.
 
 use std::time::Instant;
 
@@ -10,7 +11,7 @@ use super::{
     DistanceMode, EpochData, EpochStats, EpochSteps, NglodTrainer, Stepper, TrainReport,
     stop_requested,
 };
-use crate::gpu::GpuContext;
+use crate::gpu::{GpuContext, PassProfiler};
 use crate::ground_truth::{
     GpuGroundTruth, GpuSampler, LabelKind, LabelledDraw, SampleSpec, SampleTable,
 };
@@ -23,12 +24,13 @@ pub enum SampleSource {
     /// ([`NglodTrainConfig::pool_blocks`], [`NglodTrainConfig::refresh_every`]).
     #[default]
     CpuPool,
-    /// Fresh points every epoch, drawn and labelled on the GPU
-    /// ([`crate::ground_truth::GpuSampler`], [`crate::ground_truth::GpuGroundTruth`]): the same
-    /// mixture of uniform, near-surface (σ) and surface points as a pool block, spread over the
-    /// epoch by a random permutation; `pool_blocks` and `refresh_every` do not apply. Epoch `e`'s
-    /// points are a function of the seed and `e` (a resume redraws them). As in the pool, the
-    /// surface points are labelled 0 without a query.
+    /// The pool drawn and labelled on the GPU ([`crate::ground_truth::GpuSampler`],
+    /// [`crate::ground_truth::GpuGroundTruth`]) and kept there: blocks of the same mixture of
+    /// uniform, near-surface (σ) and surface points on the same schedule
+    /// ([`NglodTrainConfig::pool_blocks`], [`NglodTrainConfig::refresh_every`]; both 1: fresh
+    /// points every epoch), each epoch's points drawn from the whole pool in a random order.
+    /// Block `k` and epoch `e`'s order are functions of the seed and `k` or `e` (a resume
+    /// redraws its pool). As in the CPU pool, the surface points are labelled 0 without a query.
     Gpu,
 }
 
@@ -42,9 +44,12 @@ impl SampleSource {
     }
 }
 
-/// The mesh's sampler and ground truth on the GPU, bound to the trainer's epoch buffers.
+/// The mesh's sampler and ground truth on the GPU, bound to the trainer's epoch buffers, and
+/// the blocks its pool holds.
 pub(super) struct GpuPoints {
     pub(super) draw: LabelledDraw,
+    /// The block each slot of the pool holds (block `k` goes to slot `k % pool_blocks`).
+    slots: Vec<Option<usize>>,
     /// Kept alive for the draw's bind groups (wgpu handles are shared, this is for clarity).
     _sampler: GpuSampler,
     _ground_truth: GpuGroundTruth,
@@ -66,15 +71,18 @@ impl GpuPoints {
             DistanceMode::Signed => LabelKind::Signed,
             DistanceMode::Unsigned => LabelKind::Unsigned,
         };
-        let draw = LabelledDraw::new(gpu, &sampler, &gt, points, targets, labels)?;
+        let blocks = u32::try_from(config.pool_blocks).unwrap_or(u32::MAX);
+        let draw = LabelledDraw::with_pool(gpu, &sampler, &gt, points, targets, labels, blocks)?;
         Ok(GpuPoints {
+            slots: vec![None; config.pool_blocks],
             draw,
             _sampler: sampler,
             _ground_truth: gt,
         })
     }
 
-    /// The draw of epoch `epoch`.
+    /// The order of epoch `epoch`'s points over the pool (its `stream`), or block `epoch`'s
+    /// draw without `shuffle`.
     pub(super) fn spec(config: &NglodTrainConfig, epoch: usize) -> SampleSpec {
         // `check` bounds the points per epoch by u32::MAX.
         SampleSpec {
@@ -86,6 +94,86 @@ impl GpuPoints {
             stream: epoch as u32,
             shuffle: true,
         }
+    }
+
+    /// Brings the pool to epoch `epoch`'s blocks ([`super::PoolSchedule::blocks_at`]): every
+    /// missing block but the newest drawn in a submission of its own now (a resume's, or a
+    /// profile's leftovers), the newest returned with its slot for the epoch's first
+    /// submission, and the epoch's gather: its order and the blocks the pool then holds.
+    pub(super) fn epoch_draw(
+        &mut self,
+        gpu: &GpuContext,
+        config: &NglodTrainConfig,
+        epoch: usize,
+    ) -> Result<GpuEpoch, NglodError> {
+        let blocks = config.pool().blocks_at(epoch);
+        let held = blocks.len() as u32;
+        let p = self.slots.len();
+        let missing: Vec<usize> = blocks.filter(|&k| self.slots[k % p] != Some(k)).collect();
+        let mut newest = None;
+        for (i, &k) in missing.iter().enumerate() {
+            let block = (Self::block(config, k), (k % p) as u32);
+            self.slots[k % p] = Some(k);
+            if i + 1 == missing.len() {
+                newest = Some(block);
+            } else {
+                let mut enc = gpu.device().create_command_encoder(&Default::default());
+                self.draw.record_block(gpu, &mut enc, &block.0, block.1)?;
+                gpu.queue().submit([enc.finish()]);
+            }
+        }
+        Ok(GpuEpoch {
+            block: newest,
+            gather: (Self::spec(config, epoch), held),
+        })
+    }
+
+    /// Records a block's draw and labelling and epoch `epoch`'s gather for a profile, each
+    /// launch timed: the block goes to slot 0, which then holds no block of the schedule
+    /// (the next epoch draws it again).
+    pub(super) fn profile_draw(
+        &mut self,
+        gpu: &GpuContext,
+        enc: &mut wgpu::CommandEncoder,
+        config: &NglodTrainConfig,
+        epoch: usize,
+        profiler: &mut PassProfiler,
+    ) -> Result<(), NglodError> {
+        let spec = Self::spec(config, epoch);
+        self.draw.record_with(gpu, enc, &spec, Some(profiler))?;
+        self.slots[0] = None;
+        Ok(())
+    }
+
+    /// Block `k` of the pool: drawn without its shuffle (the gather spreads it).
+    fn block(config: &NglodTrainConfig, k: usize) -> SampleSpec {
+        SampleSpec {
+            shuffle: false,
+            ..Self::spec(config, k)
+        }
+    }
+}
+
+/// What an epoch's first submission records on the GPU before its steps: the pool's new block
+/// (its draw and slot), then the gather of the epoch's points from the blocks held.
+pub(super) struct GpuEpoch {
+    pub(super) block: Option<(SampleSpec, u32)>,
+    pub(super) gather: (SampleSpec, u32),
+}
+
+impl GpuEpoch {
+    /// Records the block's draw and the gather into `enc`.
+    pub(super) fn record(
+        &self,
+        gpu: &GpuContext,
+        draw: &LabelledDraw,
+        enc: &mut wgpu::CommandEncoder,
+    ) -> Result<(), NglodError> {
+        if let Some((spec, slot)) = &self.block {
+            draw.record_block(gpu, enc, spec, *slot)?;
+        }
+        draw.record_gather(gpu, enc, &self.gather.0, self.gather.1)?;
+        Ok(())
     }
 }
 
@@ -100,7 +188,7 @@ impl NglodTrainer<'_> {
         let mut report = TrainReport::default();
         let levels = self.model.config().levels();
         let config = &self.config;
-        let Some(source) = &self.gpu_points else {
+        let Some(source) = &mut self.gpu_points else {
             unreachable!("called with SampleSource::Gpu only")
         };
         let first_epoch = self.epochs_done;
@@ -130,7 +218,8 @@ impl NglodTrainer<'_> {
             } else {
                 0
             };
-            let data = EpochData::Gpu(&source.draw, GpuPoints::spec(config, e));
+            let epoch = source.epoch_draw(self.gpu, config, e)?;
+            let data = EpochData::Gpu(&source.draw, epoch);
             let run = EpochSteps::run(
                 &mut stepper,
                 (e, lod, end_epoch),

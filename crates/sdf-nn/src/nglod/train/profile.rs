@@ -2,7 +2,6 @@
 //! epoch's GPU time goes, for the benches (`NGLOD_BENCH_PROFILE`).
 
 use super::NglodTrainer;
-use super::gpu_points::GpuPoints;
 use crate::gpu::{PassProfiler, PassTime};
 use crate::nglod::NglodError;
 
@@ -11,7 +10,9 @@ impl NglodTrainer<'_> {
     /// of its own timed by `profiler`, and returns the launches' labels and GPU times in order:
     /// the rows' forward and backward (`train_rows` or `train_rows_sg`), `mlp_partial`,
     /// `mlp_reduce` and `adam`. With `draw` and [`super::SampleSource::Gpu`], the draw and
-    /// labelling of the next epoch's points (`draw`, `signed_distance`, `gather`) come first.
+    /// labelling of a block of the pool (`draw`, the grouping's `bin_*`, `signed_distance`;
+    /// once every `refresh_every` epochs in training) and an epoch's gather (`gather`) come
+    /// first.
     ///
     /// It is a real step (the model and the optimiser move, and it counts in the steps done)
     /// on whatever the epoch buffers hold, outside any epoch: train an epoch first. A pass per launch adds a little to each; an epoch's GPU time is
@@ -23,11 +24,8 @@ impl NglodTrainer<'_> {
     ) -> Result<Vec<PassTime>, NglodError> {
         let gpu = self.gpu;
         let mut enc = gpu.device().create_command_encoder(&Default::default());
-        if let (true, Some(source)) = (draw, &self.gpu_points) {
-            let spec = GpuPoints::spec(&self.config, self.epochs_done);
-            source
-                .draw
-                .record_with(gpu, &mut enc, &spec, Some(&mut *profiler))?;
+        if let (true, Some(source)) = (draw, &mut self.gpu_points) {
+            source.profile_draw(gpu, &mut enc, &self.config, self.epochs_done, profiler)?;
         }
         let n = self.config.points_per_epoch() as u32;
         let batch = self.config.batch_size.min(n);
