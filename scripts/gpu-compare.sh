@@ -74,9 +74,11 @@
 #   GPU_COMPARE_CHECK_TIMEOUT=300       seconds each kernel test binary may take (`checks`)
 #   GPU_COMPARE_CHECKS=                 (pack) the `checks` stage's test binaries, comma-separated
 #                                       (default all twelve; see GPU_CHECKS below)
-#   GPU_COMPARE_FITS=nglod,nglod-invocation,nglod-batch4096,hashgrid,hashgrid-small,siren,siren-design-loss,siren-constant-lr
-#                                       which fits the `fit` stage times (default all eight:
-#                                       NGLOD about 10 s on an H100 (nglod-invocation with
+#   GPU_COMPARE_FITS=nglod,nglod-fresh,nglod-invocation,nglod-batch4096,hashgrid,hashgrid-small,siren,siren-design-loss,siren-constant-lr
+#                                       which fits the `fit` stage times (default all nine:
+#                                       NGLOD about 10 s on an H100 (nglod-fresh with
+#                                       --pool 1,1, fresh points every epoch, the GPU source
+#                                       before session 32's pool; nglod-invocation with
 #                                       HWSDF_TRAIN_KERNEL=invocation, nglod-batch4096 with
 #                                       --batch 4096 --lr 0.0014), the hash grid's presets
 #                                       (issue 39: ≤ 1 s of training), SIREN about 30 s each;
@@ -537,13 +539,16 @@ for est in sorted(glob.glob(os.path.join(res, "criterion*", "**", "new", "estima
 PY
     if [[ $stages == *,fit,* ]]; then
         local m
-        for m in $(echo "${GPU_COMPARE_FITS:-nglod,nglod-invocation,nglod-batch4096,hashgrid,hashgrid-small,siren,siren-design-loss,siren-constant-lr}" | tr ',' ' '); do
+        for m in $(echo "${GPU_COMPARE_FITS:-nglod,nglod-fresh,nglod-invocation,nglod-batch4096,hashgrid,hashgrid-small,siren,siren-design-loss,siren-constant-lr}" | tr ',' ' '); do
             local fit_args kernel=""
             case "$m" in
                 nglod | siren | hashgrid) fit_args=(--model "$m") ;;
                 # The training rows one per invocation, beside the GPUs' default of one per
                 # subgroup (session 26): the whole fit's answer to which is faster.
                 nglod-invocation) fit_args=(--model nglod); kernel=invocation ;;
+                # The GPU ground truth's points labelled fresh every epoch, as before its pool
+                # (session 32): what the pool saves on a GPU, and that F1 stays.
+                nglod-fresh) fit_args=(--model nglod --pool 1,1) ;;
                 # Half the steps of twice the rows (session 28, lavapipe, 100 epochs: F1 kept
                 # on spot, 0.01 lower near the surface on octagonal-pocket): what it saves on a
                 # GPU, whose step of 2048 rows leaves most of it idle.
@@ -554,7 +559,7 @@ PY
                 siren-constant-lr) fit_args=(--model siren --plateau-patience 0) ;;
                 # Without the sign term: the design document's loss beside ours.
                 siren-design-loss) fit_args=(--model siren --sign-weight 0) ;;
-                *) echo "unknown fit $m (nglod, nglod-invocation, nglod-batch4096, hashgrid, hashgrid-small, siren, siren-design-loss or siren-constant-lr)" >&2; continue ;;
+                *) echo "unknown fit $m (nglod, nglod-fresh, nglod-invocation, nglod-batch4096, hashgrid, hashgrid-small, siren, siren-design-loss or siren-constant-lr)" >&2; continue ;;
             esac
             echo "== fit: $m on tests/data/spot.obj (the GPU default run; ${fit_args[*]})"
             local t0 t1
