@@ -186,8 +186,9 @@ fn profile(gpu: &GpuContext, steps: usize) {
                 let mut epoch_ms = 0.0;
                 for (label, mut v) in rows {
                     let m = median(&mut v);
-                    // A block is drawn once every `refresh_every` epochs, the gather runs
-                    // once an epoch, the rest once a step.
+                    // Once the pool is full a block is drawn once every `refresh_every`
+                    // epochs (the measured second epoch, still filling it, draws one), the
+                    // gather runs once an epoch, the rest once a step.
                     let times = if BLOCK_LAUNCHES.contains(&label.as_str()) {
                         1.0 / trainer.config().refresh_every as f64
                     } else if label == "gather" {
@@ -199,7 +200,7 @@ fn profile(gpu: &GpuContext, steps: usize) {
                     println!("| {label} | {m:.1} | {:.2} |", m * times / 1e3);
                 }
                 println!(
-                    "| sum, each launch in its own pass | | {epoch_ms:.2} |\n| the second epoch's step loop, measured (wall) | | {:.2} |",
+                    "| sum once the pool is full, each launch in its own pass | | {epoch_ms:.2} |\n| the second epoch's step loop, measured (wall) | | {:.2} |",
                     epoch.gpu_seconds * 1e3
                 );
             }

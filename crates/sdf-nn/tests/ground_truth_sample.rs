@@ -397,10 +397,11 @@ fn bad_input_is_an_error() {
     draw.record(gpu, &mut enc, &spec(5, 5, 0, 0)).unwrap();
 }
 
-/// A pool of three labelled draws kept on the GPU (`LabelledDraw::with_pool`): an epoch's
-/// gather takes distinct points of all three blocks, each with its block's label, in the order
-/// of the epoch's shuffle over the whole pool; a plain `record` through the pool is the plain
-/// draw; a block or a gather beyond the pool is an error.
+/// A pool of three labelled draws kept on the GPU (`LabelledDraw::with_pool`), in buffers
+/// larger than a draw: an epoch's gather takes distinct points of all three blocks, each with
+/// its block's label, in the order of the epoch's shuffle over the whole pool; a plain `record`
+/// through the pool is the plain draw; a block or a gather beyond the pool is an error; an
+/// unsigned pool's labels are the distances' absolute values.
 #[test]
 fn a_pool_of_labelled_draws_gathers_distinct_points_of_every_block() {
     let gpu = gpu();
@@ -409,8 +410,9 @@ fn a_pool_of_labelled_draws_gathers_distinct_points_of_every_block() {
     let gt = GpuGroundTruth::new(gpu, &cpu).unwrap();
     let sampler = GpuSampler::new(gpu, &SampleTable::new(&mesh).unwrap()).unwrap();
     let n = 1500u32;
-    let points = gpu.storage_zeroed("points", u64::from(n) * 12).unwrap();
-    let targets = gpu.storage_zeroed("targets", u64::from(n) * 4).unwrap();
+    // Room for 2000 points: the blocks lie `n` points apart, not the buffers' capacity.
+    let points = gpu.storage_zeroed("points", 2000 * 12).unwrap();
+    let targets = gpu.storage_zeroed("targets", 2000 * 4).unwrap();
     let draw = LabelledDraw::with_pool(gpu, &sampler, &gt, &points, &targets, LabelKind::Signed, 3)
         .unwrap();
     assert_eq!(draw.pool_blocks(), 3);
@@ -437,11 +439,12 @@ fn a_pool_of_labelled_draws_gathers_distinct_points_of_every_block() {
     };
     submit(&|enc| draw.record_gather(gpu, enc, &epoch, 3));
     let read_points = || -> Vec<Vec3> {
-        let flat: Vec<f32> = gpu.read_back(&points).unwrap();
+        let flat: Vec<f32> = gpu.read_back_range(&points, 0, u64::from(n) * 3).unwrap();
         flat.chunks(3).map(Vec3::from_slice).collect()
     };
+    let read_labels = || -> Vec<f32> { gpu.read_back_range(&targets, 0, u64::from(n)).unwrap() };
     let got = read_points();
-    let labels: Vec<f32> = gpu.read_back(&targets).unwrap();
+    let labels = read_labels();
     let shuffle = epoch.shuffle_over(3 * n);
     let tol = 1e-6 * mesh.bounds().diagonal();
     let mut per_block = [0u32; 3];
@@ -472,4 +475,29 @@ fn a_pool_of_labelled_draws_gathers_distinct_points_of_every_block() {
         draw.record_gather(gpu, &mut enc, &epoch, 4),
         Err(SampleError::TooManyPoints { .. })
     ));
+    drop(enc);
+    let unsigned = LabelledDraw::with_pool(
+        gpu,
+        &sampler,
+        &gt,
+        &points,
+        &targets,
+        LabelKind::Unsigned,
+        2,
+    )
+    .unwrap();
+    for (k, slot) in [(7u32, 1u32), (8, 0)] {
+        submit(&|enc| unsigned.record_block(gpu, enc, &block(k), slot));
+    }
+    submit(&|enc| unsigned.record_gather(gpu, enc, &epoch, 2));
+    let shuffle = epoch.shuffle_over(2 * n);
+    for (i, (p, d)) in read_points().iter().zip(read_labels()).enumerate() {
+        let j = shuffle.apply(i as u32) % n;
+        let want = if j >= 1200 {
+            0.0
+        } else {
+            cpu.signed_distance(*p).abs()
+        };
+        assert!((d - want).abs() <= tol, "{p}: {d} vs {want}");
+    }
 }

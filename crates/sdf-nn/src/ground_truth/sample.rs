@@ -460,7 +460,7 @@ impl LabelledDraw {
         let capacity =
             u32::try_from((points.size() / 12).min(targets.size() / 4)).unwrap_or(u32::MAX);
         let drawn = gpu.storage_zeroed("labelled draw: points", u64::from(capacity) * 12)?;
-        // Never written beyond the labelled points: the surface points' labels stay 0.
+        // Beyond the labelled points each draw clears it: the surface points' labels are 0.
         let drawn_labels = gpu.storage_zeroed("labelled draw: labels", u64::from(capacity) * 4)?;
         let pool = match pool_blocks {
             None => None,
@@ -581,9 +581,11 @@ impl LabelledDraw {
     }
 
     /// Records the draw of `spec` (without its shuffle) and its labelling into block `block`
-    /// of the pool, `block · len` points in (`len` = `spec`'s points: every block of a pool
-    /// holds as many). Without a pool, block 0 is the draw the next gather reads. The
-    /// uniforms go through the queue: one block per submission.
+    /// of the pool, `block · len` points in (`len` = `spec`'s points). Every block of a pool
+    /// and every gather from it must have the same `len`: blocks are laid out by it (a new
+    /// length lays the pool out anew, every block to be drawn again). Without a pool, block 0
+    /// is the draw the next gather reads. The uniforms go through the queue: one block per
+    /// submission.
     ///
     /// # Errors
     /// As [`LabelledDraw::record`]; [`SampleError::TooManyPoints`] for a block beyond the
@@ -627,7 +629,7 @@ impl LabelledDraw {
         mut profiler: Option<&mut PassProfiler>,
     ) -> Result<(), SampleError> {
         if let Some((spec, b)) = block {
-            let n = self.check_blocks(spec, b + 1)?;
+            let n = self.check_blocks(spec, b.saturating_add(1))?;
             if n > 0 {
                 self.record_draw(gpu, enc, spec, n, profiler.as_deref_mut())?;
                 if let Some((pool_points, pool_labels, _)) = &self.pool {
@@ -696,6 +698,12 @@ impl LabelledDraw {
                 ..self.label_params
             }],
         )?;
+        // The surface points' labels are 0: a longer labelled part of an earlier draw may
+        // have written there.
+        if labelled < n {
+            let tail = u64::from(n - labelled) * 4;
+            enc.clear_buffer(&self.scratch.1, u64::from(labelled) * 4, Some(tail));
+        }
         let (x, y) = gpu.dispatch_size(n.div_ceil(WG));
         let mut launches = vec![(&self.draw, (x, y, 1))];
         if labelled > 0 {

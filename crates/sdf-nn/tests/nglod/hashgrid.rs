@@ -329,7 +329,7 @@ fn trains_spot_with_correct_signs() {
         surface_points: 20_000,
         batch_size: 1024,
         seed: 5,
-        // Every epoch's points drawn and labelled on the GPU (the sphere above uses the pool).
+        // The pool drawn, labelled and kept on the GPU (the sphere above uses the CPU's).
         sample_source: SampleSource::Gpu,
         ..NglodTrainConfig::hashgrid()
     };

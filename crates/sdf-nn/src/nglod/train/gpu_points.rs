@@ -99,7 +99,8 @@ impl GpuPoints {
     /// Brings the pool to epoch `epoch`'s blocks ([`super::PoolSchedule::blocks_at`]): every
     /// missing block but the newest drawn in a submission of its own now (a resume's, or a
     /// profile's leftovers), the newest returned with its slot for the epoch's first
-    /// submission, and the epoch's gather: its order and the blocks the pool then holds.
+    /// submission (its slot holds no block until [`GpuPoints::placed`]), and the epoch's
+    /// gather: its order and the blocks the pool then holds.
     pub(super) fn epoch_draw(
         &mut self,
         gpu: &GpuContext,
@@ -113,19 +114,28 @@ impl GpuPoints {
         let mut newest = None;
         for (i, &k) in missing.iter().enumerate() {
             let block = (Self::block(config, k), (k % p) as u32);
-            self.slots[k % p] = Some(k);
+            // Whatever the slot held is overwritten from here on.
+            self.slots[k % p] = None;
             if i + 1 == missing.len() {
                 newest = Some(block);
             } else {
                 let mut enc = gpu.device().create_command_encoder(&Default::default());
                 self.draw.record_block(gpu, &mut enc, &block.0, block.1)?;
                 gpu.queue().submit([enc.finish()]);
+                self.slots[k % p] = Some(k);
             }
         }
         Ok(GpuEpoch {
             block: newest,
             gather: (Self::spec(config, epoch), held),
         })
+    }
+
+    /// Notes that `epoch`'s new block was recorded (and submitted) into its slot.
+    pub(super) fn placed(&mut self, epoch: &GpuEpoch) {
+        if let Some((spec, slot)) = epoch.block {
+            self.slots[slot as usize] = Some(spec.stream as usize);
+        }
     }
 
     /// Records a block's draw and labelling and epoch `epoch`'s gather for a profile, each
@@ -156,6 +166,7 @@ impl GpuPoints {
 
 /// What an epoch's first submission records on the GPU before its steps: the pool's new block
 /// (its draw and slot), then the gather of the epoch's points from the blocks held.
+#[derive(Clone, Copy, Debug)]
 pub(super) struct GpuEpoch {
     pub(super) block: Option<(SampleSpec, u32)>,
     pub(super) gather: (SampleSpec, u32),
@@ -179,7 +190,8 @@ impl GpuEpoch {
 
 impl NglodTrainer<'_> {
     /// [`NglodTrainer::train_with`] with [`SampleSource::Gpu`]: each epoch's first submission
-    /// draws and labels its points on the GPU, then its steps run on them.
+    /// draws and labels the pool's new block on the GPU (when one is due) and gathers the
+    /// epoch's points from the pool, then its steps run on them.
     pub(super) fn train_on_gpu_points(
         &mut self,
         mut on_epoch: impl FnMut(&EpochStats),
@@ -228,6 +240,7 @@ impl NglodTrainer<'_> {
                 &mut self.steps_done,
                 should_stop,
             )?;
+            source.placed(&epoch);
             if let Some(b) = run.plans_length(config, first_epoch, e) {
                 let elapsed = start.elapsed().as_secs_f64();
                 end_epoch = b.epochs(config.epochs, e + 1, elapsed, elapsed - epoch_began);
@@ -246,5 +259,62 @@ impl NglodTrainer<'_> {
         }
         report.total_seconds = start.elapsed().as_secs_f64();
         Ok(report)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use std::collections::HashSet;
+
+    use super::*;
+    use crate::ground_truth::{GpuSampler, SampleTable};
+    use crate::{Nglod, NglodConfig, NglodTrainer};
+
+    /// Each epoch gathers its points from exactly the blocks its schedule names (a pool of 2,
+    /// refreshed every 2 epochs: blocks {0}, {0, 1}, {0, 1}, {1, 2}, {1, 2}, {2, 3}, ...),
+    /// including while the pool fills and after a profile took slot 0.
+    #[test]
+    fn each_epoch_gathers_from_the_blocks_of_its_schedule() {
+        let gpu = GpuContext::shared().expect("a GPU adapter (lavapipe in CI)");
+        let mesh = Mesh::icosphere(0.5, 1);
+        let config = NglodTrainConfig {
+            uniform_points: 40,
+            near_points: 40,
+            surface_points: 40,
+            batch_size: 120,
+            pool_blocks: 2,
+            refresh_every: 2,
+            sample_source: SampleSource::Gpu,
+            ..Default::default()
+        };
+        let model = Nglod::new(NglodConfig::small()).unwrap();
+        let mut trainer = NglodTrainer::new(gpu, &model, &mesh, config.clone()).unwrap();
+        let sampler = GpuSampler::new(gpu, &SampleTable::new(&mesh).unwrap()).unwrap();
+        let key = |p: &[f32]| [p[0].to_bits(), p[1].to_bits(), p[2].to_bits()];
+        let source = trainer.gpu_points.as_mut().unwrap();
+        for (i, e) in [0, 1, 2, 3, 4, 5, 5, 6].into_iter().enumerate() {
+            if i == 6 {
+                // What a profile leaves: slot 0 (block 2) holds no block of the schedule.
+                assert_eq!(source.slots[0], Some(2));
+                source.slots[0] = None;
+            }
+            let epoch = source.epoch_draw(gpu, &config, e).unwrap();
+            let mut enc = gpu.device().create_command_encoder(&Default::default());
+            epoch.record(gpu, &source.draw, &mut enc).unwrap();
+            gpu.queue().submit([enc.finish()]);
+            source.placed(&epoch);
+            let mut want = HashSet::new();
+            for k in config.pool().blocks_at(e) {
+                let block = sampler.draw(gpu, &GpuPoints::block(&config, k)).unwrap();
+                want.extend(block.iter().map(|p| key(&p.to_array())));
+            }
+            let got: Vec<f32> = gpu.read_back(&trainer.points).unwrap();
+            let got: HashSet<_> = got.chunks(3).map(key).collect();
+            assert_eq!(got.len(), 120, "epoch {e}: distinct points");
+            assert!(
+                got.is_subset(&want),
+                "epoch {e}: a point of no scheduled block"
+            );
+        }
     }
 }
