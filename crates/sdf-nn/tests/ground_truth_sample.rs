@@ -25,6 +25,15 @@ fn spot() -> Mesh {
     load_mesh(test_data("spot.obj")).unwrap().0.normalized().0
 }
 
+/// Spot, its exact signed distance on the CPU and on the GPU, and its GPU sampler.
+fn spot_on_the_gpu(gpu: &GpuContext) -> (Mesh, SignedDistance, GpuGroundTruth, GpuSampler) {
+    let mesh = spot();
+    let cpu = SignedDistance::new(&mesh).unwrap();
+    let gt = GpuGroundTruth::new(gpu, &cpu).unwrap();
+    let sampler = GpuSampler::new(gpu, &SampleTable::new(&mesh).unwrap()).unwrap();
+    (mesh, cpu, gt, sampler)
+}
+
 fn spec(uniform: u32, near: u32, surface: u32, seed: u64) -> SampleSpec {
     SampleSpec {
         uniform,
@@ -326,10 +335,7 @@ fn surface_points_lie_on_the_mesh() {
 #[test]
 fn draw_and_label_matches_the_cpu() {
     let gpu = gpu();
-    let mesh = spot();
-    let cpu = SignedDistance::new(&mesh).unwrap();
-    let gt = GpuGroundTruth::new(gpu, &cpu).unwrap();
-    let sampler = GpuSampler::new(gpu, &SampleTable::new(&mesh).unwrap()).unwrap();
+    let (mesh, cpu, gt, sampler) = spot_on_the_gpu(gpu);
     let s = spec(1000, 1500, 500, 17);
     let (points, labels) = sampler
         .draw_and_label(gpu, &gt, &s, LabelKind::Signed)
@@ -405,10 +411,7 @@ fn bad_input_is_an_error() {
 #[test]
 fn a_pool_of_labelled_draws_gathers_distinct_points_of_every_block() {
     let gpu = gpu();
-    let mesh = spot();
-    let cpu = SignedDistance::new(&mesh).unwrap();
-    let gt = GpuGroundTruth::new(gpu, &cpu).unwrap();
-    let sampler = GpuSampler::new(gpu, &SampleTable::new(&mesh).unwrap()).unwrap();
+    let (mesh, cpu, gt, sampler) = spot_on_the_gpu(gpu);
     let n = 1500u32;
     // Room for 2000 points: the blocks lie `n` points apart, not the buffers' capacity.
     let points = gpu.storage_zeroed("points", 2000 * 12).unwrap();

@@ -11,11 +11,12 @@
 //!
 //! With [`SampleSource::Gpu`] the pool is kept on the GPU: its new block is drawn and labelled
 //! there, and the epoch's points gathered from the whole pool, in the epoch's first submission
-//! (a resume's older blocks each in a submission of their own first; `train/gpu_points.rs`). Either way the steps up
-//! to the next loss read-back (at most [`STEPS_PER_SUBMISSION`]) share one submission, each
-//! with its own staged uniforms, and a read-back is waited for only once the next submission is
-//! on its way: the GPU trains while the host records the next steps (about 12 ms an epoch of
-//! `default` on the 2-core CI box, time a GPU would otherwise sit idle).
+//! (a resume's older blocks each in a submission of their own first; `train/gpu_points.rs`).
+//! Either way the steps up to the next loss read-back (at most [`STEPS_PER_SUBMISSION`]) share
+//! one submission, each with its own staged uniforms, and a read-back is waited for only once
+//! the next submission is on its way: the GPU trains while the host records the next steps
+//! (about 12 ms an epoch of `default` on the 2-core CI box, time a GPU would otherwise sit
+//! idle).
 
 use std::collections::VecDeque;
 use std::sync::Arc;

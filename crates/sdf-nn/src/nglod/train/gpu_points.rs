@@ -111,22 +111,24 @@ impl GpuPoints {
         let held = blocks.len() as u32;
         let p = self.slots.len();
         let missing: Vec<usize> = blocks.filter(|&k| self.slots[k % p] != Some(k)).collect();
-        let mut newest = None;
-        for (i, &k) in missing.iter().enumerate() {
-            let block = (Self::block(config, k), (k % p) as u32);
-            // Whatever the slot held is overwritten from here on.
+        let (newest, older) = match missing.split_last() {
+            Some((&newest, older)) => (Some(newest), older),
+            None => (None, &[][..]),
+        };
+        for &k in older {
             self.slots[k % p] = None;
-            if i + 1 == missing.len() {
-                newest = Some(block);
-            } else {
-                let mut enc = gpu.device().create_command_encoder(&Default::default());
-                self.draw.record_block(gpu, &mut enc, &block.0, block.1)?;
-                gpu.queue().submit([enc.finish()]);
-                self.slots[k % p] = Some(k);
-            }
+            let mut enc = gpu.device().create_command_encoder(&Default::default());
+            self.draw
+                .record_block(gpu, &mut enc, &Self::block(config, k), (k % p) as u32)?;
+            gpu.queue().submit([enc.finish()]);
+            self.slots[k % p] = Some(k);
+        }
+        // Its slot's block is overwritten from here on.
+        if let Some(k) = newest {
+            self.slots[k % p] = None;
         }
         Ok(GpuEpoch {
-            block: newest,
+            block: newest.map(|k| (Self::block(config, k), (k % p) as u32)),
             gather: (Self::spec(config, epoch), held),
         })
     }
