@@ -1,6 +1,7 @@
 //! Host side of the NGLOD kernels: `shaders/nglod_forward.wgsl` (inference),
-//! `shaders/nglod_train_{atomic,cas}.wgsl` (forward + backward per row, grid scatter; one row per
-//! invocation, or per subgroup with `shaders/nglod_train_subgroup.wgsl`) and
+//! `shaders/nglod_train.wgsl` (forward + backward per row, with the grid scatter of
+//! `shaders/nglod_scatter_{atomic,cas}.wgsl`; one row per invocation, or per subgroup with
+//! `shaders/nglod_train_subgroup.wgsl`) and
 //! `shaders/nglod_reduce.wgsl` (MLP gradients and loss).
 
 use std::sync::Mutex;
@@ -816,13 +817,6 @@ impl TrainKernels {
 mod tests {
     use crate::shaders;
 
-    /// The part of a train shader outside the SCATTER markers.
-    fn outside_scatter(src: &str) -> (String, String) {
-        let b = src.find("// SCATTER BEGIN").expect("SCATTER BEGIN marker");
-        let e = src.find("// SCATTER END").expect("SCATTER END marker");
-        (src[..b].to_owned(), src[e..].to_owned())
-    }
-
     /// The uniforms have the layout every NGLOD kernel reads.
     #[test]
     fn uniforms_mirror_the_shaders() {
@@ -832,11 +826,7 @@ mod tests {
             "Uniforms",
             [n_points, lod, mlp_offset, levels, query]
         );
-        for shader in [
-            shaders::NGLOD_TRAIN_ATOMIC,
-            shaders::NGLOD_TRAIN_CAS,
-            shaders::NGLOD_REDUCE,
-        ] {
+        for shader in [shaders::NGLOD_TRAIN_CAS, shaders::NGLOD_REDUCE] {
             shaders::assert_mirrors!(
                 super::TrainUniforms,
                 shader,
@@ -846,15 +836,5 @@ mod tests {
                 ]
             );
         }
-    }
-
-    /// The two grid-scatter variants must differ only in how they add, or one path would test
-    /// something other than what the other runs.
-    #[test]
-    fn train_shaders_differ_only_in_scatter() {
-        assert_eq!(
-            outside_scatter(shaders::NGLOD_TRAIN_ATOMIC.source),
-            outside_scatter(shaders::NGLOD_TRAIN_CAS.source)
-        );
     }
 }

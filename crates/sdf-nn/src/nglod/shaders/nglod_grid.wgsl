@@ -1,6 +1,6 @@
-// NGLOD's and the hash grid's addressing, shared by nglod_forward.wgsl,
-// nglod_train_{atomic,cas}.wgsl and the one-per-subgroup kernels. Each of them declares the sparse levels' vertex table `table`
-// (a u32 storage array).
+// NGLOD's and the hash grid's addressing, shared by nglod_forward.wgsl, nglod_train.wgsl and the
+// one-per-subgroup kernels. Each of them declares the sparse levels' vertex table `table` (a u32
+// storage array).
 //
 // A level is (resolution r, offset of its features in params, z, kind):
 //   kind 0, dense: every vertex, row-major (z unused);

@@ -1,5 +1,5 @@
-// NGLOD training step, part 1, with one row per subgroup (the host prepends nglod_grid.wgsl and
-// nglod_train_{atomic,cas}.wgsl, whose uniforms, bindings, row layout and scatter `grad_add` this
+// NGLOD training step, part 1, with one row per subgroup (the host prepends nglod_grid.wgsl, a
+// scatter and nglod_train.wgsl, whose uniforms, bindings, row layout and `grad_add` this
 // entry point shares; nglod_reduce.wgsl reads the rows it writes as it reads `train_rows`').
 //
 // Why: a step of the default batch is 2048 rows (points × level prefixes). One row per

@@ -8,10 +8,9 @@
 //   - scatters dL/dz times the trilinear weights into the grid gradients: many rows touch the same
 //     grid vertex, so this is an atomic add.
 //
-// This file and nglod_train_cas.wgsl are identical except between the SCATTER markers: here the
-// add is a native atomicAdd on atomic<f32> (SHADER_FLOAT32_ATOMIC); there it is a
-// compare-exchange loop on atomic<u32> for adapters without float atomics. A unit test checks
-// that the rest stays identical.
+// The host prepends nglod_grid.wgsl and one of the two scatters, which declare the gradient
+// buffer `grads` and its add `grad_add`: nglod_scatter_atomic.wgsl (native float atomics) or
+// nglod_scatter_cas.wgsl (a compare-exchange loop, any adapter).
 //
 // Gradients are sums over rows; Adam's grad_scale applies 1/batch.
 
@@ -46,6 +45,7 @@ override H: u32 = 128u;
 @group(0) @binding(2) var<storage, read> points: array<f32>;
 @group(0) @binding(3) var<storage, read> targets: array<f32>;
 @group(0) @binding(4) var<storage, read_write> rows: array<f32>;
+// Binding 5, the grid gradients `grads`, is the scatter's.
 // The MLP block of params (W0, b0, W1, b1), copied here before each step (see nglod_forward.wgsl).
 @group(0) @binding(6) var<uniform> mlp: array<vec4<f32>, MAX_MLP_VEC4>;
 
@@ -55,23 +55,6 @@ override H: u32 = 128u;
 fn mlp_at(i: u32) -> f32 {
     return mlp[i / 4u][i % 4u];
 }
-// SCATTER BEGIN
-@group(0) @binding(5) var<storage, read_write> grads: array<atomic<u32>>;
-
-// Float add without float atomics: retry a compare-exchange on the bit pattern until no other
-// invocation changed the value in between.
-fn grad_add(i: u32, x: f32) {
-    var old = atomicLoad(&grads[i]);
-    loop {
-        let r = atomicCompareExchangeWeak(&grads[i], old, bitcast<u32>(bitcast<f32>(old) + x));
-        if r.exchanged {
-            break;
-        }
-        old = r.old_value;
-    }
-}
-// SCATTER END
-
 
 @compute @workgroup_size(WG)
 fn train_rows(
