@@ -28,14 +28,21 @@ def grid_features(t, cfg, x, level, r):
     """The trilinearly interpolated features of one level at the points x (in [-1, 1]^3)."""
     g = t[f"grids.{level}"]
     n_features = g.shape[-1]
-    hashed = g.ndim == 2 and f"grids.{level}.vertices" not in t
-    if f"grids.{level}.vertices" in t:
+    # The configuration decides how a level is stored, as in the Rust loader (a stray tensor
+    # does not): hashed where a hash grid's level has more vertices than its table, sparse for
+    # NGLOD's last `sparse_levels` levels, dense otherwise.
+    encoding = cfg.get("encoding", {})
+    hashed = encoding.get("kind") == "hashed" and (r + 1) ** 3 > 2 ** encoding["log2_table_size"]
+    sparse = not hashed and level >= len(cfg["resolutions"]) - cfg.get("sparse_levels", 0)
+    if sparse:
         # An NGLOD sparse level: [n, F] for the band's vertices, whose linear indices
         # (ix·(r+1) + iy)·(r+1) + iz are listed; every other vertex has zero features.
         dense = np.zeros(((r + 1) ** 3, n_features), dtype=g.dtype)
         dense[t[f"grids.{level}.vertices"].astype(np.int64)] = g
         g = dense.reshape(r + 1, r + 1, r + 1, n_features)
-    u = (x + 1.0) * 0.5 * r
+    # The cell coordinate in f64, as the Rust reference computes it (f32 would be off by up to
+    # 1e-4 cells at a level of 4096).
+    u = (x.astype(np.float64) + 1.0) * 0.5 * r
     i0 = np.clip(np.floor(u).astype(np.int64), 0, r - 1)
     f = u - i0
     z = 0.0
@@ -69,6 +76,22 @@ def nglod(t, cfg, x):
     return (h @ t["mlp.2.weight"].T + t["mlp.2.bias"])[:, 0]
 
 
+def normalized(pts, norm):
+    """Mesh coordinates (float32) to the model's box, as the Rust loader maps them: in float32
+    where the centre is a float32 (a mesh near the origin), else in float64 (a mesh far from
+    the origin, whose centre the file keeps in float64: float32 would shift every point)."""
+    center = np.array(norm["center"], dtype=np.float64)
+    scale = np.float32(norm["scale"])
+    with np.errstate(over="ignore", invalid="ignore"):
+        wide = ((pts.astype(np.float64) - center) * np.float64(scale)).astype(np.float32)
+        if not np.array_equal(center.astype(np.float32).astype(np.float64), center):
+            return wide
+        local = (pts - center.astype(np.float32)) * scale
+    # A point whose float32 map overflows on the way (and is finite) is mapped in float64.
+    narrow = np.isfinite(local).all(axis=1) | ~np.isfinite(pts).all(axis=1)
+    return np.where(narrow[:, None], local, wide)
+
+
 def main():
     path = sys.argv[1]
     with safe_open(path, "np") as f:
@@ -81,12 +104,12 @@ def main():
     norm = json.loads(meta["normalization"])
     pts = np.array([float(v) for v in sys.argv[2:]] or [0.0, 0.0, 0.0], dtype=np.float32)
     pts = pts.reshape(-1, 3)
-    local = (pts - np.array(norm["center"], dtype=np.float32)) * norm["scale"]
+    local = normalized(pts, norm)
     inside = np.clip(local, -1.0, 1.0)
     # "nglod" and "hashgrid" share one grid lookup and MLP.
     net = siren if meta["architecture"] == "siren" else nglod
     d = net(tensors, cfg, inside) + np.linalg.norm(local - inside, axis=1)
-    for p, v in zip(pts, d / norm["scale"]):
+    for p, v in zip(pts, d / np.float32(norm["scale"])):
         print(f"sdf({p[0]:g}, {p[1]:g}, {p[2]:g}) = {v:.6f}")
 
 

@@ -94,8 +94,12 @@ fn param_count_is_the_networks() {
 
 /// Points in mesh coordinates covering the model's box and beyond it.
 fn points(n: usize) -> Vec<Vec3> {
+    points_of(&normalization(), n)
+}
+
+/// [`points`] in the mesh coordinates of `norm`.
+fn points_of(norm: &Normalization, n: usize) -> Vec<Vec3> {
     let mut rng = Pcg64::seed_from_u64(7);
-    let norm = normalization();
     (0..n)
         .map(|_| {
             let local = Vec3::new(
@@ -400,10 +404,12 @@ fn load_model_py(model: &std::path::Path, points: &[Vec3]) -> Vec<f32> {
 }
 
 /// `scripts/load_model.py` evaluates every architecture's file as `NeuralSdf` does, within
-/// 1e-4 relative (its printed six decimals are the floor): a SIREN, an NGLOD and a hash grid
-/// whose features and weights are all of order one (a fresh model's grids are 0.01·N(0, 1),
-/// which would hide a wrong lookup), with coarse dense levels and finer hashed ones, at points
-/// inside and outside the box of a normalisation that is not the identity.
+/// 1e-4 relative (its printed six decimals are the floor): a SIREN, an NGLOD with a sparse
+/// finest level and a hash grid whose features and weights are all of order one (a fresh
+/// model's grids are 0.01·N(0, 1), which would hide a wrong lookup), with coarse dense levels
+/// and finer hashed ones, at points inside and outside the box of a normalisation that is not
+/// the identity, near the origin and far from it (a centre that is no f32, which the file keeps
+/// in f64 and the map uses in f64).
 #[test]
 fn load_model_py_agrees_with_neural_sdf() {
     if let Err(why) = python_with_numpy() {
@@ -423,7 +429,18 @@ fn load_model_py_agrees_with_neural_sdf() {
         hashgrid.config().storage(1),
         hwsdf::nn::nglod::LevelStorage::Hashed(1024)
     );
-    let nglod = order_one(NglodConfig::small());
+    // A sparse finest level of 32 cells whose band is the vertices near a sphere.
+    let mut nglod = Nglod::new(NglodConfig {
+        resolutions: vec![4, 8, 16, 32],
+        sparse_levels: 1,
+        ..NglodConfig::small()
+    })
+    .unwrap();
+    nglod.place_bands(|p| p.length() - 0.6).unwrap();
+    assert!(!nglod.bands()[0].vertices().is_empty());
+    for p in nglod.params_mut() {
+        *p = rng.random_range(-1.0..1.0);
+    }
     let files = [
         (
             "siren",
@@ -442,9 +459,18 @@ fn load_model_py_agrees_with_neural_sdf() {
     ];
     let dir = std::env::temp_dir().join(format!("hwsdf-load-model-py-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
-    let pts = points(40);
-    for (name, file) in files {
+    let far = Normalization {
+        center: glam::DVec3::new(1_000_000.3, -2_000_000.7, 5.0),
+        scale: 0.5,
+    };
+    for (name, file) in files.into_iter().flat_map(|(name, file)| {
+        let mut moved = file.clone();
+        moved.metadata.normalization = far;
+        [(name, file), (name, moved)]
+    }) {
         assert_eq!(file.metadata.architecture, name);
+        let norm = file.metadata.normalization;
+        let pts = points_of(&norm, 40);
         let path = dir.join(format!("{name}.safetensors"));
         file.save(&path).unwrap();
         // The file as saved (f16 grids) is what both read.
