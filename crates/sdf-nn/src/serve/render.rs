@@ -408,9 +408,10 @@ impl Renderer {
     /// rendered); rays step by the scene's trace field (`{prefix}_trace`: at least `|d − c|`
     /// over the scene's Lipschitz bound, see [`Scene::trace_rays`]).
     pub fn for_scene(gpu: &GpuContext, scene: &Scene) -> Result<Self, RenderError> {
-        // The tracer binds its image besides the weights.
+        // The tracer binds two storage buffers besides the weights: its image and its tiles'
+        // starts (group 0's bindings 1 and 2 in `compile`).
         let (snippets, weights) =
-            scene.compile(gpu.device(), SDF_GROUP, "scene", 1, &[Lanes::One])?;
+            scene.compile(gpu.device(), SDF_GROUP, "scene", 2, &[Lanes::One])?;
         let weights = Weights::Scene(weights);
         let source = format!(
             "{}\n\

@@ -118,6 +118,47 @@ fn bad_trees_are_typed_errors() {
         }),
         SceneError::Rotation { .. }
     ));
+    // Each transform fine alone, their composition out of f32's normal range: named, not left
+    // to answer NaN on the CPU and zero scales on the GPU.
+    let scaled = |scale| Transform {
+        scale,
+        ..Transform::IDENTITY
+    };
+    // (A subnormal scale, which a GPU may flush to zero, is refused on its own node.)
+    for (scale, at) in [
+        (1e20, "root.children[1].children[0]"),
+        (1e-23, "root.children[1].children[0]"),
+        (1e-40, "root.children[1]"),
+    ] {
+        let nested = s().transformed(scaled(scale)).transformed(scaled(scale));
+        match err(SceneNode::Union(vec![s(), nested])) {
+            SceneError::Placement { node, what, .. } => {
+                assert_eq!((node.as_str(), what), (at, "scale"), "{scale}")
+            }
+            e => panic!("{scale}: {e:?}"),
+        }
+    }
+    let far = Transform::from_translation(Vec3::X * 3e38);
+    assert!(matches!(
+        err(SceneNode::Union(vec![
+            s(),
+            s().transformed(far).transformed(far)
+        ])),
+        SceneError::Placement {
+            what: "translation",
+            ..
+        }
+    ));
+    // An operator's parameter in the scene's units: k = 1e-30 under a scale of 1e-10.
+    let tiny_blend = SceneNode::SmoothUnion {
+        k: 1e-30,
+        children: vec![s(), s()],
+    }
+    .transformed(scaled(1e-10));
+    assert!(matches!(
+        err(SceneNode::Union(vec![s(), tiny_blend])),
+        SceneError::Placement { what: "k", .. }
+    ));
     match err(SceneNode::Shell {
         t: 0.1,
         child: Box::new(sphere_at(Vec3::ZERO, -1.0)),

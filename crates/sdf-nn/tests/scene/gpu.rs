@@ -409,6 +409,30 @@ fn bad_queries_are_refused() {
         on_gpu.distances(&[Vec3::ZERO], f32::NAN),
         Err(SceneGpuError::Query(SceneQueryError::Level(_)))
     ));
+    // A point that is not finite is refused by every point query, not answered with the
+    // largest float (where no bound lets a model run).
+    let bad_points = [Vec3::ZERO, Vec3::new(f32::NAN, 0.0, 0.0)];
+    assert!(matches!(
+        on_gpu.distances(&bad_points, 0.0),
+        Err(SceneGpuError::Query(SceneQueryError::Point {
+            index: 1,
+            ..
+        }))
+    ));
+    assert!(matches!(
+        on_gpu.samples(&bad_points, 0.0),
+        Err(SceneGpuError::Query(SceneQueryError::Point {
+            index: 1,
+            ..
+        }))
+    ));
+    assert!(matches!(
+        on_gpu.closest_points(&bad_points, &ProjectOptions::default()),
+        Err(SceneGpuError::Query(SceneQueryError::Point {
+            index: 1,
+            ..
+        }))
+    ));
     let bad_tolerance = ProjectOptions {
         tolerance: 0.0,
         ..ProjectOptions::default()

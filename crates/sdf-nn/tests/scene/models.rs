@@ -215,7 +215,8 @@ fn lipschitz_estimates_follow_the_slope() {
         "steep ray",
     );
     scene.set_model_lipschitz(1, 4.0).unwrap();
-    assert_eq!(scene.lipschitz(), 4.0);
+    // Outside its box the model's distance is steeper than its network: √(1 + 4²).
+    assert_eq!(scene.lipschitz(), 17f32.sqrt());
     assert!(matches!(
         scene.set_model_lipschitz(1, 0.0),
         Err(SceneError::Lipschitz { .. })
@@ -224,6 +225,42 @@ fn lipschitz_estimates_follow_the_slope() {
         scene.set_model_lipschitz(5, 2.0),
         Err(SceneError::Lipschitz { .. })
     ));
+}
+
+/// A bound given by the caller is the network's in its box; outside it, where the served
+/// distance continues by the distance to the box, slopes reach √(1 + b²): a ray from outside
+/// towards a small sphere near the box's face stops on it, where a first step by b = 1 (1.69
+/// from the ray's origin) jumped past it.
+#[test]
+fn a_given_bound_keeps_rays_from_outside_the_box_on_the_surface() {
+    let centre = Vec3::new(0.9, 0.0, 0.0);
+    let radius = 0.05;
+    let model = Nglod::from_sdf(128, move |p| (p - centre).length() - radius).unwrap();
+    let identity = Normalization {
+        center: glam::DVec3::ZERO,
+        scale: 1.0,
+    };
+    let sdf =
+        NeuralSdf::from_model_file(model.to_model_file(identity, serde_json::Value::Null)).unwrap();
+    let mut scene = Scene::new(SceneNode::model(Arc::new(sdf), Transform::IDENTITY)).unwrap();
+    scene.set_model_lipschitz(0, 1.0).unwrap();
+    assert_eq!(scene.model_lipschitz(0), Some(2f32.sqrt()));
+    let origin = Vec3::new(1.5, 1.5, 0.0);
+    let ray = Ray {
+        origin,
+        direction: (centre - origin).normalize(),
+        max_distance: 10.0,
+    };
+    let hit = scene
+        .trace_ray(&ray, &TraceOptions::default())
+        .unwrap()
+        .expect("the ray hits the sphere");
+    assert_close(
+        hit.t,
+        f64::from((centre - origin).length() - radius),
+        0.01,
+        "ray from outside the box",
+    );
 }
 
 /// The guarantee, observed: on untrained networks of both architectures (a random SIREN, whose

@@ -460,12 +460,7 @@ impl Scene {
         options: &ProjectOptions,
     ) -> Result<Vec<ClosestPoint>, SceneQueryError> {
         check_level_and_tolerance(options.level, options.tolerance)?;
-        if let Some(index) = points.iter().position(|p| !p.is_finite()) {
-            return Err(SceneQueryError::Point {
-                index,
-                point: points[index],
-            });
-        }
+        check_points(points)?;
         let (c, tol) = (options.level as f64, options.tolerance as f64);
         let mut x: Vec<DVec3> = points.iter().map(|p| p.as_dvec3()).collect();
         let mut out: Vec<Option<ClosestPoint>> = vec![None; points.len()];
@@ -794,6 +789,17 @@ pub(crate) fn check_trace_options(options: &TraceOptions) -> Result<(), SceneQue
         return Err(SceneQueryError::OverRelaxation(omega));
     }
     Ok(())
+}
+
+/// Checks that every query point is finite.
+pub(crate) fn check_points(points: &[Vec3]) -> Result<(), SceneQueryError> {
+    match points.iter().position(|p| !p.is_finite()) {
+        Some(index) => Err(SceneQueryError::Point {
+            index,
+            point: points[index],
+        }),
+        None => Ok(()),
+    }
 }
 
 pub(crate) fn check_ray(index: usize, ray: &Ray) -> Result<(), SceneQueryError> {

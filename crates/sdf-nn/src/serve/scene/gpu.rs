@@ -50,7 +50,7 @@ use crate::gpu::QueryKernel;
 use crate::gpu::{GpuContext, GpuError, entry};
 use crate::serve::scene::cpu::{
     ClosestPoint, ProjectOptions, Ray, RayHit, SceneQueryError, SceneSample, TraceOptions,
-    check_level_and_tolerance, check_ray, check_trace_options,
+    check_level_and_tolerance, check_points, check_ray, check_trace_options,
 };
 use crate::serve::scene::embed::{SceneBindGroup, SceneGpuError};
 use crate::serve::scene::tree::Scene;
@@ -674,11 +674,13 @@ impl<'g> GpuScene<'g> {
         Ok(out)
     }
 
-    /// `d − c` at each point (see [`Scene::distances`]).
+    /// `d − c` at each point (see [`Scene::distances`]); a NaN or infinite point is an error
+    /// (where the CPU reference answers NaN).
     pub fn distances(&self, points: &[Vec3], level: f32) -> Result<Vec<f32>, SceneGpuError> {
         if !level.is_finite() {
             return Err(SceneQueryError::Level(level).into());
         }
+        check_points(points)?;
         Ok(self.run_points(
             SceneQueryKind::Distance,
             points,
@@ -687,11 +689,12 @@ impl<'g> GpuScene<'g> {
     }
 
     /// `d − c`, its gradient and the deciding leaf at each point (see
-    /// [`Scene::distances_and_gradients`]).
+    /// [`Scene::distances_and_gradients`]); a NaN or infinite point is an error.
     pub fn samples(&self, points: &[Vec3], level: f32) -> Result<Vec<SceneSample>, SceneGpuError> {
         if !level.is_finite() {
             return Err(SceneQueryError::Level(level).into());
         }
+        check_points(points)?;
         let out = self.run_points(
             SceneQueryKind::Sample,
             points,
@@ -750,13 +753,7 @@ impl<'g> GpuScene<'g> {
         options: &ProjectOptions,
     ) -> Result<Vec<ClosestPoint>, SceneGpuError> {
         check_level_and_tolerance(options.level, options.tolerance)?;
-        if let Some(index) = points.iter().position(|p| !p.is_finite()) {
-            return Err(SceneQueryError::Point {
-                index,
-                point: points[index],
-            }
-            .into());
-        }
+        check_points(points)?;
         let out = self.run_points(SceneQueryKind::Project, points, &options.into())?;
         Ok(out
             .chunks_exact(7)

@@ -280,14 +280,17 @@ impl LocalLipschitz {
         }
     }
 
-    /// The same bound everywhere: a bound the caller knows
-    /// ([`crate::serve::scene::Scene::set_model_lipschitz`]).
+    /// A bound the caller knows of the network's slope in its box
+    /// ([`crate::serve::scene::Scene::set_model_lipschitz`]), for every cell and block; the
+    /// model's bound, which also holds outside the box, is `√(1 + bound²)`: there the served
+    /// distance is the network's at the clamped point plus the distance to the box, whose slope
+    /// reaches `√(1 + T²)` for a gradient `T ≤ bound` along the box's face.
     pub fn uniform(bound: f32) -> Self {
         let cells = LOCAL_CELLS * LOCAL_CELLS * LOCAL_CELLS;
         LocalLipschitz {
             cell: vec![bound; cells],
             block: vec![bound; cells],
-            global: bound,
+            global: bound.hypot(1.0),
         }
     }
 

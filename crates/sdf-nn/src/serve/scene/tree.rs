@@ -117,6 +117,21 @@ pub enum SceneError {
         /// The scale.
         scale: f32,
     },
+    /// A node's placement composed with its parents' (or a parameter in the scene's units)
+    /// leaves f32's normal range: scales of 1e20 under 1e20 overflow, 1e-23 under 1e-23 vanish
+    /// (and a GPU may flush a subnormal to zero).
+    #[error(
+        "{node}: {what} = {value} in the scene's units (composed with the parents' transforms) is \
+         outside f32's normal range"
+    )]
+    Placement {
+        /// The node.
+        node: String,
+        /// What left the range: `scale`, `translation` or an operator's parameter.
+        what: &'static str,
+        /// Its value in the scene's units (the scale, the largest translation component).
+        value: f32,
+    },
     /// A rotation quaternion is zero (it is normalised otherwise).
     #[error("{node}: the rotation quaternion is zero")]
     Rotation {
@@ -510,9 +525,11 @@ impl Scene {
         }))
     }
 
-    /// Replaces model `model`'s measured estimate by a bound the caller knows (finite, `> 0`),
-    /// everywhere in its box: its local bounds ([`Scene::model_local_lipschitz`]) become that
-    /// bound too.
+    /// Replaces model `model`'s measured estimate by a bound the caller knows (finite, `> 0`)
+    /// of its network's slope in its box: its local bounds ([`Scene::model_local_lipschitz`])
+    /// become that bound, and its estimate ([`Scene::model_lipschitz`]) `√(1 + value²)`, which
+    /// also bounds the model's distance outside its box (the network's at the clamped point plus
+    /// the distance to the box).
     pub fn set_model_lipschitz(&mut self, model: usize, value: f32) -> Result<(), SceneError> {
         let models = self.models.len();
         match self.lipschitz.get_mut(model) {
@@ -748,19 +765,19 @@ impl Compiler {
                 })
             }
             SceneNode::SmoothUnion { k, children } => {
-                let k = blend(&path, *k)? * s;
+                let k = in_scene_units(&path, "k", blend(&path, *k)?, s)?;
                 self.fold(node, children, path, depth, outer, || {
                     Instruction::SmoothUnion(k)
                 })
             }
             SceneNode::SmoothIntersection { k, children } => {
-                let k = blend(&path, *k)? * s;
+                let k = in_scene_units(&path, "k", blend(&path, *k)?, s)?;
                 self.fold(node, children, path, depth, outer, || {
                     Instruction::SmoothIntersection(k)
                 })
             }
             SceneNode::SmoothDifference { k, children } => {
-                let k = blend(&path, *k)? * s;
+                let k = in_scene_units(&path, "k", blend(&path, *k)?, s)?;
                 self.fold(node, children, path, depth, outer, || {
                     Instruction::SmoothDifference(k)
                 })
@@ -772,8 +789,13 @@ impl Compiler {
                         field: "r",
                     });
                 }
+                let r = if *r == 0.0 {
+                    0.0
+                } else {
+                    in_scene_units(&path, "r", *r, s)?
+                };
                 self.unary(child, &path, depth, outer)?;
-                self.program.push(Instruction::Offset(r * s));
+                self.program.push(Instruction::Offset(r));
                 Ok(())
             }
             SceneNode::Shell { t, child } => {
@@ -791,12 +813,13 @@ impl Compiler {
                         requirement: "> 0",
                     });
                 }
+                let t = in_scene_units(&path, "t", *t, s)?;
                 self.unary(child, &path, depth, outer)?;
-                self.program.push(Instruction::Shell(t * s));
+                self.program.push(Instruction::Shell(t));
                 Ok(())
             }
             SceneNode::Transform { transform, child } => {
-                let composed = outer.compose(&transform.checked(&path)?);
+                let composed = placed(outer, transform, &path)?;
                 self.node(child, format!("{path}.children[0]"), depth + 1, &composed)
             }
         }
@@ -816,7 +839,7 @@ impl Compiler {
                 limit: MAX_LEAVES,
             });
         }
-        let transform = outer.compose(&transform.checked(&path)?);
+        let transform = placed(outer, transform, &path)?;
         self.program
             .push(Instruction::Leaf(self.leaves.len() as u32));
         self.leaves.push(Leaf { kind, transform });
@@ -864,6 +887,39 @@ impl Compiler {
 }
 
 /// Checks a blend radius.
+/// `transform` (checked) composed under `outer`: an error where the composition leaves f32's
+/// normal range, which no node's own check sees.
+fn placed(outer: &Transform, transform: &Transform, path: &str) -> Result<Transform, SceneError> {
+    let t = outer.compose(&transform.checked(path)?);
+    let placement = |what, value| SceneError::Placement {
+        node: path.to_owned(),
+        what,
+        value,
+    };
+    if !(t.scale.is_finite() && t.scale >= f32::MIN_POSITIVE) {
+        return Err(placement("scale", t.scale));
+    }
+    if !t.translation.is_finite() {
+        return Err(placement("translation", t.translation.abs().max_element()));
+    }
+    Ok(t)
+}
+
+/// An operator's parameter `value` (non-zero, finite) in the scene's units: times the scale
+/// `s` of the transforms above it, which must leave it finite and normal.
+fn in_scene_units(path: &str, field: &'static str, value: f32, s: f32) -> Result<f32, SceneError> {
+    let v = value * s;
+    if v.is_finite() && v.abs() >= f32::MIN_POSITIVE {
+        Ok(v)
+    } else {
+        Err(SceneError::Placement {
+            node: path.to_owned(),
+            what: field,
+            value: v,
+        })
+    }
+}
+
 fn blend(path: &str, k: f32) -> Result<f32, SceneError> {
     if !k.is_finite() {
         return Err(SceneError::NonFinite {
