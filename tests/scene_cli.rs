@@ -259,6 +259,42 @@ fn render_a_scene() {
     assert!(lit > 40 * 32 / 10, "only {lit} pixels show the scene");
 }
 
+/// `render MODEL` draws a model as `render --scene` draws the scene of that one leaf, pixel for
+/// pixel: the same safe steps (by its Lipschitz bounds), the same framing.
+#[test]
+fn render_a_model_as_a_scene_of_one_leaf() {
+    let model = sphere_model();
+    let scene_file = model.with_file_name("one-leaf.toml");
+    std::fs::write(
+        &scene_file,
+        "[models]\nsphere = \"sphere.safetensors\"\n\n[root]\ntype = \"model\"\nmodel = \"sphere\"\n",
+    )
+    .unwrap();
+    let (as_model, as_scene) = (scratch("one-model.png"), scratch("one-leaf.png"));
+    run_ok(
+        bin("render")
+            .arg(model)
+            .args(["--size", "24x20", "--out"])
+            .arg(&as_model),
+    );
+    run_ok(
+        bin("render")
+            .arg("--scene")
+            .arg(&scene_file)
+            .args(["--size", "24x20", "--out"])
+            .arg(&as_scene),
+    );
+    let (a, b) = (
+        image_pixels(&std::fs::read(&as_model).unwrap()),
+        image_pixels(&std::fs::read(&as_scene).unwrap()),
+    );
+    assert!(
+        a.iter().any(|p| *p != a[0]),
+        "the model is not in the image"
+    );
+    assert_eq!(a, b);
+}
+
 fn image_pixels(png: &[u8]) -> Vec<[u8; 4]> {
     let decoder = png::Decoder::new(std::io::Cursor::new(png));
     let mut reader = decoder.read_info().unwrap();

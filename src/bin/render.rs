@@ -7,8 +7,9 @@
 //!
 //! The camera orbits the model's normalised box (`--yaw`, `--pitch`), framed from the model's
 //! normalisation so any model fills the image the same way; a scene's box is the one that holds
-//! its surface (`Scene::frame`). `--level c` draws the offset surface `d = c`. The image is
-//! written atomically.
+//! its surface (`Scene::frame`). A model is traced as the scene of that one leaf (steps by its
+//! Lipschitz bounds). `--level c` draws the offset surface `d = c`. The image is written
+//! atomically.
 
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -121,7 +122,7 @@ fn run(args: &Args) -> Result<(), String> {
 
     let gpu = args.gpu.open().map_err(|e| e.to_string())?;
     let start = std::time::Instant::now();
-    let (renderer, described) = match &source {
+    let described = match &source {
         Source::Model(sdf) => {
             // A model whose sums overflow (NaN or ∞ everywhere) would sphere-trace every pixel
             // to its step limit and save a blank image: refuse it, as `eval` does.
@@ -130,7 +131,7 @@ fn run(args: &Args) -> Result<(), String> {
                 .eval_normalized(&gpu, &probe)
                 .map_err(|e| e.to_string())?;
             hwsdf::eval::run::finite_values(&probe, values).map_err(|e| e.to_string())?;
-            let described = format!(
+            format!(
                 "{} model ({} parameters{})",
                 sdf.architecture(),
                 sdf.param_count(),
@@ -138,24 +139,18 @@ fn run(args: &Args) -> Result<(), String> {
                     Some(k) => format!(", LOD {k}"),
                     None => String::new(),
                 }
-            );
-            (
-                Renderer::new(&gpu, sdf).map_err(|e| e.to_string())?,
-                described,
             )
         }
-        Source::Scene(scene) => {
-            let described = format!(
-                "scene ({} leaves, {} models)",
-                scene.leaves().len(),
-                scene.models().len()
-            );
-            (
-                Renderer::for_scene(&gpu, scene).map_err(|e| e.to_string())?,
-                described,
-            )
-        }
+        Source::Scene(scene) => format!(
+            "scene ({} leaves, {} models)",
+            scene.leaves().len(),
+            scene.models().len()
+        ),
     };
+    // A model is traced as a scene of one leaf, as `query --rays` traces it: steps divided by
+    // its Lipschitz bounds near each point, which never step over a thin part, where the
+    // single-model tracer's steps (the distance times a step scale) can.
+    let renderer = Renderer::for_scene(&gpu, &source.into_scene()?).map_err(|e| e.to_string())?;
     let image = renderer.render(&gpu, &options).map_err(|e| e.to_string())?;
     image.save_png(&args.out).map_err(|e| e.to_string())?;
     eprintln!(
