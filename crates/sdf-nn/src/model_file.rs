@@ -119,6 +119,24 @@ pub enum ModelFileError {
         /// Declared shape.
         shape: Vec<usize>,
     },
+    /// Two tensors share a name (only when building a file in memory): the file would hold one
+    /// of them and a gap where the other's data lies.
+    #[error("two tensors are named `{name}`")]
+    DuplicateTensor {
+        /// Tensor name.
+        name: String,
+    },
+    /// A value its tensor's type cannot hold (only when building a file in memory): an f16
+    /// tensor's finite value beyond ±65504, an index that is not an integer in `0..2^24`.
+    #[error("tensor `{name}` holds {value}, which {dtype:?} cannot store")]
+    Unrepresentable {
+        /// Tensor name.
+        name: String,
+        /// The value.
+        value: f32,
+        /// The tensor's type.
+        dtype: TensorDtype,
+    },
 }
 
 /// `"path: "` before a message about a file, or nothing for a model file in memory (an empty
@@ -198,6 +216,19 @@ pub enum TensorDtype {
     F16,
     /// Unsigned integers below 2^24 (exact as `f32`): indices.
     U32,
+}
+
+impl TensorDtype {
+    /// Whether a value can be written as this type without turning into another kind of
+    /// value: an f16's finite value within its range (rounding is the type's), an index an
+    /// integer in `0..2^24`. Non-finite floats pass (a load refuses them, naming the tensor).
+    fn holds(self, v: f32) -> bool {
+        match self {
+            TensorDtype::F32 => true,
+            TensorDtype::F16 => !v.is_finite() || half::f16::from_f32(v).is_finite(),
+            TensorDtype::U32 => v.fract() == 0.0 && (0.0..=MAX_INDEX as f32).contains(&v),
+        }
+    }
 }
 
 /// One named tensor, row-major.
@@ -319,6 +350,18 @@ impl ModelFile {
                     name: t.name.clone(),
                     len: t.data.len(),
                     shape: t.shape.clone(),
+                });
+            }
+            if header.contains_key(&t.name) {
+                return Err(ModelFileError::DuplicateTensor {
+                    name: t.name.clone(),
+                });
+            }
+            if let Some(&value) = t.data.iter().find(|&&v| !t.dtype.holds(v)) {
+                return Err(ModelFileError::Unrepresentable {
+                    name: t.name.clone(),
+                    value,
+                    dtype: t.dtype,
                 });
             }
             let (dtype, size) = match t.dtype {
@@ -917,5 +960,55 @@ mod tests {
             f.to_bytes(),
             Err(ModelFileError::BadTensor { .. })
         ));
+    }
+
+    /// A file that would not load back, or would load other values, is refused before writing:
+    /// two tensors of one name (the header kept one and left a gap), an f16 beyond its range
+    /// (written as infinity), an index that is no integer (written truncated).
+    #[test]
+    fn unwritable_tensors_are_rejected_before_writing() {
+        let mut f = sample();
+        let twin = f.tensors[0].clone();
+        f.tensors.push(twin.clone());
+        assert!(matches!(
+            f.to_bytes(),
+            Err(ModelFileError::DuplicateTensor { name }) if name == twin.name
+        ));
+        for (dtype, value) in [
+            (TensorDtype::F16, 70_000.0),
+            (TensorDtype::U32, 2.5),
+            (TensorDtype::U32, -1.0),
+            (TensorDtype::U32, 16_777_216.0),
+        ] {
+            let mut f = sample();
+            f.tensors.push(Tensor {
+                name: "extra".into(),
+                shape: vec![2],
+                data: vec![1.0, value],
+                dtype,
+            });
+            assert!(
+                matches!(
+                    f.to_bytes(),
+                    Err(ModelFileError::Unrepresentable { value: v, .. }) if v == value
+                ),
+                "{dtype:?} {value}"
+            );
+        }
+        // What each type holds still writes and reads back.
+        let mut f = sample();
+        for (name, dtype, data) in [
+            ("half", TensorDtype::F16, vec![65504.0, -0.5]),
+            ("index", TensorDtype::U32, vec![0.0, 16_777_215.0]),
+        ] {
+            f.tensors.push(Tensor {
+                name: name.into(),
+                shape: vec![2],
+                data,
+                dtype,
+            });
+        }
+        let back = ModelFile::from_bytes(&f.to_bytes().unwrap(), Path::new("")).unwrap();
+        assert_eq!(back.tensors.len(), f.tensors.len());
     }
 }

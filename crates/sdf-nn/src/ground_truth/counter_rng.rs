@@ -50,9 +50,10 @@ pub fn unit_float_open(x: u32) -> f32 {
 }
 
 /// Two standard normal variates from two random words by Box–Muller, in f32 as the kernel
-/// computes them: `R = sqrt(-2 ln u₁)`, `θ = π (2 u₂ − 1)`, `(R cos θ, R sin θ)`.
+/// computes them: `R = sqrt(max(-2 ln u₁, 0))`, `θ = π (2 u₂ − 1)`, `(R cos θ, R sin θ)` (the
+/// clamp changes nothing here; WGSL's `log` may err above 0 near 1).
 pub fn gaussian_pair(a: u32, b: u32) -> [f32; 2] {
-    let r = (-2.0 * unit_float_open(a).ln()).sqrt();
+    let r = (-2.0 * unit_float_open(a).ln()).max(0.0).sqrt();
     let theta = std::f32::consts::PI * (2.0 * unit_float(b) - 1.0);
     [r * theta.cos(), r * theta.sin()]
 }

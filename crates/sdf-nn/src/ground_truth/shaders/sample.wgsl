@@ -76,7 +76,9 @@ fn unit_float_open(x: u32) -> f32 {
 }
 
 fn gaussian_pair(a: u32, b: u32) -> vec2<f32> {
-    let r = sqrt(-2.0 * log(unit_float_open(a)));
+    // Clamped at 0: WGSL lets `log` err by 2^-21 near 1, so a driver may give a positive value
+    // for u = 1 or just below, and the square root would be NaN (the CPU's ln(1) is 0).
+    let r = sqrt(max(-2.0 * log(unit_float_open(a)), 0.0));
     let theta = 3.14159265358979 * (2.0 * unit_float(b) - 1.0);
     return r * vec2<f32>(cos(theta), sin(theta));
 }
