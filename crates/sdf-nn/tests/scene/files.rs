@@ -261,6 +261,16 @@ children = [
         (scene.models().len(), scene.leaves().len(), scene.depth()),
         (1, 4, 3)
     );
+    // Two names of one file (spelt two ways) are one model: one copy of its weights.
+    let twice = text.replace(
+        "ball = \"models/ball.safetensors\"",
+        "ball = \"models/ball.safetensors\"\nagain = \"./models/../models/ball.safetensors\"",
+    );
+    let twice = twice.replacen("model = \"ball\"", "model = \"again\"", 1);
+    assert!(twice.contains("again\"\n") && twice.contains("model = \"again\""));
+    std::fs::write(dir.join("twice.toml"), twice).unwrap();
+    let scene = Scene::load(dir.join("twice.toml")).unwrap();
+    assert_eq!((scene.models().len(), scene.leaves().len()), (1, 4));
     let n = normalization();
     let turn = Quat::from_rotation_z(FRAC_PI_2);
     let a = Transform::new(Vec3::new(-10.0, 0.0, 0.0), turn, 0.5).apply(n.center.as_vec3());

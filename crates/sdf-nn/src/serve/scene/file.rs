@@ -283,14 +283,26 @@ pub fn tree_from_toml(text: &str, base_dir: &Path) -> Result<SceneNode, SceneFil
         });
     }
     let mut models = BTreeMap::new();
+    // Names of one file share one copy of its weights (one upload, one Lipschitz measurement,
+    // one of the scene's models), whatever path spells it.
+    let mut loaded: BTreeMap<PathBuf, Arc<NeuralSdf>> = BTreeMap::new();
     for (name, rel) in file.models {
         let path = base_dir.join(&rel);
-        let model = NeuralSdf::load(&path).map_err(|source| SceneFileError::Model {
-            name: name.clone(),
-            path: path.clone(),
-            source: Box::new(source),
-        })?;
-        models.insert(name, Arc::new(model));
+        let key = std::fs::canonicalize(&path).unwrap_or_else(|_| path.clone());
+        let model = match loaded.get(&key) {
+            Some(model) => model.clone(),
+            None => {
+                let model = NeuralSdf::load(&path).map_err(|source| SceneFileError::Model {
+                    name: name.clone(),
+                    path: path.clone(),
+                    source: Box::new(source),
+                })?;
+                let model = Arc::new(model);
+                loaded.insert(key, model.clone());
+                model
+            }
+        };
+        models.insert(name, model);
     }
     let converter = Converter {
         text,
