@@ -403,6 +403,40 @@ fn load_model_py(model: &std::path::Path, points: &[Vec3]) -> Vec<f32> {
         .collect()
 }
 
+/// On the faces of a model's box, where a box-shaped mesh's faces lie once normalised, a
+/// normal is the inside's gradient, on the CPU and the GPU (the derivative across a face was
+/// taken as the clamped outside's, 0: a cube's face normal came out along the face). A linear
+/// field, exact under trilinear interpolation, at points on faces, an edge, corners and inside.
+#[test]
+fn normals_on_the_box_faces_are_the_insides() {
+    let g = Vec3::new(0.3, -0.5, 0.8);
+    let model = Nglod::from_sdf(8, move |p| p.dot(g)).unwrap();
+    let identity = Normalization {
+        center: glam::DVec3::ZERO,
+        scale: 1.0,
+    };
+    let sdf =
+        NeuralSdf::from_model_file(model.to_model_file(identity, serde_json::Value::Null)).unwrap();
+    let pts = [
+        Vec3::new(1.0, 0.3, -0.2),
+        Vec3::new(-1.0, 0.5, 0.1),
+        Vec3::new(0.2, 1.0, -1.0),
+        Vec3::ONE,
+        -Vec3::ONE,
+        Vec3::new(0.1, 0.2, 0.3),
+    ];
+    let want = g.normalize();
+    let gpu_normals = sdf.eval_with_normals(gpu(), &pts).unwrap();
+    for (path, got) in [
+        ("cpu", sdf.eval_with_normals_cpu(&pts)),
+        ("gpu", gpu_normals),
+    ] {
+        for (p, (_, n)) in pts.iter().zip(got) {
+            assert!((n - want).length() < 1e-2, "{path} at {p}: {n} vs {want}");
+        }
+    }
+}
+
 /// `scripts/load_model.py` evaluates every architecture's file as `NeuralSdf` does, within
 /// 1e-4 relative (its printed six decimals are the floor): a SIREN, an NGLOD with a sparse
 /// finest level and a hash grid whose features and weights are all of order one (a fresh

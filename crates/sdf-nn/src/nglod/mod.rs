@@ -420,10 +420,11 @@ impl Nglod {
             let zo = self.config.input_offset(l);
             let (i0, t) = cell(pd, res);
             let t = t.map(|v| v as f32);
-            // d u / d x = r / 2 inside the box, 0 where clamped.
+            // d u / d x = r / 2 in the box, faces included (the inside's derivative: a
+            // box-shaped mesh's faces lie on them), 0 where clamped.
             let du: [f32; 3] = std::array::from_fn(|a| {
                 let u = (pd[a] + 1.0) * 0.5 * f64::from(res);
-                if u > 0.0 && u < f64::from(res) {
+                if (0.0..=f64::from(res)).contains(&u) {
                     res as f32 * 0.5
                 } else {
                     0.0

@@ -696,8 +696,9 @@ fn nglod_fn(s: &mut String, levels: &[LevelAt], input_dim: usize, grad: bool, la
         );
         if grad {
             s.push_str(
-                "        // du/dx = r/2 inside the box, 0 on an axis where the point is clamped.\n\
-                 \x20       let du = select(vec3<f32>(0.0), vec3<f32>(0.5 * r), (u > vec3<f32>(0.0)) & (u < vec3<f32>(r)));\n",
+                "        // du/dx = r/2 in the box, faces included (the inside's derivative: a box-shaped\n\
+                 \x20       // mesh's faces lie on them), 0 on an axis where the point is clamped.\n\
+                 \x20       let du = select(vec3<f32>(0.0), vec3<f32>(0.5 * r), (u >= vec3<f32>(0.0)) & (u <= vec3<f32>(r)));\n",
             );
         }
         if sg {

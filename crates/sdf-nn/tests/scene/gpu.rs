@@ -268,6 +268,49 @@ fn placed_models_match_the_cpu_one_subgroup_per_element() {
     placed_models_match_the_cpu_on(QueryKernel::PerSubgroup);
 }
 
+/// On the faces of a model's box the scene's gradient is the inside's, on the CPU and on both
+/// GPU kernels (the snippet took the derivative across a face as the clamped outside's, 0): a
+/// linear field, exact under trilinear interpolation, at points on faces, an edge and corners.
+#[test]
+fn gradients_on_a_models_box_faces_are_the_insides() {
+    let g = Vec3::new(0.3, -0.5, 0.8);
+    let model = Nglod::from_sdf(8, move |p| p.dot(g)).unwrap();
+    let identity = Normalization {
+        center: glam::DVec3::ZERO,
+        scale: 1.0,
+    };
+    let sdf =
+        NeuralSdf::from_model_file(model.to_model_file(identity, serde_json::Value::Null)).unwrap();
+    let scene = Scene::new(SceneNode::model(Arc::new(sdf), Transform::IDENTITY)).unwrap();
+    let pts = [
+        Vec3::new(1.0, 0.3, -0.2),
+        Vec3::new(-1.0, 0.5, 0.1),
+        Vec3::new(0.2, 1.0, -1.0),
+        Vec3::ONE,
+        -Vec3::ONE,
+    ];
+    // A model's gradient in a scene is its unit normal.
+    let want = g.normalize();
+    let mut paths = vec![("cpu", scene.distances_and_gradients(&pts, 0.0))];
+    for kernel in [QueryKernel::PerInvocation, QueryKernel::PerSubgroup] {
+        let name = if kernel == QueryKernel::PerInvocation {
+            "gpu, one point per invocation"
+        } else {
+            "gpu, one point per subgroup"
+        };
+        paths.push((name, scene_on(&scene, kernel).samples(&pts, 0.0).unwrap()));
+    }
+    for (path, got) in paths {
+        for (p, s) in pts.iter().zip(got) {
+            assert!(
+                (s.gradient - want).length() < 1e-2,
+                "{path} at {p}: {} vs {want}",
+                s.gradient
+            );
+        }
+    }
+}
+
 /// `scene` on the GPU, its queries run by `kernel`.
 fn scene_on(scene: &Scene, kernel: QueryKernel) -> GpuScene<'static> {
     let mut on_gpu = GpuScene::new(gpu(), scene).unwrap();

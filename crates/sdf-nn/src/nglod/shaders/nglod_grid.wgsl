@@ -49,7 +49,9 @@ fn grid_cell(p: vec3<f32>, res: u32) -> GridCell {
     let r = f32(res);
     let u = (p + 1.0) * 0.5 * r;
     let uvw = clamp(u, vec3<f32>(0.0), vec3<f32>(r));
-    let du = select(vec3<f32>(0.0), vec3<f32>(0.5 * r), (u > vec3<f32>(0.0)) & (u < vec3<f32>(r)));
+    // du/dx = r/2 in the box, faces included (the inside's derivative: a box-shaped mesh's faces
+    // lie on them), 0 on an axis where the point is clamped.
+    let du = select(vec3<f32>(0.0), vec3<f32>(0.5 * r), (u >= vec3<f32>(0.0)) & (u <= vec3<f32>(r)));
     // min() keeps the index in range even for NaN input (the shaders run without bounds checks).
     let i0 = min(vec3<u32>(floor(uvw)), vec3<u32>(res - 1u));
     return GridCell(i0, uvw - vec3<f32>(i0), du);
