@@ -295,6 +295,153 @@ fn render_a_model_as_a_scene_of_one_leaf() {
     assert_eq!(a, b);
 }
 
+/// A model of a mesh far from the origin for its size (trained from georeferenced or CAD
+/// coordinates: its centre kept in f64) keeps its shape through `query`, `extract` and `render`:
+/// float64 points and ray origins keep their precision, output points come out as float64, the
+/// OBJ's vertices in f64. (In f32 at 10⁷ the sphere collapsed onto a one-unit grid: extract
+/// wrote three distinct positions, render a blank image, query errors up to 1.)
+#[test]
+fn far_models_keep_their_coordinates() {
+    let centre = glam::DVec3::new(1.0e7 + 0.25, -2.0e7, 3.0e7);
+    let sphere = Nglod::from_sdf(32, |p| p.length() - 0.5).unwrap();
+    let model = scratch("far.safetensors");
+    let far = Normalization {
+        center: centre,
+        scale: 1.0,
+    };
+    sphere
+        .to_model_file(far, serde_json::Value::Null)
+        .save(&model)
+        .unwrap();
+    let near = NeuralSdf::from_model_file(
+        sphere.to_model_file(Normalization::identity(), serde_json::Value::Null),
+    )
+    .unwrap();
+
+    // Distances at float64 points: those of the same model about the origin.
+    let offsets = points(50, 0.9);
+    let rows: Vec<f64> = offsets
+        .iter()
+        .flat_map(|o| (o.as_dvec3() + centre).to_array())
+        .collect();
+    let (p, d) = (scratch("far-p.npy"), scratch("far-d.npy"));
+    npy::write_table_f64(&p, &rows, 3).unwrap();
+    run_ok(
+        bin("query")
+            .arg(&model)
+            .arg("--points")
+            .arg(&p)
+            .arg("--out")
+            .arg(&d),
+    );
+    let got = npy::read_f32(&d).unwrap();
+    for ((g, w), o) in got.iter().zip(near.eval_cpu(&offsets)).zip(&offsets) {
+        assert!((g - w).abs() < 1e-4, "at centre + {o}: {g} vs {w}");
+    }
+
+    // A ray from 3 units away along -x stops on the sphere, its point in float64.
+    let (r, h) = (scratch("far-r.npy"), scratch("far-h.npy"));
+    let origin = centre + glam::DVec3::X * 3.0;
+    npy::write_table_f64(&r, &[origin.x, origin.y, origin.z, -1.0, 0.0, 0.0], 6).unwrap();
+    run_ok(
+        bin("query")
+            .arg(&model)
+            .arg("--rays")
+            .arg(&r)
+            .arg("--out")
+            .arg(&h),
+    );
+    let hit = npy::read_table_f64(&h, 9).unwrap();
+    assert_eq!(hit[0], 1.0, "{hit:?}");
+    assert!((hit[1] - 2.5).abs() < 0.02, "t = {}", hit[1]);
+    let point = glam::DVec3::new(hit[2], hit[3], hit[4]) - centre;
+    assert!(
+        (point - glam::DVec3::X * 0.5).length() < 0.02,
+        "hit at centre + {point}"
+    );
+
+    // The extracted surface lies on the sphere about the f64 centre.
+    let obj = scratch("far.obj");
+    run_ok(
+        bin("extract")
+            .arg(&model)
+            .args(["--resolution", "32", "--out"])
+            .arg(&obj),
+    );
+    let text = std::fs::read_to_string(&obj).unwrap();
+    let vertices: Vec<glam::DVec3> = text
+        .lines()
+        .filter_map(|l| l.strip_prefix("v "))
+        .map(|l| {
+            let c: Vec<f64> = l.split_whitespace().map(|x| x.parse().unwrap()).collect();
+            glam::DVec3::new(c[0], c[1], c[2])
+        })
+        .collect();
+    assert!(vertices.len() > 100, "{} vertices", vertices.len());
+    for v in &vertices {
+        let r = (*v - centre).length();
+        assert!((r - 0.5).abs() < 0.03, "vertex at radius {r}");
+    }
+
+    // `eval` against a mesh at that centre (an octahedron of half-extent 1, so the loader
+    // gives it this normalisation) scores the surface too: extracted in the normalised frame
+    // (in mesh coordinates the extraction collapsed and eval failed with "no triangles").
+    let octahedron = scratch("far-octahedron.obj");
+    let mut text = String::new();
+    for d in [
+        glam::DVec3::X,
+        -glam::DVec3::X,
+        glam::DVec3::Y,
+        -glam::DVec3::Y,
+        glam::DVec3::Z,
+        -glam::DVec3::Z,
+    ] {
+        let v = centre + d;
+        text.push_str(&format!("v {} {} {}\n", v.x, v.y, v.z));
+    }
+    for f in [
+        [1, 3, 5],
+        [3, 2, 5],
+        [2, 4, 5],
+        [4, 1, 5],
+        [3, 1, 6],
+        [2, 3, 6],
+        [4, 2, 6],
+        [1, 4, 6],
+    ] {
+        text.push_str(&format!("f {} {} {}\n", f[0], f[1], f[2]));
+    }
+    std::fs::write(&octahedron, text).unwrap();
+    let diamond = scratch("far-octahedron.safetensors");
+    Nglod::from_sdf(32, |p| (p.abs().element_sum() - 1.0) / 3f32.sqrt())
+        .unwrap()
+        .to_model_file(far, serde_json::Value::Null)
+        .save(&diamond)
+        .unwrap();
+    let o = bin("eval")
+        .arg(&diamond)
+        .arg(&octahedron)
+        .args(["--json", "--points", "2000", "--surface-resolution", "32"])
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", stderr(&o));
+    let report: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    let chamfer = report["chamfer_l1"].as_f64().expect("a surface score");
+    assert!(chamfer < 0.02, "Chamfer-L1 {chamfer}");
+
+    // The render shows it.
+    let png = scratch("far.png");
+    run_ok(
+        bin("render")
+            .arg(&model)
+            .args(["--size", "24x20", "--out"])
+            .arg(&png),
+    );
+    let image = image_pixels(&std::fs::read(&png).unwrap());
+    let lit = image.iter().filter(|p| **p != image[0]).count();
+    assert!(lit > 24 * 20 / 10, "only {lit} pixels show the model");
+}
+
 fn image_pixels(png: &[u8]) -> Vec<[u8; 4]> {
     let decoder = png::Decoder::new(std::io::Cursor::new(png));
     let mut reader = decoder.read_info().unwrap();

@@ -12,6 +12,7 @@ use clap::Parser;
 use hwsdf::cli::{GpuFlags, GroundTruthFlags, check_eval_points};
 use hwsdf::eval::metrics::{DEFAULT_EVAL_POINTS, EVAL_SEED, SurfaceMetrics};
 use hwsdf::eval::run::{self, Evaluation};
+use hwsdf::geom::extract::ExtractOptions;
 use hwsdf::nn::siren::LayerKernels;
 use hwsdf::nn::{GpuContext, NeuralSdf};
 use serde_json::json;
@@ -222,7 +223,10 @@ fn surface(
 ) -> Result<(Option<SurfaceMetrics>, Option<String>), Box<dyn std::error::Error>> {
     let mut surface_null_reason = None;
     let surface = if args.surface_resolution > 0 {
-        let (extracted, _) = run::extract_mesh(gpu, model, args.surface_resolution)?;
+        // In the normalised frame, like every other figure here (extracted there: in mesh
+        // coordinates a model far from the origin would collapse onto f32's grid).
+        let options = ExtractOptions::new(args.surface_resolution);
+        let (extracted, _) = run::extract_mesh_normalized(gpu, model, &options)?;
         if extracted.triangles.is_empty() {
             surface_null_reason = Some(format!(
                 "the model's level set has no triangles at {}³: it does not change sign in the box",
@@ -230,8 +234,6 @@ fn surface(
             ));
             None
         } else {
-            // Compare in the normalised frame, like every other figure here.
-            let extracted = extracted.transformed(&model.normalization());
             Some(SurfaceMetrics::between(
                 &extracted,
                 &truth.mesh,

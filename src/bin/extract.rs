@@ -71,7 +71,8 @@ fn extract(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
         return Err(format!("--max-memory-gib {} must be positive", args.max_memory_gib).into());
     }
     hwsdf::geom::io::check_outputs(&[args.source.path()], &[&args.out])?;
-    let mut source = args.source.load()?;
+    // A model far from the origin is extracted relative to its centre, added back in f64.
+    let (mut source, centre) = args.source.load()?.recentred()?;
     let what = match &mut source {
         Source::Model(model) => {
             model.set_lod(args.lod)?;
@@ -104,7 +105,7 @@ fn extract(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
         )
         .into());
     }
-    hwsdf::geom::io::write_obj(&mesh, &args.out)
+    hwsdf::geom::io::write_obj_offset(&mesh, centre, &args.out)
         .map_err(|e| format!("writing {}: {e}", args.out.display()))?;
     eprintln!(
         "{} vertices, {} triangles from {} cells ({} distance evaluations) in {:.2} s on {}; written to {}",

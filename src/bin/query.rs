@@ -15,7 +15,10 @@
 //! - `--closest P.npy` (N×3) → `--out C.npy`: N×6 rows `point (3), residual |d − c|,
 //!   iterations, converged (0 or 1)`.
 //!
-//! Coordinates are the model's mesh coordinates, or the scene's frame. `--level c` queries the
+//! Coordinates are the model's mesh coordinates, or the scene's frame. A model of a mesh far
+//! from the origin for its size (georeferenced, CAD) is queried relative to its centre: float64
+//! inputs keep their precision, and the points of `--rays` and `--closest` come out as float64
+//! rows. `--level c` queries the
 //! level set `d = c` (an offset surface) and must lie inside the model's or scene's box.
 
 use std::path::PathBuf;
@@ -23,7 +26,7 @@ use std::process::ExitCode;
 use std::time::Instant;
 
 use clap::Parser;
-use glam::Vec3;
+use glam::{DVec3, Vec3};
 use hwsdf::cli::{GpuFlags, Source, SourceFlags, check_level};
 use hwsdf::geom::npy;
 use hwsdf::nn::serve::scene::{GpuScene, ProjectOptions, Ray, TRACE_OVER_RELAXATION, TraceOptions};
@@ -94,7 +97,9 @@ fn run(args: &Args) -> Result<(), String> {
     outputs.extend(args.normals.as_deref());
     hwsdf::geom::io::check_outputs(&[args.source.path(), input], &outputs)
         .map_err(|e| e.to_string())?;
-    let source = args.source.load()?;
+    // A model far from the origin is queried relative to its centre: inputs less the centre
+    // (in f64), output points plus it, written as float64.
+    let (source, centre) = args.source.load()?.recentred()?;
     let what = match source {
         Source::Model(_) => "the model's",
         Source::Scene(_) => "the scene's",
@@ -106,16 +111,16 @@ fn run(args: &Args) -> Result<(), String> {
     let gpu = args.gpu.open().map_err(|e| e.to_string())?;
     let start = Instant::now();
     let count = if let Some(path) = &args.points {
-        let points = read_points(path)?;
+        let points = read_points(path, centre)?;
         query_points(args, &gpu, source, &points)?;
         points.len()
     } else if let Some(path) = &args.rays {
-        let table = npy::read_table(path, 6).map_err(|e| e.to_string())?;
+        let table = npy::read_table_f64(path, 6).map_err(|e| e.to_string())?;
         let rays: Vec<Ray> = table
             .chunks_exact(6)
             .map(|r| Ray {
-                origin: Vec3::new(r[0], r[1], r[2]),
-                direction: Vec3::new(r[3], r[4], r[5]),
+                origin: (DVec3::new(r[0], r[1], r[2]) - centre).as_vec3(),
+                direction: DVec3::new(r[3], r[4], r[5]).as_vec3(),
                 max_distance: args.max_distance,
             })
             .collect();
@@ -131,31 +136,25 @@ fn run(args: &Args) -> Result<(), String> {
         let hits = on_gpu
             .trace_rays(&rays, &options)
             .map_err(|e| format!("{}: {e}", path.display()))?;
-        let rows: Vec<f32> = hits
+        let rows: Vec<f64> = hits
             .iter()
             .flat_map(|h| match h {
-                Some(h) => [
-                    1.0,
-                    h.t,
-                    h.point.x,
-                    h.point.y,
-                    h.point.z,
-                    h.normal.x,
-                    h.normal.y,
-                    h.normal.z,
-                    h.leaf as f32,
-                ],
+                Some(h) => {
+                    let p = h.point.as_dvec3() + centre;
+                    let n = h.normal.as_dvec3();
+                    [1.0, h.t.into(), p.x, p.y, p.z, n.x, n.y, n.z, h.leaf as f64]
+                }
                 None => {
-                    let nan = f32::NAN;
-                    [0.0, f32::INFINITY, nan, nan, nan, nan, nan, nan, -1.0]
+                    let nan = f64::NAN;
+                    [0.0, f64::INFINITY, nan, nan, nan, nan, nan, nan, -1.0]
                 }
             })
             .collect();
-        npy::write_table(&args.out, &rows, 9).map_err(|e| e.to_string())?;
+        write_rows(&args.out, &rows, 9, centre)?;
         rays.len()
     } else {
         let path = args.closest.as_ref().expect("one query flag");
-        let points = read_points(path)?;
+        let points = read_points(path, centre)?;
         let scene = source.into_scene()?;
         let on_gpu = GpuScene::new(&gpu, &scene).map_err(|e| e.to_string())?;
         let defaults = ProjectOptions::default();
@@ -167,20 +166,21 @@ fn run(args: &Args) -> Result<(), String> {
         let closest = on_gpu
             .closest_points(&points, &options)
             .map_err(|e| format!("{}: {e}", path.display()))?;
-        let rows: Vec<f32> = closest
+        let rows: Vec<f64> = closest
             .iter()
             .flat_map(|c| {
+                let p = c.point.as_dvec3() + centre;
                 [
-                    c.point.x,
-                    c.point.y,
-                    c.point.z,
-                    c.residual,
-                    c.iterations as f32,
+                    p.x,
+                    p.y,
+                    p.z,
+                    c.residual.into(),
+                    c.iterations.into(),
                     if c.converged { 1.0 } else { 0.0 },
                 ]
             })
             .collect();
-        npy::write_table(&args.out, &rows, 6).map_err(|e| e.to_string())?;
+        write_rows(&args.out, &rows, 6, centre)?;
         points.len()
     };
     eprintln!(
@@ -192,9 +192,14 @@ fn run(args: &Args) -> Result<(), String> {
     Ok(())
 }
 
-/// Finite points from an (N, 3) .npy file.
-fn read_points(path: &PathBuf) -> Result<Vec<Vec3>, String> {
-    let points = npy::read_points(path).map_err(|e| e.to_string())?;
+/// Finite points from an (N, 3) .npy file, less `centre` (in f64: float64 points far from the
+/// origin keep their precision).
+fn read_points(path: &PathBuf, centre: DVec3) -> Result<Vec<Vec3>, String> {
+    let points: Vec<Vec3> = npy::read_points_f64(path)
+        .map_err(|e| e.to_string())?
+        .into_iter()
+        .map(|p| (p - centre).as_vec3())
+        .collect();
     if let Some(i) = points.iter().position(|p| !p.is_finite()) {
         return Err(format!(
             "{}: point {i} is not finite: {}",
@@ -203,6 +208,18 @@ fn read_points(path: &PathBuf) -> Result<Vec<Vec3>, String> {
         ));
     }
     Ok(points)
+}
+
+/// Writes `N × columns` rows: float32, or float64 when the model was queried relative to a
+/// centre far from the origin (its points would round in float32).
+fn write_rows(path: &PathBuf, rows: &[f64], columns: usize, centre: DVec3) -> Result<(), String> {
+    if centre == DVec3::ZERO {
+        let rows: Vec<f32> = rows.iter().map(|&v| v as f32).collect();
+        npy::write_table(path, &rows, columns)
+    } else {
+        npy::write_table_f64(path, rows, columns)
+    }
+    .map_err(|e| e.to_string())
 }
 
 /// Distances (and normals) at points: a model through its own query kernels, a scene through

@@ -92,7 +92,8 @@ fn run(args: &Args) -> Result<(), String> {
     // Fail before the slow GPU work if the image could not be written, or would replace the model.
     hwsdf::geom::io::check_outputs(&[args.source.path()], &[&args.out])
         .map_err(|e| e.to_string())?;
-    let mut source = args.source.load()?;
+    // A model far from the origin is drawn relative to its centre (the image is the same).
+    let (mut source, _centre) = args.source.load()?.recentred()?;
     match &mut source {
         Source::Model(sdf) => sdf.set_lod(args.lod).map_err(|e| e.to_string())?,
         Source::Scene(_) if args.lod.is_some() => {

@@ -3,6 +3,7 @@
 
 use std::path::{Path, PathBuf};
 
+use glam::DVec3;
 use sdf_nn::serve::scene::Scene;
 use sdf_nn::{NeuralSdf, Normalization};
 
@@ -57,6 +58,26 @@ impl Source {
         match self {
             Source::Model(m) => m.normalization(),
             Source::Scene(s) => s.frame(0.0),
+        }
+    }
+
+    /// The source in coordinates relative to a model's centre where the model lies far from
+    /// the origin for its size ([`Normalization::is_far`]: a mesh trained from georeferenced or
+    /// CAD coordinates), and that centre; else the source as it is and zero. Queried, traced
+    /// and extracted in f32 at 10⁷ a model would collapse onto a one-unit grid; relative to
+    /// its centre it keeps its shape, and outputs in mesh coordinates add the centre back in
+    /// f64. A scene's coordinates are its own (f32 placements): it stays as it is.
+    pub fn recentred(self) -> Result<(Source, DVec3), String> {
+        match self {
+            Source::Model(m) if m.normalization().is_far() => {
+                let (normalization, centre) = m.normalization().recentred();
+                let mut file = m.model_file().clone();
+                file.metadata.normalization = normalization;
+                let mut moved = NeuralSdf::from_model_file(file).map_err(|e| e.to_string())?;
+                moved.set_lod(m.lod()).map_err(|e| e.to_string())?;
+                Ok((Source::Model(Box::new(moved)), centre))
+            }
+            other => Ok((other, DVec3::ZERO)),
         }
     }
 

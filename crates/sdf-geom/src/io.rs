@@ -4,6 +4,8 @@
 use std::io::Write;
 use std::path::{Path, PathBuf};
 
+use glam::{DVec3, Vec3};
+
 use crate::Mesh;
 
 /// Writes `bytes` to `path` atomically: a temporary file with a random name, created exclusively
@@ -300,6 +302,14 @@ pub fn read_regular_file(path: &Path, max_bytes: u64) -> std::io::Result<Vec<u8>
 
 /// The mesh as Wavefront OBJ text: shared vertices (`v`), then 1-based triangles (`f`).
 pub fn obj_string(mesh: &Mesh) -> String {
+    obj_text(mesh, |s, v| {
+        use std::fmt::Write as _;
+        let _ = writeln!(s, "v {} {} {}", v.x, v.y, v.z);
+    })
+}
+
+/// The OBJ text of `mesh`, each vertex's line written by `vertex`.
+fn obj_text(mesh: &Mesh, vertex: impl Fn(&mut String, Vec3)) -> String {
     use std::fmt::Write as _;
     let mut s = String::with_capacity(mesh.vertices.len() * 40 + mesh.triangles.len() * 24);
     let _ = writeln!(
@@ -309,7 +319,7 @@ pub fn obj_string(mesh: &Mesh) -> String {
         mesh.triangles.len()
     );
     for v in &mesh.vertices {
-        let _ = writeln!(s, "v {} {} {}", v.x, v.y, v.z);
+        vertex(&mut s, *v);
     }
     for t in &mesh.triangles {
         let _ = writeln!(s, "f {} {} {}", t[0] + 1, t[1] + 1, t[2] + 1);
@@ -320,6 +330,21 @@ pub fn obj_string(mesh: &Mesh) -> String {
 /// Writes the mesh as OBJ, atomically.
 pub fn write_obj(mesh: &Mesh, path: &Path) -> std::io::Result<()> {
     write_atomic(path, obj_string(mesh).as_bytes())
+}
+
+/// Writes the mesh moved by `offset` as OBJ, atomically: a mesh computed relative to a centre
+/// far from the origin, its vertices written as `vertex + offset` in f64 (f32 would round them
+/// onto a grid as coarse as a unit at 10⁷). A zero offset writes what [`write_obj`] writes.
+pub fn write_obj_offset(mesh: &Mesh, offset: DVec3, path: &Path) -> std::io::Result<()> {
+    if offset == DVec3::ZERO {
+        return write_obj(mesh, path);
+    }
+    let text = obj_text(mesh, |s, v| {
+        use std::fmt::Write as _;
+        let p = v.as_dvec3() + offset;
+        let _ = writeln!(s, "v {} {} {}", p.x, p.y, p.z);
+    });
+    write_atomic(path, text.as_bytes())
 }
 
 #[cfg(test)]

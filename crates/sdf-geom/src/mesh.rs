@@ -149,6 +149,26 @@ impl Normalization {
         self.to_normalized_f64(p.as_dvec3())
     }
 
+    /// Whether the box lies far from the origin for its size (its centre more than
+    /// [`FAR_MESH_RATIO`] half sides away), where f32 mesh coordinates would round the shape: a
+    /// model of such a mesh is best served relative to its centre ([`Normalization::recentred`]),
+    /// adding the centre back in f64.
+    pub fn is_far(&self) -> bool {
+        self.center.abs().max_element() > FAR_MESH_RATIO / f64::from(self.scale)
+    }
+
+    /// The same scale about the origin, and the centre it moved by: mesh coordinates relative
+    /// to the centre, `p − center`, normalise as `p` did.
+    pub fn recentred(&self) -> (Normalization, DVec3) {
+        (
+            Normalization {
+                center: DVec3::ZERO,
+                scale: self.scale,
+            },
+            self.center,
+        )
+    }
+
     /// [`Normalization::to_normalized`] of a point given in f64 (far from the origin, f32 would
     /// have rounded it), computed in f64.
     pub fn to_normalized_f64(&self, p: DVec3) -> Vec3 {
@@ -257,7 +277,8 @@ pub(crate) fn recentre(positions: &[DVec3], report: &mut LoadReport) -> Vec<Vec3
     }
     report.origin = center;
     report.warnings.push(format!(
-        "the mesh lies far from the origin for its size (centre {center}, half-extent {half}):          its coordinates are taken relative to that centre (read in f64), so f32 keeps its shape"
+        "the mesh lies far from the origin for its size (centre {center}, half-extent {half}): \
+         its coordinates are taken relative to that centre (read in f64), so f32 keeps its shape"
     ));
     positions.iter().map(|p| (*p - center).as_vec3()).collect()
 }

@@ -122,13 +122,16 @@ pub fn parse_points_f64(path: &Path, bytes: &[u8]) -> Result<Vec<DVec3>, GeomErr
 /// Reads an `(N, columns)` float32 or float64 `.npy` file (C or Fortran order) as `N · columns`
 /// f32 values, row after row. Errors as [`read_points`].
 pub fn read_table(path: impl AsRef<Path>, columns: usize) -> Result<Vec<f32>, GeomError> {
+    Ok(read_table_f64(path, columns)?
+        .into_iter()
+        .map(|v| v as f32)
+        .collect())
+}
+
+/// [`read_table`] keeping float64 input in f64 (float32 input is widened exactly).
+pub fn read_table_f64(path: impl AsRef<Path>, columns: usize) -> Result<Vec<f64>, GeomError> {
     let path = path.as_ref();
-    Ok(
-        parse_table_f64(path, &crate::read_input_file(path)?, columns)?
-            .into_iter()
-            .map(|v| v as f32)
-            .collect(),
-    )
+    parse_table_f64(path, &crate::read_input_file(path)?, columns)
 }
 
 /// Parses `.npy` bytes as an `(N, columns)` table of f64 values, row after row (see
@@ -281,6 +284,21 @@ pub fn write_table(
     write_atomic(
         path.as_ref(),
         &npy_bytes("<f4", &format!("({rows}, {columns})"), &data),
+    )
+}
+
+/// Writes an `(N, columns)` float64 array (`values` row after row), atomically: coordinates far
+/// from the origin, which float32 would round.
+pub fn write_table_f64(
+    path: impl AsRef<Path>,
+    values: &[f64],
+    columns: usize,
+) -> Result<(), GeomError> {
+    let rows = values.len() / columns.max(1);
+    let data: Vec<u8> = values.iter().flat_map(|v| v.to_le_bytes()).collect();
+    write_atomic(
+        path.as_ref(),
+        &npy_bytes("<f8", &format!("({rows}, {columns})"), &data),
     )
 }
 

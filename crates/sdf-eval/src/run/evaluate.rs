@@ -86,7 +86,7 @@ pub fn evaluate(
     };
     let chamfer = if unsigned {
         let options = ExtractOptions::new(UNSIGNED_EXTRACT_RESOLUTION);
-        let (level_set, _) = extract_normalized(gpu, model, &options)?;
+        let (level_set, _) = extract_mesh_normalized(gpu, model, &options)?;
         // An empty level set (the model never gets that close to 0) has no Chamfer distance.
         crate::metrics::SurfaceMetrics::between(
             &level_set,
@@ -148,7 +148,7 @@ pub fn extract_mesh_with(
     model: &NeuralSdf,
     options: &ExtractOptions,
 ) -> Result<(Mesh, ExtractStats), RunError> {
-    let (mut mesh, stats) = extract_normalized(gpu, model, options)?;
+    let (mut mesh, stats) = extract_mesh_normalized(gpu, model, options)?;
     let n = model.normalization();
     for v in &mut mesh.vertices {
         *v = n.to_original(*v);
@@ -198,8 +198,10 @@ pub fn extract_scene_mesh(
     Ok((mesh, stats))
 }
 
-/// The surface of [`extract_mesh_with`] in normalised coordinates.
-fn extract_normalized(
+/// The surface of [`extract_mesh_with`] in the model's normalised coordinates: what metrics
+/// compare, exact whatever the mesh coordinates (a model far from the origin would round in
+/// them).
+pub fn extract_mesh_normalized(
     gpu: &GpuContext,
     model: &NeuralSdf,
     options: &ExtractOptions,
