@@ -425,6 +425,8 @@ fn far_models_keep_their_coordinates() {
         .output()
         .unwrap();
     assert!(o.status.success(), "{}", stderr(&o));
+    // The loader's warning reaches the user (train, eval and corpus dropped it).
+    assert!(stderr(&o).contains("far from the origin"), "{}", stderr(&o));
     let report: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
     let chamfer = report["chamfer_l1"].as_f64().expect("a surface score");
     assert!(chamfer < 0.02, "Chamfer-L1 {chamfer}");

@@ -18,7 +18,9 @@ pub fn load_normalized(path: &Path) -> Result<(Mesh, sdf_geom::Normalization), R
 
 /// [`load_normalized`] with explicit [`sdf_geom::LoadOptions`] (the bins' `--allow-external-uris`).
 /// The normalisation maps to the file's coordinates, also for a mesh loaded relative to its
-/// [`sdf_geom::LoadReport::origin`] (far from the origin): its centre is then in f64.
+/// [`sdf_geom::LoadReport::origin`] (far from the origin): its centre is then in f64. The
+/// loader's warnings (recentred, indices or primitives skipped, a compressed copy ignored) go
+/// to stderr as `warning: MESH: ...`, as `sdf` prints them.
 pub fn load_normalized_with(
     path: &Path,
     options: &sdf_geom::LoadOptions,
@@ -28,6 +30,9 @@ pub fn load_normalized_with(
             path: path.to_owned(),
             source,
         })?;
+    for warning in &report.warnings {
+        eprintln!("warning: {}: {warning}", path.display());
+    }
     let (unit, normalization) = mesh.normalized();
     Ok((unit, normalization.translated(report.origin)))
 }
