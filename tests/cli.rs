@@ -487,7 +487,12 @@ fn ctrl_c_writes_a_checkpoint_that_resume_continues() {
     let saved = hwsdf::eval::run::Checkpoint::load(&checkpoint).unwrap();
     assert_eq!(saved.planned(), Some(200));
     // `--resume` continues to the requested total; without `--model`, with the checkpoint's
-    // model (an NGLOD one, where a CPU adapter's default is the hash grid).
+    // model (an NGLOD one, where a CPU adapter's default is the hash grid). A report already
+    // there (an earlier model's) is removed once the new model is saved, and the checkpoint
+    // the run finished is removed after its report (a copy serves the refusals below).
+    let spare = out.with_extension("spare-checkpoint.safetensors");
+    std::fs::copy(&checkpoint, &spare).unwrap();
+    std::fs::write(&report, "{\"an\": \"earlier model's report\"}").unwrap();
     let o = bin("train")
         .arg(data("suzanne.obj"))
         .args(["--preset", "default", "--epochs", "3"])
@@ -502,6 +507,11 @@ fn ctrl_c_writes_a_checkpoint_that_resume_continues() {
     assert!(o.status.success(), "{}", stderr(&o));
     let json: serde_json::Value = serde_json::from_slice(&std::fs::read(&report).unwrap()).unwrap();
     assert_eq!(json["trained"], 3, "{json}");
+    let log = stderr(&o);
+    assert!(log.contains("the report of an earlier model"), "{log}");
+    assert!(log.contains("the checkpoint this run finished"), "{log}");
+    assert!(!checkpoint.exists(), "{log}");
+    let checkpoint = spare;
     // Resuming with another architecture is refused.
     let o = bin("train")
         .arg(data("suzanne.obj"))

@@ -401,6 +401,9 @@ impl Fixtures {
             ModelFile::from_bytes(&checkpoint(1e-3, 0.0), Path::new("done5")).unwrap();
         done5.metadata.training["done"] = 5.into();
         add("done5.checkpoint.safetensors", done5.to_bytes().unwrap());
+        // A sound checkpoint, of the plane model (normalised as the identity, where cube.obj
+        // normalises about scale 2).
+        add("plane.checkpoint.safetensors", checkpoint(1e-3, 0.0));
         let mut resnet: ModelFile =
             ModelFile::from_bytes(&checkpoint(1e-3, 0.0), Path::new("resnet")).unwrap();
         resnet.metadata.training["model"] = "resnet".into();
@@ -893,6 +896,23 @@ fn cases() -> Vec<Case> {
                 "m.safetensors",
             ],
             Error("done5.checkpoint.safetensors: the checkpoint has done 5 epochs already"),
+        )
+        .gpu(),
+        case(
+            "resume on another mesh",
+            "train",
+            &[
+                "cube.obj",
+                "--epochs",
+                "2",
+                "--resume",
+                "plane.checkpoint.safetensors",
+                "--out",
+                "m.safetensors",
+            ],
+            Error(
+                "plane.checkpoint.safetensors: the checkpoint was trained on another mesh (normalised about centre [0, 0, 0], scale 1; this mesh: centre [0, 0, 0], scale 2)",
+            ),
         )
         .gpu(),
         // Without --model and --preset a resume takes both from the checkpoint (NGLOD `small`

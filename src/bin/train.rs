@@ -214,6 +214,14 @@ fn train(args: &Args) -> Result<Outcome, Box<dyn std::error::Error>> {
         paths.out.display(),
         file_bytes
     );
+    // A report already beside the model describes an earlier one: gone, so that a run stopped
+    // during the evaluation leaves no report rather than a wrong one.
+    if remove_if_present(&paths.report)? {
+        eprintln!(
+            "removed {}, the report of an earlier model",
+            paths.report.display()
+        );
+    }
     signals.evaluating.store(true, Ordering::Relaxed);
     if signals.stop.load(Ordering::Relaxed) {
         // Ctrl-C came after the last step but before the evaluation began.
@@ -236,7 +244,29 @@ fn train(args: &Args) -> Result<Outcome, Box<dyn std::error::Error>> {
     report.write(&paths.report)?;
     print_summary(&args.mesh, model, &report);
     eprintln!("report written to {}", paths.report.display());
+    // A checkpoint this run resumed from and finished is spent.
+    if let Some(resumed) = &args.resume {
+        let same = |a: &Path, b: &Path| match (a.canonicalize(), b.canonicalize()) {
+            (Ok(a), Ok(b)) => a == b,
+            _ => false,
+        };
+        if same(resumed, &paths.checkpoint) && remove_if_present(&paths.checkpoint)? {
+            eprintln!(
+                "removed {}, the checkpoint this run finished",
+                paths.checkpoint.display()
+            );
+        }
+    }
     Ok(Outcome::Finished)
+}
+
+/// Removes `path` if it exists; whether it did.
+fn remove_if_present(path: &Path) -> std::io::Result<bool> {
+    match std::fs::remove_file(path) {
+        Ok(()) => Ok(true),
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(false),
+        Err(e) => Err(e),
+    }
 }
 
 /// The model, where the command line tells it without the adapter: the one asked for, else

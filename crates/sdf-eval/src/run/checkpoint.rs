@@ -186,6 +186,22 @@ impl Checkpoint {
         Ok(())
     }
 
+    /// Errors unless this checkpoint was trained on a mesh normalised as `normalization` (the
+    /// mesh of the run resuming it): a resume continues the fit of one mesh, and a mesh
+    /// normalised otherwise is another one (or this one changed), whose points the checkpoint's
+    /// model does not describe. Checked once the checkpoint's model is known to be sound.
+    pub fn check_mesh(&self, normalization: sdf_geom::Normalization) -> Result<(), RunError> {
+        let was = self.file.metadata.normalization;
+        if was == normalization {
+            return Ok(());
+        }
+        Err(self.refusal(format!(
+            "the checkpoint was trained on another mesh (normalised about centre {}, scale {}; \
+             this mesh: centre {}, scale {}): resume with the mesh it was trained on",
+            was.center, was.scale, normalization.center, normalization.scale
+        )))
+    }
+
     /// A refusal to resume from this checkpoint, naming its file where it was loaded from one.
     pub(super) fn refusal(&self, why: String) -> RunError {
         RunError::Options(match &self.path {

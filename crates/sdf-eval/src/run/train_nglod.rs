@@ -109,6 +109,7 @@ fn model(plan: &Plan<'_>) -> Result<Nglod, RunError> {
             differences.join("; ")
         )));
     }
+    c.check_mesh(plan.normalization)?;
     Ok(model)
 }
 

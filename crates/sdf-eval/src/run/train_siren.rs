@@ -14,7 +14,11 @@ pub(super) fn train(
 ) -> Result<Trained, RunError> {
     let (gpu, options, total) = (plan.gpu, plan.options, plan.total);
     let siren = match plan.resume {
-        Some(c) => Siren::from_model_file(&c.model_file())?,
+        Some(c) => {
+            let siren = Siren::from_model_file(&c.model_file())?;
+            c.check_mesh(plan.normalization)?;
+            siren
+        }
         None => {
             let config = match options.preset {
                 Preset::Default => SirenConfig::default(),
