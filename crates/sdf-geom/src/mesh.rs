@@ -248,6 +248,11 @@ pub struct LoadReport {
     /// centre before they become f32 (in f32 a mesh at 10⁷ would collapse onto a 1-unit grid).
     /// [`Normalization::translated`] by it maps the normalised mesh back to the file's coordinates.
     pub origin: DVec3,
+    /// The mesh was inside out and its triangles were turned over (with a warning): closed,
+    /// consistently oriented surfaces enclosing a negative volume, every face wound clockwise
+    /// seen from outside (normals pointing in). Its winding number was −1 inside, so every
+    /// point read as outside.
+    pub turned_inside_out: bool,
 }
 
 /// A mesh whose bounding-box centre lies farther from the origin than this many of its longest
@@ -544,6 +549,18 @@ pub(crate) fn clean(
         .zip(&keep)
         .filter_map(|(t, &k)| k.then_some(*t))
         .collect();
+    if is_inside_out(&vertices, &kept, &weld) {
+        for t in &mut kept {
+            t.swap(1, 2);
+        }
+        report.turned_inside_out = true;
+        report.warnings.push(
+            "the mesh is inside out (closed, but every face winds clockwise seen from outside: \
+             its normals point in): its triangles were turned over, so that its inside reads \
+             as inside"
+                .into(),
+        );
+    }
     let non_degenerate = by_key.len();
     report.degenerate_faces += triangles.len() - non_degenerate;
     report.duplicate_faces += non_degenerate - kept.len();
@@ -588,6 +605,44 @@ pub(crate) fn clean(
         return Err(GeomError::TooSmall { half_extent });
     }
     Ok(mesh)
+}
+
+/// Whether `triangles` are closed surfaces, consistently oriented (by welded position, every
+/// directed edge's reverse appears exactly once and no directed edge twice), that enclose a
+/// negative volume: a mesh wound the wrong way throughout. A hollow solid (an outer surface
+/// and an inner one turned in) encloses a positive volume and stays as it is; an open mesh has
+/// no inside to turn. The volume, cheap, is tested first.
+fn is_inside_out(vertices: &[Vec3], triangles: &[[u32; 3]], weld: &[u32]) -> bool {
+    let Some(first) = triangles.first() else {
+        return false;
+    };
+    // About a vertex of the mesh: the volume of a closed surface does not depend on the origin,
+    // and its terms stay small.
+    let origin = vertices[first[0] as usize].as_dvec3();
+    let volume: f64 = triangles
+        .par_iter()
+        .map(|t| {
+            let [a, b, c] = t.map(|i| vertices[i as usize].as_dvec3() - origin);
+            a.dot(b.cross(c))
+        })
+        .sum();
+    if !(volume < 0.0) {
+        return false;
+    }
+    let mut edges: Vec<(u32, u32)> = triangles
+        .par_iter()
+        .flat_map_iter(|t| {
+            let w = t.map(|i| weld[i as usize]);
+            [(w[0], w[1]), (w[1], w[2]), (w[2], w[0])]
+        })
+        .collect();
+    edges.par_sort_unstable();
+    if edges.windows(2).any(|e| e[0] == e[1]) {
+        return false;
+    }
+    edges
+        .par_iter()
+        .all(|&(a, b)| edges.binary_search(&(b, a)).is_ok())
 }
 
 fn rotate_min_first(t: [u32; 3]) -> [u32; 3] {

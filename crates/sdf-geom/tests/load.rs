@@ -841,3 +841,65 @@ fn far_meshes_keep_their_shape() {
     );
     assert_same_shape(&unit, &far_gltf.normalized().0, 1e-6);
 }
+
+/// A mesh wound the wrong way throughout (closed, every face clockwise seen from outside, as
+/// some exporters write them) is turned over with a warning, so that its inside reads as
+/// inside: spot reversed gives spot's signed distances. A hollow solid (its inner surface turned
+/// in on purpose) and an open reversed mesh stay as they are.
+#[test]
+fn inside_out_meshes_are_turned_over() {
+    let (spot, report) = load_mesh(data("spot.obj")).unwrap();
+    assert!(!report.turned_inside_out);
+    let reversed = Mesh {
+        vertices: spot.vertices.clone(),
+        triangles: spot.triangles.iter().map(|t| [t[0], t[2], t[1]]).collect(),
+    };
+    let (turned, report) = Mesh::from_raw(reversed.vertices, reversed.triangles).unwrap();
+    assert!(report.turned_inside_out);
+    assert!(
+        report.warnings.iter().any(|w| w.contains("inside out")),
+        "{:?}",
+        report.warnings
+    );
+    let (a, b) = (
+        SignedDistance::new(&spot).unwrap(),
+        SignedDistance::new(&turned).unwrap(),
+    );
+    for p in [
+        Vec3::new(0.0, 0.3, 0.0),
+        Vec3::new(0.1, 0.2, -0.3),
+        Vec3::X * 2.0,
+    ] {
+        assert_eq!(a.signed_distance(p), b.signed_distance(p), "at {p}");
+    }
+    assert!(a.signed_distance(Vec3::new(0.0, 0.3, 0.0)) < 0.0);
+
+    // A unit cube with a smaller cube inside turned in: a hollow solid, kept.
+    let (v, t) = cube();
+    let mut vertices: Vec<Vec3> = v.iter().map(|p| Vec3::from_array(*p)).collect();
+    vertices.extend(v.iter().map(|p| Vec3::from_array(*p) * 0.5 + 0.25));
+    let mut triangles: Vec<[u32; 3]> = t.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect();
+    triangles.extend(t.chunks_exact(3).map(|c| [c[0] + 8, c[2] + 8, c[1] + 8]));
+    let (hollow, report) = Mesh::from_raw(vertices.clone(), triangles.clone()).unwrap();
+    assert!(!report.turned_inside_out);
+    let sd = SignedDistance::new(&hollow).unwrap();
+    assert!(sd.signed_distance(Vec3::splat(0.1)) < 0.0, "in the wall");
+    assert!(sd.signed_distance(Vec3::splat(0.5)) > 0.0, "in the cavity");
+    // The whole of it turned in: turned over, the same hollow solid.
+    let all_in: Vec<[u32; 3]> = triangles.iter().map(|t| [t[0], t[2], t[1]]).collect();
+    let (turned, report) = Mesh::from_raw(vertices, all_in).unwrap();
+    assert!(report.turned_inside_out);
+    let sd = SignedDistance::new(&turned).unwrap();
+    assert!(sd.signed_distance(Vec3::splat(0.1)) < 0.0, "in the wall");
+    assert!(sd.signed_distance(Vec3::splat(0.5)) > 0.0, "in the cavity");
+
+    // An open box (the cube less one face) wound in: no inside to turn, kept.
+    let open: Vec<[u32; 3]> = t
+        .chunks_exact(3)
+        .skip(2)
+        .map(|c| [c[0], c[2], c[1]])
+        .collect();
+    let cube_vertices: Vec<Vec3> = v.iter().map(|p| Vec3::from_array(*p)).collect();
+    let (_, report) = Mesh::from_raw(cube_vertices, open).unwrap();
+    assert!(!report.turned_inside_out);
+}
