@@ -311,6 +311,52 @@ fn gradients_on_a_models_box_faces_are_the_insides() {
     }
 }
 
+/// Rays fired from afar hit, on both kernels, as on the CPU: at 2000 units and beyond f32's
+/// points along a ray are coarser than the tolerance, and the GPU's rays stalled short of the
+/// surface and missed (a user's sphere of radius 1000 seen from 10 radii: every ray missed).
+#[test]
+fn rays_from_afar_hit_on_both_kernels() {
+    let scene = Scene::new(SceneNode::Union(vec![
+        sphere_at(Vec3::ZERO, 1.0),
+        sphere_at(Vec3::new(0.0, 5.0, 0.0), 0.5),
+    ]))
+    .unwrap();
+    let rays: Vec<Ray> = [10.0, 300.0, 2000.0, 4000.0, 8000.0, 1.0e5]
+        .into_iter()
+        // Off the sphere's axis, so that the last steps shrink towards the surface.
+        .map(|x| Ray {
+            origin: Vec3::new(x, 0.6, 0.0),
+            direction: -Vec3::X,
+            max_distance: f32::INFINITY,
+        })
+        .collect();
+    let options = TraceOptions::default();
+    let cpu = scene.trace_rays(&rays, &options).unwrap();
+    for kernel in [QueryKernel::PerInvocation, QueryKernel::PerSubgroup] {
+        let gpu = scene_on(&scene, kernel)
+            .trace_rays(&rays, &options)
+            .unwrap();
+        for ((ray, c), g) in rays.iter().zip(&cpu).zip(&gpu) {
+            let (c, g) = (
+                c.expect("the CPU hits"),
+                g.unwrap_or_else(|| panic!("{kernel:?}: the ray from {} missed", ray.origin)),
+            );
+            let want = ray.origin.x - 0.8;
+            assert!((c.t - want).abs() <= 1e-4 * want, "cpu t {} vs {want}", c.t);
+            assert!(
+                (g.t - want).abs() <= 1e-6 * want + 1e-3,
+                "{kernel:?}: t {} vs {want}",
+                g.t
+            );
+            assert!(
+                (g.point - Vec3::new(0.8, 0.6, 0.0)).length() < 1e-3,
+                "{kernel:?}: {}",
+                g.point
+            );
+        }
+    }
+}
+
 /// `scene` on the GPU, its queries run by `kernel`.
 fn scene_on(scene: &Scene, kernel: QueryKernel) -> GpuScene<'static> {
     let mut on_gpu = GpuScene::new(gpu(), scene).unwrap();

@@ -95,10 +95,18 @@ fn sample_element(e: u32, lead: bool) {
     }
 }
 
+// How far a ray goes from the point it counts from before it starts again from where it is:
+// at t = 2000 the points origin + dir * t are 2^-13 apart, coarser than the default tolerance
+// (1e-4), and a ray fired from that far stalled short of the surface. Below it (every ray that
+// starts near the scene) the arithmetic is origin + dir * t, as it was, step for step the CPU's.
+const TRACE_REBASE: f32 = 256.0;
+
 fn trace_element(e: u32, lead: bool) {
-    let origin = query_in[2u * e].xyz;
+    var origin = query_in[2u * e].xyz;
     let max_distance = query_in[2u * e].w;
     let dir = normalize(query_in[2u * e + 1u].xyz);
+    // t of `origin`: the ray's distance is t0 + t.
+    var t0 = 0.0;
     var t = 0.0;
     var steps = 0u;
     var hit = false;
@@ -109,6 +117,12 @@ fn trace_element(e: u32, lead: bool) {
     var prev_room = 0.0;
     var prev_step = 0.0;
     for (var step = 0u; step < query.max_steps; step++) {
+        // (|t|: an over-relaxed step that failed its check goes back, far, from a new start.)
+        if abs(t) > TRACE_REBASE {
+            origin += dir * t;
+            t0 += t;
+            t = 0.0;
+        }
         // x: d - c; y: the step bound (the radius of a ball free of the level set, with the
         // sign of x).
         let traced = scene_trace(origin + dir * t, query.level);
@@ -133,13 +147,13 @@ fn trace_element(e: u32, lead: bool) {
         prev_room = room;
         prev_step = omega * room;
         t += prev_step;
-        if !(t <= max_distance) && omega > 1.0 {
+        if !(t0 + t <= max_distance) && omega > 1.0 {
             // A long step went past the end: the plain one may not have.
             t += prev_room - prev_step;
             prev_step = prev_room;
             omega = 1.0;
         }
-        if !(t <= max_distance) {
+        if !(t0 + t <= max_distance) {
             break;
         }
     }
@@ -159,7 +173,7 @@ fn trace_element(e: u32, lead: bool) {
             n = s.g / len;
         }
         query_out[o] = 1.0;
-        query_out[o + 1u] = t;
+        query_out[o + 1u] = t0 + t;
         query_out[o + 2u] = p.x;
         query_out[o + 3u] = p.y;
         query_out[o + 4u] = p.z;
