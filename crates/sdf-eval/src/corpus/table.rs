@@ -193,7 +193,8 @@ impl Merge {
                         done.push((mesh.as_str(), r.as_ref()));
                         let _ = writeln!(
                             s,
-                            "| {mesh} | {} | {} | {} | {} | {:.0} | {:.0} | {:.0} | {} | {} |",
+                            "| {} | {} | {} | {} | {} | {:.0} | {:.0} | {:.0} | {} | {} |",
+                            table_cell(mesh),
                             f1_cell(r.f1_bbox),
                             f1_cell(r.f1_near_surface),
                             f1_cell(r.f1_mean),
@@ -216,8 +217,9 @@ impl Merge {
                     Entry::Failed { error, .. } => {
                         let _ = writeln!(
                             s,
-                            "| {mesh} | failed: {} | | | | | | | | |",
-                            error.replace('|', "/").replace('\n', " ")
+                            "| {} | failed: {} | | | | | | | | |",
+                            table_cell(mesh),
+                            table_cell(error)
                         );
                     }
                 }
@@ -317,6 +319,12 @@ fn wrong_regions(done: &[(&str, &Report)]) -> Option<String> {
         line += &format!(" ({uncounted} result(s) predate these counts.)");
     }
     Some(line)
+}
+
+/// `text` as one Markdown table cell: its `|` escaped (a mesh named `p|q.obj` split its row),
+/// line breaks as spaces.
+fn table_cell(text: &str) -> String {
+    text.replace('|', "\\|").replace(['\n', '\r'], " ")
 }
 
 #[cfg(test)]
@@ -423,7 +431,9 @@ mod tests {
         open.ambiguous_bbox = Some(0.0123);
         open.ambiguous_near_surface = Some(0.25);
         let old = report("old.obj", None);
-        for (rel, r) in [("open.obj", open), ("old.obj", old)] {
+        // A name with a `|` keeps its row's cells (escaped).
+        let piped = report("p|q.obj", None);
+        for (rel, r) in [("open.obj", open), ("old.obj", old), ("p|q.obj", piped)] {
             state
                 .write(rel, ModelKind::Nglod, &Entry::Done(Box::new(r)))
                 .unwrap();
@@ -431,6 +441,7 @@ mod tests {
         let all = vec![
             CorpusMesh::new(&root, "open.obj"),
             CorpusMesh::new(&root, "old.obj"),
+            CorpusMesh::new(&root, "p|q.obj"),
         ];
         let table = merge(&state, &all, &[ModelKind::Nglod]).markdown();
         assert!(
@@ -445,8 +456,9 @@ mod tests {
             table.contains("| old.obj | 0.990 | 0.950 | 0.970 | n/a |"),
             "{table}"
         );
+        assert!(table.contains("| p\\|q.obj | 0.990 |"), "{table}");
         // Every row has the header's number of cells.
-        let cells = |line: &str| line.matches('|').count();
+        let cells = |line: &str| line.replace("\\|", "").matches('|').count();
         let header = table.lines().find(|l| l.starts_with("| mesh")).unwrap();
         for line in table.lines().filter(|l| l.starts_with('|')) {
             assert_eq!(cells(line), cells(header), "{line}");
