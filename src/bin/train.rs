@@ -196,14 +196,7 @@ fn train(args: &Args) -> Result<Outcome, Box<dyn std::error::Error>> {
     reporter.finish();
 
     if trained.interrupted {
-        trained.checkpoint().save(&paths.checkpoint)?;
-        eprintln!(
-            "interrupted after {} {}s; checkpoint written to {}. Continue with:\n  {}",
-            trained.done,
-            model.unit(),
-            paths.checkpoint.display(),
-            resume_command(std::env::args_os(), &paths.checkpoint)
-        );
+        save_checkpoint(&trained, model, &paths.checkpoint)?;
         return Ok(Outcome::Interrupted);
     }
 
@@ -216,12 +209,7 @@ fn train(args: &Args) -> Result<Outcome, Box<dyn std::error::Error>> {
     );
     // A report already beside the model describes an earlier one: gone, so that a run stopped
     // during the evaluation leaves no report rather than a wrong one.
-    if remove_if_present(&paths.report)? {
-        eprintln!(
-            "removed {}, the report of an earlier model",
-            paths.report.display()
-        );
-    }
+    remove_if_present(&paths.report, "the report of an earlier model")?;
     signals.evaluating.store(true, Ordering::Relaxed);
     if signals.stop.load(Ordering::Relaxed) {
         // Ctrl-C came after the last step but before the evaluation began.
@@ -245,27 +233,48 @@ fn train(args: &Args) -> Result<Outcome, Box<dyn std::error::Error>> {
     print_summary(&args.mesh, model, &report);
     eprintln!("report written to {}", paths.report.display());
     // A checkpoint this run resumed from and finished is spent.
-    if let Some(resumed) = &args.resume {
-        let same = |a: &Path, b: &Path| match (a.canonicalize(), b.canonicalize()) {
-            (Ok(a), Ok(b)) => a == b,
-            _ => false,
-        };
-        if same(resumed, &paths.checkpoint) && remove_if_present(&paths.checkpoint)? {
-            eprintln!(
-                "removed {}, the checkpoint this run finished",
-                paths.checkpoint.display()
-            );
-        }
+    if let Some(resumed) = &args.resume
+        && same_file(resumed, &paths.checkpoint)
+    {
+        remove_if_present(&paths.checkpoint, "the checkpoint this run finished")?;
     }
     Ok(Outcome::Finished)
 }
 
-/// Removes `path` if it exists; whether it did.
-fn remove_if_present(path: &Path) -> std::io::Result<bool> {
+/// Writes an interrupted run's checkpoint and says how to continue.
+fn save_checkpoint(
+    trained: &run::Trained,
+    model: ModelKind,
+    path: &Path,
+) -> Result<(), run::RunError> {
+    trained.checkpoint().save(path)?;
+    eprintln!(
+        "interrupted after {} {}s; checkpoint written to {}. Continue with:\n  {}",
+        trained.done,
+        model.unit(),
+        path.display(),
+        resume_command(std::env::args_os(), path)
+    );
+    Ok(())
+}
+
+/// Removes `path` (`what` it holds, for the message) if it exists, saying so.
+fn remove_if_present(path: &Path, what: &str) -> std::io::Result<()> {
     match std::fs::remove_file(path) {
-        Ok(()) => Ok(true),
-        Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(false),
+        Ok(()) => {
+            eprintln!("removed {}, {what}", path.display());
+            Ok(())
+        }
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(()),
         Err(e) => Err(e),
+    }
+}
+
+/// Whether `a` and `b` name one existing file.
+fn same_file(a: &Path, b: &Path) -> bool {
+    match (a.canonicalize(), b.canonicalize()) {
+        (Ok(a), Ok(b)) => a == b,
+        _ => false,
     }
 }
 

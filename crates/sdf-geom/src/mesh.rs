@@ -626,7 +626,8 @@ fn is_inside_out(vertices: &[Vec3], triangles: &[[u32; 3]], weld: &[u32]) -> boo
             a.dot(b.cross(c))
         })
         .sum();
-    if !(volume < 0.0) {
+    // (A NaN volume is no evidence either.)
+    if volume.is_nan() || volume >= 0.0 {
         return false;
     }
     let mut edges: Vec<(u32, u32)> = triangles
