@@ -279,11 +279,13 @@ pub fn write_table(
     values: &[f32],
     columns: usize,
 ) -> Result<(), GeomError> {
-    let rows = values.len() / columns.max(1);
-    let data: Vec<u8> = values.iter().flat_map(|v| v.to_le_bytes()).collect();
-    write_atomic(
+    let data = values.iter().flat_map(|v| v.to_le_bytes()).collect();
+    write_rows(
         path.as_ref(),
-        &npy_bytes("<f4", &format!("({rows}, {columns})"), &data),
+        "<f4",
+        values.len() / columns.max(1),
+        columns,
+        data,
     )
 }
 
@@ -294,11 +296,27 @@ pub fn write_table_f64(
     values: &[f64],
     columns: usize,
 ) -> Result<(), GeomError> {
-    let rows = values.len() / columns.max(1);
-    let data: Vec<u8> = values.iter().flat_map(|v| v.to_le_bytes()).collect();
-    write_atomic(
+    let data = values.iter().flat_map(|v| v.to_le_bytes()).collect();
+    write_rows(
         path.as_ref(),
-        &npy_bytes("<f8", &format!("({rows}, {columns})"), &data),
+        "<f8",
+        values.len() / columns.max(1),
+        columns,
+        data,
+    )
+}
+
+/// Writes `rows × columns` values of type `descr` (their little-endian bytes), atomically.
+fn write_rows(
+    path: &Path,
+    descr: &str,
+    rows: usize,
+    columns: usize,
+    data: Vec<u8>,
+) -> Result<(), GeomError> {
+    write_atomic(
+        path,
+        &npy_bytes(descr, &format!("({rows}, {columns})"), &data),
     )
 }
 
