@@ -392,6 +392,8 @@ impl Fixtures {
                 "checkpoint": true, "adam_step": 1, "lr": lr, "done": 1,
                 "model": "nglod", "preset": "small",
             });
+            // Trained on cube.obj, which the cases resume it on.
+            c.metadata.normalization = cube_normalization();
             c.to_bytes().unwrap()
         };
         add("negative_lr.checkpoint.safetensors", checkpoint(-1e-3, 0.0));
@@ -401,9 +403,12 @@ impl Fixtures {
             ModelFile::from_bytes(&checkpoint(1e-3, 0.0), Path::new("done5")).unwrap();
         done5.metadata.training["done"] = 5.into();
         add("done5.checkpoint.safetensors", done5.to_bytes().unwrap());
-        // A sound checkpoint, of the plane model (normalised as the identity, where cube.obj
+        // A sound checkpoint of another mesh (normalised as the identity, where cube.obj
         // normalises about scale 2).
-        add("plane.checkpoint.safetensors", checkpoint(1e-3, 0.0));
+        let mut other: ModelFile =
+            ModelFile::from_bytes(&checkpoint(1e-3, 0.0), Path::new("plane")).unwrap();
+        other.metadata.normalization = identity();
+        add("plane.checkpoint.safetensors", other.to_bytes().unwrap());
         let mut resnet: ModelFile =
             ModelFile::from_bytes(&checkpoint(1e-3, 0.0), Path::new("resnet")).unwrap();
         resnet.metadata.training["model"] = "resnet".into();
@@ -552,6 +557,7 @@ fn hashgrid_fixtures(add: &mut impl FnMut(&str, Vec<u8>), plane: &ModelFile) {
             "checkpoint": true, "adam_step": 1, "lr": 1e-2, "done": 1,
             "model": "hashgrid", "preset": "small",
         });
+        c.metadata.normalization = cube_normalization();
         c.to_bytes().unwrap()
     };
     add("hashgrid.checkpoint.safetensors", checkpoint(&good));
@@ -559,6 +565,14 @@ fn hashgrid_fixtures(add: &mut impl FnMut(&str, Vec<u8>), plane: &ModelFile) {
         "nglod_says_hashgrid.checkpoint.safetensors",
         checkpoint(plane),
     );
+}
+
+/// cube.obj's normalisation (its half-extent is 1/2).
+fn cube_normalization() -> Normalization {
+    Normalization {
+        center: glam::DVec3::ZERO,
+        scale: 2.0,
+    }
 }
 
 fn identity() -> Normalization {

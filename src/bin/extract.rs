@@ -83,7 +83,8 @@ fn extract(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
         }
         Source::Scene(_) => "the scene's",
     };
-    check_level(args.level, source.frame(), what)?;
+    // In the model's own coordinates (a recentred model's frame moved back by its centre).
+    check_level(args.level, source.frame().translated(centre), what)?;
     let gpu = args.gpu.open()?;
     let start = Instant::now();
     let options = ExtractOptions {

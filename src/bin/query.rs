@@ -16,9 +16,10 @@
 //!   iterations, converged (0 or 1)`.
 //!
 //! Coordinates are the model's mesh coordinates, or the scene's frame. A model of a mesh far
-//! from the origin for its size (georeferenced, CAD) is queried relative to its centre: float64
-//! inputs keep their precision, and the points of `--rays` and `--closest` come out as float64
-//! rows. `--level c` queries the
+//! from the origin for its size (its centre more than 16 half-extents away, as `train`
+//! recentres such meshes: georeferenced, CAD) is queried relative to its centre: float64 inputs
+//! keep their precision, and the rows of `--rays` and `--closest` come out as float64 (their
+//! points would round in float32); the distances and normals of `--points` stay float32. `--level c` queries the
 //! level set `d = c` (an offset surface) and must lie inside the model's or scene's box.
 
 use std::path::PathBuf;
@@ -104,7 +105,8 @@ fn run(args: &Args) -> Result<(), String> {
         Source::Model(_) => "the model's",
         Source::Scene(_) => "the scene's",
     };
-    check_level(args.level, source.frame(), what)?;
+    // In the model's own coordinates (a recentred model's frame moved back by its centre).
+    check_level(args.level, source.frame().translated(centre), what)?;
     if args.max_distance.is_nan() || args.max_distance < 0.0 {
         return Err(format!("--max-distance {} must be >= 0", args.max_distance));
     }

@@ -93,7 +93,7 @@ fn run(args: &Args) -> Result<(), String> {
     hwsdf::geom::io::check_outputs(&[args.source.path()], &[&args.out])
         .map_err(|e| e.to_string())?;
     // A model far from the origin is drawn relative to its centre (the image is the same).
-    let (mut source, _centre) = args.source.load()?.recentred()?;
+    let (mut source, centre) = args.source.load()?.recentred()?;
     match &mut source {
         Source::Model(sdf) => sdf.set_lod(args.lod).map_err(|e| e.to_string())?,
         Source::Scene(_) if args.lod.is_some() => {
@@ -105,7 +105,8 @@ fn run(args: &Args) -> Result<(), String> {
         Source::Model(_) => "the model's",
         Source::Scene(_) => "the scene's",
     };
-    check_level(args.level, source.frame(), what)?;
+    // In the model's own coordinates (a recentred model's frame moved back by its centre).
+    check_level(args.level, source.frame().translated(centre), what)?;
     let mut options = RenderOptions {
         width: args.size.0,
         height: args.size.1,

@@ -19,7 +19,7 @@ use clap::{Parser, ValueEnum};
 use hwsdf::cli::{GpuFlags, GroundTruthFlags, LabelFlags, TrainingFlags, format_loss};
 use hwsdf::eval::run::{self, ModelKind, NglodArchitecture, Progress};
 use hwsdf::geom::io;
-use hwsdf::nn::{DistanceMode, ModelFile, NeuralSdf};
+use hwsdf::nn::{DistanceMode, ModelFile, NeuralSdf, Normalization};
 use indicatif::{ProgressBar, ProgressStyle};
 
 #[derive(Clone, Copy, Debug, ValueEnum)]
@@ -108,11 +108,7 @@ fn train(args: &Args) -> Result<Outcome, Box<dyn std::error::Error>> {
     let mut paths = check_flags_and_paths(args, &candidates)?;
     let uris = hwsdf::geom::LoadOptions::with_external_uris(args.allow_external_uris);
     let (mesh, normalization) = run::load_normalized_with(&args.mesh, &uris)?;
-    let resume = match (early, &args.resume) {
-        (Some(file), Some(path)) => Some(run::Checkpoint::from_file(file, path)?),
-        (_, Some(path)) => Some(run::Checkpoint::load(path)?),
-        (_, None) => None,
-    };
+    let resume = read_resume(early, args.resume.as_deref(), normalization)?;
     // A resume's model is known (asked for or its checkpoint's) and so is its preset (asked
     // for or its checkpoint's, on whatever adapter it continues): both checked before the GPU.
     let resume_preset = match (&resume, known) {
@@ -239,6 +235,22 @@ fn train(args: &Args) -> Result<Outcome, Box<dyn std::error::Error>> {
         remove_if_present(&paths.checkpoint, "the checkpoint this run finished")?;
     }
     Ok(Outcome::Finished)
+}
+
+/// The checkpoint of `--resume` (`early`: its file, when already read), checked against the
+/// mesh (`normalization`) before the GPU and the ground truth (seconds for a large scan).
+fn read_resume(
+    early: Option<ModelFile>,
+    path: Option<&Path>,
+    normalization: Normalization,
+) -> Result<Option<run::Checkpoint>, run::RunError> {
+    let checkpoint = match (early, path) {
+        (Some(file), Some(path)) => run::Checkpoint::from_file(file, path)?,
+        (_, Some(path)) => run::Checkpoint::load(path)?,
+        (_, None) => return Ok(None),
+    };
+    checkpoint.check_mesh(normalization)?;
+    Ok(Some(checkpoint))
 }
 
 /// Writes an interrupted run's checkpoint and says how to continue.

@@ -66,7 +66,9 @@ impl Source {
     /// CAD coordinates), and that centre; else the source as it is and zero. Queried, traced
     /// and extracted in f32 at 10⁷ a model would collapse onto a one-unit grid; relative to
     /// its centre it keeps its shape, and outputs in mesh coordinates add the centre back in
-    /// f64. A scene's coordinates are its own (f32 placements): it stays as it is.
+    /// f64. A scene's coordinates are its own (f32 placements): it stays as it is. Call it on a
+    /// source just loaded: a recentred model keeps its level of detail, not other settings
+    /// (SIREN kernels).
     pub fn recentred(self) -> Result<(Source, DVec3), String> {
         match self {
             Source::Model(m) if m.normalization().is_far() => {

@@ -249,9 +249,9 @@ pub struct LoadReport {
     /// [`Normalization::translated`] by it maps the normalised mesh back to the file's coordinates.
     pub origin: DVec3,
     /// The mesh was inside out and its triangles were turned over (with a warning): closed,
-    /// consistently oriented surfaces enclosing a negative volume, every face wound clockwise
-    /// seen from outside (normals pointing in). Its winding number was −1 inside, so every
-    /// point read as outside.
+    /// consistently oriented surfaces, each connected part enclosing a negative volume, every
+    /// face wound clockwise seen from outside (normals pointing in). Its winding number was −1
+    /// inside, so every point read as outside.
     pub turned_inside_out: bool,
 }
 
@@ -290,7 +290,9 @@ pub(crate) fn recentre(positions: &[DVec3], report: &mut LoadReport) -> Vec<Vec3
 
 impl Mesh {
     /// Builds a clean mesh from raw data: validates it, then drops degenerate and duplicate triangles
-    /// and unreferenced vertices, counting them in the returned report.
+    /// and unreferenced vertices, counting them in the returned report. A mesh wound the wrong way
+    /// throughout comes back turned over ([`LoadReport::turned_inside_out`], with a warning), as
+    /// every loader returns it.
     ///
     /// # Errors
     /// [`GeomError::NonFiniteVertex`], [`GeomError::IndexOutOfRange`], or [`GeomError::NoTriangles`] if
@@ -608,10 +610,11 @@ pub(crate) fn clean(
 }
 
 /// Whether `triangles` are closed surfaces, consistently oriented (by welded position, every
-/// directed edge's reverse appears exactly once and no directed edge twice), that enclose a
-/// negative volume: a mesh wound the wrong way throughout. A hollow solid (an outer surface
-/// and an inner one turned in) encloses a positive volume and stays as it is; an open mesh has
-/// no inside to turn. The volume, cheap, is tested first.
+/// directed edge's reverse appears exactly once and no directed edge twice), each of whose
+/// connected parts encloses a negative volume: a mesh wound the wrong way throughout. A part
+/// wound right keeps the mesh as it is: a hollow solid (an outer surface and an inner one turned
+/// in on purpose), an object in an inward-facing room. An open mesh has no inside to turn. The
+/// whole volume, cheap, is tested first.
 fn is_inside_out(vertices: &[Vec3], triangles: &[[u32; 3]], weld: &[u32]) -> bool {
     let Some(first) = triangles.first() else {
         return false;
@@ -641,9 +644,40 @@ fn is_inside_out(vertices: &[Vec3], triangles: &[[u32; 3]], weld: &[u32]) -> boo
     if edges.windows(2).any(|e| e[0] == e[1]) {
         return false;
     }
-    edges
+    if !edges
         .par_iter()
         .all(|&(a, b)| edges.binary_search(&(b, a)).is_ok())
+    {
+        return false;
+    }
+    drop(edges);
+    // Each connected part's volume (parts joined by shared welded corners).
+    let mut parent: Vec<u32> = (0..weld.len() as u32).collect();
+    fn root(parent: &mut [u32], mut x: u32) -> u32 {
+        while parent[x as usize] != x {
+            let up = parent[parent[x as usize] as usize];
+            parent[x as usize] = up;
+            x = up;
+        }
+        x
+    }
+    for t in triangles {
+        let r = root(&mut parent, weld[t[0] as usize]);
+        for &i in &t[1..] {
+            let other = root(&mut parent, weld[i as usize]);
+            parent[other as usize] = r;
+        }
+    }
+    let mut part_volume = vec![0.0f64; weld.len()];
+    for t in triangles {
+        let r = root(&mut parent, weld[t[0] as usize]);
+        let [a, b, c] = t.map(|i| vertices[i as usize].as_dvec3() - origin);
+        part_volume[r as usize] += a.dot(b.cross(c));
+    }
+    triangles.iter().all(|t| {
+        let r = root(&mut parent, weld[t[0] as usize]);
+        part_volume[r as usize] < 0.0
+    })
 }
 
 fn rotate_min_first(t: [u32; 3]) -> [u32; 3] {

@@ -842,10 +842,10 @@ fn far_meshes_keep_their_shape() {
     assert_same_shape(&unit, &far_gltf.normalized().0, 1e-6);
 }
 
-/// A mesh wound the wrong way throughout (closed, every face clockwise seen from outside, as
+/// A mesh wound the wrong way throughout (closed, every part clockwise seen from outside, as
 /// some exporters write them) is turned over with a warning, so that its inside reads as
 /// inside: spot reversed gives spot's signed distances. A hollow solid (its inner surface turned
-/// in on purpose) and an open reversed mesh stay as they are.
+/// in on purpose), a mesh with one part wound right, and an open reversed mesh stay as they are.
 #[test]
 fn inside_out_meshes_are_turned_over() {
     let (spot, report) = load_mesh(data("spot.obj")).unwrap();
@@ -885,13 +885,37 @@ fn inside_out_meshes_are_turned_over() {
     let sd = SignedDistance::new(&hollow).unwrap();
     assert!(sd.signed_distance(Vec3::splat(0.1)) < 0.0, "in the wall");
     assert!(sd.signed_distance(Vec3::splat(0.5)) > 0.0, "in the cavity");
-    // The whole of it turned in: turned over, the same hollow solid.
+    // The whole of it turned in: its inner part then winds outward, so it is not wound the
+    // wrong way throughout and stays as it is (no guess at which part is wrong).
     let all_in: Vec<[u32; 3]> = triangles.iter().map(|t| [t[0], t[2], t[1]]).collect();
-    let (turned, report) = Mesh::from_raw(vertices, all_in).unwrap();
+    let (_, report) = Mesh::from_raw(vertices, all_in).unwrap();
+    assert!(!report.turned_inside_out);
+
+    // Two separate cubes: an inward-facing room around an object wound right stays as it is
+    // (their total volume is negative: turning the whole over would turn the object inside
+    // out); both wound in are turned over.
+    let room: Vec<Vec3> = v
+        .iter()
+        .map(|p| (Vec3::from_array(*p) - 0.5) * 8.0)
+        .collect();
+    let object: Vec<Vec3> = v.iter().map(|p| Vec3::from_array(*p)).collect();
+    let vertices: Vec<Vec3> = room.into_iter().chain(object).collect();
+    let inward = |c: &[u32], o: u32| [c[0] + o, c[2] + o, c[1] + o];
+    let outward = |c: &[u32], o: u32| [c[0] + o, c[1] + o, c[2] + o];
+    let room_in_object_out: Vec<[u32; 3]> = t
+        .chunks_exact(3)
+        .map(|c| inward(c, 0))
+        .chain(t.chunks_exact(3).map(|c| outward(c, 8)))
+        .collect();
+    let (_, report) = Mesh::from_raw(vertices.clone(), room_in_object_out).unwrap();
+    assert!(!report.turned_inside_out);
+    let both_in: Vec<[u32; 3]> = t
+        .chunks_exact(3)
+        .map(|c| inward(c, 0))
+        .chain(t.chunks_exact(3).map(|c| inward(c, 8)))
+        .collect();
+    let (_, report) = Mesh::from_raw(vertices, both_in).unwrap();
     assert!(report.turned_inside_out);
-    let sd = SignedDistance::new(&turned).unwrap();
-    assert!(sd.signed_distance(Vec3::splat(0.1)) < 0.0, "in the wall");
-    assert!(sd.signed_distance(Vec3::splat(0.5)) > 0.0, "in the cavity");
 
     // An open box (the cube less one face) wound in: no inside to turn, kept.
     let open: Vec<[u32; 3]> = t

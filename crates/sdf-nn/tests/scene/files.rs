@@ -462,8 +462,10 @@ fn bad_scene_files_are_typed_errors() {
         parse("[models]\nm = \"models/ball.safetensors\"\n[root]\ntype = \"model\"\nmodel = \"n\"\n"),
         SceneFileError::UnknownModel { node, name } if node == "root" && name == "n"
     ));
+    // More model files than a scene holds, refused before any is read; as many names of one
+    // file are one model.
     let many: String = (0..=MAX_MODELS)
-        .map(|i| format!("m{i} = \"models/ball.safetensors\"\n"))
+        .map(|i| format!("m{i} = \"models/m{i}.safetensors\"\n"))
         .collect();
     assert!(matches!(
         parse(&format!(
@@ -474,6 +476,15 @@ fn bad_scene_files_are_typed_errors() {
             ..
         }
     ));
+    let names: String = (0..=MAX_MODELS)
+        .map(|i| format!("m{i} = \"models/ball.safetensors\"\n"))
+        .collect();
+    let one = Scene::from_toml(
+        &format!("[models]\n{names}[root]\ntype = \"model\"\nmodel = \"m3\"\n"),
+        &dir,
+    )
+    .unwrap();
+    assert_eq!(one.models().len(), 1);
 
     // Placements and parameters, on the second child so the path says which.
     let child = |keys: &str| {

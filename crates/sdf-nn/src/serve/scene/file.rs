@@ -183,10 +183,10 @@ pub enum SceneFileError {
         /// [`MAX_DEPTH`].
         limit: usize,
     },
-    /// More models are declared than [`MAX_MODELS`].
-    #[error("{count} models are declared; a scene holds at most {limit}")]
+    /// More model files are declared than [`MAX_MODELS`] (names of one file count once).
+    #[error("{count} model files are declared; a scene holds at most {limit}")]
     TooManyModels {
-        /// Models declared.
+        /// Model files declared.
         count: usize,
         /// [`MAX_MODELS`].
         limit: usize,
@@ -276,19 +276,27 @@ pub fn tree_from_toml(text: &str, base_dir: &Path) -> Result<SceneNode, SceneFil
         });
     }
     let file: FileScene = toml::from_str(text).map_err(|e| toml_error(text, e))?;
-    if file.models.len() > MAX_MODELS {
+    // Names of one file share one copy of its weights (one upload, one Lipschitz measurement,
+    // one of the scene's models), whatever path spells it: the limit counts files.
+    let keyed: Vec<(String, PathBuf, PathBuf)> = file
+        .models
+        .into_iter()
+        .map(|(name, rel)| {
+            let path = base_dir.join(&rel);
+            let key = std::fs::canonicalize(&path).unwrap_or_else(|_| path.clone());
+            (name, path, key)
+        })
+        .collect();
+    let files: std::collections::BTreeSet<&PathBuf> = keyed.iter().map(|(_, _, k)| k).collect();
+    if files.len() > MAX_MODELS {
         return Err(SceneFileError::TooManyModels {
-            count: file.models.len(),
+            count: files.len(),
             limit: MAX_MODELS,
         });
     }
     let mut models = BTreeMap::new();
-    // Names of one file share one copy of its weights (one upload, one Lipschitz measurement,
-    // one of the scene's models), whatever path spells it.
     let mut loaded: BTreeMap<PathBuf, Arc<NeuralSdf>> = BTreeMap::new();
-    for (name, rel) in file.models {
-        let path = base_dir.join(&rel);
-        let key = std::fs::canonicalize(&path).unwrap_or_else(|_| path.clone());
+    for (name, path, key) in keyed {
         let model = match loaded.get(&key) {
             Some(model) => model.clone(),
             None => {

@@ -886,7 +886,6 @@ impl Compiler {
     }
 }
 
-/// Checks a blend radius.
 /// `transform` (checked) composed under `outer`: an error where the composition leaves f32's
 /// normal range, which no node's own check sees.
 fn placed(outer: &Transform, transform: &Transform, path: &str) -> Result<Transform, SceneError> {
@@ -920,6 +919,7 @@ fn in_scene_units(path: &str, field: &'static str, value: f32, s: f32) -> Result
     }
 }
 
+/// Checks a blend radius.
 fn blend(path: &str, k: f32) -> Result<f32, SceneError> {
     if !k.is_finite() {
         return Err(SceneError::NonFinite {
