@@ -97,6 +97,17 @@ fn bad_arguments_and_files_fail_clearly() {
     .save(&siren)
     .unwrap();
     assert_clean_failure(&run(&["--lod", "1"], &siren), "levels of detail");
+    // A SIREN renders through the single-model tracer (its bounds would take seconds to
+    // measure): a PNG, no error.
+    let png = scratch("siren.png");
+    let o = render()
+        .arg(&siren)
+        .args(["--size", "8x6", "--out"])
+        .arg(&png)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert_eq!(&std::fs::read(&png).unwrap()[..4], b"\x89PNG");
 
     let o = render()
         .arg(model)
