@@ -19,8 +19,9 @@
 //! from the origin for its size (its centre more than 16 half-extents away, as `train`
 //! recentres such meshes: georeferenced, CAD) is queried relative to its centre: float64 inputs
 //! keep their precision, and the rows of `--rays` and `--closest` come out as float64 (their
-//! points would round in float32); the distances and normals of `--points` stay float32. `--level c` queries the
-//! level set `d = c` (an offset surface) and must lie inside the model's or scene's box.
+//! points would round in float32); the distances and normals of `--points` stay float32.
+//! `--level c` queries the level set `d = c` (an offset surface) and must lie inside the
+//! model's or scene's box.
 
 use std::path::PathBuf;
 use std::process::ExitCode;

@@ -8,14 +8,15 @@
 //! The camera orbits the model's normalised box (`--yaw`, `--pitch`), framed from the model's
 //! normalisation so any model fills the image the same way; a scene's box is the one that holds
 //! its surface (`Scene::frame`). An NGLOD or hash-grid model is traced as the scene of that one
-//! leaf (steps by its Lipschitz bounds); a SIREN by the single-model tracer. `--level c` draws the offset surface `d = c`. The image is written
-//! atomically.
+//! leaf (steps by its Lipschitz bounds); a SIREN by the single-model tracer. `--level c` draws
+//! the offset surface `d = c`. The image is written atomically.
 
 use std::path::PathBuf;
 use std::process::ExitCode;
 
 use clap::Parser;
 use hwsdf::cli::{GpuFlags, Source, SourceFlags, check_level};
+use hwsdf::nn::serve::network::Network;
 use hwsdf::nn::{RenderOptions, Renderer};
 
 /// Render a neural SDF model (SIREN, NGLOD or hash grid) or a scene to a PNG by sphere tracing on
@@ -156,7 +157,9 @@ fn run(args: &Args) -> Result<(), String> {
     // for `default` on 2 cores, against 46 ms for an NGLOD), and its eikonal term keeps its
     // slope near 1.
     let renderer = match source {
-        Source::Model(sdf) if sdf.architecture() == "siren" => Renderer::new(&gpu, &sdf),
+        Source::Model(sdf) if matches!(sdf.network(), Network::Siren(_)) => {
+            Renderer::new(&gpu, &sdf)
+        }
         source => Renderer::for_scene(&gpu, &source.into_scene()?),
     }
     .map_err(|e| e.to_string())?;

@@ -622,13 +622,12 @@ fn is_inside_out(vertices: &[Vec3], triangles: &[[u32; 3]], weld: &[u32]) -> boo
     // About a vertex of the mesh: the volume of a closed surface does not depend on the origin,
     // and its terms stay small.
     let origin = vertices[first[0] as usize].as_dvec3();
-    let volume: f64 = triangles
-        .par_iter()
-        .map(|t| {
-            let [a, b, c] = t.map(|i| vertices[i as usize].as_dvec3() - origin);
-            a.dot(b.cross(c))
-        })
-        .sum();
+    // Six times the signed volume of the tetrahedron (origin, triangle).
+    let volume_of = |t: &[u32; 3]| {
+        let [a, b, c] = t.map(|i| vertices[i as usize].as_dvec3() - origin);
+        a.dot(b.cross(c))
+    };
+    let volume: f64 = triangles.par_iter().map(volume_of).sum();
     // (A NaN volume is no evidence either.)
     if volume.is_nan() || volume >= 0.0 {
         return false;
@@ -671,8 +670,7 @@ fn is_inside_out(vertices: &[Vec3], triangles: &[[u32; 3]], weld: &[u32]) -> boo
     let mut part_volume = vec![0.0f64; weld.len()];
     for t in triangles {
         let r = root(&mut parent, weld[t[0] as usize]);
-        let [a, b, c] = t.map(|i| vertices[i as usize].as_dvec3() - origin);
-        part_volume[r as usize] += a.dot(b.cross(c));
+        part_volume[r as usize] += volume_of(t);
     }
     triangles.iter().all(|t| {
         let r = root(&mut parent, weld[t[0] as usize]);

@@ -895,7 +895,8 @@ fn placed(outer: &Transform, transform: &Transform, path: &str) -> Result<Transf
         what,
         value,
     };
-    if !(t.scale.is_finite() && t.scale >= f32::MIN_POSITIVE) {
+    // Normal: finite, not zero, not subnormal (the scale is positive).
+    if !t.scale.is_normal() {
         return Err(placement("scale", t.scale));
     }
     if !t.translation.is_finite() {
@@ -908,7 +909,7 @@ fn placed(outer: &Transform, transform: &Transform, path: &str) -> Result<Transf
 /// `s` of the transforms above it, which must leave it finite and normal.
 fn in_scene_units(path: &str, field: &'static str, value: f32, s: f32) -> Result<f32, SceneError> {
     let v = value * s;
-    if v.is_finite() && v.abs() >= f32::MIN_POSITIVE {
+    if v.is_normal() {
         Ok(v)
     } else {
         Err(SceneError::Placement {
