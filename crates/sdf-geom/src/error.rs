@@ -238,7 +238,8 @@ pub enum GeomError {
     SceneTooLarge {
         /// The glTF file.
         path: PathBuf,
-        /// What was counted: `"instanced triangles"`, `"instanced vertices"` or `"mesh instances"`.
+        /// What was counted: `"instanced triangles"`, `"instanced vertices"`, `"mesh instances"`
+        /// or `"node visits"`.
         what: &'static str,
         /// The count (saturating at `u64::MAX`).
         count: u64,

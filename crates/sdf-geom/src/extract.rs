@@ -235,12 +235,11 @@ fn surface_cells<E: std::error::Error + 'static>(
         let values = call(&centers, stats)?;
         let half_diag = 0.5 * 3f32.sqrt() * size as f32 * h;
         let bound = options.lipschitz * half_diag + h;
-        // NaN values are kept (`v.abs() > bound` is false for NaN), so a broken region is
-        // refined rather than silently cut.
+        // `call` has refused NaN values already.
         let kept: Vec<IVec3> = blocks
             .iter()
             .zip(&values)
-            .filter(|&(_, v)| v.is_nan() || v.abs() <= bound)
+            .filter(|&(_, v)| v.abs() <= bound)
             .map(|(b, _)| *b)
             .collect();
         stats.levels.push((size, kept.len()));

@@ -39,6 +39,10 @@ fn write_via_temp(path: &Path, bytes: &[u8], replace: bool) -> std::io::Result<(
     builder.permissions(std::os::unix::fs::PermissionsExt::from_mode(0o666));
     // Dropping `tmp` on any error below deletes it.
     let mut tmp = builder.tempfile_in(&dir)?;
+    // A file replaced keeps its mode (a private model stays 0600), as `cp` and `>` keep it.
+    if replace && let Ok(existing) = std::fs::metadata(&target) {
+        tmp.as_file().set_permissions(existing.permissions())?;
+    }
     tmp.write_all(bytes)?;
     tmp.as_file().sync_all()?;
     if replace {
@@ -321,15 +325,37 @@ fn obj_text(mesh: &Mesh, vertex: impl Fn(&mut String, Vec3)) -> String {
     for v in &mesh.vertices {
         vertex(&mut s, *v);
     }
+    // 1-based, in u64: an index of u32::MAX (a hand-built mesh's, out of range) must not wrap.
     for t in &mesh.triangles {
-        let _ = writeln!(s, "f {} {} {}", t[0] + 1, t[1] + 1, t[2] + 1);
+        let [a, b, c] = t.map(|i| u64::from(i) + 1);
+        let _ = writeln!(s, "f {a} {b} {c}");
     }
     s
 }
 
-/// Writes the mesh as OBJ, atomically.
+/// Writes the mesh as OBJ, atomically; an error, with nothing written, where a triangle names
+/// a vertex the mesh does not have (a hand-built mesh's; the file would name it too).
 pub fn write_obj(mesh: &Mesh, path: &Path) -> std::io::Result<()> {
+    check_obj_indices(mesh)?;
     write_atomic(path, obj_string(mesh).as_bytes())
+}
+
+fn check_obj_indices(mesh: &Mesh) -> std::io::Result<()> {
+    let n = mesh.vertices.len();
+    match mesh
+        .triangles
+        .iter()
+        .position(|t| t.iter().any(|&i| i as usize >= n))
+    {
+        None => Ok(()),
+        Some(k) => Err(std::io::Error::new(
+            std::io::ErrorKind::InvalidInput,
+            format!(
+                "triangle {k} ({:?}) names a vertex the mesh does not have (it has {n})",
+                mesh.triangles[k]
+            ),
+        )),
+    }
 }
 
 /// Writes the mesh moved by `offset` as OBJ, atomically: a mesh computed relative to a centre
@@ -339,6 +365,7 @@ pub fn write_obj_offset(mesh: &Mesh, offset: DVec3, path: &Path) -> std::io::Res
     if offset == DVec3::ZERO {
         return write_obj(mesh, path);
     }
+    check_obj_indices(mesh)?;
     let text = obj_text(mesh, |s, v| {
         use std::fmt::Write as _;
         let p = v.as_dvec3() + offset;
@@ -371,6 +398,42 @@ mod tests {
         assert_eq!(back.vertices.len(), mesh.vertices.len());
         // Only the file itself: the temporary was renamed away.
         assert_eq!(std::fs::read_dir(&dir).unwrap().count(), 1);
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    /// A hand-built mesh naming a vertex it lacks is refused, nothing written (u32::MAX + 1
+    /// overflowed in debug builds and wrote index 0 in release ones).
+    #[test]
+    fn obj_of_a_mesh_with_bad_indices_is_refused() {
+        let dir = scratch("bad-index");
+        let path = dir.join("bad.obj");
+        for bad in [u32::MAX, 3] {
+            let mesh = Mesh {
+                vertices: vec![Vec3::ZERO, Vec3::X, Vec3::Y],
+                triangles: vec![[0, 1, 2], [bad, 0, 1]],
+            };
+            let e = write_obj(&mesh, &path).unwrap_err();
+            assert!(e.to_string().contains("triangle 1"), "{e}");
+            assert!(write_obj_offset(&mesh, DVec3::X * 1e7, &path).is_err());
+            assert!(obj_string(&mesh).contains(&format!("f {} 1 2", u64::from(bad) + 1)));
+        }
+        assert!(!path.exists());
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    /// Replacing a file keeps its mode: a private model stays private.
+    #[cfg(unix)]
+    #[test]
+    fn replaced_files_keep_their_mode() {
+        use std::os::unix::fs::PermissionsExt;
+        let dir = scratch("mode");
+        let path = dir.join("private.bin");
+        write_atomic(&path, b"old").unwrap();
+        std::fs::set_permissions(&path, std::fs::Permissions::from_mode(0o600)).unwrap();
+        write_atomic(&path, b"new").unwrap();
+        let mode = std::fs::metadata(&path).unwrap().permissions().mode() & 0o777;
+        assert_eq!(mode, 0o600);
+        assert_eq!(std::fs::read(&path).unwrap(), b"new");
         std::fs::remove_dir_all(&dir).unwrap();
     }
 

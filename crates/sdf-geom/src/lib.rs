@@ -80,7 +80,7 @@ pub use distance::{
 pub use error::GeomError;
 pub use load::{
     LoadOptions, MAX_FILE_BYTES, MAX_INSTANCED_TRIANGLES, MAX_INSTANCED_VERTICES, MAX_INSTANCES,
-    load_mesh, load_mesh_with, parse_mesh, read_input_file,
+    MAX_NODE_VISITS, load_mesh, load_mesh_with, parse_mesh, read_input_file,
 };
 pub use mesh::{Aabb, FAR_MESH_RATIO, LoadReport, Mesh, Normalization};
 pub use sample::{PoissonSamples, SurfaceSamples};

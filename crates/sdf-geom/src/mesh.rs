@@ -230,8 +230,12 @@ pub struct LoadReport {
     pub duplicate_faces: usize,
     /// Triangles whose three positions equal an earlier triangle's but with the opposite orientation.
     pub opposite_duplicate_faces: usize,
-    /// Polygons with more than three corners that were fan-triangulated (OBJ).
+    /// Polygons with more than three corners, triangulated (OBJ): a fan where convex, ear
+    /// clipping in their plane where concave.
     pub polygons_triangulated: usize,
+    /// Of those, the concave ones (a fan would have covered area outside them). Those that
+    /// cross themselves or have more than 256 corners are fanned, with a warning.
+    pub concave_polygons: usize,
     /// glTF triangle strips and fans converted to triangle lists.
     pub strips_fans_converted: usize,
     /// glTF mesh instances (node → mesh references) in the scene; 0 for OBJ.
@@ -262,17 +266,25 @@ pub const FAR_MESH_RATIO: f64 = 16.0;
 
 /// Positions read in f64 as f32 vertices: unchanged (rounded to f32) where the mesh lies near
 /// the origin, else relative to their f64 bounding-box centre, which goes into `report.origin`
-/// with a warning. Positions beyond f32's range are left to [`clean`]'s check (an error), as
-/// before.
-pub(crate) fn recentre(positions: &[DVec3], report: &mut LoadReport) -> Vec<Vec3> {
+/// with a warning. The box is that of the positions `triangles` use: a stray unused position
+/// (a glTF accessor's, which the clean-up drops) must not hide how far the mesh is. Positions
+/// beyond f32's range are left to [`clean`]'s check (an error), as before.
+pub(crate) fn recentre(
+    positions: &[DVec3],
+    triangles: &[[u32; 3]],
+    report: &mut LoadReport,
+) -> Vec<Vec3> {
     let (mut lo, mut hi) = (DVec3::INFINITY, DVec3::NEG_INFINITY);
-    for p in positions {
-        lo = lo.min(*p);
-        hi = hi.max(*p);
+    for &i in triangles.iter().flatten() {
+        // An index out of range is the clean-up's error.
+        if let Some(p) = positions.get(i as usize) {
+            lo = lo.min(*p);
+            hi = hi.max(*p);
+        }
     }
     let (center, half) = ((lo + hi) * 0.5, ((hi - lo) * 0.5).max_element());
     let in_range = |v: DVec3| v.abs().max_element() <= f32::MAX as f64;
-    let far = !positions.is_empty()
+    let far = lo.cmple(hi).all()
         && in_range(lo)
         && in_range(hi)
         && half > 0.0

@@ -279,14 +279,9 @@ pub fn write_table(
     values: &[f32],
     columns: usize,
 ) -> Result<(), GeomError> {
+    let rows = whole_rows(path.as_ref(), values.len(), columns)?;
     let data = values.iter().flat_map(|v| v.to_le_bytes()).collect();
-    write_rows(
-        path.as_ref(),
-        "<f4",
-        values.len() / columns.max(1),
-        columns,
-        data,
-    )
+    write_rows(path.as_ref(), "<f4", rows, columns, data)
 }
 
 /// Writes an `(N, columns)` float64 array (`values` row after row), atomically: coordinates far
@@ -296,14 +291,21 @@ pub fn write_table_f64(
     values: &[f64],
     columns: usize,
 ) -> Result<(), GeomError> {
+    let rows = whole_rows(path.as_ref(), values.len(), columns)?;
     let data = values.iter().flat_map(|v| v.to_le_bytes()).collect();
-    write_rows(
-        path.as_ref(),
-        "<f8",
-        values.len() / columns.max(1),
-        columns,
-        data,
-    )
+    write_rows(path.as_ref(), "<f8", rows, columns, data)
+}
+
+/// The rows `len` values make in `columns` columns; an error (nothing written) unless they make
+/// whole rows: a header of fewer values than follow it would hide the rest from readers.
+fn whole_rows(path: &Path, len: usize, columns: usize) -> Result<usize, GeomError> {
+    if columns == 0 || !len.is_multiple_of(columns) {
+        return Err(bad(
+            path,
+            format!("{len} values do not make whole rows of {columns} columns"),
+        ));
+    }
+    Ok(len / columns)
 }
 
 /// Writes `rows × columns` values of type `descr` (their little-endian bytes), atomically.

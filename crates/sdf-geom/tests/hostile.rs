@@ -356,6 +356,55 @@ fn gltf_shared_nodes_are_counted_not_expanded() {
     assert!(t.elapsed().as_secs() < 10, "{:?}", t.elapsed());
 }
 
+/// Few instances reached through a long chain of nodes by many paths: every path visits every
+/// chain node (2^11 paths × 10 000 nodes), which the instance count did not see. Refused by
+/// the visits it would make, naming them.
+#[test]
+fn gltf_long_shared_chains_are_bounded_by_visits() {
+    let dir = temp_dir("gchain");
+    let (levels, chain) = (10, 10_000);
+    let mut nodes = Vec::new();
+    for l in 0..levels {
+        for _ in 0..2 {
+            nodes.push(format!(r#"{{"children":[{},{}]}}"#, 2 * l + 2, 2 * l + 3));
+        }
+    }
+    let start = 2 * levels + 2;
+    nodes.push(format!(r#"{{"children":[{start}]}}"#));
+    nodes.push(format!(r#"{{"children":[{start}]}}"#));
+    for k in 0..chain - 1 {
+        nodes.push(format!(r#"{{"children":[{}]}}"#, start + k + 1));
+    }
+    nodes.push(r#"{"mesh":0}"#.to_string());
+    let b = cube_buffer(&[]);
+    let json = doc(
+        &data_uri(&b),
+        b.len(),
+        CUBE_VIEWS,
+        &format!(
+            "{POS},{}",
+            r#"{"bufferView":1,"componentType":5125,"count":36,"type":"SCALAR"}"#
+        ),
+        Some(1),
+        &nodes.join(","),
+        "0,1",
+    );
+    match load_text(&dir, "chain.gltf", &json) {
+        Err(GeomError::SceneTooLarge {
+            what: "node visits",
+            count,
+            limit,
+            ..
+        }) => {
+            assert!(
+                count > limit && limit == sdf_geom::MAX_NODE_VISITS,
+                "{count}"
+            )
+        }
+        other => panic!("expected SceneTooLarge, got {other:?}"),
+    }
+}
+
 #[test]
 fn gltf_node_cycles_are_errors() {
     let dir = temp_dir("gcycle");
@@ -767,6 +816,55 @@ fn gltf_buffers_are_read_once() {
         assert_eq!(m.triangles.len(), 12);
     });
     assert!(peak < 1 << 30, "loading grew the heap by {} MB", peak >> 20);
+}
+
+/// A buffer that only an image's view uses (textures packed in their own .bin) is never read:
+/// missing or shorter than it says, it does not stop the geometry.
+#[test]
+fn texture_only_buffers_are_not_read() {
+    let dir = temp_dir("texbuf");
+    let tri: Vec<u8> = [0f32, 0., 0., 1., 0., 0., 0., 1., 0.]
+        .iter()
+        .flat_map(|x| x.to_le_bytes())
+        .collect();
+    let json = format!(
+        r#"{{"asset":{{"version":"2.0"}},
+        "buffers":[{{"uri":"{}","byteLength":36}},{{"uri":"textures.bin","byteLength":4096}}],
+        "bufferViews":[{{"buffer":0,"byteLength":36}},{{"buffer":1,"byteLength":4096}}],
+        "accessors":[{{"bufferView":0,"componentType":5126,"count":3,"type":"VEC3",
+            "min":[0,0,0],"max":[1,1,0]}}],
+        "images":[{{"bufferView":1,"mimeType":"image/png"}}],
+        "meshes":[{{"primitives":[{{"attributes":{{"POSITION":0}}}}]}}],
+        "nodes":[{{"mesh":0}}],"scenes":[{{"nodes":[0]}}],"scene":0}}"#,
+        data_uri(&tri)
+    );
+    let p = write(&dir, "textured.gltf", &json);
+    let (m, _) = load_mesh(&p).expect("the missing textures.bin is never read");
+    assert_eq!(m.triangles.len(), 1);
+    write(&dir, "textures.bin", [0u8; 10]);
+    let (m, _) = load_mesh(&p).expect("nor a short one");
+    assert_eq!(m.triangles.len(), 1);
+}
+
+/// A GLB header whose length is shorter than the header itself: `gltf` subtracted 12 from it
+/// unchecked (a panic in a debug build, a wrapped length in a release one); a parse error now.
+#[test]
+fn glb_headers_shorter_than_themselves_are_parse_errors() {
+    let dir = temp_dir("glb-header");
+    for length in [0u32, 11] {
+        let mut bytes = b"glTF".to_vec();
+        bytes.extend_from_slice(&2u32.to_le_bytes());
+        bytes.extend_from_slice(&length.to_le_bytes());
+        match load_mesh(write(&dir, &format!("short-{length}.glb"), &bytes)) {
+            Err(GeomError::Parse { message, .. }) => {
+                assert!(message.contains("header"), "{message}")
+            }
+            other => panic!("length {length}: {other:?}"),
+        }
+    }
+    // Cut off inside the header.
+    let p = write(&dir, "cut.glb", b"glTF\x02\x00");
+    assert!(matches!(load_mesh(p), Err(GeomError::Parse { .. })));
 }
 
 /// A GLB container: the JSON chunk (padded with spaces) and the BIN chunk (padded with zeros).
@@ -1463,6 +1561,19 @@ fn obj_forward_references_w_and_empty_corners() {
     ))
     .unwrap();
     assert_eq!(m.triangles.len(), 1);
+    // A w that f32 rounds to 0 is a number in f64, which tobj divides by: coordinates and w
+    // both tiny give an ordinary triangle.
+    let (m, _) = load_mesh(write(
+        &dir,
+        "w-tiny.obj",
+        "v 0 0 0 1e-50
+v 1e-50 0 0 1e-50
+v 0 2e-50 0 1e-50
+f 1 2 3
+",
+    ))
+    .unwrap();
+    assert!((m.area() - 1.0).abs() < 1e-9, "area {}", m.area());
     for (name, body, line) in [
         (
             "forward-bad-v.obj",

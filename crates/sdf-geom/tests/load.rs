@@ -547,6 +547,17 @@ fn broken_or_missing_mtl_does_not_matter() {
         r.warnings.iter().any(|w| w.contains("nowhere.mtl")),
         "{r:?}"
     );
+    // Names outside the file's folder are not looked for (a file must not learn which paths
+    // exist elsewhere), and many missing ones make one warning.
+    let many: String = (0..1000).map(|i| format!("mtllib lost{i}.mtl\n")).collect();
+    let p = write(
+        &dir,
+        "probing.obj",
+        format!("mtllib /etc/nowhere.mtl\nmtllib ../up.mtl\n{many}{TRI_OBJ}f 1 2 3\n"),
+    );
+    let (_, r) = load_mesh(&p).unwrap();
+    assert_eq!(r.warnings.len(), 1, "{r:?}");
+    assert!(r.warnings[0].contains("lost0.mtl and 999 more"), "{r:?}");
 
     write(
         &dir,
@@ -840,6 +851,17 @@ fn far_meshes_keep_their_shape() {
             < 1e-6
     );
     assert_same_shape(&unit, &far_gltf.normalized().0, 1e-6);
+    // A stray position no triangle uses, placed at the origin, does not hide how far the mesh
+    // is (its box decided it, and the mesh was rounded to f32 at 10⁷).
+    let mut with_stray = positions.clone();
+    with_stray.push([-1e7, 2e7, -3e7]);
+    let g = common::Gltf {
+        positions: &with_stray,
+        ..g
+    };
+    let (stray, report) = load_mesh(write_gltf(&dir, "far_stray.gltf", &g)).unwrap();
+    assert!(report.origin.length() > 1e7, "{:?}", report.origin);
+    assert_same_shape(&unit, &stray.normalized().0, 1e-6);
 }
 
 /// A mesh wound the wrong way throughout (closed, every part clockwise seen from outside, as
@@ -926,4 +948,37 @@ fn inside_out_meshes_are_turned_over() {
     let cube_vertices: Vec<Vec3> = v.iter().map(|p| Vec3::from_array(*p)).collect();
     let (_, report) = Mesh::from_raw(cube_vertices, open).unwrap();
     assert!(!report.turned_inside_out);
+}
+
+/// An L-shaped prism whose ends are concave hexagons, each listed from the corner beside the
+/// notch: ear clipping keeps the notch empty (a fan from that corner covered it twice, once
+/// each way, and added a sheet across it).
+#[test]
+fn concave_obj_polygons_keep_their_shape() {
+    let dir = temp_dir("concave");
+    let l = [[2, 1], [1, 1], [1, 2], [0, 2], [0, 0], [2, 0]];
+    let mut text = String::new();
+    for z in [0, 1] {
+        for [x, y] in l {
+            text.push_str(&format!("v {x} {y} {z}\n"));
+        }
+    }
+    // The bottom faces -z (clockwise from above), the top +z, then the six walls.
+    text.push_str("f 6 5 4 3 2 1\nf 7 8 9 10 11 12\n");
+    for i in 0..6 {
+        let (a, b) = (i + 1, (i + 1) % 6 + 1);
+        text.push_str(&format!("f {a} {b} {} {}\n", b + 6, a + 6));
+    }
+    let p = write(&dir, "l.obj", &text);
+    let (m, r) = load_mesh(&p).unwrap();
+    assert_eq!((r.polygons_triangulated, r.concave_polygons), (8, 2));
+    assert!(r.warnings.is_empty(), "{:?}", r.warnings);
+    // Two ends of area 3 and walls of perimeter 8: nothing doubled, nothing across the notch.
+    assert!((m.area() - 14.0).abs() < 1e-9, "area {}", m.area());
+    let sdf = SignedDistance::new(&m).unwrap();
+    let notch = Vec3::new(1.5, 1.5, 0.5);
+    assert!(!sdf.is_inside(notch));
+    // In the file's coordinates: the notch's walls are half a unit away.
+    assert!((sdf.signed_distance(notch) - 0.5).abs() < 1e-6);
+    assert!(sdf.is_inside(Vec3::new(0.5, 1.5, 0.5)));
 }

@@ -169,4 +169,14 @@ fn tables_round_trip_and_check_their_width() {
     sdf_geom::npy::write_table(&points, &values, 3).unwrap();
     let p = sdf_geom::npy::read_points(&points).unwrap();
     assert_eq!(p[3], glam::Vec3::new(3.5, 4.0, 4.5));
+    // Values that do not make whole rows are refused, and nothing is written: the header
+    // would have declared fewer than follow it.
+    let ragged = dir.path().join("ragged.npy");
+    for (values, columns) in [(&values[..5], 2), (&values[..], 0)] {
+        let err = sdf_geom::npy::write_table(&ragged, values, columns).unwrap_err();
+        assert!(err.to_string().contains("whole rows"), "{err}");
+        let wide: Vec<f64> = values.iter().map(|&v| v.into()).collect();
+        assert!(sdf_geom::npy::write_table_f64(&ragged, &wide, columns).is_err());
+    }
+    assert!(!ragged.exists());
 }

@@ -11,8 +11,9 @@ use super::{LoadOptions, in_message, parse_error, read_input_file};
 use crate::GeomError;
 
 /// The document's buffers, index for index: the GLB blob, `data:` URIs, or files inside the
-/// .gltf's folder (see [`resolve_uri`]). Images are never touched. Only buffers that a buffer
-/// view uses are read (the others are empty); the BIN chunk is copied once and a file named by
+/// .gltf's folder (see [`resolve_uri`]). Images are never touched. Only buffers that an
+/// accessor's view uses are read (the others are empty: a buffer of textures alone, which an
+/// image's view names, may be missing or broken without stopping the geometry); the BIN chunk is copied once and a file named by
 /// several buffers is read once, so a small file that lists thousands of buffers over the same
 /// bytes cannot multiply them in memory.
 pub(super) fn read_buffers(
@@ -23,8 +24,16 @@ pub(super) fn read_buffers(
     options: &LoadOptions,
 ) -> Result<Vec<Rc<[u8]>>, GeomError> {
     let mut used = vec![false; doc.buffers().len()];
-    for view in doc.views() {
-        used[view.buffer().index()] = true;
+    for accessor in doc.accessors() {
+        let sparse = accessor.sparse();
+        let views = accessor.view().into_iter().chain(
+            sparse
+                .iter()
+                .flat_map(|s| [s.indices().view(), s.values().view()]),
+        );
+        for view in views {
+            used[view.buffer().index()] = true;
+        }
     }
     let mut bin: Option<Rc<[u8]>> = None;
     let mut files: HashMap<PathBuf, Rc<[u8]>> = HashMap::new();

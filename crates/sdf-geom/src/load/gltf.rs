@@ -58,6 +58,16 @@ pub(super) fn load_gltf(
 ) -> Result<(Mesh, LoadReport), GeomError> {
     let glb;
     let (json_bytes, blob): (&[u8], Option<&[u8]>) = if bytes.starts_with(b"glTF") {
+        // `gltf` subtracts the 12-byte header from the length the header declares, unchecked.
+        let declared = bytes
+            .get(8..12)
+            .map(|b| u32::from_le_bytes([b[0], b[1], b[2], b[3]]));
+        if declared.is_none_or(|length| length < 12) {
+            return Err(parse_error(
+                path,
+                "bad GLB: the header declares a length below its own 12 bytes".into(),
+            ));
+        }
         glb =
             gltf::Glb::from_slice(bytes).map_err(|e| parse_error(path, format!("bad GLB: {e}")))?;
         (&glb.json, glb.bin.as_deref())
@@ -119,7 +129,7 @@ pub(super) fn load_gltf(
             }
         }
     }
-    let vertices = recentre(&out.vertices, &mut out.report);
+    let vertices = recentre(&out.vertices, &out.triangles, &mut out.report);
     drop(out.vertices);
     let mesh = clean(vertices, out.triangles, &mut out.report)?;
     Ok((mesh, out.report))

@@ -9,7 +9,8 @@ use std::path::{Path, PathBuf};
 use glam::DVec3;
 use rayon::prelude::*;
 
-use super::{MAX_INSTANCED_TRIANGLES, MAX_INSTANCED_VERTICES, check_limits};
+use super::polygon::{self, MAX_EAR_CLIPPED_CORNERS, Triangulation};
+use super::{MAX_INSTANCED_TRIANGLES, MAX_INSTANCED_VERTICES, check_limits, in_message};
 use crate::GeomError;
 use crate::mesh::{LoadReport, Mesh, clean, recentre};
 
@@ -94,11 +95,12 @@ fn obj_lines(text: &str) -> (String, ObjCounts, usize) {
             Some("v") => {
                 counts.vertices += 1;
                 let numbers: Vec<&str> = tokens.collect();
-                // tobj divides by w: an infinite one would silently put the vertex at 0.
+                // tobj divides by w: an infinite one would silently put the vertex at 0. In f64,
+                // as tobj reads it (1e-50 is no zero there, nor 1e39 infinite).
                 if numbers.len() == 4
                     && counts.bad_w.is_none()
                     && numbers[3]
-                        .parse::<f32>()
+                        .parse::<f64>()
                         .is_ok_and(|w| !w.is_finite() || w == 0.0)
                 {
                     counts.bad_w = Some((line_no, content.trim().chars().take(80).collect()));
@@ -142,7 +144,7 @@ fn obj_lines(text: &str) -> (String, ObjCounts, usize) {
     (out, counts, lines)
 }
 
-/// What [`obj_text`] saw: the vertices and (fan-triangulated) triangles that `tobj` will build,
+/// What [`obj_text`] saw: the vertices and triangles (`n − 2` a polygon) that `tobj` will build,
 /// counted before it builds them, and the elements it removed.
 #[derive(Debug, Default)]
 struct ObjCounts {
@@ -154,7 +156,7 @@ struct ObjCounts {
     bad_w: Option<(usize, String)>,
 }
 
-/// Loads OBJ text: rewritten for `tobj` ([`obj_text`]), bounded, parsed, fan-triangulated and
+/// Loads OBJ text: rewritten for `tobj` ([`obj_text`]), bounded, parsed, triangulated and
 /// merged over all objects. `dir` (the file's folder, if any) is where named material
 /// libraries are looked for, only to warn when one is missing.
 pub(super) fn load_obj(
@@ -204,18 +206,35 @@ pub(super) fn load_obj(
         Ok((models, _materials)) => models,
         Err(err) => return Err(obj_error(path, &text, err)),
     };
-    for lib in mtllibs.into_inner() {
-        if dir.is_some_and(|d| !d.join(&lib).is_file()) {
-            report.warnings.push(format!(
-                "material library {} not found (ignored: materials are not needed)",
-                lib.display()
-            ));
-        }
+    // Only names inside the file's folder are looked for: a file must not learn (from whether
+    // a warning appears) which paths elsewhere exist, as glTF URIs may not. One warning for
+    // the first missing library, however many lines name one.
+    let missing: Vec<PathBuf> = mtllibs
+        .into_inner()
+        .into_iter()
+        .filter(|lib| {
+            let inside = lib
+                .components()
+                .all(|c| matches!(c, std::path::Component::Normal(_)));
+            inside && dir.is_some_and(|d| !d.join(lib).is_file())
+        })
+        .collect();
+    if let Some(first) = missing.first() {
+        let more = match missing.len() {
+            1 => String::new(),
+            n => format!(" and {} more", n - 1),
+        };
+        report.warnings.push(format!(
+            "material library {}{more} not found (ignored: materials are not needed)",
+            in_message(&first.display().to_string())
+        ));
     }
 
     // Positions in f64 (tobj's `use_f64`), recentred before they become f32 ([`recentre`]).
     let mut positions: Vec<DVec3> = Vec::new();
     let mut triangles: Vec<[u32; 3]> = Vec::new();
+    let (mut corners, mut corner_triangles) = (Vec::new(), Vec::new());
+    let (mut concave, mut fanned_concave) = (0usize, 0usize);
     for model in &models {
         let m = &model.mesh;
         let base = positions.len() as u64;
@@ -247,14 +266,37 @@ pub(super) fn load_obj(
                 if arity < 3 {
                     continue;
                 }
-                if arity > 3 {
-                    report.polygons_triangulated += 1;
+                if arity == 3 {
+                    triangles.push([idx(face[0])?, idx(face[1])?, idx(face[2])?]);
+                    continue;
                 }
-                for k in 1..arity - 1 {
-                    triangles.push([idx(face[0])?, idx(face[k])?, idx(face[k + 1])?]);
+                report.polygons_triangulated += 1;
+                let first = base as usize;
+                corners.clear();
+                // An index past the positions (refused by the clean-up) reads as NaN: a fan.
+                corners.extend(face.iter().map(|&i| {
+                    let at = positions.get(first + i as usize);
+                    at.copied().unwrap_or(DVec3::NAN)
+                }));
+                corner_triangles.clear();
+                match polygon::triangulate(&corners, &mut corner_triangles) {
+                    Triangulation::Fan => {}
+                    Triangulation::EarClipped => concave += 1,
+                    Triangulation::Fallback => fanned_concave += 1,
+                }
+                for t in &corner_triangles {
+                    triangles.push([idx(face[t[0]])?, idx(face[t[1]])?, idx(face[t[2]])?]);
                 }
             }
         }
+    }
+    report.concave_polygons = concave + fanned_concave;
+    if fanned_concave > 0 {
+        report.warnings.push(format!(
+            "{fanned_concave} concave polygons fan-triangulated: they cross themselves or have \
+             more than {MAX_EAR_CLIPPED_CORNERS} corners, and their \
+             triangles may cover area outside them"
+        ));
     }
     if counts.short_faces > 0 {
         report.warnings.push(format!(
@@ -262,7 +304,7 @@ pub(super) fn load_obj(
             counts.short_faces
         ));
     }
-    let vertices = recentre(&positions, &mut report);
+    let vertices = recentre(&positions, &triangles, &mut report);
     drop(positions);
     let mesh = clean(vertices, triangles, &mut report)?;
     Ok((mesh, report))
@@ -273,22 +315,21 @@ fn obj_error(path: &Path, text: &str, err: tobj::LoadError) -> GeomError {
     // Only an index error is looked for among the indices: a face may use vertices defined
     // after it (tobj checks them when the object ends), so another error lies elsewhere.
     let found = scan_obj(text, err == tobj::LoadError::FaceVertexOutOfBounds);
-    if err == tobj::LoadError::FaceVertexOutOfBounds {
-        if let Some(ScanIssue::IndexOutOfRange {
+    if err == tobj::LoadError::FaceVertexOutOfBounds
+        && let Some(ScanIssue::IndexOutOfRange {
             line,
             face,
             index,
             vertex_count,
         }) = found
-        {
-            return GeomError::ObjIndexOutOfRange {
-                path: path.to_path_buf(),
-                line,
-                face,
-                index,
-                vertex_count,
-            };
-        }
+    {
+        return GeomError::ObjIndexOutOfRange {
+            path: path.to_path_buf(),
+            line,
+            face,
+            index,
+            vertex_count,
+        };
     }
     let (line, detail) = match found {
         Some(ScanIssue::Bad { line, text }) => (Some(line), format!(": {text:?}")),

@@ -10,7 +10,8 @@ use glam::{DMat4, Mat4, Vec3};
 use super::accessors::{Vec3Format, component, read_accessor};
 use super::primitive::{Merged, add_gltf_mesh};
 use super::{
-    MAX_INSTANCED_TRIANGLES, MAX_INSTANCED_VERTICES, MAX_INSTANCES, check_limits, node_error,
+    MAX_INSTANCED_TRIANGLES, MAX_INSTANCED_VERTICES, MAX_INSTANCES, MAX_NODE_VISITS, check_limits,
+    node_error,
 };
 use crate::GeomError;
 
@@ -96,6 +97,8 @@ fn mesh_size(mesh: &gltf::Mesh) -> (u64, u64) {
     let (mut tris, mut verts) = (0u64, 0u64);
     for prim in mesh.primitives() {
         let Some(pos) = prim.get(&gltf::Semantic::Positions) else {
+            // Looked at for every instance all the same: not free either.
+            verts = verts.saturating_add(1);
             continue;
         };
         let n = match prim.indices() {
@@ -112,7 +115,7 @@ fn mesh_size(mesh: &gltf::Mesh) -> (u64, u64) {
         let targets = prim.morph_targets().len() as u64;
         let per_target = (pos.count() as u64).max(1);
         verts = verts
-            .saturating_add(pos.count() as u64)
+            .saturating_add(per_target)
             .saturating_add(targets.saturating_mul(per_target));
     }
     (tris, verts)
@@ -128,10 +131,16 @@ pub(super) fn check_scene_size(
     graph: Option<&NodeGraph>,
     instancing: &[Option<GpuInstancing>],
 ) -> Result<(), GeomError> {
-    // Which meshes are used, how often, and what they would add.
+    // Which meshes are used, how often, and what they would add; and how many node visits the
+    // expansion makes (every path to every node with a mesh below it: a long chain under a
+    // node reached by many paths costs visits, not instances).
     let mut mesh_uses = vec![0u64; doc.meshes().len()];
+    let mut visits = 0u64;
     match graph {
         Some(g) => {
+            for node in doc.nodes().filter(|n| g.mesh_below[n.index()]) {
+                visits = visits.saturating_add(g.multiplicity[node.index()]);
+            }
             for node in doc.nodes() {
                 if let Some(mesh) = node.mesh() {
                     let copies = instancing[node.index()]
@@ -159,6 +168,7 @@ pub(super) fn check_scene_size(
         path,
         [
             ("mesh instances", instances, MAX_INSTANCES),
+            ("node visits", visits, MAX_NODE_VISITS),
             ("instanced triangles", tris, MAX_INSTANCED_TRIANGLES),
             ("instanced vertices", verts, MAX_INSTANCED_VERTICES),
         ],
