@@ -197,7 +197,8 @@ fn query_rays_and_closest_points_of_a_scene() {
             converged += 1;
             let at = Vec3::new(row[0], row[1], row[2]);
             assert!(scene().distance(at, 0.05).abs() < 1e-4, "{at}");
-            assert!(row[3] < 1e-5);
+            // The default tolerance, 10⁻⁵ of the scene's half-side.
+            assert!(row[3] < 1e-5 / scene().frame(0.0).scale);
         }
     }
     assert!(converged >= 150, "{converged} of 200 converged");
@@ -238,6 +239,56 @@ fn query_a_single_model() {
     let hit = npy::read_table(&h, 9).unwrap();
     assert_eq!(hit[0], 1.0);
     assert!((hit[1] - 0.4).abs() < 0.02, "t = {}", hit[1]);
+}
+
+/// `query`'s tolerances are in proportion to the scene: rays into a sphere of radius 10⁻³
+/// stop within 10⁻⁷ of it (the absolute 10⁻⁴ stopped up to a tenth of the radius short), and
+/// rays into one of radius 10⁴ converge in f32 on the GPU (10⁻⁴ is below the spacing of f32
+/// points there) and stop within 1.
+#[test]
+fn query_tolerances_scale_with_the_scene() {
+    for (radius, tag) in [(1e-3_f32, "tiny"), (1e4, "huge")] {
+        let file = scratch(&format!("{tag}.toml"));
+        std::fs::write(
+            &file,
+            format!("[root]\ntype = \"sphere\"\nradius = {radius:e}\n"),
+        )
+        .unwrap();
+        // Rays from three radii away, aimed at points within the sphere's disc (0.92 radii).
+        let origin = Vec3::new(0.3, -0.2, -3.0) * radius;
+        let rays: Vec<f32> = points(64, 0.65)
+            .into_iter()
+            .flat_map(|t| {
+                let dir = Vec3::new(t.x, t.y, 0.0) * radius - origin;
+                origin.to_array().into_iter().chain(dir.to_array())
+            })
+            .collect();
+        let (r, h) = (
+            scratch(&format!("{tag}-r.npy")),
+            scratch(&format!("{tag}-h.npy")),
+        );
+        npy::write_table(&r, &rays, 6).unwrap();
+        run_ok(
+            bin("query")
+                .arg("--scene")
+                .arg(&file)
+                .arg("--rays")
+                .arg(&r)
+                .arg("--out")
+                .arg(&h),
+        );
+        let rows = npy::read_table(&h, 9).unwrap();
+        let mut hits = 0;
+        for (i, row) in rows.chunks_exact(9).enumerate() {
+            if row[0] == 1.0 {
+                hits += 1;
+                let gap = Vec3::new(row[2], row[3], row[4]).length() - radius;
+                // The tolerance (10⁻⁴ of the radius), and f32's rounding of the point.
+                assert!(gap.abs() <= 1.2e-4 * radius, "{tag} ray {i}: |d| = {gap}");
+            }
+        }
+        assert!(hits >= 60, "{tag}: {hits} of 64 rays hit");
+    }
 }
 
 /// `render --scene` writes the PNG, and the scene is in it (not only background).

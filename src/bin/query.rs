@@ -35,7 +35,7 @@ use hwsdf::nn::serve::scene::{GpuScene, ProjectOptions, Ray, TRACE_OVER_RELAXATI
 
 /// Distances, normals, ray hits and closest points of a neural SDF model or a scene, on the GPU.
 #[derive(Parser, Debug)]
-#[command(version, about)]
+#[command(version)]
 struct Args {
     #[command(flatten)]
     source: SourceFlags,
@@ -60,11 +60,12 @@ struct Args {
     /// Rays: how far each looks.
     #[arg(long, default_value_t = f32::INFINITY)]
     max_distance: f32,
-    /// Rays: sphere-tracing steps at most; closest points: projection steps at most.
+    /// Rays: sphere-tracing steps at most (default 1024); closest points: projection steps at
+    /// most (default 32).
     #[arg(long)]
     max_steps: Option<u32>,
     /// Rays and closest points: the tolerance on |d − c| (default 1e-4 for rays, 1e-5 for
-    /// closest points).
+    /// closest points, times the half-side of the model's or scene's box: in proportion to it).
     #[arg(long)]
     tolerance: Option<f32>,
     /// Rays: over-relaxed steps, this factor times the safe step while consecutive free
@@ -129,7 +130,7 @@ fn run(args: &Args) -> Result<(), String> {
             .collect();
         let scene = source.into_scene()?;
         let on_gpu = GpuScene::new(&gpu, &scene).map_err(|e| e.to_string())?;
-        let defaults = TraceOptions::default();
+        let defaults = TraceOptions::for_scene(&scene);
         let options = TraceOptions {
             level: args.level,
             tolerance: args.tolerance.unwrap_or(defaults.tolerance),
@@ -160,7 +161,7 @@ fn run(args: &Args) -> Result<(), String> {
         let points = read_points(path, centre)?;
         let scene = source.into_scene()?;
         let on_gpu = GpuScene::new(&gpu, &scene).map_err(|e| e.to_string())?;
-        let defaults = ProjectOptions::default();
+        let defaults = ProjectOptions::for_scene(&scene);
         let options = ProjectOptions {
             level: args.level,
             tolerance: args.tolerance.unwrap_or(defaults.tolerance),

@@ -584,6 +584,29 @@ fn bad_rays_and_options_are_errors() {
     assert!(scene.distance(Vec3::splat(f32::NAN), 0.0).is_nan());
 }
 
+/// `for_scene` options scale the default tolerances by the scene's half-side: the same
+/// relative precision for a 2 mm part as for a unit one (the defaults stay absolute).
+#[test]
+fn tolerances_for_a_scene_are_in_proportion() {
+    for radius in [1e-3_f32, 1.0, 1e4] {
+        let scene = Scene::new(sphere_at(Vec3::new(radius, 0.0, 0.0), radius)).unwrap();
+        let (trace, project) = (
+            TraceOptions::for_scene(&scene),
+            ProjectOptions::for_scene(&scene),
+        );
+        let close = |a: f32, b: f32| (a - b).abs() <= 1e-6 * b;
+        assert!(close(trace.tolerance, 1e-4 * radius), "{trace:?}");
+        assert!(close(project.tolerance, 1e-5 * radius), "{project:?}");
+        assert_eq!(
+            (trace.max_steps, project.max_iterations),
+            (
+                TraceOptions::default().max_steps,
+                ProjectOptions::default().max_iterations
+            )
+        );
+    }
+}
+
 /// Closest points: on a sphere the exact closest point in one step; on a scene of every operator
 /// a point on the surface (residual below the tolerance); at a level, on the level set.
 #[test]

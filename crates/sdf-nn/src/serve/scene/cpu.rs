@@ -117,6 +117,9 @@ pub struct TraceOptions {
 /// for the same 2083 hits; 1.2 and 1.6 saved 20 % and 32 % (docs/benchmarks, session 28).
 pub const TRACE_OVER_RELAXATION: f32 = 1.4;
 
+/// The defaults' tolerances are absolute, chosen for a scene about one unit across (a model
+/// of a mesh in `[-1, 1]³`). A scene of a 2 mm part in metres, or of a building in
+/// millimetres, wants them in proportion: `for_scene` scales them by the scene's half-side.
 impl Default for TraceOptions {
     fn default() -> Self {
         TraceOptions {
@@ -126,6 +129,24 @@ impl Default for TraceOptions {
             over_relaxation: TRACE_OVER_RELAXATION,
         }
     }
+}
+
+impl TraceOptions {
+    /// The defaults with the hit tolerance in proportion to `scene`: 10⁻⁴ of the half-side
+    /// of its frame ([`Scene::frame`]), the default's 10⁻⁴ for a scene one unit across. What
+    /// `query --rays` uses.
+    pub fn for_scene(scene: &Scene) -> Self {
+        let defaults = TraceOptions::default();
+        TraceOptions {
+            tolerance: defaults.tolerance * scene_half_side(scene),
+            ..defaults
+        }
+    }
+}
+
+/// The half-side of `scene`'s frame at level 0: the length its default tolerances scale by.
+fn scene_half_side(scene: &Scene) -> f32 {
+    1.0 / scene.frame(0.0).scale
 }
 
 /// Spheres of consecutive points must overlap by this fraction of the step between them: ones
@@ -233,12 +254,25 @@ pub struct ProjectOptions {
     pub max_iterations: u32,
 }
 
+/// Absolute tolerances, as [`TraceOptions`]'s defaults are; `for_scene` scales them.
 impl Default for ProjectOptions {
     fn default() -> Self {
         ProjectOptions {
             level: 0.0,
             tolerance: 1e-5,
             max_iterations: 32,
+        }
+    }
+}
+
+impl ProjectOptions {
+    /// The defaults with the convergence tolerance in proportion to `scene`: 10⁻⁵ of the
+    /// half-side of its frame ([`Scene::frame`]). What `query --closest` uses.
+    pub fn for_scene(scene: &Scene) -> Self {
+        let defaults = ProjectOptions::default();
+        ProjectOptions {
+            tolerance: defaults.tolerance * scene_half_side(scene),
+            ..defaults
         }
     }
 }
