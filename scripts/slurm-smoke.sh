@@ -199,7 +199,7 @@ victim=$(ls "$work/sharded.md.d"/*.nglod.json | head -n 1)
 victim_mesh=$(python3 -c 'import json,sys; print(json.load(open(sys.argv[1]))["mesh"])' "$victim")
 head -c 40 "$victim" >"$victim.part" && mv "$victim.part" "$victim"
 partial=$("$HWSDF_BIN" "$work/corpus" $args --merge --out "$work/sharded.md" 2>&1 >/dev/null)
-grep -q "warning: ignoring an unreadable result" <<<"$partial" || { echo "$partial" >&2; exit 1; }
+grep -q "warning: ignoring a result that does not parse" <<<"$partial" || { echo "$partial" >&2; exit 1; }
 grep -q "5 of 6 done, 0 failed, 1 not yet run" <<<"$partial" || { echo "$partial" >&2; exit 1; }
 log "a corrupt result is ignored with a warning and counted as not done"
 # Resubmit the whole array: the shards skip what is done, so exactly one mesh is trained.

@@ -486,6 +486,9 @@ fn ctrl_c_writes_a_checkpoint_that_resume_continues() {
     // It remembers the length its run planned, which a resume without --epochs goes on to.
     let saved = hwsdf::eval::run::Checkpoint::load(&checkpoint).unwrap();
     assert_eq!(saved.planned(), Some(200));
+    // And the seconds it trained, which the resumed run's report adds to its own.
+    let seconds_before = saved.training()["train_seconds"].as_f64().unwrap();
+    assert!(seconds_before > 0.0);
     // `--resume` continues to the requested total; without `--model`, with the checkpoint's
     // model (an NGLOD one, where a CPU adapter's default is the hash grid). A report already
     // there (an earlier model's) is removed once the new model is saved, and the checkpoint
@@ -507,6 +510,10 @@ fn ctrl_c_writes_a_checkpoint_that_resume_continues() {
     assert!(o.status.success(), "{}", stderr(&o));
     let json: serde_json::Value = serde_json::from_slice(&std::fs::read(&report).unwrap()).unwrap();
     assert_eq!(json["trained"], 3, "{json}");
+    assert!(
+        json["train_seconds"].as_f64().unwrap() > seconds_before,
+        "{json}"
+    );
     let log = stderr(&o);
     assert!(log.contains("the report of an earlier model"), "{log}");
     assert!(log.contains("the checkpoint this run finished"), "{log}");
@@ -543,6 +550,30 @@ fn ctrl_c_writes_a_checkpoint_that_resume_continues() {
             checkpoint.display()
         ),
     );
+    // So are another distance and another batch: the fit would go on as another one (an
+    // unsigned fit resumed as a signed one), or skip the wrong points of its epoch.
+    for (flags, says) in [
+        (
+            ["--distance", "unsigned"],
+            "fits signed distances, not unsigned: resume with --distance signed",
+        ),
+        (
+            ["--batch", "1024"],
+            "batches of 2048, not 1024: resume with --batch 2048",
+        ),
+    ] {
+        let o = bin("train")
+            .arg(data("suzanne.obj"))
+            .args(["--eval-points", "2000"])
+            .args(flags)
+            .arg("--resume")
+            .arg(&checkpoint)
+            .arg("--out")
+            .arg(scratch("refused.nglod.safetensors"))
+            .output()
+            .unwrap();
+        assert_clean_failure(&o, says);
+    }
     // A plain model file is not a checkpoint.
     let (model, _) = trained();
     let o = bin("train")
@@ -575,8 +606,10 @@ fn siren_loss_and_learning_rate_flags_reach_the_model_file() {
     assert_eq!(weights["sign"], 20.0, "{t}");
     assert_eq!(weights["surface"], 3000.0, "{t}");
     assert_eq!(t["config"]["lr"].as_f64().unwrap() as f32, 5e-4, "{t}");
-    // The run's own record sits beside the trainer's.
+    // The run's own record sits beside the trainer's, with the length it planned (which a
+    // resume of its checkpoint without --steps goes on to).
     assert_eq!(t["done"], 2, "{t}");
+    assert_eq!(t["planned"], 2, "{t}");
     assert_eq!(t["model"], "siren", "{t}");
 
     // eval on other kernels: the same signs up to f32 rounding, the kernels named in the

@@ -150,6 +150,7 @@ fn sigterm_checkpoints_the_mesh_in_training_and_the_rerun_resumes_it() {
         "the checkpoint is kept: {err}"
     );
     std::fs::remove_dir(&blocker).unwrap();
+    let kept = std::fs::read(state.join(checkpoint)).unwrap();
     // The rerun resumes that mesh, finishes it and drops the checkpoint.
     let o = corpus("8").output().unwrap();
     let err = stderr(&o);
@@ -164,10 +165,11 @@ fn sigterm_checkpoints_the_mesh_in_training_and_the_rerun_resumes_it() {
         table.contains("Settings: architecture resolutions 4,8,16, sparse levels 0, band cells 0, features 4, hidden 32; batch 2048; distance signed; epochs 8;"),
         "{table}"
     );
-    // The merge needs no GPU and writes the same table.
+    // The merge needs no GPU and writes the same table; without --model it lists the models
+    // the folder has settings for (NGLOD alone here, not the default SIREN and NGLOD).
     let merged = bin("corpus")
         .arg(&dir)
-        .args(["--model", "nglod", "--merge", "--out"])
+        .args(["--merge", "--out"])
         .arg(scratch("term.md"))
         .env("WGPU_ADAPTER_NAME", "no-such-adapter-hwsdf")
         .output()
@@ -196,6 +198,30 @@ fn sigterm_checkpoints_the_mesh_in_training_and_the_rerun_resumes_it() {
         "{err}"
     );
     assert!(err.contains("--merge"), "{err}");
+    // A checkpoint of the mesh before its file changed (re-exported at twice the size) is set
+    // aside: the mesh trains from the start, where a refusal failed it on every rerun.
+    let result = state.join(checkpoint.replace(".checkpoint.safetensors", ".json"));
+    std::fs::remove_file(&result).unwrap();
+    std::fs::write(state.join(checkpoint), &kept).unwrap();
+    let obj = std::fs::read_to_string(data("suzanne.obj")).unwrap();
+    let doubled: String = obj
+        .lines()
+        .map(|l| match l.strip_prefix("v ") {
+            Some(xyz) => {
+                let v: Vec<f64> = xyz.split_whitespace().map(|x| x.parse().unwrap()).collect();
+                format!("v {} {} {}\n", 2.0 * v[0], 2.0 * v[1], 2.0 * v[2])
+            }
+            None => format!("{l}\n"),
+        })
+        .collect();
+    std::fs::write(dir.join("sub/suzanne.obj"), doubled).unwrap();
+    let o = corpus("8").output().unwrap();
+    let err = stderr(&o);
+    assert!(o.status.success(), "{err}");
+    assert!(err.contains("trained on another mesh"), "{err}");
+    assert!(err.contains("starting over"), "{err}");
+    assert!(!state.join(checkpoint).exists(), "{err}");
+    assert!(result.exists(), "{err}");
 }
 
 #[test]

@@ -1319,6 +1319,34 @@ fn cases() -> Vec<Case> {
             &["cube.obj", "--resolutions", "0,4", "--out", "m.safetensors"],
             Error("NGLOD: invalid configuration: resolution 0"),
         ),
+        // A valid configuration of 10⁹ parameters: refused by the device's limit before the
+        // host allocates and fills 4 GB of them (under the memory cap, an abort before).
+        case(
+            "train --resolutions 1000",
+            "train",
+            &[
+                "cube.obj",
+                "--model",
+                "nglod",
+                "--resolutions",
+                "1000",
+                "--sparse-levels",
+                "0",
+                "--features",
+                "1",
+                "--hidden",
+                "8",
+                "--out",
+                "m.safetensors",
+            ],
+            Error("NGLOD parameters"),
+        ),
+        case(
+            "train --pool 10000,1",
+            "train",
+            &["cube.obj", "--model", "nglod", "--pool", "10000,1", "--out", "m.safetensors"],
+            Error("more than 2^32 points"),
+        ),
         case(
             "corpus --eval-points 0",
             "corpus",

@@ -49,7 +49,7 @@ enum Models {
 
 /// Train and evaluate every OBJ, glTF and GLB mesh of a corpus.
 #[derive(Parser, Debug)]
-#[command(version, about)]
+#[command(version)]
 struct Args {
     /// Folder of meshes (walked recursively; hidden entries are skipped).
     #[arg(required_unless_present = "list", conflicts_with = "list")]
@@ -58,9 +58,9 @@ struct Args {
     #[arg(long)]
     list: Option<PathBuf>,
     /// Which architectures: one, `both` (SIREN and NGLOD) or `all` (SIREN, NGLOD and the hash
-    /// grid).
-    #[arg(long, value_enum, default_value = "both")]
-    model: Models,
+    /// grid). Default: `both`; with --merge, the models the results folder has settings for.
+    #[arg(long, value_enum)]
+    model: Option<Models>,
     /// Markdown table to write; per-mesh results go to `<out>.d/`.
     #[arg(long, default_value = "results.md")]
     out: PathBuf,
@@ -108,14 +108,18 @@ fn corpus(args: &Args) -> Result<ExitCode, BoxError> {
     // training, not after.
     let inputs: Vec<&std::path::Path> = meshes.iter().map(|m| m.path.as_path()).collect();
     hwsdf::geom::io::check_outputs(&inputs, &[&args.out])?;
-    let models: Vec<ModelKind> = match args.model {
-        Models::Siren => vec![ModelKind::Siren],
-        Models::Nglod => vec![ModelKind::Nglod],
-        Models::Hashgrid => vec![ModelKind::Hashgrid],
-        Models::Both => vec![ModelKind::Siren, ModelKind::Nglod],
-        Models::All => ModelKind::ALL.to_vec(),
-    };
     let state = StateDir::for_table(&args.out);
+    let models: Vec<ModelKind> = match args.model {
+        Some(Models::Siren) => vec![ModelKind::Siren],
+        Some(Models::Nglod) => vec![ModelKind::Nglod],
+        Some(Models::Hashgrid) => vec![ModelKind::Hashgrid],
+        Some(Models::All) => ModelKind::ALL.to_vec(),
+        Some(Models::Both) => vec![ModelKind::Siren, ModelKind::Nglod],
+        // A merge of a run of other models (`--model nglod` on every shard) lists those: with
+        // `both` it counted a SIREN row missing for every mesh, and dropped the hash grid's.
+        None if args.merge => recorded_models(&state),
+        None => vec![ModelKind::Siren, ModelKind::Nglod],
+    };
     if args.merge {
         return merge(args, &state, &meshes, &models);
     }
@@ -199,6 +203,19 @@ fn corpus(args: &Args) -> Result<ExitCode, BoxError> {
     }
 }
 
+/// The models the results folder has settings for, in the usual order; SIREN and NGLOD where it
+/// has none yet (or they cannot be read: the merge then warns).
+fn recorded_models(state: &StateDir) -> Vec<ModelKind> {
+    let recorded = state.read_settings().ok().flatten().map(|s| s.models);
+    match recorded {
+        Some(names) if !names.is_empty() => ModelKind::ALL
+            .into_iter()
+            .filter(|m| names.contains_key(m.name()))
+            .collect(),
+        _ => vec![ModelKind::Siren, ModelKind::Nglod],
+    }
+}
+
 /// Every model's options (their presets resolved), with their settings checked against those
 /// the results folder was made with (and recorded there by its first run), before any mesh is
 /// trained.
@@ -248,7 +265,15 @@ fn train_one(
             return Ok(Trained::Recorded);
         }
         Record::Corrupt(why) => {
-            eprintln!("warning: ignoring an unreadable result ({why}); {rel} {tag} is redone")
+            eprintln!(
+                "warning: ignoring a result that does not parse ({why}); {rel} {tag} is redone"
+            )
+        }
+        Record::Unreadable(why) => {
+            // An I/O error, not a broken file: the result may be there, and a retraining that
+            // failed would replace it with a failure.
+            eprintln!("warning: cannot read {rel} {tag}'s result ({why}); not redone in this run");
+            return Ok(Trained::Recorded);
         }
         Record::Missing | Record::Entry(Entry::Failed { .. }) => {}
     }
@@ -360,7 +385,12 @@ fn merge(
 ) -> Result<ExitCode, BoxError> {
     let m = corpus::merge(state, meshes, models);
     for why in &m.corrupt {
-        eprintln!("warning: ignoring an unreadable result ({why}); its mesh will be redone");
+        eprintln!(
+            "warning: ignoring a result that does not parse ({why}); its mesh will be redone"
+        );
+    }
+    for why in &m.unreadable {
+        eprintln!("warning: cannot read a result ({why}); left out of the table");
     }
     if let Err(e) = &m.settings {
         eprintln!("warning: {e}; the table does not state its settings");

@@ -30,15 +30,16 @@ pub enum DistanceArg {
 #[derive(clap::Args, Debug)]
 pub struct TrainingFlags {
     /// Size preset (default: `default`; SIREN's and the hash grid's are `small` on a CPU
-    /// adapter; a resume keeps its checkpoint's).
+    /// adapter; `train --resume` keeps its checkpoint's).
     #[arg(long, value_enum)]
     pub preset: Option<PresetArg>,
-    /// SIREN training steps (default: 10000 on a GPU, a few hundred on a CPU adapter).
+    /// SIREN training steps (default: 10000 on a GPU; on a CPU adapter 300 for `small`, 100
+    /// for `default`).
     #[arg(long)]
     pub steps: Option<usize>,
     /// NGLOD and hash-grid epochs of 5·10^5 points (default on a GPU: 100 for NGLOD, 50 for the
     /// hash grid; on a CPU adapter as many as about a minute of training buys, at least 12 for
-    /// NGLOD).
+    /// NGLOD `default`, 4 for NGLOD `small` and the hash grid's `small`, 2 for its `default`).
     #[arg(long)]
     pub epochs: Option<usize>,
     /// Seed of initialisation and sampling.
@@ -216,9 +217,10 @@ impl TrainingFlags {
             lr_final: self.lr_final.filter(|_| keep(GRIDS)),
             batch: self.batch.filter(|_| keep(GRIDS)),
             grow_every: self.grow_every.filter(|_| keep(NGLOD)),
+            // SIREN fits signed distances only: with other models, `unsigned` is theirs.
             distance: match self.distance {
-                DistanceArg::Signed => DistanceMode::Signed,
-                DistanceArg::Unsigned => DistanceMode::Unsigned,
+                DistanceArg::Unsigned if keep(GRIDS) => DistanceMode::Unsigned,
+                _ => DistanceMode::Signed,
             },
             pool: self.pool.filter(|_| keep(GRIDS)),
             nglod_architecture: NglodArchitecture {
@@ -299,6 +301,20 @@ mod tests {
         assert_eq!(of(ModelKind::Nglod).grow_every, Some(2));
         assert_eq!(of(ModelKind::Hashgrid).epochs, Some(3));
         assert_eq!(of(ModelKind::Hashgrid).grow_every, None);
+        // `unsigned` goes to the grid models (SIREN, which fits signed distances only, refused
+        // it and with it the whole run); alone, SIREN still refuses it.
+        let unsigned = flags(&["--distance", "unsigned"]);
+        let options = unsigned.options(&all).unwrap();
+        let distances: Vec<DistanceMode> = options.iter().map(|o| o.distance).collect();
+        assert_eq!(
+            distances,
+            [
+                DistanceMode::Signed,
+                DistanceMode::Unsigned,
+                DistanceMode::Unsigned
+            ]
+        );
+        assert!(unsigned.options(&[ModelKind::Siren]).is_err());
         assert!(
             flags(&["--grow-every", "2"])
                 .options(&[ModelKind::Hashgrid])

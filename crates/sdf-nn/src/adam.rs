@@ -62,6 +62,25 @@ impl AdamConfig {
             ))
         }
     }
+
+    /// Errors unless every setting can run: the learning rate ([`AdamConfig::check_lr`]), both
+    /// betas in `[0, 1)` (at 1 the bias correction divides by zero and every update is NaN)
+    /// and `eps` finite and positive.
+    pub fn check(&self) -> Result<(), String> {
+        Self::check_lr(self.lr)?;
+        for (name, beta) in [("beta1", self.beta1), ("beta2", self.beta2)] {
+            if !(0.0..1.0).contains(&beta) {
+                return Err(format!("Adam's {name} must lie in [0, 1), not {beta}"));
+            }
+        }
+        if !(self.eps.is_finite() && self.eps > 0.0) {
+            return Err(format!(
+                "Adam's eps must be finite and positive, not {}",
+                self.eps
+            ));
+        }
+        Ok(())
+    }
 }
 
 impl AdamState {
@@ -365,6 +384,45 @@ impl AdamCpu {
 
 #[cfg(test)]
 mod tests {
+    use super::AdamConfig;
+
+    /// Settings that would make every update NaN or infinite are refused by name.
+    #[test]
+    fn unusable_settings_are_refused() {
+        let good = AdamConfig::default();
+        assert!(good.check().is_ok());
+        for (bad, says) in [
+            (AdamConfig { beta1: 1.0, ..good }, "beta1"),
+            (AdamConfig { beta2: 1.0, ..good }, "beta2"),
+            (
+                AdamConfig {
+                    beta2: -0.1,
+                    ..good
+                },
+                "beta2",
+            ),
+            (
+                AdamConfig {
+                    beta1: f32::NAN,
+                    ..good
+                },
+                "beta1",
+            ),
+            (AdamConfig { eps: 0.0, ..good }, "eps"),
+            (
+                AdamConfig {
+                    eps: f32::INFINITY,
+                    ..good
+                },
+                "eps",
+            ),
+            (AdamConfig { lr: 0.0, ..good }, "learning rate"),
+        ] {
+            let e = bad.check().unwrap_err();
+            assert!(e.contains(says), "{bad:?}: {e}");
+        }
+    }
+
     /// The optimiser's uniforms have the layout `adam.wgsl` reads.
     #[test]
     fn adam_uniforms_mirror_the_shader() {

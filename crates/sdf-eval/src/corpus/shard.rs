@@ -118,9 +118,35 @@ impl Shard {
             }
             let min = num("SLURM_ARRAY_TASK_MIN")?.unwrap_or(0);
             let step = num("SLURM_ARRAY_TASK_STEP")?.unwrap_or(1).max(1);
-            let count = match (num("SLURM_ARRAY_TASK_COUNT")?, num("SLURM_ARRAY_TASK_MAX")?) {
+            let (stated, max) = (num("SLURM_ARRAY_TASK_COUNT")?, num("SLURM_ARRAY_TASK_MAX")?);
+            let spanned = max
+                .filter(|&max| max >= min)
+                .map(|max| (max - min) / step + 1);
+            // The array must be the whole run: a task resubmitted alone (`--array=17`: one task,
+            // its own min) or a partial list (`--array=3,5`: two tasks spanning three) would
+            // read as a smaller run and take meshes of other shards.
+            let partial = match (stated, spanned) {
+                (Some(c), Some(s)) => c != s || (c == 1 && id != 0),
+                (Some(1), None) => id != 0,
+                _ => false,
+            };
+            if partial {
+                return Err(CorpusError::BadShard {
+                    value: format!(
+                        "task {id} of an array of {} (min {min}, max {}, step {step})",
+                        stated.map_or("?".into(), |c| c.to_string()),
+                        max.map_or("?".into(), |m| m.to_string())
+                    ),
+                    source_name: "SLURM_ARRAY_TASK_ID".into(),
+                    reason: "the array is not the whole run (a task resubmitted alone or a \
+                             partial list): set HWSDF_SHARDS or pass --shards with the run's \
+                             shard count, and the task id is taken as the shard index"
+                        .into(),
+                });
+            }
+            let count = match (stated, spanned) {
                 (Some(c), _) => c,
-                (None, Some(max)) if max >= min => (max - min) / step + 1,
+                (None, Some(s)) => s,
                 _ => {
                     return Err(CorpusError::BadShard {
                         value: id.to_string(),
@@ -325,6 +351,26 @@ mod tests {
             (
                 vec![("SLURM_ARRAY_TASK_ID", "8"), ("HWSDF_SHARDS", "8")],
                 "not below",
+            ),
+            // Without a stated count, a task resubmitted alone (`--array=17`) or a partial
+            // list (`--array=3,5`) would read as a run of 1 or 2 shards: every mesh, or half.
+            (
+                vec![
+                    ("SLURM_ARRAY_TASK_ID", "17"),
+                    ("SLURM_ARRAY_TASK_COUNT", "1"),
+                    ("SLURM_ARRAY_TASK_MIN", "17"),
+                    ("SLURM_ARRAY_TASK_MAX", "17"),
+                ],
+                "not the whole run",
+            ),
+            (
+                vec![
+                    ("SLURM_ARRAY_TASK_ID", "3"),
+                    ("SLURM_ARRAY_TASK_COUNT", "2"),
+                    ("SLURM_ARRAY_TASK_MIN", "3"),
+                    ("SLURM_ARRAY_TASK_MAX", "5"),
+                ],
+                "HWSDF_SHARDS",
             ),
         ] {
             let e = Shard::from_env(env(&vars), None).unwrap_err().to_string();

@@ -75,7 +75,13 @@ pub enum Record {
     /// A file that does not parse (a writer killed by hand, a disk error): it is never merged,
     /// and the next run redoes the mesh.
     Corrupt(String),
+    /// A file that could not be read (permissions, a network file system's error): left out
+    /// of the table and not redone, since the result may be there.
+    Unreadable(String),
 }
+
+/// How many times [`StateDir::claim`] reads the settings record before giving up.
+const CLAIM_ATTEMPTS: u32 = 20;
 
 /// The folder of per-mesh results, `<out>.d/`, shared by every shard.
 #[derive(Clone, Debug)]
@@ -176,7 +182,9 @@ impl StateDir {
     /// Records `settings` as the folder's, or checks them against those recorded: any
     /// difference is [`CorpusError::OtherSettings`], and a model the record lacks is added to
     /// it. Shards starting together agree on one record: the first is created without ever
-    /// replacing another's, and the rest are checked against it. A folder from before the
+    /// replacing another's, and the rest are checked against it. Runs of different models
+    /// adding theirs at once may replace each other's addition: each reads the record again
+    /// after writing and adds its models again until they are there. A folder from before the
     /// record existed takes the first settings claimed.
     pub fn claim(&self, settings: &CorpusSettings) -> Result<(), CorpusError> {
         let path = self.settings_path();
@@ -185,8 +193,9 @@ impl StateDir {
             source,
         };
         let json = |s: &CorpusSettings| serde_json::to_vec_pretty(s).expect("settings serialise");
-        // Twice at most: a shard that loses the race to create the record reads the winner's.
-        for _ in 0..2 {
+        // A shard that loses the race to create the record reads the winner's; one whose
+        // addition was replaced by another's adds it again.
+        for attempt in 0..CLAIM_ATTEMPTS {
             let Some(recorded) = self.read_settings()? else {
                 match sdf_geom::io::create_atomic(&path, &json(settings)) {
                     Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => continue,
@@ -207,13 +216,17 @@ impl StateDir {
                     .entry(model.clone())
                     .or_insert_with(|| s.clone());
             }
-            if merged != recorded {
-                sdf_geom::io::write_atomic(&path, &json(&merged)).map_err(io)?;
+            if merged == recorded {
+                return Ok(());
             }
-            return Ok(());
+            sdf_geom::io::write_atomic(&path, &json(&merged)).map_err(io)?;
+            // Staggered, so that two runs adding models do not keep replacing each other.
+            std::thread::sleep(std::time::Duration::from_millis(
+                10 + 7 * u64::from(attempt) + u64::from(std::process::id() % 10),
+            ));
         }
         Err(io(std::io::Error::other(
-            "the settings record was created and removed while being read",
+            "the settings record kept changing while this run added its models to it",
         )))
     }
 
@@ -239,7 +252,7 @@ impl StateDir {
         let path = self.record(rel, model);
         match std::fs::read(&path) {
             Err(e) if e.kind() == std::io::ErrorKind::NotFound => Record::Missing,
-            Err(e) => Record::Corrupt(format!("{}: {e}", path.display())),
+            Err(e) => Record::Unreadable(format!("{}: {e}", path.display())),
             Ok(bytes) => match serde_json::from_slice::<Entry>(&bytes) {
                 Ok(entry) => Record::Entry(entry),
                 Err(e) => Record::Corrupt(format!("{}: {e}", path.display())),
@@ -380,6 +393,42 @@ mod tests {
         let e = state.claim(&first).unwrap_err();
         assert!(matches!(e, CorpusError::BadSettings { .. }), "{e}");
         assert!(merge(&state, &[], &[ModelKind::Nglod]).settings.is_err());
+        std::fs::remove_dir_all(&root).unwrap();
+    }
+
+    /// Runs of different models sharing one folder, started at once (a SIREN array and a
+    /// hash-grid array): every model ends up in the record, none replaced by another's
+    /// addition.
+    #[test]
+    fn models_claimed_at_once_are_all_recorded() {
+        use crate::run::{Preset, TrainOptions};
+        let root = std::env::temp_dir().join(format!("hwsdf-claims-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&root);
+        for round in 0..4 {
+            let state = StateDir::for_table(&root.join(format!("r{round}.md")));
+            state.create().unwrap();
+            let claims: Vec<_> = ModelKind::ALL
+                .into_iter()
+                .map(|model| {
+                    let state = state.clone();
+                    std::thread::spawn(move || {
+                        let options = TrainOptions::new(model, Preset::Small);
+                        let settings = CorpusSettings {
+                            eval_points: 1000,
+                            models: [(model.name().to_owned(), options.settings(true).unwrap())]
+                                .into(),
+                        };
+                        state.claim(&settings)
+                    })
+                })
+                .collect();
+            for claim in claims {
+                claim.join().unwrap().unwrap();
+            }
+            let recorded = state.read_settings().unwrap().unwrap();
+            let names: Vec<&str> = recorded.models.keys().map(String::as_str).collect();
+            assert_eq!(names, ["hashgrid", "nglod", "siren"], "round {round}");
+        }
         std::fs::remove_dir_all(&root).unwrap();
     }
 }

@@ -19,6 +19,8 @@ pub struct Merge {
     pub missing: usize,
     /// Result files that do not parse (ignored; redone by the next run).
     pub corrupt: Vec<String>,
+    /// Result files that could not be read (an I/O error: left out, not redone).
+    pub unreadable: Vec<String>,
     /// The settings the results were made with (`None` for a folder from before they were
     /// recorded), or why their record cannot be read.
     pub settings: Result<Option<CorpusSettings>, CorpusError>,
@@ -31,6 +33,7 @@ pub fn merge(state: &StateDir, meshes: &[CorpusMesh], models: &[ModelKind]) -> M
         expected: meshes.len() * models.len(),
         missing: 0,
         corrupt: Vec::new(),
+        unreadable: Vec::new(),
         settings: state.read_settings(),
     };
     for mesh in meshes {
@@ -40,6 +43,10 @@ pub fn merge(state: &StateDir, meshes: &[CorpusMesh], models: &[ModelKind]) -> M
                 Record::Corrupt(why) => {
                     m.missing += 1;
                     m.corrupt.push(why);
+                }
+                Record::Unreadable(why) => {
+                    m.missing += 1;
+                    m.unreadable.push(why);
                 }
                 Record::Entry(e) => {
                     m.entries.insert((model.name(), mesh.rel.clone()), e);
@@ -172,10 +179,10 @@ impl Merge {
                 _ => kind.label(),
             };
             let _ = writeln!(s, "### {heading}\n");
-            if let Ok(Some(settings)) = &self.settings {
-                if let Some(m) = settings.models.get(model) {
-                    let _ = writeln!(s, "Settings: {m}; eval points {}.\n", settings.eval_points);
-                }
+            if let Ok(Some(settings)) = &self.settings
+                && let Some(m) = settings.models.get(model)
+            {
+                let _ = writeln!(s, "Settings: {m}; eval points {}.\n", settings.eval_points);
             }
             let _ = writeln!(
                 s,
@@ -540,6 +547,15 @@ mod tests {
         );
         assert!(table.contains("| a.obj | failed: no triangles"), "{table}");
         assert!(!table.contains("b.obj"), "{table}");
+        // A result that cannot be read (here a folder in its place) is not taken for a corrupt
+        // one, which the next run would redo over it.
+        std::fs::create_dir(state.record("c.obj", ModelKind::Nglod)).unwrap();
+        assert!(matches!(
+            state.read("c.obj", ModelKind::Nglod),
+            Record::Unreadable(_)
+        ));
+        let m = merge(&state, &all, &[ModelKind::Nglod]);
+        assert_eq!((m.missing, m.corrupt.len(), m.unreadable.len()), (2, 1, 1));
         std::fs::remove_dir_all(&root).unwrap();
     }
 }

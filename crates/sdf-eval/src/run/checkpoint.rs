@@ -65,8 +65,9 @@ impl Checkpoint {
         if let Some(planned) = c.planned()
             && c.done() > planned
         {
+            let unit = c.model().map_or("step or epoch", ModelKind::unit);
             return Err(bad(format!(
-                "{} epochs done of {planned} planned",
+                "{} {unit}s done of {planned} planned",
                 c.done()
             )));
         }
@@ -85,13 +86,19 @@ impl Checkpoint {
         f
     }
 
+    /// The run's record (the model file's `training` metadata): its settings and progress.
+    pub fn training(&self) -> &serde_json::Value {
+        &self.file.metadata.training
+    }
+
     /// Steps or epochs done when it was written.
     pub fn done(&self) -> usize {
         self.file.metadata.training["done"].as_u64().unwrap_or(0) as usize
     }
 
-    /// NGLOD and the hash grid: the epochs its run planned (with the CPU time budget, more than the default), which
-    /// a resume without `--epochs` goes on to.
+    /// The steps or epochs its run planned (NGLOD's and the hash grid's with the CPU time
+    /// budget, more than the default), which a resume without `--steps` or `--epochs` goes on
+    /// to. Absent from SIREN checkpoints written before 2026-11-28.
     pub fn planned(&self) -> Option<usize> {
         self.file.metadata.training["planned"]
             .as_u64()
@@ -448,7 +455,7 @@ mod tests {
             (
                 "done-past-planned.safetensors",
                 &|t: &mut serde_json::Value| t["planned"] = 3.into(),
-                "5 epochs done of 3 planned",
+                "5 steps done of 3 planned",
             ),
             (
                 "negative.safetensors",

@@ -20,9 +20,14 @@ pub const EVAL_BYTES_PER_POINT: u64 = 1200;
 /// Memory budget of one evaluation, in bytes (4 GiB).
 pub const EVAL_MEMORY_BUDGET: u64 = 4 << 30;
 
-/// Refuses, before any work, an evaluation whose sets would pass [`EVAL_MEMORY_BUDGET`], with
-/// the estimate.
+/// Refuses, before any work, an evaluation of empty sets, or of sets that would pass
+/// [`EVAL_MEMORY_BUDGET`] (with the estimate).
 pub fn check_eval_points(points: usize) -> Result<(), RunError> {
+    if points == 0 {
+        return Err(RunError::Options(
+            "the evaluation sets need at least 1 point".into(),
+        ));
+    }
     let need = (points as u64).saturating_mul(EVAL_BYTES_PER_POINT);
     if need > EVAL_MEMORY_BUDGET {
         return Err(RunError::OverBudget {
@@ -222,4 +227,22 @@ pub fn extract_mesh_normalized(
         ExtractError::Eval(e) => RunError::Model(e),
         other => RunError::Options(other.to_string()),
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Empty sets are refused before a run trains (the latency measurement asserted on them
+    /// after it), as are sets past the memory budget.
+    #[test]
+    fn empty_or_oversized_sets_are_refused() {
+        assert!(matches!(check_eval_points(0), Err(RunError::Options(_))));
+        assert!(check_eval_points(1).is_ok());
+        let too_many = (EVAL_MEMORY_BUDGET / EVAL_BYTES_PER_POINT + 1) as usize;
+        assert!(matches!(
+            check_eval_points(too_many),
+            Err(RunError::OverBudget { .. })
+        ));
+    }
 }

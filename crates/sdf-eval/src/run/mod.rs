@@ -189,6 +189,8 @@ pub struct Trained {
     pub file: ModelFile,
     /// Wall time of training: sampling, the trainer's setup and its steps or epochs, not the
     /// ground truth's BVH (built before, [`GroundTruth`]; reports before it included one).
+    /// A resumed run adds the seconds its checkpoint records (`train_seconds` in its run
+    /// record; checkpoints from before 2026-11-28 have none, and count as 0).
     pub train_seconds: f64,
     /// Steps or epochs done.
     pub done: usize,
@@ -229,7 +231,18 @@ impl Plan<'_> {
             "seed": self.options.seed,
             "done": done,
             "final_loss": loss,
+            "train_seconds": self.train_seconds(),
         })
+    }
+
+    /// Seconds of training so far: this run's, and those of the runs its checkpoint continues.
+    fn train_seconds(&self) -> f64 {
+        let earlier = self
+            .resume
+            .and_then(|c| c.training()["train_seconds"].as_f64())
+            .filter(|s| s.is_finite() && *s >= 0.0)
+            .unwrap_or(0.0);
+        earlier + self.start.elapsed().as_secs_f64()
     }
 
     /// Training points per second since the start, `units` steps or epochs of `per_unit` points
@@ -313,7 +326,10 @@ pub enum RunOutcome {
 
 /// The whole experiment for one mesh: train (from `resume` if given), save to `out`, evaluate,
 /// report. The samples' and the evaluation's labels come from `ground_truth`'s path
-/// ([`GroundTruth::on`]); a fallback of `auto` to the CPU is printed as a warning.
+/// ([`GroundTruth::on`]); a fallback of `auto` to the CPU is printed as a warning. A `resume`
+/// of another mesh (the file changed since the checkpoint was written: its normalisation
+/// differs) is set aside with a warning and training starts over: a corpus rerun would
+/// otherwise fail on that mesh every time.
 #[allow(clippy::too_many_arguments)]
 pub fn run(
     gpu: &GpuContext,
@@ -326,11 +342,20 @@ pub fn run(
     stop: &Arc<AtomicBool>,
     progress: impl FnMut(&Progress),
 ) -> Result<RunOutcome, RunError> {
+    // Before the training it would follow.
+    check_eval_points(eval_points)?;
     let (mesh, normalization) = load_normalized(mesh_path)?;
     let truth = GroundTruth::on(gpu, mesh, mesh_path, ground_truth)?;
     if let Some(why) = truth.labels.fallback() {
         eprintln!("warning: {}: {why}", mesh_path.display());
     }
+    let resume = resume.filter(|c| match c.check_mesh(normalization) {
+        Ok(()) => true,
+        Err(e) => {
+            eprintln!("warning: {e}; starting over");
+            false
+        }
+    });
     let trained = train(gpu, &truth, normalization, options, resume, stop, progress)?;
     if trained.interrupted {
         return Ok(RunOutcome::Interrupted(Box::new(trained)));

@@ -22,6 +22,9 @@ pub(super) fn train(
     let model = model(plan)?;
     let first = plan.resume.map_or(0, Checkpoint::done).min(total);
     let train_config = config(plan, total - first);
+    if let Some(c) = plan.resume {
+        check_schedule(c, &train_config)?;
+    }
     let per_epoch = (train_config.uniform_points
         + train_config.near_points
         + train_config.surface_points) as f64;
@@ -71,7 +74,7 @@ pub(super) fn train(
     check_trained(&file, done, "epoch")?;
     Ok(Trained {
         file,
-        train_seconds: plan.start.elapsed().as_secs_f64(),
+        train_seconds: plan.train_seconds(),
         done,
         final_loss: report.final_loss,
         interrupted: report.stopped_early && plan.stop.load(Ordering::Relaxed),
@@ -91,6 +94,13 @@ fn model(plan: &Plan<'_>) -> Result<Nglod, RunError> {
             options
                 .nglod_architecture
                 .config(options.model, options.preset, options.seed)?;
+        // The parameters' buffer must fit the device before the host fills gigabytes of them
+        // (a summed level of 1000³ cells passes the configuration's own bound).
+        let bytes = config.fixed_param_count() as u64 * 4;
+        let what = format!("{} parameters", options.model.label());
+        plan.gpu
+            .check_storage_size(&what, bytes)
+            .map_err(|e| named(e.into()))?;
         return Nglod::new(config).map_err(named);
     };
     let model = Nglod::from_model_file(&c.model_file()).map_err(named)?;
@@ -111,6 +121,31 @@ fn model(plan: &Plan<'_>) -> Result<Nglod, RunError> {
     }
     c.check_mesh(plan.normalization)?;
     Ok(model)
+}
+
+/// Errors unless `config` continues the checkpoint's fit: the same distance (an unsigned fit
+/// resumed without `--distance unsigned` went on as a signed one) and batch (the steps done in
+/// the interrupted epoch count batches). Other settings (learning rate, pool, seed) may change
+/// between runs, as their flags say.
+fn check_schedule(c: &Checkpoint, config: &NglodTrainConfig) -> Result<(), RunError> {
+    let recorded = c.training();
+    let distance = recorded["distance"].as_str();
+    if distance.is_some_and(|d| d != config.distance.name()) {
+        let d = distance.unwrap_or_default();
+        return Err(c.refusal(format!(
+            "the checkpoint fits {d} distances, not {}: resume with --distance {d}",
+            config.distance.name()
+        )));
+    }
+    let batch = recorded["batch_size"].as_u64();
+    if batch.is_some_and(|b| b != u64::from(config.batch_size)) {
+        let b = batch.unwrap_or_default();
+        return Err(c.refusal(format!(
+            "the checkpoint trained in batches of {b}, not {}: resume with --batch {b}",
+            config.batch_size
+        )));
+    }
+    Ok(())
 }
 
 /// The trainer's configuration for `epochs` more epochs: the model's schedule

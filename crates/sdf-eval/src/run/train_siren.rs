@@ -79,13 +79,16 @@ pub(super) fn train(
         std::mem::take(&mut file.metadata.training),
         plan.training_json(done, loss),
     );
+    // What a resume without `--steps` goes on to (else the adapter's default, which may be
+    // fewer steps than were done: the run would end at once, reported finished).
+    file.metadata.training["planned"] = total.into();
     file.metadata.normalization = plan.normalization;
     // The trainer checks each window's loss; the weights are checked here, since a run
     // shorter than a window reads no loss at all.
     check_trained(&file, done, "step")?;
     Ok(Trained {
         file,
-        train_seconds: plan.start.elapsed().as_secs_f64(),
+        train_seconds: plan.train_seconds(),
         done,
         final_loss: loss,
         interrupted,

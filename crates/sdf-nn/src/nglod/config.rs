@@ -406,6 +406,13 @@ impl NglodConfig {
         Ok(self.layout_with(|l| bands[l - dense].len()))
     }
 
+    /// Parameters of the dense and hashed levels and the MLP: all but the sparse levels' bands
+    /// (known once the mesh is), so a lower bound to check against the device before any is
+    /// allocated.
+    pub fn fixed_param_count(&self) -> usize {
+        self.layout_with(|_| 0).len
+    }
+
     /// The parameter layout when sparse level `l` holds `band_vertices(l)` vertices.
     pub(super) fn layout_with(&self, band_vertices: impl Fn(usize) -> usize) -> ParamLayout {
         let f = self.feature_dim as usize;

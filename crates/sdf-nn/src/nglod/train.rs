@@ -475,9 +475,16 @@ impl<'g> NglodTrainer<'g> {
                 "the final learning-rate ratio must be finite and non-negative, not {f}"
             )));
         }
-        crate::AdamConfig::check_lr(config.adam.lr).map_err(NglodError::InvalidConfig)?;
+        config.adam.check().map_err(NglodError::InvalidConfig)?;
         let n32 = u32::try_from(n)
             .map_err(|_| NglodError::InvalidConfig(format!("{n} points per epoch is too many")))?;
+        // The pool's points are indexed in u32 (the GPU's draw refuses the same).
+        if (config.pool_blocks as u64).saturating_mul(u64::from(n32)) > u64::from(u32::MAX) {
+            return Err(NglodError::InvalidConfig(format!(
+                "a pool of {} blocks of {n} points is more than 2^32 points: use fewer blocks",
+                config.pool_blocks
+            )));
+        }
         // NaN area (non-finite vertices) is rejected too.
         if mesh.triangles.is_empty()
             || mesh.area().partial_cmp(&0.0) != Some(std::cmp::Ordering::Greater)

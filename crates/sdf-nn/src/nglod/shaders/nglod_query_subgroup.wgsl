@@ -120,17 +120,18 @@ fn query_sg(
         let idx = first + k;
         let x = query_point(idx);
         let vg = value_grad_sg(query_clamped(x), lane, lanes, NORMALS);
-        if lane != 0u {
-            continue;
-        }
-        if NORMALS {
-            let n = query_normal(vg.yzw, x);
-            out[4u * idx] = query_distance(vg.x, x, u.query);
-            out[4u * idx + 1u] = n.x;
-            out[4u * idx + 2u] = n.y;
-            out[4u * idx + 3u] = n.z;
-        } else {
-            out[idx] = query_distance(vg.x, x, u.query);
+        // Lane 0 writes; every lane goes round the loop together (no `continue` that lets the
+        // lanes part before the next point's subgroup sums: WGSL does not promise they meet).
+        if lane == 0u {
+            if NORMALS {
+                let n = query_normal(vg.yzw, x);
+                out[4u * idx] = query_distance(vg.x, x, u.query);
+                out[4u * idx + 1u] = n.x;
+                out[4u * idx + 2u] = n.y;
+                out[4u * idx + 3u] = n.z;
+            } else {
+                out[idx] = query_distance(vg.x, x, u.query);
+            }
         }
     }
 }
