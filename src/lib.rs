@@ -7,7 +7,8 @@
 //! - [`eval`]: metrics, timing and corpus runs;
 //! - [`cli`]: the flags the binaries share (the GPU to run on, how to train).
 //!
-//! A model trained by `cargo run --release --bin train -- mesh.obj`, queried from Rust:
+//! A model trained by `cargo run --release --bin train -- spot.obj` (which writes
+//! `spot.nglod.safetensors`, or `spot.hashgrid.safetensors` on a CPU adapter), queried from Rust:
 //!
 //! ```no_run
 //! use hwsdf::nn::{GpuContext, NeuralSdf};
@@ -15,7 +16,7 @@
 //!
 //! # fn main() -> Result<(), Box<dyn std::error::Error>> {
 //! let gpu = GpuContext::new()?;
-//! let sdf = NeuralSdf::load("spot.safetensors")?;
+//! let sdf = NeuralSdf::load("spot.nglod.safetensors")?;
 //! let points = [Vec3::ZERO, Vec3::new(0.5, 0.2, -0.1)];
 //! // On the GPU, and the same answer from CPU threads.
 //! let on_gpu = sdf.eval(&gpu, &points)?;

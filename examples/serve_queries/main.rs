@@ -1,5 +1,5 @@
 //! Serving a neural SDF to code that queries it every frame: a planner that checks a swept
-//! robot (a chain of spheres) against an obstacle, with the serving API of `hwsdf::nn::query`.
+//! robot (a chain of spheres) against an obstacle, with the serving API of `hwsdf::nn::serve::query`.
 //!
 //! ```sh
 //! cargo run --release --example serve_queries               # an analytic sphere obstacle

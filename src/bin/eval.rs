@@ -19,7 +19,7 @@ use serde_json::json;
 
 /// Score a trained neural SDF against the exact SDF of its mesh.
 #[derive(Parser, Debug)]
-#[command(version, about)]
+#[command(version)]
 struct Args {
     /// Model file written by `train`.
     model: PathBuf,

@@ -18,7 +18,7 @@ use hwsdf::geom::extract::{EXTRACT_MEMORY_BUDGET, ExtractOptions, MAX_RESOLUTION
 /// Extract the zero level set (or the level set d = c) of a trained neural SDF or a scene as an
 /// OBJ mesh.
 #[derive(Parser, Debug)]
-#[command(version, about)]
+#[command(version)]
 struct Args {
     #[command(flatten)]
     source: SourceFlags,

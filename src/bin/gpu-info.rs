@@ -11,7 +11,7 @@ use hwsdf::cli::GpuFlags;
 
 /// Show the adapter HW SDF would use, and every adapter it can choose from.
 #[derive(Parser, Debug)]
-#[command(version, about)]
+#[command(version)]
 struct Args {
     #[command(flatten)]
     gpu: GpuFlags,

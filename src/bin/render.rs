@@ -22,7 +22,7 @@ use hwsdf::nn::{RenderOptions, Renderer};
 /// Render a neural SDF model (SIREN, NGLOD or hash grid) or a scene to a PNG by sphere tracing on
 /// the GPU.
 #[derive(Parser, Debug)]
-#[command(version, about)]
+#[command(version)]
 struct Args {
     #[command(flatten)]
     source: SourceFlags,

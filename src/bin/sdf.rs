@@ -25,7 +25,7 @@ use hwsdf::nn::{GpuContext, GroundTruthDevice, Labeller};
 
 /// Exact signed distance from a triangle mesh (OBJ, glTF, GLB) to query points in a .npy file.
 #[derive(Parser, Debug)]
-#[command(version, about)]
+#[command(version)]
 struct Args {
     /// The mesh: .obj, .gltf or .glb.
     mesh: PathBuf,

@@ -5,8 +5,8 @@
 //! cargo run --release --bin train -- tests/data/spot.obj --model hashgrid
 //! ```
 //!
-//! Ctrl-C stops after the current step (SIREN) or epoch (NGLOD, the hash grid) and saves what
-//! was learnt as a checkpoint next to the output; `--resume CHECKPOINT` continues from it.
+//! Ctrl-C stops after the current step (SIREN) or at the next loss read-back within an epoch
+//! (NGLOD, the hash grid) and saves what was learnt as a checkpoint next to the output; `--resume CHECKPOINT` continues from it.
 
 use std::ffi::OsString;
 use std::io::IsTerminal;
@@ -35,7 +35,7 @@ enum Model {
 
 /// Fit a neural signed distance function to a mesh on the GPU.
 #[derive(Parser, Debug)]
-#[command(version, about)]
+#[command(version)]
 struct Args {
     /// Mesh to fit (OBJ, glTF or GLB).
     mesh: PathBuf,

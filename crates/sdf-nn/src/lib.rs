@@ -1,14 +1,16 @@
-//! GPU side of HW SDF: the wgpu context, the WGSL kernels' host code, the optimiser, and (in
-//! later modules) the SIREN and NGLOD models, their trainers and model files.
+//! GPU side of HW SDF: the wgpu context, the WGSL kernels' host code, the optimiser, the
+//! SIREN, NGLOD and hash-grid models with their trainers and model files, the GPU ground truth,
+//! and serving (queries, rendering, scenes).
 //!
-//! Every kernel lives in the top-level `shaders/` folder and is embedded with `include_str!`;
-//! each has a CPU reference that the tests compare it with.
+//! Every kernel sits beside the module that runs it (`src/**/shaders/*.wgsl`, embedded with
+//! `include_str!`); each has a CPU reference that the tests compare it with.
 //!
 //! ```no_run
 //! use sdf_nn::{Adam, AdamConfig, GpuContext};
 //!
 //! # fn main() -> Result<(), sdf_nn::GpuError> {
-//! // Picks the adapter from WGPU_ADAPTER_NAME / WGPU_BACKEND, preferring a real GPU.
+//! // Picks the adapter from HWSDF_ADAPTER (or WGPU_ADAPTER_NAME / WGPU_BACKEND), preferring a
+//! // real GPU.
 //! let gpu = GpuContext::new()?;
 //! println!("running on {}", gpu.describe());
 //!

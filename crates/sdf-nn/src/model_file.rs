@@ -1,5 +1,5 @@
-//! Model files: safetensors with named tensors and JSON metadata, shared by SIREN and NGLOD.
-//! Weights are f32, NGLOD's grid features f16 (their rounding, a relative 2^-11, is far below a
+//! Model files: safetensors with named tensors and JSON metadata, shared by SIREN, NGLOD and
+//! the hash grid. Weights are f32, NGLOD's grid features and the hash grid's tables f16 (their rounding, a relative 2^-11, is far below a
 //! fit's error) and index tensors u32; in memory every value is an `f32`.
 //!
 //! A PyTorch user loads one with `safetensors.torch.load_file(path)` and gets tensors named and
@@ -9,7 +9,7 @@
 //! | key | value |
 //! | --- | --- |
 //! | `format` | `"hwsdf"` |
-//! | `architecture` | `"siren"` or `"nglod"` |
+//! | `architecture` | `"siren"`, `"nglod"` or `"hashgrid"` |
 //! | `config` | JSON of the architecture's hyperparameters |
 //! | `training` | JSON of the training run (loss weights, steps, seed, ...) |
 //! | `normalization` | JSON `{"center": [x, y, z], "scale": s}`: `normalized = (p - center) * scale` |

@@ -1,4 +1,4 @@
-//! [`NeuralSdf`]: one type over both architectures for people who use a trained model: query it
+//! [`NeuralSdf`]: one type over the three architectures for people who use a trained model: query it
 //! on the GPU or the CPU, get normals, embed it in a renderer's WGSL.
 //!
 //! Points are in the original mesh's coordinates and distances in its units, unless a method
