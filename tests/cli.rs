@@ -435,6 +435,27 @@ fn every_gpu_binary_takes_adapter() {
     assert!(stderr(&o).contains(&shown), "{}", stderr(&o));
 }
 
+/// Every binary's help opens with what that binary does (a bare `about` gave all eight the
+/// package's description, so `sdf --help` spoke of training).
+#[test]
+fn every_binary_describes_itself() {
+    for (name, opening) in [
+        ("train", "Fit a neural signed distance function"),
+        ("eval", "Score a trained neural SDF"),
+        ("corpus", "Train and evaluate every"),
+        ("sdf", "Exact signed distance from a triangle mesh"),
+        ("query", "Distances, normals, ray hits"),
+        ("render", "Render a neural SDF model"),
+        ("extract", "Extract the zero level set"),
+        ("gpu-info", "Show the adapter"),
+    ] {
+        let o = bin(name).arg("--help").output().unwrap();
+        assert!(o.status.success(), "{name}: {}", stderr(&o));
+        let help = String::from_utf8_lossy(&o.stdout);
+        assert!(help.starts_with(opening), "{name} --help: {help}");
+    }
+}
+
 /// The environment's GPU settings are checked as the GPU opens: a value no setting takes is an
 /// error naming the ones it does.
 #[test]

@@ -17,6 +17,7 @@ pub fn bin(name: &str) -> Command {
         "gpu-info" => env!("CARGO_BIN_EXE_gpu-info"),
         "render" => env!("CARGO_BIN_EXE_render"),
         "query" => env!("CARGO_BIN_EXE_query"),
+        "sdf" => env!("CARGO_BIN_EXE_sdf"),
         other => panic!("no binary {other}"),
     })
 }
