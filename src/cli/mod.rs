@@ -122,10 +122,13 @@ impl GroundTruthFlags {
 /// Checks the size of an evaluation's sets as `flag` (`--points`, `--eval-points`) gives it:
 /// at least one point, and within [`run::EVAL_MEMORY_BUDGET`].
 pub fn check_eval_points(flag: &str, points: usize) -> Result<(), RunError> {
-    if points == 0 {
-        return Err(RunError::Options(format!("{flag} must be at least 1")));
-    }
-    run::check_eval_points(points)
+    run::check_eval_points(points).map_err(|e| match e {
+        // The library's refusal of empty sets, named by the flag.
+        RunError::Options(_) if points == 0 => {
+            RunError::Options(format!("{flag} must be at least 1"))
+        }
+        other => other,
+    })
 }
 
 /// A loss as progress lines and reports print it: four significant digits whatever its scale

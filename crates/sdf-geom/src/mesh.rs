@@ -233,8 +233,9 @@ pub struct LoadReport {
     /// Polygons with more than three corners, triangulated (OBJ): a fan where convex, ear
     /// clipping in their plane where concave.
     pub polygons_triangulated: usize,
-    /// Of those, the concave ones (a fan would have covered area outside them). Those that
-    /// cross themselves or have more than 256 corners are fanned, with a warning.
+    /// Of those, the concave ones (a fan would have covered area outside them), ear-clipped.
+    /// Those whose outline crosses itself, of more than 256 corners, or past the file's
+    /// ear-clipping budget are cut without the ear check, with a warning.
     pub concave_polygons: usize,
     /// glTF triangle strips and fans converted to triangle lists.
     pub strips_fans_converted: usize,

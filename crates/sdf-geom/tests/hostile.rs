@@ -356,52 +356,66 @@ fn gltf_shared_nodes_are_counted_not_expanded() {
     assert!(t.elapsed().as_secs() < 10, "{:?}", t.elapsed());
 }
 
-/// Few instances reached through a long chain of nodes by many paths: every path visits every
-/// chain node (2^11 paths × 10 000 nodes), which the instance count did not see. Refused by
-/// the visits it would make, naming them.
+/// Few instances reached by many paths through a long chain of nodes (2^11 paths × 10 000
+/// chain nodes), or through a node with many childless children (2^11 paths × 10 000 children
+/// looked at): the instance count saw neither. Refused by the visits the expansion would make,
+/// naming them.
 #[test]
 fn gltf_long_shared_chains_are_bounded_by_visits() {
     let dir = temp_dir("gchain");
-    let (levels, chain) = (10, 10_000);
-    let mut nodes = Vec::new();
-    for l in 0..levels {
-        for _ in 0..2 {
-            nodes.push(format!(r#"{{"children":[{},{}]}}"#, 2 * l + 2, 2 * l + 3));
-        }
-    }
+    let (levels, many) = (10, 10_000);
     let start = 2 * levels + 2;
-    nodes.push(format!(r#"{{"children":[{start}]}}"#));
-    nodes.push(format!(r#"{{"children":[{start}]}}"#));
-    for k in 0..chain - 1 {
-        nodes.push(format!(r#"{{"children":[{}]}}"#, start + k + 1));
-    }
-    nodes.push(r#"{"mesh":0}"#.to_string());
-    let b = cube_buffer(&[]);
-    let json = doc(
-        &data_uri(&b),
-        b.len(),
-        CUBE_VIEWS,
-        &format!(
-            "{POS},{}",
-            r#"{"bufferView":1,"componentType":5125,"count":36,"type":"SCALAR"}"#
-        ),
-        Some(1),
-        &nodes.join(","),
-        "0,1",
-    );
-    match load_text(&dir, "chain.gltf", &json) {
-        Err(GeomError::SceneTooLarge {
-            what: "node visits",
-            count,
-            limit,
-            ..
-        }) => {
-            assert!(
-                count > limit && limit == sdf_geom::MAX_NODE_VISITS,
-                "{count}"
-            )
+    let diamond = || {
+        let mut nodes = Vec::new();
+        for l in 0..levels {
+            for _ in 0..2 {
+                nodes.push(format!(r#"{{"children":[{},{}]}}"#, 2 * l + 2, 2 * l + 3));
+            }
         }
-        other => panic!("expected SceneTooLarge, got {other:?}"),
+        nodes.push(format!(r#"{{"children":[{start}]}}"#));
+        nodes.push(format!(r#"{{"children":[{start}]}}"#));
+        nodes
+    };
+    // A chain from `start` to the mesh.
+    let mut chain = diamond();
+    for k in 0..many - 1 {
+        chain.push(format!(r#"{{"children":[{}]}}"#, start + k + 1));
+    }
+    chain.push(r#"{"mesh":0}"#.to_string());
+    // `start` holds the mesh's node and many empty ones.
+    let mut wide = diamond();
+    let children: Vec<String> = (start + 1..=start + many).map(|c| c.to_string()).collect();
+    wide.push(format!(r#"{{"children":[{}]}}"#, children.join(",")));
+    wide.push(r#"{"mesh":0}"#.to_string());
+    wide.extend((1..many).map(|_| "{}".to_string()));
+    let b = cube_buffer(&[]);
+    for (name, nodes) in [("chain", chain), ("wide", wide)] {
+        let json = doc(
+            &data_uri(&b),
+            b.len(),
+            CUBE_VIEWS,
+            &format!(
+                "{POS},{}",
+                r#"{"bufferView":1,"componentType":5125,"count":36,"type":"SCALAR"}"#
+            ),
+            Some(1),
+            &nodes.join(","),
+            "0,1",
+        );
+        match load_text(&dir, &format!("{name}.gltf"), &json) {
+            Err(GeomError::SceneTooLarge {
+                what: "node visits",
+                count,
+                limit,
+                ..
+            }) => {
+                assert!(
+                    count > limit && limit == sdf_geom::MAX_NODE_VISITS,
+                    "{name}: {count}"
+                )
+            }
+            other => panic!("{name}: expected SceneTooLarge, got {other:?}"),
+        }
     }
 }
 

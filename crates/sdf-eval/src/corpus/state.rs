@@ -80,8 +80,21 @@ pub enum Record {
     Unreadable(String),
 }
 
-/// How many times [`StateDir::claim`] reads the settings record before giving up.
-const CLAIM_ATTEMPTS: u32 = 20;
+/// A settings record at `path`, if there is one.
+fn read_settings_file(path: PathBuf) -> Result<Option<CorpusSettings>, CorpusError> {
+    match std::fs::read(&path) {
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(None),
+        Err(source) => Err(CorpusError::Io { path, source }),
+        Ok(bytes) => {
+            serde_json::from_slice(&bytes)
+                .map(Some)
+                .map_err(|e| CorpusError::BadSettings {
+                    path,
+                    reason: e.to_string(),
+                })
+        }
+    }
+}
 
 /// The folder of per-mesh results, `<out>.d/`, shared by every shard.
 #[derive(Clone, Debug)]
@@ -162,72 +175,79 @@ impl StateDir {
         self.dir.join("settings.json")
     }
 
-    /// The recorded settings, if any run has recorded them yet.
+    /// The record of a model that a later run added to the folder: `settings.<model>.json`
+    /// (the first run's models are in [`StateDir::settings_path`]).
+    fn model_settings_path(&self, model: &str) -> PathBuf {
+        self.dir.join(format!("settings.{model}.json"))
+    }
+
+    /// The recorded settings, if any run has recorded them yet: the first run's record with
+    /// the models later runs added beside it.
     pub fn read_settings(&self) -> Result<Option<CorpusSettings>, CorpusError> {
-        let path = self.settings_path();
-        match std::fs::read(&path) {
-            Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(None),
-            Err(source) => Err(CorpusError::Io { path, source }),
-            Ok(bytes) => {
-                serde_json::from_slice(&bytes)
-                    .map(Some)
-                    .map_err(|e| CorpusError::BadSettings {
-                        path,
-                        reason: e.to_string(),
-                    })
+        let Some(mut settings) = read_settings_file(self.settings_path())? else {
+            return Ok(None);
+        };
+        for model in ModelKind::ALL.map(ModelKind::name) {
+            if settings.models.contains_key(model) {
+                continue;
+            }
+            if let Some(added) = read_settings_file(self.model_settings_path(model))? {
+                settings.models.extend(added.models);
             }
         }
+        Ok(Some(settings))
     }
 
     /// Records `settings` as the folder's, or checks them against those recorded: any
-    /// difference is [`CorpusError::OtherSettings`], and a model the record lacks is added to
-    /// it. Shards starting together agree on one record: the first is created without ever
-    /// replacing another's, and the rest are checked against it. Runs of different models
-    /// adding theirs at once may replace each other's addition: each reads the record again
-    /// after writing and adds its models again until they are there. A folder from before the
+    /// difference is [`CorpusError::OtherSettings`]. Shards starting together agree on one
+    /// record: the first run's is created without ever replacing another's, and the rest are
+    /// checked against it. A model the record lacks gets a record of its own, created the same
+    /// way, so that runs of different models starting at once never lose one another's (a
+    /// shared record rewritten by each lost one now and then). A folder from before the
     /// record existed takes the first settings claimed.
     pub fn claim(&self, settings: &CorpusSettings) -> Result<(), CorpusError> {
-        let path = self.settings_path();
-        let io = |source| CorpusError::Io {
-            path: path.clone(),
-            source,
-        };
         let json = |s: &CorpusSettings| serde_json::to_vec_pretty(s).expect("settings serialise");
-        // A shard that loses the race to create the record reads the winner's; one whose
-        // addition was replaced by another's adds it again.
-        for attempt in 0..CLAIM_ATTEMPTS {
-            let Some(recorded) = self.read_settings()? else {
-                match sdf_geom::io::create_atomic(&path, &json(settings)) {
-                    Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => continue,
-                    other => return other.map_err(io),
-                }
-            };
-            let differences = settings.differences(&recorded);
-            if !differences.is_empty() {
-                return Err(CorpusError::OtherSettings {
-                    dir: self.dir.clone(),
-                    differences,
-                });
-            }
-            let mut merged = recorded.clone();
-            for (model, s) in &settings.models {
-                merged
-                    .models
-                    .entry(model.clone())
-                    .or_insert_with(|| s.clone());
-            }
-            if merged == recorded {
-                return Ok(());
-            }
-            sdf_geom::io::write_atomic(&path, &json(&merged)).map_err(io)?;
-            // Staggered, so that two runs adding models do not keep replacing each other.
-            std::thread::sleep(std::time::Duration::from_millis(
-                10 + 7 * u64::from(attempt) + u64::from(std::process::id() % 10),
-            ));
+        let path = self.settings_path();
+        match sdf_geom::io::create_atomic(&path, &json(settings)) {
+            Ok(()) => return Ok(()),
+            Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => {}
+            Err(source) => return Err(CorpusError::Io { path, source }),
         }
-        Err(io(std::io::Error::other(
-            "the settings record kept changing while this run added its models to it",
-        )))
+        let recorded = self.read_settings()?.ok_or_else(|| CorpusError::Io {
+            path: path.clone(),
+            source: std::io::Error::other("the settings record was removed while being read"),
+        })?;
+        let conflict = |differences: Vec<String>| CorpusError::OtherSettings {
+            dir: self.dir.clone(),
+            differences,
+        };
+        let differences = settings.differences(&recorded);
+        if !differences.is_empty() {
+            return Err(conflict(differences));
+        }
+        for (model, s) in &settings.models {
+            if recorded.models.contains_key(model) {
+                continue;
+            }
+            let own = CorpusSettings {
+                eval_points: settings.eval_points,
+                models: [(model.clone(), s.clone())].into(),
+            };
+            let path = self.model_settings_path(model);
+            match sdf_geom::io::create_atomic(&path, &json(&own)) {
+                Ok(()) => {}
+                // Another run of this model recorded it first: its settings must be these.
+                Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => {
+                    let theirs = read_settings_file(path)?.unwrap_or_default();
+                    let differences = own.differences(&theirs);
+                    if !differences.is_empty() {
+                        return Err(conflict(differences));
+                    }
+                }
+                Err(source) => return Err(CorpusError::Io { path, source }),
+            }
+        }
+        Ok(())
     }
 
     /// The result file of `rel` × `model`.

@@ -35,7 +35,8 @@ pub const MAX_INSTANCED_VERTICES: u64 = 20_000_000;
 /// Most mesh instances (node-to-mesh references, counted through shared nodes) in a glTF scene.
 pub const MAX_INSTANCES: u64 = 1_000_000;
 /// Most node visits a glTF scene's expansion may make: each path from a root to each node with
-/// a mesh below it, a transform composed per visit (about a second's work at this bound).
+/// a mesh below it, a transform composed and the node's children looked at per visit (each
+/// child counts one more; about a second's work at this bound).
 pub const MAX_NODE_VISITS: u64 = 16 * MAX_INSTANCES;
 
 /// Options for [`load_mesh_with`].

@@ -9,7 +9,7 @@ use std::path::{Path, PathBuf};
 use glam::DVec3;
 use rayon::prelude::*;
 
-use super::polygon::{self, MAX_EAR_CLIPPED_CORNERS, Triangulation};
+use super::polygon::{self, EAR_CLIP_BUDGET, MAX_EAR_CLIPPED_CORNERS, Triangulation};
 use super::{MAX_INSTANCED_TRIANGLES, MAX_INSTANCED_VERTICES, check_limits, in_message};
 use crate::GeomError;
 use crate::mesh::{LoadReport, Mesh, clean, recentre};
@@ -235,6 +235,7 @@ pub(super) fn load_obj(
     let mut triangles: Vec<[u32; 3]> = Vec::new();
     let (mut corners, mut corner_triangles) = (Vec::new(), Vec::new());
     let (mut concave, mut fanned_concave) = (0usize, 0usize);
+    let mut ear_clip_budget = EAR_CLIP_BUDGET;
     for model in &models {
         let m = &model.mesh;
         let base = positions.len() as u64;
@@ -279,7 +280,7 @@ pub(super) fn load_obj(
                     at.copied().unwrap_or(DVec3::NAN)
                 }));
                 corner_triangles.clear();
-                match polygon::triangulate(&corners, &mut corner_triangles) {
+                match polygon::triangulate(&corners, &mut corner_triangles, &mut ear_clip_budget) {
                     Triangulation::Fan => {}
                     Triangulation::EarClipped => concave += 1,
                     Triangulation::Fallback => fanned_concave += 1,
@@ -293,9 +294,10 @@ pub(super) fn load_obj(
     report.concave_polygons = concave + fanned_concave;
     if fanned_concave > 0 {
         report.warnings.push(format!(
-            "{fanned_concave} concave polygons fan-triangulated: they cross themselves or have \
-             more than {MAX_EAR_CLIPPED_CORNERS} corners, and their \
-             triangles may cover area outside them"
+            "{fanned_concave} concave polygons triangulated without the ear check (their \
+             outline crosses itself, they have more than {MAX_EAR_CLIPPED_CORNERS} corners, or \
+             the file's ear-clipping budget ran out): their triangles may cover area outside \
+             them"
         ));
     }
     if counts.short_faces > 0 {

@@ -6,8 +6,13 @@
 use glam::{DVec2, DVec3};
 
 /// Polygons with more corners than this are fan-triangulated whatever their shape: ear
-/// clipping as done here is cubic in the corner count.
+/// clipping as done here costs up to the cube of the corner count.
 pub(super) const MAX_EAR_CLIPPED_CORNERS: usize = 256;
+
+/// The ear clipping one file may ask for, in squared corner counts (each concave polygon of `n`
+/// corners costs `n²` of it): about a second's work. Past it, concave polygons are fanned with
+/// a warning, so that a file of many large concave faces cannot stall the loader.
+pub(super) const EAR_CLIP_BUDGET: u64 = 50_000_000;
 
 /// How a polygon was triangulated.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -16,14 +21,21 @@ pub(super) enum Triangulation {
     Fan,
     /// Concave: ear clipping in its plane.
     EarClipped,
-    /// Concave, but crossing itself (no corner left is an ear) or with more than
-    /// [`MAX_EAR_CLIPPED_CORNERS`] corners: fanned, the rest of it or all of it.
+    /// Concave, but not clipped cleanly: at some step no corner left was an ear (the outline
+    /// crosses itself) and one was cut without the check, or the polygon has more than
+    /// [`MAX_EAR_CLIPPED_CORNERS`] corners or the file's [`EAR_CLIP_BUDGET`] ran out and it
+    /// was fanned.
     Fallback,
 }
 
 /// Appends the `n − 2` triangles of the polygon with corners `corners` (in order) to `out`, as
-/// indices into `corners`, and says how.
-pub(super) fn triangulate(corners: &[DVec3], out: &mut Vec<[usize; 3]>) -> Triangulation {
+/// indices into `corners`, and says how. Ear clipping is paid for from `budget` (`n²` a
+/// polygon; start from [`EAR_CLIP_BUDGET`]).
+pub(super) fn triangulate(
+    corners: &[DVec3],
+    out: &mut Vec<[usize; 3]>,
+    budget: &mut u64,
+) -> Triangulation {
     let n = corners.len();
     let fan =
         |out: &mut Vec<[usize; 3]>| out.extend((1..n.saturating_sub(1)).map(|k| [0, k, k + 1]));
@@ -40,10 +52,12 @@ pub(super) fn triangulate(corners: &[DVec3], out: &mut Vec<[usize; 3]>) -> Trian
         fan(out);
         return Triangulation::Fan;
     }
-    if n > MAX_EAR_CLIPPED_CORNERS {
+    let cost = (n as u64).pow(2);
+    if n > MAX_EAR_CLIPPED_CORNERS || *budget < cost {
         fan(out);
         return Triangulation::Fallback;
     }
+    *budget -= cost;
     ear_clip(&flat, tolerance, out)
 }
 
@@ -97,43 +111,50 @@ fn turn(a: DVec2, b: DVec2, c: DVec2) -> f64 {
     (b - a).perp_dot(c - a)
 }
 
-/// Ear clipping of a counter-clockwise polygon: cuts a convex corner whose triangle holds no
-/// other remaining corner, until a triangle is left. Where no corner is an ear (the polygon
-/// crosses itself), the rest is fanned.
+/// Ear clipping of a counter-clockwise polygon: cuts a corner in line with its neighbours (or
+/// repeating one), as a triangle without area that the clean-up drops, or else a convex
+/// corner whose triangle holds no other remaining corner, until a triangle is left. Corners in
+/// line go first: a zero-width spike (an edge walked out and back) is cut away whole, where an
+/// ear beside it would have put a two-sided fin outside the polygon. Where no corner is either
+/// (the outline crosses itself), the second one is cut without the check.
 fn ear_clip(flat: &[DVec2], tolerance: f64, out: &mut Vec<[usize; 3]>) -> Triangulation {
     let mut left: Vec<usize> = (0..flat.len()).collect();
     let mut how = Triangulation::EarClipped;
+    // Where the last cut was: the next ear is usually beside it.
+    let mut from = 0;
     while left.len() > 3 {
         let m = left.len();
         let corner = |i: usize| {
             let (a, b, c) = (left[(i + m - 1) % m], left[i], left[(i + 1) % m]);
             (a, b, c, turn(flat[a], flat[b], flat[c]))
         };
-        let ear = (0..m).find(|&i| {
-            let (a, b, c, t) = corner(i);
-            let (pa, pb, pc) = (flat[a], flat[b], flat[c]);
-            t > tolerance
-                && left.iter().all(|&k| {
-                    let p = flat[k];
-                    // A corner at one of the ear's own positions (a polygon bridged to a hole
-                    // repeats two) does not block it.
-                    [a, b, c].contains(&k)
-                        || p == pa
-                        || p == pb
-                        || p == pc
-                        || !inside_or_on(p, pa, pb, pc, tolerance)
-                })
-        });
-        // Else a corner in line with its neighbours (or repeating one), cut as a triangle
-        // without area, which the clean-up drops: the outline keeps its shape.
-        let flat_corner = || (0..m).find(|&i| corner(i).3.abs() <= tolerance);
-        let i = ear.or_else(flat_corner).unwrap_or_else(|| {
+        let order = || (0..m).map(|k| (from + k) % m);
+        let in_line = order().find(|&i| corner(i).3.abs() <= tolerance);
+        let ear = || {
+            order().find(|&i| {
+                let (a, b, c, t) = corner(i);
+                let (pa, pb, pc) = (flat[a], flat[b], flat[c]);
+                t > tolerance
+                    && left.iter().all(|&k| {
+                        let p = flat[k];
+                        // A corner at one of the ear's own positions (a polygon bridged to a hole
+                        // repeats two) does not block it.
+                        [a, b, c].contains(&k)
+                            || p == pa
+                            || p == pb
+                            || p == pc
+                            || !inside_or_on(p, pa, pb, pc, tolerance)
+                    })
+            })
+        };
+        let i = in_line.or_else(ear).unwrap_or_else(|| {
             how = Triangulation::Fallback;
             1
         });
         let (a, b, c) = (left[(i + m - 1) % m], left[i], left[(i + 1) % m]);
         out.push([a, b, c]);
         left.remove(i);
+        from = i.saturating_sub(1);
     }
     out.push([left[0], left[1], left[2]]);
     how
@@ -173,16 +194,25 @@ mod tests {
     fn convex_polygons_are_fans() {
         let square = xy(&[[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]]);
         let mut tris = Vec::new();
-        assert_eq!(triangulate(&square, &mut tris), Triangulation::Fan);
+        assert_eq!(
+            triangulate(&square, &mut tris, &mut EAR_CLIP_BUDGET.clone()),
+            Triangulation::Fan
+        );
         assert_eq!(tris, [[0, 1, 2], [0, 2, 3]]);
         // Collinear corners on an edge are not concave.
         let mut tris = Vec::new();
         let with_midpoint = xy(&[[0.0, 0.0], [0.5, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]]);
-        assert_eq!(triangulate(&with_midpoint, &mut tris), Triangulation::Fan);
+        assert_eq!(
+            triangulate(&with_midpoint, &mut tris, &mut EAR_CLIP_BUDGET.clone()),
+            Triangulation::Fan
+        );
         // No area: a fan of degenerate triangles, which the clean-up drops.
         let mut tris = Vec::new();
         let line = xy(&[[0.0, 0.0], [1.0, 0.0], [2.0, 0.0], [3.0, 0.0]]);
-        assert_eq!(triangulate(&line, &mut tris), Triangulation::Fan);
+        assert_eq!(
+            triangulate(&line, &mut tris, &mut EAR_CLIP_BUDGET.clone()),
+            Triangulation::Fan
+        );
         assert_eq!(tris.len(), 2);
     }
 
@@ -236,13 +266,17 @@ mod tests {
                     corners[1..].reverse();
                 }
                 let mut tris = Vec::new();
-                assert_eq!(triangulate(&corners, &mut tris), Triangulation::EarClipped);
+                assert_eq!(
+                    triangulate(&corners, &mut tris, &mut EAR_CLIP_BUDGET.clone()),
+                    Triangulation::EarClipped
+                );
                 assert_eq!(tris.len(), corners.len() - 2);
                 let plane = Plane::of(&corners).unwrap();
                 let f: Vec<DVec2> = corners.iter().map(|&p| plane.project(p)).collect();
+                // None turns the other way (corners in line give triangles without area).
                 for t in &tris {
                     assert!(
-                        turn(f[t[0]], f[t[1]], f[t[2]]) > 0.0,
+                        turn(f[t[0]], f[t[1]], f[t[2]]) > -1e-9,
                         "{t:?} of {corners:?}"
                     );
                 }
@@ -271,13 +305,16 @@ mod tests {
             })
             .collect();
         let mut tris = Vec::new();
-        assert_eq!(triangulate(&xy(&star), &mut tris), Triangulation::Fallback);
+        assert_eq!(
+            triangulate(&xy(&star), &mut tris, &mut EAR_CLIP_BUDGET.clone()),
+            Triangulation::Fallback
+        );
         assert_eq!(tris.len(), star.len() - 2);
         // One corner fewer is clipped.
         let mut tris = Vec::new();
         let smaller = &star[..MAX_EAR_CLIPPED_CORNERS];
         assert_eq!(
-            triangulate(&xy(smaller), &mut tris),
+            triangulate(&xy(smaller), &mut tris, &mut EAR_CLIP_BUDGET.clone()),
             Triangulation::EarClipped
         );
     }
@@ -296,23 +333,71 @@ mod tests {
             [0.0, 2.0],
         ]);
         let mut tris = Vec::new();
-        assert_eq!(triangulate(&l_shape, &mut tris), Triangulation::EarClipped);
+        assert_eq!(
+            triangulate(&l_shape, &mut tris, &mut EAR_CLIP_BUDGET.clone()),
+            Triangulation::EarClipped
+        );
         assert!((signed_area(&l_shape, &tris) - 3.0).abs() < 1e-12);
     }
 
+    /// A polygon whose outline crosses itself still gives `n − 2` triangles of its corners,
+    /// whichever way it is cut (no outline is right for it).
     #[test]
-    fn self_intersecting_polygons_fall_back_to_a_fan() {
-        // A bow tie crossing itself, concave by its Newell normal: no corner is a clean ear.
+    fn self_crossing_polygons_give_their_triangles() {
         let bow = xy(&[[0.0, 0.0], [2.0, 2.0], [2.0, 0.0], [1.0, 1.5], [0.0, 2.0]]);
         let mut tris = Vec::new();
-        let how = triangulate(&bow, &mut tris);
+        triangulate(&bow, &mut tris, &mut EAR_CLIP_BUDGET.clone());
         assert_eq!(tris.len(), 3);
-        assert!(matches!(
-            how,
-            Triangulation::EarClipped | Triangulation::Fallback
-        ));
+        assert!(tris.iter().flatten().all(|&k| k < bow.len()));
+    }
+
+    /// A zero-width spike on an edge (walked out and back) is cut away whole: no two-sided fin
+    /// outside the polygon (an ear beside the spike covered it once each way).
+    #[test]
+    fn spikes_are_cut_away_whole() {
+        let spiked = xy(&[
+            [0.0, 0.0],
+            [4.0, 0.0],
+            [4.0, 4.0],
+            [2.0, 4.0],
+            [2.0, 6.0],
+            [2.0, 4.0],
+            [0.0, 4.0],
+        ]);
+        let mut tris = Vec::new();
+        triangulate(&spiked, &mut tris, &mut EAR_CLIP_BUDGET.clone());
+        let f: Vec<DVec2> = spiked.iter().map(|p| p.truncate()).collect();
+        // Every triangle with area lies in the square.
         for t in &tris {
-            assert!(t.iter().all(|&k| k < bow.len()));
+            if turn(f[t[0]], f[t[1]], f[t[2]]).abs() > 1e-12 {
+                assert!(t.iter().all(|&k| f[k].y <= 4.0), "{t:?}");
+            }
         }
+        assert!((signed_area(&spiked, &tris) - 16.0).abs() < 1e-9);
+    }
+
+    /// Past the file's budget, concave polygons are fanned (and said to be).
+    #[test]
+    fn the_budget_bounds_the_clipping() {
+        let l_shape = xy(&[
+            [2.0, 1.0],
+            [1.0, 1.0],
+            [1.0, 2.0],
+            [0.0, 2.0],
+            [0.0, 0.0],
+            [2.0, 0.0],
+        ]);
+        let mut budget = 36 + 35;
+        let mut tris = Vec::new();
+        assert_eq!(
+            triangulate(&l_shape, &mut tris, &mut budget),
+            Triangulation::EarClipped
+        );
+        assert_eq!(budget, 35);
+        assert_eq!(
+            triangulate(&l_shape, &mut tris, &mut budget),
+            Triangulation::Fallback
+        );
+        assert_eq!((budget, tris.len()), (35, 8));
     }
 }

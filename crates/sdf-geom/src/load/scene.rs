@@ -132,14 +132,16 @@ pub(super) fn check_scene_size(
     instancing: &[Option<GpuInstancing>],
 ) -> Result<(), GeomError> {
     // Which meshes are used, how often, and what they would add; and how many node visits the
-    // expansion makes (every path to every node with a mesh below it: a long chain under a
-    // node reached by many paths costs visits, not instances).
+    // expansion makes (every path to every node with a mesh below it, each visit looking at
+    // the node's children: a long chain, or a node of many childless children, reached by
+    // many paths costs visits, not instances).
     let mut mesh_uses = vec![0u64; doc.meshes().len()];
     let mut visits = 0u64;
     match graph {
         Some(g) => {
             for node in doc.nodes().filter(|n| g.mesh_below[n.index()]) {
-                visits = visits.saturating_add(g.multiplicity[node.index()]);
+                let work = 1 + node.children().len() as u64;
+                visits = visits.saturating_add(g.multiplicity[node.index()].saturating_mul(work));
             }
             for node in doc.nodes() {
                 if let Some(mesh) = node.mesh() {

@@ -117,8 +117,8 @@ pub struct TraceOptions {
 /// for the same 2083 hits; 1.2 and 1.6 saved 20 % and 32 % (docs/benchmarks, session 28).
 pub const TRACE_OVER_RELAXATION: f32 = 1.4;
 
-/// The defaults' tolerances are absolute, chosen for a scene about one unit across (a model
-/// of a mesh in `[-1, 1]³`). A scene of a 2 mm part in metres, or of a building in
+/// The defaults' tolerances are absolute, chosen for a scene of half-side about 1 (a model of
+/// a mesh in `[-1, 1]³`). A scene of a 2 mm part in metres, or of a building in
 /// millimetres, wants them in proportion: `for_scene` scales them by the scene's half-side.
 impl Default for TraceOptions {
     fn default() -> Self {
@@ -133,7 +133,7 @@ impl Default for TraceOptions {
 
 impl TraceOptions {
     /// The defaults with the hit tolerance in proportion to `scene`: 10⁻⁴ of the half-side
-    /// of its frame ([`Scene::frame`]), the default's 10⁻⁴ for a scene one unit across. What
+    /// of its frame ([`Scene::frame`]), the default's 10⁻⁴ for a scene of half-side 1. What
     /// `query --rays` uses.
     pub fn for_scene(scene: &Scene) -> Self {
         let defaults = TraceOptions::default();
