@@ -116,7 +116,10 @@ fn train_rows(
             }
         }
     }
-    let res = o - targets[pi];
+    // The served value: outside the box, the clamped point's plus the distance to the box
+    // (the serving rule of query_map.wgsl), which a near-surface point beyond a face is
+    // labelled against.
+    let res = o + length(p - clamp(p, vec3<f32>(-1.0), vec3<f32>(1.0))) - targets[pi];
     let g = 2.0 * res;
     rows[row] = g;
     rows[row + 1u] = res * res;

@@ -104,7 +104,8 @@ fn train_row_sg(row_idx: u32, lane: u32, lanes: u32) {
     // Broadcast: a reduction's rounding need not be the same on every lane, and g must be.
     // b1 from the uniform copy: every lane reads the same word.
     let out = subgroupBroadcastFirst(subgroupAdd(o)) + mlp_at(w1 + H - w0);
-    let res = out - targets[pi];
+    // The served value, as in nglod_train.wgsl: outside the box plus the distance to it.
+    let res = out + length(p - clamp(p, vec3<f32>(-1.0), vec3<f32>(1.0))) - targets[pi];
     let g = 2.0 * res;
     if lane == 0u {
         rows[row] = g;
