@@ -308,6 +308,11 @@ fn dag(levels: usize, mesh: bool) -> String {
     let last = if mesh { r#"{"mesh":0}"# } else { "{}" };
     nodes.push(last.to_string());
     nodes.push(last.to_string());
+    cube_scene(&nodes.join(","), "0,1")
+}
+
+/// A glTF document whose mesh 0 is the indexed cube, with `nodes` and the scene's `roots`.
+fn cube_scene(nodes: &str, roots: &str) -> String {
     let b = cube_buffer(&[]);
     doc(
         &data_uri(&b),
@@ -318,8 +323,8 @@ fn dag(levels: usize, mesh: bool) -> String {
             r#"{"bufferView":1,"componentType":5125,"count":36,"type":"SCALAR"}"#
         ),
         Some(1),
-        &nodes.join(","),
-        "0,1",
+        nodes,
+        roots,
     )
 }
 
@@ -388,20 +393,8 @@ fn gltf_long_shared_chains_are_bounded_by_visits() {
     wide.push(format!(r#"{{"children":[{}]}}"#, children.join(",")));
     wide.push(r#"{"mesh":0}"#.to_string());
     wide.extend((1..many).map(|_| "{}".to_string()));
-    let b = cube_buffer(&[]);
     for (name, nodes) in [("chain", chain), ("wide", wide)] {
-        let json = doc(
-            &data_uri(&b),
-            b.len(),
-            CUBE_VIEWS,
-            &format!(
-                "{POS},{}",
-                r#"{"bufferView":1,"componentType":5125,"count":36,"type":"SCALAR"}"#
-            ),
-            Some(1),
-            &nodes.join(","),
-            "0,1",
-        );
+        let json = cube_scene(&nodes.join(","), "0,1");
         match load_text(&dir, &format!("{name}.gltf"), &json) {
             Err(GeomError::SceneTooLarge {
                 what: "node visits",

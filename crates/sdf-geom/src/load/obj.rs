@@ -9,7 +9,7 @@ use std::path::{Path, PathBuf};
 use glam::DVec3;
 use rayon::prelude::*;
 
-use super::polygon::{self, EAR_CLIP_BUDGET, MAX_EAR_CLIPPED_CORNERS, Triangulation};
+use super::polygon::Polygons;
 use super::{MAX_INSTANCED_TRIANGLES, MAX_INSTANCED_VERTICES, check_limits, in_message};
 use crate::GeomError;
 use crate::mesh::{LoadReport, Mesh, clean, recentre};
@@ -233,9 +233,7 @@ pub(super) fn load_obj(
     // Positions in f64 (tobj's `use_f64`), recentred before they become f32 ([`recentre`]).
     let mut positions: Vec<DVec3> = Vec::new();
     let mut triangles: Vec<[u32; 3]> = Vec::new();
-    let (mut corners, mut corner_triangles) = (Vec::new(), Vec::new());
-    let (mut concave, mut fanned_concave) = (0usize, 0usize);
-    let mut ear_clip_budget = EAR_CLIP_BUDGET;
+    let mut polygons = Polygons::default();
     for model in &models {
         let m = &model.mesh;
         let base = positions.len() as u64;
@@ -272,34 +270,16 @@ pub(super) fn load_obj(
                     continue;
                 }
                 report.polygons_triangulated += 1;
-                let first = base as usize;
-                corners.clear();
                 // An index past the positions (refused by the clean-up) reads as NaN: a fan.
-                corners.extend(face.iter().map(|&i| {
-                    let at = positions.get(first + i as usize);
-                    at.copied().unwrap_or(DVec3::NAN)
-                }));
-                corner_triangles.clear();
-                match polygon::triangulate(&corners, &mut corner_triangles, &mut ear_clip_budget) {
-                    Triangulation::Fan => {}
-                    Triangulation::EarClipped => concave += 1,
-                    Triangulation::Fallback => fanned_concave += 1,
-                }
-                for t in &corner_triangles {
+                let at = |i: u32| positions.get(base as usize + i as usize).copied();
+                let corners = face.iter().map(|&i| at(i).unwrap_or(DVec3::NAN));
+                for t in polygons.triangulate(corners) {
                     triangles.push([idx(face[t[0]])?, idx(face[t[1]])?, idx(face[t[2]])?]);
                 }
             }
         }
     }
-    report.concave_polygons = concave + fanned_concave;
-    if fanned_concave > 0 {
-        report.warnings.push(format!(
-            "{fanned_concave} concave polygons triangulated without the ear check (their \
-             outline crosses itself, they have more than {MAX_EAR_CLIPPED_CORNERS} corners, or \
-             the file's ear-clipping budget ran out): their triangles may cover area outside \
-             them"
-        ));
-    }
+    polygons.report(&mut report);
     if counts.short_faces > 0 {
         report.warnings.push(format!(
             "{} faces with fewer than three vertices ignored",

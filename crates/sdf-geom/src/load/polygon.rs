@@ -7,16 +7,16 @@ use glam::{DVec2, DVec3};
 
 /// Polygons with more corners than this are fan-triangulated whatever their shape: ear
 /// clipping as done here costs up to the cube of the corner count.
-pub(super) const MAX_EAR_CLIPPED_CORNERS: usize = 256;
+const MAX_EAR_CLIPPED_CORNERS: usize = 256;
 
 /// The ear clipping one file may ask for, in squared corner counts (each concave polygon of `n`
 /// corners costs `n²` of it): about a second's work. Past it, concave polygons are fanned with
 /// a warning, so that a file of many large concave faces cannot stall the loader.
-pub(super) const EAR_CLIP_BUDGET: u64 = 50_000_000;
+const EAR_CLIP_BUDGET: u64 = 50_000_000;
 
 /// How a polygon was triangulated.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub(super) enum Triangulation {
+enum Triangulation {
     /// Convex (or without area): a fan from its first corner.
     Fan,
     /// Concave: ear clipping in its plane.
@@ -28,14 +28,59 @@ pub(super) enum Triangulation {
     Fallback,
 }
 
+/// One file's polygons as they are triangulated: the buffers, the counts and the budget.
+pub(super) struct Polygons {
+    corners: Vec<DVec3>,
+    triangles: Vec<[usize; 3]>,
+    concave: usize,
+    not_clipped: usize,
+    budget: u64,
+}
+
+impl Default for Polygons {
+    fn default() -> Self {
+        Polygons {
+            corners: Vec::new(),
+            triangles: Vec::new(),
+            concave: 0,
+            not_clipped: 0,
+            budget: EAR_CLIP_BUDGET,
+        }
+    }
+}
+
+impl Polygons {
+    /// The triangles of the polygon with these corners, as indices into them.
+    pub(super) fn triangulate(&mut self, corners: impl Iterator<Item = DVec3>) -> &[[usize; 3]] {
+        self.corners.clear();
+        self.corners.extend(corners);
+        self.triangles.clear();
+        match triangulate(&self.corners, &mut self.triangles, &mut self.budget) {
+            Triangulation::Fan => {}
+            Triangulation::EarClipped => self.concave += 1,
+            Triangulation::Fallback => self.not_clipped += 1,
+        }
+        &self.triangles
+    }
+
+    /// Counts the concave polygons in `report`, with a warning for those not ear-clipped.
+    pub(super) fn report(&self, report: &mut crate::mesh::LoadReport) {
+        report.concave_polygons = self.concave + self.not_clipped;
+        if self.not_clipped > 0 {
+            report.warnings.push(format!(
+                "{} concave polygons triangulated without the ear check (their outline crosses \
+                 itself, they have more than {MAX_EAR_CLIPPED_CORNERS} corners, or the file's \
+                 ear-clipping budget ran out): their triangles may cover area outside them",
+                self.not_clipped
+            ));
+        }
+    }
+}
+
 /// Appends the `n − 2` triangles of the polygon with corners `corners` (in order) to `out`, as
 /// indices into `corners`, and says how. Ear clipping is paid for from `budget` (`n²` a
 /// polygon; start from [`EAR_CLIP_BUDGET`]).
-pub(super) fn triangulate(
-    corners: &[DVec3],
-    out: &mut Vec<[usize; 3]>,
-    budget: &mut u64,
-) -> Triangulation {
+fn triangulate(corners: &[DVec3], out: &mut Vec<[usize; 3]>, budget: &mut u64) -> Triangulation {
     let n = corners.len();
     let fan =
         |out: &mut Vec<[usize; 3]>| out.extend((1..n.saturating_sub(1)).map(|k| [0, k, k + 1]));
@@ -186,6 +231,19 @@ mod tests {
             .sum()
     }
 
+    /// An L listed from the corner beside its notch: the fan's second triangle lies in the
+    /// notch.
+    fn l_shape() -> Vec<DVec3> {
+        xy(&[
+            [2.0, 1.0],
+            [1.0, 1.0],
+            [1.0, 2.0],
+            [0.0, 2.0],
+            [0.0, 0.0],
+            [2.0, 0.0],
+        ])
+    }
+
     fn xy(points: &[[f64; 2]]) -> Vec<DVec3> {
         points.iter().map(|p| DVec3::new(p[0], p[1], 0.0)).collect()
     }
@@ -221,15 +279,7 @@ mod tests {
     /// the first corner covers more: it crosses the notch).
     #[test]
     fn concave_polygons_are_ear_clipped() {
-        // From the corner beside the notch: its fan's second triangle lies in the notch.
-        let l_shape = xy(&[
-            [2.0, 1.0],
-            [1.0, 1.0],
-            [1.0, 2.0],
-            [0.0, 2.0],
-            [0.0, 0.0],
-            [2.0, 0.0],
-        ]);
+        let l_shape = l_shape();
         let star: Vec<[f64; 2]> = (0..10)
             .map(|i| {
                 let a = i as f64 * std::f64::consts::PI / 5.0;
@@ -379,14 +429,7 @@ mod tests {
     /// Past the file's budget, concave polygons are fanned (and said to be).
     #[test]
     fn the_budget_bounds_the_clipping() {
-        let l_shape = xy(&[
-            [2.0, 1.0],
-            [1.0, 1.0],
-            [1.0, 2.0],
-            [0.0, 2.0],
-            [0.0, 0.0],
-            [2.0, 0.0],
-        ]);
+        let l_shape = l_shape();
         let mut budget = 36 + 35;
         let mut tris = Vec::new();
         assert_eq!(
