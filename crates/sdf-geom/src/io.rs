@@ -341,21 +341,8 @@ pub fn write_obj(mesh: &Mesh, path: &Path) -> std::io::Result<()> {
 }
 
 fn check_obj_indices(mesh: &Mesh) -> std::io::Result<()> {
-    let n = mesh.vertices.len();
-    match mesh
-        .triangles
-        .iter()
-        .position(|t| t.iter().any(|&i| i as usize >= n))
-    {
-        None => Ok(()),
-        Some(k) => Err(std::io::Error::new(
-            std::io::ErrorKind::InvalidInput,
-            format!(
-                "triangle {k} ({:?}) names a vertex the mesh does not have (it has {n})",
-                mesh.triangles[k]
-            ),
-        )),
-    }
+    crate::mesh::check_indices(&mesh.triangles, mesh.vertices.len())
+        .map_err(|e| std::io::Error::new(std::io::ErrorKind::InvalidInput, e.to_string()))
 }
 
 /// Writes the mesh moved by `offset` as OBJ, atomically: a mesh computed relative to a centre
