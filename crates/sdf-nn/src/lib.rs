@@ -35,7 +35,9 @@ pub mod shaders;
 pub mod siren;
 
 pub use adam::{Adam, AdamConfig, AdamCpu, AdamState};
-pub use gpu::{GpuContext, GpuError, GpuOptions, QueryKernel, SPIN_WAIT, StepLayout};
+pub use gpu::{
+    GpuContext, GpuError, GpuOptions, QueryKernel, SPIN_WAIT, SirenActivations, StepLayout,
+};
 pub use ground_truth::{
     GpuGroundTruth, GroundTruthDevice, GroundTruthError, GroundTruthPath, Labeller,
 };

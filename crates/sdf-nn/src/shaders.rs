@@ -311,7 +311,8 @@ pub(crate) fn check_mirror(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::serve::wgsl::Lanes;
+    use crate::gpu::SirenActivations;
+    use crate::serve::wgsl::{self, Lanes};
 
     /// naga capabilities that correspond to a set of wgpu features. Validating with only these
     /// makes accidental use of any other capability fail.
@@ -337,24 +338,37 @@ mod tests {
     fn compile_shaders() {
         for shader in ALL {
             // A shader completed by a model's snippet is validated with the snippet of a small
-            // model of each architecture; every other one on its own.
+            // model of each architecture, its SIRENs' activations in private arrays and in
+            // scratch (behind the scratch's declarations); every other one on its own.
+            let forms = [SirenActivations::Private, SirenActivations::Scratch];
+            let prelude = |form| match form {
+                SirenActivations::Private => String::new(),
+                SirenActivations::Scratch => wgsl::scratch_source(2, 64),
+            };
             let sources: Vec<String> = if shader.name == SCENE_QUERY.name {
-                vec![format!(
-                    "{}\n{}",
-                    small_scene_wgsl(Lanes::One),
-                    shader.source
-                )]
+                forms
+                    .map(|form| {
+                        let scene = small_scene_wgsl(Lanes::One, form);
+                        format!("{}{scene}\n{}", prelude(form), shader.source)
+                    })
+                    .to_vec()
             } else if shader.name == SCENE_QUERY_SUBGROUP.name {
-                vec![format!(
-                    "{}\n{}\n{}",
-                    small_scene_wgsl(Lanes::Subgroup),
-                    SCENE_QUERY.source,
-                    shader.source
-                )]
+                forms
+                    .map(|form| {
+                        let scene = small_scene_wgsl(Lanes::Subgroup, form);
+                        let query = SCENE_QUERY.source;
+                        format!("{}{scene}\n{query}\n{}", prelude(form), shader.source)
+                    })
+                    .to_vec()
             } else if NEEDS_MODEL.contains(&shader.name) {
                 small_models()
                     .iter()
-                    .map(|m| format!("{}\n{}", m.wgsl(1), shader.source))
+                    .flat_map(|m| {
+                        forms.map(|form| {
+                            let snippet = m.wgsl_with_activations(1, form);
+                            format!("{}{snippet}\n{}", prelude(form), shader.source)
+                        })
+                    })
                     .collect()
             } else {
                 vec![shader.source.to_owned()]
@@ -367,7 +381,7 @@ mod tests {
 
     /// The snippet (prefix `scene`, group 1, in the form for `lanes`) of a scene of the small
     /// models and every primitive under every operator.
-    fn small_scene_wgsl(lanes: Lanes) -> String {
+    fn small_scene_wgsl(lanes: Lanes, activations: SirenActivations) -> String {
         use crate::serve::scene::{Primitive as P, Scene, SceneNode as N, Transform};
         use glam::{Quat, Vec3};
         use std::sync::Arc;
@@ -448,7 +462,7 @@ mod tests {
         ]);
         Scene::new(root)
             .expect("a valid scene")
-            .wgsl_with_lanes(1, "scene", &wgpu::Limits::default(), lanes)
+            .wgsl_with_lanes(1, "scene", &wgpu::Limits::default(), lanes, activations)
             .expect("fits the default limits")
     }
 

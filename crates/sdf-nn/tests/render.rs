@@ -215,3 +215,71 @@ fn siren_model_renders() {
     assert_eq!(image.pixels.len(), 24 * 24 * 4);
     assert!(image.pixels.chunks(4).all(|p| p[3] == 255));
 }
+
+/// A SIREN renders the same image with its activations in private arrays (GPUs) and in a
+/// scratch buffer (CPU adapters, from 32 units wide): both forms compile and run on the device,
+/// the surface (a random network's, at the level of its median over the box) is in view, and
+/// the pixels agree.
+#[test]
+fn siren_renders_alike_from_private_arrays_and_scratch() {
+    use sdf_nn::{GpuOptions, SirenActivations};
+    let siren = sdf_nn::Siren::new(
+        sdf_nn::SirenConfig {
+            width: 8,
+            hidden_layers: 2,
+            omega0: 30.0,
+        },
+        6,
+    )
+    .unwrap();
+    let sdf =
+        NeuralSdf::from_model_file(siren.to_model_file(normalization(), serde_json::Value::Null))
+            .unwrap();
+    let n = normalization();
+    let box_points: Vec<Vec3> = (0..1001)
+        .map(|i| {
+            let t = i as f32 / 1001.0;
+            let p = Vec3::new((t * 97.0).fract(), (t * 61.0).fract(), t) * 2.0 - 1.0;
+            n.center.as_vec3() + p / n.scale
+        })
+        .collect();
+    let mut values = sdf.eval_cpu(&box_points);
+    values.sort_by(f32::total_cmp);
+    let options = RenderOptions {
+        width: 24,
+        height: 24,
+        level: values[500],
+        ..RenderOptions::default()
+    };
+    let images: Vec<_> = [SirenActivations::Private, SirenActivations::Scratch]
+        .into_iter()
+        .map(|form| {
+            let gpu = GpuContext::with_options(&GpuOptions {
+                siren_activations: Some(form),
+                ..GpuOptions::from_env().unwrap()
+            })
+            .unwrap();
+            sdf_nn::render(&gpu, &sdf, &options).unwrap()
+        })
+        .collect();
+    let background = (options.background * 255.0)
+        .round()
+        .to_array()
+        .map(|c| c as u8);
+    let hits = images[0]
+        .pixels
+        .chunks(4)
+        .filter(|p| *p != &background[..])
+        .count();
+    assert!(hits > 50, "only {hits} of 576 pixels show the surface");
+    let differing = images[0]
+        .pixels
+        .chunks(4)
+        .zip(images[1].pixels.chunks(4))
+        .filter(|(a, b)| a.iter().zip(*b).any(|(x, y)| x.abs_diff(*y) > 1))
+        .count();
+    assert!(
+        differing <= 2,
+        "{differing} pixels differ between the forms"
+    );
+}

@@ -39,7 +39,8 @@ use adapter::{describe_info, shares_host_memory};
 pub use error::GpuError;
 pub(crate) use launch::{GridLaunch, Launch, record_launches};
 pub use options::{
-    ENV_VARIABLES, GpuOptions, QueryKernel, StepLayout, skip_device_select_layer_when_headless,
+    ENV_VARIABLES, GpuOptions, QueryKernel, SirenActivations, StepLayout,
+    skip_device_select_layer_when_headless,
 };
 pub(crate) use pending::PendingRead;
 pub(crate) use staged::UniformStager;
@@ -279,6 +280,19 @@ impl GpuContext {
     /// batch size on this device.
     pub fn may_use_subgroup_queries(&self) -> bool {
         self.query_kernel(0) == QueryKernel::PerSubgroup
+    }
+
+    /// Where a SIREN's activations live in the renderer's and the scene queries' kernels:
+    /// `HWSDF_SIREN_ACTIVATIONS` ([`GpuOptions::siren_activations`]) if set, else
+    /// [`SirenActivations::Scratch`] on a CPU adapter (for SIRENs at least 32 units wide; a
+    /// kernel of narrower ones keeps private arrays unless the variable asks for scratch) and
+    /// [`SirenActivations::Private`] on a GPU.
+    pub fn siren_activations(&self) -> SirenActivations {
+        self.options.siren_activations.unwrap_or(if self.is_cpu() {
+            SirenActivations::Scratch
+        } else {
+            SirenActivations::Private
+        })
     }
 
     /// The limits the device was created with.

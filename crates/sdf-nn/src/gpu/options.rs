@@ -14,6 +14,28 @@ pub enum StepLayout {
     Cpu,
 }
 
+/// Where a SIREN's WGSL keeps one layer's activations while it computes the next, in the
+/// kernels of ours that evaluate a whole network per invocation: the renderer and the scene
+/// queries (`HWSDF_SIREN_ACTIVATIONS`). By default the adapter decides: [`Scratch`] on CPU
+/// adapters where a SIREN is at least 32 units wide (narrower ones compile as fast from
+/// private arrays), [`Private`] on GPUs. The answers are the same; the tests hold both to the
+/// CPU reference and to each other.
+///
+/// [`Scratch`]: SirenActivations::Scratch
+/// [`Private`]: SirenActivations::Private
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum SirenActivations {
+    /// Function-scope arrays, as the snippet of [`NeuralSdf::wgsl`](crate::NeuralSdf::wgsl)
+    /// has them: a GPU keeps them in its local memory, interleaved across threads.
+    Private,
+    /// A read-write storage buffer of the kernel's, one slot per invocation. llvmpipe
+    /// (lavapipe) compiles every compute shader as an LLVM coroutine, and LLVM 15 takes
+    /// minutes to build the coroutine frame of a function with private arrays of a few hundred
+    /// elements: a 64-wide SIREN's tracer took 15 s to compile, a 256-wide one did not finish
+    /// in 10 minutes; from a storage buffer both compile in under a second.
+    Scratch,
+}
+
 /// How a kernel shares its elements (a query's points, a scene's rays, a training step's rows)
 /// among the GPU's invocations. The answers agree to f32 rounding; the tests hold both to the
 /// CPU reference. Queries choose with [`GpuContext::query_kernel`](crate::GpuContext::query_kernel), NGLOD and hash-grid
@@ -72,6 +94,10 @@ pub struct GpuOptions {
     /// (`HWSDF_TRAIN_KERNEL=invocation|subgroup`); `None`: by adapter
     /// ([`GpuContext::train_kernel`](crate::GpuContext::train_kernel)).
     pub train_kernel: Option<QueryKernel>,
+    /// Force where SIREN activations live in the renderer and the scene queries
+    /// (`HWSDF_SIREN_ACTIVATIONS=private|scratch`); `None`: by adapter
+    /// ([`GpuContext::siren_activations`](crate::GpuContext::siren_activations)).
+    pub siren_activations: Option<SirenActivations>,
 }
 
 impl Default for GpuOptions {
@@ -85,6 +111,7 @@ impl Default for GpuOptions {
             step_layout: None,
             query_kernel: None,
             train_kernel: None,
+            siren_activations: None,
         }
     }
 }
@@ -99,13 +126,15 @@ pub const ENV_VARIABLES: &[&str] = &[
     "HWSDF_STEP_LAYOUT",
     "HWSDF_QUERY_KERNEL",
     "HWSDF_TRAIN_KERNEL",
+    "HWSDF_SIREN_ACTIVATIONS",
 ];
 
 impl GpuOptions {
     /// Options from the process's environment: `HWSDF_ADAPTER` (index, bus id or name), else
     /// `WGPU_ADAPTER_NAME` (name); `WGPU_BACKEND`; `HWSDF_MAPPABLE_STORAGE=0|1`;
     /// `HWSDF_NO_COOP=0|1`; `HWSDF_STEP_LAYOUT=gpu|cpu`;
-    /// `HWSDF_QUERY_KERNEL=invocation|subgroup`; `HWSDF_TRAIN_KERNEL=invocation|subgroup`. An empty variable counts as unset; any
+    /// `HWSDF_QUERY_KERNEL=invocation|subgroup`; `HWSDF_TRAIN_KERNEL=invocation|subgroup`;
+    /// `HWSDF_SIREN_ACTIVATIONS=private|scratch`. An empty variable counts as unset; any
     /// other value than those listed is an error naming the allowed ones.
     pub fn from_env() -> Result<Self, GpuError> {
         Self::from_vars(|name| std::env::var(name).ok())
@@ -168,6 +197,15 @@ impl GpuOptions {
             }),
             query_kernel: kernel("HWSDF_QUERY_KERNEL")?,
             train_kernel: kernel("HWSDF_TRAIN_KERNEL")?,
+            siren_activations: choice("HWSDF_SIREN_ACTIVATIONS", &["private", "scratch"])?.map(
+                |i| {
+                    if i == 0 {
+                        SirenActivations::Private
+                    } else {
+                        SirenActivations::Scratch
+                    }
+                },
+            ),
         })
     }
 

@@ -14,4 +14,5 @@ pub mod neural;
 pub mod query;
 pub mod render;
 pub mod scene;
+pub(crate) mod scratch;
 pub mod wgsl;

@@ -17,7 +17,7 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use glam::Vec3;
 use rayon::prelude::*;
 
-use crate::gpu::{GpuContext, GpuTimer};
+use crate::gpu::{GpuContext, GpuTimer, SirenActivations};
 use crate::model_file::{ModelFile, Normalization};
 use crate::nglod::{Nglod, NglodGpu};
 use crate::serve::error::{NeuralSdfError, QueryError};
@@ -221,12 +221,23 @@ impl NeuralSdf {
     /// the [`wgsl`] module. The current level of detail
     /// ([`NeuralSdf::set_lod`]) is baked in.
     pub fn wgsl(&self, group: u32) -> String {
+        self.wgsl_with_activations(group, SirenActivations::Private)
+    }
+
+    /// [`NeuralSdf::wgsl`] in the form for `activations`: the scratch form reads the names of
+    /// [`wgsl::scratch_source`], which the kernel provides.
+    pub(crate) fn wgsl_with_activations(
+        &self,
+        group: u32,
+        activations: SirenActivations,
+    ) -> String {
         wgsl::generate(
             self.network(),
             self.normalization(),
             self.lod(),
             group,
             wgsl::Lanes::One,
+            activations,
         )
     }
 

@@ -24,7 +24,8 @@ use crate::gpu::{GpuContext, GpuError};
 use crate::model_file::{Normalization, write_atomic};
 use crate::serve::neural::NeuralSdf;
 use crate::serve::scene::{Scene, SceneBindGroup, SceneGpuError};
-use crate::serve::wgsl::{EmbedError, Lanes, SdfBindGroup};
+use crate::serve::scratch::{self, SCRATCH_GROUP};
+use crate::serve::wgsl::{self, EmbedError, Lanes, SdfBindGroup};
 use crate::shaders::SPHERE_TRACE;
 
 /// Largest image side we accept (keeps the pixel buffer and the dispatch within every device's
@@ -335,6 +336,19 @@ pub struct Renderer {
     macs_per_eval: u64,
     /// See [`Renderer::set_max_submission_macs`].
     max_submission_macs: u64,
+    /// Where the snippet's SIRENs keep their activations in scratch
+    /// ([`crate::SirenActivations::Scratch`]).
+    scratch: Option<PixelScratch>,
+}
+
+/// The tracer's scratch: a slot of `stride` floats per pixel of a band, in a buffer each image
+/// allocates (at most `limit` bytes, the device's binding) bound with `layout` at
+/// [`SCRATCH_GROUP`].
+#[derive(Debug)]
+struct PixelScratch {
+    stride: u32,
+    layout: wgpu::BindGroupLayout,
+    limit: u64,
 }
 
 /// What the tracer's group 1 binds: a model's weights or a scene's.
@@ -366,7 +380,14 @@ impl Renderer {
         let per_row = u64::from(options.width)
             * u64::from(options.max_steps.max(1))
             * self.macs_per_eval.max(1);
-        let rows = (self.max_submission_macs / per_row.max(1)) / u64::from(TILE) * u64::from(TILE);
+        let mut rows = self.max_submission_macs / per_row.max(1);
+        if let Some(scratch) = &self.scratch {
+            // A band's pixels each hold a slot of the scratch, which one binding must hold (an
+            // image too wide for one tile row of slots gets the binding's error).
+            let per_row = 4 * u64::from(scratch.stride) * u64::from(options.width);
+            rows = rows.min(scratch.limit / per_row.max(1));
+        }
+        let rows = rows / u64::from(TILE) * u64::from(TILE);
         rows.clamp(
             u64::from(TILE),
             u64::from(options.height.next_multiple_of(TILE)),
@@ -394,12 +415,19 @@ impl Renderer {
     /// weights. Compilation is the slow part (seconds on lavapipe): keep the renderer.
     pub fn new(gpu: &GpuContext, sdf: &NeuralSdf) -> Result<Self, RenderError> {
         let weights = Weights::Model(sdf.bind_group(gpu.device())?);
+        let stride = scratch::stride(gpu, [sdf.network()]);
+        let source = format!(
+            "{}{}\n{}",
+            scratch_prelude(stride),
+            sdf.wgsl_with_activations(SDF_GROUP, scratch::activations(stride)),
+            SPHERE_TRACE.source
+        );
         Self::compile(
             gpu,
-            sphere_trace_source(sdf),
+            source,
             weights,
-            sdf.normalization(),
-            sdf.param_count() as u64,
+            (sdf.normalization(), sdf.param_count() as u64),
+            stride,
         )
     }
 
@@ -410,14 +438,23 @@ impl Renderer {
     pub fn for_scene(gpu: &GpuContext, scene: &Scene) -> Result<Self, RenderError> {
         // The tracer binds two storage buffers besides the weights: its image and its tiles'
         // starts (group 0's bindings 1 and 2 in `compile`).
-        let (snippets, weights) =
-            scene.compile(gpu.device(), SDF_GROUP, "scene", 2, &[Lanes::One])?;
+        let stride = scratch::stride(gpu, scene.models().iter().map(|m| m.network()));
+        let (snippets, weights) = scene.compile(
+            gpu.device(),
+            SDF_GROUP,
+            "scene",
+            2 + u32::from(stride.is_some()),
+            &[Lanes::One],
+            scratch::activations(stride),
+        )?;
         let weights = Weights::Scene(weights);
         let source = format!(
-            "{}\n\
+            "{}{}\n\
              fn hwsdf_trace(p: vec3<f32>, c: f32) -> vec2<f32> {{ return scene_trace(p, c); }}\n\
              fn hwsdf_normal(p: vec3<f32>) -> vec3<f32> {{ return scene_normal(p); }}\n{}",
-            snippets[0], SPHERE_TRACE.source
+            scratch_prelude(stride),
+            snippets[0],
+            SPHERE_TRACE.source
         );
         let params: u64 = scene
             .models()
@@ -425,17 +462,19 @@ impl Renderer {
             .map(|m| m.param_count() as u64)
             .sum::<u64>()
             + scene.leaves().len() as u64 * 64;
-        Self::compile(gpu, source, weights, scene.frame(0.0), params)
+        Self::compile(gpu, source, weights, (scene.frame(0.0), params), stride)
     }
 
     /// The pipeline of `source` (a snippet defining `hwsdf_trace` and `hwsdf_normal`, then
-    /// the tracer) with `weights` at group 1.
+    /// the tracer) with `weights` at group 1, for the box `framed.0` and evaluations of at most
+    /// `framed.1` multiply-adds; with a scratch group of `stride` floats per pixel where the
+    /// snippet's SIRENs keep their activations in scratch.
     fn compile(
         gpu: &GpuContext,
         source: String,
         weights: Weights,
-        normalization: Normalization,
-        macs_per_eval: u64,
+        (normalization, macs_per_eval): (Normalization, u64),
+        stride: Option<u32>,
     ) -> Result<Self, RenderError> {
         let device = gpu.device();
         let frame_layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
@@ -459,9 +498,18 @@ impl Renderer {
         let module = gpu.generated_module(SPHERE_TRACE.name, Cow::Owned(source));
         // An explicit layout: the weights' group is created from its own layout (by
         // `NeuralSdf::bind_group` or `Scene::upload`), which a derived layout would not accept.
+        let scratch = stride.map(|stride| PixelScratch {
+            stride,
+            layout: scratch::layout(device),
+            limit: scratch::binding_limit(gpu),
+        });
         let layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
             label: Some("sphere_trace"),
-            bind_group_layouts: &[Some(&frame_layout), Some(weights.layout())],
+            bind_group_layouts: &[
+                Some(&frame_layout),
+                Some(weights.layout()),
+                scratch.as_ref().map(|s| &s.layout),
+            ],
             immediate_size: 0,
         });
         let entry = |name: &str| {
@@ -491,6 +539,7 @@ impl Renderer {
             normalization,
             macs_per_eval,
             max_submission_macs: MAX_SUBMISSION_MACS,
+            scratch,
         })
     }
 
@@ -563,6 +612,10 @@ impl Renderer {
         // driver's watchdog (a desktop GPU resets after about 2 s) however large the image or
         // the network.
         let rows = self.band_rows(options);
+        let scratch = match &self.scratch {
+            Some(s) => Some(scratch::bind_group(gpu, &s.layout, s.stride, w * rows)?),
+            None => None,
+        };
         for first in (0..h).step_by(rows as usize) {
             let band = TraceUniforms {
                 size: [w, h, options.max_steps, first],
@@ -596,6 +649,9 @@ impl Renderer {
                 });
                 pass.set_bind_group(0, &frame, &[]);
                 pass.set_bind_group(SDF_GROUP, self.weights.bind_group(), &[]);
+                if let Some(group) = &scratch {
+                    pass.set_bind_group(SCRATCH_GROUP, group, &[]);
+                }
                 let band_rows = rows.min(h - first);
                 if self.accelerated {
                     // One invocation per cone, 8 × 8 of them a workgroup.
@@ -646,8 +702,16 @@ fn storage_entry(binding: u32) -> wgpu::BindGroupLayoutEntry {
 /// after a long submission.
 const MAX_SUBMISSION_MACS: u64 = 1 << 38;
 
+/// What the tracer's source starts with where SIRENs keep their activations in a scratch of
+/// `stride` floats per pixel.
+fn scratch_prelude(stride: Option<u32>) -> String {
+    stride
+        .map(|stride| wgsl::scratch_source(SCRATCH_GROUP, stride))
+        .unwrap_or_default()
+}
+
 /// The sphere tracer's full source for `sdf`: the model's snippet at group 1, then
-/// `shaders/sphere_trace.wgsl`.
+/// `shaders/sphere_trace.wgsl` (the form for GPUs; see [`crate::SirenActivations`]).
 pub fn sphere_trace_source(sdf: &NeuralSdf) -> String {
     format!("{}\n{}", sdf.wgsl(SDF_GROUP), SPHERE_TRACE.source)
 }

@@ -44,6 +44,7 @@ use std::fmt::Write;
 
 use glam::Vec3;
 
+use crate::gpu::SirenActivations;
 use crate::model_file::Normalization;
 use crate::nglod::{LevelStorage, Nglod};
 use crate::serve::network::Network;
@@ -297,6 +298,7 @@ pub(crate) fn generate(
     lod: Option<usize>,
     group: u32,
     lanes: Lanes,
+    activations: SirenActivations,
 ) -> String {
     let mut s = String::new();
     let arch = match network {
@@ -316,7 +318,7 @@ pub(crate) fn generate(
     );
     match network {
         Network::Siren(m) => {
-            siren(&mut s, m);
+            siren(&mut s, m, activations);
             if lanes == Lanes::Subgroup {
                 s.push_str(SIREN_SUBGROUP);
             }
@@ -450,7 +452,7 @@ fn hwsdf_box_rule(v: vec4<f32>, away: vec3<f32>) -> vec4<f32> {
 
 /// SIREN: `sin(ω0·(W x + b))` layers with loops over the flat parameters (layout in
 /// [`crate::siren`]); the gradient is carried forward as three tangents next to each value.
-fn siren(s: &mut String, m: &Siren) {
+fn siren(s: &mut String, m: &Siren, activations: SirenActivations) {
     let c = m.config();
     let layers = c.layers();
     let w = c.width;
@@ -470,7 +472,33 @@ fn siren(s: &mut String, m: &Siren) {
         hidden_start = 3 * w + w,
         out_start = last.weight,
     );
-    s.push_str(SIREN_BODY);
+    s.push_str(match activations {
+        SirenActivations::Private => SIREN_BODY,
+        SirenActivations::Scratch => SIREN_SCRATCH_BODY,
+    });
+}
+
+/// Floats of scratch one invocation needs for `network`'s activations in the
+/// [`SirenActivations::Scratch`] form: two layers of (value, gradient) per unit. `None` for
+/// the grid models, whose snippets keep everything in registers.
+pub(crate) fn scratch_stride(network: &Network) -> Option<u32> {
+    match network {
+        Network::Siren(m) => Some(8 * m.config().width as u32),
+        Network::Nglod(_) => None,
+    }
+}
+
+/// What a kernel of ours prepends to snippets in the [`SirenActivations::Scratch`] form: the
+/// scratch buffer at `@group(group) @binding(0)` and the floats of one invocation's slot. The
+/// kernel itself declares `var<private> sdf_slot: u32` and sets it, before any evaluation, to
+/// an index no other invocation of the dispatch uses at the same time.
+pub(crate) fn scratch_source(group: u32, stride: u32) -> String {
+    format!(
+        "// SIREN activations (SirenActivations::Scratch): SDF_SCRATCH_STRIDE floats from\n\
+         // sdf_slot * SDF_SCRATCH_STRIDE belong to one invocation.\n\
+         @group({group}) @binding(0) var<storage, read_write> sdf_scratch: array<f32>;\n\
+         const SDF_SCRATCH_STRIDE: u32 = {stride}u;\n"
+    )
 }
 
 /// Layer l ≥ 1 of the hidden stack starts at `HWSDF_HIDDEN_START + (l - 1)·(W² + W)`. Sums
@@ -536,6 +564,90 @@ fn hwsdf_phi_grad(x: vec3<f32>) -> vec4<f32> {
     var out = vec4<f32>(0.0);
     for (var i = 0u; i < HWSDF_WIDTH; i++) {
         out += hwsdf_params[HWSDF_OUT_START + i] * a[i];
+    }
+    return out + vec4<f32>(hwsdf_params[HWSDF_OUT_START + HWSDF_WIDTH], 0.0, 0.0, 0.0);
+}
+"#;
+
+/// [`SIREN_BODY`] with the activations in the invocation's slot of `sdf_scratch` (see
+/// [`scratch_source`]): the two layers a step reads and writes are the slot's two halves; in the
+/// gradient form each unit takes four floats (value, d/dx, d/dy, d/dz). Same sums, same order.
+const SIREN_SCRATCH_BODY: &str = r#"
+// The network's value at a point inside the box.
+fn hwsdf_phi(x: vec3<f32>) -> f32 {
+    let base = sdf_slot * SDF_SCRATCH_STRIDE;
+    for (var o = 0u; o < HWSDF_WIDTH; o++) {
+        let row = 3u * o;
+        let z = hwsdf_params[row] * x.x + hwsdf_params[row + 1u] * x.y + hwsdf_params[row + 2u] * x.z;
+        sdf_scratch[base + o] = sin(HWSDF_OMEGA0 * (z + hwsdf_params[3u * HWSDF_WIDTH + o]));
+    }
+    var src = base;
+    var off = HWSDF_HIDDEN_START;
+    for (var l = 1u; l < HWSDF_HIDDEN_LAYERS; l++) {
+        // The other half of the slot.
+        let dst = 2u * base + HWSDF_WIDTH - src;
+        let bias = off + HWSDF_WIDTH * HWSDF_WIDTH;
+        for (var o = 0u; o < HWSDF_WIDTH; o++) {
+            let row = off + o * HWSDF_WIDTH;
+            var z = 0.0;
+            for (var i = 0u; i < HWSDF_WIDTH; i++) {
+                z += hwsdf_params[row + i] * sdf_scratch[src + i];
+            }
+            sdf_scratch[dst + o] = sin(HWSDF_OMEGA0 * (z + hwsdf_params[bias + o]));
+        }
+        src = dst;
+        off = bias + HWSDF_WIDTH;
+    }
+    var out = 0.0;
+    for (var i = 0u; i < HWSDF_WIDTH; i++) {
+        out += hwsdf_params[HWSDF_OUT_START + i] * sdf_scratch[src + i];
+    }
+    return out + hwsdf_params[HWSDF_OUT_START + HWSDF_WIDTH];
+}
+
+// Unit k's (h, dh/dx, dh/dy, dh/dz) at float `at` of the scratch.
+fn hwsdf_scratch_unit(at: u32) -> vec4<f32> {
+    return vec4<f32>(sdf_scratch[at], sdf_scratch[at + 1u], sdf_scratch[at + 2u], sdf_scratch[at + 3u]);
+}
+
+fn hwsdf_scratch_set_unit(at: u32, v: vec4<f32>) {
+    sdf_scratch[at] = v.x;
+    sdf_scratch[at + 1u] = v.y;
+    sdf_scratch[at + 2u] = v.z;
+    sdf_scratch[at + 3u] = v.w;
+}
+
+// The value and the gradient (x: value, yzw: d/dx, d/dy, d/dz) at a point inside the box, by
+// forward-mode differentiation: each unit carries (h, dh/dx, dh/dy, dh/dz).
+fn hwsdf_phi_grad(x: vec3<f32>) -> vec4<f32> {
+    let base = sdf_slot * SDF_SCRATCH_STRIDE;
+    for (var o = 0u; o < HWSDF_WIDTH; o++) {
+        let row = 3u * o;
+        let wr = vec3<f32>(hwsdf_params[row], hwsdf_params[row + 1u], hwsdf_params[row + 2u]);
+        let z = wr.x * x.x + wr.y * x.y + wr.z * x.z + hwsdf_params[3u * HWSDF_WIDTH + o];
+        let arg = HWSDF_OMEGA0 * z;
+        hwsdf_scratch_set_unit(base + 4u * o, vec4<f32>(sin(arg), HWSDF_OMEGA0 * cos(arg) * wr));
+    }
+    var src = base;
+    var off = HWSDF_HIDDEN_START;
+    for (var l = 1u; l < HWSDF_HIDDEN_LAYERS; l++) {
+        let dst = 2u * base + 4u * HWSDF_WIDTH - src;
+        let bias = off + HWSDF_WIDTH * HWSDF_WIDTH;
+        for (var o = 0u; o < HWSDF_WIDTH; o++) {
+            let row = off + o * HWSDF_WIDTH;
+            var z = vec4<f32>(0.0);
+            for (var i = 0u; i < HWSDF_WIDTH; i++) {
+                z += hwsdf_params[row + i] * hwsdf_scratch_unit(src + 4u * i);
+            }
+            let arg = HWSDF_OMEGA0 * (z.x + hwsdf_params[bias + o]);
+            hwsdf_scratch_set_unit(dst + 4u * o, vec4<f32>(sin(arg), HWSDF_OMEGA0 * cos(arg) * z.yzw));
+        }
+        src = dst;
+        off = bias + HWSDF_WIDTH;
+    }
+    var out = vec4<f32>(0.0);
+    for (var i = 0u; i < HWSDF_WIDTH; i++) {
+        out += hwsdf_params[HWSDF_OUT_START + i] * hwsdf_scratch_unit(src + 4u * i);
     }
     return out + vec4<f32>(hwsdf_params[HWSDF_OUT_START + HWSDF_WIDTH], 0.0, 0.0, 0.0);
 }

@@ -977,3 +977,114 @@ fn groups_of_models_skipped_by_their_floors_match_the_cpu() {
         assert!(shared > 150, "{shared} of 300 rays hit");
     }
 }
+
+/// SIREN leaves, with their activations in scratch (the default on CPU adapters) on both
+/// kernels, and in private arrays (the default on GPUs), against the CPU: distances,
+/// gradients, ray hits and closest points. A random SIREN under a union with a sphere, placed
+/// twice, so that the two instances and the kernels' slots share one scratch.
+#[test]
+fn siren_leaves_match_the_cpu_in_both_activation_forms() {
+    use sdf_nn::{GpuOptions, SirenActivations};
+    let siren = sdf_nn::Siren::new(
+        sdf_nn::SirenConfig {
+            width: 8,
+            hidden_layers: 2,
+            omega0: 30.0,
+        },
+        5,
+    )
+    .unwrap();
+    let model = Arc::new(
+        NeuralSdf::from_model_file(
+            siren.to_model_file(Normalization::identity(), serde_json::Value::Null),
+        )
+        .unwrap(),
+    );
+    let scene = Scene::new(SceneNode::Union(vec![
+        SceneNode::model(model.clone(), Transform::from_translation(Vec3::X * -1.2)),
+        SceneNode::model(
+            model.clone(),
+            Transform::new(Vec3::X * 1.2, Quat::from_rotation_y(0.7), 0.8),
+        ),
+        SceneNode::primitive(
+            Primitive::Sphere { radius: 0.5 },
+            Transform::from_translation(Vec3::Y * 1.5),
+        ),
+    ]))
+    .unwrap();
+    let private = GpuContext::with_options(&GpuOptions {
+        siren_activations: Some(SirenActivations::Private),
+        ..GpuOptions::from_env().unwrap()
+    })
+    .unwrap();
+    let scratch = GpuContext::with_options(&GpuOptions {
+        siren_activations: Some(SirenActivations::Scratch),
+        ..GpuOptions::from_env().unwrap()
+    })
+    .unwrap();
+    let points = random_points(500, 2.5, 31);
+    let rays: Vec<Ray> = random_points(120, 1.5, 32)
+        .into_iter()
+        .map(|t| Ray {
+            origin: Vec3::new(0.0, 0.5, -6.0),
+            direction: t - Vec3::new(0.0, 0.5, -6.0),
+            max_distance: 20.0,
+        })
+        .collect();
+    // A random SIREN's slopes reach tens: small steps.
+    // Its surface at the level of its median over its box, which it crosses there.
+    let mut values = model.eval_cpu(&random_points(1001, 1.0, 30));
+    values.sort_by(f32::total_cmp);
+    let level = values[500];
+    let trace = TraceOptions {
+        max_steps: 4000,
+        level,
+        ..TraceOptions::default()
+    };
+    let cpu_hits = scene.trace_rays(&rays, &trace).unwrap();
+    let on_sirens = cpu_hits.iter().flatten().filter(|h| h.leaf < 2).count();
+    assert!(on_sirens > 40, "{on_sirens} of 120 rays hit the SIRENs");
+    let forms = [
+        (&private, QueryKernel::PerInvocation, "private"),
+        (&scratch, QueryKernel::PerInvocation, "scratch"),
+        (
+            &scratch,
+            QueryKernel::PerSubgroup,
+            "scratch, one subgroup per element",
+        ),
+    ];
+    for (gpu, kernel, what) in forms {
+        let mut on_gpu = GpuScene::new(gpu, &scene).unwrap();
+        on_gpu.set_kernel(Some(kernel)).unwrap();
+        // The SIREN's gradients reach ω0 = 30: compared relative to their length.
+        let compared = samples_match_the_cpu(&scene, &on_gpu, &points, level, (2e-5, 1e-4), what);
+        assert!(compared > 450, "{what}: {compared} gradients compared");
+        let gpu_hits = on_gpu.trace_rays(&rays, &trace).unwrap();
+        let hits = hits_at_the_same_t(&cpu_hits, &gpu_hits, what);
+        assert!(
+            hits.len() > 30,
+            "{what}: only {} of 120 rays hit",
+            hits.len()
+        );
+        for (i, g) in on_gpu
+            .closest_points(
+                &points[..100],
+                &ProjectOptions {
+                    level,
+                    ..ProjectOptions::default()
+                },
+            )
+            .unwrap()
+            .iter()
+            .enumerate()
+        {
+            if g.converged {
+                let d = scene.distance(g.point, level);
+                assert!(
+                    d.abs() < 1e-4,
+                    "{what}, point {i}: projected to distance {d}"
+                );
+            }
+        }
+    }
+}

@@ -42,6 +42,7 @@ use std::fmt::Write;
 use glam::DMat3;
 
 use crate::gpu::GpuError;
+use crate::gpu::SirenActivations;
 use crate::serve::scene::cpu::SceneQueryError;
 use crate::serve::scene::primitive::Primitive;
 use crate::serve::scene::program_wgsl::{
@@ -215,20 +216,22 @@ impl Scene {
         prefix: &str,
         limits: &wgpu::Limits,
     ) -> Result<String, EmbedError> {
-        self.wgsl_with_lanes(group, prefix, limits, Lanes::One)
+        self.wgsl_with_lanes(group, prefix, limits, Lanes::One, SirenActivations::Private)
     }
 
-    /// [`Scene::wgsl_with_prefix`] in the form for `lanes` (see [`Scene::generate`]).
+    /// [`Scene::wgsl_with_prefix`] in the form for `lanes` and `activations` (see
+    /// [`Scene::generate`]).
     pub(crate) fn wgsl_with_lanes(
         &self,
         group: u32,
         prefix: &str,
         limits: &wgpu::Limits,
         lanes: Lanes,
+        activations: SirenActivations,
     ) -> Result<String, EmbedError> {
         wgsl::check_prefix(prefix, MAX_SCENE_PREFIX)?;
         let packing = self.packing(limits)?;
-        Ok(self.generate(group, prefix, &packing, lanes))
+        Ok(self.generate(group, prefix, &packing, lanes, activations))
     }
 
     /// The snippet for `packing`, under `prefix` (already checked). With
@@ -236,7 +239,14 @@ impl Scene {
     /// a kernel that sets them (its `subgroup_invocation_id` and `subgroup_size`) and calls the
     /// scene's functions with one point per subgroup has every model evaluated by the whole
     /// subgroup together.
-    fn generate(&self, group: u32, prefix: &str, packing: &Packing, lanes: Lanes) -> String {
+    fn generate(
+        &self,
+        group: u32,
+        prefix: &str,
+        packing: &Packing,
+        lanes: Lanes,
+        activations: SirenActivations,
+    ) -> String {
         let mut s = String::new();
         let _ = writeln!(
             s,
@@ -274,6 +284,7 @@ impl Scene {
                 model.lod(),
                 group,
                 lanes,
+                activations,
             );
             let snippet = wgsl::rename(&model_wgsl, &name);
             let (buffer, offset) = packing.params[i];
@@ -771,9 +782,10 @@ impl Scene {
         Ok((packing, weights))
     }
 
-    /// The snippet in each of `forms` (names `{prefix}_…`, weights at `@group(group)`) and
-    /// the weights they share, uploaded, for a shader of ours that binds `reserved` storage
-    /// buffers of its own besides them: what the GPU queries and the scene renderer compile.
+    /// The snippet in each of `forms` (names `{prefix}_…`, weights at `@group(group)`, SIREN
+    /// models' activations as `activations` says) and the weights they share, uploaded, for a
+    /// shader of ours that binds `reserved` storage buffers of its own besides them: what the
+    /// GPU queries and the scene renderer compile.
     pub(crate) fn compile(
         &self,
         device: &wgpu::Device,
@@ -781,11 +793,12 @@ impl Scene {
         prefix: &str,
         reserved: u32,
         forms: &[Lanes],
+        activations: SirenActivations,
     ) -> Result<(Vec<String>, SceneBindGroup), SceneGpuError> {
         let (packing, weights) = self.packed_for(device, reserved)?;
         let snippets = forms
             .iter()
-            .map(|&lanes| self.generate(group, prefix, &packing, lanes))
+            .map(|&lanes| self.generate(group, prefix, &packing, lanes, activations))
             .collect();
         Ok((snippets, weights))
     }

@@ -54,7 +54,8 @@ use crate::serve::scene::cpu::{
 };
 use crate::serve::scene::embed::{SceneBindGroup, SceneGpuError};
 use crate::serve::scene::tree::Scene;
-use crate::serve::wgsl::Lanes;
+use crate::serve::scratch::{self, SCRATCH_GROUP};
+use crate::serve::wgsl::{self, Lanes};
 
 /// The group of the scene's weights in the query kernels.
 const SCENE_GROUP: u32 = 1;
@@ -219,8 +220,11 @@ pub struct GpuScene<'g> {
     subgroup_width: Option<u32>,
     lipschitz: f32,
     leaves: usize,
-    /// Most elements of one part of a batch, per kind (buffer and dispatch limits).
+    /// Most elements of one part of a batch, per kind (buffer and dispatch limits, and the
+    /// scratch's slots).
     max_elements: [u32; 4],
+    /// The scratch of SIRENs in the scratch form, bound at [`SCRATCH_GROUP`].
+    scratch: Option<wgpu::BindGroup>,
     /// See [`GpuScene::set_max_part`].
     max_part: u32,
     /// Buffers and bind groups of earlier plain calls, per kind, for the next ones (a call
@@ -258,22 +262,32 @@ impl<'g> GpuScene<'g> {
             Some(_) => &[Lanes::One, Lanes::Subgroup],
             None => &[Lanes::One],
         };
-        let (snippets, weights) =
-            scene.compile(device, SCENE_GROUP, "scene", QUERY_BUFFERS, forms)?;
+        let stride = scratch::stride(gpu, scene.models().iter().map(|m| m.network()));
+        let (snippets, weights) = scene.compile(
+            device,
+            SCENE_GROUP,
+            "scene",
+            QUERY_BUFFERS + u32::from(stride.is_some()),
+            forms,
+            scratch::activations(stride),
+        )?;
+        let prelude = stride
+            .map(|stride| wgsl::scratch_source(SCRATCH_GROUP, stride))
+            .unwrap_or_default();
         let scope = device.push_error_scope(wgpu::ErrorFilter::Validation);
         // One module per kernel: the subgroup form's models sum over the subgroup, which the
         // per-invocation kernels (a point per lane) must not call.
         let query = crate::shaders::SCENE_QUERY.source;
         let mut modules = vec![gpu.generated_module(
             "scene_query.wgsl",
-            Cow::Owned(format!("{}\n{query}", snippets[0])),
+            Cow::Owned(format!("{prelude}{}\n{query}", snippets[0])),
         )];
         // (Its per-invocation entry point, which SCENE_QUERY brings along, is never used.)
         let mut subgroup_width = subgroup_width;
         let mut refusal = None;
         if let Some(snippet) = snippets.get(1) {
             let source = format!(
-                "{snippet}\n{query}\n{}",
+                "{prelude}{snippet}\n{query}\n{}",
                 crate::shaders::SCENE_QUERY_SUBGROUP.source
             );
             // A driver that refuses the subgroup kernels leaves the scene its other kernel.
@@ -314,9 +328,16 @@ impl<'g> GpuScene<'g> {
                 storage(2, false),
             ],
         });
+        // SIRENs in the scratch form: a slot per invocation of a dispatch, for the parts' sizes
+        // to fit (a part is capped below).
+        let scratch_layout = stride.map(|_| scratch::layout(device));
         let layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
             label: Some("scene query"),
-            bind_group_layouts: &[Some(&query_layout), Some(&weights.layout)],
+            bind_group_layouts: &[
+                Some(&query_layout),
+                Some(&weights.layout),
+                scratch_layout.as_ref(),
+            ],
             immediate_size: 0,
         });
         if let Some(err) = pollster::block_on(scope.pop()) {
@@ -330,13 +351,26 @@ impl<'g> GpuScene<'g> {
             .max_storage_buffer_binding_size
             .min(limits.max_buffer_size);
         let max_dispatch = u64::from(limits.max_compute_workgroups_per_dimension);
+        let scratch = match (stride, &scratch_layout) {
+            (Some(stride), Some(layout)) => {
+                let slots = scratch::query_slots(gpu, stride);
+                Some((slots, scratch::bind_group(gpu, layout, stride, slots)?))
+            }
+            _ => None,
+        };
         let max_elements = SceneQueryKind::ALL.map(|kind| {
             let bytes_per_element = (16 * u64::from(kind.inputs_per_element()))
                 .max(4 * u64::from(kind.outputs_per_element()));
             // The subgroup kernels cover the fewest elements per workgroup.
             let per_group = WG / subgroup_width.unwrap_or(1);
+            // Each invocation that may evaluate holds a scratch slot: a subgroup kernel's
+            // lanes all do.
+            let slots = scratch.as_ref().map_or(u64::MAX, |(slots, _)| {
+                u64::from(*slots) / u64::from(subgroup_width.unwrap_or(1))
+            });
             (binding / bytes_per_element)
                 .min(max_dispatch * max_dispatch * u64::from(per_group))
+                .min(slots.max(1))
                 .min(u64::from(u32::MAX / 16)) as u32
         });
         Ok(GpuScene {
@@ -352,6 +386,7 @@ impl<'g> GpuScene<'g> {
             lipschitz: scene.lipschitz(),
             leaves: scene.leaves().len(),
             max_elements,
+            scratch: scratch.map(|(_, group)| group),
             max_part: u32::MAX,
             pools: Default::default(),
         })
@@ -553,6 +588,9 @@ impl<'g> GpuScene<'g> {
         pass.set_pipeline(pipeline);
         pass.set_bind_group(0, group, &[]);
         pass.set_bind_group(SCENE_GROUP, &self.weights.bind_group, &[]);
+        if let Some(group) = &self.scratch {
+            pass.set_bind_group(SCRATCH_GROUP, group, &[]);
+        }
         pass.dispatch_workgroups(x, y, 1);
         Ok(())
     }

@@ -45,6 +45,10 @@ struct TraceUniforms {
 // ray of it meets the surface (0 where no cone pass ran).
 @group(0) @binding(2) var<storage, read_write> tile_start: array<f32>;
 
+// This invocation's slot in the scratch of SIREN snippets in the scratch form (unused by the
+// others): its index among the dispatch's pixels or cones.
+var<private> sdf_slot: u32;
+
 // Pixels per side of a workgroup of `sphere_trace` (bands of rows are made of them), and of
 // the tile whose rays one cone of `cone_trace` holds.
 const TILE: u32 = 8u;
@@ -85,6 +89,7 @@ fn sphere_trace(@builtin(global_invocation_id) gid: vec3<u32>) {
     if gid.x >= width || y >= height {
         return;
     }
+    sdf_slot = gid.y * width + gid.x;
     let dir = ray_direction(f32(gid.x) + 0.5, f32(y) + 0.5);
     let origin = trace.eye.xyz;
 
@@ -164,6 +169,7 @@ fn cone_trace(@builtin(global_invocation_id) gid: vec3<u32>) {
     if gid.x >= tiles_x || row * CONE_TILE >= min(height, u32(trace.march.y)) {
         return;
     }
+    sdf_slot = gid.y * tiles_x + gid.x;
     let lo = vec2<f32>(f32(gid.x * CONE_TILE), f32(row * CONE_TILE));
     let hi = vec2<f32>(
         f32(min(gid.x * CONE_TILE + CONE_TILE, width)),

@@ -34,6 +34,10 @@ struct SceneQuery {
 
 const QUERY_WG: u32 = 64u;
 
+// This invocation's slot in the scratch of SIREN snippets in the scratch form (unused by the
+// others): its index in the dispatch.
+var<private> sdf_slot: u32;
+
 fn query_index(wid: vec3<u32>, nwg: vec3<u32>, lid: u32) -> u32 {
     return (wid.y * nwg.x + wid.x) * QUERY_WG + lid;
 }
@@ -71,6 +75,7 @@ fn query_per_invocation(
     @builtin(local_invocation_index) lid: u32,
 ) {
     let i = query_index(wid, nwg, lid);
+    sdf_slot = i;
     if i < query.count {
         query_element(query.first + i, true);
     }

@@ -18,8 +18,11 @@ fn query_per_subgroup(
     @builtin(num_subgroups) subgroups: u32,
     @builtin(subgroup_invocation_id) lane: u32,
     @builtin(subgroup_size) lanes: u32,
+    @builtin(local_invocation_index) lid: u32,
 ) {
     let first = (wid.y * nwg.x + wid.x) * PER_GROUP;
+    // Every lane evaluates a SIREN whole (Lanes::Subgroup): each its own scratch slot.
+    sdf_slot = query_index(wid, nwg, lid);
     scene_lane = lane;
     scene_lanes = lanes;
     for (var k = sid; k < PER_GROUP && first + k < query.count; k += subgroups) {

@@ -1,0 +1,99 @@
+//! The scratch buffer of SIREN snippets in the [`SirenActivations::Scratch`] form: what the
+//! renderer and the scene queries bind at [`SCRATCH_GROUP`] where the adapter keeps a SIREN's
+//! activations in storage rather than in private arrays (see [`SirenActivations`]).
+
+use crate::gpu::{GpuContext, GpuError, SirenActivations};
+use crate::serve::network::Network;
+use crate::serve::wgsl;
+
+/// The bind group index of the scratch buffer in our kernels (0: the kernel's own buffers, 1:
+/// the weights).
+pub(crate) const SCRATCH_GROUP: u32 = 2;
+
+/// Most bytes of scratch a scene's queries keep: 8192 slots of a 256-wide SIREN, whose parts
+/// are then split to fit (a part of 1024 rays still takes tens of milliseconds on lavapipe).
+const MAX_QUERY_SCRATCH_BYTES: u64 = 64 << 20;
+
+/// Narrowest SIREN for which a CPU adapter takes the scratch form by default. Below it LLVM
+/// unrolls the layers' loops and keeps the arrays in registers: lavapipe compiled a 16-wide
+/// SIREN's evaluation from private arrays in 0.9 s (twice, in a loop: 1.9 s) against 0.9 s
+/// (2.9 s) from scratch, and the scene test's kernels of an 8-wide one in half the time; at 32
+/// wide, 30 s against 1.3 s.
+const SCRATCH_MIN_WIDTH: u32 = 32;
+
+/// Floats per slot that `networks` need in the form `gpu` runs, or `None` where no scratch is
+/// bound: a GPU (private arrays), no SIREN among them, or (unless `HWSDF_SIREN_ACTIVATIONS`
+/// asks for scratch) none at least [`SCRATCH_MIN_WIDTH`] wide. Every SIREN of a kernel takes
+/// the same form.
+pub(crate) fn stride<'a>(
+    gpu: &GpuContext,
+    networks: impl IntoIterator<Item = &'a Network>,
+) -> Option<u32> {
+    if gpu.siren_activations() != SirenActivations::Scratch {
+        return None;
+    }
+    let forced = gpu.options().siren_activations == Some(SirenActivations::Scratch);
+    let strides: Vec<u32> = networks
+        .into_iter()
+        .filter_map(wgsl::scratch_stride)
+        .collect();
+    let wide = strides.iter().any(|&s| s >= 8 * SCRATCH_MIN_WIDTH);
+    (forced || wide)
+        .then(|| strides.into_iter().max())
+        .flatten()
+}
+
+/// The form of the SIREN snippets for a kernel whose scratch stride is `stride`.
+pub(crate) fn activations(stride: Option<u32>) -> SirenActivations {
+    match stride {
+        Some(_) => SirenActivations::Scratch,
+        None => SirenActivations::Private,
+    }
+}
+
+/// The largest binding the device takes, in bytes.
+pub(crate) fn binding_limit(gpu: &GpuContext) -> u64 {
+    let limits = gpu.limits();
+    limits
+        .max_storage_buffer_binding_size
+        .min(limits.max_buffer_size)
+}
+
+/// Slots of `stride` floats a scene's queries keep (see [`MAX_QUERY_SCRATCH_BYTES`]).
+pub(crate) fn query_slots(gpu: &GpuContext, stride: u32) -> u32 {
+    let bytes = binding_limit(gpu).min(MAX_QUERY_SCRATCH_BYTES);
+    (bytes / (4 * u64::from(stride.max(1)))).clamp(1, u64::from(u32::MAX)) as u32
+}
+
+/// The scratch group's layout: one read-write storage buffer at binding 0.
+pub(crate) fn layout(device: &wgpu::Device) -> wgpu::BindGroupLayout {
+    device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+        label: Some("sdf_scratch"),
+        entries: &[wgpu::BindGroupLayoutEntry {
+            binding: 0,
+            visibility: wgpu::ShaderStages::COMPUTE,
+            ty: wgpu::BindingType::Buffer {
+                ty: wgpu::BufferBindingType::Storage { read_only: false },
+                has_dynamic_offset: false,
+                min_binding_size: None,
+            },
+            count: None,
+        }],
+    })
+}
+
+/// A scratch buffer of `slots` slots of `stride` floats, bound with `layout`.
+pub(crate) fn bind_group(
+    gpu: &GpuContext,
+    layout: &wgpu::BindGroupLayout,
+    stride: u32,
+    slots: u32,
+) -> Result<wgpu::BindGroup, GpuError> {
+    let bytes = 4 * u64::from(stride) * u64::from(slots.max(1));
+    let buffer = gpu.storage_zeroed("sdf_scratch", bytes)?;
+    Ok(gpu.device().create_bind_group(&wgpu::BindGroupDescriptor {
+        label: Some("sdf_scratch"),
+        layout,
+        entries: &[crate::gpu::entry(0, &buffer)],
+    }))
+}
