@@ -853,6 +853,46 @@ fn texture_only_buffers_are_not_read() {
     assert_eq!(m.triangles.len(), 1);
 }
 
+/// Buffers that only an animation's keyframes or a skin's inverse bind matrices use (an
+/// `anim.bin` beside the geometry) are never read either: missing, they do not stop the rest
+/// pose. An accessor that a mesh uses too is still read.
+#[test]
+fn animation_only_buffers_are_not_read() {
+    let dir = temp_dir("animbuf");
+    let tri: Vec<u8> = [0f32, 0., 0., 1., 0., 0., 0., 1., 0.]
+        .iter()
+        .flat_map(|x| x.to_le_bytes())
+        .collect();
+    let gltf = |position: usize| {
+        format!(
+            r#"{{"asset":{{"version":"2.0"}},
+            "buffers":[{{"uri":"{}","byteLength":36}},{{"uri":"anim.bin","byteLength":4096}}],
+            "bufferViews":[{{"buffer":0,"byteLength":36}},{{"buffer":1,"byteLength":4096}}],
+            "accessors":[{{"bufferView":0,"componentType":5126,"count":3,"type":"VEC3",
+                "min":[0,0,0],"max":[1,1,0]}},
+                {{"bufferView":1,"componentType":5126,"count":2,"type":"SCALAR","min":[0],"max":[1]}},
+                {{"bufferView":1,"byteOffset":8,"componentType":5126,"count":3,"type":"VEC3",
+                    "min":[0,0,0],"max":[1,1,1]}},
+                {{"bufferView":1,"byteOffset":32,"componentType":5126,"count":1,"type":"MAT4"}}],
+            "meshes":[{{"primitives":[{{"attributes":{{"POSITION":{position}}}}}]}}],
+            "skins":[{{"joints":[1],"inverseBindMatrices":3}}],
+            "animations":[{{"samplers":[{{"input":1,"output":2}}],
+                "channels":[{{"sampler":0,"target":{{"node":1,"path":"translation"}}}}]}}],
+            "nodes":[{{"mesh":0,"skin":0}},{{}}],"scenes":[{{"nodes":[0,1]}}],"scene":0}}"#,
+            data_uri(&tri)
+        )
+    };
+    let p = write(&dir, "animated.gltf", gltf(0));
+    let (m, _) = load_mesh(&p).expect("the missing anim.bin is never read");
+    assert_eq!(m.triangles.len(), 1);
+    // The keyframes' accessor as the mesh's positions too: then anim.bin is needed.
+    let p = write(&dir, "shared.gltf", gltf(2));
+    match load_mesh(&p) {
+        Err(GeomError::MissingBuffer { .. } | GeomError::Io { .. }) => {}
+        other => panic!("{other:?}"),
+    }
+}
+
 /// A GLB header whose length is shorter than the header itself: `gltf` subtracted 12 from it
 /// unchecked (a panic in a debug build, a wrapped length in a release one); a parse error now.
 #[test]

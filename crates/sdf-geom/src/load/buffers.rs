@@ -12,8 +12,9 @@ use crate::GeomError;
 
 /// The document's buffers, index for index: the GLB blob, `data:` URIs, or files inside the
 /// .gltf's folder (see [`resolve_uri`]). Images are never touched. Only buffers that an
-/// accessor's view uses are read (the others are empty: a buffer of textures alone, which an
-/// image's view names, may be missing or broken without stopping the geometry); the BIN chunk is copied once and a file named by
+/// accessor's view uses are read, and not for accessors of animations and skins alone (the
+/// others are empty: a buffer of textures alone, which an image's view names, or of animation
+/// keyframes, may be missing or broken without stopping the geometry); the BIN chunk is copied once and a file named by
 /// several buffers is read once, so a small file that lists thousands of buffers over the same
 /// bytes cannot multiply them in memory.
 pub(super) fn read_buffers(
@@ -24,7 +25,11 @@ pub(super) fn read_buffers(
     options: &LoadOptions,
 ) -> Result<Vec<Rc<[u8]>>, GeomError> {
     let mut used = vec![false; doc.buffers().len()];
+    let animation_only = animation_only_accessors(doc);
     for accessor in doc.accessors() {
+        if animation_only[accessor.index()] {
+            continue;
+        }
         let sparse = accessor.sparse();
         let views = accessor.view().into_iter().chain(
             sparse
@@ -91,6 +96,59 @@ pub(super) fn read_buffers(
         buffers.push(data);
     }
     Ok(buffers)
+}
+
+/// Per accessor, whether only animations (their samplers' keyframes) and skins (their inverse
+/// bind matrices) use it: the rest pose the loader reads needs neither, so their buffers (an
+/// `anim.bin` beside the geometry's) are not read. An accessor a mesh or a node's instances
+/// also use is needed.
+fn animation_only_accessors(doc: &gltf::Document) -> Vec<bool> {
+    let mut only = vec![false; doc.accessors().len()];
+    let animations = doc.animations().flat_map(|a| {
+        a.samplers()
+            .flat_map(|s| [s.input().index(), s.output().index()])
+            .collect::<Vec<_>>()
+    });
+    let skins = doc
+        .skins()
+        .filter_map(|s| s.inverse_bind_matrices().map(|a| a.index()));
+    for i in animations.chain(skins) {
+        only[i] = true;
+    }
+    for prim in doc
+        .meshes()
+        .flat_map(|m| m.primitives().collect::<Vec<_>>())
+    {
+        let targets = prim.morph_targets().flat_map(|t| {
+            [t.positions(), t.normals(), t.tangents()]
+                .into_iter()
+                .flatten()
+                .map(|a| a.index())
+                .collect::<Vec<_>>()
+        });
+        let attributes = prim.attributes().map(|(_, a)| a.index());
+        for i in attributes
+            .chain(prim.indices().map(|a| a.index()))
+            .chain(targets)
+        {
+            only[i] = false;
+        }
+    }
+    // EXT_mesh_gpu_instancing's instances (validated where they are read).
+    let instancing = doc.nodes().filter_map(|n| {
+        n.extension_value("EXT_mesh_gpu_instancing")?
+            .get("attributes")
+            .cloned()
+    });
+    for attributes in instancing {
+        let indices = attributes.as_object().into_iter().flat_map(|a| a.values());
+        for i in indices.filter_map(|v| usize::try_from(v.as_u64()?).ok()) {
+            if let Some(o) = only.get_mut(i) {
+                *o = false;
+            }
+        }
+    }
+    only
 }
 
 /// The bytes of a `data:` URI (`rest` follows `data:`); only base64 ones are supported.
