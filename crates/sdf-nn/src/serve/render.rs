@@ -382,10 +382,12 @@ impl Renderer {
             * self.macs_per_eval.max(1);
         let mut rows = self.max_submission_macs / per_row.max(1);
         if let Some(scratch) = &self.scratch {
-            // A band's pixels each hold a slot of the scratch, which one binding must hold (an
-            // image too wide for one tile row of slots gets the binding's error).
+            // A band's pixels each hold a slot of the scratch, of at most MAX_SCRATCH_BYTES
+            // where a band of one tile row fits that, else the binding (an image too wide for
+            // one tile row of slots gets the binding's error).
             let per_row = 4 * u64::from(scratch.stride) * u64::from(options.width);
-            rows = rows.min(scratch.limit / per_row.max(1));
+            let bytes = scratch::MAX_SCRATCH_BYTES.max(per_row * u64::from(TILE));
+            rows = rows.min(bytes.min(scratch.limit) / per_row.max(1));
         }
         let rows = rows / u64::from(TILE) * u64::from(TILE);
         rows.clamp(

@@ -10,9 +10,10 @@ use crate::serve::wgsl;
 /// the weights).
 pub(crate) const SCRATCH_GROUP: u32 = 2;
 
-/// Most bytes of scratch a scene's queries keep: 8192 slots of a 256-wide SIREN, whose parts
-/// are then split to fit (a part of 1024 rays still takes tens of milliseconds on lavapipe).
-const MAX_QUERY_SCRATCH_BYTES: u64 = 64 << 20;
+/// Most bytes of scratch a scene's queries keep, and a frame of the renderer takes where its
+/// bands allow: 8192 slots of a 256-wide SIREN. Batches and frames are split to fit (a part of
+/// 1024 rays, or a band of 16 rows of 512 pixels, still takes seconds on lavapipe).
+pub(crate) const MAX_SCRATCH_BYTES: u64 = 64 << 20;
 
 /// Narrowest SIREN for which a CPU adapter takes the scratch form by default. Below it LLVM
 /// unrolls the layers' loops and keeps the arrays in registers: lavapipe compiled a 16-wide
@@ -59,9 +60,9 @@ pub(crate) fn binding_limit(gpu: &GpuContext) -> u64 {
         .min(limits.max_buffer_size)
 }
 
-/// Slots of `stride` floats a scene's queries keep (see [`MAX_QUERY_SCRATCH_BYTES`]).
+/// Slots of `stride` floats a scene's queries keep (see [`MAX_SCRATCH_BYTES`]).
 pub(crate) fn query_slots(gpu: &GpuContext, stride: u32) -> u32 {
-    let bytes = binding_limit(gpu).min(MAX_QUERY_SCRATCH_BYTES);
+    let bytes = binding_limit(gpu).min(MAX_SCRATCH_BYTES);
     (bytes / (4 * u64::from(stride.max(1)))).clamp(1, u64::from(u32::MAX)) as u32
 }
 
@@ -89,8 +90,17 @@ pub(crate) fn bind_group(
     stride: u32,
     slots: u32,
 ) -> Result<wgpu::BindGroup, GpuError> {
-    let bytes = 4 * u64::from(stride) * u64::from(slots.max(1));
-    let buffer = gpu.storage_zeroed("sdf_scratch", bytes)?;
+    let floats = u64::from(stride) * u64::from(slots.max(1));
+    // The shaders index it with u32s.
+    if floats > u64::from(u32::MAX) {
+        return Err(GpuError::BufferTooLarge {
+            label: "SIREN scratch (HWSDF_SIREN_ACTIVATIONS)".into(),
+            requested: 4 * floats,
+            limit_name: "2^32 floats, what a u32 index reaches",
+            limit: 4 * u64::from(u32::MAX),
+        });
+    }
+    let buffer = gpu.storage_zeroed("SIREN scratch (HWSDF_SIREN_ACTIVATIONS)", 4 * floats)?;
     Ok(gpu.device().create_bind_group(&wgpu::BindGroupDescriptor {
         label: Some("sdf_scratch"),
         layout,

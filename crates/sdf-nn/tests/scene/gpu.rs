@@ -1056,6 +1056,7 @@ fn siren_leaves_match_the_cpu_in_both_activation_forms() {
     for (gpu, kernel, what) in forms {
         let mut on_gpu = GpuScene::new(gpu, &scene).unwrap();
         on_gpu.set_kernel(Some(kernel)).unwrap();
+        recorded_parts_match_the_plain_calls(gpu, &mut on_gpu, &points, level, what);
         // The SIREN's gradients reach ω0 = 30: compared relative to their length.
         let compared = samples_match_the_cpu(&scene, &on_gpu, &points, level, (2e-5, 1e-4), what);
         assert!(compared > 450, "{what}: {compared} gradients compared");
@@ -1087,4 +1088,37 @@ fn siren_leaves_match_the_cpu_in_both_activation_forms() {
             }
         }
     }
+}
+
+/// Caller-owned buffers recorded with more elements than one dispatch takes (the scratch's
+/// slots, here a part of 64 elements): `record` splits them into dispatches, and the answers
+/// are the plain call's.
+fn recorded_parts_match_the_plain_calls(
+    gpu: &GpuContext,
+    on_gpu: &mut GpuScene,
+    points: &[Vec3],
+    level: f32,
+    what: &str,
+) {
+    use sdf_nn::serve::scene::SceneQueryParams;
+    let plain = on_gpu.distances(points, level).unwrap();
+    on_gpu.set_max_part(64);
+    let kind = SceneQueryKind::Distance;
+    let buffers = on_gpu.create_buffers(kind, points.len() as u32).unwrap();
+    let inputs: Vec<[f32; 4]> = points.iter().map(|p| p.extend(0.0).to_array()).collect();
+    gpu.queue()
+        .write_buffer(&buffers.inputs, 0, bytemuck::cast_slice(&inputs));
+    let mut encoder = gpu.device().create_command_encoder(&Default::default());
+    let params = SceneQueryParams::at_level(level);
+    on_gpu
+        .record(&mut encoder, &buffers, points.len() as u32, &params)
+        .unwrap();
+    gpu.queue().submit([encoder.finish()]);
+    let recorded: Vec<f32> = gpu.read_back(&buffers.outputs).unwrap();
+    assert_eq!(
+        recorded[..points.len()],
+        plain[..],
+        "{what}: recorded in parts"
+    );
+    on_gpu.set_max_part(u32::MAX);
 }

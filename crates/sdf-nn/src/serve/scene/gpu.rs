@@ -363,10 +363,10 @@ impl<'g> GpuScene<'g> {
                 .max(4 * u64::from(kind.outputs_per_element()));
             // The subgroup kernels cover the fewest elements per workgroup.
             let per_group = WG / subgroup_width.unwrap_or(1);
-            // Each invocation that may evaluate holds a scratch slot: a subgroup kernel's
-            // lanes all do.
+            // Each invocation that may evaluate holds a scratch slot, indexed by its place in
+            // the dispatch: a subgroup kernel's whole workgroups of 64 do.
             let slots = scratch.as_ref().map_or(u64::MAX, |(slots, _)| {
-                u64::from(*slots) / u64::from(subgroup_width.unwrap_or(1))
+                u64::from(*slots) / u64::from(WG) * u64::from(per_group)
             });
             (binding / bytes_per_element)
                 .min(max_dispatch * max_dispatch * u64::from(per_group))
@@ -518,9 +518,10 @@ impl<'g> GpuScene<'g> {
         })
     }
 
-    /// Records a query of the first `count` elements of `buffers` into `encoder`. The inputs
-    /// must be written before the encoder's submission runs; the outputs are ready when it has
-    /// finished. `params` are not checked here (the plain calls check them).
+    /// Records a query of the first `count` elements of `buffers` into `encoder`, as one
+    /// dispatch per [`GpuScene::max_elements`] of them. The inputs must be written before the
+    /// encoder's submission runs; the outputs are ready when it has finished. `params` are not
+    /// checked here (the plain calls check them).
     pub fn record(
         &self,
         encoder: &mut wgpu::CommandEncoder,
@@ -529,14 +530,21 @@ impl<'g> GpuScene<'g> {
         params: &SceneQueryParams,
     ) -> Result<(), GpuError> {
         let count = count.min(buffers.capacity);
-        if count == 0 {
-            return Ok(());
+        // In dispatches of at most `max_elements` (a SIREN's scratch holds no more slots).
+        let part = self.max_elements(buffers.kind).max(1);
+        let mut first = 0;
+        while first < count {
+            let n = part.min(count - first);
+            let uniform = SceneQueryUniform {
+                first,
+                ..self.uniform(n, params)
+            };
+            let uniform = self.gpu.uniform("scene query", &uniform);
+            let group = self.query_group(&uniform, buffers);
+            self.encode(encoder, buffers.kind, &group, n)?;
+            first += n;
         }
-        let uniform = self
-            .gpu
-            .uniform("scene query", &self.uniform(count, params));
-        let group = self.query_group(&uniform, buffers);
-        self.encode(encoder, buffers.kind, &group, count)
+        Ok(())
     }
 
     fn uniform(&self, count: u32, params: &SceneQueryParams) -> SceneQueryUniform {
