@@ -145,7 +145,8 @@ pub enum GeomError {
         /// What is wrong.
         reason: String,
     },
-    /// A glTF primitive uses a mode other than triangles, triangle strips or triangle fans.
+    /// A glTF file's primitives are points and lines alone (the first one named): nothing
+    /// encloses a volume. Beside triangles they are skipped with a warning.
     #[error(
         "{path}: mesh {mesh} primitive {primitive} has mode {mode}; only TRIANGLES, TRIANGLE_STRIP and TRIANGLE_FAN are supported"
     )]

@@ -216,6 +216,37 @@ fn gltf_points_and_lines_are_rejected() {
     }
 }
 
+/// Points and lines beside triangles (a CAD export's edges drawn as LINES) are skipped with a
+/// warning: the faces load. Only a file of nothing else is refused (above).
+#[test]
+fn gltf_lines_beside_triangles_are_skipped() {
+    let (v, t) = cube();
+    let dir = temp_dir("modes-mixed");
+    let (json, _) = common::gltf_json(&Gltf {
+        positions: &v,
+        indices: Some(&t),
+        ..Default::default()
+    });
+    // A LINES primitive (the cube's corners as segments) and a POINTS one before the faces.
+    let json = json.replacen(
+        r#""primitives":[{"#,
+        r#""primitives":[{"attributes":{"POSITION":0},"mode":1},{"attributes":{"POSITION":0},"mode":0},{"#,
+        1,
+    );
+    let (m, report) = load_mesh(write(&dir, "edges.gltf", json)).expect("the faces load");
+    assert_eq!(m.triangles.len(), 12);
+    for (k, mode) in [(0, "LINES"), (1, "POINTS")] {
+        assert!(
+            report
+                .warnings
+                .iter()
+                .any(|w| w.contains(&format!("primitive {k}")) && w.contains(mode)),
+            "{:?}",
+            report.warnings
+        );
+    }
+}
+
 /// Loads a cube glTF that uses and requires the given extensions.
 fn load_cube_with_extensions(
     dir: &std::path::Path,

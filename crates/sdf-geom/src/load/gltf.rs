@@ -129,6 +129,12 @@ pub(super) fn load_gltf(
             }
         }
     }
+    // A file of points or lines alone: the first one's mode is the error.
+    if out.triangles.is_empty()
+        && let Some(err) = out.skipped_mode.take()
+    {
+        return Err(err);
+    }
     let vertices = recentre(&out.vertices, &out.triangles, &mut out.report);
     drop(out.vertices);
     let mesh = clean(vertices, out.triangles, &mut out.report)?;

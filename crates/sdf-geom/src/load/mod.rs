@@ -73,7 +73,8 @@ impl LoadOptions {
 /// UTF-8 (decoded lossily; geometry never depends on names). glTF meshes are taken in their default
 /// pose: morph targets with their default weights (the node's, else the mesh's), and every instance
 /// of an `EXT_mesh_gpu_instancing` node. Quantised positions (`KHR_mesh_quantization`: 8- or
-/// 16-bit integers, normalised or not, which node transforms scale back) are read.
+/// 16-bit integers, normalised or not, which node transforms scale back) are read. Point and
+/// line primitives beside triangles (a CAD export's edges) are skipped with a warning.
 ///
 /// # Errors
 /// [`GeomError::UnknownExtension`], [`GeomError::Io`] (missing or unreadable file),
@@ -81,7 +82,8 @@ impl LoadOptions {
 /// [`GeomError::Parse`] (also every failed glTF validation), [`GeomError::NoTriangles`],
 /// [`GeomError::NonFiniteVertex`], [`GeomError::ObjIndexOutOfRange`],
 /// [`GeomError::GltfIndexOutOfRange`], [`GeomError::NodeTransform`],
-/// [`GeomError::UnsupportedPrimitiveMode`] (glTF points and lines), [`GeomError::Unsupported`]
+/// [`GeomError::UnsupportedPrimitiveMode`] (a glTF file of points and lines alone),
+/// [`GeomError::Unsupported`]
 /// (Draco and meshopt compression without an uncompressed fallback, positions of other types
 /// than float32 or 8- or 16-bit integers, and any required glTF extension other than
 /// appearance-only ones such as `KHR_materials_*`,

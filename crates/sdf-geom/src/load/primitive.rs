@@ -75,6 +75,8 @@ pub(super) struct Merged {
     pub(super) vertices: Vec<DVec3>,
     pub(super) triangles: Vec<[u32; 3]>,
     pub(super) report: LoadReport,
+    /// The first point or line primitive skipped: the error where nothing else has triangles.
+    pub(super) skipped_mode: Option<GeomError>,
 }
 
 /// Adds one instance of `mesh` (all its primitives, placed by `world`, posed by `morph_weights`)
@@ -98,7 +100,19 @@ pub(super) fn add_gltf_mesh(
         message: format!("mesh {} primitive {prim}: {message}", mesh.index()),
     };
     for prim in mesh.primitives() {
-        check_mode(path, mesh, &prim)?;
+        // Points and lines beside the faces (a CAD export's edges) enclose nothing: skipped.
+        if let Err(err) = check_mode(path, mesh, &prim) {
+            if warn {
+                out.report.warnings.push(format!(
+                    "mesh {} primitive {} is {}, which encloses nothing (skipped)",
+                    mesh.index(),
+                    prim.index(),
+                    mode_name(prim.mode()).unwrap_or("points or lines")
+                ));
+            }
+            out.skipped_mode.get_or_insert(err);
+            continue;
+        }
         let Some(pos_acc) = prim.get(&gltf::Semantic::Positions) else {
             if !warn {
                 continue;
@@ -186,17 +200,21 @@ pub(super) fn add_gltf_mesh(
     Ok(())
 }
 
-/// [`GeomError::UnsupportedPrimitiveMode`] for points and lines, which enclose nothing.
-fn check_mode(path: &Path, mesh: &gltf::Mesh, prim: &gltf::Primitive) -> Result<(), GeomError> {
+/// The glTF name of a point or line mode; `None` for the triangle modes.
+fn mode_name(mode: gltf::mesh::Mode) -> Option<&'static str> {
     use gltf::mesh::Mode;
-    let mode_name = match prim.mode() {
+    match mode {
         Mode::Points => Some("POINTS"),
         Mode::Lines => Some("LINES"),
         Mode::LineLoop => Some("LINE_LOOP"),
         Mode::LineStrip => Some("LINE_STRIP"),
         _ => None,
-    };
-    match mode_name {
+    }
+}
+
+/// [`GeomError::UnsupportedPrimitiveMode`] for points and lines, which enclose nothing.
+fn check_mode(path: &Path, mesh: &gltf::Mesh, prim: &gltf::Primitive) -> Result<(), GeomError> {
+    match mode_name(prim.mode()) {
         Some(mode) => Err(GeomError::UnsupportedPrimitiveMode {
             path: path.to_path_buf(),
             mesh: mesh.index(),
