@@ -16,8 +16,20 @@ use serde::{Deserialize, Serialize};
 pub const PER_POINT_BATCH: usize = 50_000;
 /// Batch size for the latency figure.
 pub const LATENCY_BATCH: usize = 3_000;
-/// Minimum repetitions behind each median.
+/// Minimum repetitions behind each median, unless they are slow ([`SLOW_AFTER`]).
 pub const MIN_REPS: usize = 10;
+/// Once the repetitions of one batch size have taken this long, [`FEW_REPS`] of them suffice:
+/// on lavapipe a SIREN `default` batch of 50 000 points takes about 13 s, and ten repetitions
+/// of it with their timed twins kept `train` measuring for five of its six minutes.
+pub const SLOW_AFTER: Duration = Duration::from_secs(10);
+/// The fewest repetitions behind a median once they are slow ([`SLOW_AFTER`]).
+pub const FEW_REPS: usize = 3;
+
+/// Whether `done` repetitions of a batch size, the first `elapsed` ago, suffice when `reps`
+/// were asked for: all of them, or [`FEW_REPS`] once they have taken [`SLOW_AFTER`].
+fn enough_reps(done: usize, reps: usize, elapsed: Duration) -> bool {
+    done >= reps || (done >= FEW_REPS && elapsed >= SLOW_AFTER)
+}
 /// How long the reports keep the model busy before they time it. A GPU left idle lowers its
 /// clocks and raises them only under sustained load, so the first calls after a pause run
 /// several times slower than the rest (see docs/benchmarks "Latency after a warm-up"); steady
@@ -79,8 +91,8 @@ pub const MAX_REPS: usize = 2000;
 
 /// Measures `eval` (a batch evaluation returning one value per point) on the first
 /// [`PER_POINT_BATCH`] and [`LATENCY_BATCH`] of `points`, after evaluating the large batch
-/// for `warm` (the reports use [`WARM_UP`]): at least `reps` times each (and [`MIN_REPS`]),
-/// and on for `measure_for` (the reports use [`MEASURE_FOR`]) up to [`MAX_REPS`]. `points` is
+/// for `warm` (the reports use [`WARM_UP`]): at least `reps` times each (and [`MIN_REPS`];
+/// [`FEW_REPS`] once they have taken [`SLOW_AFTER`]), and on for `measure_for` (the reports use [`MEASURE_FOR`]) up to [`MAX_REPS`]. `points` is
 /// cycled if shorter. Wall times only: the GPU fields are `None` (see
 /// [`measure_latency_timed`]).
 pub fn measure_latency<E>(
@@ -122,7 +134,9 @@ pub fn measure_latency_timed<E>(
         timed(pts)?;
         let start = Instant::now();
         let (mut wall, mut ns) = (Vec::with_capacity(reps), Vec::with_capacity(reps));
-        while wall.len() < reps || (start.elapsed() < measure_for && wall.len() < MAX_REPS) {
+        while !enough_reps(wall.len(), reps, start.elapsed())
+            || (start.elapsed() < measure_for && wall.len() < MAX_REPS)
+        {
             let t = Instant::now();
             eval(pts)?;
             wall.push(t.elapsed().as_secs_f64());
@@ -146,6 +160,18 @@ pub fn measure_latency_timed<E>(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Slow repetitions stop at three; fast ones, or fewer than three however slow, go on to
+    /// the count asked for.
+    #[test]
+    fn slow_repetitions_stop_at_a_few() {
+        let slow = SLOW_AFTER + Duration::from_millis(1);
+        assert!(!enough_reps(FEW_REPS - 1, MIN_REPS, slow));
+        assert!(enough_reps(FEW_REPS, MIN_REPS, slow));
+        assert!(!enough_reps(FEW_REPS, MIN_REPS, SLOW_AFTER / 2));
+        assert!(!enough_reps(MIN_REPS - 1, MIN_REPS, Duration::ZERO));
+        assert!(enough_reps(MIN_REPS, MIN_REPS, Duration::ZERO));
+    }
 
     #[test]
     fn median_of_odd_and_even_samples() {
