@@ -20,12 +20,12 @@ use std::path::{Path, PathBuf};
 
 use glam::{Vec3, Vec4};
 
-use crate::gpu::{GpuContext, GpuError};
+use crate::gpu::{GpuContext, GpuError, storage_layout_entry};
 use crate::model_file::{Normalization, write_atomic};
 use crate::serve::neural::NeuralSdf;
 use crate::serve::scene::{Scene, SceneBindGroup, SceneGpuError};
 use crate::serve::scratch::{self, SCRATCH_GROUP};
-use crate::serve::wgsl::{self, EmbedError, Lanes, SdfBindGroup};
+use crate::serve::wgsl::{EmbedError, Lanes, SdfBindGroup};
 use crate::shaders::SPHERE_TRACE;
 
 /// Largest image side we accept (keeps the pixel buffer and the dispatch within every device's
@@ -420,7 +420,7 @@ impl Renderer {
         let stride = scratch::stride(gpu, [sdf.network()]);
         let source = format!(
             "{}{}\n{}",
-            scratch_prelude(stride),
+            scratch::prelude(stride),
             sdf.wgsl_with_activations(SDF_GROUP, scratch::activations(stride)),
             SPHERE_TRACE.source
         );
@@ -454,7 +454,7 @@ impl Renderer {
             "{}{}\n\
              fn hwsdf_trace(p: vec3<f32>, c: f32) -> vec2<f32> {{ return scene_trace(p, c); }}\n\
              fn hwsdf_normal(p: vec3<f32>) -> vec3<f32> {{ return scene_normal(p); }}\n{}",
-            scratch_prelude(stride),
+            scratch::prelude(stride),
             snippets[0],
             SPHERE_TRACE.source
         );
@@ -492,8 +492,8 @@ impl Renderer {
                     },
                     count: None,
                 },
-                storage_entry(1),
-                storage_entry(2),
+                storage_layout_entry(1, false),
+                storage_layout_entry(2, false),
             ],
         });
         let scope = device.push_error_scope(wgpu::ErrorFilter::Validation);
@@ -503,7 +503,7 @@ impl Renderer {
         let scratch = stride.map(|stride| PixelScratch {
             stride,
             layout: scratch::layout(device),
-            limit: scratch::binding_limit(gpu),
+            limit: crate::gpu::binding_limit(&gpu.limits()),
         });
         let layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
             label: Some("sphere_trace"),
@@ -683,34 +683,12 @@ impl Renderer {
     }
 }
 
-/// A read-write storage buffer at `binding` of the tracer's group 0.
-fn storage_entry(binding: u32) -> wgpu::BindGroupLayoutEntry {
-    wgpu::BindGroupLayoutEntry {
-        binding,
-        visibility: wgpu::ShaderStages::COMPUTE,
-        ty: wgpu::BindingType::Buffer {
-            ty: wgpu::BufferBindingType::Storage { read_only: false },
-            has_dynamic_offset: false,
-            min_binding_size: None,
-        },
-        count: None,
-    }
-}
-
 /// Multiply-adds one submission of the sphere tracer may cost at most, counting every ray at
 /// its step limit and one multiply-add per parameter per evaluation (a SIREN's cost; an
 /// overestimate for NGLOD, which reads only a few of its grid features): 2^38, tens of
 /// milliseconds on a desktop GPU in that worst case, far below the watchdogs that reset a GPU
 /// after a long submission.
 const MAX_SUBMISSION_MACS: u64 = 1 << 38;
-
-/// What the tracer's source starts with where SIRENs keep their activations in a scratch of
-/// `stride` floats per pixel.
-fn scratch_prelude(stride: Option<u32>) -> String {
-    stride
-        .map(|stride| wgsl::scratch_source(SCRATCH_GROUP, stride))
-        .unwrap_or_default()
-}
 
 /// The sphere tracer's full source for `sdf`: the model's snippet at group 1, then
 /// `shaders/sphere_trace.wgsl` (the form for GPUs; see [`crate::SirenActivations`]).

@@ -52,17 +52,17 @@ pub(crate) fn activations(stride: Option<u32>) -> SirenActivations {
     }
 }
 
-/// The largest binding the device takes, in bytes.
-pub(crate) fn binding_limit(gpu: &GpuContext) -> u64 {
-    let limits = gpu.limits();
-    limits
-        .max_storage_buffer_binding_size
-        .min(limits.max_buffer_size)
+/// What a kernel's source starts with where SIRENs keep their activations in a scratch of
+/// `stride` floats per slot (nothing where `stride` is `None`).
+pub(crate) fn prelude(stride: Option<u32>) -> String {
+    stride
+        .map(|stride| wgsl::scratch_source(SCRATCH_GROUP, stride))
+        .unwrap_or_default()
 }
 
 /// Slots of `stride` floats a scene's queries keep (see [`MAX_SCRATCH_BYTES`]).
 pub(crate) fn query_slots(gpu: &GpuContext, stride: u32) -> u32 {
-    let bytes = binding_limit(gpu).min(MAX_SCRATCH_BYTES);
+    let bytes = crate::gpu::binding_limit(&gpu.limits()).min(MAX_SCRATCH_BYTES);
     (bytes / (4 * u64::from(stride.max(1)))).clamp(1, u64::from(u32::MAX)) as u32
 }
 
@@ -70,16 +70,7 @@ pub(crate) fn query_slots(gpu: &GpuContext, stride: u32) -> u32 {
 pub(crate) fn layout(device: &wgpu::Device) -> wgpu::BindGroupLayout {
     device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
         label: Some("sdf_scratch"),
-        entries: &[wgpu::BindGroupLayoutEntry {
-            binding: 0,
-            visibility: wgpu::ShaderStages::COMPUTE,
-            ty: wgpu::BindingType::Buffer {
-                ty: wgpu::BufferBindingType::Storage { read_only: false },
-                has_dynamic_offset: false,
-                min_binding_size: None,
-            },
-            count: None,
-        }],
+        entries: &[crate::gpu::storage_layout_entry(0, false)],
     })
 }
 

@@ -172,10 +172,7 @@ pub(crate) fn bind_group(
     device: &wgpu::Device,
 ) -> Result<SdfBindGroup, EmbedError> {
     let (params, tables) = weights(network);
-    let limits = device.limits();
-    let limit = limits
-        .max_storage_buffer_binding_size
-        .min(limits.max_buffer_size);
+    let limit = crate::gpu::binding_limit(&device.limits());
     for bytes in [
         std::mem::size_of_val(params) as u64,
         std::mem::size_of_val(&tables[..]) as u64,

@@ -149,17 +149,10 @@ fn pack(lengths: &[Option<u64>], limit: u64) -> Result<PackedArrays, EmbedError>
 /// Per array its (buffer, offset), and the buffers' lengths.
 type PackedArrays = (Vec<Option<(usize, u64)>>, Vec<u64>);
 
-/// The largest buffer the device binds as storage.
-fn binding_limit(limits: &wgpu::Limits) -> u64 {
-    limits
-        .max_storage_buffer_binding_size
-        .min(limits.max_buffer_size)
-}
-
 impl Scene {
     /// How the models' weights are packed for a device with `limits`.
     pub(crate) fn packing(&self, limits: &wgpu::Limits) -> Result<Packing, EmbedError> {
-        let limit = binding_limit(limits);
+        let limit = crate::gpu::binding_limit(limits);
         let weights: Vec<(&[f32], Vec<u32>)> = self
             .models()
             .iter()

@@ -47,7 +47,7 @@ use std::sync::{Mutex, OnceLock};
 use glam::Vec3;
 
 use crate::gpu::QueryKernel;
-use crate::gpu::{GpuContext, GpuError, entry};
+use crate::gpu::{GpuContext, GpuError, binding_limit, entry, storage_layout_entry};
 use crate::serve::scene::cpu::{
     ClosestPoint, ProjectOptions, Ray, RayHit, SceneQueryError, SceneSample, TraceOptions,
     check_level_and_tolerance, check_points, check_ray, check_trace_options,
@@ -55,7 +55,7 @@ use crate::serve::scene::cpu::{
 use crate::serve::scene::embed::{SceneBindGroup, SceneGpuError};
 use crate::serve::scene::tree::Scene;
 use crate::serve::scratch::{self, SCRATCH_GROUP};
-use crate::serve::wgsl::{self, Lanes};
+use crate::serve::wgsl::Lanes;
 
 /// The group of the scene's weights in the query kernels.
 const SCENE_GROUP: u32 = 1;
@@ -271,9 +271,7 @@ impl<'g> GpuScene<'g> {
             forms,
             scratch::activations(stride),
         )?;
-        let prelude = stride
-            .map(|stride| wgsl::scratch_source(SCRATCH_GROUP, stride))
-            .unwrap_or_default();
+        let prelude = scratch::prelude(stride);
         let scope = device.push_error_scope(wgpu::ErrorFilter::Validation);
         // One module per kernel: the subgroup form's models sum over the subgroup, which the
         // per-invocation kernels (a point per lane) must not call.
@@ -301,16 +299,6 @@ impl<'g> GpuScene<'g> {
                 }
             }
         }
-        let storage = |binding, read_only| wgpu::BindGroupLayoutEntry {
-            binding,
-            visibility: wgpu::ShaderStages::COMPUTE,
-            ty: wgpu::BindingType::Buffer {
-                ty: wgpu::BufferBindingType::Storage { read_only },
-                has_dynamic_offset: false,
-                min_binding_size: None,
-            },
-            count: None,
-        };
         let query_layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
             label: Some("scene query"),
             entries: &[
@@ -324,8 +312,8 @@ impl<'g> GpuScene<'g> {
                     },
                     count: None,
                 },
-                storage(1, true),
-                storage(2, false),
+                storage_layout_entry(1, true),
+                storage_layout_entry(2, false),
             ],
         });
         // SIRENs in the scratch form: a slot per invocation of a dispatch, for the parts' sizes
@@ -347,9 +335,7 @@ impl<'g> GpuScene<'g> {
             }
             .into());
         }
-        let binding = limits
-            .max_storage_buffer_binding_size
-            .min(limits.max_buffer_size);
+        let binding = binding_limit(&limits);
         let max_dispatch = u64::from(limits.max_compute_workgroups_per_dimension);
         let scratch = match (stride, &scratch_layout) {
             (Some(stride), Some(layout)) => {
