@@ -307,7 +307,7 @@ fn corpus_tabulates_the_hash_grid() {
         table.contains("| design document, NGLOD (50 meshes) | 0.98 | 0.94 |"),
         "{table}"
     );
-    let state = hwsdf::eval::corpus::StateDir::for_table(&out);
+    let state = hwsdf::eval::corpus::StateDir::for_table(&out, &[]);
     let model = state.model_file("suzanne.obj", hwsdf::eval::run::ModelKind::Hashgrid);
     assert_eq!(
         ModelFile::load(&model).unwrap().metadata.architecture,

@@ -108,7 +108,7 @@ fn corpus(args: &Args) -> Result<ExitCode, BoxError> {
     // training, not after.
     let inputs: Vec<&std::path::Path> = meshes.iter().map(|m| m.path.as_path()).collect();
     hwsdf::geom::io::check_outputs(&inputs, &[&args.out])?;
-    let state = StateDir::for_table(&args.out);
+    let state = StateDir::for_table(&args.out, &meshes);
     let models: Vec<ModelKind> = match args.model {
         Some(Models::Siren) => vec![ModelKind::Siren],
         Some(Models::Nglod) => vec![ModelKind::Nglod],

@@ -2,12 +2,12 @@
 //! file (and model, and checkpoint) per mesh and model under a name no other pair shares, each
 //! written atomically.
 
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, BTreeSet};
 use std::path::{Path, PathBuf};
 
 use serde::{Deserialize, Serialize};
 
-use super::{CorpusError, stable_hash};
+use super::{CorpusError, CorpusMesh, stable_hash};
 use crate::run::{ModelKind, Report, RunSettings};
 
 /// What a corpus run asks for: the evaluation's size and each model's [`RunSettings`]. The first
@@ -100,13 +100,35 @@ fn read_settings_file(path: PathBuf) -> Result<Option<CorpusSettings>, CorpusErr
 #[derive(Clone, Debug)]
 pub struct StateDir {
     dir: PathBuf,
+    /// The meshes whose short name another mesh of the corpus shares: they are named by a
+    /// 64-bit hash instead ([`StateDir::stem`]).
+    long_names: BTreeSet<String>,
 }
 
 impl StateDir {
-    /// The folder that belongs to the table `out`.
-    pub fn for_table(out: &Path) -> Self {
+    /// The folder that belongs to the table `out`, for the corpus `meshes` (the whole corpus,
+    /// not one shard's part: every shard must name a mesh alike). A name ends in a 32-bit hash
+    /// of the relative path where the path is not a plain file name; the few meshes whose
+    /// names would still coincide (a chance of about 26 % at 51 000 paths that share their
+    /// last 80 characters) are found here and named by a 64-bit hash, so that no two meshes
+    /// ever share a result, while every other name stays what earlier versions wrote.
+    pub fn for_table(out: &Path, meshes: &[CorpusMesh]) -> Self {
+        let mut by_name: BTreeMap<String, Vec<&str>> = BTreeMap::new();
+        for m in meshes {
+            by_name
+                .entry(Self::base(&m.rel, false))
+                .or_default()
+                .push(&m.rel);
+        }
+        let long_names = by_name
+            .into_values()
+            .filter(|rels| rels.len() > 1)
+            .flatten()
+            .map(str::to_owned)
+            .collect();
         StateDir {
             dir: PathBuf::from(format!("{}.d", out.display())),
+            long_names,
         }
     }
 
@@ -134,16 +156,25 @@ impl StateDir {
         })
     }
 
-    /// The stem of every file of `mesh` × `model`: the relative path itself where it is a
-    /// plain file name, otherwise the path with unsafe characters replaced and a hash of the
-    /// whole relative path appended, so that no two meshes share a name.
-    pub fn stem(rel: &str, model: ModelKind) -> String {
-        let plain = !rel.is_empty()
+    /// The stem of every file of `rel` × `model`: the relative path itself where it is a
+    /// plain file name, otherwise its last 80 characters with unsafe ones replaced and a
+    /// 32-bit hash of the whole relative path appended; for a mesh whose name another mesh of
+    /// the corpus shares ([`StateDir::for_table`]), a 64-bit hash, so that no two meshes share
+    /// a name.
+    pub fn stem(&self, rel: &str, model: ModelKind) -> String {
+        let base = Self::base(rel, self.long_names.contains(rel));
+        format!("{base}.{}", model.name())
+    }
+
+    /// The model-independent part of [`StateDir::stem`], with the 64-bit hash if `long`.
+    fn base(rel: &str, long: bool) -> String {
+        let plain = !long
+            && !rel.is_empty()
             && !rel.starts_with('.')
             && rel
                 .chars()
                 .all(|c| c.is_ascii_alphanumeric() || matches!(c, '.' | '_' | '-'));
-        let base = if plain {
+        if plain {
             rel.to_owned()
         } else {
             let cleaned: String = rel
@@ -165,9 +196,13 @@ impl StateDir {
                 .into_iter()
                 .rev()
                 .collect();
-            format!("{tail}-{:08x}", stable_hash(rel) as u32)
-        };
-        format!("{base}.{}", model.name())
+            let hash = stable_hash(rel);
+            if long {
+                format!("{tail}-{hash:016x}")
+            } else {
+                format!("{tail}-{:08x}", hash as u32)
+            }
+        }
     }
 
     /// The record of the settings every result in the folder was made with.
@@ -252,19 +287,19 @@ impl StateDir {
 
     /// The result file of `rel` × `model`.
     pub fn record(&self, rel: &str, model: ModelKind) -> PathBuf {
-        self.dir.join(format!("{}.json", Self::stem(rel, model)))
+        self.dir.join(format!("{}.json", self.stem(rel, model)))
     }
 
     /// The model file of `rel` × `model`.
     pub fn model_file(&self, rel: &str, model: ModelKind) -> PathBuf {
         self.dir
-            .join(format!("{}.safetensors", Self::stem(rel, model)))
+            .join(format!("{}.safetensors", self.stem(rel, model)))
     }
 
     /// The checkpoint an interrupted fit of `rel` × `model` leaves.
     pub fn checkpoint(&self, rel: &str, model: ModelKind) -> PathBuf {
         self.dir
-            .join(format!("{}.checkpoint.safetensors", Self::stem(rel, model)))
+            .join(format!("{}.checkpoint.safetensors", self.stem(rel, model)))
     }
 
     /// Reads the result of `rel` × `model`.
@@ -300,7 +335,10 @@ mod tests {
         std::fs::create_dir_all(&dir).unwrap();
         let out = dir.join("r.md");
         std::fs::write(dir.join("r.md.d"), "not a folder").unwrap();
-        let e = StateDir::for_table(&out).create().unwrap_err().to_string();
+        let e = StateDir::for_table(&out, &[])
+            .create()
+            .unwrap_err()
+            .to_string();
         assert!(e.contains("r.md.d"), "{e}");
         assert!(
             e.contains("a file has the name of the results' state folder"),
@@ -321,10 +359,12 @@ mod tests {
             "ünï.obj",
             "../up.obj",
         ];
+        let meshes: Vec<_> = rels.map(|r| CorpusMesh::new(Path::new("c"), r)).to_vec();
+        let state = StateDir::for_table(Path::new("r.md"), &meshes);
         let mut stems = BTreeSet::new();
         for rel in rels {
             for model in ModelKind::ALL {
-                let stem = StateDir::stem(rel, model);
+                let stem = state.stem(rel, model);
                 assert!(!stem.contains('/') && !stem.starts_with('.'), "{stem}");
                 assert!(
                     stems.insert(stem.clone()),
@@ -333,9 +373,53 @@ mod tests {
             }
         }
         // Flat corpora keep the names earlier versions wrote, so old runs resume.
+        assert_eq!(state.stem("spot.obj", ModelKind::Nglod), "spot.obj.nglod");
         assert_eq!(
-            StateDir::stem("spot.obj", ModelKind::Nglod),
-            "spot.obj.nglod"
+            state.stem("x/a.obj", ModelKind::Nglod),
+            "x_a.obj-dd19d684.nglod"
+        );
+    }
+
+    /// Two paths that share their last 80 characters and their 32-bit hash (found by a
+    /// birthday search) are told apart by a 64-bit hash, in every shard; every other mesh of
+    /// the corpus keeps its short name.
+    #[test]
+    fn meshes_whose_short_names_coincide_get_long_ones() {
+        let tail =
+            "/exports/cad/released/final/assembly-with-a-long-descriptive-name/part-00/model.obj";
+        let (a, b) = (format!("batch305081{tail}"), format!("batch951190{tail}"));
+        let blind = StateDir::for_table(Path::new("r.md"), &[]);
+        assert_eq!(
+            blind.stem(&a, ModelKind::Nglod),
+            blind.stem(&b, ModelKind::Nglod),
+            "not a collision of the short names"
+        );
+        let meshes: Vec<_> = [a.as_str(), b.as_str(), "x/a.obj"]
+            .map(|r| CorpusMesh::new(Path::new("c"), r))
+            .to_vec();
+        let state = StateDir::for_table(Path::new("r.md"), &meshes);
+        let (sa, sb) = (
+            state.stem(&a, ModelKind::Nglod),
+            state.stem(&b, ModelKind::Nglod),
+        );
+        assert_ne!(sa, sb);
+        for stem in [&sa, &sb] {
+            let hash = stem.trim_end_matches(".nglod").rsplit('-').next().unwrap();
+            assert_eq!(hash.len(), 16, "{stem}");
+        }
+        assert_eq!(
+            state.record(&a, ModelKind::Siren),
+            state
+                .path()
+                .join(format!("{}.json", state.stem(&a, ModelKind::Siren)))
+        );
+        assert_ne!(
+            state.record(&a, ModelKind::Siren),
+            state.record(&b, ModelKind::Siren)
+        );
+        assert_eq!(
+            state.stem("x/a.obj", ModelKind::Nglod),
+            blind.stem("x/a.obj", ModelKind::Nglod)
         );
     }
 
@@ -345,7 +429,7 @@ mod tests {
         let root =
             std::env::temp_dir().join(format!("hwsdf-corpus-settings-{}", std::process::id()));
         let _ = std::fs::remove_dir_all(&root);
-        let state = StateDir::for_table(&root.join("results.md"));
+        let state = StateDir::for_table(&root.join("results.md"), &[]);
         state.create().unwrap();
         let nglod = |epochs: Option<usize>, cpu: bool| {
             TrainOptions {
@@ -425,7 +509,7 @@ mod tests {
         let root = std::env::temp_dir().join(format!("hwsdf-claims-{}", std::process::id()));
         let _ = std::fs::remove_dir_all(&root);
         for round in 0..4 {
-            let state = StateDir::for_table(&root.join(format!("r{round}.md")));
+            let state = StateDir::for_table(&root.join(format!("r{round}.md")), &[]);
             state.create().unwrap();
             let claims: Vec<_> = ModelKind::ALL
                 .into_iter()

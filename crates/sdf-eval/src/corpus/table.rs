@@ -368,7 +368,7 @@ mod tests {
     fn a_result_without_a_loss_reads_back() {
         let root = std::env::temp_dir().join(format!("hwsdf-noloss-{}", std::process::id()));
         let _ = std::fs::remove_dir_all(&root);
-        let state = StateDir::for_table(&root.join("results.md"));
+        let state = StateDir::for_table(&root.join("results.md"), &[]);
         state.create().unwrap();
         let mut r = report("a.obj", None);
         r.final_loss = None;
@@ -432,7 +432,7 @@ mod tests {
     fn the_table_shows_the_ambiguous_fractions() {
         let root = std::env::temp_dir().join(format!("hwsdf-corpus-amb-{}", std::process::id()));
         let _ = std::fs::remove_dir_all(&root);
-        let state = StateDir::for_table(&root.join("results.md"));
+        let state = StateDir::for_table(&root.join("results.md"), &[]);
         state.create().unwrap();
         let mut open = report("open.obj", None);
         open.ambiguous_bbox = Some(0.0123);
@@ -479,7 +479,7 @@ mod tests {
     fn the_hash_grid_has_its_own_section_against_nglods_figures() {
         let root = std::env::temp_dir().join(format!("hwsdf-corpus-hg-{}", std::process::id()));
         let _ = std::fs::remove_dir_all(&root);
-        let state = StateDir::for_table(&root.join("results.md"));
+        let state = StateDir::for_table(&root.join("results.md"), &[]);
         state.create().unwrap();
         let mut grid = report("a.obj", None);
         grid.model = "hashgrid".into();
@@ -517,7 +517,7 @@ mod tests {
     fn a_corrupt_record_is_never_merged() {
         let root = std::env::temp_dir().join(format!("hwsdf-corpus-merge-{}", std::process::id()));
         let _ = std::fs::remove_dir_all(&root);
-        let state = StateDir::for_table(&root.join("results.md"));
+        let state = StateDir::for_table(&root.join("results.md"), &[]);
         state.create().unwrap();
         let all = vec![
             CorpusMesh::new(&root, "a.obj"),
