@@ -75,25 +75,25 @@ pub const NGLOD_QUERY_SUBGROUP: Shader = shader!(
 );
 /// NGLOD forward + backward per row, grid scatter with native float atomics.
 pub const NGLOD_TRAIN_ATOMIC: Shader = shader!(
-    "nglod/shaders/" "nglod_train.wgsl" + "atomic" with ["nglod/shaders/" "nglod_grid.wgsl", "nglod/shaders/" "nglod_scatter_atomic.wgsl"],
+    "nglod/shaders/" "nglod_train.wgsl" + "atomic" with ["nglod/shaders/" "nglod_grid.wgsl", "serve/shaders/" "query_map.wgsl", "nglod/shaders/" "nglod_scatter_atomic.wgsl"],
     wgpu::Features::SHADER_FLOAT32_ATOMIC
 );
 /// NGLOD forward + backward per row, grid scatter by compare-exchange (any adapter).
 pub const NGLOD_TRAIN_CAS: Shader = shader!(
-    "nglod/shaders/" "nglod_train.wgsl" + "cas" with ["nglod/shaders/" "nglod_grid.wgsl", "nglod/shaders/" "nglod_scatter_cas.wgsl"],
+    "nglod/shaders/" "nglod_train.wgsl" + "cas" with ["nglod/shaders/" "nglod_grid.wgsl", "serve/shaders/" "query_map.wgsl", "nglod/shaders/" "nglod_scatter_cas.wgsl"],
     wgpu::Features::empty()
 );
 /// NGLOD forward + backward with one row per subgroup, grid scatter with native float atomics
 /// (completed by the files of [`NGLOD_TRAIN_ATOMIC`], whose bindings, row layout and scatter it
 /// shares).
 pub const NGLOD_TRAIN_SUBGROUP_ATOMIC: Shader = shader!(
-    "nglod/shaders/" "nglod_train_subgroup.wgsl" + "atomic" with ["nglod/shaders/" "nglod_grid.wgsl", "nglod/shaders/" "nglod_scatter_atomic.wgsl", "nglod/shaders/" "nglod_train.wgsl"],
+    "nglod/shaders/" "nglod_train_subgroup.wgsl" + "atomic" with ["nglod/shaders/" "nglod_grid.wgsl", "serve/shaders/" "query_map.wgsl", "nglod/shaders/" "nglod_scatter_atomic.wgsl", "nglod/shaders/" "nglod_train.wgsl"],
     wgpu::Features::SUBGROUP.union(wgpu::Features::SHADER_FLOAT32_ATOMIC)
 );
 /// NGLOD forward + backward with one row per subgroup, grid scatter by compare-exchange
 /// (completed by the files of [`NGLOD_TRAIN_CAS`]).
 pub const NGLOD_TRAIN_SUBGROUP_CAS: Shader = shader!(
-    "nglod/shaders/" "nglod_train_subgroup.wgsl" + "cas" with ["nglod/shaders/" "nglod_grid.wgsl", "nglod/shaders/" "nglod_scatter_cas.wgsl", "nglod/shaders/" "nglod_train.wgsl"],
+    "nglod/shaders/" "nglod_train_subgroup.wgsl" + "cas" with ["nglod/shaders/" "nglod_grid.wgsl", "serve/shaders/" "query_map.wgsl", "nglod/shaders/" "nglod_scatter_cas.wgsl", "nglod/shaders/" "nglod_train.wgsl"],
     wgpu::Features::SUBGROUP
 );
 /// NGLOD MLP-gradient and loss reduction.

@@ -119,7 +119,7 @@ fn train_rows(
     // The served value: outside the box, the clamped point's plus the distance to the box
     // (the serving rule of query_map.wgsl), which a near-surface point beyond a face is
     // labelled against.
-    let res = o + length(p - clamp(p, vec3<f32>(-1.0), vec3<f32>(1.0))) - targets[pi];
+    let res = o + box_gap(p) - targets[pi];
     let g = 2.0 * res;
     rows[row] = g;
     rows[row + 1u] = res * res;

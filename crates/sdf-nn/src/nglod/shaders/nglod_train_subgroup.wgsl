@@ -105,7 +105,7 @@ fn train_row_sg(row_idx: u32, lane: u32, lanes: u32) {
     // b1 from the uniform copy: every lane reads the same word.
     let out = subgroupBroadcastFirst(subgroupAdd(o)) + mlp_at(w1 + H - w0);
     // The served value, as in nglod_train.wgsl: outside the box plus the distance to it.
-    let res = out + length(p - clamp(p, vec3<f32>(-1.0), vec3<f32>(1.0))) - targets[pi];
+    let res = out + box_gap(p) - targets[pi];
     let g = 2.0 * res;
     if lane == 0u {
         rows[row] = g;

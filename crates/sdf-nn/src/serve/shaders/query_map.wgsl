@@ -1,5 +1,6 @@
 // NeuralSdf's serving rule, shared by every kernel that answers a caller's points
-// (`query.wgsl`, NGLOD's `query` entry points, the one-dispatch SIREN kernels). A point p in
+// (`query.wgsl`, NGLOD's `query` entry points, the one-dispatch SIREN kernels) and by the grid
+// models' training kernels, which fit the value it serves. A point p in
 // mesh coordinates maps to x = (p - centre) · scale in the network's cube [-1, 1]^3; the
 // network is evaluated at clamp(x), and outside the cube the distance grows by |x - clamp(x)|:
 // d = (Φ(clamp(x)) + |x - clamp(x)|) / scale, in mesh units. The normal points away from the
@@ -14,6 +15,11 @@ fn query_clamped(x: vec3<f32>) -> vec3<f32> {
     return clamp(x, vec3<f32>(-1.0), vec3<f32>(1.0));
 }
 
+// How far x lies outside the cube (0 inside): what the rule adds to the network's value.
+fn box_gap(x: vec3<f32>) -> f32 {
+    return length(x - query_clamped(x));
+}
+
 // A one-dispatch kernel's network input for a point as stored: with `query` (non-zero) a
 // caller's point in mesh coordinates, mapped into the cube and clamped; else already normalised.
 fn network_input(stored: vec3<f32>, query: u32, map: vec4<f32>) -> vec3<f32> {
@@ -25,7 +31,7 @@ fn network_input(stored: vec3<f32>, query: u32, map: vec4<f32>) -> vec3<f32> {
 
 // The distance in mesh units for the network's value `phi` at clamp(x).
 fn query_distance(phi: f32, x: vec3<f32>, map: vec4<f32>) -> f32 {
-    return (phi + length(x - query_clamped(x))) / map.w;
+    return (phi + box_gap(x)) / map.w;
 }
 
 // The unit normal at x for the network's gradient at clamp(x) (zero where both vanish).
