@@ -9,7 +9,7 @@ mod support;
 use glam::Vec3;
 use sdf_geom::{Mesh, SignedDistance, load_mesh, sample};
 use sdf_nn::GpuContext;
-use sdf_nn::ground_truth::{GpuGroundTruth, GroundTruthError, MAX_STACK};
+use sdf_nn::ground_truth::{GpuGroundTruth, GroundTruthError, Labeller, MAX_STACK};
 use support::test_data;
 
 fn gpu() -> &'static GpuContext {
@@ -40,11 +40,13 @@ const WINDING_TOLERANCE: f32 = 1e-3;
 
 /// Distances within 1e-6 of the diagonal, closest points on the surface and at the CPU's (or as
 /// near), signs equal farther than 1e-5 of the diagonal from the surface, winding numbers within
-/// [`WINDING_TOLERANCE`] there.
+/// [`WINDING_TOLERANCE`] there; the labeller's own probe of the two paths agrees.
 fn check_mesh(name: &str, n: usize) {
     let gpu = gpu();
     let mesh = unit(name);
     let cpu = SignedDistance::new(&mesh).unwrap();
+    let probed = Labeller::on_gpu(gpu, std::sync::Arc::new(cpu.clone()));
+    assert!(probed.is_ok(), "{name}: {:?}", probed.err());
     let gt = GpuGroundTruth::new(gpu, &cpu).unwrap();
     let diag = mesh.bounds().diagonal();
     let (tol, band) = (1e-6 * diag, 1e-5 * diag);
@@ -373,7 +375,7 @@ fn geometric_chains_are_answered_or_refused() {
 /// the adapter is not a CPU; `cpu` is the CPU's own answer.
 #[test]
 fn labellers_on_each_path_agree_with_the_cpu() {
-    use sdf_nn::ground_truth::{GroundTruthDevice, GroundTruthPath, Labeller};
+    use sdf_nn::ground_truth::{GroundTruthDevice, GroundTruthPath};
     let gpu = gpu();
     let mesh = unit("spot.obj");
     let cpu = std::sync::Arc::new(SignedDistance::new(&mesh).unwrap());

@@ -33,6 +33,7 @@ use glam::Vec3;
 use sdf_geom::SignedDistance;
 use serde::{Deserialize, Serialize};
 
+use super::agreement::{self, Agreement};
 use super::{GpuGroundTruth, GroundTruthError, Kernel};
 use crate::gpu::GpuContext;
 
@@ -46,9 +47,9 @@ pub enum GroundTruthDevice {
     Cpu,
     /// The GPU kernels ([`GpuGroundTruth`]); an error where the mesh does not fit the device.
     Gpu,
-    /// The GPU where the adapter is not a CPU (lavapipe labels 5–17 % as fast as the CPU path)
-    /// and the mesh's trees fit it, else the CPU (with [`Labeller::fallback`] saying why when
-    /// the mesh did not fit).
+    /// The GPU where the adapter is not a CPU (lavapipe labels 5–17 % as fast as the CPU path),
+    /// the mesh's trees fit it and its labels of a probe agree with the CPU's, else the CPU
+    /// (with [`Labeller::fallback`] saying why when the adapter is a GPU).
     #[default]
     Auto,
 }
@@ -151,6 +152,45 @@ fn decide(
     })
 }
 
+/// What [`Labeller::choose`] does with the GPU's truth of a mesh that fits: uses it; where
+/// the upload failed (out of device memory) or the probe's labels disagree, `auto` falls back
+/// to the CPU (`Ok(Err(why))`) and `gpu` fails.
+fn gpu_or_fallback<T>(
+    device: GroundTruthDevice,
+    truth: Result<T, GroundTruthError>,
+) -> Result<Result<T, String>, GroundTruthError> {
+    match (device, truth) {
+        (_, Ok(g)) => Ok(Ok(g)),
+        (GroundTruthDevice::Auto, Err(e)) => Ok(Err(fallback_reason(&e))),
+        (_, Err(e)) => Err(e),
+    }
+}
+
+/// The trees of `sdf` uploaded to `gpu`, once the GPU's signed distances at the probe points
+/// have been found to agree with the CPU's.
+fn checked_gpu_truth(
+    gpu: &GpuContext,
+    sdf: &SignedDistance,
+) -> Result<GpuGroundTruth, GroundTruthError> {
+    let g = GpuGroundTruth::new(gpu, sdf)?;
+    probe_agreement(gpu, &g, sdf)?.check()?;
+    Ok(g)
+}
+
+/// How the labels of `g` compare with those of `sdf` at the probe points of `sdf`'s mesh
+/// ([`agreement::probe_points`]).
+fn probe_agreement(
+    gpu: &GpuContext,
+    g: &GpuGroundTruth,
+    sdf: &SignedDistance,
+) -> Result<Agreement, GroundTruthError> {
+    let (points, diagonal) = agreement::probe_points(&sdf.gpu_trees());
+    let on_gpu = g.signed_distance(gpu, &points)?;
+    let cpu = sdf.signed_distance_batch(&points);
+    let winding = sdf.winding_number_batch(&points);
+    Ok(Agreement::of(&cpu, &winding, &on_gpu, diagonal))
+}
+
 /// The warning of `auto` falling back to the CPU because of `e`.
 fn fallback_reason(e: &GroundTruthError) -> String {
     format!("ground truth on the CPU instead of the GPU: {e}")
@@ -221,12 +261,15 @@ impl Labeller<'static> {
 
 impl<'g> Labeller<'g> {
     /// Labels of `sdf` on the path `device` asks for on `gpu` (see [`GroundTruthDevice`]).
+    /// Before the GPU's labels are used, 192 probe points (beside the surface on both sides,
+    /// and in the box) are labelled on both paths and compared: a device or driver the kernels
+    /// were never proven on cannot spoil a run unseen.
     ///
     /// # Errors
     /// With [`GroundTruthDevice::Gpu`]: [`GroundTruthError::TreeTooLarge`] or
-    /// [`GroundTruthError::TreeTooDeep`] naming the limit where the mesh does not fit, and the
-    /// device's errors. `Auto` falls back to the CPU instead, and says why in
-    /// [`Labeller::fallback`].
+    /// [`GroundTruthError::TreeTooDeep`] naming the limit where the mesh does not fit,
+    /// [`GroundTruthError::Disagrees`] where the probe's labels differ, and the device's
+    /// errors. `Auto` falls back to the CPU instead, and says why in [`Labeller::fallback`].
     pub fn choose(
         gpu: &'g GpuContext,
         sdf: Arc<SignedDistance>,
@@ -238,27 +281,26 @@ impl<'g> Labeller<'g> {
                 fallback,
                 ..Labeller::cpu(sdf)
             }),
-            Decision::Gpu => match (device, GpuGroundTruth::new(gpu, &sdf)) {
-                (_, Ok(g)) => Ok(Labeller {
+            Decision::Gpu => match gpu_or_fallback(device, checked_gpu_truth(gpu, &sdf))? {
+                Ok(g) => Ok(Labeller {
                     gpu: Some((gpu, Arc::new(g))),
                     ..Labeller::cpu(sdf)
                 }),
-                // The upload itself failed (out of device memory): `auto` still has the CPU.
-                (GroundTruthDevice::Auto, Err(e)) => Ok(Labeller {
-                    fallback: Some(fallback_reason(&e)),
+                Err(why) => Ok(Labeller {
+                    fallback: Some(why),
                     ..Labeller::cpu(sdf)
                 }),
-                (_, Err(e)) => Err(e),
             },
         }
     }
 
-    /// Labels on the GPU of `gpu` (the trees of `sdf` uploaded once).
+    /// Labels on the GPU of `gpu` (the trees of `sdf` uploaded once), checked on a probe as
+    /// [`Labeller::choose`] checks them.
     ///
     /// # Errors
-    /// As [`GpuGroundTruth::new`].
+    /// As [`GpuGroundTruth::new`], and [`GroundTruthError::Disagrees`].
     pub fn on_gpu(gpu: &'g GpuContext, sdf: Arc<SignedDistance>) -> Result<Self, GroundTruthError> {
-        let g = GpuGroundTruth::new(gpu, &sdf)?;
+        let g = checked_gpu_truth(gpu, &sdf)?;
         Ok(Labeller {
             gpu: Some((gpu, Arc::new(g))),
             ..Labeller::cpu(sdf)
@@ -274,8 +316,8 @@ impl<'g> Labeller<'g> {
         }
     }
 
-    /// Why `auto` chose the CPU although the adapter is a GPU (the mesh did not fit it), for a
-    /// warning line; `None` otherwise.
+    /// Why `auto` chose the CPU although the adapter is a GPU (the mesh did not fit it, or its
+    /// labels of the probe disagreed with the CPU's), for a warning line; `None` otherwise.
     pub fn fallback(&self) -> Option<&str> {
         self.fallback.as_deref()
     }
@@ -475,6 +517,30 @@ mod tests {
             "{err:?}"
         );
         assert_eq!(decide(Gpu, true, roomy).unwrap(), Decision::Gpu);
+    }
+
+    /// The probe finds labels that are not the mesh's: the GPU's truth of a sphere checked
+    /// against the CPU's of a smaller one disagrees (distances and signs), the same sphere's
+    /// agrees; `auto` then falls back to the CPU saying why, `gpu` fails.
+    #[test]
+    fn labels_that_disagree_with_the_cpu_are_never_used() {
+        let gpu = GpuContext::shared().expect("a GPU adapter (lavapipe in CI)");
+        let sdf = SignedDistance::new(&sdf_geom::Mesh::icosphere(0.5, 2)).unwrap();
+        let other = SignedDistance::new(&sdf_geom::Mesh::icosphere(0.45, 2)).unwrap();
+        let g = GpuGroundTruth::new(gpu, &other).unwrap();
+        let wrong = probe_agreement(gpu, &g, &sdf).unwrap();
+        assert!(wrong.misses > 0 && wrong.sign_misses > 0, "{wrong:?}");
+        let right = GpuGroundTruth::new(gpu, &sdf).unwrap();
+        let same = probe_agreement(gpu, &right, &sdf).unwrap();
+        assert_eq!(same.misses, 0, "{same:?}");
+        assert!(same.worst < 1e-6, "{same:?}");
+        let why = gpu_or_fallback(GroundTruthDevice::Auto, wrong.check().map(|()| g))
+            .unwrap()
+            .unwrap_err();
+        assert!(why.contains("disagrees with the CPU's"), "{why}");
+        let err = gpu_or_fallback(GroundTruthDevice::Gpu, wrong.check()).unwrap_err();
+        assert!(matches!(err, GroundTruthError::Disagrees { .. }), "{err:?}");
+        assert!(gpu_or_fallback(GroundTruthDevice::Gpu, same.check()).is_ok());
     }
 
     /// With a progress sink a long call comes in parts, each reported, and gives the same

@@ -57,6 +57,7 @@
 //! returns [`GroundTruthError`] naming the limit. Queries are split into dispatches that fit the
 //! device's buffer and dispatch limits.
 
+mod agreement;
 mod bin;
 mod labeller;
 
@@ -146,6 +147,25 @@ pub enum GroundTruthError {
         needed: u32,
         /// [`MAX_STACK`].
         limit: u32,
+    },
+    /// The GPU's labels of a few probe points disagree with the CPU's (checked when a
+    /// [`Labeller`] is chosen): a fault of this device or its driver, found before any label
+    /// of it is used.
+    #[error(
+        "the GPU's ground truth disagrees with the CPU's at {misses} of {points} probe points \
+         (distances up to {worst:.1e} of the diagonal apart, {sign_misses} signs differ): a \
+         fault of this device or its driver; compute the ground truth on the CPU"
+    )]
+    Disagrees {
+        /// Probe points.
+        points: usize,
+        /// Points whose distances differ by more than 1e-5 of the diagonal, or whose signs
+        /// differ where the CPU's is clear.
+        misses: usize,
+        /// Of those, the points whose signs differ.
+        sign_misses: usize,
+        /// The largest difference of the distances, in diagonals.
+        worst: f32,
     },
     /// The device failed, or a per-call buffer would exceed its limits.
     #[error(transparent)]
