@@ -54,11 +54,13 @@ pub struct GroundTruthFlags {
 /// The values of `--ground-truth`.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, clap::ValueEnum)]
 pub enum GroundTruthArg {
-    /// The GPU kernels; an error naming the limit where the mesh does not fit the device.
+    /// The GPU kernels; an error where the mesh does not fit the device (naming the limit) or
+    /// the GPU's labels of a probe disagree with the CPU's.
     Gpu,
     /// The CPU (rayon).
     Cpu,
-    /// The GPU unless the adapter is a CPU or the mesh does not fit it.
+    /// The GPU unless the adapter is a CPU, the mesh does not fit it or its labels of a probe
+    /// disagree with the CPU's.
     #[default]
     Auto,
 }
