@@ -226,30 +226,3 @@ fn an_interrupted_gpu_epoch_resumes_on_the_same_points() {
     eprintln!("resumed vs straight: {err:.3e}; stopped vs straight: {skipped:.3e}");
     assert!(err < 1e-4 && err * 20.0 < skipped, "{err} vs {skipped}");
 }
-
-/// On GPU points as on the CPU pool, a time budget that lengthens the plan after the first
-/// epoch never raises the learning rate: it holds until the longer schedule comes down to it.
-#[test]
-fn a_growing_plan_never_raises_the_learning_rate() {
-    let gpu = gpu();
-    let mesh = Mesh::icosphere(0.5, 1);
-    let model = Nglod::new(NglodConfig::small()).unwrap();
-    let config = NglodTrainConfig {
-        epochs: 1,
-        uniform_points: 1_000,
-        near_points: 500,
-        surface_points: 500,
-        batch_size: 500,
-        sample_source: SampleSource::Gpu,
-        time_budget: Some(sdf_nn::nglod::TimeBudget {
-            seconds: 1e9,
-            max_epochs: 4,
-        }),
-        ..Default::default()
-    };
-    let mut trainer = NglodTrainer::new(gpu, &model, &mesh, config).unwrap();
-    let report = trainer.train().unwrap();
-    let lr: Vec<f32> = report.epochs.iter().map(|e| e.lr).collect();
-    assert_eq!(lr.len(), 4);
-    assert!(lr.windows(2).all(|w| w[1] <= w[0]), "rates {lr:?}");
-}

@@ -140,8 +140,7 @@ pub struct NglodTrainConfig {
 /// the epoch just done, at least `epochs` and at most `max_epochs`. The first epoch waits for
 /// its samples, so its plan is a cautious one; the second runs at the pace the rest will. So
 /// the same command gives the best fit a given time buys on machines (and drivers) of very
-/// different speeds. The learning rate never rises when a plan grows: it holds until the longer
-/// schedule comes down to it.
+/// different speeds.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct TimeBudget {
     /// Seconds of training, sampling included.
@@ -611,7 +610,6 @@ impl<'g> NglodTrainer<'g> {
             n,
             batch,
             steps_per_epoch,
-            lr_ceiling: f32::INFINITY,
         };
         let should_stop = || stop_requested(config, start, stop_flag.as_deref());
 
@@ -716,11 +714,6 @@ struct Stepper<'a> {
     /// Points per step.
     batch: u32,
     steps_per_epoch: usize,
-    /// The last step's learning rate. When a time budget lengthens the plan, the schedule's
-    /// rate at the same step is higher; the rate holds here until the longer schedule comes
-    /// down to it, so that it never rises (the hash grid's `small` on lavapipe went 1 → 0.87
-    /// of the first rate in epoch 0, back up to 0.955 in epoch 1).
-    lr_ceiling: f32,
 }
 
 /// An epoch's points and labels: drawn on the host (uploaded first), or drawn and labelled
@@ -833,7 +826,6 @@ impl EpochSteps {
             n,
             batch,
             steps_per_epoch,
-            ref mut lr_ceiling,
         } = *s;
         let mut draw = match data {
             EpochData::Host(points, targets) => {
@@ -879,13 +871,9 @@ impl EpochSteps {
             let mut read_due = false;
             for _ in 0..STEPS_PER_SUBMISSION {
                 let nb = batch.min(n - first);
-                lr = config
-                    .lr_at(
-                        (e as f64 + step_in_epoch as f64 / steps_per_epoch as f64)
-                            / end_epoch as f64,
-                    )
-                    .min(*lr_ceiling);
-                *lr_ceiling = lr;
+                lr = config.lr_at(
+                    (e as f64 + step_in_epoch as f64 / steps_per_epoch as f64) / end_epoch as f64,
+                );
                 adam.config.lr = lr;
                 kernels.record_staged(gpu, &mut enc, stager, first, nb)?;
                 adam.record_step_staged(gpu, &mut enc, stager, 1.0 / nb as f32)?;

@@ -469,9 +469,7 @@ fn trains_a_sphere_with_correct_signs_at_every_lod() {
 
 /// A time budget plans the run after its first epoch: a budget no epoch fits in keeps the
 /// least (`epochs`), a budget every epoch fits in runs `max_epochs`; the pool samples for the
-/// epochs added, and every epoch reports the plan. The learning rate never rises when the plan
-/// grows (decayed over the provisional single epoch, it ended epoch 0 at a tenth of the first
-/// rate and rose to 0.55 of it in epoch 1).
+/// epochs added, and every epoch reports the plan.
 #[test]
 fn a_time_budget_plans_the_number_of_epochs() {
     let gpu = gpu();
@@ -497,8 +495,6 @@ fn a_time_budget_plans_the_number_of_epochs() {
         let mut planned = Vec::new();
         let report = trainer.train_with(|e| planned.push(e.planned)).unwrap();
         assert_eq!(trainer.epochs_done(), report.epochs.len());
-        let lr: Vec<f32> = report.epochs.iter().map(|e| e.lr).collect();
-        assert!(lr.windows(2).all(|w| w[1] <= w[0]), "rates {lr:?}");
         (report.epochs.len(), planned)
     };
     assert_eq!(run(0.0, 2, 50), (2, vec![2, 2]));

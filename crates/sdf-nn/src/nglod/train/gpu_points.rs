@@ -220,7 +220,6 @@ impl NglodTrainer<'_> {
             n,
             batch,
             steps_per_epoch: n.div_ceil(batch) as usize,
-            lr_ceiling: f32::INFINITY,
         };
         let stop_flag = self.stop.as_deref();
         let should_stop = || stop_requested(config, start, stop_flag);
