@@ -344,17 +344,39 @@ impl NeuralSdf {
     /// points: large inputs are split into several submissions. Runs on the serving path of
     /// [`crate::serve::query`] with buffers the model keeps per device: one upload, one submission and
     /// one readback per call, nothing allocated on the GPU after the first call.
+    ///
+    /// A model far from the origin for its size ([`Normalization::is_far`]: trained from
+    /// georeferenced or CAD coordinates) has its points mapped into its cube on the host, with
+    /// its centre in f64, as [`NeuralSdf::eval_cpu`] does: the kernels' f32 centre would round
+    /// its shape (at 10⁷ by up to half a unit).
     pub fn eval(&self, gpu: &GpuContext, points: &[Vec3]) -> Result<Vec<f32>, NeuralSdfError> {
         let mut out = Vec::with_capacity(points.len());
-        self.host_query(
-            gpu,
-            points,
-            QuerySpace::Mesh,
-            QueryOutputs::Values,
-            false,
-            |r| r.extend_values(&mut out),
-        )?;
+        let (points, space) = self.mesh_points(points);
+        self.host_query(gpu, &points, space, QueryOutputs::Values, false, |r| {
+            r.extend_values(&mut out)
+        })?;
+        self.to_mesh_units(space, out.iter_mut());
         Ok(out)
+    }
+
+    /// `points` in mesh coordinates as the GPU takes them: as they are, or for a far model
+    /// ([`NeuralSdf::eval`]) mapped into the cube on the host.
+    fn mesh_points<'p>(&self, points: &'p [Vec3]) -> (std::borrow::Cow<'p, [Vec3]>, QuerySpace) {
+        let n = self.normalization;
+        if !n.is_far() {
+            return (points.into(), QuerySpace::Mesh);
+        }
+        let local = points.par_iter().map(|&p| n.to_normalized(p)).collect();
+        (std::borrow::Cow::Owned(local), QuerySpace::Normalized)
+    }
+
+    /// Distances of a query in `space` ([`NeuralSdf::mesh_points`]) into mesh units.
+    fn to_mesh_units<'d>(&self, space: QuerySpace, distances: impl Iterator<Item = &'d mut f32>) {
+        if space == QuerySpace::Normalized {
+            for d in distances {
+                *d = self.normalization.distance_to_original(*d);
+            }
+        }
     }
 
     /// Signed distances at `points` in the normalised cube, in normalised units, on the GPU.
@@ -401,21 +423,24 @@ impl NeuralSdf {
 
     /// Signed distances and unit normals (the normalised analytic gradient) at `points` in
     /// mesh coordinates, both from the GPU: SIREN's gradient from its forward-mode kernels,
-    /// NGLOD's from its analytic-gradient kernel.
+    /// NGLOD's from its analytic-gradient kernel. A far model's points are mapped on the host,
+    /// as [`NeuralSdf::eval`]'s.
     pub fn eval_with_normals(
         &self,
         gpu: &GpuContext,
         points: &[Vec3],
     ) -> Result<Vec<(f32, Vec3)>, NeuralSdfError> {
         let mut out = Vec::with_capacity(points.len());
+        let (points, space) = self.mesh_points(points);
         self.host_query(
             gpu,
-            points,
-            QuerySpace::Mesh,
+            &points,
+            space,
             QueryOutputs::ValuesAndNormals,
             false,
             |r| r.extend_values_and_normals(&mut out),
         )?;
+        self.to_mesh_units(space, out.iter_mut().map(|(d, _)| d));
         Ok(out)
     }
 
@@ -593,6 +618,50 @@ mod tests {
     use super::*;
     use crate::nglod::NglodConfig;
     use crate::siren::SirenConfig;
+
+    /// A model far from the origin for its size (its centre 10⁷ + ½, not an f32) answers on
+    /// the GPU as on the CPU, distances and normals: the kernels' f32 centre put every point
+    /// half a unit off (a distance 0.5 wrong).
+    #[test]
+    fn a_far_model_answers_on_the_gpu_as_on_the_cpu() {
+        let gpu = GpuContext::shared().expect("a GPU adapter (lavapipe in CI)");
+        let sphere = Nglod::from_sdf(16, |p| p.length() - 0.5).unwrap();
+        let normalization = Normalization {
+            center: glam::DVec3::new(1e7 + 0.5, 0.0, 0.0),
+            scale: 0.5,
+        };
+        assert!(normalization.is_far());
+        let file = sphere.to_model_file(normalization, serde_json::Value::Null);
+        let sdf = NeuralSdf::from_model_file(file).unwrap();
+        // Whole numbers near 10⁷ are f32s; the sphere (radius 1) is centred half-way between
+        // two of them, so its distance at 10⁷ + k is |k − ½| − 1.
+        let ks = [-2.0f32, -1.0, 0.0, 1.0, 2.0, 3.0];
+        let points: Vec<Vec3> = ks.iter().map(|&k| Vec3::new(1e7 + k, 0.0, 0.0)).collect();
+        let cpu = sdf.eval_cpu(&points);
+        let cpu_normals = sdf.eval_with_normals_cpu(&points);
+        let on_gpu = sdf.eval(gpu, &points).unwrap();
+        let with_normals = sdf.eval_with_normals(gpu, &points).unwrap();
+        for (i, &k) in ks.iter().enumerate() {
+            let want = (k - 0.5).abs() - 1.0;
+            assert!(
+                (cpu[i] - want).abs() < 0.02,
+                "{k}: CPU {} vs {want}",
+                cpu[i]
+            );
+            assert!(
+                (on_gpu[i] - cpu[i]).abs() < 1e-4,
+                "{k}: {} vs {}",
+                on_gpu[i],
+                cpu[i]
+            );
+            let ((d, n), (_, cpu_n)) = (with_normals[i], cpu_normals[i]);
+            assert!((d - cpu[i]).abs() < 1e-4, "{k}: {d} vs {}", cpu[i]);
+            assert!(
+                n.distance(cpu_n) < 1e-4 && n.x * (k - 0.5) > 0.0,
+                "{k}: {n} vs {cpu_n}"
+            );
+        }
+    }
 
     /// Model files that read fine but hold no valid model: every error of `load` names the file
     /// once, at the start (it used to begin with an empty path, `: metadata ...`).
