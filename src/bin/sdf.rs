@@ -10,8 +10,8 @@
 //! longest half-extent scaled to 1).
 //!
 //! `--ground-truth` chooses where the distances are computed: `auto` (the default) on the GPU
-//! unless the adapter is a CPU (lavapipe) or the mesh does not fit it, `gpu`, or `cpu` (which
-//! opens no GPU at all).
+//! unless the adapter is a CPU (lavapipe), the mesh does not fit it or the GPU's labels of a
+//! probe disagree with the CPU's, `gpu`, or `cpu` (which opens no GPU at all).
 
 use std::path::PathBuf;
 use std::process::ExitCode;

@@ -327,7 +327,6 @@ impl StateDir {
 mod tests {
     use super::*;
     use crate::corpus::merge;
-    use std::collections::BTreeSet;
 
     #[test]
     fn a_file_in_the_state_folders_place_is_named() {

@@ -63,12 +63,12 @@ impl GroundTruth<'static> {
 
 impl<'g> GroundTruth<'g> {
     /// [`GroundTruth::new`] labelling where `device` asks on `gpu` ([`Labeller::choose`]):
-    /// `auto` falls back to the CPU where the mesh does not fit the GPU, and
-    /// [`Labeller::fallback`] says why.
+    /// `auto` falls back to the CPU where the mesh does not fit the GPU or the GPU's labels of
+    /// a probe disagree with the CPU's, and [`Labeller::fallback`] says why.
     ///
     /// # Errors
     /// The mesh's ([`RunError::Mesh`]); with `gpu`, a mesh that does not fit the device
-    /// ([`RunError::GroundTruth`], naming the limit).
+    /// ([`RunError::GroundTruth`], naming the limit) or a probe that disagrees.
     pub fn on(
         gpu: &'g GpuContext,
         mesh: Mesh,

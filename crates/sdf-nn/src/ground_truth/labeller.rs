@@ -13,7 +13,8 @@
 //! let (mesh, _) = load_mesh("tests/data/spot.obj")?;
 //! let sdf = Arc::new(SignedDistance::new(&mesh.normalized().0)?);
 //! let gpu = GpuContext::shared()?;
-//! // `auto`: the GPU where the adapter is not a CPU and the mesh's trees fit it.
+//! // `auto`: the GPU where the adapter is not a CPU, the mesh's trees fit it and a probe's
+//! // labels agree with the CPU's.
 //! let labels = Labeller::choose(gpu, sdf, GroundTruthDevice::Auto)?;
 //! if let Some(why) = labels.fallback() {
 //!     eprintln!("warning: {why}");
@@ -45,7 +46,8 @@ const INSIDE_WINDING: f32 = 0.5;
 pub enum GroundTruthDevice {
     /// The CPU's [`SignedDistance`] (rayon).
     Cpu,
-    /// The GPU kernels ([`GpuGroundTruth`]); an error where the mesh does not fit the device.
+    /// The GPU kernels ([`GpuGroundTruth`]); an error where the mesh does not fit the device or
+    /// the GPU's labels of a probe disagree with the CPU's.
     Gpu,
     /// The GPU where the adapter is not a CPU (lavapipe labels 5–17 % as fast as the CPU path),
     /// the mesh's trees fit it and its labels of a probe agree with the CPU's, else the CPU
@@ -123,7 +125,8 @@ impl fmt::Display for GroundTruthPath {
 /// Where [`Labeller::choose`] labels.
 #[derive(Debug, PartialEq)]
 enum Decision {
-    /// On the CPU; with `auto` on a GPU, why (the mesh does not fit).
+    /// On the CPU; with `auto` on a GPU, why (the mesh does not fit; a probe that disagrees
+    /// is found later, by [`checked_gpu_truth`]).
     Cpu(Option<String>),
     /// On the GPU.
     Gpu,
@@ -178,17 +181,17 @@ fn checked_gpu_truth(
 }
 
 /// How the labels of `g` compare with those of `sdf` at the probe points of `sdf`'s mesh
-/// ([`agreement::probe_points`]).
+/// ([`agreement::probe`]).
 fn probe_agreement(
     gpu: &GpuContext,
     g: &GpuGroundTruth,
     sdf: &SignedDistance,
 ) -> Result<Agreement, GroundTruthError> {
-    let (points, diagonal) = agreement::probe_points(&sdf.gpu_trees());
-    let on_gpu = g.signed_distance(gpu, &points)?;
-    let cpu = sdf.signed_distance_batch(&points);
-    let winding = sdf.winding_number_batch(&points);
-    Ok(Agreement::of(&cpu, &winding, &on_gpu, diagonal))
+    let probe = agreement::probe(&sdf.gpu_trees());
+    let on_gpu = g.signed_distance(gpu, &probe.points)?;
+    let cpu = sdf.signed_distance_batch(&probe.points);
+    let winding = sdf.winding_number_batch(&probe.points);
+    Ok(Agreement::of(&probe, &cpu, &winding, &on_gpu))
 }
 
 /// The warning of `auto` falling back to the CPU because of `e`.
@@ -261,8 +264,8 @@ impl Labeller<'static> {
 
 impl<'g> Labeller<'g> {
     /// Labels of `sdf` on the path `device` asks for on `gpu` (see [`GroundTruthDevice`]).
-    /// Before the GPU's labels are used, 192 probe points (beside the surface on both sides,
-    /// and in the box) are labelled on both paths and compared: a device or driver the kernels
+    /// Before the GPU's labels are used, up to 192 probe points (beside the surface on both
+    /// sides, and in the box) are labelled on both paths and compared: a device or driver the kernels
     /// were never proven on cannot spoil a run unseen.
     ///
     /// # Errors
