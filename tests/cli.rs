@@ -632,6 +632,15 @@ fn siren_loss_and_learning_rate_flags_reach_the_model_file() {
     assert_eq!(t["done"], 2, "{t}");
     assert_eq!(t["planned"], 2, "{t}");
     assert_eq!(t["model"], "siren", "{t}");
+    // The report gives the same settings (it gave null for SIREN), and how many repetitions
+    // its latency medians took.
+    let report: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.with_extension("json")).unwrap()).unwrap();
+    assert_eq!(
+        report["training"]["config"]["weights"], *weights,
+        "{report}"
+    );
+    assert!(report["latency_reps"].as_u64().unwrap() >= 3, "{report}");
 
     // eval on other kernels: the same signs up to f32 rounding, the kernels named in the
     // report.

@@ -250,6 +250,38 @@ fn a_hash_grids_checkpoint_resumes_into_a_hash_grid() {
     assert_clean_failure(&o, "the checkpoint is of a hashgrid model, not nglod");
     let o = resume(&["--model", "hashgrid", "--preset", "default"]);
     assert_clean_failure(&o, "the checkpoint uses the small preset, not default");
+    // As many epochs as it has done: nothing to train, evaluated as it is, with the
+    // checkpoint's loss and rate (the trainer's empty report gave a loss of 0 and the starting
+    // rate). A copy of the checkpoint, which the finished run leaves alone.
+    let copy = scratch("resumed-copy.checkpoint.safetensors");
+    std::fs::copy(&checkpoint, &copy).unwrap();
+    let as_is = scratch("as-is.hashgrid.safetensors");
+    let o = bin("train")
+        .arg(data("suzanne.obj"))
+        .args(["--preset", "small", "--epochs", &done.to_string()])
+        .args(["--eval-points", "2000", "--out"])
+        .arg(&as_is)
+        .arg("--resume")
+        .arg(&copy)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", stderr(&o));
+    let json: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(as_is.with_extension("json")).unwrap()).unwrap();
+    assert_eq!(json["trained"], done, "{json}");
+    let recorded = |key: &str| saved.training()[key].as_f64().unwrap() as f32;
+    assert_eq!(
+        json["final_loss"].as_f64().unwrap() as f32,
+        recorded("final_loss"),
+        "{json}"
+    );
+    assert_eq!(
+        json["final_lr"].as_f64().unwrap() as f32,
+        recorded("lr"),
+        "{json}"
+    );
+    assert!(recorded("final_loss") > 0.0, "{json}");
+
     // One more epoch than it has done; without --model, the checkpoint's model (not the
     // adapter's default).
     let total = (done + 1).to_string();

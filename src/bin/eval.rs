@@ -136,6 +136,7 @@ fn eval(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
         "batch3000_us": latency.batch3000_us,
         "gpu_per_point_ns": latency.gpu_per_point_ns,
         "gpu_batch3000_us": latency.gpu_batch3000_us,
+        "latency_reps": latency.reps,
         "chamfer_l1": surface.map(|s| s.chamfer_l1),
         "normal_consistency": surface.map(|s| s.normal_consistency),
         "surface_null_reason": surface_null_reason,

@@ -571,6 +571,8 @@ impl Reporter {
                 bar.set_prefix(format!("{}s", p.unit));
                 bar
             });
+            // A CPU time budget plans the run's length again after its first epochs.
+            bar.set_length(p.total as u64);
             bar.set_position(p.done as u64);
             bar.set_message(msg);
         } else if self.last_line.elapsed().as_secs_f64() >= 5.0 || p.done == p.total {

@@ -82,6 +82,10 @@ pub struct Report {
     /// Kernel time of the 3000 batch from GPU timestamps (separate, timed calls), µs.
     #[serde(default)]
     pub gpu_batch3000_us: Option<f64>,
+    /// Repetitions behind each latency median, at least (fewer for a batch that has taken 10 s:
+    /// `timing::SLOW_AFTER`); null in reports written before it existed.
+    #[serde(default)]
+    pub latency_reps: Option<usize>,
     /// Training wall time, s.
     pub train_seconds: f64,
     /// Steps (SIREN) or epochs (NGLOD, the hash grid) run.
@@ -152,6 +156,7 @@ impl Report {
             batch3000_us: eval.latency.batch3000_us,
             gpu_per_point_ns: eval.latency.gpu_per_point_ns,
             gpu_batch3000_us: eval.latency.gpu_batch3000_us,
+            latency_reps: Some(eval.latency.reps),
             train_seconds: trained.train_seconds,
             trained: trained.done,
             final_loss: Some(trained.final_loss).filter(|l| l.is_finite()),

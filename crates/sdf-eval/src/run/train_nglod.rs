@@ -60,13 +60,21 @@ pub(super) fn train(
     let trained = trainer.model().map_err(named)?;
     let optimizer = trainer.optimizer_state().map_err(named)?;
     let done = trainer.epochs_done();
-    let lr = report
-        .epochs
-        .last()
-        .map_or(trainer.config().adam.lr, |e| e.lr);
+    // A resume asked for no more epochs than were done trains none: its rate and loss are the
+    // checkpoint's (the trainer's empty report has a loss of 0 and the starting rate).
+    let (lr, final_loss) = match (report.epochs.last(), plan.resume) {
+        (Some(e), _) => (e.lr, report.final_loss),
+        (None, Some(c)) => (
+            c.lr().unwrap_or(trainer.config().adam.lr),
+            c.training()["final_loss"]
+                .as_f64()
+                .map_or(f32::NAN, |l| l as f32),
+        ),
+        (None, None) => (trainer.config().adam.lr, f32::NAN),
+    };
     let mut training = with_run_record(
         trainer.training_json(Some(&report)),
-        plan.training_json(done, report.final_loss),
+        plan.training_json(done, final_loss),
     );
     training["planned"] = planned.into();
     training["stall_seconds"] = report.stall_seconds.into();
@@ -76,8 +84,9 @@ pub(super) fn train(
         file,
         train_seconds: plan.train_seconds(),
         done,
-        final_loss: report.final_loss,
-        interrupted: report.stopped_early && plan.stop.load(Ordering::Relaxed),
+        final_loss,
+        // A stop that lands after the last planned epoch's last step leaves nothing to resume.
+        interrupted: report.stopped_early && plan.stop.load(Ordering::Relaxed) && done < planned,
         details: training,
         optimizer,
         lr,

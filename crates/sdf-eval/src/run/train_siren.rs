@@ -86,13 +86,15 @@ pub(super) fn train(
     // The trainer checks each window's loss; the weights are checked here, since a run
     // shorter than a window reads no loss at all.
     check_trained(&file, done, "step")?;
+    // The settings, as the grid models' reports give theirs (it was null for SIREN).
+    let details = file.metadata.training.clone();
     Ok(Trained {
         file,
         train_seconds: plan.train_seconds(),
         done,
         final_loss: loss,
         interrupted,
-        details: serde_json::Value::Null,
+        details,
         optimizer,
         lr,
     })
