@@ -578,6 +578,54 @@ fn bad_scene_input_is_refused() {
             .arg(&out),
         "ray 1: direction",
     );
+    // Directions read in float64 are normalised before f32: 1e39 or 1e-50 per unit is the
+    // unit direction (f32 made them infinite or zero, and the rays were refused).
+    let scaled = scratch("scaled_rays.npy");
+    let table: Vec<f64> = [1.0, 1e39, 1e-50]
+        .iter()
+        .flat_map(|s| [0.0, 0.0, 3.0, 0.0, 0.0, -s])
+        .collect();
+    npy::write_table_f64(&scaled, &table, 6).unwrap();
+    let hits = scratch("scaled_hits.npy");
+    run_ok(
+        bin("query")
+            .arg("--scene")
+            .arg(example())
+            .arg("--rays")
+            .arg(&scaled)
+            .arg("--out")
+            .arg(&hits),
+    );
+    let rows = npy::read_table(&hits, 9).unwrap();
+    assert_eq!(rows[0], 1.0, "{rows:?}");
+    for row in rows.chunks_exact(9) {
+        assert_eq!(row, &rows[..9], "{rows:?}");
+    }
+    // An output that would replace one of the scene's models is refused before anything is
+    // read or written (a copy of the example, so that a failure cannot harm the shipped one).
+    let copy = scratch("scene-copy");
+    std::fs::create_dir_all(&copy).unwrap();
+    for name in [
+        "scene.toml",
+        "spot.nglod.safetensors",
+        "teapot.nglod.safetensors",
+    ] {
+        std::fs::copy(example().with_file_name(name), copy.join(name)).unwrap();
+    }
+    let model = copy.join("teapot.nglod.safetensors");
+    let before = std::fs::read(&model).unwrap();
+    for bin_name in ["query", "render", "extract"] {
+        let mut cmd = bin(bin_name);
+        cmd.arg("--scene").arg(copy.join("scene.toml"));
+        if bin_name == "query" {
+            cmd.arg("--points").arg(&p);
+        }
+        assert_clean_failure(
+            cmd.arg("--out").arg(&model),
+            "is the same file as the input",
+        );
+    }
+    assert_eq!(std::fs::read(&model).unwrap(), before);
     // An over-relaxation outside [1, 2).
     let good = scratch("good_ray.npy");
     npy::write_table(&good, &[0.0, 0.0, 3.0, 0.0, 0.0, -1.0], 6).unwrap();

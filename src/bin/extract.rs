@@ -70,7 +70,7 @@ fn extract(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
     if !(args.max_memory_gib.is_finite() && args.max_memory_gib > 0.0) {
         return Err(format!("--max-memory-gib {} must be positive", args.max_memory_gib).into());
     }
-    hwsdf::geom::io::check_outputs(&[args.source.path()], &[&args.out])?;
+    args.source.check_outputs(&[], &[&args.out])?;
     // A model far from the origin is extracted relative to its centre, added back in f64.
     let (mut source, centre) = args.source.load()?.recentred()?;
     let what = match &mut source {

@@ -89,6 +89,18 @@ fn main() -> ExitCode {
     }
 }
 
+/// A ray's direction read in f64, normalised before it becomes f32: components of 1e39 or
+/// 1e-50 give a direction, where f32 would make them infinite or zero and the ray refused. A
+/// zero or non-finite direction stays as it was read, for the refusal to show.
+fn unit_direction(d: DVec3) -> glam::Vec3 {
+    let unit = d.normalize_or_zero();
+    if unit == DVec3::ZERO {
+        d.as_vec3()
+    } else {
+        unit.as_vec3()
+    }
+}
+
 fn run(args: &Args) -> Result<(), String> {
     let input = args
         .points
@@ -98,7 +110,8 @@ fn run(args: &Args) -> Result<(), String> {
         .ok_or("give --points, --rays or --closest")?;
     let mut outputs = vec![args.out.as_path()];
     outputs.extend(args.normals.as_deref());
-    hwsdf::geom::io::check_outputs(&[args.source.path(), input], &outputs)
+    args.source
+        .check_outputs(&[input], &outputs)
         .map_err(|e| e.to_string())?;
     // A model far from the origin is queried relative to its centre: inputs less the centre
     // (in f64), output points plus it, written as float64.
@@ -124,7 +137,7 @@ fn run(args: &Args) -> Result<(), String> {
             .chunks_exact(6)
             .map(|r| Ray {
                 origin: (DVec3::new(r[0], r[1], r[2]) - centre).as_vec3(),
-                direction: DVec3::new(r[3], r[4], r[5]).as_vec3(),
+                direction: unit_direction(DVec3::new(r[3], r[4], r[5])),
                 max_distance: args.max_distance,
             })
             .collect();

@@ -90,8 +90,10 @@ fn main() -> ExitCode {
 }
 
 fn run(args: &Args) -> Result<(), String> {
-    // Fail before the slow GPU work if the image could not be written, or would replace the model.
-    hwsdf::geom::io::check_outputs(&[args.source.path()], &[&args.out])
+    // Fail before the slow GPU work if the image could not be written, or would replace the model
+    // (or one of the scene's).
+    args.source
+        .check_outputs(&[], &[&args.out])
         .map_err(|e| e.to_string())?;
     // A model far from the origin is drawn relative to its centre (the image is the same).
     let (mut source, centre) = args.source.load()?.recentred()?;

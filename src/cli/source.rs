@@ -37,6 +37,24 @@ impl SourceFlags {
             .expect("clap requires one of them")
     }
 
+    /// [`sdf_geom::io::check_outputs`] of `outputs` against every input: the model, or the
+    /// scene file and the model files it names (an output must not replace a scene's model
+    /// either), and `more` (a query's points).
+    pub fn check_outputs(
+        &self,
+        more: &[&Path],
+        outputs: &[&Path],
+    ) -> Result<(), sdf_geom::io::OutputPathError> {
+        let models = self
+            .scene
+            .as_ref()
+            .map_or_else(Vec::new, Scene::model_paths);
+        let mut inputs = vec![self.path()];
+        inputs.extend(models.iter().map(PathBuf::as_path));
+        inputs.extend(more);
+        sdf_geom::io::check_outputs(&inputs, outputs)
+    }
+
     /// Loads the model or the scene (and the models it names).
     pub fn load(&self) -> Result<Source, String> {
         match (&self.model, &self.scene) {

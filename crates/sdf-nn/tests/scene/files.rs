@@ -536,6 +536,25 @@ fn bad_scene_files_are_typed_errors() {
             ..
         }
     ));
+    // Too small for f32: refused, not rounded to zero (an offset of 1e-50 became none, a blend
+    // radius of 1e-50 was reported as 0); zero itself is a number.
+    for (text, field) in [
+        ("[root]\ntype = \"sphere\"\nradius = 1e-50\n", "radius"),
+        (
+            "[root]\ntype = \"offset\"\nr = 1e-50\nchildren = [{ type = \"sphere\", radius = 1 }]\n",
+            "r",
+        ),
+    ] {
+        match parse(text) {
+            SceneFileError::NonFinite {
+                field: f, value, ..
+            } => {
+                assert_eq!((f, value), (field, 1e-50), "{text}")
+            }
+            e => panic!("{text}: {e:?}"),
+        }
+    }
+    Scene::from_toml(&child("translation = [0, 0.0, -0.0]"), &dir).unwrap();
     assert!(matches!(
         parse(&child("rotation = { axis = [0, 0, 0], degrees = 10 }")),
         SceneFileError::ZeroAxis { node } if node == "root.children[1]"

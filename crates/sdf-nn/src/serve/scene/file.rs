@@ -63,7 +63,7 @@
 //! | `round_box` | `half_extents`, `radius` (the rounding, at most the smallest half extent) |
 //! | `capsule` | `a = [x, y, z]`, `b`, `radius` |
 //! | `torus` | `major`, `minor` (around the y axis) |
-//! | `plane` | `normal = [x, y, z]`, `offset` (the half space `n·p ≤ offset`) |
+//! | `plane` | `normal = [x, y, z]`, `offset` (the half space `n̂·p ≤ offset`, `n̂ = n/|n|`) |
 //! | `cylinder` | `radius`, `half_height` (along the y axis) |
 //!
 //! Inner nodes (each has `children = [...]`): `union`, `intersection`, `difference` (the first
@@ -209,8 +209,11 @@ pub enum SceneFileError {
         /// The name.
         name: String,
     },
-    /// A number is NaN, infinite, or too large for f32.
-    #[error("{node}: `{field}` = {value} is not a finite f32")]
+    /// A number is NaN, infinite, too large for f32, or so small (and not zero) that f32
+    /// rounds it to zero or a subnormal: a radius of 1e-50 became no offset at all.
+    #[error(
+        "{node}: `{field}` = {value} is not an f32 (NaN, infinite, or outside f32's normal range)"
+    )]
     NonFinite {
         /// The node.
         node: String,
@@ -259,6 +262,26 @@ impl Scene {
         })?;
         let base = path.parent().unwrap_or(Path::new(""));
         Scene::from_toml(&text, base)
+    }
+
+    /// The model files a scene file names (joined to its folder), read without loading them
+    /// or checking the rest of the file: what a command writing beside them must not replace.
+    /// A file that cannot be read or parsed names none ([`Scene::load`] says why).
+    pub fn model_paths(path: impl AsRef<Path>) -> Vec<PathBuf> {
+        /// The `[models]` table alone.
+        #[derive(Deserialize)]
+        struct Models {
+            #[serde(default)]
+            models: BTreeMap<String, String>,
+        }
+        let path = path.as_ref();
+        let base = path.parent().unwrap_or(Path::new(""));
+        std::fs::read_to_string(path)
+            .ok()
+            .and_then(|text| toml::from_str::<Models>(&text).ok())
+            .map_or_else(Vec::new, |m| {
+                m.models.values().map(|rel| base.join(rel)).collect()
+            })
     }
 
     /// A scene from TOML text; model paths are relative to `base_dir`.
@@ -657,10 +680,11 @@ impl Converter<'_> {
     }
 }
 
-/// A number as a finite f32.
+/// A number as a finite f32: zero, or normal (a non-zero number f32 would round to zero or a
+/// subnormal is refused, not taken for another value).
 fn num(node: &str, field: &'static str, value: f64) -> Result<f32, SceneFileError> {
     let v = value as f32;
-    if v.is_finite() {
+    if v.is_normal() || value == 0.0 {
         Ok(v)
     } else {
         Err(SceneFileError::NonFinite {

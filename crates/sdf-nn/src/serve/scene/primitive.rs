@@ -55,8 +55,8 @@ pub enum Primitive {
         /// Radius of the tube.
         minor: f32,
     },
-    /// The half space `n·p ≤ offset` below the plane `n·p = offset`; `normal` need not be unit
-    /// length (it is normalised) but must not be zero.
+    /// The half space `n̂·p ≤ offset` below the plane `n̂·p = offset`, `n̂ = n/|n|`: `normal`
+    /// need not be unit length (it is normalised) but must not be zero.
     Plane {
         /// Outward normal.
         normal: Vec3,
