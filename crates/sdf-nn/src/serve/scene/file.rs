@@ -210,7 +210,7 @@ pub enum SceneFileError {
         name: String,
     },
     /// A number is NaN, infinite, too large for f32, or so small (and not zero) that f32
-    /// rounds it to zero or a subnormal: a radius of 1e-50 became no offset at all.
+    /// rounds it to zero or a subnormal (an offset of 1e-50 had become no offset at all).
     #[error(
         "{node}: `{field}` = {value} is not an f32 (NaN, infinite, or outside f32's normal range)"
     )]
