@@ -122,42 +122,20 @@ impl fmt::Display for GroundTruthPath {
     }
 }
 
-/// Where [`Labeller::choose`] labels.
-#[derive(Debug, PartialEq)]
-enum Decision {
-    /// On the CPU; with `auto` on a GPU, why (the mesh does not fit; a probe that disagrees
-    /// is found later, by [`checked_gpu_truth`]).
-    Cpu(Option<String>),
-    /// On the GPU.
-    Gpu,
+/// Whether `device` tries the GPU on an adapter that is a CPU or not (`cpu_adapter`): `gpu`
+/// always, `auto` where the adapter is not a CPU, `cpu` never. Whether the mesh fits and the
+/// probe agrees is then [`checked_gpu_truth`]'s, and what a failure does [`gpu_or_fallback`]'s.
+fn tries_gpu(device: GroundTruthDevice, cpu_adapter: bool) -> bool {
+    match device {
+        GroundTruthDevice::Cpu => false,
+        GroundTruthDevice::Gpu => true,
+        GroundTruthDevice::Auto => !cpu_adapter,
+    }
 }
 
-/// Where `device` labels on an adapter that is a CPU or not (`cpu_adapter`), for a mesh whose
-/// trees fit the device and the kernels or not (`fits`, run only where it matters): `gpu` where
-/// it fits (else `fits`'s error), `cpu` always, `auto` on a GPU where it fits, else on the CPU
-/// (with the reason where the adapter is a GPU).
-fn decide(
-    device: GroundTruthDevice,
-    cpu_adapter: bool,
-    fits: impl FnOnce() -> Result<(), GroundTruthError>,
-) -> Result<Decision, GroundTruthError> {
-    Ok(match device {
-        GroundTruthDevice::Cpu => Decision::Cpu(None),
-        GroundTruthDevice::Gpu => {
-            fits()?;
-            Decision::Gpu
-        }
-        GroundTruthDevice::Auto if cpu_adapter => Decision::Cpu(None),
-        GroundTruthDevice::Auto => match fits() {
-            Ok(()) => Decision::Gpu,
-            Err(e) => Decision::Cpu(Some(fallback_reason(&e))),
-        },
-    })
-}
-
-/// What [`Labeller::choose`] does with the GPU's truth of a mesh that fits: uses it; where
-/// the upload failed (out of device memory) or the probe's labels disagree, `auto` falls back
-/// to the CPU (`Ok(Err(why))`) and `gpu` fails.
+/// What [`Labeller::choose`] does with the GPU's truth: uses it; where the mesh's trees do
+/// not fit the device, the upload failed (out of device memory) or the probe's labels
+/// disagree, `auto` falls back to the CPU (`Ok(Err(why))`) and `gpu` fails.
 fn gpu_or_fallback<T>(
     device: GroundTruthDevice,
     truth: Result<T, GroundTruthError>,
@@ -169,8 +147,9 @@ fn gpu_or_fallback<T>(
     }
 }
 
-/// The trees of `sdf` uploaded to `gpu`, once the GPU's signed distances at the probe points
-/// have been found to agree with the CPU's.
+/// The trees of `sdf` uploaded to `gpu` (checked against its limits first:
+/// [`GpuGroundTruth::new`]), once the GPU's signed distances at the probe points have been
+/// found to agree with the CPU's.
 fn checked_gpu_truth(
     gpu: &GpuContext,
     sdf: &SignedDistance,
@@ -278,22 +257,18 @@ impl<'g> Labeller<'g> {
         sdf: Arc<SignedDistance>,
         device: GroundTruthDevice,
     ) -> Result<Self, GroundTruthError> {
-        let fits = || GpuGroundTruth::check_limits(&sdf.gpu_trees(), &gpu.limits());
-        match decide(device, gpu.is_cpu(), fits)? {
-            Decision::Cpu(fallback) => Ok(Labeller {
-                fallback,
+        if !tries_gpu(device, gpu.is_cpu()) {
+            return Ok(Labeller::cpu(sdf));
+        }
+        match gpu_or_fallback(device, checked_gpu_truth(gpu, &sdf))? {
+            Ok(g) => Ok(Labeller {
+                gpu: Some((gpu, Arc::new(g))),
                 ..Labeller::cpu(sdf)
             }),
-            Decision::Gpu => match gpu_or_fallback(device, checked_gpu_truth(gpu, &sdf))? {
-                Ok(g) => Ok(Labeller {
-                    gpu: Some((gpu, Arc::new(g))),
-                    ..Labeller::cpu(sdf)
-                }),
-                Err(why) => Ok(Labeller {
-                    fallback: Some(why),
-                    ..Labeller::cpu(sdf)
-                }),
-            },
+            Err(why) => Ok(Labeller {
+                fallback: Some(why),
+                ..Labeller::cpu(sdf)
+            }),
         }
     }
 
@@ -503,23 +478,21 @@ mod tests {
         };
         let tight = || GpuGroundTruth::check_limits(&trees, &small);
         let roomy = || GpuGroundTruth::check_limits(&trees, &wgpu::Limits::downlevel_defaults());
-        let never = || -> Result<(), GroundTruthError> { panic!("fit checked needlessly") };
         use GroundTruthDevice::{Auto, Cpu, Gpu};
-        assert_eq!(decide(Auto, false, roomy).unwrap(), Decision::Gpu);
-        assert_eq!(decide(Auto, true, never).unwrap(), Decision::Cpu(None));
-        assert_eq!(decide(Cpu, false, never).unwrap(), Decision::Cpu(None));
-        match decide(Auto, false, tight).unwrap() {
-            Decision::Cpu(Some(why)) => {
-                assert!(why.contains("max_storage_buffer_binding_size"), "{why}")
-            }
+        // The fit is asked only where the GPU is tried.
+        assert!(tries_gpu(Auto, false) && tries_gpu(Gpu, true) && tries_gpu(Gpu, false));
+        assert!(!tries_gpu(Auto, true) && !tries_gpu(Cpu, false) && !tries_gpu(Cpu, true));
+        assert_eq!(gpu_or_fallback(Auto, roomy()).unwrap(), Ok(()));
+        match gpu_or_fallback(Auto, tight()).unwrap() {
+            Err(why) => assert!(why.contains("max_storage_buffer_binding_size"), "{why}"),
             other => panic!("{other:?}"),
         }
-        let err = decide(Gpu, false, tight).unwrap_err();
+        let err = gpu_or_fallback(Gpu, tight()).unwrap_err();
         assert!(
             matches!(err, GroundTruthError::TreeTooLarge { limit_name, .. } if limit_name == "max_storage_buffer_binding_size"),
             "{err:?}"
         );
-        assert_eq!(decide(Gpu, true, roomy).unwrap(), Decision::Gpu);
+        assert_eq!(gpu_or_fallback(Gpu, roomy()).unwrap(), Ok(()));
     }
 
     /// The probe finds labels that are not the mesh's: the GPU's truth of a sphere checked
