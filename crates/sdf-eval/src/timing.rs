@@ -92,9 +92,9 @@ pub const MAX_REPS: usize = 2000;
 /// Measures `eval` (a batch evaluation returning one value per point) on the first
 /// [`PER_POINT_BATCH`] and [`LATENCY_BATCH`] of `points`, after evaluating the large batch
 /// for `warm` (the reports use [`WARM_UP`]): at least `reps` times each (and [`MIN_REPS`];
-/// [`FEW_REPS`] once they have taken [`SLOW_AFTER`]), and on for `measure_for` (the reports use [`MEASURE_FOR`]) up to [`MAX_REPS`]. `points` is
-/// cycled if shorter. Wall times only: the GPU fields are `None` (see
-/// [`measure_latency_timed`]).
+/// [`FEW_REPS`] once they have taken [`SLOW_AFTER`]), and on for `measure_for` (the reports
+/// use [`MEASURE_FOR`]) up to [`MAX_REPS`]. `points` is cycled if shorter. Wall times only:
+/// the GPU fields are `None` (see [`measure_latency_timed`]).
 pub fn measure_latency<E>(
     points: &[Vec3],
     reps: usize,
