@@ -606,6 +606,61 @@ fn ctrl_c_writes_a_checkpoint_that_resume_continues() {
     assert_clean_failure(&o, "not a checkpoint");
 }
 
+/// A SIREN resume goes on at the rate the checkpoint's plateau schedule had reached, scaled by
+/// how `--lr` differs from the rate that run started at (a changed `--lr` was ignored).
+#[test]
+fn a_siren_resume_goes_on_at_the_checkpoints_rate_scaled_by_lr() {
+    use hwsdf::eval::run::{Trained, load_normalized};
+    use hwsdf::nn::{AdamState, Siren, SirenConfig};
+    let (_, normalization) = load_normalized(&data("suzanne.obj")).unwrap();
+    let siren = Siren::new(SirenConfig::small(), 0).unwrap();
+    let n = siren.params().len();
+    // Started at 1e-4 (the default), divided by ten once by the plateau rule.
+    let training = serde_json::json!({
+        "model": "siren", "preset": "small", "config": {"lr": 1e-4}, "planned": 1,
+    });
+    let checkpoint = Trained {
+        file: siren.to_model_file(normalization, training),
+        train_seconds: 1.0,
+        done: 0,
+        final_loss: f32::NAN,
+        interrupted: true,
+        details: serde_json::Value::Null,
+        optimizer: AdamState {
+            m: vec![0.0; n],
+            v: vec![0.0; n],
+            step: 0,
+        },
+        lr: 1e-5,
+    }
+    .checkpoint();
+    let path = scratch("rate.siren.checkpoint.safetensors");
+    let final_lr = |lr: &[&str]| {
+        // A finished run removes the checkpoint it continued.
+        checkpoint.save(&path).unwrap();
+        let out = scratch("rate.siren.safetensors");
+        let o = bin("train")
+            .arg(data("suzanne.obj"))
+            .args(["--model", "siren", "--preset", "small", "--steps", "1"])
+            .args(lr)
+            .args(["--eval-points", "2000", "--resume"])
+            .arg(&path)
+            .arg("--out")
+            .arg(&out)
+            .output()
+            .unwrap();
+        assert!(o.status.success(), "train failed: {}", stderr(&o));
+        let report: serde_json::Value =
+            serde_json::from_slice(&std::fs::read(out.with_extension("json")).unwrap()).unwrap();
+        report["final_lr"].as_f64().unwrap() as f32
+    };
+    let close = |a: f32, b: f32| (a - b).abs() <= 1e-6 * b;
+    let same = final_lr(&[]);
+    assert!(close(same, 1e-5), "{same}");
+    let moved = final_lr(&["--lr", "5e-4"]);
+    assert!(close(moved, 5e-5), "{moved}");
+}
+
 #[test]
 fn siren_loss_and_learning_rate_flags_reach_the_model_file() {
     let out = scratch("spot.siren.safetensors");

@@ -49,6 +49,8 @@ pub struct TrainingFlags {
     #[arg(long, default_value_t = DEFAULT_EVAL_POINTS)]
     pub eval_points: usize,
     /// Initial learning rate (default: 1e-4 for SIREN, 1e-3 for NGLOD, 2.5e-3 for the hash grid).
+    /// A resume goes on where the checkpoint's schedule had brought the rate, scaled by how this
+    /// first rate differs from its run's.
     // The float flags take negative numbers, so that the checks say what is wrong with
     // `--lr -1` (clap would read `-1` as an unknown flag).
     #[arg(long, allow_negative_numbers = true)]

@@ -316,6 +316,22 @@ pub struct ModelFile {
 /// huge file fails at once instead of being read whole into memory.
 pub const MAX_MODEL_FILE_BYTES: u64 = 2 << 30;
 
+/// Largest metadata value (`config`, `training`, ...) a model file may hold, in bytes of JSON
+/// text: hundreds of times what hwsdf writes (about 1 kB), and small enough that reading one
+/// parses into tens of megabytes at most.
+pub const MAX_METADATA_BYTES: usize = 1 << 20;
+
+/// The error for a metadata value of `len` bytes, above [`MAX_METADATA_BYTES`].
+fn oversized(key: &'static str, len: usize, path: &Path) -> ModelFileError {
+    ModelFileError::Metadata {
+        path: path.to_owned(),
+        key,
+        detail: format!(
+            ": {len} bytes of JSON, more than the {MAX_METADATA_BYTES} a model file may hold"
+        ),
+    }
+}
+
 /// The crate version written into new files.
 pub const HWSDF_VERSION: &str = env!("CARGO_PKG_VERSION");
 
@@ -331,14 +347,21 @@ impl ModelFile {
         // (the format forbids gaps to pad with), each group in name order.
         tensors.sort_by_key(|t| (t.dtype == TensorDtype::F16, t.name.clone()));
         let m = &self.metadata;
+        // Nothing is written that could not be read back.
+        let (config, training) = (m.config.to_string(), m.training.to_string());
+        for (key, text) in [("config", &config), ("training", &training)] {
+            if text.len() > MAX_METADATA_BYTES {
+                return Err(oversized(key, text.len(), Path::new("")));
+            }
+        }
         let mut header = serde_json::Map::new();
         header.insert(
             "__metadata__".into(),
             serde_json::json!({
                 "format": "hwsdf",
                 "architecture": m.architecture,
-                "config": m.config.to_string(),
-                "training": m.training.to_string(),
+                "config": config,
+                "training": training,
                 "normalization": normalization_json(&m.normalization),
                 "hwsdf_version": m.hwsdf_version,
             }),
@@ -552,7 +575,13 @@ fn metadata_from_header(
         })
     };
     let parse = |key: &'static str| -> Result<serde_json::Value, ModelFileError> {
-        serde_json::from_str(get(key)?).map_err(|e| ModelFileError::Metadata {
+        let text = get(key)?;
+        // Parsed, a JSON text takes up to 16 times its bytes (`[0,0,…]`: 32 bytes a value for
+        // every 2 characters): a 100 MB header would become gigabytes before any check.
+        if text.len() > MAX_METADATA_BYTES {
+            return Err(oversized(key, text.len(), path));
+        }
+        serde_json::from_str(text).map_err(|e| ModelFileError::Metadata {
             path: path.to_owned(),
             key,
             detail: format!(": {e}"),
@@ -855,6 +884,43 @@ mod tests {
         }
         let missing = ModelFile::load(Path::new("/nonexistent/model.safetensors")).unwrap_err();
         assert!(matches!(missing, ModelFileError::Io { .. }));
+    }
+
+    /// A metadata value too large to parse safely is refused, reading and writing, by name.
+    #[test]
+    fn oversized_metadata_is_refused_before_it_is_parsed() {
+        let mut f = sample();
+        f.metadata.training = serde_json::json!(vec![0; MAX_METADATA_BYTES / 2]);
+        assert!(matches!(
+            f.to_bytes(),
+            Err(ModelFileError::Metadata {
+                key: "training",
+                ..
+            })
+        ));
+        // A file written by another tool: the same header with the array spliced in.
+        let small = sample().to_bytes().unwrap();
+        let json_len = u64::from_le_bytes(small[..8].try_into().unwrap()) as usize;
+        let mut header: serde_json::Value =
+            serde_json::from_slice(&small[8..8 + json_len]).unwrap();
+        header["__metadata__"]["training"] = f.metadata.training.to_string().into();
+        let mut json = header.to_string().into_bytes();
+        json.resize(json.len().next_multiple_of(8), b' ');
+        let mut big = (json.len() as u64).to_le_bytes().to_vec();
+        big.extend_from_slice(&json);
+        big.extend_from_slice(&small[8 + json_len..]);
+        let err = ModelFile::from_bytes(&big, Path::new("x.safetensors")).unwrap_err();
+        assert!(
+            matches!(
+                err,
+                ModelFileError::Metadata {
+                    key: "training",
+                    ..
+                }
+            ),
+            "{err}"
+        );
+        assert!(err.to_string().contains("more than the 1048576"), "{err}");
     }
 
     #[test]

@@ -38,6 +38,7 @@ pub(super) fn train(
             .unwrap_or(defaults.plateau_patience),
         ..defaults
     };
+    let first_lr = train_config.lr;
     let per_step = (train_config.surface_per_step + train_config.box_per_step) as f64;
     let mut trainer = SirenTrainer::with_ground_truth(
         gpu,
@@ -47,7 +48,7 @@ pub(super) fn train(
         train_config,
     )?;
     if let Some(c) = plan.resume {
-        let lr = c.lr().unwrap_or(trainer.lr());
+        let lr = resumed_lr(c, first_lr).unwrap_or(trainer.lr());
         trainer.resume(gpu, &c.optimizer()?, c.done(), lr)?;
     }
     let first = trainer.steps_done();
@@ -97,5 +98,19 @@ pub(super) fn train(
         details,
         optimizer,
         lr,
+    })
+}
+
+/// The rate a resumed SIREN goes on at: the checkpoint's, where its plateau schedule had
+/// brought it, scaled by how the run's first rate (`--lr`, else the default) differs from the
+/// one the checkpoint's run started at. So a resume with the same flags continues exactly, and
+/// one with another `--lr` moves the whole schedule as it moves a grid model's cosine decay
+/// (it was silently ignored). `None` where the checkpoint records no rate.
+fn resumed_lr(c: &super::Checkpoint, first_lr: f32) -> Option<f32> {
+    let now = c.lr()?;
+    let started = c.training()["config"]["lr"].as_f64().map(|x| x as f32);
+    Some(match started {
+        Some(started) if started > 0.0 && started.is_finite() => now * (first_lr / started),
+        _ => now,
     })
 }
