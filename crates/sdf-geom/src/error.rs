@@ -82,8 +82,8 @@ pub enum GeomError {
         /// Number of vertices available.
         vertex_count: usize,
     },
-    /// An OBJ face refers to a vertex that does not exist: a positive index beyond the vertices
-    /// its object ends with, or a negative (relative) one reaching before the first vertex.
+    /// An OBJ face refers to a vertex that does not exist: a positive index beyond the file's
+    /// vertices, or a negative (relative) one reaching before the first vertex.
     #[error(
         "{path}: line {line}: face {face} uses {}vertex index {index}, but {}",
         if *.index < 0 { "relative " } else { "" },
@@ -103,7 +103,7 @@ pub enum GeomError {
         /// The index as written: 1-based, or negative to count back from the last vertex read.
         index: i64,
         /// Vertices it may refer to: those read before the face for a negative index, else
-        /// those defined when its object ends.
+        /// the file's.
         vertex_count: usize,
     },
     /// A glTF primitive's indices refer to a vertex beyond its POSITION accessor.

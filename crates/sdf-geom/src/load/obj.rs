@@ -134,7 +134,10 @@ fn obj_lines(text: &str) -> (String, ObjCounts, usize) {
                     }
                 }
             }
-            Some("vt" | "vn" | "vp" | "usemtl") => {}
+            // Objects and groups are merged anyway, and tobj would build a model (nine lists
+            // and its own copy of the vertices it uses) for each: 20 M one-face groups over
+            // three vertices pass every count and take gigabytes.
+            Some("vt" | "vn" | "vp" | "usemtl" | "o" | "g") => {}
             _ => out.push_str(content),
         }
         if line.ends_with('\n') {
@@ -295,7 +298,7 @@ pub(super) fn load_obj(
 /// Turns a `tobj` error into a typed error, finding the offending line by re-scanning the text.
 fn obj_error(path: &Path, text: &str, err: tobj::LoadError) -> GeomError {
     // Only an index error is looked for among the indices: a face may use vertices defined
-    // after it (tobj checks them when the object ends), so another error lies elsewhere.
+    // after it (tobj checks them at the end), so another error lies elsewhere.
     let found = scan_obj(text, err == tobj::LoadError::FaceVertexOutOfBounds);
     if err == tobj::LoadError::FaceVertexOutOfBounds
         && let Some(ScanIssue::IndexOutOfRange {
@@ -342,23 +345,14 @@ enum ScanIssue {
 
 /// A light re-scan of an OBJ file that finds the first line `tobj` would have rejected. With
 /// `check_ranges`, vertex indices are checked as tobj does: a relative (negative) one against
-/// the vertices before it, a positive one against those defined when its object ends (the next
-/// `o` or `g`, or the end of the file).
+/// the vertices before it, a positive one against those of the whole file (objects and groups
+/// are gone from the text it reads, which tobj reads as one object).
 fn scan_obj(text: &str, check_ranges: bool) -> Option<ScanIssue> {
     // It reads the text `obj_text` gave tobj: no texture coordinates or normals are left.
     let mut nv = 0usize;
     let mut faces = 0usize;
-    // The largest positive vertex index of the object so far: (index, line, face).
+    // The largest positive vertex index so far: (index, line, face).
     let mut pending: Option<(i64, usize, usize)> = None;
-    let out_of_range = |p: Option<(i64, usize, usize)>, nv: usize| {
-        p.filter(|&(v, _, _)| v as u64 > nv as u64)
-            .map(|(index, line, face)| ScanIssue::IndexOutOfRange {
-                line,
-                face,
-                index,
-                vertex_count: nv,
-            })
-    };
     let floats_ok = |rest: &[&str], min: usize, max: usize| {
         rest.len() >= min && rest.len() <= max && rest.iter().all(|t| t.parse::<f32>().is_ok())
     };
@@ -425,15 +419,17 @@ fn scan_obj(text: &str, check_ranges: bool) -> Option<ScanIssue> {
                 }
                 faces += 1;
             }
-            "o" | "g" => {
-                if let Some(issue) = out_of_range(pending.take(), nv) {
-                    return Some(issue);
-                }
-            }
             _ => {}
         }
     }
-    out_of_range(pending, nv)
+    pending
+        .filter(|&(v, _, _)| v as u64 > nv as u64)
+        .map(|(index, line, face)| ScanIssue::IndexOutOfRange {
+            line,
+            face,
+            index,
+            vertex_count: nv,
+        })
 }
 
 #[cfg(test)]
