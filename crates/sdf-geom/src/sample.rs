@@ -15,8 +15,37 @@ use rayon::prelude::*;
 
 use crate::{Aabb, Mesh};
 
-fn rng(seed: u64) -> Pcg64Mcg {
-    Pcg64Mcg::seed_from_u64(seed)
+/// Each sampler's own stream of a seed: one seed given to two samplers draws unrelated numbers
+/// for each. (Before, the pool's box, near-surface and surface points of a block came from
+/// `seed`, `seed ^ 1` and `seed ^ 2` of one generator, so seed 0's surface points were seed 3's
+/// near-surface ones: runs over consecutive seeds were not independent.)
+#[derive(Clone, Copy)]
+enum Stream {
+    Box = 1,
+    Surface,
+    NearSurface,
+    Perturb,
+    PoissonCandidates,
+}
+
+fn rng(seed: u64, stream: Stream) -> Pcg64Mcg {
+    Pcg64Mcg::seed_from_u64(sub_seed(seed, stream as u64))
+}
+
+/// The seed of stream `stream` of `seed` (a pool's block, a worker's share): unrelated seeds
+/// for nearby values of either, where `seed ^ stream` gives seed 0's stream 1 to seed 1's
+/// stream 0. SplitMix64's finaliser, applied to the stream and then to the seed mixed with it.
+pub fn sub_seed(seed: u64, stream: u64) -> u64 {
+    splitmix64(seed ^ splitmix64(stream))
+}
+
+/// SplitMix64 (Steele, Lea and Flood 2014): a bijection of u64 whose outputs for consecutive
+/// inputs look independent.
+fn splitmix64(x: u64) -> u64 {
+    let mut z = x.wrapping_add(0x9E37_79B9_7F4A_7C15);
+    z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+    z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+    z ^ (z >> 31)
 }
 
 /// Points on a surface with the unit normals of the triangles they lie on.
@@ -70,7 +99,7 @@ pub fn uniform_box(n: usize, seed: u64) -> Vec<Vec3> {
 
 /// `n` points uniform in `aabb`.
 pub fn uniform_in(aabb: &Aabb, n: usize, seed: u64) -> Vec<Vec3> {
-    let mut r = rng(seed);
+    let mut r = rng(seed, Stream::Box);
     let size = aabb.max - aabb.min;
     (0..n)
         .map(|_| {
@@ -186,7 +215,7 @@ impl GuideTable {
 /// `n` points on the surface, uniform with respect to area, with face normals.
 /// A mesh without area gives no samples.
 pub fn surface(mesh: &Mesh, n: usize, seed: u64) -> SurfaceSamples {
-    sample_surface_with(mesh, n, &mut rng(seed))
+    sample_surface_with(mesh, n, &mut rng(seed, Stream::Surface))
 }
 
 /// A standard normal variate by Box–Muller.
@@ -203,7 +232,7 @@ fn gaussian(r: &mut Pcg64Mcg) -> f32 {
 /// Each point moved by isotropic Gaussian noise N(0, σ²) per coordinate, seeded. The
 /// evaluation's near-surface set is Poisson-disk samples perturbed this way.
 pub fn perturb(points: &[Vec3], sigma: f32, seed: u64) -> Vec<Vec3> {
-    let mut r = rng(seed);
+    let mut r = rng(seed, Stream::Perturb);
     points
         .iter()
         .map(|&p| p + Vec3::new(gaussian(&mut r), gaussian(&mut r), gaussian(&mut r)) * sigma)
@@ -216,7 +245,7 @@ pub const DEFAULT_SIGMA: f32 = 0.01;
 /// `n` points near the surface: area-uniform surface points plus isotropic Gaussian noise N(0, σ²) on
 /// each coordinate. σ is in the mesh's units; use [`DEFAULT_SIGMA`] on a normalised mesh.
 pub fn near_surface(mesh: &Mesh, n: usize, sigma: f32, seed: u64) -> Vec<Vec3> {
-    let mut r = rng(seed);
+    let mut r = rng(seed, Stream::NearSurface);
     let s = sample_surface_with(mesh, n, &mut r);
     s.points
         .into_iter()
@@ -257,7 +286,7 @@ pub fn poisson_disk_with(
         };
     }
     let m = n.saturating_mul(candidates_per_sample.max(1));
-    let cand = surface(mesh, m, seed);
+    let cand = sample_surface_with(mesh, m, &mut rng(seed, Stream::PoissonCandidates));
     let m = cand.len();
     let r_max = (area / (2.0 * 3f64.sqrt() * n as f64)).sqrt() as f32;
     let r_min = r_max * 0.65 * (1.0 - (n as f32 / m as f32).powf(1.5));
@@ -598,7 +627,7 @@ mod tests {
     /// tables with runs of zero-area entries, one huge entry among tiny ones, and uneven steps.
     #[test]
     fn guide_table_search_is_the_whole_tables() {
-        let mut r = rng(11);
+        let mut r = rng(11, Stream::Box);
         let mut tables: Vec<Vec<f64>> = vec![
             vec![1.0],
             vec![0.0, 0.0, 3.0, 3.0, 3.0, 5.0],

@@ -65,13 +65,14 @@ pub(super) fn sample_block(
     k: usize,
 ) -> Result<Block, GroundTruthError> {
     let t = Instant::now();
-    let seed = c.seed ^ (k as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15);
+    // Each sampler draws its own stream of the block's seed.
+    let seed = sdf_geom::sample::sub_seed(c.seed, k as u64);
     let mut points = sdf_geom::sample::uniform_box(c.uniform_points, seed);
     points.extend(sdf_geom::sample::near_surface(
         mesh,
         c.near_points,
         c.sigma,
-        seed ^ 1,
+        seed,
     ));
     let mut targets = match c.distance {
         DistanceMode::Signed => labels.signed_distance_batch(&points)?,
@@ -80,7 +81,7 @@ pub(super) fn sample_block(
     };
     // Surface samples lie on the mesh by construction: their exact distance is 0, so the
     // distance query is skipped for them (40% of the points).
-    let surface = sdf_geom::sample::surface(mesh, c.surface_points, seed ^ 2).points;
+    let surface = sdf_geom::sample::surface(mesh, c.surface_points, seed).points;
     targets.resize(points.len() + surface.len(), 0.0);
     points.extend(surface);
     Ok(Block {
@@ -93,9 +94,10 @@ pub(super) fn sample_block(
 /// The order in which epoch `epoch` visits the pool: `n` distinct indices below `pool_len`, in
 /// random order (a partial Fisher–Yates shuffle seeded by the run's seed and the epoch).
 fn epoch_order(pool_len: usize, n: usize, seed: u64, epoch: usize) -> Vec<u32> {
-    let mut rng = Pcg64::seed_from_u64(
-        seed ^ 0xD1B5_4A32_D192_ED03 ^ (epoch as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15),
-    );
+    let mut rng = Pcg64::seed_from_u64(sdf_geom::sample::sub_seed(
+        seed ^ 0xD1B5_4A32_D192_ED03,
+        epoch as u64,
+    ));
     let mut idx: Vec<u32> = (0..pool_len as u32).collect();
     let n = n.min(pool_len);
     for i in 0..n {
