@@ -786,6 +786,46 @@ fn cases() -> Vec<Case> {
             &["plane.safetensors", "--out", "missing/i.png"],
             Error("does not exist"),
         ),
+        // An output named for another format than the one written: OBJ text as mesh.ply, a
+        // PNG as .jpg, a model file as .obj (which `load_mesh` then read as an OBJ).
+        case(
+            "extract --out PLY",
+            "extract",
+            &["plane.safetensors", "--out", "o.ply"],
+            Error("give the file the extension .obj"),
+        ),
+        case(
+            "render --out JPEG",
+            "render",
+            &["plane.safetensors", "--out", "i.jpg"],
+            Error("give the file the extension .png"),
+        ),
+        case(
+            "query --normals CSV",
+            "query",
+            &[
+                "plane.safetensors",
+                "--points",
+                "points.npy",
+                "--out",
+                "d.npy",
+                "--normals",
+                "n.csv",
+            ],
+            Error("--normals n.csv: this writes .npy"),
+        ),
+        case(
+            "sdf --out text",
+            "sdf",
+            &["cube.obj", "--points", "points.npy", "--out", "d.txt"],
+            Error("give the file the extension .npy"),
+        ),
+        case(
+            "train --out OBJ",
+            "train",
+            &["cube.obj", "--out", "m.obj"],
+            Error("give the file the extension .safetensors"),
+        ),
         case(
             "corpus --out mesh",
             "corpus",

@@ -11,7 +11,7 @@ use std::process::ExitCode;
 use std::time::Instant;
 
 use clap::Parser;
-use hwsdf::cli::{GpuFlags, Source, SourceFlags, check_level};
+use hwsdf::cli::{GpuFlags, Source, SourceFlags, check_level, check_out_format};
 use hwsdf::eval::run::{extract_mesh_with, extract_scene_mesh};
 use hwsdf::geom::extract::{EXTRACT_MEMORY_BUDGET, ExtractOptions, MAX_RESOLUTION};
 
@@ -71,6 +71,7 @@ fn extract(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
         return Err(format!("--max-memory-gib {} must be positive", args.max_memory_gib).into());
     }
     args.source.check_outputs(&[], &[&args.out])?;
+    check_out_format("--out", &args.out, "obj", "OBJ")?;
     // A model far from the origin is extracted relative to its centre, added back in f64.
     let (mut source, centre) = args.source.load()?.recentred()?;
     let what = match &mut source {

@@ -113,6 +113,10 @@ fn run(args: &Args) -> Result<(), String> {
     args.source
         .check_outputs(&[input], &outputs)
         .map_err(|e| e.to_string())?;
+    hwsdf::cli::check_out_format("--out", &args.out, "npy", ".npy")?;
+    if let Some(normals) = &args.normals {
+        hwsdf::cli::check_out_format("--normals", normals, "npy", ".npy")?;
+    }
     // A model far from the origin is queried relative to its centre: inputs less the centre
     // (in f64), output points plus it, written as float64.
     let (source, centre) = args.source.load()?.recentred()?;

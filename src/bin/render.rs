@@ -95,6 +95,7 @@ fn run(args: &Args) -> Result<(), String> {
     args.source
         .check_outputs(&[], &[&args.out])
         .map_err(|e| e.to_string())?;
+    hwsdf::cli::check_out_format("--out", &args.out, "png", "PNG")?;
     // A model far from the origin is drawn relative to its centre (the image is the same).
     let (mut source, centre) = args.source.load()?.recentred()?;
     match &mut source {

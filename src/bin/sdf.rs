@@ -55,6 +55,7 @@ struct Args {
 
 fn run(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
     hwsdf::geom::io::check_outputs(&[&args.mesh, &args.points], &[&args.out])?;
+    hwsdf::cli::check_out_format("--out", &args.out, "npy", ".npy")?;
     let t = Instant::now();
     let uris = LoadOptions::with_external_uris(args.allow_external_uris);
     // Name the mesh, as `train` and `eval` do: "the mesh has no triangles" alone says not which.

@@ -415,6 +415,8 @@ impl Paths {
         inputs.extend(args.resume.as_deref());
         io::check_outputs(&inputs, &[&out, &report])?;
         io::check_outputs(&[&args.mesh], &[&out, &report, &checkpoint])?;
+        hwsdf::cli::check_out_format("--out", &out, "safetensors", "a model file (safetensors)")?;
+        hwsdf::cli::check_out_format("--report", &report, "json", "JSON")?;
         Ok(Paths {
             out,
             report,

@@ -133,6 +133,34 @@ pub fn check_eval_points(flag: &str, points: usize) -> Result<(), RunError> {
     })
 }
 
+/// Errors when `path`, given by `flag`, names another format than the `format` a command writes
+/// (extension `ext`, lower case, no dot): `extract --out mesh.ply` wrote OBJ text under a name
+/// PLY readers refuse, and `load_mesh` then read it as what its name says. Any case of `ext`
+/// passes, and so does a name without an extension.
+///
+/// ```
+/// use std::path::Path;
+/// use hwsdf::cli::check_out_format;
+/// assert!(check_out_format("--out", Path::new("spot.OBJ"), "obj", "OBJ").is_ok());
+/// assert!(check_out_format("--out", Path::new("spot"), "obj", "OBJ").is_ok());
+/// let e = check_out_format("--out", Path::new("spot.ply"), "obj", "OBJ").unwrap_err();
+/// assert_eq!(e, "--out spot.ply: this writes OBJ; give the file the extension .obj");
+/// ```
+pub fn check_out_format(
+    flag: &str,
+    path: &std::path::Path,
+    ext: &str,
+    format: &str,
+) -> Result<(), String> {
+    match path.extension() {
+        Some(e) if !e.to_str().is_some_and(|e| e.eq_ignore_ascii_case(ext)) => Err(format!(
+            "{flag} {}: this writes {format}; give the file the extension .{ext}",
+            path.display()
+        )),
+        _ => Ok(()),
+    }
+}
+
 /// A loss as progress lines and reports print it: four significant digits whatever its scale
 /// (a fitted NGLOD's loss is ~1e-6, which fixed decimals would print as 0).
 ///
