@@ -1281,7 +1281,15 @@ fn gltf_gpu_instancing_draws_every_instance() {
     assert_eq!(report.instances, 2);
     assert_eq!(m.triangles.len(), 24);
     assert_eq!(m.triangles, e.triangles);
-    assert_eq!(m.vertices, e.vertices);
+    // To rounding: the nodes' numbers are read in f64 from their JSON text (each f32's
+    // shortest digits), the instances' from the buffer's f32 values.
+    let worst = m
+        .vertices
+        .iter()
+        .zip(&e.vertices)
+        .map(|(a, b)| (*a - *b).abs().max_element())
+        .fold(0.0f32, f32::max);
+    assert!(worst < 1e-6, "worst vertex difference {worst}");
     // Rotations as normalised bytes: the same scene, to their rounding.
     let bytes = format!(
         r#"{accessors},{{"bufferView":5,"componentType":5120,"normalized":true,"count":2,"type":"VEC4"}}"#
@@ -1691,6 +1699,30 @@ fn obj_groups_do_not_multiply_the_vertices() {
     assert_eq!(report.input_vertices, 3, "{report:?}");
     assert_eq!(report.input_triangles, 20_000, "{report:?}");
     assert_eq!(mesh.triangles.len(), 1, "{report:?}");
+}
+
+/// Node transforms keep the file's f64 digits: two parts placed at x = 6 378 137.1 and .4 (an
+/// Earth-centred survey coordinate) stay 0.3 apart, by translation or by matrix. `gltf` reads
+/// them as f32, which put the parts at .0 and .5.
+#[test]
+fn gltf_node_transforms_keep_their_f64_digits() {
+    let dir = temp_dir("gprecise");
+    let uri = data_uri(&cube_buffer(&[]));
+    let nodes = r#"{"children":[1,2]},{"mesh":0,"translation":[6378137.1,0,0]},
+        {"mesh":0,"matrix":[1,0,0,0,0,1,0,0,0,0,1,0,6378137.4,-2.5,0,1]}"#;
+    let (mesh, report) = load_mesh(write(&dir, "survey.gltf", cube_doc(&uri, nodes))).unwrap();
+    let x = |v: &glam::Vec3| v.x as f64 + report.origin.x;
+    let lowest = mesh.vertices.iter().map(x).fold(f64::INFINITY, f64::min);
+    let highest = mesh
+        .vertices
+        .iter()
+        .map(x)
+        .fold(f64::NEG_INFINITY, f64::max);
+    // The cube spans [0, 1]: the parts from .1 to 1.1 and from .4 to 1.4.
+    assert!((lowest - 6378137.1).abs() < 1e-6, "{lowest}");
+    assert!((highest - 6378138.4).abs() < 1e-6, "{highest}");
+    let y = mesh.vertices.iter().map(|v| v.y as f64 + report.origin.y);
+    assert!((y.fold(f64::INFINITY, f64::min) + 2.5).abs() < 1e-6);
 }
 
 /// Node transforms with numbers beyond float32 (1e39 reads as infinity): an error naming the

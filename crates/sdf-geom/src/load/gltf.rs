@@ -93,7 +93,7 @@ pub(super) fn load_gltf(
     // The scene's shape first (cheap, no buffer is read): cycles, instance counts, limits.
     let scene = doc.default_scene().or_else(|| doc.scenes().next());
     let graph = match &scene {
-        Some(scene) => Some(node_graph(path, &doc, scene)?),
+        Some(scene) => Some(node_graph(path, &doc, json_bytes, scene)?),
         None => None,
     };
     // Nodes drawn many times by EXT_mesh_gpu_instancing (validated here, read below).

@@ -5,7 +5,7 @@
 use std::path::Path;
 use std::rc::Rc;
 
-use glam::{DMat4, Mat4, Vec3};
+use glam::{DMat4, DQuat, DVec3, Mat4, Vec3};
 
 use super::accessors::{Vec3Format, component, read_accessor};
 use super::primitive::{Merged, add_gltf_mesh};
@@ -21,12 +21,16 @@ pub(super) struct NodeGraph {
     multiplicity: Vec<u64>,
     /// Whether the node or a descendant has a mesh.
     mesh_below: Vec<bool>,
+    /// Each node's transform in f64 ([`precise_node_transforms`]).
+    precise: Vec<Option<DMat4>>,
 }
 
 /// Checks the scene's node graph for cycles and counts node instances through shared children.
+/// `json_bytes` is the document's JSON, whose node transforms are read again in f64.
 pub(super) fn node_graph(
     path: &Path,
     doc: &gltf::Document,
+    json_bytes: &[u8],
     scene: &gltf::Scene,
 ) -> Result<NodeGraph, GeomError> {
     let n = doc.nodes().len();
@@ -88,6 +92,7 @@ pub(super) fn node_graph(
     Ok(NodeGraph {
         multiplicity,
         mesh_below,
+        precise: precise_node_transforms(json_bytes),
     })
 }
 
@@ -177,6 +182,45 @@ pub(super) fn check_scene_size(
     )
 }
 
+/// The nodes' transforms as the file writes them, in f64, by node index (`None` where the file
+/// gives none or the JSON does not read as expected: the checked f32 transform serves). `gltf`
+/// reads them as f32, which moved a part placed at 6 378 137.1 (an Earth-centred survey
+/// coordinate) to 6 378 137.0 and its neighbour at .4 to .5: 0.2 apart that were 0.3.
+fn precise_node_transforms(json_bytes: &[u8]) -> Vec<Option<DMat4>> {
+    #[derive(serde::Deserialize)]
+    struct Root {
+        #[serde(default)]
+        nodes: Vec<Node>,
+    }
+    #[derive(serde::Deserialize)]
+    struct Node {
+        matrix: Option<[f64; 16]>,
+        translation: Option<[f64; 3]>,
+        rotation: Option<[f64; 4]>,
+        scale: Option<[f64; 3]>,
+    }
+    let Ok(root) = serde_json::from_slice::<Root>(json_bytes) else {
+        return Vec::new();
+    };
+    root.nodes
+        .into_iter()
+        .map(|n| {
+            let m = match n.matrix {
+                Some(m) => DMat4::from_cols_array(&m),
+                None => {
+                    let q = DQuat::from_array(n.rotation.unwrap_or([0.0, 0.0, 0.0, 1.0]));
+                    DMat4::from_scale_rotation_translation(
+                        DVec3::from_array(n.scale.unwrap_or([1.0; 3])),
+                        q / q.length(),
+                        DVec3::from_array(n.translation.unwrap_or_default()),
+                    )
+                }
+            };
+            m.is_finite().then_some(m)
+        })
+        .collect()
+}
+
 /// Adds every mesh instance of `scene` to `out`: the instance paths expanded depth first from
 /// the scene's roots, skipping subtrees without meshes (the counts of [`check_scene_size`] bound
 /// this), each node's transform composed with its ancestors' and checked to stay finite.
@@ -198,8 +242,15 @@ pub(super) fn expand_scene(
         .collect();
     stack.reverse();
     while let Some((node, parent)) = stack.pop() {
-        // Composed in f64: a far translation keeps the mesh's shape (f32 would round it).
-        let local = node_matrix(path, &node)?.as_dmat4();
+        // Checked as `gltf` reads it, composed in f64 as the file writes it: a far translation
+        // keeps the mesh's shape and its place (f32 would round both).
+        let checked = node_matrix(path, &node)?;
+        let local = graph
+            .precise
+            .get(node.index())
+            .copied()
+            .flatten()
+            .unwrap_or(checked.as_dmat4());
         let world = parent * local;
         if !world.as_mat4().is_finite() {
             return Err(node_error(
