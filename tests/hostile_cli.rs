@@ -1385,7 +1385,14 @@ fn cases() -> Vec<Case> {
             "train --pool 10000,1",
             "train",
             &["cube.obj", "--model", "nglod", "--pool", "10000,1", "--out", "m.safetensors"],
-            Error("more than 2^32 points"),
+            Error("more than 2^32 / 3 points"),
+        ),
+        // Under 2^32 points, but not their coordinates, which the kernels index in u32.
+        case(
+            "train --pool 3000,1",
+            "train",
+            &["cube.obj", "--model", "nglod", "--pool", "3000,1", "--out", "m.safetensors"],
+            Error("more than 2^32 / 3 points"),
         ),
         case(
             "corpus --eval-points 0",

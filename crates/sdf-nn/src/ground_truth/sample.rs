@@ -466,10 +466,12 @@ impl LabelledDraw {
             None => None,
             Some(blocks) => {
                 let pool_points = u64::from(capacity) * u64::from(blocks);
-                if blocks == 0 || pool_points > u64::from(u32::MAX) {
+                // The kernels index the pool's coordinates (three a point) in u32.
+                let limit = u64::from(u32::MAX / 3);
+                if blocks == 0 || pool_points > limit {
                     return Err(SampleError::TooManyPoints {
                         requested: pool_points,
-                        limit: u64::from(u32::MAX),
+                        limit,
                     });
                 }
                 Some((

@@ -209,7 +209,10 @@ impl NglodConfig {
     pub fn input_dim(&self) -> u32 {
         match self.encoding {
             Encoding::Summed => self.feature_dim,
-            Encoding::Hashed { .. } => self.feature_dim * self.resolutions.len() as u32,
+            // Saturating, as every size here: an unvalidated configuration (a public value) must
+            // not panic before `validate` names what is wrong with it.
+            Encoding::Hashed { .. } => (self.feature_dim)
+                .saturating_mul(self.resolutions.len().min(u32::MAX as usize) as u32),
         }
     }
 
@@ -217,13 +220,13 @@ impl NglodConfig {
     pub fn input_offset(&self, l: usize) -> usize {
         match self.encoding {
             Encoding::Summed => 0,
-            Encoding::Hashed { .. } => l * self.feature_dim as usize,
+            Encoding::Hashed { .. } => l.saturating_mul(self.feature_dim as usize),
         }
     }
 
     /// How level `l` keeps its features.
     pub fn storage(&self, l: usize) -> LevelStorage {
-        let vertices = (u64::from(self.resolutions[l]) + 1).pow(3);
+        let vertices = (u64::from(self.resolutions[l]) + 1).saturating_pow(3);
         // Clamped so that an unvalidated configuration cannot overflow the shift.
         let entries = 1u64
             << match self.encoding {
@@ -241,7 +244,7 @@ impl NglodConfig {
     /// hashed one; `None` for a sparse level.
     pub(super) fn fixed_entries(&self, l: usize) -> Option<usize> {
         match self.storage(l) {
-            LevelStorage::Dense => Some((self.resolutions[l] as usize + 1).pow(3)),
+            LevelStorage::Dense => Some((self.resolutions[l] as usize + 1).saturating_pow(3)),
             LevelStorage::Hashed(t) => Some(t as usize),
             LevelStorage::Sparse => None,
         }
@@ -380,8 +383,8 @@ impl NglodConfig {
         self.is_sparse(l).then(|| {
             self.resolutions[self.dense_levels()..l]
                 .iter()
-                .map(|&r| (r as usize + 1).pow(3))
-                .sum()
+                .map(|&r| (r as usize + 1).saturating_pow(3))
+                .fold(0usize, usize::saturating_add)
         })
     }
 
@@ -418,22 +421,23 @@ impl NglodConfig {
         let f = self.feature_dim as usize;
         let h = self.hidden as usize;
         let mut grid_offsets = Vec::with_capacity(self.resolutions.len());
-        let mut off = 0;
+        let mut off = 0usize;
         for l in 0..self.resolutions.len() {
             grid_offsets.push(off);
-            off += self.fixed_entries(l).unwrap_or_else(|| band_vertices(l)) * f;
+            let entries = self.fixed_entries(l).unwrap_or_else(|| band_vertices(l));
+            off = off.saturating_add(entries.saturating_mul(f));
         }
         let w0 = off;
-        let b0 = w0 + h * self.input_dim() as usize;
-        let w1 = b0 + h;
-        let b1 = w1 + h;
+        let b0 = w0.saturating_add(h.saturating_mul(self.input_dim() as usize));
+        let w1 = b0.saturating_add(h);
+        let b1 = w1.saturating_add(h);
         ParamLayout {
             grid_offsets,
             w0,
             b0,
             w1,
             b1,
-            len: b1 + 1,
+            len: b1.saturating_add(1),
         }
     }
 
@@ -466,4 +470,38 @@ pub struct ParamLayout {
     pub b1: usize,
     /// Total length.
     pub len: usize,
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The public size helpers saturate on a configuration nobody validated (resolutions of
+    /// u32::MAX cubed overflowed u64: a panic in debug builds, a wrapped "dense" in release),
+    /// and `validate` then names what is wrong.
+    #[test]
+    fn sizes_of_unvalidated_configurations_saturate() {
+        for config in [
+            NglodConfig {
+                resolutions: vec![u32::MAX, u32::MAX],
+                feature_dim: u32::MAX,
+                hidden: u32::MAX,
+                ..NglodConfig::hashgrid_small()
+            },
+            NglodConfig {
+                resolutions: vec![u32::MAX; 3],
+                ..NglodConfig::default_preset()
+            },
+        ] {
+            if let Encoding::Hashed { log2_table_size } = config.encoding {
+                assert_eq!(
+                    config.storage(0),
+                    LevelStorage::Hashed(1 << log2_table_size)
+                );
+            }
+            assert_eq!(config.fixed_param_count(), usize::MAX);
+            let _ = (config.input_dim(), config.input_offset(1));
+            assert!(config.validate().is_err());
+        }
+    }
 }

@@ -478,10 +478,11 @@ impl<'g> NglodTrainer<'g> {
         config.adam.check().map_err(NglodError::InvalidConfig)?;
         let n32 = u32::try_from(n)
             .map_err(|_| NglodError::InvalidConfig(format!("{n} points per epoch is too many")))?;
-        // The pool's points are indexed in u32 (the GPU's draw refuses the same).
-        if (config.pool_blocks as u64).saturating_mul(u64::from(n32)) > u64::from(u32::MAX) {
+        // The pool's coordinates, three a point, are indexed in u32 (the GPU's draw refuses
+        // the same).
+        if (config.pool_blocks as u64).saturating_mul(u64::from(n32)) > u64::from(u32::MAX / 3) {
             return Err(NglodError::InvalidConfig(format!(
-                "a pool of {} blocks of {n} points is more than 2^32 points: use fewer blocks",
+                "a pool of {} blocks of {n} points is more than 2^32 / 3 points: use fewer blocks",
                 config.pool_blocks
             )));
         }
