@@ -12,6 +12,11 @@
 //! sign, at the mean of its edges' zero crossings; one quad, split in two triangles, per lattice
 //! edge with a sign change, joining the four cells around it. Vertices are shared, and triangles
 //! are wound so their normals point outwards (towards positive distance).
+//!
+//! One vertex per cell has a cost: where a cell face's corners alternate in sign (+, −, +, −:
+//! two sheets or a saddle within one cell), the quads of that face's four edges all join the
+//! same two cell vertices, and up to four triangles share an edge. The mesh stays consistently
+//! wound but is not manifold there; a finer resolution separates such sheets.
 
 use glam::{IVec3, Vec3};
 use rayon::prelude::*;
