@@ -107,7 +107,7 @@ fn eval(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
     }
     let Evaluation {
         scores, latency, ..
-    } = run::evaluate(&gpu, &model, &truth, args.points)?;
+    } = run::evaluate_scores(&gpu, &model, &truth, args.points)?;
     let (surface, surface_null_reason) = surface(&gpu, &model, &truth, args)?;
     let report = json!({
         "model": args.model.display().to_string(),
@@ -229,10 +229,20 @@ fn surface(
         let options = ExtractOptions::new(args.surface_resolution);
         let (extracted, _) = run::extract_mesh_normalized(gpu, model, &options)?;
         if extracted.triangles.is_empty() {
-            surface_null_reason = Some(format!(
-                "the model's level set has no triangles at {}³: it does not change sign in the box",
-                args.surface_resolution
-            ));
+            surface_null_reason = Some(if run::is_unsigned(model.model_file()) {
+                format!(
+                    "the unsigned field's level set Φ = {} has no triangles at {}³: it never \
+                     comes that close to 0 in the box",
+                    run::UNSIGNED_LEVEL,
+                    args.surface_resolution
+                )
+            } else {
+                format!(
+                    "the model's level set has no triangles at {}³: it does not change sign in \
+                     the box",
+                    args.surface_resolution
+                )
+            });
             None
         } else {
             Some(SurfaceMetrics::between(

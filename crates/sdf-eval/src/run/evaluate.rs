@@ -72,37 +72,47 @@ pub fn is_unsigned(file: &ModelFile) -> bool {
         == Some(DistanceMode::Unsigned.name())
 }
 
-/// Scores and times `model` against `truth`, the exact SDF of the normalised mesh.
+/// Scores and times `model` against `truth`, the exact SDF of the normalised mesh; an unsigned
+/// field also gets the Chamfer distance of its level set at [`UNSIGNED_EXTRACT_RESOLUTION`].
 pub fn evaluate(
     gpu: &GpuContext,
     model: &NeuralSdf,
     truth: &GroundTruth,
     points: usize,
 ) -> Result<Evaluation, RunError> {
-    check_eval_points(points)?;
-    let mesh = &truth.mesh;
-    let sets = EvalSets::new(mesh, &truth.labels, points, EVAL_SEED)?;
-    let unsigned = is_unsigned(model.model_file());
-    let predict = |p: &[Vec3]| finite_values(p, model.eval_normalized(gpu, p)?);
-    let scores = if unsigned {
-        sets.score_unsigned(predict)?
-    } else {
-        sets.score(predict)?
-    };
-    let chamfer = if unsigned {
+    let mut evaluation = evaluate_scores(gpu, model, truth, points)?;
+    if is_unsigned(model.model_file()) {
         let options = ExtractOptions::new(UNSIGNED_EXTRACT_RESOLUTION);
         let (level_set, _) = extract_mesh_normalized(gpu, model, &options)?;
         // An empty level set (the model never gets that close to 0) has no Chamfer distance.
-        crate::metrics::SurfaceMetrics::between(
+        evaluation.chamfer = crate::metrics::SurfaceMetrics::between(
             &level_set,
-            mesh,
+            &truth.mesh,
             truth.sdf(),
             points.min(20_000),
             EVAL_SEED,
         )
-        .ok()
+        .ok();
+    }
+    Ok(evaluation)
+}
+
+/// [`evaluate`] without any surface: the scores and the latency only (`chamfer` is `None`), for
+/// callers that extract the surface at a resolution of their own (`eval
+/// --surface-resolution`), or none.
+pub fn evaluate_scores(
+    gpu: &GpuContext,
+    model: &NeuralSdf,
+    truth: &GroundTruth,
+    points: usize,
+) -> Result<Evaluation, RunError> {
+    check_eval_points(points)?;
+    let sets = EvalSets::new(&truth.mesh, &truth.labels, points, EVAL_SEED)?;
+    let predict = |p: &[Vec3]| finite_values(p, model.eval_normalized(gpu, p)?);
+    let scores = if is_unsigned(model.model_file()) {
+        sets.score_unsigned(predict)?
     } else {
-        None
+        sets.score(predict)?
     };
     // Wall time through the public call, and kernel time from timestamp queries (where the
     // adapter has them) in separate, alternating calls, so that the timestamps never slow the
@@ -119,7 +129,7 @@ pub fn evaluate(
         scores,
         latency,
         eval_points: points,
-        chamfer,
+        chamfer: None,
     })
 }
 

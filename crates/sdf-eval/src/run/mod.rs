@@ -28,8 +28,8 @@ use sdf_nn::{AdamState, GpuContext, GroundTruthDevice, ModelFile, NeuralSdf};
 pub use checkpoint::{Checkpoint, MAX_CHECKPOINT_PROGRESS};
 pub use evaluate::{
     EVAL_BYTES_PER_POINT, EVAL_MEMORY_BUDGET, Evaluation, UNSIGNED_EXTRACT_RESOLUTION,
-    UNSIGNED_LEVEL, check_eval_points, evaluate, extract_mesh, extract_mesh_normalized,
-    extract_mesh_with, extract_scene_mesh, finite_values, is_unsigned,
+    UNSIGNED_LEVEL, check_eval_points, evaluate, evaluate_scores, extract_mesh,
+    extract_mesh_normalized, extract_mesh_with, extract_scene_mesh, finite_values, is_unsigned,
 };
 pub use ground_truth::{
     GroundTruth, duration, estimate_line, labelling_estimate, load_normalized,
