@@ -366,8 +366,14 @@ impl NeuralSdf {
         if !n.is_far() {
             return (points.into(), QuerySpace::Mesh);
         }
-        let local = points.par_iter().map(|&p| n.to_normalized(p)).collect();
-        (std::borrow::Cow::Owned(local), QuerySpace::Normalized)
+        (self.normalized_points(points).into(), QuerySpace::Normalized)
+    }
+
+    /// `points` (mesh coordinates) in the model's cube, mapped on the host with the centre in
+    /// f64 ([`crate::Normalization::to_normalized`]).
+    fn normalized_points(&self, points: &[Vec3]) -> Vec<Vec3> {
+        let n = self.normalization;
+        points.par_iter().map(|&p| n.to_normalized(p)).collect()
     }
 
     /// Distances of a query in `space` ([`NeuralSdf::mesh_points`]) into mesh units.
@@ -512,7 +518,7 @@ impl NeuralSdf {
     /// without a GPU and for physics or path-planning code. Agrees with [`NeuralSdf::eval`].
     pub fn eval_cpu(&self, points: &[Vec3]) -> Vec<f32> {
         let n = self.normalization;
-        let local: Vec<Vec3> = points.par_iter().map(|&p| n.to_normalized(p)).collect();
+        let local = self.normalized_points(points);
         self.eval_cpu_normalized(&local)
             .into_iter()
             .map(|d| n.distance_to_original(d))
@@ -534,7 +540,7 @@ impl NeuralSdf {
     /// Distances and unit normals on CPU threads (mesh coordinates and units).
     pub fn eval_with_normals_cpu(&self, points: &[Vec3]) -> Vec<(f32, Vec3)> {
         let n = self.normalization;
-        let local: Vec<Vec3> = points.par_iter().map(|&p| n.to_normalized(p)).collect();
+        let local = self.normalized_points(points);
         let (clamped, outside) = clamp_to_box(&local);
         let raw: Vec<(f32, Vec3)> = match &self.network {
             Network::Siren(s) => s.eval_with_gradient_cpu(&clamped),
