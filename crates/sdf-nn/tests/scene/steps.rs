@@ -214,6 +214,23 @@ fn longer_steps_keep_every_hit_on_both_kernels() {
     }
 }
 
+/// A bound set below 1 is floored at 1 the same way on the CPU and the GPU: the GPU's hits in
+/// the CPU's steps (the CPU tested its balls with the bound below 1, then floored the result).
+#[test]
+fn a_bound_below_one_steps_alike_on_both() {
+    let mut scene = spot_scene();
+    scene.set_model_lipschitz(0, 0.5).unwrap();
+    let rays = rays(200, 5);
+    let options = TraceOptions {
+        max_steps: 512,
+        ..TraceOptions::default()
+    };
+    let hits = scene.trace_rays(&rays, &options).unwrap();
+    let on_gpu = GpuScene::new(sdf_nn::GpuContext::shared().unwrap(), &scene).unwrap();
+    let gpu_hits = on_gpu.trace_rays(&rays, &options).unwrap();
+    assert!(hits_in_the_cpus_steps(&hits, &gpu_hits, "bound 0.5") > 100);
+}
+
 /// No long step crosses the surface: each hit is the first crossing a march of 2·10⁻³ finds,
 /// on the spot scene at a level (offset surfaces) and below it.
 #[test]

@@ -284,12 +284,14 @@ impl LocalLipschitz {
     /// ([`crate::serve::scene::Scene::set_model_lipschitz`]), for every cell and block; the
     /// model's bound, which also holds outside the box, is `√(1 + bound²)`: there the served
     /// distance is the network's at the clamped point plus the distance to the box, whose slope
-    /// reaches `√(1 + T²)` for a gradient `T ≤ bound` along the box's face.
+    /// reaches `√(1 + T²)` for a gradient `T ≤ bound` along the box's face. The cells and blocks
+    /// hold at least 1, as every bound the scene steps by does (the GPU's tables are clamped so):
+    /// a bound below 1 tested its balls smaller on the CPU, whose steps then differed.
     pub fn uniform(bound: f32) -> Self {
         let cells = LOCAL_CELLS * LOCAL_CELLS * LOCAL_CELLS;
         LocalLipschitz {
-            cell: vec![bound; cells],
-            block: vec![bound; cells],
+            cell: vec![bound.max(1.0); cells],
+            block: vec![bound.max(1.0); cells],
             global: bound.hypot(1.0),
         }
     }
