@@ -230,6 +230,8 @@ fn a_hash_grids_checkpoint_resumes_into_a_hash_grid() {
         (Some("hashgrid".into()), Some("small".into()))
     );
     assert_eq!(saved.planned(), Some(1000));
+    // A length asked for: no time budget left to plan with on a resume.
+    assert!(!saved.plan_pending());
     assert_eq!(saved.model_file().metadata.architecture, "hashgrid");
     let done = saved.done();
     assert!(done >= 1, "{log}");

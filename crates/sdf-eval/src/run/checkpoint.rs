@@ -105,6 +105,22 @@ impl Checkpoint {
             .map(|p| p as usize)
     }
 
+    /// Whether its run's CPU time budget had yet to plan the run's length (stopped before two
+    /// epochs ran whole): a resume then keeps what is left of the budget instead of stopping at
+    /// the least length ([`Self::planned`]), which is all that run had recorded.
+    pub fn plan_pending(&self) -> bool {
+        self.file.metadata.training["plan_pending"] == serde_json::Value::Bool(true)
+    }
+
+    /// Seconds its runs trained (`train_seconds` in the run record; 0 where absent or not a
+    /// finite, non-negative number: checkpoints from before 2026-11-28 have none).
+    pub fn train_seconds(&self) -> f64 {
+        self.file.metadata.training["train_seconds"]
+            .as_f64()
+            .filter(|s| s.is_finite() && *s >= 0.0)
+            .unwrap_or(0.0)
+    }
+
     /// NGLOD and the hash grid: optimiser steps done within the unfinished epoch `done()`, which a resume finishes.
     pub fn epoch_steps_done(&self) -> usize {
         self.file.metadata.training["epoch_steps_done"]
@@ -355,6 +371,34 @@ mod tests {
         let d = c.differences(&wider).unwrap();
         assert_eq!(d.len(), 1, "{d:?}");
         assert!(d[0].starts_with("hidden "), "{d:?}");
+    }
+
+    /// A resume keeps what is left of the CPU time budget only where its run stopped before
+    /// the budget planned the length; otherwise it goes on to the length that run planned.
+    #[test]
+    fn a_resume_plans_with_the_rest_of_a_pending_budget() {
+        let budget = Some(crate::run::CPU_TIME_BUDGET);
+        let mut trained = interrupted(
+            Nglod::new(NglodConfig::small())
+                .unwrap()
+                .to_model_file(sdf_geom::Normalization::identity(), serde_json::Value::Null),
+            "nglod",
+            0,
+            1,
+        );
+        trained.file.metadata.training["train_seconds"] = 20.0.into();
+        let planned = trained.checkpoint();
+        assert!(!planned.plan_pending());
+        assert_eq!(crate::run::resumed_budget(budget, Some(&planned)), None);
+        trained.file.metadata.training["plan_pending"] = true.into();
+        let pending = trained.checkpoint();
+        assert!(pending.plan_pending());
+        let left = crate::run::resumed_budget(budget, Some(&pending)).unwrap();
+        assert_eq!(left.seconds, crate::run::CPU_TIME_BUDGET.seconds - 20.0);
+        assert_eq!(left.max_epochs, crate::run::CPU_TIME_BUDGET.max_epochs);
+        // A length asked for (no budget) or a fresh run are as before.
+        assert_eq!(crate::run::resumed_budget(None, Some(&pending)), None);
+        assert_eq!(crate::run::resumed_budget(budget, None), budget);
     }
 
     /// A hash grid's checkpoint resumes only into a hash-grid run of its preset, and one whose

@@ -237,11 +237,7 @@ impl Plan<'_> {
 
     /// Seconds of training so far: this run's, and those of the runs its checkpoint continues.
     fn train_seconds(&self) -> f64 {
-        let earlier = self
-            .resume
-            .and_then(|c| c.training()["train_seconds"].as_f64())
-            .filter(|s| s.is_finite() && *s >= 0.0)
-            .unwrap_or(0.0);
+        let earlier = self.resume.map_or(0.0, Checkpoint::train_seconds);
         earlier + self.start.elapsed().as_secs_f64()
     }
 
@@ -293,12 +289,26 @@ pub fn train(
             .asked
             .or_else(|| resume.and_then(Checkpoint::planned))
             .unwrap_or(length.default),
-        time_budget: length.time_budget.filter(|_| resume.is_none()),
+        time_budget: resumed_budget(length.time_budget, resume),
         start,
     };
     match options.model {
         ModelKind::Siren => train_siren::train(&plan, progress),
         ModelKind::Nglod | ModelKind::Hashgrid => train_nglod::train(&plan, progress),
+    }
+}
+
+/// The time budget of a run whose fresh form has `budget`: a resume keeps it only where its
+/// checkpoint's run stopped before the budget planned the length ([`Checkpoint::plan_pending`]),
+/// less the seconds that run trained; any other resume goes on to the length its run planned.
+fn resumed_budget(budget: Option<TimeBudget>, resume: Option<&Checkpoint>) -> Option<TimeBudget> {
+    match resume {
+        None => budget,
+        Some(c) if c.plan_pending() => budget.map(|b| TimeBudget {
+            seconds: (b.seconds - c.train_seconds()).max(0.0),
+            ..b
+        }),
+        Some(_) => None,
     }
 }
 

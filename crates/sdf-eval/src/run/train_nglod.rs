@@ -77,6 +77,8 @@ pub(super) fn train(
         plan.training_json(done, final_loss),
     );
     training["planned"] = planned.into();
+    // A run stopped before its time budget planned the length twice: `planned` is provisional.
+    training["plan_pending"] = (plan.time_budget.is_some() && report.length_plans < 2).into();
     training["stall_seconds"] = report.stall_seconds.into();
     let file = trained.to_model_file(plan.normalization, training.clone());
     check_trained(&file, done, "epoch")?;

@@ -136,8 +136,9 @@ pub struct NglodTrainConfig {
 }
 
 /// A training time to fill ([`NglodTrainConfig::time_budget`]): after each of the first two
-/// epochs of a fresh run, the trainer plans as many epochs as fit in `seconds` at the pace of
-/// the epoch just done, at least `epochs` and at most `max_epochs`. The first epoch waits for
+/// epochs that run whole, the trainer plans as many epochs as fit in `seconds` at the pace of
+/// the epoch just done, at least `epochs` (counted from the resumed epoch after
+/// [`NglodTrainer::resume`]) and at most `max_epochs`. The first epoch waits for
 /// its samples, so its plan is a cautious one; the second runs at the pace the rest will. So
 /// the same command gives the best fit a given time buys on machines (and drivers) of very
 /// different speeds.
@@ -302,6 +303,9 @@ pub struct TrainReport {
     pub final_loss: f32,
     /// Whether `max_seconds` or the stop flag stopped the run early.
     pub stopped_early: bool,
+    /// How many times the [`TimeBudget`] planned the run's length (two at most; fewer when the
+    /// run stopped before two epochs ran whole, and a resume then goes on planning).
+    pub length_plans: usize,
     /// Fraction of the first pool block's uniform box points labelled inside (negative): close
     /// to 0 for a mesh without an inside. `None` for unsigned targets or when no block was drawn.
     pub inside_fraction: Option<f64>,
@@ -673,9 +677,11 @@ impl<'g> NglodTrainer<'g> {
                     steps_done,
                     should_stop,
                 )?;
-                if let Some(b) = run.plans_length(config, first_epoch, e) {
+                if let Some(b) = run.plans_length(config, report.length_plans) {
+                    report.length_plans += 1;
                     let elapsed = start.elapsed().as_secs_f64();
-                    end_epoch = b.epochs(epochs, e + 1, elapsed, elapsed - epoch_began);
+                    end_epoch =
+                        b.epochs(first_epoch + epochs, e + 1, elapsed, elapsed - epoch_began);
                     if pending.is_none() && schedule.due(next_block) < end_epoch {
                         pending = Some(spawn(next_block));
                     }
@@ -757,17 +763,13 @@ fn stop_requested(config: &NglodTrainConfig, start: Instant, flag: Option<&Atomi
 }
 
 impl EpochSteps {
-    /// The time budget by which a fresh run plans its length after this epoch, epoch `e` of a
-    /// run that began at `first_epoch`: after each of its first two epochs, if they ran whole.
-    fn plans_length(
-        &self,
-        config: &NglodTrainConfig,
-        first_epoch: usize,
-        e: usize,
-    ) -> Option<TimeBudget> {
-        config
-            .time_budget
-            .filter(|_| first_epoch == 0 && e < 2 && !self.stop && self.first >= self.n)
+    /// The time budget by which a run plans its length after this epoch, `plans` plans having
+    /// been made: after each of its first two epochs that ran whole in this run (a resumed
+    /// epoch's skipped steps would make it look faster than it is).
+    fn plans_length(&self, config: &NglodTrainConfig, plans: usize) -> Option<TimeBudget> {
+        config.time_budget.filter(|_| {
+            plans < 2 && !self.stop && self.first >= self.n && self.steps == self.step_in_epoch
+        })
     }
 
     /// The record of this epoch, epoch `e` on `levels` levels of a run planned to `planned`

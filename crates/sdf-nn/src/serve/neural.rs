@@ -366,7 +366,10 @@ impl NeuralSdf {
         if !n.is_far() {
             return (points.into(), QuerySpace::Mesh);
         }
-        (self.normalized_points(points).into(), QuerySpace::Normalized)
+        (
+            self.normalized_points(points).into(),
+            QuerySpace::Normalized,
+        )
     }
 
     /// `points` (mesh coordinates) in the model's cube, mapped on the host with the centre in

@@ -469,36 +469,52 @@ fn trains_a_sphere_with_correct_signs_at_every_lod() {
 
 /// A time budget plans the run after its first epoch: a budget no epoch fits in keeps the
 /// least (`epochs`), a budget every epoch fits in runs `max_epochs`; the pool samples for the
-/// epochs added, and every epoch reports the plan.
+/// epochs added, and every epoch reports the plan. A run resumed part-way through an epoch
+/// plans after its first two whole epochs (the resumed one's skipped steps would make it look
+/// fast), counting its least from the resumed epoch: it had stopped at the least.
 #[test]
 fn a_time_budget_plans_the_number_of_epochs() {
     let gpu = gpu();
     let mesh = icosphere(0.5, 1);
     let model = Nglod::new(NglodConfig::small()).unwrap();
-    let run = |seconds: f64, least: usize, max_epochs: usize| {
-        let config = NglodTrainConfig {
-            epochs: least,
-            uniform_points: 2_000,
-            near_points: 1_000,
-            surface_points: 1_000,
-            batch_size: 1_000,
-            // Blocks refreshed every epoch: the added epochs need freshly sampled blocks.
-            pool_blocks: 2,
-            refresh_every: 1,
-            time_budget: Some(sdf_nn::nglod::TimeBudget {
-                seconds,
-                max_epochs,
-            }),
-            ..Default::default()
-        };
-        let mut trainer = NglodTrainer::new(gpu, &model, &mesh, config).unwrap();
+    let config = |seconds: f64, least: usize, max_epochs: usize| NglodTrainConfig {
+        epochs: least,
+        uniform_points: 2_000,
+        near_points: 1_000,
+        surface_points: 1_000,
+        batch_size: 1_000,
+        // Blocks refreshed every epoch: the added epochs need freshly sampled blocks.
+        pool_blocks: 2,
+        refresh_every: 1,
+        time_budget: Some(sdf_nn::nglod::TimeBudget {
+            seconds,
+            max_epochs,
+        }),
+        ..Default::default()
+    };
+    let train = |trainer: &mut NglodTrainer| {
         let mut planned = Vec::new();
         let report = trainer.train_with(|e| planned.push(e.planned)).unwrap();
-        assert_eq!(trainer.epochs_done(), report.epochs.len());
-        (report.epochs.len(), planned)
+        (report.epochs.len(), planned, report.length_plans)
+    };
+    let run = |seconds: f64, least: usize, max_epochs: usize| {
+        let mut trainer =
+            NglodTrainer::new(gpu, &model, &mesh, config(seconds, least, max_epochs)).unwrap();
+        let (epochs, planned, plans) = train(&mut trainer);
+        assert_eq!(trainer.epochs_done(), epochs);
+        assert_eq!(plans, 2);
+        (epochs, planned)
     };
     assert_eq!(run(0.0, 2, 50), (2, vec![2, 2]));
     assert_eq!(run(1e9, 1, 4), (4, vec![4, 4, 4, 4]));
+    // Resumed in epoch 1 with 2 of its 4 steps done, 2 epochs to go: epoch 1 is not timed, the
+    // plan after epoch 2 runs to max_epochs (5 in all: 4 here, each reporting what it plans).
+    let fresh = NglodTrainer::new(gpu, &model, &mesh, config(0.0, 2, 5)).unwrap();
+    let state = fresh.optimizer_state().unwrap();
+    let mut resumed = NglodTrainer::new(gpu, &model, &mesh, config(1e9, 2, 5)).unwrap();
+    resumed.resume(&state, 1, 2).unwrap();
+    assert_eq!(train(&mut resumed), (4, vec![2, 4, 4, 4], 2));
+    assert_eq!(resumed.epochs_done(), 5);
 }
 
 #[test]

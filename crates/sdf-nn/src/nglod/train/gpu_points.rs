@@ -243,9 +243,11 @@ impl NglodTrainer<'_> {
                 should_stop,
             )?;
             source.placed(&epoch);
-            if let Some(b) = run.plans_length(config, first_epoch, e) {
+            if let Some(b) = run.plans_length(config, report.length_plans) {
+                report.length_plans += 1;
                 let elapsed = start.elapsed().as_secs_f64();
-                end_epoch = b.epochs(config.epochs, e + 1, elapsed, elapsed - epoch_began);
+                let least = first_epoch + config.epochs;
+                end_epoch = b.epochs(least, e + 1, elapsed, elapsed - epoch_began);
             }
             // Drawn in the epoch's first submission: no sampling or stall of its own.
             let stats = run.stats(e, lod, end_epoch - first_epoch, (0.0, 0.0));
