@@ -483,6 +483,18 @@ fn gltf_buffer_uris_stay_in_the_assets_folder() {
         std::os::unix::fs::symlink(root.join("secret.bin"), inside.join("link.bin")).unwrap();
         let p = write(&inside, "link.gltf", gltf("link.bin"));
         assert!(matches!(load_mesh(&p), Err(GeomError::UriRefused { .. })));
+        // A link to a folder outside: refused alike whether the file named through it exists
+        // or not (a missing-buffer error for one and a refusal for the other told which files
+        // outside exist).
+        std::os::unix::fs::symlink(&root, inside.join("out")).unwrap();
+        for uri in ["out/secret.bin", "out/no-such.bin", "out/none/deeper.bin"] {
+            let p = write(&inside, "out.gltf", gltf(uri));
+            let err = load_mesh(&p).unwrap_err();
+            assert!(
+                matches!(err, GeomError::UriRefused { .. }),
+                "{uri}: {err:?}"
+            );
+        }
         // Opted in, the link is followed.
         let (m, _) = load_mesh_with(&p, &LoadOptions::with_external_uris(true)).unwrap();
         assert_eq!(m.triangles.len(), 12);

@@ -255,16 +255,29 @@ fn resolve_uri(
         }
     }
     let file = dir.join(rel);
-    // Then through symbolic links. A missing file inside the folder is reported as missing.
-    let (Ok(real_dir), Ok(real_file)) = (dir.canonicalize(), file.canonicalize()) else {
+    // Then through symbolic links: the file, or where it would be (the deepest part of its
+    // path that exists), resolved. A link out of the folder is refused whether or not its
+    // target exists: told apart, "refused" and "missing" said which files outside exist. A
+    // missing file inside the folder is reported as missing.
+    let Ok(real_dir) = dir.canonicalize() else {
         return Ok(file);
     };
-    if !real_file.starts_with(&real_dir) {
+    let mut existing = file.as_path();
+    let real = loop {
+        match existing.canonicalize() {
+            Ok(real) => break real,
+            Err(_) => match existing.parent() {
+                Some(parent) => existing = parent,
+                None => return Ok(file),
+            },
+        }
+    };
+    if !real.starts_with(&real_dir) {
         return Err(refuse(
             "a symbolic link takes it out of the glTF's folder (allow_external_uris is off)",
         ));
     }
-    Ok(real_file)
+    Ok(if existing == file { real } else { file })
 }
 
 fn percent_decode(s: &str) -> String {
