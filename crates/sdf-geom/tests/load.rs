@@ -589,6 +589,22 @@ fn broken_or_missing_mtl_does_not_matter() {
     let (_, r) = load_mesh(&p).unwrap();
     assert_eq!(r.warnings.len(), 1, "{r:?}");
     assert!(r.warnings[0].contains("lost0.mtl and 999 more"), "{r:?}");
+    // Nor through a link out of the folder, whether the name there exists or not.
+    #[cfg(unix)]
+    {
+        let outside = temp_dir("mtl-outside");
+        write(&outside, "there.mtl", "newmtl x\n");
+        std::os::unix::fs::symlink(&outside, dir.join("out")).unwrap();
+        for lib in ["out/there.mtl", "out/nowhere.mtl"] {
+            let p = write(
+                &dir,
+                "linked.obj",
+                format!("mtllib {lib}\n{TRI_OBJ}f 1 2 3\n"),
+            );
+            let (_, r) = load_mesh(&p).unwrap();
+            assert!(r.warnings.is_empty(), "{lib}: {r:?}");
+        }
+    }
 
     write(
         &dir,

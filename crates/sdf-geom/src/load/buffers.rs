@@ -254,30 +254,37 @@ fn resolve_uri(
             }
         }
     }
+    // Then through symbolic links. A missing file inside the folder is reported as missing.
     let file = dir.join(rel);
-    // Then through symbolic links: the file, or where it would be (the deepest part of its
-    // path that exists), resolved. A link out of the folder is refused whether or not its
-    // target exists: told apart, "refused" and "missing" said which files outside exist. A
-    // missing file inside the folder is reported as missing.
+    match resolve_inside(dir, &file) {
+        Some(real) => Ok(real.unwrap_or(file)),
+        None => Err(refuse(
+            "a symbolic link takes it out of the glTF's folder (allow_external_uris is off)",
+        )),
+    }
+}
+
+/// `file`, a path lexically inside `dir`, through symbolic links: `Some(Some(real))` for a file
+/// that exists inside `dir`, `Some(None)` for a missing one whose deepest existing part is inside
+/// (or a folder that does not resolve), `None` where a link takes it out. The deepest existing
+/// part decides, so that a link out of the folder is refused whether or not its target exists:
+/// told apart, "refused" and "missing" would say which files outside exist.
+pub(super) fn resolve_inside(dir: &Path, file: &Path) -> Option<Option<PathBuf>> {
     let Ok(real_dir) = dir.canonicalize() else {
-        return Ok(file);
+        return Some(None);
     };
-    let mut existing = file.as_path();
+    let mut existing = file;
     let real = loop {
         match existing.canonicalize() {
             Ok(real) => break real,
             Err(_) => match existing.parent() {
                 Some(parent) => existing = parent,
-                None => return Ok(file),
+                None => return Some(None),
             },
         }
     };
-    if !real.starts_with(&real_dir) {
-        return Err(refuse(
-            "a symbolic link takes it out of the glTF's folder (allow_external_uris is off)",
-        ));
-    }
-    Ok(if existing == file { real } else { file })
+    real.starts_with(&real_dir)
+        .then(|| (existing == file).then_some(real))
 }
 
 fn percent_decode(s: &str) -> String {

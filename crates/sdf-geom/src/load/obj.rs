@@ -209,9 +209,9 @@ pub(super) fn load_obj(
         Ok((models, _materials)) => models,
         Err(err) => return Err(obj_error(path, &text, err)),
     };
-    // Only names inside the file's folder are looked for: a file must not learn (from whether
-    // a warning appears) which paths elsewhere exist, as glTF URIs may not. One warning for
-    // the first missing library, however many lines name one.
+    // Only names inside the file's folder are looked for, through links too: a file must not
+    // learn (from whether a warning appears) which paths elsewhere exist, as glTF URIs may not.
+    // One warning for the first missing library, however many lines name one.
     let missing: Vec<PathBuf> = mtllibs
         .into_inner()
         .into_iter()
@@ -219,7 +219,11 @@ pub(super) fn load_obj(
             let inside = lib
                 .components()
                 .all(|c| matches!(c, std::path::Component::Normal(_)));
-            inside && dir.is_some_and(|d| !d.join(lib).is_file())
+            inside
+                && dir.is_some_and(|d| {
+                    matches!(super::buffers::resolve_inside(d, &d.join(lib)), Some(real)
+                        if !real.as_ref().is_some_and(|r| r.is_file()))
+                })
         })
         .collect();
     if let Some(first) = missing.first() {
