@@ -579,9 +579,10 @@ fn bad_scene_input_is_refused() {
         "ray 1: direction",
     );
     // Directions read in float64 are normalised before f32: 1e39 or 1e-50 per unit is the
-    // unit direction (f32 made them infinite or zero, and the rays were refused).
+    // unit direction (f32 made them infinite or zero, and the rays were refused), and so are
+    // 1e200 and 1e-200 (whose squares overflow or vanish in f64).
     let scaled = scratch("scaled_rays.npy");
-    let table: Vec<f64> = [1.0, 1e39, 1e-50]
+    let table: Vec<f64> = [1.0, 1e39, 1e-50, 1e200, 1e-200]
         .iter()
         .flat_map(|s| [0.0, 0.0, 3.0, 0.0, 0.0, -s])
         .collect();

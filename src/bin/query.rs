@@ -90,10 +90,17 @@ fn main() -> ExitCode {
 }
 
 /// A ray's direction read in f64, normalised before it becomes f32: components of 1e39 or
-/// 1e-50 give a direction, where f32 would make them infinite or zero and the ray refused. A
-/// zero or non-finite direction stays as it was read, for the refusal to show.
+/// 1e-50 give a direction, where f32 would make them infinite or zero and the ray refused;
+/// scaled by its largest component first, so that 1e200 or 1e-200 (whose squares overflow or
+/// vanish in f64) do too. A zero or non-finite direction stays as it was read, for the refusal
+/// to show.
 fn unit_direction(d: DVec3) -> glam::Vec3 {
-    let unit = d.normalize_or_zero();
+    let largest = d.abs().max_element();
+    let unit = if largest.is_finite() && largest > 0.0 {
+        (d / largest).normalize_or_zero()
+    } else {
+        DVec3::ZERO
+    };
     if unit == DVec3::ZERO {
         d.as_vec3()
     } else {
