@@ -121,6 +121,15 @@ impl Checkpoint {
             .unwrap_or(0.0)
     }
 
+    /// Seconds of its runs' time budget spent: the trainers' own time (`budget_seconds`, which
+    /// the budget counts, without the setup `train_seconds` includes), else `train_seconds`.
+    pub fn budget_seconds(&self) -> f64 {
+        self.file.metadata.training["budget_seconds"]
+            .as_f64()
+            .filter(|s| s.is_finite() && *s >= 0.0)
+            .unwrap_or_else(|| self.train_seconds())
+    }
+
     /// NGLOD and the hash grid: optimiser steps done within the unfinished epoch `done()`, which a resume finishes.
     pub fn epoch_steps_done(&self) -> usize {
         self.file.metadata.training["epoch_steps_done"]
@@ -387,6 +396,8 @@ mod tests {
             1,
         );
         trained.file.metadata.training["train_seconds"] = 20.0.into();
+        // The budget counts the trainer's time, not the setup before it.
+        trained.file.metadata.training["budget_seconds"] = 18.0.into();
         let planned = trained.checkpoint();
         assert!(!planned.plan_pending());
         assert_eq!(crate::run::resumed_budget(budget, Some(&planned)), None);
@@ -394,7 +405,7 @@ mod tests {
         let pending = trained.checkpoint();
         assert!(pending.plan_pending());
         let left = crate::run::resumed_budget(budget, Some(&pending)).unwrap();
-        assert_eq!(left.seconds, crate::run::CPU_TIME_BUDGET.seconds - 20.0);
+        assert_eq!(left.seconds, crate::run::CPU_TIME_BUDGET.seconds - 18.0);
         assert_eq!(left.max_epochs, crate::run::CPU_TIME_BUDGET.max_epochs);
         // A length asked for (no budget) or a fresh run are as before.
         assert_eq!(crate::run::resumed_budget(None, Some(&pending)), None);

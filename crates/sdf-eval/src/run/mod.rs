@@ -300,12 +300,13 @@ pub fn train(
 
 /// The time budget of a run whose fresh form has `budget`: a resume keeps it only where its
 /// checkpoint's run stopped before the budget planned the length ([`Checkpoint::plan_pending`]),
-/// less the seconds that run trained; any other resume goes on to the length its run planned.
+/// less the seconds of it spent ([`Checkpoint::budget_seconds`]); any other resume goes on to
+/// the length its run planned.
 fn resumed_budget(budget: Option<TimeBudget>, resume: Option<&Checkpoint>) -> Option<TimeBudget> {
     match resume {
         None => budget,
         Some(c) if c.plan_pending() => budget.map(|b| TimeBudget {
-            seconds: (b.seconds - c.train_seconds()).max(0.0),
+            seconds: (b.seconds - c.budget_seconds()).max(0.0),
             ..b
         }),
         Some(_) => None,

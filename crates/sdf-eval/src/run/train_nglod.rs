@@ -79,6 +79,9 @@ pub(super) fn train(
     training["planned"] = planned.into();
     // A run stopped before its time budget planned the length twice: `planned` is provisional.
     training["plan_pending"] = (plan.time_budget.is_some() && report.length_plans < 2).into();
+    // The trainers' own seconds, which a budget counts (`train_seconds` adds the setup).
+    let spent = plan.resume.map_or(0.0, Checkpoint::budget_seconds) + report.total_seconds;
+    training["budget_seconds"] = spent.into();
     training["stall_seconds"] = report.stall_seconds.into();
     let file = trained.to_model_file(plan.normalization, training.clone());
     check_trained(&file, done, "epoch")?;

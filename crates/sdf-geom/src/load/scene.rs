@@ -22,7 +22,7 @@ pub(super) struct NodeGraph {
     /// Whether the node or a descendant has a mesh.
     mesh_below: Vec<bool>,
     /// Each node's transform in f64 ([`precise_node_transforms`]).
-    precise: Vec<Option<DMat4>>,
+    precise: Vec<Option<Box<DMat4>>>,
 }
 
 /// Checks the scene's node graph for cycles and counts node instances through shared children.
@@ -185,8 +185,10 @@ pub(super) fn check_scene_size(
 /// The nodes' transforms as the file writes them, in f64, by node index (`None` where the file
 /// gives none or the JSON does not read as expected: the checked f32 transform serves). `gltf`
 /// reads them as f32, which moved a part placed at 6 378 137.1 (an Earth-centred survey
-/// coordinate) to 6 378 137.0 and its neighbour at .4 to .5: 0.2 apart that were 0.3.
-fn precise_node_transforms(json_bytes: &[u8]) -> Vec<Option<DMat4>> {
+/// coordinate) to 6 378 137.0 and its neighbour at .4 to .5: 0.2 apart that were 0.3. Boxed,
+/// so that millions of nodes without a transform cost a pointer each, as they are read and
+/// after (`{}` is three bytes of JSON).
+fn precise_node_transforms(json_bytes: &[u8]) -> Vec<Option<Box<DMat4>>> {
     #[derive(serde::Deserialize)]
     struct Root {
         #[serde(default)]
@@ -194,10 +196,10 @@ fn precise_node_transforms(json_bytes: &[u8]) -> Vec<Option<DMat4>> {
     }
     #[derive(serde::Deserialize)]
     struct Node {
-        matrix: Option<[f64; 16]>,
-        translation: Option<[f64; 3]>,
-        rotation: Option<[f64; 4]>,
-        scale: Option<[f64; 3]>,
+        matrix: Option<Box<[f64; 16]>>,
+        translation: Option<Box<[f64; 3]>>,
+        rotation: Option<Box<[f64; 4]>>,
+        scale: Option<Box<[f64; 3]>>,
     }
     let Ok(root) = serde_json::from_slice::<Root>(json_bytes) else {
         return Vec::new();
@@ -205,18 +207,31 @@ fn precise_node_transforms(json_bytes: &[u8]) -> Vec<Option<DMat4>> {
     root.nodes
         .into_iter()
         .map(|n| {
-            let m = match n.matrix {
-                Some(m) => DMat4::from_cols_array(&m),
-                None => {
-                    let q = DQuat::from_array(n.rotation.unwrap_or([0.0, 0.0, 0.0, 1.0]));
+            let m = match n {
+                Node {
+                    matrix: Some(m), ..
+                } => DMat4::from_cols_array(&m),
+                Node {
+                    matrix: None,
+                    translation: None,
+                    rotation: None,
+                    scale: None,
+                } => return None,
+                Node {
+                    translation,
+                    rotation,
+                    scale,
+                    ..
+                } => {
+                    let q = DQuat::from_array(rotation.map_or([0.0, 0.0, 0.0, 1.0], |r| *r));
                     DMat4::from_scale_rotation_translation(
-                        DVec3::from_array(n.scale.unwrap_or([1.0; 3])),
+                        DVec3::from_array(scale.map_or([1.0; 3], |s| *s)),
                         q / q.length(),
-                        DVec3::from_array(n.translation.unwrap_or_default()),
+                        DVec3::from_array(translation.map_or([0.0; 3], |t| *t)),
                     )
                 }
             };
-            m.is_finite().then_some(m)
+            m.is_finite().then(|| Box::new(m))
         })
         .collect()
 }
@@ -248,8 +263,7 @@ pub(super) fn expand_scene(
         let local = graph
             .precise
             .get(node.index())
-            .copied()
-            .flatten()
+            .and_then(|m| m.as_deref().copied())
             .unwrap_or(checked.as_dmat4());
         let world = parent * local;
         if !world.as_mat4().is_finite() {

@@ -680,8 +680,8 @@ impl<'g> NglodTrainer<'g> {
                 if let Some(b) = run.plans_length(config, report.length_plans) {
                     report.length_plans += 1;
                     let elapsed = start.elapsed().as_secs_f64();
-                    end_epoch =
-                        b.epochs(first_epoch + epochs, e + 1, elapsed, elapsed - epoch_began);
+                    let pace = run.whole_epoch_seconds(elapsed - epoch_began);
+                    end_epoch = b.epochs(first_epoch + epochs, e + 1, elapsed, pace);
                     if pending.is_none() && schedule.due(next_block) < end_epoch {
                         pending = Some(spawn(next_block));
                     }
@@ -764,12 +764,18 @@ fn stop_requested(config: &NglodTrainConfig, start: Instant, flag: Option<&Atomi
 
 impl EpochSteps {
     /// The time budget by which a run plans its length after this epoch, `plans` plans having
-    /// been made: after each of its first two epochs that ran whole in this run (a resumed
-    /// epoch's skipped steps would make it look faster than it is).
+    /// been made: after each of its first two epochs (a resumed one too, which may be the last
+    /// its provisional length holds), if they ended rather than stopped.
     fn plans_length(&self, config: &NglodTrainConfig, plans: usize) -> Option<TimeBudget> {
-        config.time_budget.filter(|_| {
-            plans < 2 && !self.stop && self.first >= self.n && self.steps == self.step_in_epoch
-        })
+        config
+            .time_budget
+            .filter(|_| plans < 2 && !self.stop && self.first >= self.n && self.steps > 0)
+    }
+
+    /// What a whole epoch takes at the pace of this one, which took `seconds`: a resumed
+    /// epoch ran only the steps its checkpoint had not, and would look faster than it is.
+    fn whole_epoch_seconds(&self, seconds: f64) -> f64 {
+        seconds * self.step_in_epoch as f64 / self.steps.max(1) as f64
     }
 
     /// The record of this epoch, epoch `e` on `levels` levels of a run planned to `planned`

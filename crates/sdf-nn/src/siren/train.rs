@@ -272,7 +272,9 @@ impl Plateau {
         }
         self.since_best = 0;
         self.best = loss;
-        (lr / 10.0).max(c.min_lr)
+        // Never up: a rate already under the floor (a resume with a lower `--lr` scales the
+        // checkpoint's) stays where it is.
+        (lr / 10.0).max(c.min_lr.min(lr))
     }
 }
 
@@ -765,6 +767,13 @@ mod tests {
         // A window that beats the best by more than the threshold restarts the count.
         let r = rates(&c, &[1.0, 1.0, 1.0, 1.0, 0.9, 0.9, 0.9, 0.9]);
         assert!(r.iter().all(|&x| x == 1e-4), "{r:?}");
+        // A rate under the floor is never raised to it.
+        let mut p = Plateau::new();
+        let mut lr = 1e-6;
+        for _ in 0..8 {
+            lr = p.next_lr(&c, 1.0, lr);
+            assert_eq!(lr, 1e-6);
+        }
     }
 
     #[test]

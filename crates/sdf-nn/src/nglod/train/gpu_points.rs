@@ -247,7 +247,8 @@ impl NglodTrainer<'_> {
                 report.length_plans += 1;
                 let elapsed = start.elapsed().as_secs_f64();
                 let least = first_epoch + config.epochs;
-                end_epoch = b.epochs(least, e + 1, elapsed, elapsed - epoch_began);
+                let pace = run.whole_epoch_seconds(elapsed - epoch_began);
+                end_epoch = b.epochs(least, e + 1, elapsed, pace);
             }
             // Drawn in the epoch's first submission: no sampling or stall of its own.
             let stats = run.stats(e, lod, end_epoch - first_epoch, (0.0, 0.0));
