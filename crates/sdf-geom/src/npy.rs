@@ -1,8 +1,8 @@
 //! A minimal NumPy `.npy` reader and writer for point sets and distance arrays.
 //!
 //! Reads version 1, 2 and 3 files holding a C- or Fortran-ordered `(N, 3)` array of little- or
-//! big-endian float32 or float64. Writes version 1 little-endian float32 files, atomically (a temporary
-//! file in the same directory, then a rename).
+//! big-endian float32 or float64. Writes version 1 little-endian float32 or float64 files,
+//! atomically (a temporary file in the same directory, then a rename).
 
 use std::path::Path;
 
@@ -28,14 +28,39 @@ struct Header {
 }
 
 /// Finds the value text after `'key':` in a Python dict literal; of a key given twice, the last
-/// (Python's rule for dict literals, so what `numpy.load` reads).
+/// (Python's rule for dict literals, so what `numpy.load` reads). Only the dict's own keys count:
+/// a string elsewhere (a structured dtype's field named `x', 'descr': '<f4`) is skipped whole,
+/// where a search of the text had read that file's float64 fields as float32.
 fn dict_value<'a>(h: &'a str, key: &str) -> Option<&'a str> {
-    let pat1 = format!("'{key}'");
-    let pat2 = format!("\"{key}\"");
-    let last = |pat: &str| h.rfind(pat).map(|p| p + pat.len());
-    let pos = last(&pat1).max(last(&pat2))?;
-    let rest = h[pos..].trim_start();
-    Some(rest.strip_prefix(':')?.trim_start())
+    let b = h.as_bytes();
+    let (mut i, mut depth, mut found) = (0, 0usize, None);
+    while i < b.len() {
+        match b[i] {
+            b'{' | b'[' | b'(' => depth += 1,
+            b'}' | b']' | b')' => depth = depth.saturating_sub(1),
+            quote @ (b'\'' | b'"') => {
+                // A string literal, its escapes skipped: quotes are ASCII, so `end` (a quote or
+                // the end) is a character boundary.
+                let start = i + 1;
+                let mut end = start;
+                while end < b.len() && b[end] != quote {
+                    end += if b[end] == b'\\' { 2 } else { 1 };
+                }
+                let end = end.min(b.len());
+                if depth == 1 && &h[start..end] == key {
+                    let rest = h[(end + 1).min(h.len())..].trim_start();
+                    if let Some(value) = rest.strip_prefix(':') {
+                        found = Some(value.trim_start());
+                    }
+                }
+                i = end + 1;
+                continue;
+            }
+            _ => {}
+        }
+        i += 1;
+    }
+    found
 }
 
 fn parse_header(path: &Path, h: &str) -> Result<Header, GeomError> {
@@ -330,7 +355,10 @@ pub fn read_f32(path: impl AsRef<Path>) -> Result<Vec<f32>, GeomError> {
         return Err(bad(path, "not a version-1 .npy file"));
     }
     let hlen = u16::from_le_bytes([bytes[8], bytes[9]]) as usize;
-    let end = (10 + hlen).min(bytes.len());
+    let end = 10 + hlen;
+    if end > bytes.len() {
+        return Err(bad(path, "truncated header"));
+    }
     let h = std::str::from_utf8(&bytes[10..end]).map_err(|_| bad(path, "header is not text"))?;
     let header = parse_header(path, h)?;
     if header.descr != "<f4" || header.shape.len() != 1 {

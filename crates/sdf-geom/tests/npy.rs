@@ -126,6 +126,15 @@ fn bad_npy_files_get_clear_errors() {
     let mut b = header("[('x', '<f4')]", false, "(1, 3)");
     b.extend([0u8; 12]);
     expect_npy_error(&b, "dtype");
+    // A structured dtype whose field name holds `'descr': '<f4'` (numpy writes its repr as
+    // below): the dict's own 'descr' is the list, not the field name's text.
+    let h =
+        "{'descr': [(\"x', 'descr': '<f4'\", '<f8')], 'fortran_order': False, 'shape': (2, 3), }\n";
+    let mut b = b"\x93NUMPY\x01\x00".to_vec();
+    b.extend((h.len() as u16).to_le_bytes());
+    b.extend(h.as_bytes());
+    b.extend([0u8; 48]);
+    expect_npy_error(&b, "structured");
 
     let missing = temp_dir("npymissing").join("none.npy");
     assert!(matches!(
