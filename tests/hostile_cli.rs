@@ -441,6 +441,9 @@ impl Fixtures {
 
         // Points files.
         add("nan_points.npy", npy_f32(&[0.0, f32::NAN, 0.0], "(1, 3)"));
+        let beyond_f32 = [0.0, 1e39f64, 0.0];
+        let bytes = beyond_f32.iter().flat_map(|v| v.to_le_bytes());
+        add("beyond_f32_points.npy", npy_of("<f8", bytes, "(1, 3)"));
         add("garbage.npy", b"not an npy file".to_vec());
         add("empty.npy", Vec::new());
 
@@ -617,7 +620,12 @@ fn safetensors_raw(header: &str, data: usize) -> Vec<u8> {
 
 /// A little-endian float32 .npy file.
 fn npy_f32(values: &[f32], shape: &str) -> Vec<u8> {
-    let mut header = format!("{{'descr': '<f4', 'fortran_order': False, 'shape': {shape}, }}");
+    npy_of("<f4", values.iter().flat_map(|v| v.to_le_bytes()), shape)
+}
+
+/// A little-endian .npy file of type `descr` holding `data`.
+fn npy_of(descr: &str, data: impl IntoIterator<Item = u8>, shape: &str) -> Vec<u8> {
+    let mut header = format!("{{'descr': '{descr}', 'fortran_order': False, 'shape': {shape}, }}");
     while (10 + header.len() + 1) % 64 != 0 {
         header.push(' ');
     }
@@ -625,9 +633,7 @@ fn npy_f32(values: &[f32], shape: &str) -> Vec<u8> {
     let mut out = b"\x93NUMPY\x01\x00".to_vec();
     out.extend_from_slice(&(header.len() as u16).to_le_bytes());
     out.extend_from_slice(header.as_bytes());
-    for v in values {
-        out.extend_from_slice(&v.to_le_bytes());
-    }
+    out.extend(data);
     out
 }
 
@@ -1490,6 +1496,13 @@ fn cases() -> Vec<Case> {
             "sdf",
             &["cube.obj", "--points", "nan_points.npy", "--out", "d.npy"],
             Error("not finite"),
+        ),
+        // A float64 point f32 cannot hold, named as the file gives it.
+        case(
+            "points beyond float32",
+            "sdf",
+            &["cube.obj", "--points", "beyond_f32_points.npy", "--out", "d.npy"],
+            Error("point 0 is too far from the mesh for float32: [0, 1000000000000000000000000000000000000000, 0]"),
         ),
         case(
             "points garbage",

@@ -89,12 +89,21 @@ fn run(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
     };
     let points: Vec<Vec3> = read.iter().map(|&p| (p - origin).as_vec3()).collect();
     if let Some(i) = points.iter().position(|p| !p.is_finite()) {
+        // Named as read: 1e39 is a number in the file, infinite only in float32.
+        let p = read[i];
+        let why = if p.is_finite() {
+            "too far from the mesh for float32"
+        } else {
+            "not finite"
+        };
         return Err(GeomError::Npy {
             path: args.points.clone(),
-            message: format!("point {i} is not finite: {:?}", read[i].as_vec3()),
+            message: format!("point {i} is {why}: [{}, {}, {}]", p.x, p.y, p.z),
         }
         .into());
     }
+    // Only the f32 points are labelled: the f64 ones (24 bytes each) go before the labelling.
+    drop(read);
     let sdf = std::sync::Arc::new(SignedDistance::new(&mesh).map_err(in_mesh)?);
     let device = args.ground_truth.device();
     // `cpu` opens no GPU; `auto` without a usable one labels on the CPU.
