@@ -133,16 +133,18 @@ pub fn check_eval_points(flag: &str, points: usize) -> Result<(), RunError> {
     })
 }
 
-/// Errors when `path`, given by `flag`, names another format than the `format` a command writes
-/// (extension `ext`, lower case, no dot): `extract --out mesh.ply` wrote OBJ text under a name
-/// PLY readers refuse, and `load_mesh` then read it as what its name says. Any case of `ext`
-/// passes, and so does a name without an extension.
+/// Errors when `path`, given by `flag`, is named for another known format than the `format` a
+/// command writes (extension `ext`, lower case, no dot): `extract --out mesh.ply` wrote OBJ text
+/// under a name PLY readers refuse, and `load_mesh` then read it as what its name says. Names
+/// ending in `ext` (any case), in no extension, or in one no format here goes by (`d.npy.out`,
+/// a `mktemp` name) pass.
 ///
 /// ```
 /// use std::path::Path;
 /// use hwsdf::cli::check_out_format;
 /// assert!(check_out_format("--out", Path::new("spot.OBJ"), "obj", "OBJ").is_ok());
 /// assert!(check_out_format("--out", Path::new("spot"), "obj", "OBJ").is_ok());
+/// assert!(check_out_format("--out", Path::new("/tmp/tmp.Xf3kQ9"), "obj", "OBJ").is_ok());
 /// let e = check_out_format("--out", Path::new("spot.ply"), "obj", "OBJ").unwrap_err();
 /// assert_eq!(e, "--out spot.ply: this writes OBJ; give the file the extension .obj");
 /// ```
@@ -152,8 +154,51 @@ pub fn check_out_format(
     ext: &str,
     format: &str,
 ) -> Result<(), String> {
-    match path.extension() {
-        Some(e) if !e.to_str().is_some_and(|e| e.eq_ignore_ascii_case(ext)) => Err(format!(
+    /// Extensions of formats that a user may mean instead (meshes, images, arrays, tables,
+    /// models): a name ending in one of them, not `ext`, is refused.
+    const KNOWN: &[&str] = &[
+        "obj",
+        "ply",
+        "stl",
+        "off",
+        "glb",
+        "gltf",
+        "fbx",
+        "dae",
+        "3mf",
+        "usd",
+        "usdz",
+        "png",
+        "jpg",
+        "jpeg",
+        "bmp",
+        "gif",
+        "tga",
+        "tif",
+        "tiff",
+        "webp",
+        "exr",
+        "hdr",
+        "npy",
+        "npz",
+        "csv",
+        "txt",
+        "json",
+        "toml",
+        "yaml",
+        "yml",
+        "safetensors",
+        "pt",
+        "pth",
+        "onnx",
+        "h5",
+    ];
+    let named = path
+        .extension()
+        .and_then(|e| e.to_str())
+        .map(str::to_ascii_lowercase);
+    match named {
+        Some(e) if e != ext && KNOWN.contains(&e.as_str()) => Err(format!(
             "{flag} {}: this writes {format}; give the file the extension .{ext}",
             path.display()
         )),
