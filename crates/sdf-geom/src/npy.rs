@@ -63,7 +63,47 @@ fn dict_value<'a>(h: &'a str, key: &str) -> Option<&'a str> {
     found
 }
 
+/// Errors unless the header's text outside its strings is what a dict of strings, booleans,
+/// numbers and tuples is made of, with no two strings side by side. numpy reads the header with
+/// Python's `literal_eval`, which also takes comments (`# 'descr': '<f4'`), adjacent strings that
+/// join (`'des' 'cr'`) and triple quotes: read otherwise here, a crafted header gave another
+/// dtype than numpy's. Those are refused.
+fn check_header_text(path: &Path, h: &str) -> Result<(), GeomError> {
+    let b = h.as_bytes();
+    let mut i = 0;
+    // Whether the last thing outside whitespace was a string.
+    let mut after_string = false;
+    while i < b.len() {
+        match b[i] {
+            quote @ (b'\'' | b'"') => {
+                if after_string {
+                    return Err(bad(
+                        path,
+                        "header has strings side by side (or triple quotes)",
+                    ));
+                }
+                i += 1;
+                while i < b.len() && b[i] != quote {
+                    i += if b[i] == b'\\' { 2 } else { 1 };
+                }
+                after_string = true;
+            }
+            c if c.is_ascii_whitespace() => {}
+            c if c.is_ascii_alphanumeric() || b"{}[](),:_.+-".contains(&c) => after_string = false,
+            c => {
+                return Err(bad(
+                    path,
+                    format!("header has {:?} outside its strings", char::from(c)),
+                ));
+            }
+        }
+        i += 1;
+    }
+    Ok(())
+}
+
 fn parse_header(path: &Path, h: &str) -> Result<Header, GeomError> {
+    check_header_text(path, h)?;
     let descr_v = dict_value(h, "descr").ok_or_else(|| bad(path, "header has no 'descr'"))?;
     let q = descr_v.chars().next().unwrap_or(' ');
     if q != '\'' && q != '"' {

@@ -487,7 +487,16 @@ fn gltf_buffer_uris_stay_in_the_assets_folder() {
         // or not (a missing-buffer error for one and a refusal for the other told which files
         // outside exist).
         std::os::unix::fs::symlink(&root, inside.join("out")).unwrap();
-        for uri in ["out/secret.bin", "out/no-such.bin", "out/none/deeper.bin"] {
+        // Dangling links too, to a file or a folder that is not there.
+        std::os::unix::fs::symlink(root.join("no-such.bin"), inside.join("gone.bin")).unwrap();
+        std::os::unix::fs::symlink(root.join("no-such"), inside.join("gone")).unwrap();
+        for uri in [
+            "out/secret.bin",
+            "out/no-such.bin",
+            "out/none/deeper.bin",
+            "gone.bin",
+            "gone/x.bin",
+        ] {
             let p = write(&inside, "out.gltf", gltf(uri));
             let err = load_mesh(&p).unwrap_err();
             assert!(

@@ -123,7 +123,11 @@ fn bad_npy_files_get_clear_errors() {
     let mut b = b"\x93NUMPY\x09\x00".to_vec();
     b.extend([0u8; 10]);
     expect_npy_error(&b, "version");
-    let mut b = header("[('x', '<f4')]", false, "(1, 3)");
+    // A structured dtype, as numpy writes it (a list, not a string).
+    let h = "{'descr': [('x', '<f4')], 'fortran_order': False, 'shape': (1, 3), }\n";
+    let mut b = b"\x93NUMPY\x01\x00".to_vec();
+    b.extend((h.len() as u16).to_le_bytes());
+    b.extend(h.as_bytes());
     b.extend([0u8; 12]);
     expect_npy_error(&b, "dtype");
     // A structured dtype whose field name holds `'descr': '<f4'` (numpy writes its repr as
@@ -135,6 +139,28 @@ fn bad_npy_files_get_clear_errors() {
     b.extend(h.as_bytes());
     b.extend([0u8; 48]);
     expect_npy_error(&b, "structured");
+    // What Python's literal_eval (numpy's reader) joins or skips: each header below is a
+    // float64 array for numpy; refused rather than read another way.
+    for (h, says) in [
+        (
+            "{'descr': '<f8', # 'descr': '<f4',\n 'fortran_order': False, 'shape': (2, 3), }\n",
+            "'#' outside",
+        ),
+        (
+            "{'descr': '<f4', 'des' 'cr': '<f8', 'fortran_order': False, 'shape': (2, 3), }\n",
+            "side by side",
+        ),
+        (
+            "{'descr': '<f4', '''descr''': '<f8', 'fortran_order': False, 'shape': (2, 3), }\n",
+            "side by side",
+        ),
+    ] {
+        let mut b = b"\x93NUMPY\x01\x00".to_vec();
+        b.extend((h.len() as u16).to_le_bytes());
+        b.extend(h.as_bytes());
+        b.extend([0u8; 48]);
+        expect_npy_error(&b, says);
+    }
 
     let missing = temp_dir("npymissing").join("none.npy");
     assert!(matches!(

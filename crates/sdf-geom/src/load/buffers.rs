@@ -266,7 +266,7 @@ fn resolve_uri(
 
 /// `file`, a path lexically inside `dir`, through symbolic links: `Some(Some(real))` for a file
 /// that exists inside `dir`, `Some(None)` for a missing one whose deepest existing part is inside
-/// (or a folder that does not resolve), `None` where a link takes it out. The deepest existing
+/// (or a folder that does not resolve), `None` where a link takes it out or does not resolve. The deepest existing
 /// part decides, so that a link out of the folder is refused whether or not its target exists:
 /// told apart, "refused" and "missing" would say which files outside exist.
 pub(super) fn resolve_inside(dir: &Path, file: &Path) -> Option<Option<PathBuf>> {
@@ -277,6 +277,9 @@ pub(super) fn resolve_inside(dir: &Path, file: &Path) -> Option<Option<PathBuf>>
     let real = loop {
         match existing.canonicalize() {
             Ok(real) => break real,
+            // A link that does not resolve (dangling, a loop) points wherever it points: refused
+            // whatever is there, or "missing" would say that nothing is.
+            Err(_) if existing.symlink_metadata().is_ok_and(|m| m.is_symlink()) => return None,
             Err(_) => match existing.parent() {
                 Some(parent) => existing = parent,
                 None => return Some(None),
