@@ -1722,6 +1722,72 @@ fn obj_groups_do_not_multiply_the_vertices() {
     assert_eq!(mesh.triangles.len(), 1, "{report:?}");
 }
 
+/// What the specification asks of writers and the loader does without: a POSITION accessor
+/// without `min` and `max` loads (with a warning), and a primitive without POSITION is skipped
+/// (with a warning) while the mesh's other primitives load. Either failed the whole file.
+#[test]
+fn gltf_without_position_bounds_or_positions_load() {
+    let dir = temp_dir("glenient");
+    let uri = data_uri(&cube_buffer(&[]));
+    let idx = r#"{"bufferView":1,"componentType":5125,"count":36,"type":"SCALAR"}"#;
+    let unbounded = r#"{"bufferView":0,"componentType":5126,"count":8,"type":"VEC3"}"#;
+    let json = doc(
+        &uri,
+        cube_buffer(&[]).len(),
+        CUBE_VIEWS,
+        &format!("{unbounded},{idx}"),
+        Some(1),
+        r#"{"mesh":0}"#,
+        "0",
+    );
+    let (mesh, report) = load_mesh(write(&dir, "unbounded.gltf", json)).unwrap();
+    assert_eq!(mesh.triangles.len(), 12);
+    assert!(
+        report
+            .warnings
+            .iter()
+            .any(|w| w.contains("bounds (min, max) missing")),
+        "{report:?}"
+    );
+    // A second primitive with no POSITION beside the cube's.
+    let json = doc(
+        &uri,
+        cube_buffer(&[]).len(),
+        CUBE_VIEWS,
+        &format!("{POS},{idx}"),
+        Some(1),
+        r#"{"mesh":0}"#,
+        "0",
+    )
+    .replace(
+        r#""indices":1}]"#,
+        r#""indices":1},{"attributes":{"NORMAL":0},"indices":1}]"#,
+    );
+    let (mesh, report) = load_mesh(write(&dir, "no-position.gltf", json)).unwrap();
+    assert_eq!(mesh.triangles.len(), 12);
+    assert!(
+        report
+            .warnings
+            .iter()
+            .any(|w| w.contains("has no POSITION attribute (skipped)")),
+        "{report:?}"
+    );
+    // Other findings of the validation stay errors.
+    let json = doc(
+        &uri,
+        cube_buffer(&[]).len(),
+        CUBE_VIEWS,
+        &format!("{POS},{idx}"),
+        Some(1),
+        r#"{"mesh":7}"#,
+        "0",
+    );
+    assert!(matches!(
+        load_mesh(write(&dir, "bad-mesh.gltf", json)),
+        Err(GeomError::Parse { .. })
+    ));
+}
+
 /// Node transforms keep the file's f64 digits: two parts placed at x = 6 378 137.1 and .4 (an
 /// Earth-centred survey coordinate) stay 0.3 apart, by translation or by matrix. `gltf` reads
 /// them as f32, which put the parts at .0 and .5.

@@ -74,7 +74,7 @@ pub(super) fn load_gltf(
     } else {
         (bytes, None)
     };
-    let (doc, fallbacks) = document(path, json_bytes)?;
+    let (doc, fallbacks, lenient) = document(path, json_bytes)?;
 
     let mut out = Merged {
         report: LoadReport {
@@ -83,6 +83,7 @@ pub(super) fn load_gltf(
         },
         ..Default::default()
     };
+    out.report.warnings.extend(lenient);
     for what in fallbacks {
         out.report.warnings.push(format!(
             "the file also holds its geometry without {what}, which is not supported: that \
@@ -142,12 +143,12 @@ pub(super) fn load_gltf(
 }
 
 /// The glTF document in `json_bytes`, after the checks `gltf` leaves out or gets wrong (the
-/// extensions, the POSITION accessors), and the compression extensions whose uncompressed
-/// fallback is read instead.
+/// extensions, the POSITION accessors), the compression extensions whose uncompressed fallback
+/// is read instead, and the warnings of its lenient validation ([`validate`]).
 fn document(
     path: &Path,
     json_bytes: &[u8],
-) -> Result<(gltf::Document, Vec<&'static str>), GeomError> {
+) -> Result<(gltf::Document, Vec<&'static str>, Vec<String>), GeomError> {
     let mut root: gltf::json::Root = gltf::json::deserialize::from_slice(json_bytes)
         .map_err(|e| parse_error(path, format!("bad glTF JSON: {e}")))?;
     let fallbacks = compression_fallbacks(path, &root)?;
@@ -174,8 +175,55 @@ fn document(
             }
         }
     }
-    let doc = gltf::Document::from_json(root).map_err(|e| parse_error(path, e.to_string()))?;
-    Ok((doc, fallbacks))
+    let lenient = validate(path, &root)?;
+    let doc = gltf::Document::from_json_without_validation(root);
+    Ok((doc, fallbacks, lenient))
+}
+
+/// `gltf`'s validation of `root`, but for what the specification asks of writers and this loader
+/// does without, which exporters leave out: a POSITION accessor's `min` and `max` (the points
+/// are measured as they are read), and a primitive's POSITION (the specification lets a loader
+/// skip such a primitive, as [`add_gltf_mesh`] does). Either failed the whole file. Returns the
+/// warnings for what was let through; any other finding is an error.
+fn validate(path: &Path, root: &gltf::json::Root) -> Result<Vec<String>, GeomError> {
+    use gltf::json::validation::{Error, Validate};
+    let mut findings = Vec::new();
+    root.validate(root, gltf::json::Path::new, &mut |p, e| {
+        findings.push((p(), e))
+    });
+    let lenient = |p: &gltf::json::Path, e: &Error| {
+        let p = p.as_str();
+        matches!(e, Error::Missing)
+            && p.starts_with("meshes[")
+            && [
+                ".attributes[\"POSITION\"]",
+                ".attributes[\"POSITION\"].min",
+                ".attributes[\"POSITION\"].max",
+            ]
+            .iter()
+            .any(|end| p.ends_with(end))
+    };
+    let (let_through, errors): (Vec<_>, Vec<_>) =
+        findings.into_iter().partition(|(p, e)| lenient(p, e));
+    if !errors.is_empty() {
+        return Err(parse_error(
+            path,
+            gltf::Error::Validation(errors).to_string(),
+        ));
+    }
+    let bounds = let_through
+        .iter()
+        .filter(|(p, _)| !p.as_str().ends_with(']'))
+        .count();
+    Ok((bounds > 0)
+        .then(|| {
+            format!(
+                "{bounds} POSITION accessor bounds (min, max) missing, as the glTF specification \
+                 requires them (ignored: the points are measured)"
+            )
+        })
+        .into_iter()
+        .collect())
 }
 
 /// Compressed geometry we cannot decode. Listed as used but not required, the file must also
