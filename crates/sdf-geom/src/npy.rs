@@ -63,39 +63,58 @@ fn dict_value<'a>(h: &'a str, key: &str) -> Option<&'a str> {
     found
 }
 
-/// Errors unless the header's text outside its strings is what a dict of strings, booleans,
-/// numbers and tuples is made of, with no two strings side by side. numpy reads the header with
-/// Python's `literal_eval`, which also takes comments (`# 'descr': '<f4'`), adjacent strings that
-/// join (`'des' 'cr'`) and triple quotes: read otherwise here, a crafted header gave another
-/// dtype than numpy's. Those are refused.
+/// Errors unless the header is a plain dict literal: its keys plain quoted strings, its values
+/// strings, booleans, numbers, lists and tuples, with no two strings side by side and no escapes.
+/// numpy reads the header with Python's `literal_eval`, which also takes comments
+/// (`# 'descr': '<f4'`), adjacent strings that join (`'des' 'cr'`, `'des' u'cr'`, triple quotes),
+/// escapes (`'desc\x72'`) and keys in parentheses (`('descr')`): read otherwise here, a crafted
+/// header gave another dtype or shape than numpy's. No writer emits those; they are refused.
 fn check_header_text(path: &Path, h: &str) -> Result<(), GeomError> {
+    let refuse = |what: &str| Err(bad(path, format!("header {what}")));
     let b = h.as_bytes();
-    let mut i = 0;
-    // Whether the last thing outside whitespace was a string.
-    let mut after_string = false;
+    let (mut i, mut depth) = (0, 0usize);
+    // Whether the last thing outside whitespace was a string, and whether a key of the dict
+    // (a plain string) or its end comes next.
+    let (mut after_string, mut key_next) = (false, false);
     while i < b.len() {
-        match b[i] {
+        let c = b[i];
+        let known = c.is_ascii_alphanumeric() || b"'\"{}[](),:_.+-".contains(&c);
+        if !known && !c.is_ascii_whitespace() {
+            return refuse(&format!("has {:?} outside its strings", char::from(c)));
+        }
+        let key_or_end = matches!(c, b'\'' | b'"' | b'}') || c.is_ascii_whitespace();
+        if key_next && depth == 1 && !key_or_end {
+            return refuse("has a key that is not a plain string");
+        }
+        match c {
             quote @ (b'\'' | b'"') => {
                 if after_string {
-                    return Err(bad(
-                        path,
-                        "header has strings side by side (or triple quotes)",
-                    ));
+                    return refuse("has strings side by side (or triple quotes)");
+                }
+                if i > 0 && (b[i - 1].is_ascii_alphanumeric() || b[i - 1] == b'_') {
+                    return refuse("has a prefixed string");
                 }
                 i += 1;
                 while i < b.len() && b[i] != quote {
-                    i += if b[i] == b'\\' { 2 } else { 1 };
+                    if b[i] == b'\\' {
+                        return refuse("has an escape in a string");
+                    }
+                    i += 1;
                 }
-                after_string = true;
+                (after_string, key_next) = (true, false);
             }
             c if c.is_ascii_whitespace() => {}
-            c if c.is_ascii_alphanumeric() || b"{}[](),:_.+-".contains(&c) => after_string = false,
-            c => {
-                return Err(bad(
-                    path,
-                    format!("header has {:?} outside its strings", char::from(c)),
-                ));
+            b'{' | b'[' | b'(' => {
+                depth += 1;
+                (after_string, key_next) = (false, c == b'{' && depth == 1);
             }
+            b'}' | b']' | b')' => {
+                depth = depth.saturating_sub(1);
+                (after_string, key_next) = (false, false);
+            }
+            b',' => (after_string, key_next) = (false, depth == 1),
+            // The rest of the known bytes: letters, digits and `:_.+-`.
+            _ => (after_string, key_next) = (false, false),
         }
         i += 1;
     }

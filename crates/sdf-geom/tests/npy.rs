@@ -154,6 +154,18 @@ fn bad_npy_files_get_clear_errors() {
             "{'descr': '<f4', '''descr''': '<f8', 'fortran_order': False, 'shape': (2, 3), }\n",
             "side by side",
         ),
+        (
+            "{'descr': '<f4', 'des' u'cr': '<f8', 'fortran_order': False, 'shape': (2, 3), }\n",
+            "prefixed",
+        ),
+        (
+            "{'descr': '<f4', 'desc\\x72': '<f8', 'fortran_order': False, 'shape': (2, 3), }\n",
+            "escape",
+        ),
+        (
+            "{'descr': '<f4', ('descr'): '<f8', 'fortran_order': False, 'shape': (2, 3), }\n",
+            "not a plain string",
+        ),
     ] {
         let mut b = b"\x93NUMPY\x01\x00".to_vec();
         b.extend((h.len() as u16).to_le_bytes());
