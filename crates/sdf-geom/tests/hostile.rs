@@ -1730,58 +1730,37 @@ fn gltf_without_position_bounds_or_positions_load() {
     let dir = temp_dir("glenient");
     let uri = data_uri(&cube_buffer(&[]));
     let idx = r#"{"bufferView":1,"componentType":5125,"count":36,"type":"SCALAR"}"#;
+    let cube = |position: &str, nodes: &str| {
+        let accessors = format!("{position},{idx}");
+        let len = cube_buffer(&[]).len();
+        doc(&uri, len, CUBE_VIEWS, &accessors, Some(1), nodes, "0")
+    };
+    let loads_saying = |name: &str, json: String, warning: &str| {
+        let (mesh, report) = load_mesh(write(&dir, name, json)).unwrap();
+        assert_eq!(mesh.triangles.len(), 12);
+        assert!(
+            report.warnings.iter().any(|w| w.contains(warning)),
+            "{name}: {report:?}"
+        );
+    };
     let unbounded = r#"{"bufferView":0,"componentType":5126,"count":8,"type":"VEC3"}"#;
-    let json = doc(
-        &uri,
-        cube_buffer(&[]).len(),
-        CUBE_VIEWS,
-        &format!("{unbounded},{idx}"),
-        Some(1),
-        r#"{"mesh":0}"#,
-        "0",
-    );
-    let (mesh, report) = load_mesh(write(&dir, "unbounded.gltf", json)).unwrap();
-    assert_eq!(mesh.triangles.len(), 12);
-    assert!(
-        report
-            .warnings
-            .iter()
-            .any(|w| w.starts_with("1 POSITION accessors without bounds")),
-        "{report:?}"
+    loads_saying(
+        "unbounded.gltf",
+        cube(unbounded, r#"{"mesh":0}"#),
+        "1 POSITION accessors without bounds",
     );
     // A second primitive with no POSITION beside the cube's.
-    let json = doc(
-        &uri,
-        cube_buffer(&[]).len(),
-        CUBE_VIEWS,
-        &format!("{POS},{idx}"),
-        Some(1),
-        r#"{"mesh":0}"#,
-        "0",
-    )
-    .replace(
+    let json = cube(POS, r#"{"mesh":0}"#).replace(
         r#""indices":1}]"#,
         r#""indices":1},{"attributes":{"NORMAL":0},"indices":1}]"#,
     );
-    let (mesh, report) = load_mesh(write(&dir, "no-position.gltf", json)).unwrap();
-    assert_eq!(mesh.triangles.len(), 12);
-    assert!(
-        report
-            .warnings
-            .iter()
-            .any(|w| w.contains("has no POSITION attribute (skipped)")),
-        "{report:?}"
+    loads_saying(
+        "no-position.gltf",
+        json,
+        "has no POSITION attribute (skipped)",
     );
     // Other findings of the validation stay errors.
-    let json = doc(
-        &uri,
-        cube_buffer(&[]).len(),
-        CUBE_VIEWS,
-        &format!("{POS},{idx}"),
-        Some(1),
-        r#"{"mesh":7}"#,
-        "0",
-    );
+    let json = cube(POS, r#"{"mesh":7}"#);
     assert!(matches!(
         load_mesh(write(&dir, "bad-mesh.gltf", json)),
         Err(GeomError::Parse { .. })
