@@ -677,11 +677,13 @@ impl<'g> NglodTrainer<'g> {
                     steps_done,
                     should_stop,
                 )?;
-                if let Some(b) = run.plans_length(config, report.length_plans) {
-                    report.length_plans += 1;
-                    let elapsed = start.elapsed().as_secs_f64();
-                    let pace = run.whole_epoch_seconds(elapsed - epoch_began);
-                    end_epoch = b.epochs(first_epoch + epochs, e + 1, elapsed, pace);
+                let elapsed = start.elapsed().as_secs_f64();
+                let plans = &mut report.length_plans;
+                let least = first_epoch + epochs;
+                if let Some(end) =
+                    run.planned_end(config, plans, least, e, elapsed, elapsed - epoch_began)
+                {
+                    end_epoch = end;
                     if pending.is_none() && schedule.due(next_block) < end_epoch {
                         pending = Some(spawn(next_block));
                     }
@@ -763,19 +765,27 @@ fn stop_requested(config: &NglodTrainConfig, start: Instant, flag: Option<&Atomi
 }
 
 impl EpochSteps {
-    /// The time budget by which a run plans its length after this epoch, `plans` plans having
-    /// been made: after each of its first two epochs (a resumed one too, which may be the last
-    /// its provisional length holds), if they ended rather than stopped.
-    fn plans_length(&self, config: &NglodTrainConfig, plans: usize) -> Option<TimeBudget> {
-        config
+    /// The run's end as the time budget plans it after this epoch, epoch `e`, `elapsed`
+    /// seconds into the run and `epoch_seconds` into the epoch: after each of the run's first
+    /// two epochs (a resumed one too, which may be the last its provisional length holds) that
+    /// ended rather than stopped, at least `least`; `plans` counts the plans made. The pace is
+    /// a whole epoch's: a resumed epoch ran only the steps its checkpoint had not, and would
+    /// look faster than it is.
+    fn planned_end(
+        &self,
+        config: &NglodTrainConfig,
+        plans: &mut usize,
+        least: usize,
+        e: usize,
+        elapsed: f64,
+        epoch_seconds: f64,
+    ) -> Option<usize> {
+        let budget = config
             .time_budget
-            .filter(|_| plans < 2 && !self.stop && self.first >= self.n && self.steps > 0)
-    }
-
-    /// What a whole epoch takes at the pace of this one, which took `seconds`: a resumed
-    /// epoch ran only the steps its checkpoint had not, and would look faster than it is.
-    fn whole_epoch_seconds(&self, seconds: f64) -> f64 {
-        seconds * self.step_in_epoch as f64 / self.steps.max(1) as f64
+            .filter(|_| *plans < 2 && !self.stop && self.first >= self.n && self.steps > 0)?;
+        *plans += 1;
+        let pace = epoch_seconds * self.step_in_epoch as f64 / self.steps as f64;
+        Some(budget.epochs(least, e + 1, elapsed, pace))
     }
 
     /// The record of this epoch, epoch `e` on `levels` levels of a run planned to `planned`

@@ -243,12 +243,13 @@ impl NglodTrainer<'_> {
                 should_stop,
             )?;
             source.placed(&epoch);
-            if let Some(b) = run.plans_length(config, report.length_plans) {
-                report.length_plans += 1;
-                let elapsed = start.elapsed().as_secs_f64();
-                let least = first_epoch + config.epochs;
-                let pace = run.whole_epoch_seconds(elapsed - epoch_began);
-                end_epoch = b.epochs(least, e + 1, elapsed, pace);
+            let elapsed = start.elapsed().as_secs_f64();
+            let plans = &mut report.length_plans;
+            let least = first_epoch + config.epochs;
+            if let Some(end) =
+                run.planned_end(config, plans, least, e, elapsed, elapsed - epoch_began)
+            {
+                end_epoch = end;
             }
             // Drawn in the epoch's first submission: no sampling or stall of its own.
             let stats = run.stats(e, lod, end_epoch - first_epoch, (0.0, 0.0));
