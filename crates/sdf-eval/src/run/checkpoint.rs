@@ -115,19 +115,21 @@ impl Checkpoint {
     /// Seconds its runs trained (`train_seconds` in the run record; 0 where absent or not a
     /// finite, non-negative number: checkpoints from before 2026-11-28 have none).
     pub fn train_seconds(&self) -> f64 {
-        self.file.metadata.training["train_seconds"]
-            .as_f64()
-            .filter(|s| s.is_finite() && *s >= 0.0)
-            .unwrap_or(0.0)
+        self.seconds("train_seconds").unwrap_or(0.0)
     }
 
     /// Seconds of its runs' time budget spent: the trainers' own time (`budget_seconds`, which
     /// the budget counts, without the setup `train_seconds` includes), else `train_seconds`.
     pub fn budget_seconds(&self) -> f64 {
-        self.file.metadata.training["budget_seconds"]
+        self.seconds("budget_seconds")
+            .unwrap_or_else(|| self.train_seconds())
+    }
+
+    /// The run record's `key`, where it is a finite, non-negative number of seconds.
+    fn seconds(&self, key: &str) -> Option<f64> {
+        self.file.metadata.training[key]
             .as_f64()
             .filter(|s| s.is_finite() && *s >= 0.0)
-            .unwrap_or_else(|| self.train_seconds())
     }
 
     /// NGLOD and the hash grid: optimiser steps done within the unfinished epoch `done()`, which a resume finishes.
