@@ -27,52 +27,20 @@ struct Header {
     shape: Vec<usize>,
 }
 
-/// Finds the value text after `'key':` in a Python dict literal; of a key given twice, the last
-/// (Python's rule for dict literals, so what `numpy.load` reads). Only the dict's own keys count:
-/// a string elsewhere (a structured dtype's field named `x', 'descr': '<f4`) is skipped whole,
-/// where a search of the text had read that file's float64 fields as float32.
-fn dict_value<'a>(h: &'a str, key: &str) -> Option<&'a str> {
-    let b = h.as_bytes();
-    let (mut i, mut depth, mut found) = (0, 0usize, None);
-    while i < b.len() {
-        match b[i] {
-            b'{' | b'[' | b'(' => depth += 1,
-            b'}' | b']' | b')' => depth = depth.saturating_sub(1),
-            quote @ (b'\'' | b'"') => {
-                // A string literal, its escapes skipped: quotes are ASCII, so `end` (a quote or
-                // the end) is a character boundary.
-                let start = i + 1;
-                let mut end = start;
-                while end < b.len() && b[end] != quote {
-                    end += if b[end] == b'\\' { 2 } else { 1 };
-                }
-                let end = end.min(b.len());
-                if depth == 1 && &h[start..end] == key {
-                    let rest = h[(end + 1).min(h.len())..].trim_start();
-                    if let Some(value) = rest.strip_prefix(':') {
-                        found = Some(value.trim_start());
-                    }
-                }
-                i = end + 1;
-                continue;
-            }
-            _ => {}
-        }
-        i += 1;
-    }
-    found
-}
-
-/// Errors unless the header is a plain dict literal: its keys plain quoted strings, its values
-/// strings, booleans, numbers, lists and tuples, with no two strings side by side and no escapes.
-/// numpy reads the header with Python's `literal_eval`, which also takes comments
-/// (`# 'descr': '<f4'`), adjacent strings that join (`'des' 'cr'`, `'des' u'cr'`, triple quotes),
-/// escapes (`'desc\x72'`) and keys in parentheses (`('descr')`): read otherwise here, a crafted
-/// header gave another dtype or shape than numpy's. No writer emits those; they are refused.
-fn check_header_text(path: &Path, h: &str) -> Result<(), GeomError> {
+/// The header's dict entries, `(key, the text after its colon)` in order, once the header is
+/// found to be a plain dict literal: its keys plain quoted strings, its values strings,
+/// booleans, numbers, lists and tuples, with no two strings side by side and no escapes. numpy
+/// reads the header with Python's `literal_eval`, which also takes comments (`# 'descr': '<f4'`),
+/// adjacent strings that join (`'des' 'cr'`, `'des' u'cr'`, triple quotes), escapes
+/// (`'desc\x72'`) and keys in parentheses (`('descr')`): read otherwise here, a crafted header
+/// gave another dtype or shape than numpy's. No writer emits those; they are refused. Only the
+/// dict's own keys are entries: a string elsewhere (a structured dtype's field named
+/// `x', 'descr': '<f4`) is not, where a search of the text had read that file's float64 fields
+/// as float32.
+fn header_entries<'a>(path: &Path, h: &'a str) -> Result<Vec<(&'a str, &'a str)>, GeomError> {
     let refuse = |what: &str| Err(bad(path, format!("header {what}")));
     let b = h.as_bytes();
-    let (mut i, mut depth) = (0, 0usize);
+    let (mut i, mut depth, mut entries) = (0, 0usize, Vec::new());
     // Whether the last thing outside whitespace was a string, and whether a key of the dict
     // (a plain string) or its end comes next.
     let (mut after_string, mut key_next) = (false, false);
@@ -94,12 +62,18 @@ fn check_header_text(path: &Path, h: &str) -> Result<(), GeomError> {
                 if i > 0 && (b[i - 1].is_ascii_alphanumeric() || b[i - 1] == b'_') {
                     return refuse("has a prefixed string");
                 }
-                i += 1;
+                // Quotes are ASCII, so `start` and the closing quote are character boundaries.
+                let start = i + 1;
+                i = start;
                 while i < b.len() && b[i] != quote {
                     if b[i] == b'\\' {
                         return refuse("has an escape in a string");
                     }
                     i += 1;
+                }
+                let value = h[(i + 1).min(h.len())..].trim_start().strip_prefix(':');
+                if let (true, Some(value)) = (key_next, value) {
+                    entries.push((&h[start..i], value.trim_start()));
                 }
                 (after_string, key_next) = (true, false);
             }
@@ -118,12 +92,15 @@ fn check_header_text(path: &Path, h: &str) -> Result<(), GeomError> {
         }
         i += 1;
     }
-    Ok(())
+    Ok(entries)
 }
 
 fn parse_header(path: &Path, h: &str) -> Result<Header, GeomError> {
-    check_header_text(path, h)?;
-    let descr_v = dict_value(h, "descr").ok_or_else(|| bad(path, "header has no 'descr'"))?;
+    let entries = header_entries(path, h)?;
+    // Of a key given twice, the last: Python's rule for dict literals, so what `numpy.load`
+    // reads.
+    let dict_value = |key: &str| entries.iter().rev().find(|e| e.0 == key).map(|e| e.1);
+    let descr_v = dict_value("descr").ok_or_else(|| bad(path, "header has no 'descr'"))?;
     let q = descr_v.chars().next().unwrap_or(' ');
     if q != '\'' && q != '"' {
         return Err(bad(
@@ -133,7 +110,7 @@ fn parse_header(path: &Path, h: &str) -> Result<Header, GeomError> {
     }
     let descr: String = descr_v[1..].chars().take_while(|&c| c != q).collect();
     let fortran_v =
-        dict_value(h, "fortran_order").ok_or_else(|| bad(path, "header has no 'fortran_order'"))?;
+        dict_value("fortran_order").ok_or_else(|| bad(path, "header has no 'fortran_order'"))?;
     let fortran = if fortran_v.starts_with("True") {
         true
     } else if fortran_v.starts_with("False") {
@@ -141,7 +118,7 @@ fn parse_header(path: &Path, h: &str) -> Result<Header, GeomError> {
     } else {
         return Err(bad(path, "bad 'fortran_order' value"));
     };
-    let shape_v = dict_value(h, "shape").ok_or_else(|| bad(path, "header has no 'shape'"))?;
+    let shape_v = dict_value("shape").ok_or_else(|| bad(path, "header has no 'shape'"))?;
     let inner = shape_v
         .strip_prefix('(')
         .and_then(|s| s.split_once(')'))
@@ -179,9 +156,7 @@ pub fn read_points(path: impl AsRef<Path>) -> Result<Vec<Vec3>, GeomError> {
 /// Parses `.npy` bytes (see [`read_points`]); `path` is only used in error messages.
 pub fn parse_points(path: &Path, bytes: &[u8]) -> Result<Vec<Vec3>, GeomError> {
     let table = Table::parse(path, bytes, 3)?;
-    Ok((0..table.rows)
-        .map(|r| Vec3::from_array([0, 1, 2].map(|c| table.value(r, c) as f32)))
-        .collect())
+    Ok((0..table.rows).map(|r| table.point(r).as_vec3()).collect())
 }
 
 /// [`read_points`] keeping float64 input in f64 (float32 input is widened exactly): points far
@@ -200,9 +175,7 @@ pub fn read_points_f64(path: impl AsRef<Path>) -> Result<Vec<DVec3>, GeomError> 
 /// the file's size (a 2 GiB file of float32 points, 10 GiB) before any check.
 pub fn parse_points_f64(path: &Path, bytes: &[u8]) -> Result<Vec<DVec3>, GeomError> {
     let table = Table::parse(path, bytes, 3)?;
-    Ok((0..table.rows)
-        .map(|r| DVec3::new(table.value(r, 0), table.value(r, 1), table.value(r, 2)))
-        .collect())
+    Ok((0..table.rows).map(|r| table.point(r)).collect())
 }
 
 /// Reads an `(N, columns)` float32 or float64 `.npy` file (C or Fortran order) as `N · columns`
@@ -315,6 +288,11 @@ impl<'a> Table<'a> {
             big_endian,
             fortran: header.fortran,
         })
+    }
+
+    /// Row `row` (in range) of a table of three columns, as a point.
+    fn point(&self, row: usize) -> DVec3 {
+        DVec3::new(self.value(row, 0), self.value(row, 1), self.value(row, 2))
     }
 
     /// The value at `row`, `column` (both in range), widened to f64.
