@@ -712,7 +712,7 @@ impl Scene {
         let q = normalization.to_normalized_f64(placed.to_local(p));
         // Scene units → the model's mesh units → its normalised units.
         let gap_normalized = gap / placed.scale * normalization.scale as f64;
-        local.bound(q, gap_normalized as f32).max(1.0) as f64
+        local.bound(q, gap_normalized as f32) as f64
     }
 
     /// Runs the program at point `p` (number `i` of the batch whose model values are `models`).

@@ -213,7 +213,9 @@ pub const LOCAL_CELLS: usize = 8;
 /// `|Φ − c| / L` around a point holds no crossing of the level `c` if it lies inside the cell
 /// (or the block of 3³ cells) whose bound `L` is: [`LocalLipschitz::bound`] takes the cell's
 /// where its ball fits, else the block's where its ball fits, else the model's estimate. A ball
-/// free of the crossing is what the tracer's steps, cones and over-relaxation rely on.
+/// free of the crossing is what the tracer's steps, cones and over-relaxation rely on. Every
+/// bound it holds is at least 1 (whichever way it was made), as the scene steps by no bound
+/// below: the CPU tracer and the GPU's tables use them as they are.
 #[derive(Clone, Debug, PartialEq)]
 pub struct LocalLipschitz {
     /// Per cell (x major, then y, then z).
@@ -285,8 +287,9 @@ impl LocalLipschitz {
     /// model's bound, which also holds outside the box, is `√(1 + bound²)`: there the served
     /// distance is the network's at the clamped point plus the distance to the box, whose slope
     /// reaches `√(1 + T²)` for a gradient `T ≤ bound` along the box's face. The cells and blocks
-    /// hold at least 1, as every bound the scene steps by does (the GPU's tables are clamped so):
-    /// a bound below 1 tested its balls smaller on the CPU, whose steps then differed.
+    /// hold at least 1, as every bound the scene steps by does (a bound below 1 had the CPU test
+    /// its balls smaller than the GPU's tables, clamped then, and the two tracers' steps
+    /// differed).
     pub fn uniform(bound: f32) -> Self {
         let cells = LOCAL_CELLS * LOCAL_CELLS * LOCAL_CELLS;
         LocalLipschitz {

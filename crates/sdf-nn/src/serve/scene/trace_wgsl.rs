@@ -91,13 +91,14 @@ impl Scene {
         }
     }
 
-    /// Model `m`'s local Lipschitz tables as uploaded: the cells' bounds, then the blocks'
-    /// (at least 1, as [`Scene::leaf_lipschitz`] clamps the estimate).
+    /// Model `m`'s local Lipschitz tables as uploaded: the cells' bounds, then the blocks' (each
+    /// at least 1, as [`LocalLipschitz`] holds them).
+    ///
+    /// [`LocalLipschitz`]: super::lipschitz::LocalLipschitz
     pub(super) fn lipschitz_tables(&self, m: usize) -> (Vec<f32>, Vec<f32>) {
         let local = self.model_local_lipschitz(m).expect("a model of the scene");
         let (cells, blocks) = local.tables();
-        let clamp = |t: &[f32]| t.iter().map(|b| b.max(1.0)).collect();
-        (clamp(cells), clamp(blocks))
+        (cells.to_vec(), blocks.to_vec())
     }
 
     /// `{prefix}_m{m}_floor(x)`: [`CellFloors::at`] of model `m` at the normalised point `x`
@@ -135,8 +136,7 @@ impl Scene {
         let global = self
             .model_local_lipschitz(m)
             .expect("a model of the scene")
-            .global()
-            .max(1.0);
+            .global();
         let cells = format!("{prefix}_params_{buffer}[{offset}u + i]");
         let blocks = format!(
             "{prefix}_params_{buffer}[{}u + i]",
