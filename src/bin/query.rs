@@ -96,15 +96,11 @@ fn main() -> ExitCode {
 /// to show.
 fn unit_direction(d: DVec3) -> glam::Vec3 {
     let largest = d.abs().max_element();
-    let unit = if largest.is_finite() && largest > 0.0 {
-        (d / largest).normalize_or_zero()
+    if d.is_finite() && largest > 0.0 {
+        // A component of ±1 now: the length is between 1 and √3, never 0 or ∞.
+        (d / largest).normalize().as_vec3()
     } else {
-        DVec3::ZERO
-    };
-    if unit == DVec3::ZERO {
         d.as_vec3()
-    } else {
-        unit.as_vec3()
     }
 }
 
